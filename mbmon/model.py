@@ -12,14 +12,14 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from enum import Enum
+from enum import StrEnum
 from types import MappingProxyType
 from typing import Any
 
 EMPTY: Mapping[str, Any] = MappingProxyType({})
 
 
-class Transport(str, Enum):
+class Transport(StrEnum):
     """How Modbus ADUs travel on a stream."""
 
     TCP = "tcp"  # MBAP over TCP
@@ -33,7 +33,7 @@ class Transport(str, Enum):
         return self in (Transport.RTU, Transport.RTU_OVER_TCP, Transport.RTU_OVER_UDP)
 
 
-class Direction(str, Enum):
+class Direction(StrEnum):
     """Which way bytes travel on a stream. ``BUS`` is a serial line that carries both."""
 
     C2S = "c2s"  # client/master -> server/slave (requests)
@@ -41,7 +41,7 @@ class Direction(str, Enum):
     BUS = "bus"  # unknown until decoded (one RS485 byte stream)
 
 
-class Kind(str, Enum):
+class Kind(StrEnum):
     """What one PDU is."""
 
     REQUEST = "request"
@@ -137,7 +137,7 @@ class Noise:
     reason: str
 
 
-class EventKind(str, Enum):
+class EventKind(StrEnum):
     CONNECT = "connect"  # SYN seen / client connected
     DISCONNECT = "disconnect"  # FIN or RST; info["how"] = "fin" | "rst"
     GAP = "gap"  # bytes missing in a reassembled stream; info["bytes"]
@@ -157,7 +157,7 @@ class Event:
     info: Mapping[str, Any] = field(default_factory=lambda: EMPTY)
 
 
-class TxStatus(str, Enum):
+class TxStatus(StrEnum):
     PENDING = "pending"  # a request was just seen
     ANSWERED = "answered"  # normal response matched to its request
     EXCEPTION = "exception"  # exception response matched to its request
@@ -189,7 +189,7 @@ class Transaction:
         return self.response if self.response is not None else self.request
 
 
-class Phase(str, Enum):
+class Phase(StrEnum):
     """Lifecycle of a reconstructed robot command."""
 
     WRITTEN = "written"  # parameters written to R201..R251
@@ -214,7 +214,7 @@ class CommandUpdate:
     params: Mapping[str, Any] = field(default_factory=lambda: EMPTY)
 
 
-class RecordKind(str, Enum):
+class RecordKind(StrEnum):
     REQUEST = "request"
     RESPONSE = "response"
     EXCEPTION = "exception"

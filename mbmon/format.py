@@ -1,0 +1,349 @@
+"""Text of records: the robot's monitor lines (manual Table 57), labels, generic notes, JSON.
+
+This module owns every human-readable string mbmon prints about traffic and the
+stable JSON object of ``read --json``. Events carry no text; this turns them
+into text, for the console and for every sink alike.
+
+The monitor line is the PDU only (function code + data), upper-case hex, single
+spaces: no unit id, no MBAP header, no CRC (manual §5.5, Table 57).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from mbmon.model import (
+    Direction,
+    EventKind,
+    Frame,
+    Kind,
+    Pdu,
+    Record,
+    RecordKind,
+    Stream,
+    Transport,
+)
+
+#: Function code names (Modbus Application Protocol v1.1b); kept here so that
+#: formatting never depends on the decoder's import graph.
+_FC_NAMES: dict[int, str] | None = None
+_EXC_NAMES: dict[int, str] | None = None
+
+_BIT_TABLES = {1: "coils", 2: "discrete inputs", 5: "coil", 15: "coils"}
+_MAX_VALUES_SHOWN = 16
+_MAX_NOISE_HEX = 32
+
+
+def _names() -> tuple[dict[int, str], dict[int, str]]:
+    global _FC_NAMES, _EXC_NAMES
+    if _FC_NAMES is None or _EXC_NAMES is None:
+        from mbmon.protocol.pdu import EXCEPTION_NAMES, FUNCTION_NAMES
+
+        _FC_NAMES, _EXC_NAMES = FUNCTION_NAMES, EXCEPTION_NAMES
+    return _FC_NAMES, _EXC_NAMES
+
+
+def function_name(fc: int) -> str:
+    """Public name of a function code, or ``Function 0xNN`` for user-defined/unknown codes."""
+    return _names()[0].get(fc) or f"Function 0x{fc:02X}"
+
+
+def exception_name(code: int) -> str:
+    return _names()[1].get(code) or f"Exception 0x{code:02X}"
+
+
+def monitor_hex(raw: bytes) -> str:
+    """PDU bytes as the robot's Modbus Monitor shows them: ``02 01 2C 00 05``."""
+    return raw.hex(" ").upper()
+
+
+def format_time(ts: float) -> str:
+    """Time of day in local time with microseconds, like tcpdump."""
+    whole = int(ts // 1)
+    return time.strftime("%H:%M:%S", time.localtime(whole)) + f".{int((ts - whole) * 1e6):06d}"
+
+
+# --------------------------------------------------------------------------- labels
+
+
+def _host(endpoint: str) -> str:
+    if endpoint.startswith("["):
+        return endpoint[1 : endpoint.find("]")]
+    return endpoint.rsplit(":", 1)[0] if endpoint.count(":") == 1 else endpoint
+
+
+@dataclass(frozen=True, slots=True)
+class View:
+    """Whose eyes the labels are written for.
+
+    ``robot=None`` gives neutral labels (``client → server`` with endpoints).
+    ``robot="HOST[:PORT]"`` renders the robot's own Modbus Monitor labels:
+    "Receive from client"/"Send to client" when the robot is the server,
+    "Send to server"/"Receive from server" when it is the client. For RTU the
+    robot is named by the bus name (``--robot /dev/ttyUSB0``) and is taken to
+    be the server unless ``robot_is_client``.
+    """
+
+    robot: str | None = None
+    robot_is_client: bool = False
+
+    def robot_role(self, stream: Stream | None) -> str | None:
+        """``"server"``, ``"client"`` or ``None`` (the robot is not on this stream)."""
+        if self.robot is None or stream is None:
+            return None
+        if stream.transport is Transport.RTU:
+            if self.robot in (stream.server, _host(stream.server)):
+                return "client" if self.robot_is_client else "server"
+            return None
+        for role, endpoint in (("server", stream.server), ("client", stream.client)):
+            if self.robot == endpoint:
+                return role
+            spec_has_port = (self.robot.startswith("[") and "]:" in self.robot) or (
+                not self.robot.startswith("[") and self.robot.count(":") == 1
+            )
+            if not spec_has_port and self.robot.strip("[]") == _host(endpoint):
+                return role
+        return None
+
+    def label(self, stream: Stream | None, direction: Direction) -> str:
+        role = self.robot_role(stream)
+        if role == "server":
+            return "Receive from client" if direction is Direction.C2S else "Send to client"
+        if role == "client":
+            return "Send to server" if direction is Direction.C2S else "Receive from server"
+        if stream is None:
+            return ""
+        if stream.transport is Transport.RTU:
+            return "master → slave" if direction is Direction.C2S else "slave → master"
+        return f"{stream.src(direction)} → {stream.dst(direction)}"
+
+
+# --------------------------------------------------------------------------- generic notes
+
+
+def _range(address: int, count: int | None) -> str:
+    if not count or count == 1:
+        return str(address)
+    return f"{address}..{address + count - 1}"
+
+
+def _values_text(values: tuple[int, ...] | None, bits: bool) -> str:
+    if not values:
+        return ""
+    if bits:
+        shown = "".join("1" if v else "0" for v in values[:64])
+        return shown + ("…" if len(values) > 64 else "")
+    text = ", ".join(str(v) for v in values[:_MAX_VALUES_SHOWN])
+    return text + (f", … ({len(values)} values)" if len(values) > _MAX_VALUES_SHOWN else "")
+
+
+def generic_note(pdu: Pdu, request: Pdu | None = None) -> str:
+    """Short protocol-level meaning of one PDU: name, address range, values in decimal.
+
+    A response is read with its request (``request``) for the address of a read.
+    """
+    if pdu.kind is Kind.EXCEPTION:
+        code = pdu.exception_code if pdu.exception_code is not None else 0
+        return f"Exception {code:02X} {exception_name(code)} ({function_name(pdu.fc)})"
+    name = function_name(pdu.fc)
+    fc = pdu.fc
+    bits = fc in (1, 2, 5, 15)
+    address = pdu.address
+    count = pdu.count
+    if pdu.kind is Kind.RESPONSE and fc in (1, 2, 3, 4, 0x17) and request is not None:
+        address, count = request.address, request.count
+    parts = [name]
+    if fc == 8 and "sub_function" in pdu.fields:
+        parts.append(f"sub-function {pdu.fields['sub_function']}")
+    elif address is not None:
+        parts.append(_range(address, count))
+    elif count is not None:
+        parts.append(f"count {count}")
+    text = " ".join(parts)
+    if fc == 0x16 and "and_mask" in pdu.fields:
+        text += f" and=0x{pdu.fields['and_mask']:04X} or=0x{pdu.fields['or_mask']:04X}"
+    if fc == 0x17 and pdu.kind is Kind.REQUEST and "write_address" in pdu.fields:
+        text += f", write {_range(pdu.fields['write_address'], pdu.fields.get('write_count'))}"
+    shown = _values_text(pdu.values, bits)
+    if fc == 5 and pdu.values:
+        shown = "ON" if pdu.values[0] else "OFF"
+    if shown:
+        text += f" = {shown}"
+    if fc == 0x2B and "objects" in pdu.fields:
+        objects = pdu.fields["objects"]
+        text += " " + ", ".join(f"{oid}={val!r}" for oid, val in objects)
+    if pdu.malformed:
+        text += f" [malformed: {pdu.malformed}]"
+    return text
+
+
+def frame_notes(record: Record) -> tuple[str, ...]:
+    """Generic note first, then the annotator's notes."""
+    frame = record.frame
+    if frame is None:
+        return record.notes
+    request = record.request.pdu if record.request is not None else None
+    return (generic_note(frame.pdu, request), *record.notes)
+
+
+# --------------------------------------------------------------------------- lines
+
+
+def _event_text(record: Record, view: View) -> str:
+    event = record.event
+    assert event is not None
+    stream = event.stream
+    info = event.info
+    role = view.robot_role(stream)
+    if event.kind is EventKind.CONNECT and stream is not None:
+        if role == "server":
+            return f"Client {stream.client} connected"
+        if role == "client":
+            return f"Connected to server {stream.server}"
+        return f"Connect {stream.client} → {stream.server} ({stream.transport.value})"
+    if event.kind is EventKind.DISCONNECT and stream is not None:
+        how = info.get("how", "fin")
+        by = info.get("by")
+        tail = f" ({how.upper()}{' by ' + by if by else ''})"
+        if role == "server":
+            return f"Client {stream.client} disconnected{tail}"
+        if role == "client":
+            return f"Disconnected from server {stream.server}{tail}"
+        return f"Disconnect {stream.client} → {stream.server}{tail}"
+    if event.kind is EventKind.GAP:
+        return f"Gap: {info.get('bytes', '?')} bytes missing ({info.get('direction', '?')})"
+    if event.kind is EventKind.TIMEOUT:
+        fc = info.get("fc")
+        what = function_name(fc) if isinstance(fc, int) else "request"
+        idx = info.get("request_index")
+        return f"No response to {what}" + (f" (record #{idx})" if idx is not None else "")
+    if event.kind is EventKind.ERROR:
+        return f"Error: {info.get('message', '')}"
+    if event.kind is EventKind.STATS:
+        return "Stats: " + ", ".join(f"{k}={v}" for k, v in info.items())
+    return event.kind.value
+
+
+def record_line(record: Record, view: View) -> str:
+    """The full console/text line of a record: time, label, monitor hex, notes (plain text)."""
+    when = format_time(record.ts)
+    kind = record.kind
+    if record.frame is not None:
+        frame = record.frame
+        label = view.label(frame.stream, frame.direction)
+        notes = frame_notes(record)
+        extra = []
+        if record.latency is not None:
+            extra.append(f"{record.latency * 1000:.1f} ms")
+        if record.request is None and frame.direction is Direction.S2C:
+            extra.append("no matching request")
+        tail = "; ".join(notes)
+        if extra:
+            tail += f" ({', '.join(extra)})"
+        ids = f"u{frame.unit}" + (f" t{frame.tid}" if frame.tid is not None else "")
+        return f"{when}  {label}  [{ids}]  {monitor_hex(frame.pdu.raw)}  | {tail}"
+    if kind is RecordKind.NOISE and record.noise is not None:
+        noise = record.noise
+        shown = monitor_hex(noise.raw[:_MAX_NOISE_HEX]) + (
+            " …" if len(noise.raw) > _MAX_NOISE_HEX else ""
+        )
+        if noise.direction is Direction.BUS:
+            where = noise.stream.server
+        else:
+            where = view.label(noise.stream, noise.direction)
+        return f"{when}  {where}  !! noise, {len(noise.raw)} bytes ({noise.reason}): {shown}"
+    if kind is RecordKind.EVENT and record.event is not None:
+        return f"{when}  -- {_event_text(record, view)}"
+    if kind is RecordKind.COMMAND and record.command is not None:
+        cmd = record.command
+        dur = f" after {cmd.duration:.3f} s" if cmd.duration is not None else ""
+        return f"{when}  >> [{cmd.phase.value}{dur}] unit {cmd.unit}: {cmd.text}"
+    return f"{when}  ?"
+
+
+# --------------------------------------------------------------------------- JSON
+
+_JSON_KEYS = (
+    "index", "time", "stream", "src", "dst", "transport", "tid", "unit", "fc", "kind",
+    "exception_code", "address", "count", "values", "pdu", "line", "notes", "crc_ok",
+    "latency_ms", "malformed", "request_index",
+)  # fmt: skip
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, bytes | bytearray):
+        return value.hex()
+    if isinstance(value, tuple | list):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, dict) or hasattr(value, "items"):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if hasattr(value, "value") and not isinstance(value, int | float | str | bool):
+        return value.value
+    return value
+
+
+def record_to_json(record: Record, view: View) -> dict[str, Any]:
+    """The stable JSON object of ``read --json`` (keys documented in docs/json.md)."""
+    out: dict[str, Any] = dict.fromkeys(_JSON_KEYS)
+    out["index"] = record.index
+    out["time"] = record.ts
+    out["kind"] = record.kind.value
+    out["line"] = record_line(record, view)
+    stream = record.stream
+    if stream is not None:
+        out["stream"] = stream.id
+        out["transport"] = stream.transport.value
+    frame: Frame | None = record.frame
+    if frame is not None:
+        pdu = frame.pdu
+        out["src"] = frame.stream.src(frame.direction)
+        out["dst"] = frame.stream.dst(frame.direction)
+        out["tid"] = frame.tid
+        out["unit"] = frame.unit
+        out["fc"] = pdu.fc
+        out["exception_code"] = pdu.exception_code
+        address, count = pdu.address, pdu.count
+        if pdu.kind is not Kind.REQUEST and record.request is not None and address is None:
+            address, count = record.request.pdu.address, record.request.pdu.count
+        out["address"] = address
+        out["count"] = count
+        out["values"] = list(pdu.values) if pdu.values is not None else None
+        out["pdu"] = monitor_hex(pdu.raw)
+        out["notes"] = list(frame_notes(record))
+        out["crc_ok"] = frame.crc_ok
+        out["latency_ms"] = round(record.latency * 1000, 3) if record.latency is not None else None
+        out["malformed"] = pdu.malformed
+        out["request_index"] = record.request_index
+        if pdu.fields:
+            out["fields"] = _jsonable(pdu.fields)
+    elif record.noise is not None:
+        noise = record.noise
+        out["src"] = noise.stream.src(noise.direction)
+        out["dst"] = noise.stream.dst(noise.direction)
+        out["pdu"] = monitor_hex(noise.raw)
+        out["malformed"] = noise.reason
+        out["notes"] = [f"noise, {len(noise.raw)} bytes ({noise.reason})"]
+    elif record.event is not None:
+        event = record.event
+        out["event"] = event.kind.value
+        out["info"] = _jsonable(dict(event.info))
+        if event.stream is not None:
+            out["src"] = event.stream.client
+            out["dst"] = event.stream.server
+        out["notes"] = [_event_text(record, view)]
+    elif record.command is not None:
+        cmd = record.command
+        out["unit"] = cmd.unit
+        out["src"] = cmd.stream.client
+        out["dst"] = cmd.stream.server
+        out["command"] = {
+            "phase": cmd.phase.value,
+            "text": cmd.text,
+            "code": cmd.code,
+            "duration": cmd.duration,
+            "params": _jsonable(dict(cmd.params)),
+        }
+        out["notes"] = [cmd.text]
+    return out

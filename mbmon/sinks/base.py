@@ -1,0 +1,101 @@
+"""The sink contract: every writer is a listener fed the same records (DESIGN rule 7).
+
+A sink is a context manager with ``write(record)``, ``write_chunk(chunk)`` and
+``close()``; closing flushes and finalises. The format of ``-w FILE`` is chosen
+by the file's suffix; sink modules are imported only when used.
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import Protocol, runtime_checkable
+
+from mbmon.format import View
+from mbmon.model import Chunk, Record
+
+
+class SinkError(Exception):
+    """A sink cannot be opened or written (bad suffix, unwritable path); the message says why."""
+
+
+@dataclass(frozen=True, slots=True)
+class SinkContext:
+    """What a sink may want to know besides the records: labels, provenance, semantics in force."""
+
+    view: View = field(default_factory=View)
+    command_line: list[str] = field(default_factory=list)
+    source: str = ""
+    profiles: list[tuple[str, str]] = field(default_factory=list)  # (name, TOML text)
+
+
+@runtime_checkable
+class Sink(Protocol):
+    def write(self, record: Record) -> None: ...
+
+    def write_chunk(self, chunk: Chunk) -> None: ...
+
+    def close(self) -> None: ...
+
+    def __enter__(self) -> Sink: ...
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None: ...
+
+
+class SinkBase:
+    """Convenience base: context manager that always closes, chunks ignored by default."""
+
+    def write(self, record: Record) -> None:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def write_chunk(self, chunk: Chunk) -> None:
+        return None
+
+    def close(self) -> None:
+        return None
+
+    def __enter__(self) -> SinkBase:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+#: suffix -> (module, class); imported lazily so that ``import mbmon`` stays light.
+SINKS: dict[str, tuple[str, str]] = {
+    ".mcap": ("mbmon.sinks.mcap", "McapSink"),
+    ".jsonl": ("mbmon.sinks.jsonl", "JsonlSink"),
+    ".csv": ("mbmon.sinks.csvfile", "CsvSink"),
+    ".txt": ("mbmon.sinks.text", "TextSink"),
+    ".pcap": ("mbmon.sinks.pcap", "PcapSink"),
+}
+
+
+def open_sink(path: str | Path, ctx: SinkContext) -> Sink:
+    """Open the sink that the suffix of ``path`` names; :class:`SinkError` when none does."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in SINKS:
+        known = ", ".join(sorted(SINKS))
+        raise SinkError(
+            f"{path}: unknown output format {suffix or '(no suffix)'!r}; use one of {known}"
+        )
+    module_name, class_name = SINKS[suffix]
+    cls = getattr(importlib.import_module(module_name), class_name)
+    try:
+        sink: Sink = cls(path, ctx)
+    except OSError as exc:
+        raise SinkError(f"{path}: cannot write: {exc.strerror or exc}") from None
+    return sink
