@@ -47,15 +47,15 @@ def check(pdu: Pdu, kind: Kind, fc: int, **expect: Any) -> None:
 def test_read_coils() -> None:
     q = req("01 00 13 00 13")
     check(q, Kind.REQUEST, 0x01, address=19, count=19)
-    bits = (1, 0, 1, 1, 0, 0, 1, 1) + (1, 1, 0, 1, 0, 1, 1, 0) + (1, 0, 1)
+    bits = (*(1, 0, 1, 1, 0, 0, 1, 1), *(1, 1, 0, 1, 0, 1, 1, 0), *(1, 0, 1))  # CD 6B 05
     check(resp("01 03 CD 6B 05", "01 00 13 00 13"), Kind.RESPONSE, 0x01, byte_count=3, values=bits)
     # Without the request every bit of the bytes is kept.
-    check(resp("01 03 CD 6B 05"), Kind.RESPONSE, 0x01, byte_count=3, values=bits + (0,) * 5)
+    check(resp("01 03 CD 6B 05"), Kind.RESPONSE, 0x01, byte_count=3, values=(*bits, 0, 0, 0, 0, 0))
 
 
 def test_read_discrete_inputs() -> None:
     check(req("02 00 C4 00 16"), Kind.REQUEST, 0x02, address=196, count=22)
-    bits = (0, 0, 1, 1, 0, 1, 0, 1) + (1, 1, 0, 1, 1, 0, 1, 1) + (1, 0, 1, 0, 1, 1)
+    bits = (*(0, 0, 1, 1, 0, 1, 0, 1), *(1, 1, 0, 1, 1, 0, 1, 1), *(1, 0, 1, 0, 1, 1))  # AC DB 35
     check(resp("02 03 AC DB 35", "02 00 C4 00 16"), Kind.RESPONSE, 0x02, byte_count=3, values=bits)
 
 
