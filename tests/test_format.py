@@ -1,0 +1,124 @@
+"""Monitor lines exactly as the robot's Modbus Monitor shows them (manual §5.5.2, Table 57)."""
+
+from __future__ import annotations
+
+import pytest
+
+from mbmon.format import View, generic_note, monitor_hex, record_line, record_to_json
+from mbmon.model import Direction, Event, EventKind, Frame, Record, RecordKind, Stream, Transport
+from mbmon.protocol.pdu import decode_pdu
+
+TCP = Stream(3, Transport.TCP, "10.0.0.1:50000", "10.0.0.2:502")
+BUS = Stream(0, Transport.RTU, "/dev/ttyUSB0", "/dev/ttyUSB0")
+
+# (query as the manual prints it, response as the manual prints it) — §5.5.2.2 .. §5.5.2.7
+MANUAL = [
+    ("02 01 2C 00 05", "02 01 13"),
+    ("01 01 2C 00 05", "01 01 13"),
+    ("0F 01 2C 00 05 01 13", "0F 01 2C 00 05"),
+    ("04 00 64 00 02", "04 04 00 5a 00 00"),
+    ("03 01 90 00 02", "03 04 01 90 00 00"),
+    ("10 00 c9 00 03 06 00 6f 00 de 01 4d", "10 00 c9 00 03"),
+]
+
+
+def _frame(hex_pdu: str, response: bool, stream: Stream = TCP, request: Frame | None = None):
+    raw = bytes.fromhex(hex_pdu)
+    pdu = decode_pdu(raw, response, request.pdu if request else None)
+    direction = Direction.S2C if response else Direction.C2S
+    return Frame(1.5, stream, direction, 1, 7 if stream is TCP else None, pdu, raw)
+
+
+@pytest.mark.parametrize(("query", "response"), MANUAL)
+def test_manual_examples_byte_for_byte(query: str, response: str) -> None:
+    req = _frame(query, False)
+    resp = _frame(response, True, request=req)
+    assert monitor_hex(req.pdu.raw) == query.upper()
+    assert monitor_hex(resp.pdu.raw) == response.upper()
+    line = record_line(Record(0, 1.5, RecordKind.REQUEST, TCP, frame=req), View())
+    assert f"  {query.upper()}  | " in line
+
+
+def test_generic_notes_use_the_request_for_reads() -> None:
+    req = _frame("03 01 90 00 02", False)
+    resp = _frame("03 04 01 90 00 00", True, request=req)
+    assert generic_note(req.pdu) == "Read Holding Registers 400..401"
+    assert generic_note(resp.pdu, req.pdu) == "Read Holding Registers 400..401 = 400, 0"
+    bits = _frame("02 01 13", True, request=_frame("02 01 2C 00 05", False))
+    assert generic_note(bits.pdu, decode_pdu(bytes.fromhex("02012C0005"), False)).endswith(
+        "300..304 = 11001"
+    )
+    exc = _frame("83 02", True)
+    assert generic_note(exc.pdu) == "Exception 02 Illegal Data Address (Read Holding Registers)"
+    coil = _frame("05 00 00 FF 00", False)
+    assert generic_note(coil.pdu) == "Write Single Coil 0 = ON"
+
+
+def test_robot_labels_server_and_client() -> None:
+    req = _frame("02 01 2C 00 05", False)
+    resp = _frame("02 01 13", True, request=req)
+    rec_q = Record(0, 1.5, RecordKind.REQUEST, TCP, frame=req)
+    rec_r = Record(1, 1.6, RecordKind.RESPONSE, TCP, frame=resp, request=req, request_index=0)
+    as_server = View(robot="10.0.0.2")
+    assert "Receive from client  [u1 t7]  02 01 2C 00 05" in record_line(rec_q, as_server)
+    assert "Send to client  [u1 t7]  02 01 13" in record_line(rec_r, as_server)
+    as_client = View(robot="10.0.0.1:50000")
+    assert "Send to server" in record_line(rec_q, as_client)
+    assert "Receive from server" in record_line(rec_r, as_client)
+    neutral = record_line(rec_q, View())
+    assert "10.0.0.1:50000 → 10.0.0.2:502" in neutral
+    other_port = View(robot="10.0.0.2:1502")
+    assert "10.0.0.1:50000 → 10.0.0.2:502" in record_line(rec_q, other_port)
+
+
+def test_rtu_robot_labels() -> None:
+    req = _frame("03 01 90 00 02", False, stream=BUS)
+    rec = Record(0, 1.5, RecordKind.REQUEST, BUS, frame=req)
+    assert "Receive from client" in record_line(rec, View(robot="/dev/ttyUSB0"))
+    assert "Send to server" in record_line(rec, View(robot="/dev/ttyUSB0", robot_is_client=True))
+    assert "master → slave  [u1]" in record_line(rec, View())
+
+
+def test_connect_lines() -> None:
+    ev = Record(0, 1.0, RecordKind.EVENT, TCP, event=Event(1.0, TCP, EventKind.CONNECT))
+    assert record_line(ev, View(robot="10.0.0.2")).endswith("Client 10.0.0.1:50000 connected")
+    assert record_line(ev, View(robot="10.0.0.1")).endswith("Connected to server 10.0.0.2:502")
+    gone = Event(2.0, TCP, EventKind.DISCONNECT, {"how": "rst", "by": "server"})
+    rec = Record(1, 2.0, RecordKind.EVENT, TCP, event=gone)
+    assert "disconnected (RST by server)" in record_line(rec, View(robot="10.0.0.2"))
+
+
+def test_json_keys_are_stable() -> None:
+    req = _frame("03 01 90 00 02", False)
+    resp = _frame("03 04 01 90 00 00", True, request=req)
+    rec = Record(
+        1, 1.6, RecordKind.RESPONSE, TCP, frame=resp, request=req, request_index=0, latency=0.0021
+    )
+    obj = record_to_json(rec, View())
+    for key in (
+        "time",
+        "stream",
+        "src",
+        "dst",
+        "transport",
+        "tid",
+        "unit",
+        "fc",
+        "kind",
+        "exception_code",
+        "address",
+        "count",
+        "values",
+        "pdu",
+        "line",
+        "notes",
+        "crc_ok",
+        "latency_ms",
+        "malformed",
+        "request_index",
+    ):
+        assert key in obj
+    assert obj["src"] == "10.0.0.2:502" and obj["dst"] == "10.0.0.1:50000"
+    assert obj["address"] == 400 and obj["count"] == 2 and obj["values"] == [400, 0]
+    assert obj["pdu"] == "03 04 01 90 00 00" and obj["latency_ms"] == 2.1
+    assert obj["kind"] == "response" and obj["request_index"] == 0 and obj["stream"] == 3
