@@ -1,0 +1,148 @@
+"""Pairing of requests and responses into :class:`~mbmon.model.Transaction` steps.
+
+Every frame yields exactly one transaction step; timeouts add one more each:
+
+* a request yields ``PENDING`` (and is remembered, except an RTU broadcast);
+* a response matched to its request yields ``ANSWERED`` or ``EXCEPTION`` with
+  ``latency = response.ts - request.ts``; the response's PDU is decoded again
+  with the request as context (so 01/02 bit lists are trimmed to the requested
+  count);
+* a response with nothing to match yields ``UNSOLICITED``;
+* a request that gets no answer yields ``TIMEOUT`` (``ts`` = when that was
+  decided) from :meth:`Pairer.tick`, :meth:`Pairer.flush`, or when a later
+  request makes the answer impossible (see below).
+
+Matching rules, one :class:`Pairer` for all streams (keyed by ``stream.id``):
+
+* MBAP transports (TCP, UDP): by (transaction id, unit id); the function code
+  must agree too. A new request reusing a pending (tid, unit) replaces the old
+  one, which times out.
+* RTU transports (serial bus, RTU over TCP/UDP): by order. Only one request
+  can be outstanding on a bus, so a new request times out the pending one. A
+  response matches the pending request when unit and function code agree,
+  else it is unsolicited (and the pending request stays). A broadcast request
+  (unit 0) expects no response and is never pending.
+
+Memory is bounded: at most ``max_pending`` requests wait per stream; beyond
+that the oldest times out. Pure: no clocks, ``tick(now)`` is the only time
+source for timeouts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from mbmon.model import Direction, Frame, Kind, Transaction, TxStatus
+from mbmon.protocol.pdu import decode_pdu
+
+__all__ = ["DEFAULT_MAX_PENDING", "Pairer"]
+
+DEFAULT_MAX_PENDING = 10_000
+"""Largest number of outstanding requests remembered per stream."""
+
+_Key = tuple[int, int]  # (tid, unit) for MBAP; (0, 0) for the one RTU slot
+
+
+class Pairer:
+    """Pairs frames of all streams; owns the pending requests of every stream.
+
+    ``timeout`` (seconds) is how long a request may wait for its response
+    before :meth:`tick` reports it as ``TIMEOUT``. Requests are expected in
+    roughly increasing time order per stream: :meth:`tick` checks them oldest
+    first and stops at the first that has not expired.
+    """
+
+    __slots__ = ("_pending", "max_pending", "timeout")
+
+    def __init__(self, timeout: float = 1.0, max_pending: int = DEFAULT_MAX_PENDING) -> None:
+        self.timeout = timeout
+        self.max_pending = max(1, max_pending)
+        # stream id -> pending requests in arrival order (dicts keep insertion order)
+        self._pending: dict[int, dict[_Key, Frame]] = {}
+
+    @property
+    def pending_count(self) -> int:
+        """How many requests are waiting for a response, over all streams."""
+        return sum(len(p) for p in self._pending.values())
+
+    def feed(self, frame: Frame) -> list[Transaction]:
+        """Pair one frame; return its step, preceded by any timeouts it causes."""
+        if frame.direction is Direction.S2C or (
+            frame.direction is not Direction.C2S and frame.pdu.kind is not Kind.REQUEST
+        ):
+            return [self._response(frame)]
+        return self._request(frame)
+
+    def tick(self, now: float) -> list[Transaction]:
+        """Time out every request older than ``timeout`` at time ``now``."""
+        out: list[Transaction] = []
+        limit = now - self.timeout
+        for sid in list(self._pending):
+            pend = self._pending[sid]
+            while pend:
+                key = next(iter(pend))
+                req = pend[key]
+                if req.ts > limit:
+                    break
+                del pend[key]
+                out.append(Transaction(now, TxStatus.TIMEOUT, req, None))
+            if not pend:
+                del self._pending[sid]
+        return out
+
+    def flush(self, ts: float) -> list[Transaction]:
+        """End of input: every pending request times out at ``ts``."""
+        out = [
+            Transaction(ts, TxStatus.TIMEOUT, req, None)
+            for pend in self._pending.values()
+            for req in pend.values()
+        ]
+        self._pending.clear()
+        return out
+
+    # ------------------------------------------------------------------ internals
+
+    def _request(self, req: Frame) -> list[Transaction]:
+        out: list[Transaction] = []
+        sid = req.stream.id
+        pend = self._pending.get(sid)
+        if req.stream.transport.is_rtu:
+            if pend:
+                out.extend(
+                    Transaction(req.ts, TxStatus.TIMEOUT, old, None) for old in pend.values()
+                )
+                pend.clear()
+            if req.unit != 0:
+                if pend is None:
+                    pend = self._pending[sid] = {}
+                pend[(0, 0)] = req
+        else:
+            key = (req.tid or 0, req.unit)
+            if pend is None:
+                pend = self._pending[sid] = {}
+            old = pend.pop(key, None)
+            if old is not None:
+                out.append(Transaction(req.ts, TxStatus.TIMEOUT, old, None))
+            pend[key] = req
+            while len(pend) > self.max_pending:
+                oldest = next(iter(pend))
+                out.append(Transaction(req.ts, TxStatus.TIMEOUT, pend.pop(oldest), None))
+        if pend is not None and not pend:
+            del self._pending[sid]
+        out.append(Transaction(req.ts, TxStatus.PENDING, req, None))
+        return out
+
+    def _response(self, resp: Frame) -> Transaction:
+        sid = resp.stream.id
+        pend = self._pending.get(sid)
+        key = (0, 0) if resp.stream.transport.is_rtu else (resp.tid or 0, resp.unit)
+        req = pend.get(key) if pend is not None else None
+        if pend is None or req is None or req.unit != resp.unit or req.pdu.fc != resp.pdu.fc:
+            return Transaction(resp.ts, TxStatus.UNSOLICITED, None, resp)
+        del pend[key]
+        if not pend:
+            del self._pending[sid]
+        pdu = decode_pdu(resp.pdu.raw, True, request=req.pdu)
+        resp = replace(resp, pdu=pdu)
+        status = TxStatus.EXCEPTION if pdu.kind is Kind.EXCEPTION else TxStatus.ANSWERED
+        return Transaction(resp.ts, status, req, resp, resp.ts - req.ts)

@@ -1,0 +1,363 @@
+"""Modbus RTU stream decoder: one serial byte stream (both directions) -> frames.
+
+Framing is length prediction + CRC (DESIGN rules 2 and 3), never timing:
+
+* At the current offset the first byte is the unit id and the second the
+  function code. :func:`mbmon.protocol.pdu.pdu_length` predicts the PDU length
+  of the request and of the response reading (an exception response is a
+  2-byte PDU); each candidate ADU is ``1 + PDU + 2`` bytes and is confirmed by
+  its CRC16.
+* The pending request decides which reading comes first: when the master asked
+  unit U with function F, a frame from U with F (or F | 0x80) is taken as the
+  response if its CRC passes; otherwise the request reading comes first. A
+  broadcast request (unit 0) leaves nothing pending.
+* Any complete candidate whose CRC passes is accepted at once (the preferred
+  reading first). When none passes and one still lacks bytes, the decoder
+  waits for more input.
+* When a reading has no predictable length (unknown function codes, 0x2B
+  responses, 0x08 sub-function 0x00, ...), the decoder tries the CRC at every
+  length from 4 to 256 bytes, shortest first, once enough bytes are there.
+* When nothing fits, one byte is skipped into a run of noise; one
+  :class:`Noise` is reported per run (before the next frame, at a silence, or
+  at ``flush``/``reset``), split only every ``NOISE_CAP`` bytes.
+
+A stream carried in TCP/UDP with a known direction (RTU over TCP) passes
+``Direction.C2S`` or ``Direction.S2C``: then only that reading is tried.
+Frames always carry C2S (request) or S2C (response), never BUS.
+
+With ``baudrate`` the decoder also looks at inter-chunk silence: a silence
+longer than t3.5 (3.5 character times of 11 bits, 1.75 ms above 19200 baud)
+counts in ``stats["timing_gaps"]`` and ends the bytes before it as far as
+that is safe: leftover noise and length scans are settled at the silence
+instead of waiting for 256 bytes, but a frame whose predicted length is not
+complete yet keeps waiting, because USB adapters deliver bytes in bunches and
+the "silence" may be their latency. Timing is a hint only.
+
+Pure: no I/O, no clocks; time is the ``ts`` given with each chunk.
+"""
+
+from __future__ import annotations
+
+from mbmon.model import Direction, Frame, Noise, Stream
+from mbmon.protocol.crc import CRC_TABLE, add_crc
+from mbmon.protocol.pdu import NEED_MORE, decode_pdu, pdu_length
+
+__all__ = ["MAX_ADU", "NOISE_CAP", "RtuDecoder", "encode_rtu", "t35"]
+
+MAX_ADU = 256
+"""Largest RTU ADU: unit id + 253-byte PDU + CRC (spec limit); also the scan limit."""
+
+MIN_ADU = 4
+"""Smallest RTU ADU: unit id + function code + CRC."""
+
+NOISE_CAP = 65536
+"""A noise run longer than this is reported in pieces of this size."""
+
+_PEEK = 16
+"""Bytes handed to ``pdu_length`` first; every fixed rule reads at most index 9."""
+
+# Modes of one decoding pass.
+_STREAM = 0  # more bytes will come: wait whenever a decision needs them
+_SILENCE = 1  # a silence follows: settle scans and noise, wait only for predicted lengths
+_FINAL = 2  # end of stream: decide everything with the bytes present
+
+# Outcomes of the decision at one offset (lengths > 0 accept a frame).
+_WAIT = -1
+_SKIP = 0
+
+
+def t35(baudrate: int) -> float:
+    """The RTU inter-frame silence t3.5 in seconds for ``baudrate`` (11-bit characters)."""
+    if baudrate > 19200:
+        return 0.00175
+    return 3.5 * 11.0 / baudrate
+
+
+def encode_rtu(unit: int, pdu: bytes) -> bytes:
+    """RTU ADU for ``pdu``: unit id + PDU + CRC16 (low byte first)."""
+    if not 0 <= unit <= 0xFF:
+        raise ValueError(f"unit id {unit} does not fit in a byte")
+    return add_crc(bytes((unit,)) + bytes(pdu))
+
+
+def _crc_ok(buf: bytes | bytearray, start: int, end: int) -> bool:
+    """True when ``buf[start:end]`` ends with the CRC of the bytes before it."""
+    crc = 0xFFFF
+    table = CRC_TABLE
+    for i in range(start, end - 2):
+        crc = (crc >> 8) ^ table[(crc ^ buf[i]) & 0xFF]
+    return buf[end - 2] == (crc & 0xFF) and buf[end - 1] == (crc >> 8)
+
+
+def _scan(buf: bytes | bytearray, start: int, limit: int) -> int:
+    """Shortest length L in MIN_ADU..limit with a valid CRC at ``buf[start:start+L]``, else 0."""
+    table = CRC_TABLE
+    crc = 0xFFFF
+    crc = (crc >> 8) ^ table[(crc ^ buf[start]) & 0xFF]
+    crc = (crc >> 8) ^ table[(crc ^ buf[start + 1]) & 0xFF]
+    for length in range(MIN_ADU, limit + 1):
+        i = start + length - 2
+        lo = buf[i]
+        if lo == (crc & 0xFF) and buf[i + 1] == (crc >> 8):
+            return length
+        crc = (crc >> 8) ^ table[(crc ^ lo) & 0xFF]
+    return 0
+
+
+class RtuDecoder:
+    """Sans-I/O decoder of one RTU byte stream.
+
+    ``direction`` is ``BUS`` for a serial line carrying both directions (the
+    decoder tells requests from responses), or C2S/S2C for RTU ADUs carried in
+    one TCP/UDP direction. ``baudrate`` enables the timing hints. The decoder
+    owns its buffer, the current noise run, the pending request (unit, function
+    code) and ``stats``: ``frames``, ``noise_bytes``, ``crc_errors`` (noise runs
+    that began where a complete candidate failed its CRC) and ``timing_gaps``.
+    It never raises on input bytes.
+    """
+
+    __slots__ = (
+        "_allow_req",
+        "_allow_resp",
+        "_buf",
+        "_char",
+        "_last_ts",
+        "_noise",
+        "_noise_reason",
+        "_noise_ts",
+        "_pending",
+        "_t35",
+        "baudrate",
+        "direction",
+        "stats",
+        "stream",
+    )
+
+    def __init__(
+        self,
+        stream: Stream,
+        direction: Direction = Direction.BUS,
+        baudrate: int | None = None,
+    ) -> None:
+        self.stream = stream
+        self.direction = direction
+        self.baudrate = baudrate
+        self._allow_req = direction is not Direction.S2C
+        self._allow_resp = direction is not Direction.C2S
+        if baudrate is not None and baudrate > 0:
+            self._char: float | None = 11.0 / baudrate
+            self._t35 = t35(baudrate)
+        else:
+            self._char = None
+            self._t35 = 0.0
+        self._buf = bytearray()
+        self._noise = bytearray()
+        self._noise_reason = ""
+        self._noise_ts = 0.0
+        self._pending: tuple[int, int] | None = None
+        self._last_ts: float | None = None
+        self.stats: dict[str, int] = {
+            "frames": 0,
+            "noise_bytes": 0,
+            "crc_errors": 0,
+            "timing_gaps": 0,
+        }
+
+    # ------------------------------------------------------------------ public
+
+    def feed(self, data: bytes, ts: float) -> list[Frame | Noise]:
+        """Consume one chunk captured at ``ts``; return the frames and noise it completes."""
+        out: list[Frame | Noise] = []
+        if self._char is not None and self._last_ts is not None and data:
+            silence = ts - self._last_ts - len(data) * self._char
+            if silence > self._t35:
+                self.stats["timing_gaps"] += 1
+                if self._buf:
+                    pos = self._decode(self._buf, self._last_ts, out, _SILENCE)
+                    del self._buf[:pos]
+                run = self._take_noise()
+                if run is not None:
+                    out.append(run)
+        self._last_ts = ts
+        if self._buf:
+            self._buf += data
+            buf: bytes | bytearray = self._buf
+        else:
+            buf = data  # fast path: decode straight from the chunk, no copy
+        pos = self._decode(buf, ts, out, _STREAM)
+        if buf is self._buf:
+            del self._buf[:pos]  # O(1) in CPython: moves the start pointer
+        elif pos < len(buf):
+            self._buf = bytearray(buf[pos:])
+        return out
+
+    def flush(self, ts: float) -> list[Frame | Noise]:
+        """End of stream: decide every buffered byte; what is no frame becomes noise."""
+        out: list[Frame | Noise] = []
+        if self._buf:
+            self._decode(self._buf, ts, out, _FINAL)
+            self._buf = bytearray()
+        run = self._take_noise()
+        if run is not None:
+            out.append(run)
+        self._pending = None
+        self._last_ts = None
+        return out
+
+    def reset(self, ts: float) -> list[Noise]:
+        """Drop the buffer and the pending request (e.g. after a gap); report dropped bytes."""
+        out: list[Noise] = []
+        run = self._take_noise()
+        if run is not None:
+            out.append(run)
+        if self._buf:
+            self.stats["noise_bytes"] += len(self._buf)
+            out.append(
+                Noise(ts, self.stream, self.direction, bytes(self._buf), "discarded after gap")
+            )
+            self._buf = bytearray()
+        self._pending = None
+        self._last_ts = None
+        return out
+
+    # ------------------------------------------------------------------ internals
+
+    def _take_noise(self) -> Noise | None:
+        """End the current noise run and return it (``None`` when there is none)."""
+        return self._flush_noise_run() if self._noise else None
+
+    def _flush_noise_run(self) -> Noise:
+        run = Noise(
+            self._noise_ts, self.stream, self.direction, bytes(self._noise), self._noise_reason
+        )
+        self._noise = bytearray()
+        return run
+
+    def _add_noise(self, byte: int, reason: str, ts: float, out: list[Frame | Noise]) -> None:
+        if not self._noise:
+            self._noise_reason = reason
+            self._noise_ts = ts
+            if reason == _BAD_CRC:
+                self.stats["crc_errors"] += 1
+        self._noise.append(byte)
+        self.stats["noise_bytes"] += 1
+        if len(self._noise) >= NOISE_CAP:
+            out.append(
+                Noise(
+                    self._noise_ts,
+                    self.stream,
+                    self.direction,
+                    bytes(self._noise),
+                    self._noise_reason,
+                )
+            )
+            self._noise = bytearray()
+            self._noise_ts = ts
+
+    def _decode(
+        self, buf: bytes | bytearray, ts: float, out: list[Frame | Noise], mode: int
+    ) -> int:
+        """Frame ADUs from ``buf``; return the offset of the first undecided byte."""
+        n = len(buf)
+        pos = 0
+        stream = self.stream
+        stats = self.stats
+        while pos < n:
+            length, is_resp, reason = self._decide(buf, pos, n, mode)
+            if length > 0:
+                if self._noise:
+                    out.append(self._flush_noise_run())
+                end = pos + length
+                raw = bytes(buf[pos:end])
+                unit = raw[0]
+                pdu = decode_pdu(raw[1:-2], is_resp)
+                if is_resp:
+                    self._pending = None
+                    direction = Direction.S2C
+                else:
+                    self._pending = (unit, raw[1]) if unit != 0 else None
+                    direction = Direction.C2S
+                out.append(Frame(ts, stream, direction, unit, None, pdu, raw, True))
+                stats["frames"] += 1
+                pos = end
+            elif length == _WAIT:
+                break
+            else:
+                self._add_noise(buf[pos], reason, ts, out)
+                pos += 1
+        return pos
+
+    def _decide(self, buf: bytes | bytearray, pos: int, n: int, mode: int) -> tuple[int, bool, str]:
+        """Decide what starts at ``pos``.
+
+        Returns (ADU length, is response, "") for a frame, (_WAIT, False, "")
+        when more bytes are needed, or (_SKIP, False, reason) for a noise byte.
+        """
+        avail = n - pos
+        if avail < 2:
+            if mode == _FINAL:
+                return _SKIP, False, _TRUNCATED
+            return _WAIT, False, ""
+        unit = buf[pos]
+        fc = buf[pos + 1]
+        # Candidate readings in order of preference: True = response.
+        if fc & 0x80:
+            readings: tuple[bool, ...] = (True,) if self._allow_resp else ()
+        elif not self._allow_resp:
+            readings = (False,)
+        elif not self._allow_req:
+            readings = (True,)
+        else:
+            pending = self._pending
+            if pending is not None and pending[0] == unit and pending[1] == fc:
+                readings = (True, False)
+            else:
+                readings = (False, True)
+        if not readings or fc == 0 or fc == 0x80:
+            return _SKIP, False, f"no valid frame (function code 0x{fc:02X})"
+
+        peek: bytes | bytearray | None = None
+        incomplete = False
+        crc_failed = False
+        unpredictable: list[bool] = []
+        for is_resp in readings:
+            if peek is None:
+                peek = buf[pos + 1 : pos + 1 + _PEEK]
+            plen = pdu_length(peek, is_resp)
+            if plen == NEED_MORE and avail - 1 > _PEEK:
+                plen = pdu_length(buf[pos + 1 : pos + MAX_ADU], is_resp)
+            if plen is None:
+                unpredictable.append(is_resp)
+                continue
+            if plen == NEED_MORE:
+                incomplete = True
+                continue
+            total = plen + 3
+            if total > MAX_ADU or plen < 1:
+                continue
+            if total > avail:
+                incomplete = True
+                continue
+            if _crc_ok(buf, pos, pos + total):
+                return total, is_resp, ""
+            crc_failed = True
+        if incomplete and mode != _FINAL:
+            return _WAIT, False, ""
+        if unpredictable:
+            limit = min(MAX_ADU, avail)
+            found = _scan(buf, pos, limit) if limit >= MIN_ADU else 0
+            if found:
+                return found, unpredictable[0], ""
+            if avail < MAX_ADU and mode == _STREAM:
+                return _WAIT, False, ""
+        if crc_failed:
+            return _SKIP, False, _BAD_CRC
+        if incomplete:
+            return _SKIP, False, _TRUNCATED
+        if unpredictable:
+            return _SKIP, False, f"no valid frame (unknown function code 0x{fc:02X})"
+        return _SKIP, False, f"no valid frame (function code 0x{fc:02X})"
+
+
+_BAD_CRC = "no valid frame (bad CRC)"
+_TRUNCATED = "truncated frame at end of stream"
