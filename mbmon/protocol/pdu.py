@@ -27,6 +27,9 @@ fc         request / response
 07         req: nothing. resp: ``fields["status"]`` (the 8 status bits as int).
 08         ``fields["sub_function"]``, ``fields["data"]`` (bytes after the
            sub-function); values = data as 16-bit words when its length is even.
+           Sub-function 0x00 echoes any number of bytes, 0x15 replies carry
+           Modbus Plus statistics; every other one is 5 bytes. 0x04 (Force
+           Listen Only Mode) is never answered.
 0B         req: nothing. resp: fields ``status``, ``event_count``.
 0C         req: nothing. resp: byte_count, fields ``status``, ``event_count``,
            ``message_count``, ``events`` (bytes, newest first).
@@ -555,7 +558,10 @@ def _read_file_resp(o: _Out, request: Pdu | None) -> None:
     i = 0
     while i < len(data):
         length = data[i]
-        if length < 1 or i + 1 + length > len(data):
+        if length < 1:
+            o.bad.append(f"sub-response {len(records) + 1} has length 0")
+            break
+        if i + 1 + length > len(data):
             o.bad.append(f"sub-response {len(records) + 1} truncated")
             break
         words = data[i + 2 : i + 1 + length]

@@ -80,6 +80,7 @@ CASES = [
         "record of 1 words but 2 requested",
     ),
     ("14 04 05 06 0D FE", True, None, "sub-response 1 truncated"),
+    ("14 02 00 00", True, None, "sub-response 1 has length 0"),
     (
         "15 0D 06 00 04 00 07 00 03 06 AF 04 BE 10 0E",
         True,
