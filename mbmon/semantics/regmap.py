@@ -1,0 +1,979 @@
+"""Device register maps as data: the TOML profile loader, field look-up and binding.
+
+A profile (``docs/profiles.md``) describes per Modbus data table the fields a
+device exposes: single entries at a fixed address and repeated ranges
+(``DO[n]`` at 299+n, ``PR[n]`` blocks of 19 registers with sub-fields). This
+module owns reading and checking that data, answering "which field sits at this
+address" in O(1), writing a profile back to TOML, and deciding which profile
+applies to which server endpoint / unit id (``--profile`` bindings). It knows
+nothing about frames; :mod:`mbmon.semantics.annotate` turns fields into notes.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import tomllib
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from importlib import resources
+from itertools import pairwise
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from mbmon.model import Stream
+
+__all__ = [
+    "BUILTIN_PROFILES",
+    "REGISTER_PREFIX",
+    "TABLES",
+    "Channel",
+    "Field",
+    "FieldRef",
+    "Note",
+    "Profile",
+    "ProfileBinding",
+    "ProfileError",
+    "Variant",
+    "builtin_profile_text",
+    "dump_profile",
+    "load_profile",
+    "loads_profile",
+]
+
+TABLES: tuple[str, ...] = ("coils", "discrete_inputs", "input_registers", "holding_registers")
+BIT_TABLES = frozenset({"coils", "discrete_inputs"})
+#: How notes name a register that has no field name of its own (R201, IR524).
+REGISTER_PREFIX: Mapping[str, str] = {"holding_registers": "R", "input_registers": "IR"}
+BUILTIN_PROFILES: tuple[str, ...] = ("hrss", "xeg")
+
+#: Words per value for the types whose width is fixed.
+TYPE_WORDS: Mapping[str, int] = {"bit": 1, "u16": 1, "s16": 1, "i32": 2, "u32": 2, "f32": 2}
+#: Types whose width the entry states with ``words``.
+SIZED_TYPES = frozenset({"version", "block"})
+REGISTER_TYPES = frozenset(TYPE_WORDS) - {"bit"} | SIZED_TYPES
+
+
+class ProfileError(ValueError):
+    """A profile (or a ``--profile`` binding) that cannot be used, with where and why.
+
+    ``file`` is the file name (or ``<string>``), ``line`` the 1-based line when
+    known, ``key`` the dotted path of the offending key (e.g.
+    ``holding_registers[3].scale``).
+    """
+
+    def __init__(
+        self, message: str, *, file: str = "", line: int | None = None, key: str | None = None
+    ) -> None:
+        self.file = file
+        self.line = line
+        self.key = key
+        self.reason = message
+        where = file
+        if line is not None:
+            where = f"{where}:{line}" if where else f"line {line}"
+        super().__init__(f"{where}: {message}" if where else message)
+
+
+# --------------------------------------------------------------------------- data
+
+
+@dataclass(frozen=True, slots=True)
+class Variant:
+    """How a sub-field reads when the group's selector holds a given value (PR[n].type)."""
+
+    name: str | None = None
+    label: str | None = None
+    unit: str | None = None
+    scale: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Field:
+    """One profile entry: a single field, a repeated range, or a sub-field of a group.
+
+    ``address`` is the absolute address of a single field, the address of the
+    first element (``n == n_range[0]``) of a range, or the offset inside its
+    group for a sub-field. A range has ``n_range``; element ``n`` starts at
+    ``address + stride * (n - n_range[0])``. A range with ``fields`` is a group
+    (``type == "group"``): each element is a block of sub-fields.
+    """
+
+    name: str
+    address: int
+    type: str
+    words: int
+    label: str | None = None
+    description: str | None = None
+    scale: float | None = None
+    unit: str | None = None
+    range: tuple[int, int] | None = None
+    enum: Mapping[int, str] | None = None
+    enum_style: str = "name"  # "name": "PTP (0)"; "value": "1 (execute)"
+    display: str = "dec"  # "dec" | "hex"
+    word_order: str = "low_high"  # "low_high" (HRSS, Appendix II) | "high_low" (SWAP_WORD)
+    format: str | None = None  # "version": e.g. "V{0}.{1}.{2}.{3}"
+    n_range: tuple[int, int] | None = None
+    stride: int | None = None
+    labels: Mapping[int, str] | None = None  # range: label per n (SI1 Start)
+    fields: tuple[Field, ...] = ()
+    select: str | None = None  # group: name of the sub-field that picks variants
+    variants: Mapping[int, Variant] | None = None  # sub-field: by selector value
+
+    @property
+    def is_range(self) -> bool:
+        return self.n_range is not None
+
+    @property
+    def span(self) -> int:
+        """Registers (or bits) one element occupies."""
+        return self.stride if self.fields and self.stride else self.words
+
+    def element_name(self, n: int | None) -> str:
+        return self.name.replace("{n}", str(n)) if n is not None else self.name
+
+    def end_address(self) -> int:
+        """One past the last address the entry covers."""
+        if self.n_range is None:
+            return self.address + self.words
+        first, last = self.n_range
+        return self.address + (self.stride or self.words) * (last - first) + self.span
+
+
+@dataclass(frozen=True, slots=True)
+class Channel:
+    """A fieldbus channel's share of the address space (inclusive address ranges per table)."""
+
+    name: str
+    description: str | None = None
+    ranges: Mapping[str, tuple[int, int]] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
+class Note:
+    """A documented choice (where the manual contradicts itself) or remark, for docs."""
+
+    title: str
+    text: str
+
+
+@dataclass(frozen=True, slots=True)
+class FieldRef:
+    """One field instance at a concrete address, as :meth:`Profile.lookup` finds it.
+
+    ``address`` is the first address of the instance, ``n`` the range index,
+    ``entry`` the top-level profile entry (the range for elements and
+    sub-fields), ``base`` the first address of the group element for sub-fields.
+    """
+
+    table: str
+    field: Field
+    address: int
+    n: int | None = None
+    entry: Field | None = None
+    base: int | None = None
+
+    @property
+    def name(self) -> str:
+        """Full field name: ``A1``, ``DO[3]``, ``PR[2].Value1`` (selector-independent)."""
+        if self.entry is None:
+            return self.field.name
+        parent = self.entry.element_name(self.n)
+        if self.entry.fields:
+            return f"{parent}.{self.field.name}"
+        return parent
+
+    @property
+    def label(self) -> str | None:
+        """Short label shown after the name in notes (``Start``, ``motion state``)."""
+        if self.entry is not None and not self.entry.fields:
+            if self.entry.labels and self.n is not None and self.n in self.entry.labels:
+                return self.entry.labels[self.n]
+            return self.entry.label
+        return self.field.label
+
+    @property
+    def words(self) -> int:
+        return self.field.words
+
+
+_MISS = object()
+
+
+@dataclass(frozen=True)
+class Profile:
+    """A device register map. Compare with ``==``: source text and path do not count."""
+
+    name: str
+    description: str = ""
+    session: str | None = None
+    tables: Mapping[str, tuple[Field, ...]] = field(default_factory=dict)
+    channels: tuple[Channel, ...] = ()
+    notes: tuple[Note, ...] = ()
+    source: str | None = field(default=None, compare=False, repr=False)
+    path: str | None = field(default=None, compare=False)
+    _index: dict[str, dict[int, Any]] = field(
+        default_factory=dict, init=False, compare=False, repr=False
+    )
+    _ranges: dict[str, tuple[tuple[int, int, Field], ...]] = field(
+        default_factory=dict, init=False, compare=False, repr=False
+    )
+
+    def __post_init__(self) -> None:
+        for table in TABLES:
+            singles: dict[int, Any] = {}
+            ranges: list[tuple[int, int, Field]] = []
+            for entry in self.tables.get(table, ()):
+                if entry.is_range:
+                    ranges.append((entry.address, entry.end_address(), entry))
+                else:
+                    ref = FieldRef(table, entry, entry.address)
+                    for a in range(entry.address, entry.address + entry.words):
+                        singles[a] = ref
+            self._index[table] = singles
+            self._ranges[table] = tuple(ranges)
+
+    def entries(self, table: str) -> tuple[Field, ...]:
+        return self.tables.get(table, ())
+
+    def lookup(self, table: str, address: int) -> FieldRef | None:
+        """The field instance covering ``address`` in ``table`` (a dict hit after the first ask)."""
+        index = self._index.get(table)
+        if index is None:
+            return None
+        ref = index.get(address, _MISS)
+        if ref is _MISS:
+            ref = self._resolve(table, address)
+            if len(index) < 200_000:  # memo bound: a hostile scan cannot grow it forever
+                index[address] = ref
+        return ref  # type: ignore[no-any-return]
+
+    def _resolve(self, table: str, address: int) -> FieldRef | None:
+        for start, end, entry in self._ranges[table]:
+            if not start <= address < end:
+                continue
+            first = entry.n_range[0]  # type: ignore[index]
+            step = entry.stride or entry.words
+            k, off = divmod(address - start, step)
+            base = start + k * step
+            n = first + k
+            if not entry.fields:
+                if off < entry.words:
+                    return FieldRef(table, entry, base, n, entry, base)
+                continue
+            for sub in entry.fields:
+                if sub.address <= off < sub.address + sub.words:
+                    return FieldRef(table, sub, base + sub.address, n, entry, base)
+        return None
+
+    def channel_of(self, table: str, address: int) -> Channel | None:
+        """Which fieldbus channel an address belongs to, if the profile says."""
+        for ch in self.channels:
+            r = ch.ranges.get(table)
+            if r is not None and r[0] <= address <= r[1]:
+                return ch
+        return None
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def builtin_profile_text(name: str) -> str:
+    """TOML text of a built-in profile (``hrss``, ``xeg``)."""
+    if name not in BUILTIN_PROFILES:
+        raise ProfileError(
+            f"unknown built-in profile {name!r} (built-in: {', '.join(BUILTIN_PROFILES)})"
+        )
+    return (resources.files("mbmon.semantics") / "profiles" / f"{name}.toml").read_text("utf-8")
+
+
+def load_profile(path_or_name: str | Path) -> Profile:
+    """Load a built-in profile by name (``hrss``, ``xeg``) or a user profile file."""
+    if isinstance(path_or_name, str) and path_or_name in BUILTIN_PROFILES:
+        text = builtin_profile_text(path_or_name)
+        return loads_profile(text, file=f"{path_or_name}.toml", path=f"builtin:{path_or_name}")
+    path = Path(path_or_name)
+    try:
+        text = path.read_text("utf-8")
+    except FileNotFoundError:
+        raise ProfileError(
+            f"no such profile file, and not a built-in profile ({', '.join(BUILTIN_PROFILES)})",
+            file=str(path),
+        ) from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise ProfileError(f"cannot read profile: {e}", file=str(path)) from None
+    return loads_profile(text, file=str(path), path=str(path))
+
+
+_TOML_LINE = re.compile(r"\(at line (\d+), column \d+\)")
+
+
+def loads_profile(text: str, *, file: str = "<string>", path: str | None = None) -> Profile:
+    """Parse and check profile TOML text; ``file`` names it in error messages."""
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        msg = str(e)
+        m = _TOML_LINE.search(msg)
+        line = int(m.group(1)) if m else None
+        msg = _TOML_LINE.sub("", msg).strip()
+        raise ProfileError(f"TOML syntax: {msg}", file=file, line=line) from None
+    return _Reader(text, file).profile(doc, path)
+
+
+class _Reader:
+    """Checks a parsed TOML document key by key and builds the :class:`Profile`."""
+
+    def __init__(self, text: str, file: str) -> None:
+        self.lines = text.splitlines()
+        self.file = file
+
+    # -- errors ------------------------------------------------------------
+
+    def fail(self, where: list[str | int], key: str | None, message: str) -> ProfileError:
+        shown = _where(where)
+        if key is not None:
+            shown = f'{shown} "{key}"' if shown else f'"{key}"'
+        dotted = _dotted(where, key)
+        return ProfileError(
+            f"{shown}: {message}" if shown else message,
+            file=self.file,
+            line=self.locate(where, key),
+            key=dotted,
+        )
+
+    def locate(self, where: list[str | int], key: str | None) -> int | None:
+        """Best-effort line of a key: follow table headers (``[[t]]`` counted) then the key."""
+        headers: list[str] = []
+        indexes: list[int | None] = []
+        for part in where:
+            if isinstance(part, int):
+                if indexes:
+                    indexes[-1] = part
+            else:
+                headers.append(part)
+                indexes.append(None)
+        lineno = 0
+        for depth in range(len(headers)):
+            name = ".".join(headers[: depth + 1])
+            want = indexes[depth]
+            count = -1
+            found = None
+            pat = re.compile(r"^\s*\[\[?\s*" + re.escape(name) + r"\s*\]\]?\s*(#.*)?$")
+            for i in range(lineno, len(self.lines)):
+                line = self.lines[i]
+                if depth > 0 and _is_header(line) and not _header_under(line, headers[:depth]):
+                    break  # left the parent element
+                if pat.match(line):
+                    count += 1
+                    if want is None or count == want:
+                        found = i
+                        break
+            if found is None:
+                return None
+            lineno = found + 1
+        if key is None:
+            return lineno or None
+        kpat = re.compile(r"^\s*(" + re.escape(key) + r'|"' + re.escape(key) + r'")\s*=')
+        for i in range(lineno, len(self.lines)):
+            line = self.lines[i]
+            if _is_header(line) and headers:
+                # the key may live in a sub-table header like [t.enum]
+                if re.match(r"^\s*\[\[?\s*" + re.escape(".".join([*headers, key])), line):
+                    return i + 1
+                break
+            if kpat.match(line):
+                return i + 1
+        return None
+
+    # -- typed getters -------------------------------------------------------
+
+    def keys(self, obj: Mapping[str, Any], where: list[str | int], allowed: Iterable[str]) -> None:
+        allowed = set(allowed)
+        for k in obj:
+            if k not in allowed:
+                raise self.fail(where, k, f"unknown key (allowed: {', '.join(sorted(allowed))})")
+
+    def table(self, v: Any, where: list[str | int], key: str | None) -> Mapping[str, Any]:
+        if not isinstance(v, dict):
+            raise self.fail(where, key, f"expected a table, got {_show(v)}")
+        return v
+
+    def string(self, v: Any, where: list[str | int], key: str) -> str:
+        if not isinstance(v, str):
+            raise self.fail(where, key, f"expected a string, got {_show(v)}")
+        return v
+
+    def integer(self, v: Any, where: list[str | int], key: str) -> int:
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise self.fail(where, key, f"expected an integer, got {_show(v)}")
+        return v
+
+    def number(self, v: Any, where: list[str | int], key: str) -> float:
+        if isinstance(v, bool) or not isinstance(v, int | float):
+            raise self.fail(where, key, f"expected a number, got {_show(v)}")
+        return float(v)
+
+    def pair(self, v: Any, where: list[str | int], key: str) -> tuple[int, int]:
+        if (
+            not isinstance(v, list)
+            or len(v) != 2
+            or any(isinstance(x, bool) or not isinstance(x, int) for x in v)
+        ):
+            raise self.fail(where, key, f"expected [low, high] integers, got {_show(v)}")
+        if v[0] > v[1]:
+            raise self.fail(where, key, f"low {v[0]} is above high {v[1]}")
+        return (v[0], v[1])
+
+    def choice(self, v: Any, where: list[str | int], key: str, options: Iterable[str]) -> str:
+        options = tuple(options)
+        if v not in options:
+            raise self.fail(where, key, f"expected one of {', '.join(options)}, got {_show(v)}")
+        return str(v)
+
+    def int_keyed(self, v: Any, where: list[str | int], key: str) -> dict[int, Any]:
+        obj = self.table(v, where, key)
+        out: dict[int, Any] = {}
+        for k, val in obj.items():
+            try:
+                ik = int(k, 0)
+            except ValueError:
+                try:
+                    ik = int(k, 10)
+                except ValueError:
+                    raise self.fail(where, key, f"key {k!r} is not an integer") from None
+            out[ik] = val
+        return out
+
+    def str_map(self, v: Any, where: list[str | int], key: str) -> dict[int, str]:
+        out = self.int_keyed(v, where, key)
+        for k, val in out.items():
+            if not isinstance(val, str):
+                raise self.fail(where, key, f"value for {k} must be a string, got {_show(val)}")
+        return out
+
+    # -- document ------------------------------------------------------------
+
+    def profile(self, doc: Mapping[str, Any], path: str | None) -> Profile:
+        self.keys(doc, [], ("profile", "channels", "notes", *TABLES))
+        if "profile" not in doc:
+            raise self.fail([], "profile", "missing [profile] header (name, description, session)")
+        head = self.table(doc["profile"], [], "profile")
+        w: list[str | int] = ["profile"]
+        self.keys(head, w, ("name", "description", "session"))
+        if "name" not in head:
+            raise self.fail(w, "name", "missing")
+        name = self.string(head["name"], w, "name")
+        description = self.string(head.get("description", ""), w, "description")
+        session = head.get("session")
+        if session is not None:
+            session = self.choice(session, w, "session", ("hrss",))
+        tables: dict[str, tuple[Field, ...]] = {}
+        for table in TABLES:
+            raw = doc.get(table, [])
+            if not isinstance(raw, list):
+                raise self.fail([], table, f"expected [[{table}]] entries, got {_show(raw)}")
+            entries = tuple(self.entry(e, [table, i], table) for i, e in enumerate(raw))
+            self.check_overlap(table, entries)
+            if entries:
+                tables[table] = entries
+        channels = tuple(
+            self.channel(c, ["channels", i]) for i, c in enumerate(_list(doc, "channels", self))
+        )
+        notes = tuple(self.note(c, ["notes", i]) for i, c in enumerate(_list(doc, "notes", self)))
+        return Profile(
+            name=name,
+            description=description,
+            session=session,
+            tables=tables,
+            channels=channels,
+            notes=notes,
+            source="\n".join(self.lines) + "\n" if self.lines else "",
+            path=path,
+        )
+
+    def channel(self, c: Any, w: list[str | int]) -> Channel:
+        c = self.table(c, w, None)
+        self.keys(c, w, ("name", "description", *TABLES))
+        if "name" not in c:
+            raise self.fail(w, "name", "missing")
+        ranges = {t: self.pair(c[t], w, t) for t in TABLES if t in c}
+        desc = c.get("description")
+        return Channel(
+            name=self.string(c["name"], w, "name"),
+            description=None if desc is None else self.string(desc, w, "description"),
+            ranges=ranges,
+        )
+
+    def note(self, c: Any, w: list[str | int]) -> Note:
+        c = self.table(c, w, None)
+        self.keys(c, w, ("title", "text"))
+        for k in ("title", "text"):
+            if k not in c:
+                raise self.fail(w, k, "missing")
+        return Note(self.string(c["title"], w, "title"), self.string(c["text"], w, "text"))
+
+    _VALUE_KEYS = (
+        "name", "type", "words", "label", "description", "scale", "unit", "range", "enum",
+        "enum_style", "display", "word_order", "format",
+    )  # fmt: skip
+
+    def entry(self, e: Any, w: list[str | int], table: str, *, sub: bool = False) -> Field:
+        e = self.table(e, w, None)
+        bits = table in BIT_TABLES
+        is_range = "n" in e
+        is_group = "fields" in e
+        if sub:
+            allowed = {*self._VALUE_KEYS, "offset", "variants"}
+        elif is_group:
+            allowed = {"name", "description", "label", "address", "n", "stride", "fields", "select"}
+        else:
+            allowed = {*self._VALUE_KEYS, "address", "n", "stride", "labels"}
+        self.keys(e, w, allowed)
+        if "name" not in e:
+            raise self.fail(w, "name", "missing")
+        name = self.string(e["name"], w, "name")
+        akey = "offset" if sub else "address"
+        if akey not in e:
+            raise self.fail(w, akey, "missing")
+        address = self.integer(e[akey], w, akey)
+        if not 0 <= address <= 0xFFFF:
+            raise self.fail(w, akey, f"{address} is outside 0..65535")
+        n_range = stride = None
+        if is_group and not is_range:
+            raise self.fail(w, "fields", 'sub-fields need a repeated range ("n = [first, last]")')
+        if is_range:
+            n_range = self.pair(e["n"], w, "n")
+            if "{n}" not in name:
+                raise self.fail(
+                    w, "name", f'a repeated range needs "{{n}}" in its name, got {name!r}'
+                )
+        label = _opt(e, "label", w, self.string)
+        description = _opt(e, "description", w, self.string)
+        if is_group:
+            subs = e["fields"]
+            if not isinstance(subs, list) or not subs:
+                raise self.fail(
+                    w, "fields", f"expected [[{table}.fields]] entries, got {_show(subs)}"
+                )
+            fields = tuple(
+                self.entry(s, [*w, "fields", i], table, sub=True) for i, s in enumerate(subs)
+            )
+            names = [f.name for f in fields]
+            dup = {x for x in names if names.count(x) > 1}
+            if dup:
+                raise self.fail(w, "fields", f"duplicate sub-field name {sorted(dup)[0]!r}")
+            span = max(f.address + f.words for f in fields)
+            self.check_overlap(table, fields, where=[*w, "fields"], what="offset")
+            stride = span if "stride" not in e else self.integer(e["stride"], w, "stride")
+            if stride < span:
+                raise self.fail(
+                    w, "stride", f"{stride} is smaller than the sub-fields' span {span}"
+                )
+            select = _opt(e, "select", w, self.string)
+            if select is not None:
+                sel = next((f for f in fields if f.name == select), None)
+                if sel is None:
+                    raise self.fail(w, "select", f"no sub-field named {select!r}")
+                if sel.words != 1:
+                    raise self.fail(w, "select", f"selector {select!r} must be one register")
+            else:
+                for i, f in enumerate(fields):
+                    if f.variants:
+                        raise self.fail(
+                            [*w, "fields", i], "variants", 'variants need "select" on the range'
+                        )
+            self.check_end(w, address, n_range, stride, span)
+            return Field(
+                name=name, address=address, type="group", words=span, label=label,
+                description=description, n_range=n_range, stride=stride, fields=fields,
+                select=select,
+            )  # fmt: skip
+        ftype = self.choice(
+            e.get("type", "bit" if bits else "s16"),
+            w,
+            "type",
+            ("bit",) if bits else sorted(REGISTER_TYPES),
+        )
+        if ftype in SIZED_TYPES:
+            if "words" not in e:
+                raise self.fail(w, "words", f'type "{ftype}" needs "words"')
+            words = self.integer(e["words"], w, "words")
+            if not 1 <= words <= 125:
+                raise self.fail(w, "words", f"{words} is outside 1..125")
+        else:
+            words = TYPE_WORDS[ftype]
+            if "words" in e and self.integer(e["words"], w, "words") != words:
+                raise self.fail(w, "words", f'type "{ftype}" is {words} word(s), got {e["words"]}')
+        scale = _opt(e, "scale", w, self.number)
+        if scale is not None and scale == 0:
+            raise self.fail(w, "scale", "must not be 0")
+        unit = _opt(e, "unit", w, self.string)
+        rng = None if "range" not in e else self.pair(e["range"], w, "range")
+        enum = None if "enum" not in e else self.str_map(e["enum"], w, "enum")
+        enum_style = self.choice(e.get("enum_style", "name"), w, "enum_style", ("name", "value"))
+        display = self.choice(e.get("display", "dec"), w, "display", ("dec", "hex"))
+        word_order = self.choice(
+            e.get("word_order", "low_high"), w, "word_order", ("low_high", "high_low")
+        )
+        if "word_order" in e and words != 2:
+            raise self.fail(w, "word_order", "only for two-register types (i32, u32, f32)")
+        fmt = _opt(e, "format", w, self.string)
+        if ftype == "version":
+            if fmt is None:
+                fmt = ".".join("{%d}" % i for i in range(words))  # noqa: UP031
+            try:
+                fmt.format(*range(words))
+            except (IndexError, KeyError, ValueError) as err:
+                raise self.fail(
+                    w, "format", f"bad format {fmt!r} for {words} words: {err}"
+                ) from None
+        elif fmt is not None:
+            raise self.fail(w, "format", 'only for type "version"')
+        if enum is not None and ftype in ("bit", "block", "version", "f32"):
+            raise self.fail(w, "enum", f'not allowed for type "{ftype}"')
+        if scale is not None and ftype in ("bit", "block", "version"):
+            raise self.fail(w, "scale", f'not allowed for type "{ftype}"')
+        if display == "hex" and ftype in ("bit", "f32"):
+            raise self.fail(w, "display", f'"hex" not allowed for type "{ftype}"')
+        labels = None
+        if "labels" in e:
+            if not is_range:
+                raise self.fail(w, "labels", 'only for a repeated range ("n = [first, last]")')
+            labels = self.str_map(e["labels"], w, "labels")
+            lo, hi = n_range  # type: ignore[misc]
+            for k in labels:
+                if not lo <= k <= hi:
+                    raise self.fail(w, "labels", f"n = {k} is outside {lo}..{hi}")
+        variants = None
+        if "variants" in e:
+            variants = {}
+            for k, v in self.int_keyed(e["variants"], w, "variants").items():
+                vw: list[str | int] = [*w, "variants"]
+                v = self.table(v, vw, str(k))
+                self.keys(v, [*vw, str(k)], ("name", "label", "unit", "scale"))
+                variants[k] = Variant(
+                    name=_opt(v, "name", [*vw, str(k)], self.string),
+                    label=_opt(v, "label", [*vw, str(k)], self.string),
+                    unit=_opt(v, "unit", [*vw, str(k)], self.string),
+                    scale=_opt(v, "scale", [*vw, str(k)], self.number),
+                )
+        if is_range:
+            stride = words if "stride" not in e else self.integer(e["stride"], w, "stride")
+            if stride < words:
+                raise self.fail(
+                    w, "stride", f"{stride} is smaller than the field's {words} word(s)"
+                )
+            self.check_end(w, address, n_range, stride, words)
+        elif address + words > 0x10000:
+            raise self.fail(w, "address", f"{address}+{words} words runs past 65535")
+        return Field(
+            name=name, address=address, type=ftype, words=words, label=label,
+            description=description, scale=scale, unit=unit, range=rng, enum=enum,
+            enum_style=enum_style, display=display, word_order=word_order, format=fmt,
+            n_range=n_range, stride=stride, labels=labels, variants=variants,
+        )  # fmt: skip
+
+    def check_end(
+        self,
+        w: list[str | int],
+        address: int,
+        n_range: tuple[int, int] | None,
+        stride: int,
+        span: int,
+    ) -> None:
+        if n_range is None:
+            return
+        end = address + stride * (n_range[1] - n_range[0]) + span
+        if end > 0x10000:
+            raise self.fail(w, "n", f"element {n_range[1]} ends at {end - 1}, past 65535")
+
+    def check_overlap(
+        self,
+        table: str,
+        entries: tuple[Field, ...],
+        *,
+        where: list[str | int] | None = None,
+        what: str = "address",
+    ) -> None:
+        spans = sorted(
+            ((f.address, f.end_address(), i) for i, f in enumerate(entries)), key=lambda s: s[:2]
+        )
+        for (a0, a1, i), (b0, _b1, j) in pairwise(spans):
+            if b0 < a1:
+                w = where if where is not None else [table]
+                raise self.fail(
+                    [*w, j],
+                    what,
+                    f"{entries[j].name!r} at {b0} overlaps {entries[i].name!r} ({a0}..{a1 - 1})",
+                )
+
+
+def _list(doc: Mapping[str, Any], key: str, r: _Reader) -> list[Any]:
+    v = doc.get(key, [])
+    if not isinstance(v, list):
+        raise r.fail([], key, f"expected [[{key}]] entries, got {_show(v)}")
+    return v
+
+
+def _opt(obj: Mapping[str, Any], key: str, w: list[str | int], get: Any) -> Any:
+    return None if key not in obj else get(obj[key], w, key)
+
+
+def _is_header(line: str) -> bool:
+    return line.lstrip().startswith("[")
+
+
+def _header_under(line: str, parents: list[str]) -> bool:
+    inner = line.strip().strip("[]").strip()
+    return inner.startswith(".".join(parents) + ".")
+
+
+def _where(where: list[str | int]) -> str:
+    out = ""
+    for part in where:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        else:
+            out += f".{part}" if out else part
+    return out
+
+
+def _dotted(where: list[str | int], key: str | None) -> str:
+    base = _where(where)
+    if key is None:
+        return base
+    return f"{base}.{key}" if base else key
+
+
+def _show(v: Any) -> str:
+    if isinstance(v, str):
+        return json.dumps(v, ensure_ascii=False)
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, dict):
+        return "a table"
+    if isinstance(v, list):
+        return f"an array {json.dumps(v, ensure_ascii=False, default=str)}"
+    return str(v)
+
+
+# --------------------------------------------------------------------------- dumping
+
+
+def dump_profile(profile: Profile) -> str:
+    """TOML text of a profile; ``loads_profile(dump_profile(p)) == p``."""
+    out: list[str] = ["[profile]", f"name = {_tv(profile.name)}"]
+    if profile.description:
+        out.append(f"description = {_tv(profile.description)}")
+    if profile.session is not None:
+        out.append(f"session = {_tv(profile.session)}")
+    for ch in profile.channels:
+        out += ["", "[[channels]]", f"name = {_tv(ch.name)}"]
+        if ch.description is not None:
+            out.append(f"description = {_tv(ch.description)}")
+        for t in TABLES:
+            if t in ch.ranges:
+                out.append(f"{t} = {_tv(list(ch.ranges[t]))}")
+    for note in profile.notes:
+        out += ["", "[[notes]]", f"title = {_tv(note.title)}", f"text = {_tv(note.text)}"]
+    for table in TABLES:
+        for entry in profile.entries(table):
+            out += ["", f"[[{table}]]", *_dump_field(entry, sub=False)]
+            for sub in entry.fields:
+                out += ["", f"[[{table}.fields]]", *_dump_field(sub, sub=True)]
+    return "\n".join(out) + "\n"
+
+
+def _dump_field(f: Field, *, sub: bool) -> list[str]:
+    kv: list[tuple[str, Any]] = [("name", f.name), ("offset" if sub else "address", f.address)]
+    if f.n_range is not None:
+        kv.append(("n", list(f.n_range)))
+    if f.fields:
+        kv.append(("stride", f.stride))
+        kv += [("label", f.label), ("description", f.description), ("select", f.select)]
+        return [f"{k} = {_tv(v)}" for k, v in kv if v is not None]
+    if f.n_range is not None and f.stride != f.words:
+        kv.append(("stride", f.stride))
+    kv.append(("type", f.type))
+    if f.type in SIZED_TYPES:
+        kv.append(("words", f.words))
+    kv += [
+        ("word_order", f.word_order if f.word_order != "low_high" else None),
+        ("label", f.label),
+        ("description", f.description),
+        ("scale", f.scale),
+        ("unit", f.unit),
+        ("range", list(f.range) if f.range else None),
+        ("display", f.display if f.display != "dec" else None),
+        ("format", f.format),
+        ("enum_style", f.enum_style if f.enum_style != "name" else None),
+        ("enum", f.enum),
+        ("labels", f.labels),
+    ]
+    if f.variants is not None:
+        kv.append(
+            (
+                "variants",
+                {
+                    k: {
+                        a: getattr(v, a)
+                        for a in ("name", "label", "unit", "scale")
+                        if getattr(v, a) is not None
+                    }
+                    for k, v in f.variants.items()
+                },
+            )
+        )
+    return [f"{k} = {_tv(v)}" for k, v in kv if v is not None]
+
+
+def _tv(v: Any) -> str:
+    """One TOML value (inline tables on one line, as TOML 1.0 requires)."""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        r = repr(v)
+        return r if any(c in r for c in ".en") else r + ".0"
+    if isinstance(v, str):
+        return json.dumps(v, ensure_ascii=False)
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_tv(x) for x in v) + "]"
+    if isinstance(v, Mapping):
+        items = ", ".join(f"{_tk(k)} = {_tv(x)}" for k, x in v.items())
+        return "{ " + items + " }" if items else "{}"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def _tk(k: Any) -> str:
+    s = str(k)
+    return s if re.fullmatch(r"[A-Za-z0-9_-]+", s) else json.dumps(s, ensure_ascii=False)
+
+
+# --------------------------------------------------------------------------- binding
+
+
+def split_endpoint(endpoint: str) -> tuple[str, int | None]:
+    """(host, port) of ``IP:PORT`` / ``[v6]:PORT``; a serial port name is all host."""
+    if endpoint.startswith("["):
+        host, _, rest = endpoint[1:].partition("]")
+        port = rest[1:] if rest.startswith(":") else ""
+        return host, int(port) if port.isdigit() else None
+    if endpoint.count(":") == 1:
+        host, _, port = endpoint.partition(":")
+        if port.isdigit():
+            return host, int(port)
+    return endpoint, None
+
+
+@dataclass(frozen=True, slots=True)
+class _Rule:
+    spec: str
+    profile: Profile
+    unit: int | None = None
+    host: str | None = None
+    port: int | None = None
+
+
+class ProfileBinding:
+    """Which profile applies to which server endpoint and unit (CLI ``--profile`` values).
+
+    Precedence, most specific first: ``unit:N=NAME`` > ``HOST:PORT=NAME`` >
+    ``HOST=NAME`` > plain ``NAME_OR_FILE`` (default for everything). A later
+    spec of the same kind replaces an earlier one.
+    """
+
+    def __init__(self, rules: Iterable[_Rule] = ()) -> None:
+        self._units: dict[int, Profile] = {}
+        self._hostports: dict[tuple[str, int], Profile] = {}
+        self._hosts: dict[str, Profile] = {}
+        self._default: Profile | None = None
+        self._profiles: dict[int, Profile] = {}  # id -> profile, for sources()
+        self._cache: dict[tuple[str, int], Profile | None] = {}
+        for r in rules:
+            self._add(r)
+
+    @classmethod
+    def parse(cls, specs: Iterable[str]) -> ProfileBinding:
+        """Build from ``--profile`` values; each distinct name or file is loaded once."""
+        loaded: dict[str, Profile] = {}
+
+        def get(name: str, spec: str) -> Profile:
+            if not name:
+                raise ProfileError(f"--profile {spec!r}: no profile name or file after '='")
+            if name not in loaded:
+                loaded[name] = load_profile(name)
+            return loaded[name]
+
+        rules: list[_Rule] = []
+        for spec in specs:
+            spec = spec.strip()
+            target, eq, name = spec.rpartition("=")
+            if not eq:
+                rules.append(_Rule(spec, get(spec, spec)))
+                continue
+            target = target.strip()
+            name = name.strip()
+            if target.lower().startswith("unit:"):
+                num = target[5:].strip()
+                if not num.isdigit() or not 0 <= int(num) <= 255:
+                    raise ProfileError(f"--profile {spec!r}: unit must be 0..255, got {num!r}")
+                rules.append(_Rule(spec, get(name, spec), unit=int(num)))
+            elif target:
+                host, port = split_endpoint(target)
+                if not host:
+                    raise ProfileError(f"--profile {spec!r}: empty host")
+                if port is not None and not 0 < port < 65536:
+                    raise ProfileError(f"--profile {spec!r}: port must be 1..65535")
+                rules.append(_Rule(spec, get(name, spec), host=host, port=port))
+            else:
+                raise ProfileError(f"--profile {spec!r}: nothing before '='")
+        return cls(rules)
+
+    def _add(self, r: _Rule) -> None:
+        self._profiles[id(r.profile)] = r.profile
+        if r.unit is not None:
+            self._units[r.unit] = r.profile
+        elif r.host is not None and r.port is not None:
+            self._hostports[(r.host, r.port)] = r.profile
+        elif r.host is not None:
+            self._hosts[r.host] = r.profile
+        else:
+            self._default = r.profile
+        self._cache.clear()
+
+    @property
+    def empty(self) -> bool:
+        return not self._profiles
+
+    def for_(self, stream: Stream, unit: int) -> Profile | None:
+        """The profile for a server endpoint (``stream.server``) and unit id, or ``None``."""
+        key = (stream.server, unit)
+        try:
+            return self._cache[key]
+        except KeyError:
+            pass
+        found = self._units.get(unit)
+        if found is None:
+            host, port = split_endpoint(stream.server)
+            if port is not None:
+                found = self._hostports.get((host, port))
+            if found is None:
+                found = self._hosts.get(host) or self._hosts.get(stream.server)
+            if found is None:
+                found = self._default
+        self._cache[key] = found
+        return found
+
+    def profiles(self) -> list[Profile]:
+        return list(self._profiles.values())
+
+    def sources(self) -> list[tuple[str, str]]:
+        """(profile name, TOML text) of every bound profile, so logs can carry them."""
+        return [
+            (p.name, p.source if p.source is not None else dump_profile(p))
+            for p in self._profiles.values()
+        ]
