@@ -1,0 +1,513 @@
+"""The annotator: device-profile notes for every pairing step.
+
+For each :class:`~mbmon.model.Transaction` the pipeline hands over, the
+annotator finds the profile bound to the server endpoint and unit, and turns the
+values of the frame the step reports (the request while it is pending, the
+response once answered) into compact notes, one per field:
+``R201 = PTP (0)``, ``SI1 Start = ON``, ``A1 = 90.830°``, ``PR[2].X = 90.000 mm``.
+Responses to reads take their addresses from the paired request. A value that
+spans two registers is combined only when both words are in the same frame;
+otherwise the half is shown raw and marked.
+
+When the profile asks for the HRSS command session (``session = "hrss"``), the
+annotator keeps one :class:`mbmon.semantics.hrss.HrssSession` per (server
+endpoint, unit) and merges its notes, command steps and state into the result.
+
+Cost: with no profile bound, :meth:`Annotator.annotate` returns a shared empty
+annotation at once; with a profile, each field is one dict look-up.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+from mbmon.model import Annotation, Frame, Kind, Stream, Transaction, TxStatus
+from mbmon.semantics.regmap import (
+    REGISTER_PREFIX,
+    Field,
+    FieldRef,
+    Profile,
+    ProfileBinding,
+    Variant,
+)
+from mbmon.semantics.words import join_u32, s16, u32_to_f32
+
+__all__ = ["Annotator", "SelectorMemory", "field_notes"]
+
+_EMPTY = Annotation()
+
+#: function code -> profile table
+_TABLE = {
+    0x01: "coils",
+    0x05: "coils",
+    0x0F: "coils",
+    0x02: "discrete_inputs",
+    0x03: "holding_registers",
+    0x06: "holding_registers",
+    0x10: "holding_registers",
+    0x16: "holding_registers",
+    0x17: "holding_registers",
+    0x04: "input_registers",
+}
+_BITS = frozenset({"coils", "discrete_inputs"})
+_MAX_RUN_WORDS = 12  # values shown in a merged run / block note before "…"
+_MAX_RUN_BITS = 8  # bits shown as ON/OFF words; longer runs list the ON ones
+_NO_UNIT_SPACE = frozenset({"°", "%", ""})
+
+
+class Annotator:
+    """Turns pairing steps into profile notes; owns the HRSS sessions and selector memory."""
+
+    def __init__(self, binding: ProfileBinding | None = None) -> None:
+        self._binding = binding if binding is not None else ProfileBinding()
+        self._off = self._binding.empty
+        self._sessions: dict[tuple[str, int], Any] = {}
+        self._session_cls: Any = None
+        self._session_tried = False
+        # last value of group selectors (PR[n].type) per (server, unit, table, address)
+        self._selectors: dict[tuple[str, int, str, int], int] = {}
+
+    @property
+    def binding(self) -> ProfileBinding:
+        return self._binding
+
+    def sessions(self) -> dict[tuple[str, int], Any]:
+        """The HRSS sessions by (server endpoint, unit), for sinks that want their state."""
+        return dict(self._sessions)
+
+    def annotate(self, tx: Transaction) -> Annotation:
+        """Notes, command steps and state for one pairing step."""
+        if self._off:
+            return _EMPTY
+        status = tx.status
+        frame = (
+            tx.request if status is TxStatus.PENDING or status is TxStatus.TIMEOUT else tx.response
+        )
+        if frame is None:
+            return _EMPTY
+        profile = self._binding.for_(frame.stream, frame.unit)
+        if profile is None:
+            return _EMPTY
+        notes: tuple[str, ...] = ()
+        if status is not TxStatus.TIMEOUT:
+            notes = tuple(self._frame_notes(tx, frame, profile))
+        if profile.session == "hrss":
+            session = self._session(frame.stream, frame.unit)
+            if session is not None:
+                extra = session.feed(tx)
+                if extra.notes or extra.commands or extra.state is not None:
+                    return Annotation(
+                        notes=notes + tuple(extra.notes),
+                        commands=tuple(extra.commands),
+                        state=extra.state,
+                    )
+        return Annotation(notes=notes) if notes else _EMPTY
+
+    # ------------------------------------------------------------------ sessions
+
+    def _session(self, stream: Stream, unit: int) -> Any:
+        key = (stream.server, unit)
+        session = self._sessions.get(key)
+        if session is None:
+            cls = self._hrss_class()
+            if cls is None:
+                return None
+            session = self._sessions[key] = cls(stream, unit)
+        return session
+
+    def _hrss_class(self) -> Any:
+        if not self._session_tried:
+            self._session_tried = True
+            try:
+                from mbmon.semantics import hrss
+            except ModuleNotFoundError as err:  # the session module may not exist yet
+                if err.name not in ("mbmon.semantics.hrss",):
+                    raise
+                return None
+            self._session_cls = getattr(hrss, "HrssSession", None)
+        return self._session_cls
+
+    # ------------------------------------------------------------------ notes
+
+    def _frame_notes(self, tx: Transaction, frame: Frame, profile: Profile) -> list[str]:
+        pdu = frame.pdu
+        if pdu.kind is Kind.EXCEPTION:
+            return []
+        table = _TABLE.get(pdu.fc)
+        if table is None:
+            return []
+        fc = pdu.fc
+        selector = self._selector_reader(frame, profile, table)
+        if pdu.kind is Kind.REQUEST:
+            if fc in (0x01, 0x02, 0x03, 0x04):
+                return _read_request_note(profile, table, pdu.address, pdu.count)
+            if fc in (0x05, 0x06, 0x0F, 0x10):
+                if pdu.address is None or not pdu.values:
+                    return []
+                return field_notes(profile, table, pdu.address, pdu.values, "write", selector)
+            if fc == 0x16:
+                return _mask_note(profile, pdu.address, pdu.fields)
+            # 0x17: write part now, read part with the response
+            waddr = pdu.fields.get("write_address")
+            wvals = pdu.fields.get("write_values")
+            notes: list[str] = []
+            if waddr is not None and wvals:
+                notes += field_notes(profile, table, waddr, wvals, "write", selector)
+            notes += _read_request_note(profile, table, pdu.address, pdu.count)
+            return notes
+        # responses
+        if fc in (0x05, 0x06):  # echo of the write: self-contained
+            if pdu.address is None or not pdu.values:
+                return []
+            return field_notes(profile, table, pdu.address, pdu.values, "write", selector)
+        if fc in (0x0F, 0x10):
+            return _span_note(profile, table, pdu.address, pdu.count, "written")
+        if fc == 0x16:
+            return _mask_note(profile, pdu.address, pdu.fields)
+        req = tx.request
+        if req is None or req.pdu.address is None or not pdu.values:
+            return []
+        values: Sequence[int] = pdu.values
+        if req.pdu.count is not None and len(values) > req.pdu.count:
+            values = values[: req.pdu.count]
+        return field_notes(profile, table, req.pdu.address, values, "read", selector)
+
+    def _selector_reader(self, frame: Frame, profile: Profile, table: str) -> SelectorMemory:
+        return SelectorMemory(self._selectors, frame.stream.server, frame.unit, table)
+
+
+class SelectorMemory:
+    """Last value of group selectors (PR[n].type) seen on one server, unit and table.
+
+    Lets ``PR[2].Value1`` read as ``PR[2].X`` in a frame that does not carry
+    ``PR[2].type`` itself.
+    """
+
+    __slots__ = ("_server", "_store", "_table", "_unit")
+
+    def __init__(
+        self, store: dict[tuple[str, int, str, int], int], server: str, unit: int, table: str
+    ) -> None:
+        self._store = store
+        self._server = server
+        self._unit = unit
+        self._table = table
+
+    def get(self, address: int) -> int | None:
+        return self._store.get((self._server, self._unit, self._table, address))
+
+    def put(self, address: int, value: int) -> None:
+        self._store[(self._server, self._unit, self._table, address)] = value
+
+
+# ---------------------------------------------------------------------- rendering
+
+
+def field_notes(
+    profile: Profile,
+    table: str,
+    start: int,
+    values: Sequence[int],
+    verb: str = "read",
+    selector: SelectorMemory | None = None,
+) -> list[str]:
+    """One note per field (merged runs for plain repeated fields) for ``values`` at ``start``.
+
+    ``verb`` ("read"/"write") words the mark on a half value.
+    """
+    if table in _BITS:
+        return _bit_notes(profile, table, start, values)
+    notes: list[str] = []
+    end = start + len(values)
+    i = 0
+    n = len(values)
+    lookup = profile.lookup
+    while i < n:
+        ref = lookup(table, start + i)
+        if ref is None:
+            i += 1
+            continue
+        f = ref.field
+        lo = max(ref.address, start)
+        hi = min(ref.address + f.words, end)
+        if _plain(ref):
+            j = hi - start
+            run = [ref]
+            while j < n:
+                nxt = lookup(table, start + j)
+                if nxt is None or nxt.entry is not ref.entry or not _plain(nxt):
+                    break
+                run.append(nxt)
+                j += 1
+            if len(run) > 1:
+                notes.append(_run_note(run, values[i:j], f))
+                i = j
+                continue
+        words = values[lo - start : hi - start]
+        notes.append(_register_note(ref, table, lo, words, verb, start, values, selector))
+        i = hi - start
+    return notes
+
+
+def _plain(ref: FieldRef) -> bool:
+    """A repeated one-word field with nothing to say but its number (SRR[n])."""
+    f = ref.field
+    return (
+        ref.entry is not None
+        and not ref.entry.fields
+        and f.words == 1
+        and f.type in ("u16", "s16")
+        and f.enum is None
+        and f.scale is None
+        and f.unit is None
+        and f.display == "dec"
+        and not (f.labels and ref.n in f.labels)
+        and f.label is None
+    )
+
+
+def _run_note(run: list[FieldRef], values: Sequence[int], f: Field) -> str:
+    shown = [str(s16(v) if f.type == "s16" else v) for v in values[:_MAX_RUN_WORDS]]
+    if len(values) > _MAX_RUN_WORDS:
+        shown.append(f"… (+{len(values) - _MAX_RUN_WORDS})")
+    return f"{_run_name(run)} = {' '.join(shown)}"
+
+
+def _run_name(run: list[FieldRef]) -> str:
+    first, last = run[0], run[-1]
+    entry = first.entry
+    if entry is not None and entry.name.endswith("[{n}]"):
+        return entry.name.replace("{n}", f"{first.n}..{last.n}")
+    return f"{first.name}..{last.name}"
+
+
+def _ref_text(ref: FieldRef, variant: Variant | None) -> str:
+    name = ref.name
+    label = ref.label
+    if variant is not None:
+        if variant.name is not None:
+            parent = ref.entry.element_name(ref.n) if ref.entry is not None else ""
+            name = f"{parent}.{variant.name}" if parent else variant.name
+        if variant.label is not None:
+            label = variant.label
+    return f"{name} {label}" if label else name
+
+
+def _register_note(
+    ref: FieldRef,
+    table: str,
+    lo: int,
+    words: Sequence[int],
+    verb: str,
+    start: int,
+    values: Sequence[int],
+    selector: SelectorMemory | None,
+) -> str:
+    f = ref.field
+    if f.type == "block":
+        prefix = REGISTER_PREFIX.get(table, "")
+        hi = lo + len(words) - 1
+        span = f"{prefix}{lo}" if hi == lo else f"{prefix}{lo}..{prefix}{hi}"
+        label = f.label or f.name
+        shown = [str(s16(v)) for v in words[:_MAX_RUN_WORDS]]
+        if len(words) > _MAX_RUN_WORDS:
+            shown.append(f"… (+{len(words) - _MAX_RUN_WORDS})")
+        return f"{span} {label} = {' '.join(shown)}"
+    variant = None
+    entry = ref.entry
+    if entry is not None and entry.select is not None and ref.base is not None:
+        sel = next(x for x in entry.fields if x.name == entry.select)
+        sel_addr = ref.base + sel.address
+        sel_value: int | None
+        if start <= sel_addr < start + len(values):
+            sel_value = s16(values[sel_addr - start])
+            if selector is not None:
+                selector.put(sel_addr, sel_value)
+        else:
+            sel_value = selector.get(sel_addr) if selector is not None else None
+        if sel_value is not None and f.variants:
+            variant = f.variants.get(sel_value)
+    head = _ref_text(ref, variant)
+    if len(words) < f.words:
+        return _partial_note(head, f, ref, lo, words, verb)
+    return f"{head} = {_value_text(f, variant, words)}"
+
+
+def _partial_note(
+    head: str, f: Field, ref: FieldRef, lo: int, words: Sequence[int], verb: str
+) -> str:
+    raw = " ".join(_raw_word(f, w) for w in words)
+    if f.words == 2:
+        first_is_low = f.word_order == "low_high"
+        have_first = lo == ref.address
+        have, missing = ("low", "high") if have_first == first_is_low else ("high", "low")
+        return f"{head} ({have} word) = {raw} ({missing} word not in this {verb})"
+    off = lo - ref.address
+    part = f"words {off + 1}..{off + len(words)} of {f.words}"
+    return f"{head} ({part}) = {raw} (rest not in this {verb})"
+
+
+def _raw_word(f: Field, w: int) -> str:
+    if f.display == "hex":
+        return f"0x{w & 0xFFFF:04X}"
+    return str(w & 0xFFFF if f.type in ("u16", "u32", "version") else s16(w))
+
+
+def _value_text(f: Field, variant: Variant | None, words: Sequence[int]) -> str:
+    t = f.type
+    if t == "version":
+        return (f.format or "").format(*(w & 0xFFFF for w in words))
+    if t in ("u16", "s16"):
+        raw = words[0] & 0xFFFF if t == "u16" else s16(words[0])
+    else:
+        low, high = (words[0], words[1]) if f.word_order == "low_high" else (words[1], words[0])
+        u = join_u32(low, high)
+        if t == "f32":
+            scale = variant.scale if variant and variant.scale is not None else f.scale
+            x = u32_to_f32(u) * (scale if scale is not None else 1.0)
+            return _with_unit(f"{x:g}", variant.unit if variant and variant.unit else f.unit)
+        raw = u - 0x100000000 if t == "i32" and u & 0x80000000 else u
+    if f.enum is not None:
+        name = f.enum.get(raw)
+        if name is None:
+            text = f"{raw} (unknown)"
+        elif f.enum_style == "value":
+            text = f"{raw} ({name})"
+        else:
+            text = f"{name} ({raw})"
+    elif f.display == "hex":
+        text = f"0x{raw & 0xFFFFFFFF:0{4 * f.words}X}"
+    else:
+        scale = f.scale
+        unit = f.unit
+        if variant is not None:
+            if variant.scale is not None:
+                scale = variant.scale
+            if variant.unit is not None:
+                unit = variant.unit
+        text = _with_unit(_scaled(raw, scale), unit)
+    if f.range is not None and not f.range[0] <= raw <= f.range[1]:
+        text += f" (out of range {f.range[0]}..{f.range[1]})"
+    return text
+
+
+def _scaled(raw: int, scale: float | None) -> str:
+    if scale is None or scale == 1:
+        return str(raw)
+    decimals = 0
+    s = scale
+    while s < 1 and decimals < 9:
+        s *= 10
+        decimals += 1
+    return f"{raw * scale:.{decimals}f}"
+
+
+def _with_unit(text: str, unit: str | None) -> str:
+    if not unit:
+        return text
+    return f"{text}{unit}" if unit in _NO_UNIT_SPACE else f"{text} {unit}"
+
+
+def _bit_notes(profile: Profile, table: str, start: int, bits: Sequence[int]) -> list[str]:
+    notes: list[str] = []
+    n = len(bits)
+    i = 0
+    lookup = profile.lookup
+    while i < n:
+        ref = lookup(table, start + i)
+        if ref is None:
+            i += 1
+            continue
+        if ref.label is None and ref.entry is not None:
+            j = i + 1
+            while j < n:
+                nxt = lookup(table, start + j)
+                if nxt is None or nxt.entry is not ref.entry or nxt.label is not None:
+                    break
+                j += 1
+            if j - i > 1:
+                run = [lookup(table, start + k) for k in range(i, j)]
+                notes.append(_bit_run_note(run, bits[i:j]))  # type: ignore[arg-type]
+                i = j
+                continue
+        head = f"{ref.name} {ref.label}" if ref.label else ref.name
+        notes.append(f"{head} = {'ON' if bits[i] else 'OFF'}")
+        i += 1
+    return notes
+
+
+def _bit_run_note(run: list[FieldRef], bits: Sequence[int]) -> str:
+    name = _run_name(run)
+    if len(bits) <= _MAX_RUN_BITS:
+        return f"{name} = {' '.join('ON' if b else 'OFF' for b in bits)}"
+    on = [r.name for r, b in zip(run, bits, strict=True) if b]
+    if not on:
+        return f"{name} = all OFF"
+    if len(on) == len(bits):
+        return f"{name} = all ON"
+    listed = ", ".join(on[:_MAX_RUN_BITS])
+    if len(on) > _MAX_RUN_BITS:
+        listed += f", … (+{len(on) - _MAX_RUN_BITS})"
+    return f"{name} = {len(on)} ON ({listed})"
+
+
+def _span_names(profile: Profile, table: str, address: int, count: int) -> str | None:
+    """Field names from ``address`` over ``count`` addresses: ``A1..A6``, ``DI[1..8]``."""
+    first = last = None
+    first_a = last_a = 0
+    lookup = profile.lookup
+    for a in range(address, address + count):
+        ref = lookup(table, a)
+        if ref is None:
+            continue
+        if first is None:
+            first, first_a = ref, a
+        last, last_a = ref, a
+    if first is None or last is None:
+        return None
+    if first.field is last.field and first.address == last.address:
+        return _one_name(first, table, first_a, last_a, with_label=True)
+    if first.entry is not None and first.entry is last.entry and not first.entry.fields:
+        return _run_name([first, last])
+    return f"{_one_name(first, table, first_a, first_a)}..{_one_name(last, table, last_a, last_a)}"
+
+
+def _one_name(ref: FieldRef, table: str, lo: int, hi: int, *, with_label: bool = False) -> str:
+    if ref.field.type == "block":
+        p = REGISTER_PREFIX.get(table, "")
+        span = f"{p}{lo}" if lo == hi else f"{p}{lo}..{p}{hi}"
+        return f"{span} {ref.field.label}" if with_label and ref.field.label else span
+    if with_label and ref.label:
+        return f"{ref.name} {ref.label}"
+    return ref.name
+
+
+def _read_request_note(
+    profile: Profile, table: str, address: int | None, count: int | None
+) -> list[str]:
+    if address is None or not count:
+        return []
+    names = _span_names(profile, table, address, min(count, 0x10000 - address))
+    return [f"read {names}"] if names else []
+
+
+def _span_note(
+    profile: Profile, table: str, address: int | None, count: int | None, verb: str
+) -> list[str]:
+    if address is None or not count:
+        return []
+    names = _span_names(profile, table, address, min(count, 0x10000 - address))
+    return [f"{names} {verb}"] if names else []
+
+
+def _mask_note(profile: Profile, address: int | None, fields: Any) -> list[str]:
+    if address is None:
+        return []
+    ref = profile.lookup("holding_registers", address)
+    and_mask, or_mask = fields.get("and_mask"), fields.get("or_mask")
+    if ref is None or and_mask is None or or_mask is None:
+        return []
+    name = _one_name(ref, "holding_registers", address, address)
+    head = _one_name(ref, "holding_registers", address, address, with_label=True)
+    return [f"{head} = ({name} AND 0x{and_mask:04X}) OR 0x{or_mask:04X}"]
