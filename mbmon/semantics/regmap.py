@@ -700,13 +700,16 @@ class _Reader:
         spans = sorted(
             ((f.address, f.end_address(), i) for i, f in enumerate(entries)), key=lambda s: s[:2]
         )
-        for (a0, a1, i), (b0, _b1, j) in pairwise(spans):
+        for (_a0, a1, i), (b0, _b1, j) in pairwise(spans):
             if b0 < a1:
                 w = where if where is not None else [table]
+                late, early = (j, i) if j > i else (i, j)  # blame the one written later
+                e, o = entries[late], entries[early]
                 raise self.fail(
-                    [*w, j],
+                    [*w, late],
                     what,
-                    f"{entries[j].name!r} at {b0} overlaps {entries[i].name!r} ({a0}..{a1 - 1})",
+                    f"{e.name!r} ({e.address}..{e.end_address() - 1}) overlaps "
+                    f"{o.name!r} ({o.address}..{o.end_address() - 1})",
                 )
 
 
