@@ -146,12 +146,25 @@ def warnings(anns: Sequence[Annotation | None]) -> list[CommandUpdate]:
     return [c for c in updates(anns) if c.phase is Phase.WARNING]
 
 
-def ptp_joint(a1: float = 90, speed: int = 50, acc: int = 100, tool: int = 1, base: int = 2,
-              ext: int = 0, e1: float = 0, code: int = 0) -> list[int]:
+def ptp_joint(
+    a1: float = 90,
+    speed: int = 50,
+    acc: int = 100,
+    tool: int = 1,
+    base: int = 2,
+    ext: int = 0,
+    e1: float = 0,
+    code: int = 0,
+) -> list[int]:
     """R201..R226 of a PTP in joint coordinates (Table 17), as unsigned words."""
     return (
-        words(0, 0) + i32(a1) + [0] * 10 + words(speed, acc, tool, base, ext)
-        + i32(e1) + [0] * 4 + words(code)
+        words(0, 0)
+        + i32(a1)
+        + [0] * 10
+        + words(speed, acc, tool, base, ext)
+        + i32(e1)
+        + [0] * 4
+        + words(code)
     )
 
 
@@ -286,7 +299,8 @@ def test_range_problems_name_field_value_range_and_registers() -> None:
         "speed 6001 outside 1..6000 (R215)",
     )
     assert decode_command(holding(201, [0, 3])).problems == ("point_type 3 outside 0..2 (R202)",)
-    assert decode_command(holding(201, [7])).problems == ("command number 7 not in Table 16 (R201)",)
+    unknown = decode_command(holding(201, [7]))
+    assert unknown.problems == ("command number 7 not in Table 16 (R201)",)
 
 
 @pytest.mark.parametrize(
@@ -305,7 +319,9 @@ def test_range_problems_name_field_value_range_and_registers() -> None:
         (200, holding(202, [9, 0]), "PR[9] = NULL"),
     ],
 )  # fmt: skip
-def test_get_returns_decoded_per_tables_33_to_43(code: int, regs: dict[int, int], text: str) -> None:
+def test_get_returns_decoded_per_tables_33_to_43(
+    code: int, regs: dict[int, int], text: str
+) -> None:
     dec = decode_returns(code, regs)
     assert dec is not None and dec.text == text and not dec.missing
 
@@ -420,9 +436,7 @@ def test_out_of_range_parameters_warn_once_at_execute() -> None:
     assert phases([ex]) == [Phase.EXECUTING, Phase.WARNING]
     [warn] = warnings([ex])
     assert warn.params["warning"] == "range"
-    assert warn.text.endswith(
-        ": speed 250 outside 1..200 (R215); tool 20 outside 0..15 (R217)"
-    )
+    assert warn.text.endswith(": speed 250 outside 1..200 (R215); tool 20 outside 0..15 (R217)")
 
 
 def test_r200_other_than_0_or_1_warns() -> None:
@@ -438,7 +452,7 @@ def test_never_completes_after_the_timeout_while_the_client_polls_ir200() -> Non
     s(w6(200, 1))
     quiet = [s(rd(0x04, 200, [0]), dt=0.5) for _ in range(3)]  # 1.5 s: still in time
     assert warnings([a for pair in quiet for a in pair]) == []
-    late_req, late = s(rd(0x04, 200, [0]), dt=0.6)
+    late_req, _ = s(rd(0x04, 200, [0]), dt=0.6)
     [warn] = warnings([late_req])  # the first frame past the deadline carries it
     assert warn.params["warning"] == "never_completed" and warn.code == 100
     assert warn.text == (
@@ -504,7 +518,7 @@ def test_exception_answer_puts_the_old_values_back_and_rejects_the_execute() -> 
     s = Script()
     s(wr(201, [104, 3]))
     _, rej = s((encode_write_multiple_request(0x10, 201, [103, 9]), encode_exception(0x10, 2)))
-    assert rej is not None and notes([rej]) == ["write rejected (exception 2): R201..R202 unchanged"]
+    assert notes([rej]) == ["write rejected (exception 2): R201..R202 unchanged"]
     assert s.session.holding[201] == 104 and s.session.holding[202] == 3
     assert s.session.unconfirmed == frozenset()
     ex, rej2 = s((encode_write_single(0x06, 200, 1), encode_exception(0x06, 4)))
