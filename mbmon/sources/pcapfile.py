@@ -1,0 +1,734 @@
+"""Capture files in, Modbus byte streams out: mbmon's own pcap/pcapng reader.
+
+This module owns reading capture containers (pcap in both byte orders with
+micro- or nanosecond stamps, pcapng with any mix of interfaces, InfoVista 5View,
+any of them gzip-compressed), dissecting link, IP and TCP/UDP headers, deciding
+which packets are Modbus (by port, :class:`CaptureConfig`), naming streams, and
+handing TCP segments to :mod:`mbmon.sources.tcpflow` for reassembly. The output
+is one iterator of :class:`~mbmon.model.Chunk` and :class:`~mbmon.model.Event`.
+
+Bytes never raise: headers that make no sense are counted (see ``stats``) and
+skipped; a file damaged in the middle ends the iteration with one ERROR event
+after everything before the damage. Only a file that cannot be opened or is not
+a capture at all raises :class:`CaptureError`, before anything is yielded.
+
+Pure Python; no scapy (which reads 3-10x slower: see ``bench/pcap_reader.py``).
+"""
+
+from __future__ import annotations
+
+import gzip
+import ipaddress
+import os
+import struct
+import zlib
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, BinaryIO
+
+from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport
+from mbmon.sources.tcpflow import ACK, SYN, TcpConnection, TcpStats
+
+__all__ = ["CaptureConfig", "CaptureError", "read_capture"]
+
+_BLOCK = 1 << 20  # file read size; progress is reported once per block
+_MAX_RECORD = 1 << 26  # larger records or blocks mean a corrupt file
+_TCP_HOLD_LIMIT = 1 << 20  # out-of-order bytes held per TCP direction
+
+_C2S = Direction.C2S
+_S2C = Direction.S2C
+
+
+@dataclass(frozen=True, slots=True)
+class CaptureConfig:
+    """Which ports carry Modbus.
+
+    ``tcp_ports``: Modbus/TCP (MBAP) server ports, for TCP and UDP.
+    ``rtu_ports``: RTU-over-TCP/UDP server ports; a port in both sets is RTU
+    (the explicit choice wins over the default 502).
+    """
+
+    tcp_ports: frozenset[int] = frozenset({502})
+    rtu_ports: frozenset[int] = frozenset()
+
+
+class CaptureError(Exception):
+    """The file cannot be read as a capture at all (one-line message)."""
+
+
+class _Damage(Exception):
+    """The container is damaged at ``offset``; ``what`` says how."""
+
+    def __init__(self, what: str, offset: int) -> None:
+        super().__init__(what)
+        self.what = what
+        self.offset = offset
+
+
+# --------------------------------------------------------------------------- input
+
+
+class _Input:
+    """The file as a sliding bytes buffer: ``buf[pos:]`` is unread, ``base`` is the
+    file offset of ``buf[0]``. Records are parsed in place with ``unpack_from``."""
+
+    __slots__ = ("base", "buf", "eof", "f", "pos", "position", "progress", "total")
+
+    def __init__(
+        self,
+        f: BinaryIO,
+        total: int,
+        progress: Callable[[int, int], None] | None,
+        position: Callable[[], int],
+    ) -> None:
+        self.f = f
+        self.buf = b""
+        self.pos = 0
+        self.base = 0
+        self.eof = False
+        self.total = total
+        self.progress = progress
+        self.position = position
+
+    def fill(self, need: int) -> bool:
+        """Make ``need`` unread bytes available; False when the file ends first."""
+        avail = len(self.buf) - self.pos
+        if avail >= need:
+            return True
+        parts = [self.buf[self.pos :]]
+        while avail < need and not self.eof:
+            data = self.f.read(max(_BLOCK, need - avail))
+            if not data:
+                self.eof = True
+                break
+            parts.append(data)
+            avail += len(data)
+        self.base += self.pos
+        self.buf = b"".join(parts)
+        self.pos = 0
+        if self.progress is not None:
+            self.progress(min(self.position(), self.total), self.total)
+        return avail >= need
+
+    def offset(self) -> int:
+        return self.base + self.pos
+
+
+# One record: (timestamp, link type, interface id, buffer, data start, data end).
+_Record = tuple[float, int, int, bytes, int, int]
+
+
+def _pcap_records(
+    inp: _Input, endian: str, divisor: float, linktype: int, snaplen: int, header: int
+) -> Iterator[_Record]:
+    """Records of a classic pcap file (``header``: 16, or 24 for the modified format)."""
+    unpack = struct.Struct(endian + "IIII").unpack_from
+    limit = min(max(snaplen, 262144), _MAX_RECORD)
+    while True:
+        buf, pos = inp.buf, inp.pos
+        if len(buf) - pos < header:
+            if not inp.fill(header):
+                if len(inp.buf) == inp.pos:
+                    return
+                raise _Damage("truncated record header", inp.offset())
+            buf, pos = inp.buf, inp.pos
+        sec, frac, caplen, _ = unpack(buf, pos)
+        if caplen > limit:
+            raise _Damage(f"corrupt record header (length {caplen})", inp.offset())
+        end = pos + header + caplen
+        if end > len(buf):
+            if not inp.fill(header + caplen):
+                raise _Damage("truncated record", inp.offset())
+            buf, pos = inp.buf, inp.pos
+            end = pos + header + caplen
+        inp.pos = end
+        yield sec + frac / divisor, linktype, 0, buf, pos + header, end
+
+
+def _ts_divisor(resol: int) -> int:
+    return 2 ** (resol & 0x7F) if resol & 0x80 else 10 ** min(resol, 30)
+
+
+def _pcapng_records(inp: _Input) -> Iterator[_Record]:
+    """Records of a pcapng file: every section, interface and packet block type."""
+    endian = "<"
+    # per interface: (link type, timestamp divisor, timestamp offset, snaplen)
+    ifaces: list[tuple[int, int, int, int]] = []
+    last_ts = 0.0
+    while True:
+        buf, pos = inp.buf, inp.pos
+        if len(buf) - pos < 12:
+            if not inp.fill(12):
+                if len(inp.buf) == inp.pos:
+                    return
+                raise _Damage("truncated block header", inp.offset())
+            buf, pos = inp.buf, inp.pos
+        btype = struct.unpack_from(endian + "I", buf, pos)[0]
+        if btype == 0x0A0D0D0A:
+            bom = struct.unpack_from("<I", buf, pos + 8)[0]
+            if bom == 0x1A2B3C4D:
+                endian = "<"
+            elif bom == 0x4D3C2B1A:
+                endian = ">"
+            else:
+                raise _Damage("corrupt section header (byte-order magic)", inp.offset())
+            ifaces = []
+        blen = struct.unpack_from(endian + "I", buf, pos + 4)[0]
+        if blen < 12 or blen % 4 or blen > _MAX_RECORD:
+            raise _Damage(f"corrupt block length {blen}", inp.offset())
+        if len(buf) - pos < blen:
+            if not inp.fill(blen):
+                raise _Damage("truncated block", inp.offset())
+            buf, pos = inp.buf, inp.pos
+        if struct.unpack_from(endian + "I", buf, pos + blen - 4)[0] != blen:
+            raise _Damage("corrupt block (trailing length differs)", inp.offset())
+        end = pos + blen - 4
+        if btype == 6:  # Enhanced Packet Block
+            if blen < 32:
+                raise _Damage("corrupt packet block", inp.offset())
+            iface, hi, lo, caplen = struct.unpack_from(endian + "IIII", buf, pos + 8)
+            if pos + 28 + caplen > end:
+                raise _Damage("corrupt packet block (length)", inp.offset())
+            inp.pos = pos + blen
+            if iface < len(ifaces):
+                link, div, off, _ = ifaces[iface]
+                last_ts = ((hi << 32) | lo) / div + off
+                yield last_ts, link, iface, buf, pos + 28, pos + 28 + caplen
+            else:
+                yield last_ts, -1, iface, buf, pos, pos
+            continue
+        if btype == 3:  # Simple Packet Block: interface 0, no timestamp
+            if blen < 16:
+                raise _Damage("corrupt simple packet block", inp.offset())
+            inp.pos = pos + blen
+            origlen = struct.unpack_from(endian + "I", buf, pos + 8)[0]
+            caplen = min(origlen, end - (pos + 12))
+            if ifaces:
+                link, _, _, snaplen = ifaces[0]
+                if snaplen:
+                    caplen = min(caplen, snaplen)
+                yield last_ts, link, 0, buf, pos + 12, pos + 12 + caplen
+            else:
+                yield last_ts, -1, 0, buf, pos, pos
+            continue
+        if btype == 2:  # obsolete Packet Block
+            if blen < 32:
+                raise _Damage("corrupt packet block", inp.offset())
+            iface, _, hi, lo, caplen = struct.unpack_from(endian + "HHIII", buf, pos + 8)
+            if pos + 28 + caplen > end:
+                raise _Damage("corrupt packet block (length)", inp.offset())
+            inp.pos = pos + blen
+            if iface < len(ifaces):
+                link, div, off, _ = ifaces[iface]
+                last_ts = ((hi << 32) | lo) / div + off
+                yield last_ts, link, iface, buf, pos + 28, pos + 28 + caplen
+            else:
+                yield last_ts, -1, iface, buf, pos, pos
+            continue
+        if btype == 1:  # Interface Description Block
+            if blen < 20:
+                raise _Damage("corrupt interface block", inp.offset())
+            link, _, snaplen = struct.unpack_from(endian + "HHI", buf, pos + 8)
+            div, tsoff = 1_000_000, 0
+            p = pos + 16
+            while p + 4 <= end:
+                code, olen = struct.unpack_from(endian + "HH", buf, p)
+                if code == 0 or p + 4 + olen > end:
+                    break
+                if code == 9 and olen >= 1:
+                    div = _ts_divisor(buf[p + 4])
+                elif code == 14 and olen >= 8:
+                    tsoff = struct.unpack_from(endian + "q", buf, p + 4)[0]
+                p += 4 + olen + (-olen % 4)
+            ifaces.append((link, div, tsoff, snaplen))
+        inp.pos = pos + blen
+
+
+def _5view_records(inp: _Input) -> Iterator[_Record]:
+    """Records of an InfoVista 5View capture (Ethernet): 36-byte headers, the
+    layout wireshark's wiretap/5views.c reads."""
+    unpack = struct.Struct("<IHHIIIIIII").unpack_from
+    while True:
+        buf, pos = inp.buf, inp.pos
+        if len(buf) - pos < 36:
+            if not inp.fill(36):
+                if len(inp.buf) == inp.pos:
+                    return
+                raise _Damage("truncated record header", inp.offset())
+            buf, pos = inp.buf, inp.pos
+        key, _, _, _, subtype, size, _, utc, nsec, _ = unpack(buf, pos)
+        if key != 0x3333EEEE or size > _MAX_RECORD:
+            raise _Damage("corrupt record header", inp.offset())
+        if len(buf) - pos < 36 + size:
+            if not inp.fill(36 + size):
+                raise _Damage("truncated record", inp.offset())
+            buf, pos = inp.buf, inp.pos
+        inp.pos = pos + 36 + size
+        if subtype == 0:  # a frame; other subtypes are alarms/events
+            yield utc + nsec / 1e9, 1, 0, buf, pos + 36, pos + 36 + size
+
+
+def _open_records(f: BinaryIO, inp: _Input, name: str) -> Iterator[_Record]:
+    """Recognise the container from its first bytes; CaptureError when it is none."""
+    if not inp.fill(4):
+        size = len(inp.buf)
+        raise CaptureError(
+            f"{name}: empty file"
+            if size == 0
+            else f"{name}: too short for a capture ({size} bytes)"
+        )
+    magic_le = struct.unpack_from("<I", inp.buf, 0)[0]
+    magic_be = struct.unpack_from(">I", inp.buf, 0)[0]
+    pcap_magics = {
+        0xA1B2C3D4: (1e6, 16),
+        0xA1B23C4D: (1e9, 16),
+        0xA1B2CD34: (1e6, 24),  # "modified" pcap (Kuznetzov): 8 more header bytes
+    }
+    for endian, magic in (("<", magic_le), (">", magic_be)):
+        if magic in pcap_magics:
+            if not inp.fill(24):
+                raise CaptureError(f"{name}: truncated pcap file header")
+            divisor, header = pcap_magics[magic]
+            _, major, _, _, _, snaplen, network = struct.unpack_from(endian + "IHHiIII", inp.buf, 0)
+            if major != 2:
+                raise CaptureError(f"{name}: unsupported pcap version {major}")
+            inp.pos = 24
+            return _pcap_records(inp, endian, divisor, network & 0x0FFFFFFF, snaplen, header)
+    if magic_le == 0x0A0D0D0A:
+        if not inp.fill(12) or struct.unpack_from("<I", inp.buf, 8)[0] not in (
+            0x1A2B3C4D,
+            0x4D3C2B1A,
+        ):
+            raise CaptureError(f"{name}: corrupt pcapng section header")
+        return _pcapng_records(inp)
+    if magic_le == 0xAAAAAAAA:
+        if not inp.fill(20):
+            raise CaptureError(f"{name}: truncated 5View file header")
+        _, size, version, data_size, file_type = struct.unpack_from("<IIIII", inp.buf, 0)
+        hint = "; convert it with `editcap -F pcap in out`"
+        if version != 0x00010000:
+            raise CaptureError(
+                f"{name}: InfoVista 5View file of unsupported version 0x{version:x}{hint}"
+            )
+        if file_type != 0x18001000:
+            raise CaptureError(
+                f"{name}: InfoVista 5View file of unsupported type 0x{file_type:08x} "
+                f"(only Ethernet captures are read){hint}"
+            )
+        if not inp.fill(size + data_size):
+            raise CaptureError(f"{name}: truncated 5View file header")
+        inp.pos = size + data_size
+        return _5view_records(inp)
+    raise CaptureError(f"{name}: not a pcap or pcapng file (magic 0x{magic_be:08x})")
+
+
+# --------------------------------------------------------------------------- dissection
+
+
+def _address(raw: bytes, port: int) -> str:
+    if len(raw) == 4:
+        return f"{raw[0]}.{raw[1]}.{raw[2]}.{raw[3]}:{port}"
+    return f"[{ipaddress.IPv6Address(raw).compressed}]:{port}"
+
+
+_ETHERNET = 1
+_RAW = frozenset({101, 12, 14})
+_LOOPBACK = frozenset({0, 108})
+_AF_INET6 = frozenset({10, 23, 24, 28, 30})
+_VLAN = frozenset({0x8100, 0x88A8, 0x9100})
+_IPV6_EXT = frozenset({0, 43, 60, 135, 139, 140, 253, 254})
+
+_tcp_unpack = struct.Struct("!HHIIH").unpack_from
+_udp_unpack = struct.Struct("!HHH").unpack_from
+_ipv4_unpack = struct.Struct("!BxHxxHxB").unpack_from
+_h_unpack = struct.Struct("!H").unpack_from
+_af_unpack = struct.Struct("<I").unpack_from
+
+
+class _Dissector:
+    """From link-layer records to chunks and events; owns stream identity."""
+
+    def __init__(self, config: CaptureConfig, bus_name: str) -> None:
+        self.rtu_ports = config.rtu_ports
+        self.ports = config.tcp_ports | config.rtu_ports
+        self.bus_name = bus_name
+        self.tcp: dict[tuple[bytes, int, int], tuple[TcpConnection, bool]] = {}
+        self.udp: dict[tuple[bytes, int, int], tuple[Stream, Direction]] = {}
+        self.buses: dict[int, Stream] = {}
+        self.connections: list[TcpConnection] = []
+        self.next_id = 0
+        self.tcp_stats = TcpStats()
+        self.ts = 0.0
+        self.modbus_packets = 0
+        self.non_modbus = 0
+        self.non_ip = 0
+        self.truncated = 0
+        self.fragments = 0
+        self.malformed = 0
+        self.unsupported_link = 0
+        self.bus_records = 0
+
+    def stats(self) -> dict[str, int]:
+        counters = {
+            "modbus_packets": self.modbus_packets,
+            "non_modbus": self.non_modbus,
+            "non_ip": self.non_ip,
+            "truncated": self.truncated,
+            "fragments": self.fragments,
+            "malformed": self.malformed,
+            "unsupported_link": self.unsupported_link,
+            "bus_records": self.bus_records,
+            "streams": self.next_id,
+        }
+        counters.update(self.tcp_stats.as_dict())
+        return counters
+
+    def _stream(self, transport: Transport, client: str, server: str) -> Stream:
+        stream = Stream(self.next_id, transport, client, server)
+        self.next_id += 1
+        return stream
+
+    def packet(
+        self, ts: float, link: int, iface: int, buf: bytes, off: int, end: int, out: list[Any]
+    ) -> None:
+        """Dissect one record; append the chunks and events it causes to ``out``."""
+        # ---- link layer -> ethertype
+        if link == _ETHERNET:
+            if end - off < 14:
+                self.truncated += 1
+                return
+            et = (buf[off + 12] << 8) | buf[off + 13]
+            off += 14
+        elif link == 147:
+            self._bus(ts, iface, buf[off:end], out)
+            return
+        elif link == 113:  # Linux cooked v1
+            if end - off < 16:
+                self.truncated += 1
+                return
+            et = (buf[off + 14] << 8) | buf[off + 15]
+            off += 16
+        elif link == 276:  # Linux cooked v2
+            if end - off < 20:
+                self.truncated += 1
+                return
+            et = (buf[off] << 8) | buf[off + 1]
+            off += 20
+        elif link in _RAW:
+            if end <= off:
+                self.truncated += 1
+                return
+            version = buf[off] >> 4
+            et = 0x0800 if version == 4 else 0x86DD if version == 6 else 0
+        elif link in _LOOPBACK:
+            if end - off < 4:
+                self.truncated += 1
+                return
+            family = _af_unpack(buf, off)[0]
+            if family > 0xFFFF:  # written in the other byte order
+                family = int.from_bytes(buf[off : off + 4], "big")
+            et = 0x0800 if family == 2 else 0x86DD if family in _AF_INET6 else 0
+            off += 4
+        elif link == 228:
+            et = 0x0800
+        elif link == 229:
+            et = 0x86DD
+        elif link < 0:  # a packet block naming an interface that was never described
+            self.malformed += 1
+            return
+        else:
+            self.unsupported_link += 1
+            return
+        while et in _VLAN:
+            if end - off < 4:
+                self.truncated += 1
+                return
+            et = (buf[off + 2] << 8) | buf[off + 3]
+            off += 4
+        # ---- network layer
+        if et == 0x0800:
+            if end - off < 20:
+                self.truncated += 1
+                return
+            vihl, total, frag, proto = _ipv4_unpack(buf, off)
+            ihl = (vihl & 15) << 2
+            if vihl >> 4 != 4 or ihl < 20:
+                self.malformed += 1
+                return
+            if total == 0:  # segmentation offload: the length is left to the capture
+                ip_end = end
+            elif total < ihl:
+                self.malformed += 1
+                return
+            else:
+                ip_end = off + total
+                if ip_end > end:
+                    self.truncated += 1
+                    ip_end = end
+            if frag & 0x3FFF:  # more-fragments or an offset
+                self.fragments += 1
+                return
+            addr_at, addr_len = off + 12, 8
+            l4 = off + ihl
+        elif et == 0x86DD:
+            if end - off < 40:
+                self.truncated += 1
+                return
+            if buf[off] >> 4 != 6:
+                self.malformed += 1
+                return
+            plen = (buf[off + 4] << 8) | buf[off + 5]
+            ip_end = off + 40 + plen if plen else end
+            if ip_end > end:
+                self.truncated += 1
+                ip_end = end
+            proto = buf[off + 6]
+            addr_at, addr_len = off + 8, 32
+            l4 = off + 40
+            for _ in range(16):
+                if proto in _IPV6_EXT:
+                    if ip_end - l4 < 8:
+                        self.truncated += 1
+                        return
+                    proto, l4 = buf[l4], l4 + ((buf[l4 + 1] + 1) << 3)
+                elif proto == 44:  # fragment header
+                    if ip_end - l4 < 8:
+                        self.truncated += 1
+                        return
+                    if _h_unpack(buf, l4 + 2)[0] & 0xFFF9:  # offset or more-fragments
+                        self.fragments += 1
+                        return
+                    proto, l4 = buf[l4], l4 + 8
+                elif proto == 51:  # authentication header
+                    if ip_end - l4 < 8:
+                        self.truncated += 1
+                        return
+                    proto, l4 = buf[l4], l4 + ((buf[l4 + 1] + 2) << 2)
+                else:
+                    break
+        else:
+            self.non_ip += 1
+            return
+        # ---- transport layer
+        if proto == 6:
+            if ip_end - l4 < 20:
+                if ip_end < l4:
+                    self.malformed += 1
+                else:
+                    self.truncated += 1
+                return
+            sport, dport, seq, ack, hl = _tcp_unpack(buf, l4)
+            ports = self.ports
+            if sport not in ports and dport not in ports:
+                self.non_modbus += 1
+                return
+            self.modbus_packets += 1
+            doff = (hl >> 10) & 0x3C
+            if doff < 20:
+                self.malformed += 1
+                return
+            if l4 + doff > ip_end:
+                self.truncated += 1
+                return
+            flags = hl & 0xFF
+            key = (buf[addr_at : addr_at + addr_len], sport, dport)
+            flow = self.tcp.get(key)
+            if flow is None:
+                flow = self._new_tcp(key, flags, out)
+            elif flags & SYN and flow[0].is_new_syn(flow[1], seq, flags):
+                flow[0].finish(ts, out, "replaced")
+                flow = self._new_tcp(key, flags, out)
+            flow[0].segment(ts, flow[1], seq, ack, flags, buf[l4 + doff : ip_end], out)
+        elif proto == 17:
+            if ip_end - l4 < 8:
+                if ip_end < l4:
+                    self.malformed += 1
+                else:
+                    self.truncated += 1
+                return
+            sport, dport, ulen = _udp_unpack(buf, l4)
+            ports = self.ports
+            if sport not in ports and dport not in ports:
+                self.non_modbus += 1
+                return
+            self.modbus_packets += 1
+            if ulen < 8:
+                self.malformed += 1
+                return
+            if l4 + ulen > ip_end:
+                self.truncated += 1
+                return
+            if ulen == 8:
+                return
+            key = (buf[addr_at : addr_at + addr_len], sport, dport)
+            dgram = self.udp.get(key)
+            if dgram is None:
+                dgram = self._new_udp(key)
+            out.append(Chunk(ts, dgram[0], dgram[1], buf[l4 + 8 : l4 + ulen]))
+        else:
+            self.non_modbus += 1
+
+    def _roles(self, key: tuple[bytes, int, int], flags: int) -> tuple[bool, int]:
+        """Whether the sender of this first packet is the client, and the server port.
+
+        The server is the endpoint whose port is configured; when both are, the SYN
+        receiver (SYN-ACK sender) is, else the lower port, else the receiver."""
+        _, sport, dport = key
+        src_in, dst_in = sport in self.ports, dport in self.ports
+        if src_in and dst_in:
+            if flags & (SYN | ACK) == SYN:
+                sender_is_client = True
+            elif flags & (SYN | ACK) == SYN | ACK:
+                sender_is_client = False
+            else:
+                sender_is_client = dport <= sport
+        else:
+            sender_is_client = dst_in
+        server_port = dport if sender_is_client else sport
+        return sender_is_client, server_port
+
+    def _endpoints(self, key: tuple[bytes, int, int], sender_is_client: bool) -> tuple[str, str]:
+        addrs, sport, dport = key
+        half = len(addrs) // 2
+        src, dst = _address(addrs[:half], sport), _address(addrs[half:], dport)
+        return (src, dst) if sender_is_client else (dst, src)
+
+    def _new_tcp(
+        self, key: tuple[bytes, int, int], flags: int, out: list[Any]
+    ) -> tuple[TcpConnection, bool]:
+        sender_is_client, server_port = self._roles(key, flags)
+        transport = Transport.RTU_OVER_TCP if server_port in self.rtu_ports else Transport.TCP
+        client, server = self._endpoints(key, sender_is_client)
+        conn = TcpConnection(
+            self._stream(transport, client, server), limit=_TCP_HOLD_LIMIT, stats=self.tcp_stats
+        )
+        self.connections.append(conn)
+        addrs, sport, dport = key
+        half = len(addrs) // 2
+        flow = (conn, sender_is_client)
+        self.tcp[key] = flow
+        self.tcp[(addrs[half:] + addrs[:half], dport, sport)] = (conn, not sender_is_client)
+        return flow
+
+    def _new_udp(self, key: tuple[bytes, int, int]) -> tuple[Stream, Direction]:
+        sender_is_client, server_port = self._roles(key, 0)
+        transport = Transport.RTU_OVER_UDP if server_port in self.rtu_ports else Transport.UDP
+        client, server = self._endpoints(key, sender_is_client)
+        stream = self._stream(transport, client, server)
+        addrs, sport, dport = key
+        half = len(addrs) // 2
+        flow = (stream, _C2S if sender_is_client else _S2C)
+        self.udp[key] = flow
+        self.udp[(addrs[half:] + addrs[:half], dport, sport)] = (
+            stream,
+            _S2C if sender_is_client else _C2S,
+        )
+        return flow
+
+    def _bus(self, ts: float, iface: int, data: bytes, out: list[Any]) -> None:
+        """Link type 147: each record is bytes read from one RS485 bus (RTU)."""
+        self.bus_records += 1
+        stream = self.buses.get(iface)
+        if stream is None:
+            name = self.bus_name if not self.buses else f"{self.bus_name}#{iface}"
+            stream = self.buses[iface] = self._stream(Transport.RTU, name, name)
+        if data:
+            out.append(Chunk(ts, stream, Direction.BUS, data))
+
+    def finish(self, out: list[Any]) -> None:
+        """The capture ended: release every held TCP byte and half-closed connection."""
+        for conn in self.connections:
+            conn.finish(self.ts, out)
+
+
+# --------------------------------------------------------------------------- API
+
+
+def read_capture(
+    path: str | Path,
+    config: CaptureConfig = CaptureConfig(),
+    progress: Callable[[int, int], None] | None = None,
+    stats: dict[str, int] | None = None,
+) -> Iterator[Chunk | Event]:
+    """Chunks and events of the Modbus traffic in a capture file, in capture order.
+
+    Raises :class:`CaptureError` at once (before the iterator exists) when the file
+    cannot be opened or is no capture. A file damaged later yields everything
+    before the damage, then one ``Event(ERROR, info={"message": ...})``.
+    ``progress(bytes_read, total_bytes)`` is called about once per MiB read.
+    ``stats``, when given, is filled with counters when the iteration ends
+    (``packets``, ``modbus_packets``, ``non_modbus``, ``non_ip``, ``truncated``,
+    ``fragments``, ``malformed``, ``unsupported_link``, ``bus_records``,
+    ``streams``, ``retransmissions``, ``overlaps``, ``out_of_order``, ``gaps``,
+    ``gap_bytes``, ``after_close``, ``bytes``).
+    """
+    path = Path(path)
+    name = str(path)
+    try:
+        raw: BinaryIO = open(path, "rb")
+    except OSError as exc:
+        raise CaptureError(f"{name}: cannot open ({exc.strerror or exc})") from None
+    try:
+        total = os.fstat(raw.fileno()).st_size
+        head = raw.read(2)
+        raw.seek(0)
+        f: BinaryIO = raw
+        if head == b"\x1f\x8b":
+            f = gzip.GzipFile(fileobj=raw, mode="rb")  # type: ignore[assignment]
+        inp = _Input(f, total, progress, raw.tell)
+        try:
+            records = _open_records(f, inp, name)
+        except (OSError, EOFError, zlib.error) as exc:
+            raise CaptureError(f"{name}: cannot read ({exc})") from None
+    except BaseException:
+        raw.close()
+        raise
+    return _iterate(records, inp, raw, name, config, stats)
+
+
+def _iterate(
+    records: Iterator[_Record],
+    inp: _Input,
+    raw: BinaryIO,
+    name: str,
+    config: CaptureConfig,
+    stats: dict[str, int] | None,
+) -> Iterator[Chunk | Event]:
+    dissector = _Dissector(config, Path(name).name)
+    packet = dissector.packet
+    out: list[Any] = []
+    count = 0
+    last_ts = 0.0
+    error: str | None = None
+    try:
+        try:
+            for ts, link, iface, buf, off, end in records:
+                count += 1
+                packet(ts, link, iface, buf, off, end, out)
+                last_ts = ts
+                if out:
+                    yield from out
+                    out.clear()
+        except _Damage as damage:
+            error = (
+                f"{name}: {damage.what} at byte {damage.offset} (packet {count + 1}); "
+                f"{count} packets read"
+            )
+        except (OSError, EOFError, zlib.error) as exc:
+            error = f"{name}: read error after {count} packets ({exc})"
+        dissector.ts = last_ts
+        dissector.finish(out)
+        yield from out
+        out.clear()
+        if error is not None:
+            yield Event(dissector.ts, None, EventKind.ERROR, {"message": error})
+    finally:
+        raw.close()
+        if inp.progress is not None:
+            done = inp.total if error is None else min(inp.base + inp.pos, inp.total)
+            inp.progress(done, inp.total)
+        if stats is not None:
+            stats.update(dissector.stats())
+            stats["packets"] = count
+            stats["bytes"] = inp.base + inp.pos
