@@ -1,0 +1,674 @@
+"""The log commands ``mbmon replay``, ``mbmon info`` and ``mbmon export``: parsing and wiring.
+
+:func:`add_subcommands` registers them on the CLI's subparsers; each ``run_*``
+takes the parsed arguments and returns the exit status (0 ok, 1 unreadable or
+damaged log — everything before the damage is still output —, 2 usage).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import Counter
+from collections.abc import Iterator
+from pathlib import Path
+from typing import IO, Any
+
+EXIT_OK = 0
+EXIT_BAD_INPUT = 1
+EXIT_USAGE = 2
+
+_REPLAY_EPILOG = """\
+examples:
+  mbmon replay cell.mcap                      the monitor lines exactly as shown live
+  mbmon replay cell.mcap --fc 3,16 --address 200-251
+      only Read Holding / Write Multiple Registers touching R200..R251
+  mbmon replay cell.mcap --since +30s --until +45s --grep PTP
+  mbmon replay cell.mcap --json > frames.jsonl     the same JSON lines as read --json
+  mbmon replay cell.mcap --redecode           decode /modbus/raw again with today's decoder
+                                              and the profiles stored in the log
+  mbmon replay cell.mcap --speed 1            at the original pace (2 = twice as fast)
+
+times: +5s / +1m30s / +250ms from the start of the log, 12:00:05 (time of day on the
+log's first day), 2024-05-01T12:00:05 (ISO 8601, local time unless it says otherwise),
+or epoch seconds. --since and --until are inclusive.
+exit status: 0 ok (also for an unfinished log: a note says how much was recovered),
+1 unreadable or damaged log (everything before the damage is printed), 2 usage
+"""
+
+_INFO_EPILOG = """\
+examples:
+  mbmon info cell.mcap          time span, messages per topic, streams, units, function
+                                codes, exceptions, noise/CRC errors, robot commands
+  mbmon info cell.mcap --json   the same as one JSON object
+"""
+
+_EXPORT_EPILOG = """\
+examples:
+  mbmon export cell.mcap -o frames.csv      one row per frame (spreadsheets)
+  mbmon export cell.mcap -o frames.jsonl    the read --json lines
+  mbmon export cell.mcap -o monitor.txt     the monitor lines
+  mbmon export cell.mcap -o cell.pcap       Ethernet/IP/TCP packets Wireshark decodes
+                                            (RTU buses as link type 147)
+  mbmon export crashed.mcap -o fixed.mcap   rewrite an unfinished log as a finished one
+
+Filters (--unit, --fc, --address, --grep) apply to .csv, .jsonl and .txt; --since and
+--until to every format.
+"""
+
+
+def add_subcommands(sub: Any) -> None:
+    """Register ``replay``, ``info`` and ``export`` on the CLI's subparsers."""
+    fmt = argparse.RawDescriptionHelpFormatter
+
+    replay = sub.add_parser(
+        "replay",
+        help="print a recorded MCAP log as the monitor showed it live (with filters)",
+        description="Print the monitor lines of an MCAP log written with -w FILE.mcap, "
+        "exactly as they were shown live, or the read --json objects; optionally "
+        "filtered, re-decoded from the raw bytes, or paced like the original.",
+        epilog=_REPLAY_EPILOG,
+        formatter_class=fmt,
+    )
+    replay.add_argument("log", metavar="LOG.mcap", help="an MCAP log written by mbmon")
+    _add_filter_options(replay)
+    out = replay.add_argument_group("output")
+    out.add_argument(
+        "--json", action="store_true", help="one read --json object per line (docs/json.md)"
+    )
+    out.add_argument(
+        "--redecode",
+        action="store_true",
+        help="decode /modbus/raw again with the current decoder and the profiles stored "
+        "in the log, instead of printing the stored lines",
+    )
+    out.add_argument(
+        "--robot",
+        metavar="HOST[:PORT]",
+        help="with --redecode: label lines from this robot's point of view (default: as recorded)",
+    )
+    out.add_argument(
+        "--robot-client",
+        action="store_true",
+        help="with --redecode, on an RTU bus: the robot named by --robot is the master",
+    )
+    out.add_argument(
+        "--speed",
+        type=_speed,
+        metavar="X",
+        help="pace the output like the original: 1 = real time, 10 = ten times faster",
+    )
+    replay.set_defaults(func=run_replay)
+
+    info = sub.add_parser(
+        "info",
+        help="summarise an MCAP log: span, topics, streams, function codes, errors, commands",
+        description="Summarise an MCAP log written by mbmon. An unfinished log (the "
+        "recording was killed) is read as far as it goes; info says how much was recovered.",
+        epilog=_INFO_EPILOG,
+        formatter_class=fmt,
+    )
+    info.add_argument("log", metavar="LOG.mcap", help="an MCAP log written by mbmon")
+    info.add_argument("--json", action="store_true", help="print the summary as JSON")
+    info.set_defaults(func=run_info)
+
+    export = sub.add_parser(
+        "export",
+        help="convert an MCAP log to .csv, .jsonl, .txt, .pcap (or a repaired .mcap)",
+        description="Convert an MCAP log by the suffix of OUT: .csv (one row per frame), "
+        ".jsonl (read --json lines), .txt (monitor lines), .pcap (Modbus/TCP re-wrapped in "
+        "Ethernet/IPv4/TCP with consistent sequence numbers, original endpoints and times; "
+        "RTU as link type 147), .mcap (every recovered message in a finished file).",
+        epilog=_EXPORT_EPILOG,
+        formatter_class=fmt,
+    )
+    export.add_argument("log", metavar="LOG.mcap", help="an MCAP log written by mbmon")
+    export.add_argument("-o", "--output", required=True, metavar="OUT", help="output file")
+    _add_filter_options(export)
+    export.set_defaults(func=run_export)
+
+
+def _speed(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0: {text}")
+    return value
+
+
+def _add_filter_options(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("filters")
+    group.add_argument(
+        "--unit", action="append", metavar="N", help="only this unit id (N[,N], repeatable)"
+    )
+    group.add_argument(
+        "--fc", action="append", metavar="N[,N]", help="only these function codes (3,0x10)"
+    )
+    group.add_argument(
+        "--address",
+        metavar="A[-B]",
+        help="only requests/responses touching register or coil addresses A..B",
+    )
+    group.add_argument("--since", metavar="TIME", help="from TIME on (see 'times' below)")
+    group.add_argument("--until", metavar="TIME", help="up to TIME")
+    group.add_argument("--grep", metavar="TEXT", help="only lines containing TEXT (any case)")
+
+
+# --------------------------------------------------------------------------- shared
+
+
+def _err(message: str) -> None:
+    print(f"mbmon: {message}", file=sys.stderr)
+
+
+def _open(path: str) -> Any:
+    from mbmon.io.mcap_reader import McapLog
+
+    return McapLog(path)
+
+
+def _build_filter(args: argparse.Namespace, log: Any) -> Any:
+    from mbmon.io.replay import (
+        RecordFilter,
+        first_record_time,
+        parse_fcs,
+        parse_int,
+        parse_range,
+        parse_when,
+    )
+
+    flt = RecordFilter()
+    if args.unit:
+        flt.units = frozenset(
+            parse_int(p) for value in args.unit for p in value.split(",") if p.strip()
+        )
+    if args.fc:
+        flt.fcs = frozenset().union(*(parse_fcs(v) for v in args.fc))
+    if args.address:
+        flt.address = parse_range(args.address)
+    if args.since or args.until:
+        start = first_record_time(log)
+        if args.since:
+            flt.since = parse_when(args.since, start)
+        if args.until:
+            flt.until = parse_when(args.until, start)
+    if args.grep:
+        flt.grep = args.grep
+    return flt
+
+
+def _note_status(log: Any) -> None:
+    status = log.status
+    if not status.finished:
+        _err(f"note: {log.path}: {status.describe()}")
+
+
+# --------------------------------------------------------------------------- replay
+
+
+def run_replay(args: argparse.Namespace) -> int:
+    """``mbmon replay``: stored lines (or --json objects, or a re-decode), filtered and paced."""
+    from mbmon.io.mcap_reader import LogError
+    from mbmon.io.replay import FilterError, Pacer
+    from mbmon.sinks.jsonl import dumps_line
+
+    if (args.robot or args.robot_client) and not args.redecode:
+        _err("error: --robot relabels lines only with --redecode (stored lines are as recorded)")
+        return EXIT_USAGE
+    try:
+        log = _open(args.log)
+    except LogError as exc:
+        _err(str(exc))
+        return EXIT_BAD_INPUT
+    out = sys.stdout
+    with log:
+        try:
+            flt = _build_filter(args, log)
+        except FilterError as exc:
+            _err(f"error: {exc}")
+            return EXIT_USAGE
+        pacer = Pacer(args.speed) if args.speed else None
+        try:
+            if args.redecode:
+                rows = _redecoded(log, args)
+            else:
+                rows = ((r.obj, r.text, r.time) for r in _stored(log))
+            for obj, line, ts in rows:
+                if not flt.matches(obj, line, ts):
+                    continue
+                if pacer is not None:
+                    pacer.wait(ts)
+                if args.json:
+                    if obj is None:
+                        continue
+                    out.write(dumps_line(obj) + "\n")
+                else:
+                    out.write(line + "\n")
+                if pacer is not None:
+                    out.flush()
+        except LogError as exc:
+            out.flush()
+            _err(str(exc))
+            return EXIT_BAD_INPUT
+        out.flush()
+        _note_status(log)
+    return EXIT_OK
+
+
+def _stored(log: Any) -> Iterator[Any]:
+    from mbmon.io.replay import logged_records
+
+    return logged_records(log)
+
+
+def _redecoded(log: Any, args: argparse.Namespace) -> Iterator[tuple[dict[str, Any], str, float]]:
+    from mbmon.format import View, record_to_json
+    from mbmon.io.replay import raw_items, recorded_annotator, recorded_options
+    from mbmon.pipeline import Pipeline, PipelineConfig
+
+    opts = recorded_options(log)
+    if args.robot:
+        view = View(robot=args.robot, robot_is_client=args.robot_client)
+    else:
+        view = View(robot=opts.robot, robot_is_client=opts.robot_is_client)
+    annotator = recorded_annotator(log, opts)
+    pipeline = Pipeline(annotator, PipelineConfig(timeout=opts.timeout, baudrate=opts.baud))
+    for record in pipeline.run(raw_items(log)):
+        obj = record_to_json(record, view)
+        yield obj, obj["line"], record.ts
+
+
+# --------------------------------------------------------------------------- info
+
+
+def summarize(log: Any) -> dict[str, Any]:
+    """Everything ``mbmon info`` reports, as one JSON-able dict (one pass over the log)."""
+    from mbmon.io.replay import FRAME_KINDS, stored_profile_names
+    from mbmon.sinks.mcap import METADATA_NAME, TOPIC_COMMANDS, TOPIC_EVENTS, TOPIC_FRAMES
+
+    topics: Counter[str] = Counter({t: 0 for t in log.topics})
+    first = last = None
+    streams: dict[int, dict[str, Any]] = {}
+    units: Counter[int] = Counter()
+    fcs: dict[int, Counter[str]] = {}
+    exceptions: Counter[tuple[int, int]] = Counter()
+    noise_runs = noise_bytes = crc_errors = malformed = unsolicited = 0
+    noise_reasons: Counter[str] = Counter()
+    events: Counter[str] = Counter()
+    phases: Counter[str] = Counter()
+    outcomes: list[dict[str, Any]] = []
+    latencies: list[float] = []
+    writer_stats: dict[str, Any] | None = None
+    error: str | None = None
+    from mbmon.io.mcap_reader import LogError
+
+    try:
+        for msg in log.messages():
+            topics[msg.topic] += 1
+            t = msg.log_time
+            first = t if first is None or t < first else first
+            last = t if last is None or t > last else last
+            if msg.topic == "/modbus/raw":
+                data = msg.json()
+                sid = data.get("stream")
+                if sid is not None and sid not in streams:
+                    streams[sid] = {
+                        "id": sid,
+                        "transport": data.get("transport"),
+                        "client": data.get("client"),
+                        "server": data.get("server"),
+                        "chunks": 0,
+                        "bytes": 0,
+                        "frames": 0,
+                    }
+                if data.get("type") == "chunk" and sid is not None:
+                    streams[sid]["chunks"] += 1
+                    streams[sid]["bytes"] += len(data.get("data") or "") * 3 // 4 - str(
+                        data.get("data") or ""
+                    ).count("=")
+                continue
+            if msg.topic not in (TOPIC_FRAMES, TOPIC_EVENTS, TOPIC_COMMANDS):
+                continue
+            obj = msg.json()
+            kind = obj.get("kind")
+            if msg.topic == TOPIC_FRAMES and kind in FRAME_KINDS:
+                fc = obj.get("fc")
+                sid = obj.get("stream")
+                if sid is not None:
+                    streams.setdefault(
+                        sid,
+                        {"id": sid, "transport": obj.get("transport"), "client": None,
+                         "server": None, "chunks": 0, "bytes": 0, "frames": 0},
+                    )["frames"] += 1  # fmt: skip
+                if obj.get("unit") is not None:
+                    units[obj["unit"]] += 1
+                if isinstance(fc, int):
+                    fcs.setdefault(fc, Counter())[kind] += 1
+                if kind == "exception" and isinstance(fc, int):
+                    exceptions[(fc, obj.get("exception_code") or 0)] += 1
+                if obj.get("crc_ok") is False:
+                    crc_errors += 1
+                if obj.get("malformed"):
+                    malformed += 1
+                if kind != "request" and obj.get("request_index") is None:
+                    unsolicited += 1
+                if obj.get("latency_ms") is not None:
+                    latencies.append(float(obj["latency_ms"]))
+            elif msg.topic == TOPIC_FRAMES and kind == "noise":
+                noise_runs += 1
+                pdu = obj.get("pdu") or ""
+                noise_bytes += (len(pdu) + 1) // 3
+                reason = str(obj.get("malformed") or "")
+                noise_reasons[reason] += 1
+                if "crc" in reason.lower():
+                    crc_errors += 1
+            elif msg.topic == TOPIC_EVENTS and kind == "event":
+                if obj.get("index") is None:
+                    writer_stats = obj.get("info")
+                else:
+                    events[str(obj.get("event"))] += 1
+            elif msg.topic == TOPIC_COMMANDS:
+                cmd = obj.get("command") or {}
+                phase = str(cmd.get("phase"))
+                phases[phase] += 1
+                if phase in ("success", "fail"):
+                    outcomes.append(
+                        {
+                            "time": obj.get("time"),
+                            "unit": obj.get("unit"),
+                            "phase": phase,
+                            "text": cmd.get("text"),
+                            "duration": cmd.get("duration"),
+                        }
+                    )
+    except LogError as exc:
+        error = str(exc)
+    meta = log.metadata.get(METADATA_NAME, {})
+    try:
+        command_line = json.loads(meta.get("command_line", "[]"))
+    except ValueError:
+        command_line = []
+    status = log.status
+    from mbmon.format import exception_name, function_name
+
+    return {
+        "file": str(log.path),
+        "size": log.size,
+        "finished": status.finished,
+        "recovered_messages": status.messages,
+        "stopped_at": status.stopped_at,
+        "problem": status.problem,
+        "error": error,
+        "status": status.describe(),
+        "recorded_by": meta.get("version"),
+        "command_line": command_line,
+        "source": meta.get("source"),
+        "profiles": stored_profile_names(log),
+        "profile_attachments": [name for name, _ in log.profiles()],
+        "robot": meta.get("robot") or None,
+        "start": first / 1e9 if first is not None else None,
+        "end": last / 1e9 if last is not None else None,
+        "duration": (last - first) / 1e9 if first is not None and last is not None else None,
+        "topics": dict(sorted(topics.items())),
+        "streams": [streams[k] for k in sorted(streams)],
+        "units": {str(k): v for k, v in sorted(units.items())},
+        "function_codes": {
+            f"{fc}": {"name": function_name(fc), **dict(c), "total": sum(c.values())}
+            for fc, c in sorted(fcs.items())
+        },
+        "exceptions": [
+            {"fc": fc, "code": code, "name": exception_name(code), "count": n}
+            for (fc, code), n in sorted(exceptions.items())
+        ],
+        "noise": {"runs": noise_runs, "bytes": noise_bytes, "reasons": dict(noise_reasons)},
+        "crc_errors": crc_errors,
+        "malformed": malformed,
+        "unsolicited": unsolicited,
+        "latency_ms": (
+            {
+                "min": min(latencies),
+                "avg": round(sum(latencies) / len(latencies), 3),
+                "max": max(latencies),
+            }
+            if latencies
+            else None
+        ),
+        "events": dict(sorted(events.items())),
+        "commands": {"phases": dict(phases), "outcomes": outcomes},
+        "writer_stats": writer_stats,
+    }
+
+
+def _when(ts: float | None) -> str:
+    import datetime as dt
+
+    if ts is None:
+        return "-"
+    return dt.datetime.fromtimestamp(ts).astimezone().isoformat(timespec="microseconds")
+
+
+def _print_info(s: dict[str, Any], out: IO[str]) -> None:
+    w = out.write
+    w(f"file:        {s['file']} ({s['size']} bytes)\n")
+    w(f"state:       {s['status']}\n")
+    if s["error"]:
+        w(f"damage:      {s['error']}\n")
+    if s["recorded_by"]:
+        w(f"recorded by: mbmon {s['recorded_by']}: {' '.join(s['command_line'])}\n")
+    if s["source"]:
+        w(f"source:      {s['source']}\n")
+    w(f"profiles:    {', '.join(s['profiles']) or '-'}")
+    if s["profile_attachments"]:
+        w(f" (attached: {', '.join(s['profile_attachments'])})")
+    w("\n")
+    if s["robot"]:
+        w(f"robot:       {s['robot']}\n")
+    dur = f" ({s['duration']:.3f} s)" if s["duration"] is not None else ""
+    w(f"time span:   {_when(s['start'])} .. {_when(s['end'])}{dur}\n")
+    w("messages per topic:\n")
+    for topic, n in s["topics"].items():
+        w(f"  {topic:<18} {n}\n")
+    w(f"streams: {len(s['streams'])}\n")
+    for st in s["streams"][:50]:
+        peers = (
+            st["client"] if st["client"] == st["server"] else f"{st['client']} <> {st['server']}"
+        )
+        w(
+            f"  #{st['id']} {st['transport']} {peers}: {st['frames']} frames, "
+            f"{st['chunks']} chunks, {st['bytes']} bytes\n"
+        )
+    if len(s["streams"]) > 50:
+        w(f"  ... {len(s['streams']) - 50} more\n")
+    units = ", ".join(f"{u} ({n} frames)" for u, n in s["units"].items())
+    w(f"units:       {units or '-'}\n")
+    w("function codes:\n" if s["function_codes"] else "function codes: -\n")
+    for fc, c in s["function_codes"].items():
+        parts = [f"{k}s {c[k]}" for k in ("request", "response", "exception") if c.get(k)]
+        w(f"  {int(fc):02X} {c['name']}: {c['total']} ({', '.join(parts)})\n")
+    if s["exceptions"]:
+        w("exceptions:\n")
+        for e in s["exceptions"]:
+            w(f"  fc {e['fc']:02X}: {e['code']:02X} {e['name']}: {e['count']}\n")
+    else:
+        w("exceptions:  none\n")
+    nz = s["noise"]
+    reasons = "; ".join(f"{r or '?'}: {n}" for r, n in nz["reasons"].items())
+    reasons = f" ({reasons})" if reasons else ""
+    w(f"noise:       {nz['runs']} runs, {nz['bytes']} bytes{reasons}\n")
+    w(f"CRC errors:  {s['crc_errors']}\n")
+    w(f"malformed:   {s['malformed']}   unsolicited responses: {s['unsolicited']}\n")
+    if s["latency_ms"]:
+        lat = s["latency_ms"]
+        w(f"latency:     min {lat['min']} ms, avg {lat['avg']} ms, max {lat['max']} ms\n")
+    ev = ", ".join(f"{k} {v}" for k, v in s["events"].items())
+    w(f"events:      {ev or 'none'}\n")
+    cmds = s["commands"]
+    if cmds["phases"]:
+        ph = ", ".join(f"{k} {v}" for k, v in cmds["phases"].items())
+        w(f"commands:    {ph}\n")
+        for o in cmds["outcomes"][:30]:
+            dur = f" after {o['duration']:.3f} s" if o["duration"] is not None else ""
+            w(f"  {_when(o['time'])} unit {o['unit']}: {o['phase']}{dur}: {o['text']}\n")
+        if len(cmds["outcomes"]) > 30:
+            w(f"  ... {len(cmds['outcomes']) - 30} more outcomes\n")
+    else:
+        w("commands:    none\n")
+
+
+def run_info(args: argparse.Namespace) -> int:
+    """``mbmon info``: the summary of a log (text or --json)."""
+    from mbmon.io.mcap_reader import LogError
+
+    try:
+        log = _open(args.log)
+    except LogError as exc:
+        _err(str(exc))
+        return EXIT_BAD_INPUT
+    with log:
+        summary = summarize(log)
+    if args.json:
+        print(json.dumps(summary, ensure_ascii=False, indent=2))
+    else:
+        _print_info(summary, sys.stdout)
+    if summary["error"]:
+        _err(summary["error"])
+        return EXIT_BAD_INPUT
+    return EXIT_OK
+
+
+# --------------------------------------------------------------------------- export
+
+
+def run_export(args: argparse.Namespace) -> int:
+    """``mbmon export``: the log converted by the suffix of ``-o``."""
+    from mbmon.format import View
+    from mbmon.io.mcap_reader import LogError
+    from mbmon.io.replay import FilterError, RecordFilter, recorded_options
+    from mbmon.sinks.base import SINKS, SinkContext, SinkError, open_sink
+
+    target = Path(args.output)
+    suffix = target.suffix.lower()
+    if suffix not in SINKS:
+        _err(f"error: {target}: unknown output format {suffix or '(no suffix)'!r}; use one "
+             f"of {', '.join(sorted(SINKS))}")  # fmt: skip
+        return EXIT_USAGE
+    try:
+        log = _open(args.log)
+    except LogError as exc:
+        _err(str(exc))
+        return EXIT_BAD_INPUT
+    if target.exists() and target.resolve() == log.path.resolve():
+        log.close()
+        _err("error: the output would overwrite the log itself")
+        return EXIT_USAGE
+    with log:
+        try:
+            flt = _build_filter(args, log)
+        except FilterError as exc:
+            _err(f"error: {exc}")
+            return EXIT_USAGE
+        if suffix in (".pcap", ".mcap") and (
+            flt.units is not None or flt.fcs is not None or flt.address is not None or flt.grep
+        ):
+            _err(f"error: {suffix} export takes only --since/--until (it copies raw bytes)")
+            return EXIT_USAGE
+        opts = recorded_options(log)
+        ctx = SinkContext(
+            view=View(robot=opts.robot, robot_is_client=opts.robot_is_client),
+            command_line=opts.command_line,
+            source=str(log.path),
+            profiles=log.profiles(),
+        )
+        try:
+            if suffix == ".mcap":
+                _export_mcap(log, target, RecordFilter(since=flt.since, until=flt.until))
+            elif suffix == ".pcap":
+                _export_pcap(log, target, ctx, flt)
+            else:
+                with open_sink(target, ctx) as sink:
+                    from mbmon.io.replay import iter_filtered, logged_records
+
+                    for rec in iter_filtered(logged_records(log), flt):
+                        if suffix == ".txt":
+                            sink.write_line(rec.text)  # type: ignore[attr-defined]
+                        elif rec.obj is not None:
+                            sink.write_obj(rec.obj)  # type: ignore[attr-defined]
+        except SinkError as exc:
+            _err(str(exc))
+            return EXIT_BAD_INPUT
+        except OSError as exc:
+            _err(f"{target}: cannot write: {exc.strerror or exc}")
+            return EXIT_BAD_INPUT
+        except LogError as exc:
+            _err(f"{exc} (the output holds everything before the damage)")
+            return EXIT_BAD_INPUT
+        _note_status(log)
+    return EXIT_OK
+
+
+def _export_pcap(log: Any, target: Path, ctx: Any, flt: Any) -> None:
+    from mbmon.io.replay import raw_items
+    from mbmon.model import Chunk
+    from mbmon.sinks.pcap import PcapSink
+
+    with PcapSink(target, ctx) as sink:
+        for item in raw_items(log):
+            if flt.since is not None and item.ts < flt.since:
+                continue
+            if flt.until is not None and item.ts > flt.until:
+                continue
+            if isinstance(item, Chunk):
+                sink.write_chunk(item)
+            else:
+                sink.write_event(item)
+    if sink.companion is not None:
+        _err(f"note: RTU and IP streams mixed: the other kind is in {sink.companion}")
+
+
+def _export_mcap(log: Any, target: Path, flt: Any) -> None:
+    """Copy every (recovered) message into a new, finished and indexed MCAP file."""
+    from mcap.writer import Writer
+
+    from mbmon import __version__
+    from mbmon.sinks.mcap import TOPIC_SCHEMAS, _pick_compression, schema_text
+
+    with open(target, "wb") as f:
+        writer = Writer(f, compression=_pick_compression())
+        writer.start(profile="", library=f"mbmon {__version__}")
+        channels: dict[str, int] = {}
+        for name, data in log.metadata.items():
+            writer.add_metadata(name, data)
+        for att in log.attachments:
+            writer.add_attachment(0, att.log_time, att.name, att.media_type, att.data)
+
+        def channel(topic: str) -> int:
+            cid = channels.get(topic)
+            if cid is None:
+                stored = log.schema_of(topic)
+                if stored is not None:
+                    name, encoding, data = stored
+                else:
+                    name = TOPIC_SCHEMAS.get(topic, "")
+                    encoding, data = ("jsonschema", schema_text(name)) if name else ("", b"")
+                sid = writer.register_schema(name, encoding, data) if name else 0
+                cid = writer.register_channel(topic, "json", sid)
+                channels[topic] = cid
+            return cid
+
+        for topic in TOPIC_SCHEMAS:
+            channel(topic)
+        try:
+            for msg in log.messages():
+                ts = msg.log_time / 1e9
+                if flt.since is not None and ts < flt.since:
+                    continue
+                if flt.until is not None and ts > flt.until:
+                    continue
+                writer.add_message(
+                    channel(msg.topic), msg.log_time, msg.raw, msg.publish_time, msg.sequence
+                )
+        finally:
+            writer.finish()

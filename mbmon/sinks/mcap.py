@@ -1,0 +1,457 @@
+"""MCAP log writer (``-w FILE.mcap``): the recording Foxglove opens and ``mbmon replay`` reads.
+
+This module owns the layout of mbmon's MCAP logs: the topics, their JSON
+schemas (``mbmon/schemas/*.json``), what goes into each message, the metadata
+record and the profile attachments, and the crash-safety policy:
+
+- every message is JSON encoded and matches its schema; log and publish times
+  are the capture timestamps in nanoseconds, never the wall clock;
+- chunks are zstd compressed (lz4, then none, when those are missing) and are
+  closed and written to the file at least once per second of wall time, by
+  the writing thread when records flow and by a small timer thread when they
+  do not, so a killed process loses at most the last second;
+- ``close()`` always finishes the file (summary, index, footer); the CLI turns
+  SIGINT/SIGTERM into exceptions so ``close()`` runs from ``__exit__``;
+- messages are queued by ``write()`` and handed to the ``mcap`` writer in
+  batches with SIGINT/SIGTERM blocked, so a signal can never leave half a
+  record inside a chunk.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import math
+import signal
+import threading
+import time
+from collections import deque
+from collections.abc import Mapping
+from importlib import resources
+from pathlib import Path
+from typing import IO, Any
+
+from mbmon import __version__
+from mbmon.format import View, record_to_json
+from mbmon.model import Chunk, Event, EventKind, Record, RecordKind, Stream
+from mbmon.sinks.base import SinkBase, SinkContext
+
+TOPIC_RAW = "/modbus/raw"
+TOPIC_FRAMES = "/modbus/frames"
+TOPIC_MONITOR = "/modbus/monitor"
+TOPIC_STATE = "/hrss/state"
+TOPIC_COMMANDS = "/hrss/commands"
+TOPIC_EVENTS = "/mbmon/events"
+
+#: topic -> schema file stem in ``mbmon/schemas`` (also the MCAP schema name)
+TOPIC_SCHEMAS: dict[str, str] = {
+    TOPIC_RAW: "modbus.Raw.v1",
+    TOPIC_FRAMES: "modbus.Frame.v1",
+    TOPIC_MONITOR: "foxglove.Log",
+    TOPIC_STATE: "hrss.State.v1",
+    TOPIC_COMMANDS: "hrss.Command.v1",
+    TOPIC_EVENTS: "mbmon.Event.v1",
+}
+
+#: topics that carry the ``read --json`` object of a record (merged by index on replay)
+RECORD_TOPICS = (TOPIC_FRAMES, TOPIC_EVENTS, TOPIC_COMMANDS)
+
+#: events that come from a source (fed into the pipeline), as opposed to the
+#: ones pairing makes up (timeouts); only these are re-fed by ``replay --redecode``
+SOURCE_EVENTS = frozenset({EventKind.CONNECT, EventKind.DISCONNECT, EventKind.GAP, EventKind.ERROR})
+
+METADATA_NAME = "mbmon"
+PROFILE_MEDIA_TYPE = "application/toml"
+
+# foxglove.LogLevel
+LOG_DEBUG, LOG_INFO, LOG_WARNING, LOG_ERROR = 1, 2, 3, 4
+
+STATS_EVERY = 10.0  # seconds of capture time between the writer's own stats events
+FLUSH_EVERY = 1.0  # seconds of wall time between chunk flushes, at most
+_BATCH = 512  # queued messages handed to the mcap writer at once
+_SIGNALS = {signal.SIGINT, signal.SIGTERM}
+
+
+def schema_text(name: str) -> bytes:
+    """The JSON schema file ``mbmon/schemas/<name>.json`` as bytes."""
+    return resources.files("mbmon").joinpath("schemas", f"{name}.json").read_bytes()
+
+
+def _finite(value: Any) -> Any:
+    """Replace NaN/inf (not JSON) by None, recursively."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    return value
+
+
+_ENCODER = json.JSONEncoder(ensure_ascii=False, separators=(",", ":"), allow_nan=False, default=str)
+
+
+def encode(obj: Any) -> bytes:
+    """Compact JSON bytes of one message (non-finite numbers become null)."""
+    try:
+        text = _ENCODER.encode(obj)
+    except ValueError:
+        text = _ENCODER.encode(_finite(obj))
+    return text.encode("utf-8")
+
+
+def stream_name(stream: Stream | None) -> str:
+    """The ``name`` of a monitor message: which conversation a line belongs to."""
+    if stream is None:
+        return "mbmon"
+    if stream.client == stream.server:
+        return f"#{stream.id} {stream.client}"
+    return f"#{stream.id} {stream.client} <> {stream.server}"
+
+
+def log_level(record: Record, obj: Mapping[str, Any]) -> int:
+    """foxglove.LogLevel of a record's monitor line."""
+    kind = record.kind
+    if kind is RecordKind.REQUEST or kind is RecordKind.RESPONSE:
+        if obj.get("malformed") or obj.get("crc_ok") is False:
+            return LOG_WARNING
+        if record.request is None and kind is RecordKind.RESPONSE:
+            return LOG_WARNING  # unsolicited
+        return LOG_INFO
+    if kind is RecordKind.EXCEPTION:
+        return LOG_WARNING
+    if kind is RecordKind.NOISE:
+        return LOG_ERROR
+    if kind is RecordKind.EVENT and record.event is not None:
+        ek = record.event.kind
+        if ek is EventKind.ERROR:
+            return LOG_ERROR
+        if ek is EventKind.STATS:
+            return LOG_DEBUG
+        if ek in (EventKind.GAP, EventKind.TIMEOUT, EventKind.UNSOLICITED):
+            return LOG_WARNING
+        return LOG_INFO
+    if kind is RecordKind.COMMAND and record.command is not None:
+        phase = record.command.phase.value
+        if phase == "fail":
+            return LOG_ERROR
+        if phase == "warning":
+            return LOG_WARNING
+    return LOG_INFO
+
+
+def _ns(ts: float) -> int:
+    """Nanoseconds of a capture time, from its shortest decimal form.
+
+    ``round(ts * 1e9)`` would print 1795317020.786844 as ...786843904 ns; the
+    decimal digits give the time the capture actually recorded.
+    """
+    text = repr(ts)
+    if "e" in text or "n" in text or text.startswith("-"):
+        return max(0, round(ts * 1e9)) if math.isfinite(ts) else 0
+    whole, _, frac = text.partition(".")
+    return int(whole) * 1_000_000_000 + int((frac + "000000000")[:9])
+
+
+def _stream_fields(stream: Stream | None) -> dict[str, Any]:
+    if stream is None:
+        return {"stream": None, "transport": None, "client": None, "server": None}
+    return {
+        "stream": stream.id,
+        "transport": stream.transport.value,
+        "client": stream.client,
+        "server": stream.server,
+    }
+
+
+def _pick_compression() -> Any:
+    from mcap.writer import CompressionType
+
+    try:
+        import zstandard  # noqa: F401
+
+        return CompressionType.ZSTD
+    except ImportError:
+        pass
+    try:
+        import lz4.frame  # type: ignore[import-not-found]  # noqa: F401
+
+        return CompressionType.LZ4
+    except ImportError:
+        return CompressionType.NONE
+
+
+class McapSink(SinkBase):
+    """Write records and raw chunks to an MCAP file (see the module docstring)."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        ctx: SinkContext,
+        *,
+        flush_every: float = FLUSH_EVERY,
+        chunk_size: int = 1 << 20,
+    ) -> None:
+        from mcap.writer import Writer
+
+        self.path = Path(path)
+        self.ctx = ctx
+        self.view: View = ctx.view
+        self.flush_every = flush_every
+        self._file: IO[bytes] = open(self.path, "wb")
+        self._writer = Writer(self._file, chunk_size=chunk_size, compression=_pick_compression())
+        self._lock = threading.Lock()
+        self._queue: deque[tuple[int, int, bytes]] = deque()  # append/popleft are atomic
+        self._closed = False
+        self._dirty = False
+        self._source = ctx.source
+        self._raw_prefix: dict[int, str] = {}
+        self._counts: dict[str, int] = dict.fromkeys(
+            (
+                "records", "requests", "responses", "exceptions", "noise", "noise_bytes",
+                "crc_errors", "events", "commands", "chunks", "bytes",
+            ),
+            0,
+        )  # fmt: skip
+        self._next_stats: float | None = None
+        self._last_ts: float | None = None
+        w = self._writer
+        w.start(profile="", library=f"mbmon {__version__}")
+        self._channels: dict[str, int] = {}
+        for topic, name in TOPIC_SCHEMAS.items():
+            schema_id = w.register_schema(name=name, encoding="jsonschema", data=schema_text(name))
+            self._channels[topic] = w.register_channel(
+                topic=topic, message_encoding="json", schema_id=schema_id
+            )
+        self._ch_raw = self._channels[TOPIC_RAW]
+        self._ch_frames = self._channels[TOPIC_FRAMES]
+        self._ch_monitor = self._channels[TOPIC_MONITOR]
+        self._ch_state = self._channels[TOPIC_STATE]
+        self._ch_commands = self._channels[TOPIC_COMMANDS]
+        self._ch_events = self._channels[TOPIC_EVENTS]
+        now_ns = time.time_ns()
+        w.add_metadata(
+            METADATA_NAME,
+            {
+                "version": __version__,
+                "command_line": json.dumps(list(ctx.command_line), ensure_ascii=False),
+                "source": ctx.source,
+                "profiles": json.dumps([name for name, _ in ctx.profiles], ensure_ascii=False),
+                "robot": ctx.view.robot or "",
+                "robot_is_client": "true" if ctx.view.robot_is_client else "false",
+                "started": time.strftime("%Y-%m-%dT%H:%M:%S%z", time.localtime(now_ns / 1e9)),
+            },
+        )
+        for name, text in ctx.profiles:
+            w.add_attachment(
+                create_time=0,
+                log_time=now_ns,
+                name=name if name.endswith(".toml") else f"{name}.toml",
+                media_type=PROFILE_MEDIA_TYPE,
+                data=text.encode("utf-8"),
+            )
+        self._file.flush()
+        self._last_flush = time.monotonic()
+        self._stop = threading.Event()
+        self._timer = threading.Thread(target=self._flusher, name="mbmon-mcap-flush", daemon=True)
+        self._timer.start()
+
+    # ------------------------------------------------------------------ sink API
+
+    def write_chunk(self, chunk: Chunk) -> None:
+        """Queue one captured chunk on /modbus/raw."""
+        stream = chunk.stream
+        prefix = self._raw_prefix.get(stream.id)
+        if prefix is None:
+            fields = _stream_fields(stream)
+            prefix = encode({"type": "chunk", **fields}).decode()[:-1]
+            self._raw_prefix[stream.id] = prefix
+        data = base64.b64encode(chunk.data).decode("ascii")
+        ts = chunk.ts
+        body = (
+            f'{prefix},"ts":{ts!r},"direction":"{chunk.direction.value}",'
+            f'"data":"{data}","event":null,"info":null}}'
+        )
+        self._counts["chunks"] += 1
+        self._counts["bytes"] += len(chunk.data)
+        self._put(self._ch_raw, _ns(ts), body.encode("utf-8"))
+
+    def write(self, record: Record) -> None:
+        """Queue the messages of one record on their topics."""
+        obj = record_to_json(record, self.view)
+        ts = record.ts
+        log_time = _ns(ts)
+        kind = record.kind
+        counts = self._counts
+        counts["records"] += 1
+        payload = encode(obj)
+        put = self._put
+        if kind is RecordKind.REQUEST:
+            counts["requests"] += 1
+            put(self._ch_frames, log_time, payload)
+        elif kind is RecordKind.RESPONSE:
+            counts["responses"] += 1
+            put(self._ch_frames, log_time, payload)
+            if obj.get("crc_ok") is False:
+                counts["crc_errors"] += 1
+                put(self._ch_events, log_time, payload)
+        elif kind is RecordKind.EXCEPTION:
+            counts["exceptions"] += 1
+            put(self._ch_frames, log_time, payload)
+        elif kind is RecordKind.NOISE:
+            counts["noise"] += 1
+            if record.noise is not None:
+                counts["noise_bytes"] += len(record.noise.raw)
+                if "crc" in record.noise.reason.lower():
+                    counts["crc_errors"] += 1
+            put(self._ch_frames, log_time, payload)
+            put(self._ch_events, log_time, payload)
+        elif kind is RecordKind.EVENT:
+            counts["events"] += 1
+            put(self._ch_events, log_time, payload)
+            event = record.event
+            if event is not None and event.kind in SOURCE_EVENTS:
+                self._put_raw_event(event)
+        elif kind is RecordKind.COMMAND:
+            counts["commands"] += 1
+            put(self._ch_commands, log_time, payload)
+        sec, nsec = divmod(log_time, 1_000_000_000)
+        monitor = {
+            "timestamp": {"sec": sec, "nsec": nsec},
+            "level": log_level(record, obj),
+            "message": obj["line"],
+            "name": stream_name(record.stream),
+            "file": self._source,
+            "line": record.index,
+        }
+        put(self._ch_monitor, log_time, encode(monitor))
+        if record.state is not None:
+            state = {"time": ts, "index": record.index}
+            state.update(record.state)
+            put(self._ch_state, log_time, encode(state))
+        self._last_ts = ts
+        if self._next_stats is None:
+            self._next_stats = ts + STATS_EVERY
+        elif ts >= self._next_stats:
+            self._next_stats = ts + STATS_EVERY
+            self._put_stats(ts)
+
+    def close(self) -> None:
+        """Write everything queued, then finish the file (summary, index, footer)."""
+        if self._closed:
+            return
+        self._closed = True
+        self._stop.set()
+        if self._timer.is_alive() and self._timer is not threading.current_thread():
+            self._timer.join(timeout=5)
+        with self._lock:
+            try:
+                if self._last_ts is not None:
+                    self._put_stats(self._last_ts, final=True)
+                self._drain()
+                self._writer.finish()
+            finally:
+                self._file.close()
+
+    # ------------------------------------------------------------------ internals
+
+    def _put(self, channel: int, log_time: int, data: bytes) -> None:
+        queue = self._queue
+        queue.append((channel, log_time, data))
+        if len(queue) >= _BATCH or time.monotonic() - self._last_flush >= self.flush_every:
+            with self._lock:
+                self._drain()
+                if time.monotonic() - self._last_flush >= self.flush_every:
+                    self._flush()
+
+    def _put_raw_event(self, event: Event) -> None:
+        body = {
+            "type": "event",
+            **_stream_fields(event.stream),
+            "ts": event.ts,
+            "direction": None,
+            "data": "",
+            "event": event.kind.value,
+            "info": dict(event.info),
+        }
+        self._put(self._ch_raw, _ns(event.ts), encode(body))
+
+    def _put_stats(self, ts: float, final: bool = False) -> None:
+        info: dict[str, Any] = dict(self._counts)
+        if final:
+            info["final"] = True
+        line_ts = time.strftime("%H:%M:%S", time.localtime(ts))
+        obj: dict[str, Any] = {
+            "index": None, "time": ts, "stream": None, "src": None, "dst": None,
+            "transport": None, "tid": None, "unit": None, "fc": None, "kind": "event",
+            "exception_code": None, "address": None, "count": None, "values": None,
+            "pdu": None, "line": "", "notes": None, "crc_ok": None, "latency_ms": None,
+            "malformed": None, "request_index": None, "event": "stats", "info": info,
+        }  # fmt: skip
+        obj["line"] = f"{line_ts}  -- Stats: " + ", ".join(f"{k}={v}" for k, v in info.items())
+        self._queue.append((self._ch_events, _ns(ts), encode(obj)))
+
+    def _drain(self) -> None:
+        """Hand the queued messages to the mcap writer with SIGINT/SIGTERM held back.
+
+        Call with the lock held.
+        """
+        queue = self._queue
+        if not queue:
+            return
+        pop = queue.popleft
+        add = self._writer.add_message
+        old = _block_signals()
+        try:
+            while queue:
+                channel, log_time, data = pop()
+                add(channel_id=channel, log_time=log_time, data=data, publish_time=log_time)
+        finally:
+            _restore_signals(old)
+        self._dirty = True
+
+    def _flush(self) -> None:
+        """Close the current chunk and push it to the OS. Call with the lock held."""
+        if self._dirty:
+            old = _block_signals()
+            try:
+                self._writer.flush()
+            finally:
+                _restore_signals(old)
+            self._dirty = False
+        self._last_flush = time.monotonic()
+
+    def _flusher(self) -> None:
+        """Timer thread: flush what waits when no record arrived for a while."""
+        tick = max(0.05, self.flush_every / 4)
+        while not self._stop.wait(tick):
+            if time.monotonic() - self._last_flush < self.flush_every:
+                continue
+            if not self._lock.acquire(timeout=tick):
+                continue
+            try:
+                if self._closed:
+                    return
+                if self._queue or self._dirty:
+                    self._drain()
+                    self._flush()
+                else:
+                    self._last_flush = time.monotonic()
+            except Exception:  # the main thread will see the same error on its next write
+                return
+            finally:
+                self._lock.release()
+
+
+def _block_signals() -> set[signal.Signals] | None:
+    if threading.current_thread() is not threading.main_thread():
+        return None  # Python runs signal handlers in the main thread only
+    try:
+        return signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
+    except (AttributeError, OSError, ValueError):  # platforms without pthread_sigmask
+        return None
+
+
+def _restore_signals(old: set[signal.Signals] | None) -> None:
+    if old is not None:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)

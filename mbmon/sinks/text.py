@@ -1,0 +1,23 @@
+"""Text sink (``-w FILE.txt``): the monitor lines exactly as the console prints them.
+
+One line per record, as the robot's Modbus Monitor would export them: time,
+label, function code + data in hex, then the notes.
+"""
+
+from __future__ import annotations
+
+from mbmon.format import record_line
+from mbmon.model import Record
+from mbmon.sinks.jsonl import TextFileSink
+
+
+class TextSink(TextFileSink):
+    """The console's monitor line for every record."""
+
+    def write(self, record: Record) -> None:
+        self.write_line(record_line(record, self.view))
+
+    def write_line(self, line: str) -> None:
+        """Write one already-made monitor line (used by ``mbmon export``)."""
+        self._f.write(line + "\n")
+        self._tick()
