@@ -7,8 +7,10 @@ several segments (even inside its header) decode identically (DESIGN rule 4).
 
 Bytes that cannot be an MBAP header (protocol id != 0, length outside
 2..``max_length``) start a run of noise. The decoder then resynchronises on the
-next plausible header: protocol id 0, length in range and a plausible function
-code (requests 0x01..0x7F, responses 0x01..0x7F or 0x81..0xFF). Outside a noise
+next plausible header: protocol id 0, length in range, a plausible function
+code (requests 0x01..0x7F, responses 0x01..0x7F or 0x81..0xFF) and, when the
+function code has a predictable PDU length, a length field that agrees with it
+(up to ``TRAILING_SLACK`` trailing bytes allowed). Outside a noise
 run any function code is accepted (a sweep of every code starts with 0x00), so
 the first bytes of a stream, or the first after :meth:`MbapDecoder.reset`, are
 taken as a header when protocol id and length allow it; a capture that starts
@@ -23,7 +25,7 @@ Pure: no I/O, no clocks; time is the ``ts`` given with each chunk.
 from __future__ import annotations
 
 from mbmon.model import Direction, Frame, Noise, Stream
-from mbmon.protocol.pdu import decode_pdu
+from mbmon.protocol.pdu import NEED_MORE, decode_pdu, pdu_length
 
 __all__ = ["DEFAULT_MAX_LENGTH", "MBAP_HEADER_LEN", "NOISE_CAP", "MbapDecoder", "encode_adu"]
 
@@ -32,6 +34,11 @@ MBAP_HEADER_LEN = 7
 
 DEFAULT_MAX_LENGTH = 254
 """Largest MBAP length field accepted: unit id + a 253-byte PDU (spec limit)."""
+
+TRAILING_SLACK = 4
+"""Trailing bytes after a PDU of predictable length still accepted when resynchronising."""
+
+_NO_HEADER = "no plausible MBAP header"
 
 NOISE_CAP = 65536
 """A noise run longer than this is reported in pieces of this size."""
@@ -181,36 +188,37 @@ class MbapDecoder:
             if buf[pos + 2] == 0 and buf[pos + 3] == 0:
                 length = (buf[pos + 4] << 8) | buf[pos + 5]
                 if 2 <= length <= max_len:
+                    end = pos + 6 + length
                     if self._synced:
-                        fc_ok = True
-                    elif n - pos < 8:
-                        break  # need the function code to judge a resync candidate
-                    else:
-                        fc = buf[pos + 7]
-                        fc_ok = fc != 0 and fc != 0x80 and (response or fc < 0x80)
-                    if fc_ok:
-                        end = pos + 6 + length
                         if end > n:
                             break
-                        if self._noise:
-                            append(self._flush_noise_run())
-                        self._synced = True
-                        raw = bytes(buf[pos:end])
-                        append(
-                            Frame(
-                                ts,
-                                stream,
-                                direction,
-                                raw[6],
-                                (raw[0] << 8) | raw[1],
-                                decode_pdu(raw[7:], response),
-                                raw,
-                                None,
-                            )
-                        )
-                        pos = end
+                    elif n - pos < 8:
+                        break  # a resync candidate is judged by its function code
+                    elif not self._plausible(buf, pos, min(end, n), length):
+                        nxt = self._next_candidate(buf, pos)
+                        self._add_noise(buf[pos:nxt], _NO_HEADER, ts, out)
+                        pos = nxt
                         continue
-                    reason = f"bad MBAP function code 0x{fc:02X}"
+                    elif end > n:
+                        break
+                    if self._noise:
+                        append(self._flush_noise_run())
+                    self._synced = True
+                    raw = bytes(buf[pos:end])
+                    append(
+                        Frame(
+                            ts,
+                            stream,
+                            direction,
+                            raw[6],
+                            (raw[0] << 8) | raw[1],
+                            decode_pdu(raw[7:], response),
+                            raw,
+                            None,
+                        )
+                    )
+                    pos = end
+                    continue
                 else:
                     reason = f"bad MBAP length {length}"
             else:
@@ -221,6 +229,26 @@ class MbapDecoder:
             self._add_noise(buf[pos:nxt], reason, ts, out)
             pos = nxt
         return pos
+
+    def _plausible(self, buf: bytes | bytearray, pos: int, end: int, length: int) -> bool:
+        """Whether the resync candidate at ``pos`` (bytes present up to ``end``) may be an ADU.
+
+        Its function code must be valid for the direction, and when the code has
+        a predictable PDU length (told by the bytes present) the length field
+        must agree with it, give or take up to ``TRAILING_SLACK`` trailing bytes
+        (some devices send a few). A candidate that cannot be judged yet is
+        plausible for now: the caller waits for the rest of the ADU.
+        """
+        fc = buf[pos + 7]
+        response = self._response
+        if fc == 0 or fc == 0x80 or (fc & 0x80 and not response):
+            return False
+        plen = pdu_length(buf[pos + 7 : end], response)
+        if plen is None:
+            return True
+        if plen == NEED_MORE:
+            return end - pos < 6 + length
+        return 0 < plen <= length - 1 <= plen + TRAILING_SLACK
 
     @staticmethod
     def _next_candidate(buf: bytes | bytearray, pos: int) -> int:
