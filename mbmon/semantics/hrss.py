@@ -523,7 +523,7 @@ _MOVING = (2, 3, 4)  # IR524 Running, Hold, Delay
 class HrssSession:
     """Per (server endpoint, unit): the register image seen so far and the command protocol.
 
-    Writes (FC 06, 10, 16, 17) update the holding image when the *request* is
+    Writes (FC 06, 10, 0x16, 17) update the holding image when the *request* is
     seen, so that a command executes on the frame that carries R200 = 1; the
     written registers stay unconfirmed until the answer, and an exception
     answer puts the old values back. Reads (FC 03, 04, 17) update the images
