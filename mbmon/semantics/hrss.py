@@ -50,7 +50,9 @@ __all__ = [
     "decode_command",
     "decode_returns",
     "format_scaled",
+    "iter_layouts",
     "load_spec",
+    "parse_spec",
 ]
 
 _PROFILE = "hrss_commands.toml"
