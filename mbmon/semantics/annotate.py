@@ -20,6 +20,7 @@ annotation at once; with a profile, each field is one dict look-up.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from decimal import Decimal
 from typing import Any
 
 from mbmon.model import Annotation, Frame, Kind, Stream, Transaction, TxStatus
@@ -392,14 +393,16 @@ def _value_text(f: Field, variant: Variant | None, words: Sequence[int]) -> str:
     return text
 
 
+_DECIMALS: dict[float, int] = {}
+
+
 def _scaled(raw: int, scale: float | None) -> str:
     if scale is None or scale == 1:
         return str(raw)
-    decimals = 0
-    s = scale
-    while s < 1 and decimals < 9:
-        s *= 10
-        decimals += 1
+    decimals = _DECIMALS.get(scale)
+    if decimals is None:  # as many decimals as the scale has: 0.001 -> 3, 0.25 -> 2, 10 -> 0
+        exp = Decimal(repr(scale)).normalize().as_tuple().exponent
+        decimals = _DECIMALS[scale] = min(-exp, 9) if isinstance(exp, int) and exp < 0 else 0
     return f"{raw * scale:.{decimals}f}"
 
 

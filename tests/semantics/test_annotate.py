@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib.util
 from collections.abc import Sequence
+from pathlib import Path
 
 import pytest
 
@@ -414,3 +415,40 @@ def test_hrss_session_merged_after_profile_notes(hrss_notes: Annotator) -> None:
     again = Stream(3, Transport.TCP, "192.168.0.10:50999", "192.168.0.2:502")
     a.annotate(pending(encode_read_request(0x04, 524, 1), stream=again))
     assert list(a.sessions()) == [("192.168.0.2:502", 1)]
+
+
+PLC = """\
+[profile]
+name = "plc"
+
+[[holding_registers]]
+name = "flow"
+address = 20
+type = "f32"
+word_order = "high_low"
+unit = "l/min"
+
+[[holding_registers]]
+name = "gain"
+address = 30
+scale = 0.25
+
+[[holding_registers]]
+name = "count"
+address = 40
+type = "u32"
+word_order = "high_low"
+"""
+
+
+def test_user_profile_float_swapped_words_and_scale(tmp_path: Path) -> None:
+    path = tmp_path / "plc.toml"
+    path.write_text(PLC, "utf-8")
+    a = Annotator(ProfileBinding.parse([str(path)]))
+    # IEEE754 10.5 = 0x41280000 (§5.4.4.2), high word first in this device
+    assert notes(a, read(0x03, 20, [0x4128, 0x0000])) == ["flow = 10.5 l/min"]
+    assert notes(a, read(0x03, 30, [3])) == ["gain = 0.75"]
+    assert notes(a, read(0x03, 30, [-7])) == ["gain = -1.75"]
+    assert notes(a, read(0x03, 40, [1, 5])) == ["count = 65541"]
+    assert notes(a, read(0x03, 40, [1])) == ["count (high word) = 1 (low word not in this read)"]
+    assert notes(a, read(0x03, 41, [5])) == ["count (low word) = 5 (high word not in this read)"]
