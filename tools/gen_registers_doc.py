@@ -213,7 +213,7 @@ def render(profiles: Sequence[Profile]) -> str:
         "Where the manual contradicts itself, the profiles follow the worked examples",
         "and the client programs of §5.4.5. Each choice, with the tables involved.",
         "Choices about command parameters (Tables 17-53) belong to the HRSS command",
-        "session and are documented with it.",
+        "session and are documented in [commands.md](commands.md).",
         "",
     ]
     for p in profiles:
