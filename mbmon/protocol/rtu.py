@@ -11,9 +11,9 @@ Framing is length prediction + CRC (DESIGN rules 2 and 3), never timing:
   unit U with function F, a frame from U with F (or F | 0x80) is taken as the
   response if its CRC passes; otherwise the request reading comes first. A
   broadcast request (unit 0) leaves nothing pending.
-* Any complete candidate whose CRC passes is accepted at once (the preferred
-  reading first). When none passes and one still lacks bytes, the decoder
-  waits for more input.
+* Readings are tried in that order: the first whose CRC passes is accepted.
+  When a reading still lacks bytes the decoder waits for more input before
+  trying the next one, so any chunking of a stream gives the same frames.
 * When a reading has no predictable length (unknown function codes, 0x2B
   responses, 0x08 sub-function 0x00, ...), the decoder tries the CRC at every
   length from 4 to 256 bytes, shortest first, once enough bytes are there.
@@ -29,9 +29,11 @@ With ``baudrate`` the decoder also looks at inter-chunk silence: a silence
 longer than t3.5 (3.5 character times of 11 bits, 1.75 ms above 19200 baud)
 counts in ``stats["timing_gaps"]`` and ends the bytes before it as far as
 that is safe: leftover noise and length scans are settled at the silence
-instead of waiting for 256 bytes, but a frame whose predicted length is not
-complete yet keeps waiting, because USB adapters deliver bytes in bunches and
-the "silence" may be their latency. Timing is a hint only.
+instead of waiting for 256 bytes, and a reading that would need bytes from
+after the silence no longer blocks the next reading; but when no reading
+fits the bytes before the silence and one needs more, the decoder still
+waits, because USB adapters deliver bytes in bunches and the "silence" may be
+their latency. Timing is a hint only.
 
 Pure: no I/O, no clocks; time is the ``ts`` given with each chunk.
 """
@@ -330,12 +332,16 @@ class RtuDecoder:
                 unpredictable.append(is_resp)
                 continue
             if plen == NEED_MORE:
+                if mode == _STREAM:
+                    return _WAIT, False, ""
                 incomplete = True
                 continue
             total = plen + 3
             if total > MAX_ADU or plen < 1:
                 continue
             if total > avail:
+                if mode == _STREAM:
+                    return _WAIT, False, ""
                 incomplete = True
                 continue
             if _crc_ok(buf, pos, pos + total):

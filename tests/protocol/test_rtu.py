@@ -120,6 +120,19 @@ def test_write_echo_is_response_only_when_its_request_is_pending() -> None:
     assert [f.direction for f in out] == [Direction.C2S, Direction.S2C, Direction.C2S]
 
 
+def test_echo_shaped_frame_from_another_unit_is_a_request() -> None:
+    # Unit 0x11 does not answer its 06; the master then writes to unit 0x12.
+    # Same function code, same length: only the unit says it is no response.
+    first = PAIRS["06"][0]
+    other = encode_rtu(0x12, h("06 00 01 00 03"))
+    out = frames(decode(first + other + other))
+    assert [(f.unit, f.direction) for f in out] == [
+        (0x11, Direction.C2S),
+        (0x12, Direction.C2S),
+        (0x12, Direction.S2C),
+    ]
+
+
 def test_broadcast_expects_no_response() -> None:
     bcast = encode_rtu(0, h("06 00 01 00 03"))
     out = frames(decode(bcast + bcast + PAIRS["06"][0] + PAIRS["06"][1]))

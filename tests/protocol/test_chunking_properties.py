@@ -1,0 +1,239 @@
+"""Chunking properties of the stream decoders (DESIGN rule 4, and rule 3 for RTU).
+
+* Valid ADU sequences built with the encoders decode to exactly those ADUs,
+  and any split of the stream into chunks gives identical frames.
+* Random bytes and mutated valid streams never raise, every input byte ends in
+  exactly one frame or noise after ``flush``, and chunking still changes nothing.
+"""
+
+from __future__ import annotations
+
+from itertools import pairwise
+
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from mbmon.model import Direction, Frame, Noise, Stream, Transport
+from mbmon.protocol.mbap import MbapDecoder, encode_adu
+from mbmon.protocol.pdu import (
+    encode_exception,
+    encode_read_request,
+    encode_read_response,
+    encode_write_multiple_request,
+    encode_write_multiple_response,
+    encode_write_single,
+)
+from mbmon.protocol.rtu import RtuDecoder, encode_rtu
+
+TCP = Stream(0, Transport.TCP, "10.0.0.2:50000", "10.0.0.1:502")
+BUS = Stream(1, Transport.RTU, "/dev/ttyUSB0", "/dev/ttyUSB0")
+RTU_TCP = Stream(2, Transport.RTU_OVER_TCP, "10.0.0.2:50001", "10.0.0.1:502")
+
+SETTINGS = settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+u16 = st.integers(0, 0xFFFF)
+bit = st.integers(0, 1)
+
+
+@st.composite
+def exchanges(draw: st.DrawFn) -> tuple[bytes, bytes]:
+    """One request PDU and its response PDU (sometimes an exception)."""
+    fc = draw(st.sampled_from([0x01, 0x02, 0x03, 0x04, 0x05, 0x06, 0x0F, 0x10]))
+    address = draw(u16)
+    if fc in (0x01, 0x02):
+        count = draw(st.integers(1, 80))
+        req = encode_read_request(fc, address, count)
+        resp = encode_read_response(fc, draw(st.lists(bit, min_size=count, max_size=count)))
+    elif fc in (0x03, 0x04):
+        values = draw(st.lists(u16, min_size=1, max_size=40))
+        req = encode_read_request(fc, address, len(values))
+        resp = encode_read_response(fc, values)
+    elif fc == 0x05:
+        req = resp = encode_write_single(fc, address, draw(st.booleans()))
+    elif fc == 0x06:
+        req = resp = encode_write_single(fc, address, draw(u16))
+    else:
+        values = draw(st.lists(bit if fc == 0x0F else u16, min_size=1, max_size=40))
+        req = encode_write_multiple_request(fc, address, values)
+        resp = encode_write_multiple_response(fc, address, len(values))
+    if draw(st.integers(0, 5)) == 0:
+        resp = encode_exception(fc, draw(st.integers(1, 11)))
+    return req, resp
+
+
+def chunked(data: bytes, cuts: list[int]) -> list[bytes]:
+    points = sorted({0, len(data), *(c % (len(data) + 1) for c in cuts)})
+    return [data[a:b] for a, b in pairwise(points)]
+
+
+def run(decoder: MbapDecoder | RtuDecoder, chunks: list[bytes]) -> list[Frame | Noise]:
+    out: list[Frame | Noise] = []
+    for i, chunk in enumerate(chunks):
+        out += decoder.feed(chunk, float(i))
+    out += decoder.flush(float(len(chunks)))
+    return out
+
+
+def frame_keys(items: list[Frame | Noise]) -> list[tuple[object, ...]]:
+    return [(f.unit, f.tid, f.direction, f.raw, f.pdu) for f in items if isinstance(f, Frame)]
+
+
+def accounted(items: list[Frame | Noise]) -> int:
+    return sum(len(x.raw) for x in items)
+
+
+cut_lists = st.lists(st.integers(0, 10_000), max_size=12)
+
+
+# ---------------------------------------------------------------- MBAP
+
+
+@st.composite
+def mbap_streams(draw: st.DrawFn) -> tuple[Direction, list[bytes]]:
+    direction = draw(st.sampled_from([Direction.C2S, Direction.S2C]))
+    adus = []
+    for req, resp in draw(st.lists(exchanges(), min_size=1, max_size=10)):
+        pdu = req if direction is Direction.C2S else resp
+        adus.append(encode_adu(draw(u16), draw(st.integers(0, 255)), pdu))
+    return direction, adus
+
+
+@SETTINGS
+@given(mbap_streams(), cut_lists)
+def test_mbap_any_chunking_gives_the_same_frames(
+    stream: tuple[Direction, list[bytes]], cuts: list[int]
+) -> None:
+    direction, adus = stream
+    data = b"".join(adus)
+    whole = run(MbapDecoder(TCP, direction), [data])
+    assert [x.raw for x in whole] == adus  # no noise, every ADU a frame
+    assert all(isinstance(x, Frame) and x.direction is direction for x in whole)
+    split = run(MbapDecoder(TCP, direction), chunked(data, cuts))
+    assert frame_keys(split) == frame_keys(whole)
+
+
+@SETTINGS
+@given(st.binary(max_size=400), cut_lists, st.sampled_from([Direction.C2S, Direction.S2C]))
+def test_mbap_random_bytes(data: bytes, cuts: list[int], direction: Direction) -> None:
+    whole = run(MbapDecoder(TCP, direction), [data])
+    assert accounted(whole) == len(data)
+    split = run(MbapDecoder(TCP, direction), chunked(data, cuts))
+    assert accounted(split) == len(data)
+    assert frame_keys(split) == frame_keys(whole)
+
+
+# ---------------------------------------------------------------- RTU
+
+
+@st.composite
+def rtu_bus_streams(draw: st.DrawFn) -> list[tuple[Direction, bytes]]:
+    """A timing-free bus: requests mostly followed by their response.
+
+    Broadcasts get no response; some requests go unanswered, and then the
+    next request goes to another unit (the same unit and function code again
+    would be indistinguishable from the missing echo of a write).
+    """
+    out: list[tuple[Direction, bytes]] = []
+    avoid = 0
+    for req, resp in draw(st.lists(exchanges(), min_size=1, max_size=10)):
+        if req[0] in (0x05, 0x06, 0x0F, 0x10) and draw(st.integers(0, 4)) == 0:
+            out.append((Direction.C2S, encode_rtu(0, req)))  # broadcast: no response
+            avoid = 0
+            continue
+        unit = draw(st.integers(1, 247).filter(lambda u, a=avoid: u != a))
+        out.append((Direction.C2S, encode_rtu(unit, req)))
+        if draw(st.integers(0, 5)) == 0:
+            avoid = unit  # unanswered
+            continue
+        out.append((Direction.S2C, encode_rtu(unit, resp)))
+        avoid = 0
+    return out
+
+
+@SETTINGS
+@given(rtu_bus_streams(), cut_lists)
+def test_rtu_bus_any_chunking_gives_the_same_frames(
+    frames: list[tuple[Direction, bytes]], cuts: list[int]
+) -> None:
+    data = b"".join(raw for _, raw in frames)
+    whole = run(RtuDecoder(BUS), [data])
+    assert [(x.direction, x.raw) for x in whole] == frames  # no noise, right directions
+    split = run(RtuDecoder(BUS), chunked(data, cuts))
+    assert frame_keys(split) == frame_keys(whole)
+
+
+@SETTINGS
+@given(rtu_bus_streams(), cut_lists)
+def test_rtu_known_direction_any_chunking(
+    frames: list[tuple[Direction, bytes]], cuts: list[int]
+) -> None:
+    # RTU over TCP: each direction is its own decoder
+    for direction in (Direction.C2S, Direction.S2C):
+        adus = [raw for d, raw in frames if d is direction]
+        data = b"".join(adus)
+        whole = run(RtuDecoder(RTU_TCP, direction), [data])
+        assert [x.raw for x in whole] == adus
+        assert all(isinstance(x, Frame) and x.direction is direction for x in whole)
+        split = run(RtuDecoder(RTU_TCP, direction), chunked(data, cuts))
+        assert frame_keys(split) == frame_keys(whole)
+
+
+@SETTINGS
+@given(st.binary(max_size=400), cut_lists)
+def test_rtu_random_bytes(data: bytes, cuts: list[int]) -> None:
+    dec = RtuDecoder(BUS)
+    whole = run(dec, [data])
+    assert accounted(whole) == len(data)
+    assert dec.stats["noise_bytes"] + sum(len(f.raw) for f in whole if isinstance(f, Frame)) == len(
+        data
+    )
+    split = run(RtuDecoder(BUS), chunked(data, cuts))
+    assert accounted(split) == len(data)
+    assert frame_keys(split) == frame_keys(whole)
+
+
+# ---------------------------------------------------------------- mutations
+
+
+@st.composite
+def mutated(draw: st.DrawFn, base: bytes) -> bytes:
+    data = bytearray(base)
+    for _ in range(draw(st.integers(1, 4))):
+        op = draw(st.sampled_from(["flip", "insert", "delete", "truncate"]))
+        at = draw(st.integers(0, len(data)))
+        if op == "flip" and at < len(data):
+            data[at] ^= draw(st.integers(1, 255))
+        elif op == "insert":
+            data[at:at] = draw(st.binary(min_size=1, max_size=8))
+        elif op == "delete":
+            del data[at : at + draw(st.integers(1, 8))]
+        else:
+            del data[at:]
+    return bytes(data)
+
+
+@SETTINGS
+@given(mbap_streams(), cut_lists, st.data())
+def test_mbap_mutated_streams(
+    stream: tuple[Direction, list[bytes]], cuts: list[int], data: st.DataObject
+) -> None:
+    direction, adus = stream
+    bad = data.draw(mutated(b"".join(adus)))
+    whole = run(MbapDecoder(TCP, direction), [bad])
+    assert accounted(whole) == len(bad)
+    split = run(MbapDecoder(TCP, direction), chunked(bad, cuts))
+    assert accounted(split) == len(bad)
+    assert frame_keys(split) == frame_keys(whole)
+
+
+@SETTINGS
+@given(rtu_bus_streams(), cut_lists, st.data())
+def test_rtu_mutated_streams(
+    frames: list[tuple[Direction, bytes]], cuts: list[int], data: st.DataObject
+) -> None:
+    bad = data.draw(mutated(b"".join(raw for _, raw in frames)))
+    whole = run(RtuDecoder(BUS), [bad])
+    assert accounted(whole) == len(bad)
+    split = run(RtuDecoder(BUS), chunked(bad, cuts))
+    assert accounted(split) == len(bad)
+    assert frame_keys(split) == frame_keys(whole)
