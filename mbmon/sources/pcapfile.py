@@ -447,6 +447,7 @@ class _Dissector:
             et = (buf[off + 2] << 8) | buf[off + 3]
             off += 4
         # ---- network layer
+        short = False
         if et == 0x0800:
             if end - off < 20:
                 self.truncated += 1
@@ -463,8 +464,8 @@ class _Dissector:
                 return
             else:
                 ip_end = off + total
-                if ip_end > end:
-                    self.truncated += 1
+                if ip_end > end:  # cut by the snap length: counted if it matters below
+                    short = True
                     ip_end = end
             if frag & 0x3FFF:  # more-fragments or an offset
                 self.fragments += 1
@@ -481,7 +482,7 @@ class _Dissector:
             plen = (buf[off + 4] << 8) | buf[off + 5]
             ip_end = off + 40 + plen if plen else end
             if ip_end > end:
-                self.truncated += 1
+                short = True
                 ip_end = end
             proto = buf[off + 6]
             addr_at, addr_len = off + 8, 32
@@ -540,6 +541,8 @@ class _Dissector:
                 flow[0].finish(ts, out, "replaced")
                 flow = self._new_tcp(key, flags, out)
             flow[0].segment(ts, flow[1], seq, ack, flags, buf[l4 + doff : ip_end], out)
+            if short:
+                self.truncated += 1
         elif proto == 17:
             if ip_end - l4 < 8:
                 if ip_end < l4:
