@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from mbmon.model import Direction, Frame, Kind, Noise, Stream, Transport
-from mbmon.protocol.mbap import MbapDecoder, encode_adu
+from mbmon.protocol.mbap import NOISE_CAP, MbapDecoder, encode_adu
 
 STREAM = Stream(0, Transport.TCP, "10.0.0.2:50000", "10.0.0.1:502")
 
@@ -281,3 +281,12 @@ def test_encode_adu() -> None:
 def test_bus_direction_rejected() -> None:
     with pytest.raises(ValueError):
         MbapDecoder(STREAM, Direction.BUS)
+
+
+def test_long_noise_run_is_split_at_the_cap() -> None:
+    garbage = b"\xff" * (NOISE_CAP + 1000)
+    dec = MbapDecoder(STREAM, Direction.S2C)
+    out = dec.feed(garbage[:5000], 1.0) + dec.feed(garbage[5000:] + RESP_03, 2.0)
+    assert [type(x) for x in out] == [Noise, Noise, Frame]
+    assert [len(x.raw) for x in out[:2]] == [NOISE_CAP, 1000]
+    assert out[2].raw == RESP_03
