@@ -630,14 +630,12 @@ def _export_pcap(log: Any, target: Path, ctx: Any, flt: Any) -> None:
 
 def _export_mcap(log: Any, target: Path, flt: Any) -> None:
     """Copy every (recovered) message into a new, finished and indexed MCAP file."""
-    from mcap.writer import Writer
-
     from mbmon import __version__
-    from mbmon.sinks.mcap import TOPIC_SCHEMAS, _pick_compression, schema_text
+    from mbmon.sinks.mcap import TOPIC_SCHEMAS, McapFileWriter, schema_text
 
     with open(target, "wb") as f:
-        writer = Writer(f, compression=_pick_compression())
-        writer.start(profile="", library=f"mbmon {__version__}")
+        writer = McapFileWriter(f)
+        writer.start(library=f"mbmon {__version__}")
         channels: dict[str, int] = {}
         for name, data in log.metadata.items():
             writer.add_metadata(name, data)
@@ -667,8 +665,6 @@ def _export_mcap(log: Any, target: Path, flt: Any) -> None:
                     continue
                 if flt.until is not None and ts > flt.until:
                     continue
-                writer.add_message(
-                    channel(msg.topic), msg.log_time, msg.raw, msg.publish_time, msg.sequence
-                )
+                writer.add_message(channel(msg.topic), msg.log_time, msg.raw)
         finally:
             writer.finish()

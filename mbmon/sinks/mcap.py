@@ -23,10 +23,12 @@ import base64
 import json
 import math
 import signal
+import struct
 import threading
 import time
+import zlib
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from importlib import resources
 from pathlib import Path
 from typing import IO, Any
@@ -35,6 +37,10 @@ from mbmon import __version__
 from mbmon.format import View, record_to_json
 from mbmon.model import Chunk, Event, EventKind, Record, RecordKind, Stream
 from mbmon.sinks.base import SinkBase, SinkContext
+
+_json_str = json.encoder.encode_basestring  # C-accelerated, keeps non-ASCII
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+_MESSAGE_HEAD = struct.Struct("<BQHIQQ")  # opcode, length, channel, sequence, log, publish
 
 TOPIC_RAW = "/modbus/raw"
 TOPIC_FRAMES = "/modbus/frames"
@@ -67,7 +73,7 @@ PROFILE_MEDIA_TYPE = "application/toml"
 LOG_DEBUG, LOG_INFO, LOG_WARNING, LOG_ERROR = 1, 2, 3, 4
 
 STATS_EVERY = 10.0  # seconds of capture time between the writer's own stats events
-FLUSH_EVERY = 1.0  # seconds of wall time between chunk flushes, at most
+FLUSH_EVERY = 0.5  # seconds of wall time between chunk flushes (at most 1 s is promised)
 _BATCH = 512  # queued messages handed to the mcap writer at once
 _SIGNALS = {signal.SIGINT, signal.SIGTERM}
 
@@ -141,16 +147,15 @@ def log_level(record: Record, obj: Mapping[str, Any]) -> int:
 
 
 def _ns(ts: float) -> int:
-    """Nanoseconds of a capture time, from its shortest decimal form.
+    """Nanoseconds of a capture time, to the microsecond.
 
-    ``round(ts * 1e9)`` would print 1795317020.786844 as ...786843904 ns; the
-    decimal digits give the time the capture actually recorded.
+    ``round(ts * 1e9)`` would turn 1795317020.786844 into ...786843904 ns: an
+    epoch-seconds float has about 0.24 us resolution, so microseconds are all
+    it can carry faithfully (and all that pcap records).
     """
-    text = repr(ts)
-    if "e" in text or "n" in text or text.startswith("-"):
-        return max(0, round(ts * 1e9)) if math.isfinite(ts) else 0
-    whole, _, frac = text.partition(".")
-    return int(whole) * 1_000_000_000 + int((frac + "000000000")[:9])
+    if ts > 0.0:
+        return round(ts * 1_000_000) * 1000
+    return 0
 
 
 def _stream_fields(stream: Stream | None) -> dict[str, Any]:
@@ -164,21 +169,233 @@ def _stream_fields(stream: Stream | None) -> dict[str, Any]:
     }
 
 
-def _pick_compression() -> Any:
-    from mcap.writer import CompressionType
-
+def _pick_compression() -> tuple[str, Callable[[bytes], bytes] | None]:
+    """The best chunk compression available: zstd, then lz4, then none."""
     try:
-        import zstandard  # noqa: F401
+        import zstandard
 
-        return CompressionType.ZSTD
+        return "zstd", zstandard.ZstdCompressor(level=3).compress
     except ImportError:
         pass
     try:
-        import lz4.frame  # type: ignore[import-not-found]  # noqa: F401
+        import lz4.frame  # type: ignore[import-not-found]
 
-        return CompressionType.LZ4
+        return "lz4", lz4.frame.compress
     except ImportError:
-        return CompressionType.NONE
+        return "", None
+
+
+class McapFileWriter:
+    """An MCAP writer for many small messages, built on the ``mcap`` package's records.
+
+    ``mcap.writer.Writer`` spends about 20 us of Python per message (a record
+    object, a message index entry, eight small writes); this writer serialises a
+    message with one ``struct.pack`` into the open chunk and lets the ``mcap``
+    package write every other record (header, schemas, channels, chunks,
+    metadata, attachments, statistics, indexes, footer), laid out as
+    ``Writer.finish`` does. Schemas and channels are written once, before the
+    first chunk and outside it, so that every chunk of a file cut short can be
+    read on its own. No message index records are written (readers scan a
+    chunk without them); chunk, metadata and attachment indexes are.
+    """
+
+    def __init__(self, stream: IO[bytes], *, chunk_size: int = 1 << 20) -> None:
+        from mcap.data_stream import RecordBuilder
+
+        self._f = stream
+        self._rb = RecordBuilder()
+        self.compression, self._compress = _pick_compression()
+        self.chunk_size = chunk_size
+        self._chunk = bytearray()
+        self._chunk_start = 0
+        self._chunk_end = 0
+        self._schemas: list[Any] = []
+        self._channels: list[Any] = []
+        self._counts: dict[int, int] = {}
+        self._message_count = 0
+        self._start_time = 0
+        self._end_time = 0
+        self._chunk_indexes: list[Any] = []
+        self._metadata_indexes: list[Any] = []
+        self._attachment_indexes: list[Any] = []
+
+    def _emit(self) -> None:
+        self._f.write(self._rb.end())
+
+    def start(self, library: str) -> None:
+        from mcap.records import Header
+
+        self._f.write(MCAP_MAGIC)
+        Header(profile="", library=library).write(self._rb)
+        self._emit()
+
+    def register_schema(self, name: str, encoding: str, data: bytes) -> int:
+        from mcap.records import Schema
+
+        schema = Schema(id=len(self._schemas) + 1, name=name, encoding=encoding, data=data)
+        self._schemas.append(schema)
+        schema.write(self._rb)
+        self._emit()
+        return int(schema.id)
+
+    def register_channel(self, topic: str, message_encoding: str, schema_id: int) -> int:
+        from mcap.records import Channel
+
+        channel = Channel(
+            id=len(self._channels) + 1,
+            topic=topic,
+            message_encoding=message_encoding,
+            schema_id=schema_id,
+            metadata={},
+        )
+        self._channels.append(channel)
+        self._counts[channel.id] = 0
+        channel.write(self._rb)
+        self._emit()
+        return int(channel.id)
+
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        from mcap.records import Metadata, MetadataIndex
+
+        offset = self._f.tell()
+        Metadata(name=name, metadata=data).write(self._rb)
+        length = self._rb.count
+        self._emit()
+        self._metadata_indexes.append(MetadataIndex(offset=offset, length=length, name=name))
+
+    def add_attachment(
+        self, create_time: int, log_time: int, name: str, media_type: str, data: bytes
+    ) -> None:
+        from mcap.records import Attachment, AttachmentIndex
+
+        offset = self._f.tell()
+        Attachment(
+            create_time=create_time, log_time=log_time, name=name, media_type=media_type, data=data
+        ).write(self._rb)
+        length = self._rb.count
+        self._emit()
+        self._attachment_indexes.append(
+            AttachmentIndex(
+                offset=offset,
+                length=length,
+                create_time=create_time,
+                log_time=log_time,
+                data_size=len(data),
+                name=name,
+                media_type=media_type,
+            )
+        )
+
+    def add_message(self, channel_id: int, log_time: int, data: bytes) -> None:
+        """Append one message to the open chunk (closed when it exceeds ``chunk_size``)."""
+        chunk = self._chunk
+        if not chunk:
+            self._chunk_start = self._chunk_end = log_time
+        elif log_time < self._chunk_start:
+            self._chunk_start = log_time
+        elif log_time > self._chunk_end:
+            self._chunk_end = log_time
+        chunk += _MESSAGE_HEAD.pack(0x05, 22 + len(data), channel_id, 0, log_time, log_time)
+        chunk += data
+        self._counts[channel_id] += 1
+        if len(chunk) > self.chunk_size:
+            self.close_chunk()
+
+    def close_chunk(self) -> None:
+        """Compress and write the open chunk, if it holds any message."""
+        from mcap.records import Chunk, ChunkIndex
+
+        data = bytes(self._chunk)
+        if not data:
+            return
+        self._chunk.clear()
+        n = sum(self._counts.values()) - self._message_count
+        if self._message_count == 0:
+            self._start_time, self._end_time = self._chunk_start, self._chunk_end
+        else:
+            self._start_time = min(self._start_time, self._chunk_start)
+            self._end_time = max(self._end_time, self._chunk_end)
+        self._message_count += n
+        packed = self._compress(data) if self._compress is not None else data
+        offset = self._f.tell()
+        Chunk(
+            compression=self.compression,
+            data=packed,
+            message_start_time=self._chunk_start,
+            message_end_time=self._chunk_end,
+            uncompressed_crc=zlib.crc32(data),
+            uncompressed_size=len(data),
+        ).write(self._rb)
+        length = self._rb.count
+        self._emit()
+        self._chunk_indexes.append(
+            ChunkIndex(
+                message_start_time=self._chunk_start,
+                message_end_time=self._chunk_end,
+                chunk_start_offset=offset,
+                chunk_length=length,
+                message_index_offsets={},
+                message_index_length=0,
+                compression=self.compression,
+                compressed_size=len(packed),
+                uncompressed_size=len(data),
+            )
+        )
+
+    def flush(self) -> None:
+        """Close the open chunk and hand everything to the operating system."""
+        self.close_chunk()
+        self._f.flush()
+
+    def finish(self) -> None:
+        """Write the summary section (as ``mcap.writer.Writer.finish`` lays it out) and footer."""
+        from mcap.data_stream import RecordBuilder
+        from mcap.opcode import Opcode
+        from mcap.records import DataEnd, Footer, Statistics, SummaryOffset
+
+        self.close_chunk()
+        DataEnd(data_section_crc=0).write(self._rb)
+        self._emit()
+        summary_start = self._f.tell()
+        b = RecordBuilder()
+        offsets: list[SummaryOffset] = []
+        stats = Statistics(
+            message_count=self._message_count,
+            schema_count=len(self._schemas),
+            channel_count=len(self._channels),
+            attachment_count=len(self._attachment_indexes),
+            metadata_count=len(self._metadata_indexes),
+            chunk_count=len(self._chunk_indexes),
+            message_start_time=self._start_time,
+            message_end_time=self._end_time,
+            channel_message_counts=dict(self._counts),
+        )
+        groups = (
+            (Opcode.SCHEMA, self._schemas),
+            (Opcode.CHANNEL, self._channels),
+            (Opcode.STATISTICS, [stats]),
+            (Opcode.CHUNK_INDEX, self._chunk_indexes),
+            (Opcode.ATTACHMENT_INDEX, self._attachment_indexes),
+            (Opcode.METADATA_INDEX, self._metadata_indexes),
+        )
+        for opcode, records in groups:
+            start = b.count
+            for record in records:
+                record.write(b)
+            offsets.append(SummaryOffset(opcode, summary_start + start, b.count - start))
+        offset_start = summary_start + b.count
+        for offset in offsets:
+            offset.write(b)
+        summary = b.end()
+        crc = zlib.crc32(summary)
+        crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, offset_start), crc)
+        self._f.write(summary)
+        Footer(
+            summary_start=summary_start, summary_offset_start=offset_start, summary_crc=crc
+        ).write(self._rb)
+        self._emit()
+        self._f.write(MCAP_MAGIC)
+        self._f.flush()
 
 
 class McapSink(SinkBase):
@@ -192,20 +409,20 @@ class McapSink(SinkBase):
         flush_every: float = FLUSH_EVERY,
         chunk_size: int = 1 << 20,
     ) -> None:
-        from mcap.writer import Writer
-
         self.path = Path(path)
         self.ctx = ctx
         self.view: View = ctx.view
         self.flush_every = flush_every
         self._file: IO[bytes] = open(self.path, "wb")
-        self._writer = Writer(self._file, chunk_size=chunk_size, compression=_pick_compression())
+        self._writer = McapFileWriter(self._file, chunk_size=chunk_size)
         self._lock = threading.Lock()
         self._queue: deque[tuple[int, int, bytes]] = deque()  # append/popleft are atomic
         self._closed = False
         self._dirty = False
         self._source = ctx.source
         self._raw_prefix: dict[int, str] = {}
+        self._names: dict[int | None, str] = {}
+        self._file_json = _json_str(ctx.source)
         self._counts: dict[str, int] = dict.fromkeys(
             (
                 "records", "requests", "responses", "exceptions", "noise", "noise_bytes",
@@ -216,13 +433,11 @@ class McapSink(SinkBase):
         self._next_stats: float | None = None
         self._last_ts: float | None = None
         w = self._writer
-        w.start(profile="", library=f"mbmon {__version__}")
+        w.start(library=f"mbmon {__version__}")
         self._channels: dict[str, int] = {}
         for topic, name in TOPIC_SCHEMAS.items():
-            schema_id = w.register_schema(name=name, encoding="jsonschema", data=schema_text(name))
-            self._channels[topic] = w.register_channel(
-                topic=topic, message_encoding="json", schema_id=schema_id
-            )
+            schema_id = w.register_schema(name, "jsonschema", schema_text(name))
+            self._channels[topic] = w.register_channel(topic, "json", schema_id)
         self._ch_raw = self._channels[TOPIC_RAW]
         self._ch_frames = self._channels[TOPIC_FRAMES]
         self._ch_monitor = self._channels[TOPIC_MONITOR]
@@ -316,15 +531,17 @@ class McapSink(SinkBase):
             counts["commands"] += 1
             put(self._ch_commands, log_time, payload)
         sec, nsec = divmod(log_time, 1_000_000_000)
-        monitor = {
-            "timestamp": {"sec": sec, "nsec": nsec},
-            "level": log_level(record, obj),
-            "message": obj["line"],
-            "name": stream_name(record.stream),
-            "file": self._source,
-            "line": record.index,
-        }
-        put(self._ch_monitor, log_time, encode(monitor))
+        stream = record.stream
+        name = self._names.get(stream.id if stream is not None else None)
+        if name is None:
+            name = _json_str(stream_name(stream))
+            self._names[stream.id if stream is not None else None] = name
+        monitor = (
+            f'{{"timestamp":{{"sec":{sec},"nsec":{nsec}}},"level":{log_level(record, obj)},'
+            f'"message":{_json_str(obj["line"])},"name":{name},"file":{self._file_json},'
+            f'"line":{record.index}}}'
+        )
+        put(self._ch_monitor, log_time, monitor.encode("utf-8"))
         if record.state is not None:
             state = {"time": ts, "index": record.index}
             state.update(record.state)
@@ -405,7 +622,7 @@ class McapSink(SinkBase):
         try:
             while queue:
                 channel, log_time, data = pop()
-                add(channel_id=channel, log_time=log_time, data=data, publish_time=log_time)
+                add(channel, log_time, data)
         finally:
             _restore_signals(old)
         self._dirty = True
