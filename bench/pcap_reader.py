@@ -110,9 +110,14 @@ def main() -> None:
         return stats["packets"]
 
     def mbmon_records() -> int:
+        def ignore(*_record: object) -> None:
+            pass
+
         with open(path, "rb") as f:
             inp = pcapfile._Input(f, size, None, f.tell)
-            return sum(1 for _ in pcapfile._open_records(f, inp, str(path)))
+            for _ in pcapfile._open_pump(inp, str(path))(ignore, []):
+                pass
+            return inp.count
 
     def scapy_raw() -> int:
         n = 0

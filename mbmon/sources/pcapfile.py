@@ -24,11 +24,12 @@ import struct
 import zlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any, BinaryIO
 
 from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport
-from mbmon.sources.tcpflow import ACK, SYN, TcpConnection, TcpStats
+from mbmon.sources.tcpflow import ACK, SYN, TcpConnection, TcpStats, make_chunk
 
 __all__ = ["CaptureConfig", "CaptureError", "read_capture"]
 
@@ -73,7 +74,18 @@ class _Input:
     """The file as a sliding bytes buffer: ``buf[pos:]`` is unread, ``base`` is the
     file offset of ``buf[0]``. Records are parsed in place with ``unpack_from``."""
 
-    __slots__ = ("base", "buf", "eof", "f", "pos", "position", "progress", "total")
+    __slots__ = (
+        "base",
+        "buf",
+        "count",
+        "eof",
+        "f",
+        "last_ts",
+        "pos",
+        "position",
+        "progress",
+        "total",
+    )
 
     def __init__(
         self,
@@ -90,6 +102,8 @@ class _Input:
         self.total = total
         self.progress = progress
         self.position = position
+        self.count = 0  # records read (set by the pump when it yields or stops)
+        self.last_ts = 0.0  # timestamp of the last record read
 
     def fill(self, need: int) -> bool:
         """Make ``need`` unread bytes available; False when the file ends first."""
@@ -115,161 +129,201 @@ class _Input:
         return self.base + self.pos
 
 
-# One record: (timestamp, link type, interface id, buffer, data start, data end).
-_Record = tuple[float, int, int, bytes, int, int]
+# The dissector entry point: (timestamp, link type, interface id, buffer, data
+# start, data end, output list). A pump reads records and calls it for each one,
+# yielding what it appended: no tuple or generator step per record.
+_Packet = Callable[[float, int, int, bytes, int, int, list[Any]], None]
+_Pump = Callable[[_Packet, list[Any]], Iterator[Any]]
 
 
-def _pcap_records(
-    inp: _Input, endian: str, divisor: float, linktype: int, snaplen: int, header: int
-) -> Iterator[_Record]:
+def _pcap_pump(
+    inp: _Input,
+    endian: str,
+    divisor: float,
+    linktype: int,
+    snaplen: int,
+    header: int,
+    packet: _Packet,
+    out: list[Any],
+) -> Iterator[Any]:
     """Records of a classic pcap file (``header``: 16, or 24 for the modified format)."""
     unpack = struct.Struct(endian + "IIII").unpack_from
     limit = min(max(snaplen, 262144), _MAX_RECORD)
-    while True:
-        buf, pos = inp.buf, inp.pos
-        if len(buf) - pos < header:
-            if not inp.fill(header):
-                if len(inp.buf) == inp.pos:
-                    return
-                raise _Damage("truncated record header", inp.offset())
-            buf, pos = inp.buf, inp.pos
-        sec, frac, caplen, _ = unpack(buf, pos)
-        if caplen > limit:
-            raise _Damage(f"corrupt record header (length {caplen})", inp.offset())
-        end = pos + header + caplen
-        if end > len(buf):
-            if not inp.fill(header + caplen):
-                raise _Damage("truncated record", inp.offset())
-            buf, pos = inp.buf, inp.pos
+    buf, pos = inp.buf, inp.pos
+    size = len(buf)
+    count, ts = 0, 0.0
+    try:
+        while True:
+            if size - pos < header:
+                inp.pos = pos
+                if not inp.fill(header):
+                    if len(inp.buf) == inp.pos:
+                        return
+                    raise _Damage("truncated record header", inp.offset())
+                buf, pos = inp.buf, inp.pos
+                size = len(buf)
+            sec, frac, caplen, _ = unpack(buf, pos)
+            if caplen > limit:
+                inp.pos = pos
+                raise _Damage(f"corrupt record header (length {caplen})", inp.offset())
             end = pos + header + caplen
-        inp.pos = end
-        yield sec + frac / divisor, linktype, 0, buf, pos + header, end
+            if end > size:
+                inp.pos = pos
+                if not inp.fill(header + caplen):
+                    raise _Damage("truncated record", inp.offset())
+                buf, pos = inp.buf, inp.pos
+                size = len(buf)
+                end = pos + header + caplen
+            start, pos = pos + header, end
+            count += 1
+            ts = sec + frac / divisor
+            packet(ts, linktype, 0, buf, start, end, out)
+            if out:
+                inp.pos, inp.count, inp.last_ts = pos, count, ts
+                yield from out
+                out.clear()
+    finally:
+        inp.pos, inp.count, inp.last_ts = pos, count, ts
 
 
 def _ts_divisor(resol: int) -> int:
     return 2 ** (resol & 0x7F) if resol & 0x80 else 10 ** min(resol, 30)
 
 
-def _pcapng_records(inp: _Input) -> Iterator[_Record]:
+def _pcapng_pump(inp: _Input, packet: _Packet, out: list[Any]) -> Iterator[Any]:
     """Records of a pcapng file: every section, interface and packet block type."""
     endian = "<"
     # per interface: (link type, timestamp divisor, timestamp offset, snaplen)
     ifaces: list[tuple[int, int, int, int]] = []
-    last_ts = 0.0
-    while True:
-        buf, pos = inp.buf, inp.pos
-        if len(buf) - pos < 12:
-            if not inp.fill(12):
-                if len(inp.buf) == inp.pos:
-                    return
-                raise _Damage("truncated block header", inp.offset())
+    count, ts = 0, 0.0
+    try:
+        while True:
             buf, pos = inp.buf, inp.pos
-        btype = struct.unpack_from(endian + "I", buf, pos)[0]
-        if btype == 0x0A0D0D0A:
-            bom = struct.unpack_from("<I", buf, pos + 8)[0]
-            if bom == 0x1A2B3C4D:
-                endian = "<"
-            elif bom == 0x4D3C2B1A:
-                endian = ">"
+            if len(buf) - pos < 12:
+                if not inp.fill(12):
+                    if len(inp.buf) == inp.pos:
+                        return
+                    raise _Damage("truncated block header", inp.offset())
+                buf, pos = inp.buf, inp.pos
+            btype = struct.unpack_from(endian + "I", buf, pos)[0]
+            if btype == 0x0A0D0D0A:
+                bom = struct.unpack_from("<I", buf, pos + 8)[0]
+                if bom == 0x1A2B3C4D:
+                    endian = "<"
+                elif bom == 0x4D3C2B1A:
+                    endian = ">"
+                else:
+                    raise _Damage("corrupt section header (byte-order magic)", inp.offset())
+                ifaces = []
+            blen = struct.unpack_from(endian + "I", buf, pos + 4)[0]
+            if blen < 12 or blen % 4 or blen > _MAX_RECORD:
+                raise _Damage(f"corrupt block length {blen}", inp.offset())
+            if len(buf) - pos < blen:
+                if not inp.fill(blen):
+                    raise _Damage("truncated block", inp.offset())
+                buf, pos = inp.buf, inp.pos
+            if struct.unpack_from(endian + "I", buf, pos + blen - 4)[0] != blen:
+                raise _Damage("corrupt block (trailing length differs)", inp.offset())
+            end = pos + blen - 4
+            if btype == 6 or btype == 2:  # Enhanced / obsolete Packet Block
+                if blen < 32:
+                    raise _Damage("corrupt packet block", inp.offset())
+                if btype == 6:
+                    iface, hi, lo, caplen = struct.unpack_from(endian + "IIII", buf, pos + 8)
+                else:
+                    iface, _, hi, lo, caplen = struct.unpack_from(endian + "HHIII", buf, pos + 8)
+                if pos + 28 + caplen > end:
+                    raise _Damage("corrupt packet block (length)", inp.offset())
+                inp.pos = pos + blen
+                count += 1
+                if iface < len(ifaces):
+                    link, div, off, _ = ifaces[iface]
+                    ts = ((hi << 32) | lo) / div + off
+                    packet(ts, link, iface, buf, pos + 28, pos + 28 + caplen, out)
+                else:  # an interface that was never described
+                    packet(ts, -1, iface, buf, pos, pos, out)
+            elif btype == 3:  # Simple Packet Block: interface 0, no timestamp
+                if blen < 16:
+                    raise _Damage("corrupt simple packet block", inp.offset())
+                inp.pos = pos + blen
+                count += 1
+                origlen = struct.unpack_from(endian + "I", buf, pos + 8)[0]
+                caplen = min(origlen, end - (pos + 12))
+                if ifaces:
+                    link, _, _, snaplen = ifaces[0]
+                    if snaplen:
+                        caplen = min(caplen, snaplen)
+                    packet(ts, link, 0, buf, pos + 12, pos + 12 + caplen, out)
+                else:
+                    packet(ts, -1, 0, buf, pos, pos, out)
             else:
-                raise _Damage("corrupt section header (byte-order magic)", inp.offset())
-            ifaces = []
-        blen = struct.unpack_from(endian + "I", buf, pos + 4)[0]
-        if blen < 12 or blen % 4 or blen > _MAX_RECORD:
-            raise _Damage(f"corrupt block length {blen}", inp.offset())
-        if len(buf) - pos < blen:
-            if not inp.fill(blen):
-                raise _Damage("truncated block", inp.offset())
-            buf, pos = inp.buf, inp.pos
-        if struct.unpack_from(endian + "I", buf, pos + blen - 4)[0] != blen:
-            raise _Damage("corrupt block (trailing length differs)", inp.offset())
-        end = pos + blen - 4
-        if btype == 6:  # Enhanced Packet Block
-            if blen < 32:
-                raise _Damage("corrupt packet block", inp.offset())
-            iface, hi, lo, caplen = struct.unpack_from(endian + "IIII", buf, pos + 8)
-            if pos + 28 + caplen > end:
-                raise _Damage("corrupt packet block (length)", inp.offset())
-            inp.pos = pos + blen
-            if iface < len(ifaces):
-                link, div, off, _ = ifaces[iface]
-                last_ts = ((hi << 32) | lo) / div + off
-                yield last_ts, link, iface, buf, pos + 28, pos + 28 + caplen
-            else:
-                yield last_ts, -1, iface, buf, pos, pos
-            continue
-        if btype == 3:  # Simple Packet Block: interface 0, no timestamp
-            if blen < 16:
-                raise _Damage("corrupt simple packet block", inp.offset())
-            inp.pos = pos + blen
-            origlen = struct.unpack_from(endian + "I", buf, pos + 8)[0]
-            caplen = min(origlen, end - (pos + 12))
-            if ifaces:
-                link, _, _, snaplen = ifaces[0]
-                if snaplen:
-                    caplen = min(caplen, snaplen)
-                yield last_ts, link, 0, buf, pos + 12, pos + 12 + caplen
-            else:
-                yield last_ts, -1, 0, buf, pos, pos
-            continue
-        if btype == 2:  # obsolete Packet Block
-            if blen < 32:
-                raise _Damage("corrupt packet block", inp.offset())
-            iface, _, hi, lo, caplen = struct.unpack_from(endian + "HHIII", buf, pos + 8)
-            if pos + 28 + caplen > end:
-                raise _Damage("corrupt packet block (length)", inp.offset())
-            inp.pos = pos + blen
-            if iface < len(ifaces):
-                link, div, off, _ = ifaces[iface]
-                last_ts = ((hi << 32) | lo) / div + off
-                yield last_ts, link, iface, buf, pos + 28, pos + 28 + caplen
-            else:
-                yield last_ts, -1, iface, buf, pos, pos
-            continue
-        if btype == 1:  # Interface Description Block
-            if blen < 20:
-                raise _Damage("corrupt interface block", inp.offset())
-            link, _, snaplen = struct.unpack_from(endian + "HHI", buf, pos + 8)
-            div, tsoff = 1_000_000, 0
-            p = pos + 16
-            while p + 4 <= end:
-                code, olen = struct.unpack_from(endian + "HH", buf, p)
-                if code == 0 or p + 4 + olen > end:
-                    break
-                if code == 9 and olen >= 1:
-                    div = _ts_divisor(buf[p + 4])
-                elif code == 14 and olen >= 8:
-                    tsoff = struct.unpack_from(endian + "q", buf, p + 4)[0]
-                p += 4 + olen + (-olen % 4)
-            ifaces.append((link, div, tsoff, snaplen))
-        inp.pos = pos + blen
+                if btype == 1:  # Interface Description Block
+                    if blen < 20:
+                        raise _Damage("corrupt interface block", inp.offset())
+                    ifaces.append(_interface(buf, pos + 8, end, endian))
+                inp.pos = pos + blen
+                continue
+            if out:
+                inp.count, inp.last_ts = count, ts
+                yield from out
+                out.clear()
+    finally:
+        inp.count, inp.last_ts = count, ts
 
 
-def _5view_records(inp: _Input) -> Iterator[_Record]:
+def _interface(buf: bytes, pos: int, end: int, endian: str) -> tuple[int, int, int, int]:
+    """An IDB body: (link type, timestamp divisor, if_tsoffset seconds, snaplen)."""
+    link, _, snaplen = struct.unpack_from(endian + "HHI", buf, pos)
+    div, tsoff = 1_000_000, 0
+    p = pos + 8
+    while p + 4 <= end:
+        code, olen = struct.unpack_from(endian + "HH", buf, p)
+        if code == 0 or p + 4 + olen > end:
+            break
+        if code == 9 and olen >= 1:
+            div = _ts_divisor(buf[p + 4])
+        elif code == 14 and olen >= 8:
+            tsoff = struct.unpack_from(endian + "q", buf, p + 4)[0]
+        p += 4 + olen + (-olen % 4)
+    return link, div, tsoff, snaplen
+
+
+def _5view_pump(inp: _Input, packet: _Packet, out: list[Any]) -> Iterator[Any]:
     """Records of an InfoVista 5View capture (Ethernet): 36-byte headers, the
     layout wireshark's wiretap/5views.c reads."""
     unpack = struct.Struct("<IHHIIIIIII").unpack_from
-    while True:
-        buf, pos = inp.buf, inp.pos
-        if len(buf) - pos < 36:
-            if not inp.fill(36):
-                if len(inp.buf) == inp.pos:
-                    return
-                raise _Damage("truncated record header", inp.offset())
+    count, ts = 0, 0.0
+    try:
+        while True:
             buf, pos = inp.buf, inp.pos
-        key, _, _, _, subtype, size, _, utc, nsec, _ = unpack(buf, pos)
-        if key != 0x3333EEEE or size > _MAX_RECORD:
-            raise _Damage("corrupt record header", inp.offset())
-        if len(buf) - pos < 36 + size:
-            if not inp.fill(36 + size):
-                raise _Damage("truncated record", inp.offset())
-            buf, pos = inp.buf, inp.pos
-        inp.pos = pos + 36 + size
-        if subtype == 0:  # a frame; other subtypes are alarms/events
-            yield utc + nsec / 1e9, 1, 0, buf, pos + 36, pos + 36 + size
+            if len(buf) - pos < 36:
+                if not inp.fill(36):
+                    if len(inp.buf) == inp.pos:
+                        return
+                    raise _Damage("truncated record header", inp.offset())
+                buf, pos = inp.buf, inp.pos
+            key, _, _, _, subtype, size, _, utc, nsec, _ = unpack(buf, pos)
+            if key != 0x3333EEEE or size > _MAX_RECORD:
+                raise _Damage("corrupt record header", inp.offset())
+            if len(buf) - pos < 36 + size:
+                if not inp.fill(36 + size):
+                    raise _Damage("truncated record", inp.offset())
+                buf, pos = inp.buf, inp.pos
+            inp.pos = pos + 36 + size
+            if subtype != 0:  # alarms and events; subtype 0 is a frame
+                continue
+            count += 1
+            ts = utc + nsec / 1e9
+            packet(ts, 1, 0, buf, pos + 36, pos + 36 + size, out)
+            if out:
+                inp.count, inp.last_ts = count, ts
+                yield from out
+                out.clear()
+    finally:
+        inp.count, inp.last_ts = count, ts
 
 
-def _open_records(f: BinaryIO, inp: _Input, name: str) -> Iterator[_Record]:
+def _open_pump(inp: _Input, name: str) -> _Pump:
     """Recognise the container from its first bytes; CaptureError when it is none."""
     if not inp.fill(4):
         size = len(inp.buf)
@@ -294,14 +348,15 @@ def _open_records(f: BinaryIO, inp: _Input, name: str) -> Iterator[_Record]:
             if major != 2:
                 raise CaptureError(f"{name}: unsupported pcap version {major}")
             inp.pos = 24
-            return _pcap_records(inp, endian, divisor, network & 0x0FFFFFFF, snaplen, header)
+            link = network & 0x0FFFFFFF  # the upper bits describe an FCS
+            return partial(_pcap_pump, inp, endian, divisor, link, snaplen, header)
     if magic_le == 0x0A0D0D0A:
         if not inp.fill(12) or struct.unpack_from("<I", inp.buf, 8)[0] not in (
             0x1A2B3C4D,
             0x4D3C2B1A,
         ):
             raise CaptureError(f"{name}: corrupt pcapng section header")
-        return _pcapng_records(inp)
+        return partial(_pcapng_pump, inp)
     if magic_le == 0xAAAAAAAA:
         if not inp.fill(20):
             raise CaptureError(f"{name}: truncated 5View file header")
@@ -319,7 +374,7 @@ def _open_records(f: BinaryIO, inp: _Input, name: str) -> Iterator[_Record]:
         if not inp.fill(size + data_size):
             raise CaptureError(f"{name}: truncated 5View file header")
         inp.pos = size + data_size
-        return _5view_records(inp)
+        return partial(_5view_pump, inp)
     raise CaptureError(f"{name}: not a pcap or pcapng file (magic 0x{magic_be:08x})")
 
 
@@ -342,6 +397,8 @@ _IPV6_EXT = frozenset({0, 43, 60, 135, 139, 140, 253, 254})
 _tcp_unpack = struct.Struct("!HHIIH").unpack_from
 _udp_unpack = struct.Struct("!HHH").unpack_from
 _ipv4_unpack = struct.Struct("!BxHxxHxB").unpack_from
+# Ethernet type, IPv4 (version/IHL, length, flags/offset, protocol, addresses), TCP
+_eth_ipv4_tcp = struct.Struct("!12xHBxHxxHxBxx8sHHIIH").unpack_from
 _h_unpack = struct.Struct("!H").unpack_from
 _af_unpack = struct.Struct("<I").unpack_from
 
@@ -359,7 +416,6 @@ class _Dissector:
         self.connections: list[TcpConnection] = []
         self.next_id = 0
         self.tcp_stats = TcpStats()
-        self.ts = 0.0
         self.modbus_packets = 0
         self.non_modbus = 0
         self.non_ip = 0
@@ -393,6 +449,30 @@ class _Dissector:
         self, ts: float, link: int, iface: int, buf: bytes, off: int, end: int, out: list[Any]
     ) -> None:
         """Dissect one record; append the chunks and events it causes to ``out``."""
+        if link == 1 and end - off >= 54:
+            # Fast path for the common case, Ethernet + IPv4 without options + TCP,
+            # in one unpack; anything else takes the general path below.
+            et, vihl, total, frag, proto, addrs, sport, dport, seq, ack, hl = _eth_ipv4_tcp(
+                buf, off
+            )
+            if et == 0x0800 and vihl == 0x45 and proto == 6 and not frag & 0x3FFF:
+                ports = self.ports
+                if sport not in ports and dport not in ports:
+                    self.non_modbus += 1
+                    return
+                ip_end = off + 14 + total
+                doff = (hl >> 10) & 0x3C
+                if 40 <= total and ip_end <= end and 20 <= doff <= total - 20:
+                    self.modbus_packets += 1
+                    flags = hl & 0xFF
+                    key = (addrs, sport, dport)
+                    flow = self.tcp.get(key)
+                    if flow is None or flags & SYN:
+                        flow = self._tcp_flow(key, flow, ts, seq, flags, out)
+                    flow[0].segment(
+                        ts, flow[1], seq, ack, flags, buf[off + 34 + doff : ip_end], out
+                    )
+                    return
         # ---- link layer -> ethertype
         if link == _ETHERNET:
             if end - off < 14:
@@ -535,11 +615,8 @@ class _Dissector:
             flags = hl & 0xFF
             key = (buf[addr_at : addr_at + addr_len], sport, dport)
             flow = self.tcp.get(key)
-            if flow is None:
-                flow = self._new_tcp(key, flags, out)
-            elif flags & SYN and flow[0].is_new_syn(flow[1], seq, flags):
-                flow[0].finish(ts, out, "replaced")
-                flow = self._new_tcp(key, flags, out)
+            if flow is None or flags & SYN:
+                flow = self._tcp_flow(key, flow, ts, seq, flags, out)
             flow[0].segment(ts, flow[1], seq, ack, flags, buf[l4 + doff : ip_end], out)
             if short:
                 self.truncated += 1
@@ -568,7 +645,7 @@ class _Dissector:
             dgram = self.udp.get(key)
             if dgram is None:
                 dgram = self._new_udp(key)
-            out.append(Chunk(ts, dgram[0], dgram[1], buf[l4 + 8 : l4 + ulen]))
+            out.append(make_chunk(ts, dgram[0], dgram[1], buf[l4 + 8 : l4 + ulen]))
         else:
             self.non_modbus += 1
 
@@ -596,6 +673,24 @@ class _Dissector:
         half = len(addrs) // 2
         src, dst = _address(addrs[:half], sport), _address(addrs[half:], dport)
         return (src, dst) if sender_is_client else (dst, src)
+
+    def _tcp_flow(
+        self,
+        key: tuple[bytes, int, int],
+        flow: tuple[TcpConnection, bool] | None,
+        ts: float,
+        seq: int,
+        flags: int,
+        out: list[Any],
+    ) -> tuple[TcpConnection, bool]:
+        """The connection a segment belongs to: a new one for new addresses, or for
+        a SYN that opens a new connection on addresses seen before."""
+        if flow is None:
+            return self._new_tcp(key, flags, out)
+        if flags & SYN and flow[0].is_new_syn(flow[1], seq, flags):
+            flow[0].finish(ts, out, "replaced")
+            return self._new_tcp(key, flags, out)
+        return flow
 
     def _new_tcp(
         self, key: tuple[bytes, int, int], flags: int, out: list[Any]
@@ -637,12 +732,12 @@ class _Dissector:
             name = self.bus_name if not self.buses else f"{self.bus_name}#{iface}"
             stream = self.buses[iface] = self._stream(Transport.RTU, name, name)
         if data:
-            out.append(Chunk(ts, stream, Direction.BUS, data))
+            out.append(make_chunk(ts, stream, Direction.BUS, data))
 
-    def finish(self, out: list[Any]) -> None:
+    def finish(self, ts: float, out: list[Any]) -> None:
         """The capture ended: release every held TCP byte and half-closed connection."""
         for conn in self.connections:
-            conn.finish(self.ts, out)
+            conn.finish(ts, out)
 
 
 # --------------------------------------------------------------------------- API
@@ -681,17 +776,17 @@ def read_capture(
             f = gzip.GzipFile(fileobj=raw, mode="rb")  # type: ignore[assignment]
         inp = _Input(f, total, progress, raw.tell)
         try:
-            records = _open_records(f, inp, name)
+            pump = _open_pump(inp, name)
         except (OSError, EOFError, zlib.error) as exc:
             raise CaptureError(f"{name}: cannot read ({exc})") from None
     except BaseException:
         raw.close()
         raise
-    return _iterate(records, inp, raw, name, config, stats)
+    return _iterate(pump, inp, raw, name, config, stats)
 
 
 def _iterate(
-    records: Iterator[_Record],
+    pump: _Pump,
     inp: _Input,
     raw: BinaryIO,
     name: str,
@@ -699,33 +794,23 @@ def _iterate(
     stats: dict[str, int] | None,
 ) -> Iterator[Chunk | Event]:
     dissector = _Dissector(config, Path(name).name)
-    packet = dissector.packet
     out: list[Any] = []
-    count = 0
-    last_ts = 0.0
     error: str | None = None
     try:
         try:
-            for ts, link, iface, buf, off, end in records:
-                count += 1
-                packet(ts, link, iface, buf, off, end, out)
-                last_ts = ts
-                if out:
-                    yield from out
-                    out.clear()
+            yield from pump(dissector.packet, out)
         except _Damage as damage:
             error = (
-                f"{name}: {damage.what} at byte {damage.offset} (packet {count + 1}); "
-                f"{count} packets read"
+                f"{name}: {damage.what} at byte {damage.offset} (packet {inp.count + 1}); "
+                f"{inp.count} packets read"
             )
         except (OSError, EOFError, zlib.error) as exc:
-            error = f"{name}: read error after {count} packets ({exc})"
-        dissector.ts = last_ts
-        dissector.finish(out)
+            error = f"{name}: read error after {inp.count} packets ({exc})"
+        dissector.finish(inp.last_ts, out)
         yield from out
         out.clear()
         if error is not None:
-            yield Event(dissector.ts, None, EventKind.ERROR, {"message": error})
+            yield Event(inp.last_ts, None, EventKind.ERROR, {"message": error})
     finally:
         raw.close()
         if inp.progress is not None:
@@ -733,5 +818,5 @@ def _iterate(
             inp.progress(done, inp.total)
         if stats is not None:
             stats.update(dissector.stats())
-            stats["packets"] = count
+            stats["packets"] = inp.count
             stats["bytes"] = inp.base + inp.pos

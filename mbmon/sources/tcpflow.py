@@ -40,7 +40,9 @@ Pure: no I/O, no clocks; the caller feeds parsed segments.
 
 from __future__ import annotations
 
+import dataclasses
 from bisect import insort
+from collections.abc import Callable
 
 from mbmon.model import Chunk, Direction, Event, EventKind, Stream
 
@@ -54,6 +56,37 @@ _HALF = 0x80000000
 # An acknowledgement further ahead than this is taken for garbage (fuzzed or
 # corrupt headers), not for evidence of lost bytes: it is ignored.
 MAX_ACK_JUMP = 1 << 24
+
+
+def _chunk_factory() -> Callable[[float, Stream, Direction, bytes], Chunk]:
+    """``Chunk(ts, stream, direction, data)``, made about twice as fast: a frozen
+    dataclass's ``__init__`` goes through ``object.__setattr__`` per field, while
+    the slot descriptors set them directly. Used only while Chunk is exactly the
+    four-field slotted dataclass this was written for; else the constructor."""
+    if (
+        [f.name for f in dataclasses.fields(Chunk)] != ["ts", "stream", "direction", "data"]
+        or hasattr(Chunk, "__post_init__")
+        or "__slots__" not in Chunk.__dict__
+    ):
+        return Chunk
+    new = object.__new__
+    set_ts = Chunk.__dict__["ts"].__set__
+    set_stream = Chunk.__dict__["stream"].__set__
+    set_direction = Chunk.__dict__["direction"].__set__
+    set_data = Chunk.__dict__["data"].__set__
+
+    def make(ts: float, stream: Stream, direction: Direction, data: bytes) -> Chunk:
+        chunk = new(Chunk)
+        set_ts(chunk, ts)
+        set_stream(chunk, stream)
+        set_direction(chunk, direction)
+        set_data(chunk, data)
+        return chunk
+
+    return make
+
+
+make_chunk = _chunk_factory()
 _C2S = Direction.C2S
 _S2C = Direction.S2C
 
@@ -161,7 +194,7 @@ class TcpConnection:
                     self.stats.after_close += 1
                 return
             if payload:
-                out.append(Chunk(ts, self.stream, half.direction, payload))
+                out.append(make_chunk(ts, self.stream, half.direction, payload))
                 half.nxt = (seq + len(payload)) & _MASK
             if flags & ACK:
                 nxt = other.nxt
@@ -239,7 +272,7 @@ class TcpConnection:
         assert nxt is not None
         diff = (seq - nxt) & _MASK
         if diff == 0:
-            out.append(Chunk(ts, self.stream, half.direction, payload))
+            out.append(make_chunk(ts, self.stream, half.direction, payload))
             half.nxt = (nxt + len(payload)) & _MASK
             if half.held or half.fin is not None:
                 self._drain(half, ts, out)
@@ -251,7 +284,7 @@ class TcpConnection:
                 return
             self.stats.overlaps += 1
             payload = payload[old:]
-            out.append(Chunk(ts, self.stream, half.direction, payload))
+            out.append(make_chunk(ts, self.stream, half.direction, payload))
             half.nxt = (nxt + len(payload)) & _MASK
             if half.held or half.fin is not None:
                 self._drain(half, ts, out)
@@ -278,7 +311,7 @@ class TcpConnection:
                 continue
             if diff:
                 data = data[-diff:]
-            out.append(Chunk(ts, self.stream, half.direction, data))
+            out.append(make_chunk(ts, self.stream, half.direction, data))
             nxt = (nxt + len(data)) & _MASK
         half.nxt = nxt
         if half.fin is not None and not half.done and _signed(nxt - half.fin) >= 0:

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport
-from mbmon.sources.tcpflow import ACK, FIN, RST, SYN, TcpConnection, TcpStats
+from mbmon.sources.tcpflow import ACK, FIN, RST, SYN, TcpConnection, TcpStats, make_chunk
 
 STREAM = Stream(0, Transport.TCP, "10.0.0.1:40000", "10.0.0.2:502")
 PSH = 0x08
@@ -93,6 +95,24 @@ def test_hole_acknowledged_by_the_peer_becomes_a_gap() -> None:
     # an acknowledgement of what was delivered changes nothing
     conn.segment(2.1, False, S_ISN + 1, C_ISN + 1 + 7, ACK, b"", out)
     assert len(out) == 4
+
+
+def test_ack_on_a_fin_or_on_held_data_also_reveals_a_hole() -> None:
+    conn, out = opened()
+    c2s(conn, out, 2, b"cd")  # client bytes 0..1 never captured
+    # the server answers out of order (its byte 0 is missing too), acking all 4
+    conn.segment(2.0, False, S_ISN + 2, C_ISN + 5, PSH | ACK, b"y", out)
+    assert kinds(out)[1:] == ["gap", "chunk:6364"]
+    # its FIN acknowledges as well: the server's own hole stays until the client acks
+    conn.segment(2.1, False, S_ISN + 3, C_ISN + 5, FIN | ACK, b"", out)
+    conn.segment(2.2, True, C_ISN + 5, S_ISN + 4, FIN | ACK, b"", out)
+    assert kinds(out)[3:] == ["gap", "chunk:79", "disconnect"]
+    assert [
+        e.info["direction"] for e in out if isinstance(e, Event) and e.kind is EventKind.GAP
+    ] == [
+        "c2s",
+        "s2c",
+    ]
 
 
 def test_ack_beyond_everything_seen_skips_to_it_and_continues() -> None:
@@ -260,3 +280,14 @@ def test_lost_segments_become_gaps_of_exactly_the_missing_bytes(
             assert item.info["bytes"] > 0
             rebuilt += data[len(rebuilt) : len(rebuilt) + item.info["bytes"]]
     assert rebuilt == data
+
+
+def test_fast_chunk_is_an_ordinary_frozen_chunk() -> None:
+    made = make_chunk(1.5, STREAM, Direction.S2C, b"\x01")
+    plain = Chunk(1.5, STREAM, Direction.S2C, b"\x01")
+    assert type(made) is Chunk
+    assert made == plain
+    assert hash(made) == hash(plain)
+    assert repr(made) == repr(plain)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        made.ts = 2.0  # type: ignore[misc]
