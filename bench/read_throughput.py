@@ -400,11 +400,16 @@ def main(argv: list[str] | None = None) -> int:
             runs.append((r, n))
             if target.exists():
                 print(f"  (x.{suffix}: {target.stat().st_size:,} bytes)")
+                target.unlink()  # a 1M-ADU .jsonl is about 1 GB
 
     how = "stdout to /dev/null" if args.devnull else "stdout counted through a pipe"
     print(f"results ({how}):")
     for run, k in runs:
         show(run, k)
+    failed = [run.name for run, _ in runs if run.rc != 0]
+    if failed:
+        print(f"  !! failed (see the error above): {', '.join(failed)}; no verdict")
+        return 1
     ok = True
     if mode and mb.adus != n:
         print(f"  !! mbmon reported {mb.adus:,} ADUs, the capture holds {n:,}")
@@ -423,7 +428,7 @@ def main(argv: list[str] | None = None) -> int:
         growth = mb.rss_mb - small.rss_mb
         print(f"  RSS {small.rss_mb:.1f} MB at {n // 4:,} ADUs vs {mb.rss_mb:.1f} MB at {n:,}:"
               f" {growth:+.1f} MB for 4x the ADUs")
-    return 0 if ok and mb.rc == 0 else 1
+    return 0 if ok else 1
 
 
 if __name__ == "__main__":
