@@ -190,9 +190,21 @@ def _ts_divisor(resol: int) -> int:
     return 2 ** (resol & 0x7F) if resol & 0x80 else 10 ** min(resol, 30)
 
 
+_NG = {
+    e: (
+        struct.Struct(e + "II").unpack_from,  # block type, total length
+        struct.Struct(e + "I").unpack_from,  # trailing length
+        struct.Struct(e + "IIII").unpack_from,  # EPB: interface, ts high, ts low, caplen
+        struct.Struct(e + "HHIII").unpack_from,  # PB: interface, drops, ts high/low, caplen
+    )
+    for e in "<>"
+}
+
+
 def _pcapng_pump(inp: _Input, packet: _Packet, out: list[Any]) -> Iterator[Any]:
     """Records of a pcapng file: every section, interface and packet block type."""
     endian = "<"
+    head, tail, epb, pb = _NG[endian]
     # per interface: (link type, timestamp divisor, timestamp offset, snaplen)
     ifaces: list[tuple[int, int, int, int]] = []
     count, ts = 0, 0.0
@@ -205,33 +217,34 @@ def _pcapng_pump(inp: _Input, packet: _Packet, out: list[Any]) -> Iterator[Any]:
                         return
                     raise _Damage("truncated block header", inp.offset())
                 buf, pos = inp.buf, inp.pos
-            btype = struct.unpack_from(endian + "I", buf, pos)[0]
+            btype, blen = head(buf, pos)
             if btype == 0x0A0D0D0A:
-                bom = struct.unpack_from("<I", buf, pos + 8)[0]
-                if bom == 0x1A2B3C4D:
+                bom = buf[pos + 8 : pos + 12]
+                if bom == b"\x4d\x3c\x2b\x1a":
                     endian = "<"
-                elif bom == 0x4D3C2B1A:
+                elif bom == b"\x1a\x2b\x3c\x4d":
                     endian = ">"
                 else:
                     raise _Damage("corrupt section header (byte-order magic)", inp.offset())
+                head, tail, epb, pb = _NG[endian]
+                btype, blen = head(buf, pos)
                 ifaces = []
-            blen = struct.unpack_from(endian + "I", buf, pos + 4)[0]
             if blen < 12 or blen % 4 or blen > _MAX_RECORD:
                 raise _Damage(f"corrupt block length {blen}", inp.offset())
             if len(buf) - pos < blen:
                 if not inp.fill(blen):
                     raise _Damage("truncated block", inp.offset())
                 buf, pos = inp.buf, inp.pos
-            if struct.unpack_from(endian + "I", buf, pos + blen - 4)[0] != blen:
-                raise _Damage("corrupt block (trailing length differs)", inp.offset())
             end = pos + blen - 4
+            if tail(buf, end)[0] != blen:
+                raise _Damage("corrupt block (trailing length differs)", inp.offset())
             if btype == 6 or btype == 2:  # Enhanced / obsolete Packet Block
                 if blen < 32:
                     raise _Damage("corrupt packet block", inp.offset())
                 if btype == 6:
-                    iface, hi, lo, caplen = struct.unpack_from(endian + "IIII", buf, pos + 8)
+                    iface, hi, lo, caplen = epb(buf, pos + 8)
                 else:
-                    iface, _, hi, lo, caplen = struct.unpack_from(endian + "HHIII", buf, pos + 8)
+                    iface, _, hi, lo, caplen = pb(buf, pos + 8)
                 if pos + 28 + caplen > end:
                     raise _Damage("corrupt packet block (length)", inp.offset())
                 inp.pos = pos + blen
@@ -247,8 +260,7 @@ def _pcapng_pump(inp: _Input, packet: _Packet, out: list[Any]) -> Iterator[Any]:
                     raise _Damage("corrupt simple packet block", inp.offset())
                 inp.pos = pos + blen
                 count += 1
-                origlen = struct.unpack_from(endian + "I", buf, pos + 8)[0]
-                caplen = min(origlen, end - (pos + 12))
+                caplen = min(tail(buf, pos + 8)[0], end - (pos + 12))  # original length
                 if ifaces:
                     link, _, _, snaplen = ifaces[0]
                     if snaplen:
