@@ -12,7 +12,21 @@ skipped; a file damaged in the middle ends the iteration with one ERROR event
 after everything before the damage. Only a file that cannot be opened or is not
 a capture at all raises :class:`CaptureError`, before anything is yielded.
 
-Pure Python; no scapy (which reads 3-10x slower: see ``bench/pcap_reader.py``).
+Streams: TCP and UDP packets to or from a configured port are Modbus; the
+endpoint with the configured port is the server (both configured: the SYN
+receiver, else the lower port). Stream ids count from 0 in order of first
+appearance; a TCP connection reopened on the same addresses (a SYN after the
+end, or with a new initial sequence number) is a new stream. UDP: one chunk per
+datagram. Link type 147 (USER0): each record is bytes of one RTU bus, stream
+``client = server = file name`` (``name#<interface>`` for a second bus).
+Timestamps are epoch seconds as floats; a pcapng Simple Packet Block has none
+and takes the previous packet's. IP fragments (other than atomic ones) are not
+reassembled: they are counted and skipped (a TCP hole they leave becomes a GAP).
+
+Pure Python and no scapy: on a 200k-packet capture this reader turns packets
+into chunks about 1.8x faster than scapy's ``RawPcapReader`` merely feeding the
+same dissector, and its container reading alone is about 4x faster than
+``RawPcapReader``'s (``bench/pcap_reader.py``).
 """
 
 from __future__ import annotations
@@ -122,8 +136,15 @@ class _Input:
         self.buf = b"".join(parts)
         self.pos = 0
         if self.progress is not None:
-            self.progress(min(self.position(), self.total), self.total)
+            self.report()
         return avail >= need
+
+    def report(self, done: int | None = None) -> None:
+        """Call ``progress(bytes read, file size)``; the size is 0 for a pipe."""
+        assert self.progress is not None
+        if done is None:
+            done = self.position()
+        self.progress(min(done, self.total) if self.total else done, self.total)
 
     def offset(self) -> int:
         return self.base + self.pos
@@ -781,12 +802,13 @@ def read_capture(
         raise CaptureError(f"{name}: cannot open ({exc.strerror or exc})") from None
     try:
         total = os.fstat(raw.fileno()).st_size
-        head = raw.read(2)
-        raw.seek(0)
         f: BinaryIO = raw
-        if head == b"\x1f\x8b":
+        if raw.peek(2)[:2] == b"\x1f\x8b":  # type: ignore[attr-defined]
             f = gzip.GzipFile(fileobj=raw, mode="rb")  # type: ignore[assignment]
         inp = _Input(f, total, progress, raw.tell)
+        if not raw.seekable():  # a pipe: no size, and the position is what was read
+            inp.total = 0
+            inp.position = lambda: inp.base + len(inp.buf)
         try:
             pump = _open_pump(inp, name)
         except (OSError, EOFError, zlib.error) as exc:
@@ -808,6 +830,7 @@ def _iterate(
     dissector = _Dissector(config, Path(name).name)
     out: list[Any] = []
     error: str | None = None
+    complete = False
     try:
         try:
             yield from pump(dissector.packet, out)
@@ -823,11 +846,11 @@ def _iterate(
         out.clear()
         if error is not None:
             yield Event(inp.last_ts, None, EventKind.ERROR, {"message": error})
+        complete = error is None
     finally:
-        raw.close()
         if inp.progress is not None:
-            done = inp.total if error is None else min(inp.base + inp.pos, inp.total)
-            inp.progress(done, inp.total)
+            inp.report(inp.total if complete and inp.total else None)
+        raw.close()
         if stats is not None:
             stats.update(dissector.stats())
             stats["packets"] = inp.count

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import gzip
+import os
 import struct
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -690,3 +692,35 @@ def test_any_corruption_of_the_file_never_raises(
     assert len(errors) <= 1
     if errors:
         assert items[-1] is errors[0]
+
+
+def test_a_pipe_is_read_too(tmp_path: Path) -> None:
+    data = write_pcap(tmp_path / "x.pcap", exchange(TcpConversation(CLIENT, SERVER))).read_bytes()
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+
+    def feed() -> None:
+        with open(fifo, "wb") as f:
+            f.write(gzip.compress(data))
+
+    writer = threading.Thread(target=feed)
+    writer.start()
+    calls: list[tuple[int, int]] = []
+    try:
+        items = list(read_capture(fifo, progress=lambda done, total: calls.append((done, total))))
+    finally:
+        writer.join()
+    assert summary(items) == EXPECTED_EXCHANGE
+    assert calls[-1][1] == 0  # no size for a pipe
+    assert calls[-1][0] > 0
+
+
+def test_stopping_early_still_fills_stats(tmp_path: Path) -> None:
+    conv = TcpConversation(CLIENT, SERVER)
+    path = write_pcap(tmp_path / "x.pcap", exchange(conv, rounds=5))
+    stats: dict[str, int] = {}
+    items = read_capture(path, stats=stats)
+    first_chunk = next(i for i in items if isinstance(i, Chunk))
+    assert first_chunk.data == REQUEST
+    items.close()  # type: ignore[attr-defined]
+    assert stats["packets"] == 4  # handshake + the request
