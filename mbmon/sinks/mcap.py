@@ -543,8 +543,12 @@ class McapSink(SinkBase):
         )
         put(self._ch_monitor, log_time, monitor.encode("utf-8"))
         if record.state is not None:
-            state = {"time": ts, "index": record.index}
-            state.update(record.state)
+            state: dict[str, Any] = {"time": ts, "index": record.index}
+            for key, value in record.state.items():
+                if isinstance(value, bool):
+                    state[key] = int(value)
+                elif isinstance(value, int | float) and math.isfinite(value):
+                    state[key] = value  # flat numbers only: NaN/inf have no JSON form
             put(self._ch_state, log_time, encode(state))
         self._last_ts = ts
         if self._next_stats is None:

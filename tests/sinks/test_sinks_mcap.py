@@ -1,0 +1,393 @@
+"""The MCAP sink: topics, schemas, times, metadata, crash safety (read back with `mcap`)."""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import jsonschema
+import pytest
+from conftest import REPO, feed, hrss_context
+from mcap.reader import NonSeekingReader, make_reader
+
+from mbmon import __version__
+from mbmon.format import View, record_line, record_to_json
+from mbmon.io.mcap_reader import McapLog
+from mbmon.model import Chunk, Record, RecordKind
+from mbmon.sinks.base import SinkContext, open_sink
+from mbmon.sinks.mcap import TOPIC_SCHEMAS, McapSink, schema_text
+
+CTX = SinkContext(
+    view=View(), command_line=["mbmon", "read", "x.pcap", "-w", "x.mcap"], source="x.pcap"
+)
+
+
+def write_log(path: Path, stream: list[Chunk | Record], ctx: SinkContext = CTX) -> Path:
+    with open_sink(path, ctx) as sink:
+        assert isinstance(sink, McapSink)
+        feed(sink, stream)
+    return path
+
+
+def messages(path: Path) -> list[tuple[str, str, object, int, int]]:
+    """(topic, schema name, decoded JSON, log_time, publish_time) via the mcap package."""
+    out = []
+    with open(path, "rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        for schema, channel, msg in reader.iter_messages(log_time_order=False):
+            assert channel.message_encoding == "json"
+            assert schema is not None
+            out.append(
+                (channel.topic, schema.name, json.loads(msg.data), msg.log_time, msg.publish_time)
+            )
+    return out
+
+
+def records_of(stream: list[Chunk | Record]) -> list[Record]:
+    return [x for x in stream if isinstance(x, Record)]
+
+
+def ns(ts: float) -> int:
+    return round(ts * 1_000_000) * 1000
+
+
+def test_topics_schemas_and_summary(tmp_path: Path, session_stream: list) -> None:
+    path = write_log(tmp_path / "s.mcap", session_stream)
+    with open(path, "rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        summary = reader.get_summary()
+        assert summary is not None
+        topics = {ch.topic: summary.schemas[ch.schema_id] for ch in summary.channels.values()}
+        assert set(topics) == set(TOPIC_SCHEMAS)
+        for topic, schema in topics.items():
+            assert schema.name == TOPIC_SCHEMAS[topic]
+            assert schema.encoding == "jsonschema"
+            assert schema.data == schema_text(schema.name)
+        assert topics["/modbus/monitor"].name == "foxglove.Log"
+        assert summary.chunk_indexes, "messages must be in chunks"
+        assert {ci.compression for ci in summary.chunk_indexes} == {"zstd"}
+        counts = summary.statistics.channel_message_counts
+        by_topic = {ch.topic: counts.get(ch.id, 0) for ch in summary.channels.values()}
+    recs = records_of(session_stream)
+    chunks = [x for x in session_stream if isinstance(x, Chunk)]
+    assert by_topic["/modbus/monitor"] == len(recs)
+    assert by_topic["/modbus/raw"] == len(chunks) + 2  # plus connect and disconnect
+    frames = [r for r in recs if r.kind is not RecordKind.EVENT]
+    assert by_topic["/modbus/frames"] == len(frames)
+    # the non-seeking reader (a pipe) sees the same file
+    with open(path, "rb") as f:
+        n = sum(1 for _ in NonSeekingReader(f, validate_crcs=True).iter_messages())
+    assert n == sum(by_topic.values())
+
+
+@pytest.mark.parametrize("which", ["session", "hrss"])
+def test_every_message_validates_against_its_schema(
+    tmp_path: Path, which: str, session_stream: list, hrss_stream: list
+) -> None:
+    stream = session_stream if which == "session" else hrss_stream
+    ctx = CTX if which == "session" else hrss_context(robot="127.0.0.1:502")
+    path = write_log(tmp_path / "v.mcap", stream, ctx)
+    validators = {}
+    for name in set(TOPIC_SCHEMAS.values()):
+        schema = json.loads(schema_text(name))
+        cls = jsonschema.validators.validator_for(schema, default=jsonschema.Draft202012Validator)
+        cls.check_schema(schema)
+        validators[name] = cls(schema)
+    seen: dict[str, int] = {}
+    for topic, schema_name, data, _, _ in messages(path):
+        validators[schema_name].validate(data)
+        seen[topic] = seen.get(topic, 0) + 1
+    expected = {"/modbus/raw", "/modbus/frames", "/modbus/monitor", "/mbmon/events"}
+    if which == "hrss":
+        expected |= {"/hrss/state", "/hrss/commands"}
+    assert expected <= set(seen)
+
+
+def test_schemas_reject_wrong_messages() -> None:
+    """The schemas are strict enough to catch drift (so the validation test can fail)."""
+    frame = json.loads(schema_text("modbus.Frame.v1"))
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate({"index": 0, "time": 1.0}, frame)  # keys missing
+    log = json.loads(schema_text("foxglove.Log"))
+    good = {
+        "timestamp": {"sec": 1, "nsec": 2},
+        "level": 2,
+        "message": "m",
+        "name": "n",
+        "file": "f",
+        "line": 0,
+    }
+    jsonschema.validate(good, log)
+    for bad in ({**good, "level": 7}, {**good, "line": -1}, {**good, "timestamp": {"sec": 1.5}}):
+        with pytest.raises(jsonschema.ValidationError):
+            jsonschema.validate(bad, log)
+
+
+# Foxglove's well-known Log schema (foxglove-sdk schemas/jsonschema/Log.json): field -> JSON type.
+FOXGLOVE_LOG = {
+    "timestamp": "object",
+    "level": None,  # foxglove.LogLevel: UNKNOWN 0, DEBUG 1, INFO 2, WARNING 3, ERROR 4, FATAL 5
+    "message": "string",
+    "name": "string",
+    "file": "string",
+    "line": "integer",
+}
+
+
+def test_foxglove_log_schema_is_foxglove_s() -> None:
+    schema = json.loads(schema_text("foxglove.Log"))
+    assert schema["title"] == "foxglove.Log"
+    props = schema["properties"]
+    assert set(props) == set(FOXGLOVE_LOG)
+    for name, kind in FOXGLOVE_LOG.items():
+        if kind is not None:
+            assert props[name]["type"] == kind, name
+    assert set(props["timestamp"]["properties"]) == {"sec", "nsec"}
+    assert props["timestamp"]["properties"]["sec"]["type"] == "integer"
+    assert props["timestamp"]["properties"]["nsec"]["maximum"] == 999_999_999
+    levels = {item["title"]: item["const"] for item in props["level"]["oneOf"]}
+    assert levels == {"UNKNOWN": 0, "DEBUG": 1, "INFO": 2, "WARNING": 3, "ERROR": 4, "FATAL": 5}
+    assert sorted(schema["required"]) == sorted(FOXGLOVE_LOG)
+
+
+def test_messages_carry_the_records(tmp_path: Path, session_stream: list) -> None:
+    """/modbus/frames etc. hold exactly the read --json objects; monitor the console lines."""
+    path = write_log(tmp_path / "r.mcap", session_stream)
+    msgs = messages(path)
+    recs = records_of(session_stream)
+    view = View()
+    frames = [d for t, _, d, _, _ in msgs if t == "/modbus/frames"]
+    expect = [record_to_json(r, view) for r in recs if r.kind is not RecordKind.EVENT]
+    assert frames == json.loads(json.dumps(expect))
+    events = [d for t, _, d, _, _ in msgs if t == "/mbmon/events" and d["index"] is not None]
+    kinds = [(d["kind"], d.get("event")) for d in events]
+    assert kinds == [
+        ("event", "connect"),
+        ("noise", None),
+        ("event", "disconnect"),
+        ("noise", None),  # the RTU CRC error
+    ]
+    assert "CRC" in events[-1]["malformed"]
+    monitor = [d for t, _, d, _, _ in msgs if t == "/modbus/monitor"]
+    assert [m["message"] for m in monitor] == [record_line(r, view) for r in recs]
+    assert [m["line"] for m in monitor] == [r.index for r in recs]
+    assert [m["file"] for m in monitor] == ["x.pcap"] * len(recs)
+    levels = {r.kind: m["level"] for r, m in zip(recs, monitor, strict=True)}
+    assert levels[RecordKind.REQUEST] == 2
+    assert levels[RecordKind.EXCEPTION] == 3
+    assert levels[RecordKind.NOISE] == 4
+    names = {m["name"] for m in monitor}
+    assert "#0 192.168.0.20:49152 <> 192.168.0.10:502" in names
+    assert "#1 /dev/ttyUSB0" in names
+
+
+def test_times_are_capture_times_in_ns(tmp_path: Path, session_stream: list) -> None:
+    path = write_log(tmp_path / "t.mcap", session_stream)
+    msgs = messages(path)
+    wall = time.time_ns()
+    for topic, _, data, log_time, publish_time in msgs:
+        assert log_time == publish_time
+        assert abs(log_time - wall) > 10**15, "wall clock used instead of capture time"
+        if topic == "/modbus/monitor":
+            assert data["timestamp"]["sec"] * 10**9 + data["timestamp"]["nsec"] == log_time
+        elif topic == "/modbus/raw":
+            assert log_time == ns(data["ts"])
+        elif data.get("index") is not None:
+            assert log_time == ns(data["time"])
+    raw = [d for t, _, d, _, _ in msgs if t == "/modbus/raw"]
+    assert raw[0]["event"] == "connect"
+    assert ns(raw[0]["ts"]) == 1_700_000_000_250_000_000
+
+
+def test_raw_topic_is_lossless(tmp_path: Path, session_stream: list) -> None:
+    path = write_log(tmp_path / "raw.mcap", session_stream)
+    raw = [d for t, _, d, _, _ in messages(path) if t == "/modbus/raw"]
+    chunks = [x for x in session_stream if isinstance(x, Chunk)]
+    stored = [d for d in raw if d["type"] == "chunk"]
+    assert len(stored) == len(chunks)
+    for d, c in zip(stored, chunks, strict=True):
+        assert base64.b64decode(d["data"]) == c.data
+        assert d["ts"] == c.ts
+        assert d["direction"] == c.direction.value
+        assert (d["stream"], d["transport"], d["client"], d["server"]) == (
+            c.stream.id,
+            c.stream.transport.value,
+            c.stream.client,
+            c.stream.server,
+        )
+    events = [d for d in raw if d["type"] == "event"]
+    assert [e["event"] for e in events] == ["connect", "disconnect"]
+    assert events[1]["info"] == {"how": "fin", "by": "client"}
+
+
+def test_metadata_and_profile_attachments(tmp_path: Path, hrss_stream: list) -> None:
+    ctx = hrss_context()
+    path = write_log(tmp_path / "m.mcap", hrss_stream, ctx)
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}
+        attachments = list(reader.iter_attachments())
+    info = meta["mbmon"]
+    assert info["version"] == __version__
+    assert json.loads(info["command_line"]) == ctx.command_line
+    assert info["source"] == "captures/hrss_ptp.pcap"
+    assert json.loads(info["profiles"]) == ["hrss"]
+    assert [(a.name, a.media_type) for a in attachments] == [("hrss.toml", "application/toml")]
+    assert attachments[0].data.decode() == ctx.profiles[0][1]
+
+
+def test_state_and_commands_topics(tmp_path: Path, hrss_stream: list) -> None:
+    path = write_log(tmp_path / "h.mcap", hrss_stream, hrss_context())
+    msgs = messages(path)
+    recs = records_of(hrss_stream)
+    states = [d for t, _, d, _, _ in msgs if t == "/hrss/state"]
+    with_state = [r for r in recs if r.state is not None]
+    assert len(states) == len(with_state) > 0
+    for d, r in zip(states, with_state, strict=True):
+        assert d["index"] == r.index
+        assert {k: v for k, v in d.items() if k not in ("time", "index")} == dict(r.state or {})
+    commands = [d for t, _, d, _, _ in msgs if t == "/hrss/commands"]
+    assert [c["command"]["phase"] for c in commands] == ["written", "executing", "success"]
+    assert commands[-1]["command"]["text"].startswith("PTP")
+
+
+def test_non_finite_state_values_are_left_out(tmp_path: Path, hrss_stream: list) -> None:
+    import dataclasses
+
+    rec = next(r for r in records_of(hrss_stream) if r.state is not None)
+    odd = dataclasses.replace(rec, state={"a1": float("nan"), "a2": 1.5, "x": float("inf")})
+    path = write_log(tmp_path / "nan.mcap", [odd])
+    states = [d for t, _, d, _, _ in messages(path) if t == "/hrss/state"]
+    assert states == [{"time": rec.ts, "index": rec.index, "a2": 1.5}]
+
+
+def test_closed_on_error_inside_with(tmp_path: Path, session_stream: list) -> None:
+    path = tmp_path / "err.mcap"
+    with pytest.raises(RuntimeError), open_sink(path, CTX) as sink:
+        feed(sink, session_stream[:10])
+        raise RuntimeError("boom")
+    with McapLog(path) as log:
+        assert log.finished
+        assert sum(1 for _ in log.messages()) > 10
+
+
+def test_small_chunks(tmp_path: Path, session_stream: list, hrss_stream: list) -> None:
+    path = tmp_path / "small.mcap"
+    with McapSink(path, CTX, chunk_size=300) as sink:
+        feed(sink, session_stream)
+        feed(sink, hrss_stream)
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+        assert summary is not None and len(summary.chunk_indexes) > 20
+    full = messages(path)
+    assert len(full) == summary.statistics.message_count
+
+
+def _unfinished_copy(src: Path, dst: Path) -> Path:
+    shutil.copyfile(src, dst)
+    return dst
+
+
+def test_flushed_within_a_second_while_records_flow(tmp_path: Path, session_stream: list) -> None:
+    path = tmp_path / "live.mcap"
+    sink = McapSink(path, CTX)
+    try:
+        first = session_stream[: len(session_stream) // 2]
+        feed(sink, first)
+        time.sleep(0.6)
+        feed(sink, session_stream[len(session_stream) // 2 : -1])  # one write triggers a flush
+        time.sleep(1.0)  # the rest waits for the timer thread
+        copy = _unfinished_copy(path, tmp_path / "copy.mcap")
+    finally:
+        sink.close()
+    with McapLog(copy) as log:
+        assert not log.finished
+        got = [m.json() for m in log.messages(["/modbus/monitor"])]
+        assert log.status.problem is None or "cut off" not in log.status.problem
+    expected = [r for r in records_of(session_stream[:-1])]
+    assert [m["line"] for m in got] == [r.index for r in expected]
+
+
+def test_idle_flush_by_timer(tmp_path: Path, session_stream: list) -> None:
+    """No more records after the first few: the timer thread still writes them out."""
+    path = tmp_path / "idle.mcap"
+    sink = McapSink(path, CTX)
+    try:
+        feed(sink, session_stream[:3])
+        size_before = path.stat().st_size
+        time.sleep(1.2)
+        copy = _unfinished_copy(path, tmp_path / "copy.mcap")
+    finally:
+        sink.close()
+    assert copy.stat().st_size > size_before
+    with McapLog(copy) as log:
+        topics = [m.topic for m in log.messages()]
+    assert "/modbus/monitor" in topics and "/modbus/raw" in topics
+
+
+_WRITER = r"""
+import dataclasses, sys, time
+sys.path.insert(0, sys.argv[2])
+from conftest import session_items, run_pipeline
+from mbmon.format import View
+from mbmon.model import Chunk
+from mbmon.sinks.base import SinkContext
+from mbmon.sinks.mcap import McapSink
+
+base = [x for x in run_pipeline(session_items()) if not isinstance(x, Chunk)]
+sink = McapSink(sys.argv[1], SinkContext(view=View(), source="loop"))
+index, t = 0, 1_700_000_000.0
+while True:
+    for rec in base:
+        t += 0.001
+        sink.write(dataclasses.replace(rec, index=index, ts=t))
+        sys.stdout.write(f"{index}\n")
+        sys.stdout.flush()
+        index += 1
+    time.sleep(0.05)  # about 350 records/s: chunks never fill up by size in 2 s
+"""
+
+
+def test_sigkill_loses_at_most_the_last_second(tmp_path: Path) -> None:
+    """A writer killed with SIGKILL: every record handed over >1 s before the kill is recovered."""
+    path = tmp_path / "killed.mcap"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _WRITER, str(path), str(Path(__file__).parent)],
+        stdout=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
+    received: list[tuple[float, int]] = []
+
+    def reader() -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            received.append((time.monotonic(), int(line)))
+
+    thread = threading.Thread(target=reader, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not received and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert received, "the writer never started"
+    time.sleep(2.0)
+    killed_at = time.monotonic()
+    proc.kill()
+    proc.wait()
+    thread.join(timeout=5)
+    old = {i for t, i in received if t < killed_at - 1.0}
+    assert len(old) > 100
+    with McapLog(path) as log:
+        assert not log.finished
+        got = [m.json()["line"] for m in log.messages(["/modbus/monitor"])]
+        status = log.status
+    assert set(got) >= old, f"lost {len(old - set(got))} records older than 1 s"
+    assert got == list(range(len(got))), "recovered records must be a prefix, in order"
+    assert status.messages > 0 and status.describe().startswith("log was not finished")

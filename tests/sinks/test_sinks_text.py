@@ -1,0 +1,101 @@
+"""The line sinks: .jsonl (= read --json), .csv (one row per frame), .txt (monitor lines)."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import pytest
+from conftest import feed
+
+from mbmon.format import View, record_line, record_to_json
+from mbmon.model import Chunk, Record, RecordKind
+from mbmon.sinks.base import SinkContext, SinkError, open_sink
+from mbmon.sinks.csvfile import COLUMNS, CsvSink, utc_text
+from mbmon.sinks.jsonl import JsonlSink, dumps_line
+from mbmon.sinks.text import TextSink
+
+CTX = SinkContext(view=View(robot="192.168.0.10"), source="x.pcap")
+
+
+def records_of(stream: list[Chunk | Record]) -> list[Record]:
+    return [x for x in stream if isinstance(x, Record)]
+
+
+def test_jsonl_lines_are_read_json_lines(tmp_path: Path, session_stream: list) -> None:
+    path = tmp_path / "out.jsonl"
+    with open_sink(path, CTX) as sink:
+        assert isinstance(sink, JsonlSink)
+        feed(sink, session_stream)
+    lines = path.read_text("utf-8").splitlines()
+    recs = records_of(session_stream)
+    # the encoder of `read --json` (mbmon.cli.emit_records): non-ASCII kept, ", " / ": "
+    encode = json.JSONEncoder(ensure_ascii=False, separators=(", ", ": ")).encode
+    assert lines == [encode(record_to_json(r, CTX.view)) for r in recs]
+    assert "→" in path.read_text("utf-8") or "Receive from client" in path.read_text("utf-8")
+    assert json.loads(lines[1])["line"].split("  ")[1] == "Receive from client"
+
+
+def test_text_lines_are_console_lines(tmp_path: Path, session_stream: list) -> None:
+    path = tmp_path / "out.txt"
+    with open_sink(path, CTX) as sink:
+        assert isinstance(sink, TextSink)
+        feed(sink, session_stream)
+    lines = path.read_text("utf-8").splitlines()
+    assert lines == [record_line(r, CTX.view) for r in records_of(session_stream)]
+    assert any("02 01 2C 00 05" in line for line in lines)  # manual §5.5.2.2
+    assert any("Send to client" in line and "10 00 C9 00 03" in line for line in lines)
+
+
+def test_csv_one_row_per_frame(tmp_path: Path, session_stream: list) -> None:
+    path = tmp_path / "out.csv"
+    with open_sink(path, CTX) as sink:
+        assert isinstance(sink, CsvSink)
+        feed(sink, session_stream)
+    with open(path, newline="", encoding="utf-8") as f:
+        rows = list(csv.DictReader(f))
+    recs = [r for r in records_of(session_stream) if r.kind is not RecordKind.EVENT]
+    assert len(rows) == len(recs)
+    assert list(rows[0]) == list(COLUMNS)
+    by_pdu = {row["pdu"]: row for row in rows}
+    read = by_pdu["02 01 2C 00 05"]
+    assert (read["fc"], read["address"], read["count"], read["unit"]) == ("2", "300", "5", "1")
+    assert read["kind"] == "request" and read["tid"] == "1" and read["crc_ok"] == ""
+    write = by_pdu["10 00 C9 00 03 06 00 6F 00 DE 01 4D"]
+    assert write["values"] == "111 222 333"
+    exc = by_pdu["83 02"]
+    assert (exc["kind"], exc["exception_code"], exc["fc"]) == ("exception", "2", "3")
+    response = by_pdu["02 01 13"]
+    assert response["request_index"] == read["index"] and float(response["latency_ms"]) == 10.0
+    noise = [row for row in rows if row["kind"] == "noise"]
+    assert len(noise) == 2 and "CRC" in noise[1]["malformed"]
+    rtu = by_pdu["03 04 00 01 00 02"]
+    assert rtu["crc_ok"] == "true" and rtu["transport"] == "rtu" and rtu["tid"] == ""
+    assert read["utc"] == utc_text(float(read["time"]))
+    assert read["utc"].startswith("2023-11-14T22:13:20.") and read["utc"].endswith("Z")
+    assert read["notes"].startswith("Read Discrete Inputs 300..304")
+
+
+def test_export_helpers_write_the_same(tmp_path: Path, session_stream: list) -> None:
+    """write_obj/write_line (used by mbmon export) give the files the records give."""
+    recs = records_of(session_stream)
+    objs = [json.loads(dumps_line(record_to_json(r, CTX.view))) for r in recs]
+    for suffix in (".jsonl", ".csv", ".txt"):
+        direct, made = tmp_path / f"a{suffix}", tmp_path / f"b{suffix}"
+        with open_sink(direct, CTX) as sink:
+            feed(sink, session_stream)
+        with open_sink(made, CTX) as sink:
+            for obj in objs:
+                if suffix == ".txt":
+                    sink.write_line(obj["line"])  # type: ignore[attr-defined]
+                else:
+                    sink.write_obj(obj)  # type: ignore[attr-defined]
+        assert made.read_bytes() == direct.read_bytes(), suffix
+
+
+def test_unknown_suffix_and_unwritable_path(tmp_path: Path) -> None:
+    with pytest.raises(SinkError, match="unknown output format"):
+        open_sink(tmp_path / "x.xlsx", CTX)
+    with pytest.raises(SinkError, match="cannot write"):
+        open_sink(tmp_path / "missing-dir" / "x.jsonl", CTX)
