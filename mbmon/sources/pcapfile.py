@@ -500,11 +500,10 @@ class _Dissector:
                     flags = hl & 0xFF
                     key = (addrs, sport, dport)
                     flow = self.tcp.get(key)
-                    if flow is None or flags & SYN:
-                        flow = self._tcp_flow(key, flow, ts, seq, flags, out)
-                    flow[0].segment(
-                        ts, flow[1], seq, ack, flags, buf[off + 34 + doff : ip_end], out
-                    )
+                    payload = buf[off + 34 + doff : ip_end]
+                    if flow is None or flags & SYN or flow[0].closed:
+                        flow = self._tcp_flow(key, flow, ts, seq, flags, bool(payload), out)
+                    flow[0].segment(ts, flow[1], seq, ack, flags, payload, out)
                     return
         # ---- link layer -> ethertype
         if link == _ETHERNET:
@@ -648,9 +647,10 @@ class _Dissector:
             flags = hl & 0xFF
             key = (buf[addr_at : addr_at + addr_len], sport, dport)
             flow = self.tcp.get(key)
-            if flow is None or flags & SYN:
-                flow = self._tcp_flow(key, flow, ts, seq, flags, out)
-            flow[0].segment(ts, flow[1], seq, ack, flags, buf[l4 + doff : ip_end], out)
+            payload = buf[l4 + doff : ip_end]
+            if flow is None or flags & SYN or flow[0].closed:
+                flow = self._tcp_flow(key, flow, ts, seq, flags, bool(payload), out)
+            flow[0].segment(ts, flow[1], seq, ack, flags, payload, out)
             if short:
                 self.truncated += 1
         elif proto == 17:
@@ -714,13 +714,14 @@ class _Dissector:
         ts: float,
         seq: int,
         flags: int,
+        has_payload: bool,
         out: list[Any],
     ) -> tuple[TcpConnection, bool]:
-        """The connection a segment belongs to: a new one for new addresses, or for
-        a SYN that opens a new connection on addresses seen before."""
+        """The connection a segment belongs to: a new one for new addresses, or when
+        the segment opens a new connection on addresses seen before."""
         if flow is None:
             return self._new_tcp(key, flags, out)
-        if flags & SYN and flow[0].is_new_syn(flow[1], seq, flags):
+        if (flags & SYN or flow[0].closed) and flow[0].is_new(flow[1], seq, flags, has_payload):
             flow[0].finish(ts, out, "replaced")
             return self._new_tcp(key, flags, out)
         return flow

@@ -32,8 +32,9 @@ A connection turns the segments a capture saw into in-order payload
   A connection that saw only one FIN when the capture ends gets its DISCONNECT
   from :meth:`TcpConnection.finish` with ``half_closed=True``.
 * **After the end.** Payload on a closed connection is counted and dropped; a
-  new SYN on the same addresses is a new connection (the caller's job: see
-  :meth:`TcpConnection.is_new_syn`).
+  new SYN on the same addresses is a new connection, and so is a SYN-ACK or
+  payload far from the old sequence numbers after the end (the caller's job:
+  see :meth:`TcpConnection.is_new`).
 
 Pure: no I/O, no clocks; the caller feeds parsed segments.
 """
@@ -56,6 +57,9 @@ _HALF = 0x80000000
 # An acknowledgement further ahead than this is taken for garbage (fuzzed or
 # corrupt headers), not for evidence of lost bytes: it is ignored.
 MAX_ACK_JUMP = 1 << 24
+# Payload after a connection ended this far from its sequence numbers is taken
+# for a new connection on the same addresses whose handshake was not captured.
+REUSE_DISTANCE = 1 << 20
 
 
 def _chunk_factory() -> Callable[[float, Stream, Direction, bytes], Chunk]:
@@ -157,20 +161,33 @@ class TcpConnection:
         self.closed = False
         self.fin_by: str | None = None
 
-    def is_new_syn(self, from_client: bool, seq: int, flags: int) -> bool:
-        """Whether this segment opens a new connection on the same addresses: a SYN
-        (without ACK) after this one ended, or with a different initial sequence
-        number, or on a connection that was picked up without its SYN."""
-        if flags & (SYN | ACK) != SYN:
-            return False
-        if self.closed:
-            return True
+    def is_new(self, from_client: bool, seq: int, flags: int, has_payload: bool) -> bool:
+        """Whether this segment belongs to a new connection on the same addresses:
+
+        * a SYN (without ACK) after this connection ended, or with another initial
+          sequence number, or on a connection that was picked up without its SYN;
+        * a SYN-ACK after the end or with another initial sequence number (the new
+          connection's SYN was not captured);
+        * payload after the end more than :data:`REUSE_DISTANCE` away from where
+          this direction stopped (the new connection's handshake was not captured;
+          a straggler of the old one lies close to it).
+        """
         half = self._c2s if from_client else self._s2c
-        if half.isn is None:
-            # The SYN's sender must be the client; a connection that saw no SYN
-            # from it so far, but already traffic, is a different connection.
-            return half.nxt is not None or (self._s2c if from_client else self._c2s).nxt is not None
-        return seq != half.isn
+        syn_ack = flags & (SYN | ACK)
+        if syn_ack == SYN:
+            if self.closed:
+                return True
+            if half.isn is None:
+                # The SYN's sender must be the client; a connection that saw no SYN
+                # from it so far, but already traffic, is a different connection.
+                other = self._s2c if from_client else self._c2s
+                return half.nxt is not None or other.nxt is not None
+            return seq != half.isn
+        if syn_ack == SYN | ACK:
+            return self.closed or (half.isn is not None and seq != half.isn)
+        if self.closed and has_payload:
+            return half.nxt is None or abs(_signed(seq - half.nxt)) > REUSE_DISTANCE
+        return False
 
     def segment(
         self,

@@ -424,6 +424,30 @@ def test_stream_ids_in_order_of_first_appearance_and_reused_addresses(tmp_path: 
     ]
 
 
+def test_reused_addresses_without_a_captured_handshake(tmp_path: Path) -> None:
+    old = TcpConversation(CLIENT, SERVER)
+    frames = [*old.open(), old.send(True, b"old"), *old.close(True)]
+    frames.append(old.segment(True, pw.PSH | pw.ACK, b"old", seq=old.client_isn + 1))  # straggler
+    new = TcpConversation(CLIENT, SERVER, client_isn=0x40000000, server_isn=0x50000000)
+    new.open()  # not captured
+    frames += [new.send(True, b"new"), new.reset(True)]
+    newer = TcpConversation(CLIENT, SERVER, client_isn=0x60000000, server_isn=0x70000000)
+    _syn, syn_ack, ack = newer.open()  # the SYN is not captured
+    frames += [syn_ack, ack, newer.send(True, b"newer")]
+    stats: dict[str, int] = {}
+    items = read_all(write_pcap(tmp_path / "x.pcap", frames), stats=stats)
+    assert summary(items) == [
+        (0, "connect"),
+        (0, "c2s", b"old"),
+        (0, "disconnect"),
+        (1, "c2s", b"new"),
+        (1, "disconnect"),
+        (2, "connect"),
+        (2, "c2s", b"newer"),
+    ]
+    assert stats["after_close"] == 1
+
+
 def test_reassembly_through_a_file_retransmission_reorder_and_gap(tmp_path: Path) -> None:
     conv = TcpConversation(CLIENT, SERVER)
     frames = conv.open()

@@ -46,8 +46,8 @@ def test_handshake_gives_one_connect_even_when_the_syn_is_repeated() -> None:
     conn, out = opened()
     conn.segment(0.3, True, C_ISN, 0, SYN, b"", out)  # SYN retransmission
     assert kinds(out) == ["connect"]
-    assert not conn.is_new_syn(True, C_ISN, SYN)
-    assert conn.is_new_syn(True, C_ISN + 99, SYN)
+    assert not conn.is_new(True, C_ISN, SYN, False)
+    assert conn.is_new(True, C_ISN + 99, SYN, False)
 
 
 def test_in_order_data_is_delivered_at_once_with_its_timestamp() -> None:
@@ -167,7 +167,7 @@ def test_mid_stream_start_begins_at_the_first_segment() -> None:
     conn.segment(1.1, True, 123456, 777, PSH | ACK, b"xy", out)
     conn.segment(1.2, False, 777, 123458, PSH | ACK, b"z", out)
     assert kinds(out) == ["chunk:7879", "chunk:7a"]  # no CONNECT without a SYN
-    assert conn.is_new_syn(True, 5, SYN)  # a SYN now is another connection
+    assert conn.is_new(True, 5, SYN, False)  # a SYN now is another connection
 
 
 def test_fin_from_both_sides_gives_one_disconnect_after_all_data() -> None:
@@ -182,7 +182,11 @@ def test_fin_from_both_sides_gives_one_disconnect_after_all_data() -> None:
     assert kinds(out)[1:] == ["chunk:71", "chunk:72", "disconnect"]
     assert out[-1].info == {"how": "fin", "by": "client"}  # type: ignore[union-attr]
     assert conn.closed
-    assert conn.is_new_syn(True, C_ISN, SYN)  # even the same ISN: the old one ended
+    assert conn.is_new(True, C_ISN, SYN, False)  # even the same ISN: the old one ended
+    assert conn.is_new(False, S_ISN + 70, SYN | ACK, False)  # its SYN was not captured
+    assert not conn.is_new(True, C_ISN + 3, ACK, True)  # a straggler of this connection
+    assert conn.is_new(True, C_ISN + 3 + (1 << 21), ACK, True)  # far away: a new one
+    assert not conn.is_new(True, C_ISN + 3 + (1 << 21), ACK, False)  # but no payload
 
 
 def test_fin_that_arrives_before_the_missing_data_waits_for_it() -> None:
