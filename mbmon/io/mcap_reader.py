@@ -296,6 +296,7 @@ class McapLog:
         f.seek(pos)
         while True:
             if pos == size:
+                layout.stopped_at, layout.problem = pos, "file ends without a summary and footer"
                 break
             if size - pos < 9:
                 layout.stopped_at, layout.problem = pos, "record header cut off"

@@ -243,9 +243,9 @@ def stored_profile_names(log: McapLog) -> list[str]:
 
 # --------------------------------------------------------------------------- filters
 
-_OFFSET = re.compile(r"^\+?\s*((?:\d+(?:\.\d*)?|\.\d+)\s*(?:ms|s|m|min|h)?\s*)+$")
-_PART = re.compile(r"(\d+(?:\.\d*)?|\.\d+)\s*(ms|s|m|min|h)?")
-_UNIT = {"ms": 0.001, "s": 1.0, None: 1.0, "m": 60.0, "min": 60.0, "h": 3600.0}
+_OFFSET = re.compile(r"^\+?\s*((?:\d+(?:\.\d*)?|\.\d+)\s*(?:ms|min|s|m|h)?\s*)+$")
+_PART = re.compile(r"(\d+(?:\.\d*)?|\.\d+)\s*(ms|min|s|m|h)?")
+_UNIT = {"ms": 0.001, "s": 1.0, "": 1.0, "m": 60.0, "min": 60.0, "h": 3600.0}
 
 
 class FilterError(ValueError):

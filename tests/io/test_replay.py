@@ -1,0 +1,219 @@
+"""Reading records back: merge by index, raw re-decode, recorded options, filters, pacing."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+from pathlib import Path
+
+import pytest
+from conftest import records
+
+from mbmon.format import View, record_line, record_to_json
+from mbmon.io.mcap_reader import McapLog
+from mbmon.io.replay import (
+    FilterError,
+    Pacer,
+    RecordFilter,
+    logged_records,
+    parse_fcs,
+    parse_range,
+    parse_when,
+    raw_items,
+    recorded_annotator,
+    recorded_options,
+    touches,
+)
+from mbmon.model import Chunk, Record
+from mbmon.pipeline import Pipeline
+from mbmon.sinks.base import SinkContext
+from mbmon.sinks.mcap import McapSink
+
+VIEW = View(robot="192.168.0.10")
+CTX = SinkContext(
+    view=VIEW,
+    command_line=["mbmon", "read", "x.pcap", "--robot", "192.168.0.10", "--timeout", "0.25"],
+    source="x.pcap",
+)
+
+
+@pytest.fixture()
+def session_log(tmp_path: Path, session_stream: list) -> Path:
+    path = tmp_path / "s.mcap"
+    with McapSink(path, CTX) as sink:
+        records.feed(sink, session_stream)
+    return path
+
+
+def test_logged_records_are_the_records(session_log: Path, session_stream: list) -> None:
+    recs = [x for x in session_stream if isinstance(x, Record)]
+    with McapLog(session_log) as log:
+        got = list(logged_records(log))
+    assert [g.index for g in got] == [r.index for r in recs]  # noise stored twice, out once
+    assert [g.text for g in got] == [record_line(r, VIEW) for r in recs]
+    assert [g.obj for g in got] == [json.loads(json.dumps(record_to_json(r, VIEW))) for r in recs]
+    assert [g.time for g in got] == [r.ts for r in recs]
+    assert {g.level for g in got} <= {1, 2, 3, 4}
+
+
+def test_raw_items_redecode_to_the_same_records(session_log: Path, session_stream: list) -> None:
+    with McapLog(session_log) as log:
+        items = list(raw_items(log))
+    chunks = [x for x in session_stream if isinstance(x, Chunk)]
+    assert [x for x in items if isinstance(x, Chunk)] == chunks
+    again = [r for r in Pipeline().run(items)]
+    recs = [x for x in session_stream if isinstance(x, Record)]
+    assert [record_to_json(r, VIEW) for r in again] == [record_to_json(r, VIEW) for r in recs]
+
+
+def test_recorded_options(session_log: Path) -> None:
+    with McapLog(session_log) as log:
+        opts = recorded_options(log)
+        assert recorded_annotator(log, opts) is None
+    assert opts.robot == "192.168.0.10" and opts.timeout == 0.25 and opts.profile_specs == []
+
+
+CELL_TOML = """\
+[profile]
+name = "cell"
+
+[[holding_registers]]
+name = "SPEED"
+address = 200
+type = "u16"
+label = "conveyor speed"
+"""
+
+
+def test_redecode_uses_the_profile_text_stored_in_the_log(tmp_path: Path) -> None:
+    """The profile file is gone (or changed) by replay time: the log's copy is used."""
+    profile = tmp_path / "cell.toml"
+    profile.write_text(CELL_TOML)
+    from mbmon.cli import make_annotator
+
+    spec = f"unit:1={profile}"
+    items = records.session_items()
+    stream = records.run_pipeline(items, make_annotator([spec]))
+    ctx = SinkContext(
+        view=View(),
+        command_line=["mbmon", "read", "x.pcap", "--profile", spec],
+        source="x.pcap",
+        profiles=[("cell", CELL_TOML)],
+    )
+    path = tmp_path / "p.mcap"
+    with McapSink(path, ctx) as sink:
+        records.feed(sink, stream)
+    profile.write_text(CELL_TOML.replace("conveyor speed", "SOMETHING ELSE"))
+    with McapLog(path) as log:
+        opts = recorded_options(log)
+        assert opts.profile_specs == [spec]
+        annotator = recorded_annotator(log, opts)
+        again = list(Pipeline(annotator).run(list(raw_items(log))))
+    lines = [record_line(r, View()) for r in again]
+    assert lines == [record_line(r, View()) for r in stream if isinstance(r, Record)]
+    assert any("conveyor speed" in line or "SPEED" in line for line in lines)
+    assert not any("SOMETHING ELSE" in line for line in lines)
+
+
+def obj(**kw: object) -> dict:
+    base = {"unit": 1, "fc": 3, "address": 200, "count": 2, "kind": "request"}
+    base.update(kw)
+    return base
+
+
+def test_filters() -> None:
+    flt = RecordFilter(units=frozenset({1}), fcs=parse_fcs("3,0x10"), address=parse_range("201"))
+    assert flt.matches(obj(), "line", 0.0)
+    assert not flt.matches(obj(unit=2), "line", 0.0)
+    assert not flt.matches(obj(fc=4), "line", 0.0)
+    assert not flt.matches(obj(address=202), "line", 0.0)
+    assert not flt.matches({"kind": "event", "unit": None, "fc": None}, "connect", 0.0)
+    assert not flt.matches(None, "", 0.0)
+    assert RecordFilter().matches(None, "", 0.0)
+    assert RecordFilter(grep="ptp").matches(None, "R201 = PTP (0)", 0.0)
+    assert not RecordFilter(grep="lin").matches(None, "R201 = PTP (0)", 0.0)
+    t = RecordFilter(since=10.0, until=20.0)
+    assert [t.matches(None, "", x) for x in (9.99, 10.0, 20.0, 20.01)] == [False, True, True, False]
+
+
+def test_touches() -> None:
+    assert touches(obj(address=200, count=2), 201, 300)
+    assert not touches(obj(address=200, count=2), 202, 300)
+    assert touches(obj(address=250, count=None), 250, 250)
+    fc17 = obj(fc=0x17, address=0, count=1, fields={"write_address": 500, "write_count": 4})
+    assert touches(fc17, 503, 503) and not touches(fc17, 504, 600)
+    assert not touches({"address": None}, 0, 65535)
+
+
+def test_parse_helpers_reject_nonsense() -> None:
+    for bad in ("", "x", "0x"):
+        with pytest.raises(FilterError):
+            parse_fcs(bad)
+    for bad in ("300-200", "-1", "70000", "a-b"):
+        with pytest.raises(FilterError):
+            parse_range(bad)
+    assert parse_range("0x10-0x20") == (16, 32)
+
+
+def test_parse_when() -> None:
+    start = dt.datetime(2024, 5, 1, 12, 0, 0).timestamp()
+    assert parse_when("+5s", start) == start + 5
+    assert parse_when("+1m30s", start) == start + 90
+    assert parse_when("+250ms", start) == pytest.approx(start + 0.25)
+    assert parse_when("+2.5", start) == start + 2.5
+    assert parse_when("1h", start) == start + 3600
+    assert parse_when("12:00:05", start) == start + 5
+    assert parse_when("2024-05-01T12:00:07", start) == start + 7
+    assert parse_when("2024-05-01T10:00:00Z", start) == dt.datetime(
+        2024, 5, 1, 10, tzinfo=dt.UTC
+    ).timestamp()
+    assert parse_when("1714560000", start) == 1714560000.0
+    for bad in ("+5 parsecs", "yesterday", ""):
+        with pytest.raises(FilterError):
+            parse_when(bad, start)
+    with pytest.raises(FilterError):
+        parse_when("+5s", None)
+
+
+class FakeClock:
+    """A monotonic clock whose sleeps always overshoot by ``late`` seconds."""
+
+    def __init__(self, late: float) -> None:
+        self.now = 100.0
+        self.late = late
+        self.sleeps: list[float] = []
+
+    def clock(self) -> float:
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.sleeps.append(seconds)
+        self.now += seconds + self.late
+
+
+def test_pacer_schedules_from_one_start_without_drift() -> None:
+    fake = FakeClock(late=0.004)
+    pacer = Pacer(2.0, clock=fake.clock, sleep=fake.sleep)
+    times = [1000.0 + 0.1 * k for k in range(200)]  # 20 s of capture
+    due = []
+    for ts in times:
+        pacer.wait(ts)
+        due.append(fake.now)
+    # every wake-up is at most one oversleep after its due time: no accumulation
+    for k, when in enumerate(due):
+        target = 100.0 + (times[k] - times[0]) / 2.0
+        assert target - 1e-9 <= when <= target + 0.004 + 1e-9
+    assert due[-1] - due[0] == pytest.approx(9.95, abs=0.01)  # 19.9 s at 2x
+    assert all(s == pytest.approx(0.046) for s in fake.sleeps[1:])  # 0.05 - 0.004 late
+
+
+def test_pacer_never_sleeps_when_behind() -> None:
+    fake = FakeClock(late=0.0)
+    pacer = Pacer(1.0, clock=fake.clock, sleep=fake.sleep)
+    pacer.wait(0.0)
+    fake.now += 10.0  # the consumer stalled
+    for ts in (1.0, 2.0, 3.0):
+        pacer.wait(ts)
+    assert fake.sleeps == []
+    with pytest.raises(ValueError):
+        Pacer(0)
