@@ -341,6 +341,13 @@ def profile(adus: int, top: int = 25) -> None:
     print(f"  {'own %':>6} {'own s':>7} {'cum %':>6} {'calls':>10}  function")
     for tt, ct, nc, name in sorted(rows, reverse=True)[:top]:
         print(f"  {100 * tt / total:6.1f} {tt:7.2f} {100 * ct / total:6.1f} {nc:10,}  {name}")
+    per_file: Counter[str] = Counter()
+    for (file, _line, _func), (_cc, _nc, tt, _ct, _callers) in st.stats.items():  # type: ignore[attr-defined]
+        per_file[file if "mbmon" in file else Path(file).name] += tt
+    print("  own time per file:")
+    for file, tt in per_file.most_common(12):
+        shown = file.split("/mbmon/", 1)[-1] if "/mbmon/" in file else file
+        print(f"  {100 * tt / total:6.1f} {tt:7.2f}  {shown}")
 
 
 def main(argv: list[str] | None = None) -> int:
