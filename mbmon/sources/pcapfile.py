@@ -20,8 +20,9 @@ end, or with a new initial sequence number) is a new stream. UDP: one chunk per
 datagram. Link type 147 (USER0): each record is bytes of one RTU bus, stream
 ``client = server = file name`` (``name#<interface>`` for a second bus).
 Timestamps are epoch seconds as floats; a pcapng Simple Packet Block has none
-and takes the previous packet's. IP fragments (other than atomic ones) are not
-reassembled: they are counted and skipped (a TCP hole they leave becomes a GAP).
+and takes the previous packet's. IP fragments are not reassembled: they are
+counted; later fragments are skipped, a first fragment is read like a packet
+cut short (a TCP segment delivers what it holds, the rest becomes a GAP).
 
 Pure Python and no scapy: on a 200k-packet capture this reader turns packets
 into chunks about 1.8x faster than scapy's ``RawPcapReader`` merely feeding the
@@ -581,7 +582,9 @@ class _Dissector:
                     ip_end = end
             if frag & 0x3FFF:  # more-fragments or an offset
                 self.fragments += 1
-                return
+                if frag & 0x1FFF:  # not the first fragment: no transport header
+                    return
+                short = True  # the first one: a cut packet
             addr_at, addr_len = off + 12, 8
             l4 = off + ihl
         elif et == 0x86DD:
@@ -609,9 +612,12 @@ class _Dissector:
                     if ip_end - l4 < 8:
                         self.truncated += 1
                         return
-                    if _h_unpack(buf, l4 + 2)[0] & 0xFFF9:  # offset or more-fragments
+                    frag = _h_unpack(buf, l4 + 2)[0]
+                    if frag & 0xFFF9:  # offset or more-fragments
                         self.fragments += 1
-                        return
+                        if frag & 0xFFF8:  # not the first fragment
+                            return
+                        short = True
                     proto, l4 = buf[l4], l4 + 8
                 elif proto == 51:  # authentication header
                     if ip_end - l4 < 8:
@@ -669,7 +675,7 @@ class _Dissector:
             if ulen < 8:
                 self.malformed += 1
                 return
-            if l4 + ulen > ip_end:
+            if l4 + ulen > ip_end:  # cut, or a first fragment: half a datagram is none
                 self.truncated += 1
                 return
             if ulen == 8:

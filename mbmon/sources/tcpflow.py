@@ -22,7 +22,9 @@ A connection turns the segments a capture saw into in-order payload
   ignored as garbage), (b) the held bytes exceed ``limit``
   (``"buffer-limit"``), (c) the connection is reset or replaced (``"reset"``,
   ``"replaced"``), or (d) the capture ends (``"end-of-capture"``). Held bytes
-  after the hole are then delivered; the decoder resynchronises.
+  after the hole are then delivered; the decoder resynchronises. A segment's
+  acknowledgement is applied before its own payload: the bytes a hole was
+  holding back were received before the reply was sent, so they come first.
 * **CONNECT** once per connection, at the first SYN or SYN-ACK seen (a capture
   that starts mid-connection has none).
 * **DISCONNECT** once per connection: at a RST (``how="rst"``, ``by`` = its
@@ -210,15 +212,15 @@ class TcpConnection:
                 if payload:
                     self.stats.after_close += 1
                 return
-            if payload:
-                out.append(make_chunk(ts, self.stream, half.direction, payload))
-                half.nxt = (seq + len(payload)) & _MASK
             if flags & ACK:
                 nxt = other.nxt
                 if nxt is not None and nxt != ack and not other.done:
                     diff = (ack - nxt) & _MASK
                     if 0 < diff <= MAX_ACK_JUMP:
                         self._acked(other, ts, ack, out)
+            if payload:
+                out.append(make_chunk(ts, self.stream, half.direction, payload))
+                half.nxt = (seq + len(payload)) & _MASK
             return
         if self.closed:
             if payload:
@@ -247,6 +249,12 @@ class TcpConnection:
             seq = (seq + 1) & _MASK
         elif half.nxt is None and (payload or flags & FIN):
             half.nxt = seq
+        # The acknowledgement first: what the sender had received (and what a hole
+        # it reveals releases) came before what it sends in reply.
+        if flags & ACK and other.nxt is not None and not other.done:
+            diff = (ack - other.nxt) & _MASK
+            if 0 < diff <= MAX_ACK_JUMP:
+                self._acked(other, ts, ack, out)
         if payload and half.nxt is not None:
             if half.done:
                 self.stats.after_close += 1
@@ -257,10 +265,6 @@ class TcpConnection:
             if self.fin_by is None:
                 self.fin_by = "client" if from_client else "server"
             self._drain(half, ts, out)
-        if flags & ACK and other.nxt is not None and not other.done:
-            diff = (ack - other.nxt) & _MASK
-            if 0 < diff <= MAX_ACK_JUMP:
-                self._acked(other, ts, ack, out)
 
     def finish(self, ts: float, out: list[Chunk | Event], reason: str = "end-of-capture") -> None:
         """The capture ended (or the addresses were reused): give up every hole,

@@ -274,16 +274,43 @@ def test_ipv4_options_and_ipv6_extension_headers(tmp_path: Path) -> None:
     ]
 
 
-def test_fragments_are_skipped_and_counted(tmp_path: Path) -> None:
-    seg = pw.tcp_header("10.0.0.1", "10.0.0.2", 40000, 502, 1, 0, 0x18, b"frag")
-    first = pw.ipv4_packet("10.0.0.1", "10.0.0.2", 6, seg, flags_fragment=0x2000)  # MF
-    later = pw.ipv4_packet("10.0.0.1", "10.0.0.2", 6, b"tail", flags_fragment=3)  # offset 24
-    seg6 = pw.tcp_header("::1", "::2", 40000, 502, 1, 0, 0x18, b"frag6")
-    v6 = pw.ipv6_packet("::1", "::2", 6, seg6, extensions=[(44, b"\0\x01\0\0\0\x07")])  # MF
+def test_fragments_are_counted_and_only_first_tcp_fragments_read(tmp_path: Path) -> None:
+    conv = TcpConversation(CLIENT, SERVER)
+    frames = conv.open()
+    segment = pw.tcp_header(
+        "192.168.1.10", "192.168.1.2", 40001, 502, conv.client_next, conv.server_next, 0x18, REQUEST
+    )
+    # first fragment: TCP header + 4 payload bytes; second: the other 8 bytes
+    frames.append(
+        pw.link_frame(
+            1, pw.ipv4_packet("192.168.1.10", "192.168.1.2", 6, segment[:24], flags_fragment=0x2000)
+        )
+    )
+    frames.append(
+        pw.link_frame(
+            1, pw.ipv4_packet("192.168.1.10", "192.168.1.2", 6, segment[24:], flags_fragment=3)
+        )
+    )
+    conv.client_next += len(REQUEST)
+    frames.append(conv.send(False, RESPONSE))  # acknowledges the whole request
+    udp = pw.udp_header("10.0.0.1", "10.0.0.2", 5000, 502, bytes(20))
+    frames.append(
+        pw.link_frame(
+            1, pw.ipv4_packet("10.0.0.1", "10.0.0.2", 17, udp[:16], flags_fragment=0x2000)
+        )
+    )
+    v6 = pw.ipv6_packet("::1", "::2", 17, udp[:16], extensions=[(44, b"\0\x01\0\0\0\x07")])  # M=1
+    v6_later = pw.ipv6_packet("::1", "::2", 17, udp[16:], extensions=[(44, b"\0\x10\0\0\0\x07")])
+    frames += [pw.link_frame(1, v6), pw.link_frame(1, v6_later)]
     stats: dict[str, int] = {}
-    frames = [pw.link_frame(1, p) for p in (first, later, v6)]
-    assert read_all(write_pcap(tmp_path / "x.pcap", frames), stats=stats) == []
-    assert stats["fragments"] == 3
+    items = read_all(write_pcap(tmp_path / "x.pcap", frames), stats=stats)
+    assert summary(items) == [
+        (0, "connect"),
+        (0, "c2s", REQUEST[:4]),
+        (0, "gap"),  # revealed by the response's acknowledgement, so before it
+        (0, "s2c", RESPONSE),
+    ]
+    assert stats["fragments"] == 5
 
 
 def test_udp_datagrams_are_chunks_each(tmp_path: Path) -> None:

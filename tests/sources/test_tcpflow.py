@@ -97,6 +97,13 @@ def test_hole_acknowledged_by_the_peer_becomes_a_gap() -> None:
     assert len(out) == 4
 
 
+def test_requests_released_by_a_reply_come_before_it() -> None:
+    conn, out = opened()
+    c2s(conn, out, 12, b"req2")  # request 1 (12 bytes) was lost
+    conn.segment(2.0, False, S_ISN + 1, C_ISN + 17, PSH | ACK, b"resp", out)
+    assert kinds(out)[1:] == ["gap", "chunk:" + b"req2".hex(), "chunk:" + b"resp".hex()]
+
+
 def test_ack_on_a_fin_or_on_held_data_also_reveals_a_hole() -> None:
     conn, out = opened()
     c2s(conn, out, 2, b"cd")  # client bytes 0..1 never captured
