@@ -20,7 +20,9 @@ CTX = SinkContext(view=View(), command_line=["mbmon", "read", "x"], source="x")
 
 
 @pytest.fixture(scope="module")
-def log_bytes(tmp_path_factory: pytest.TempPathFactory, session_stream: list, hrss_stream: list) -> bytes:
+def log_bytes(
+    tmp_path_factory: pytest.TempPathFactory, session_stream: list, hrss_stream: list
+) -> bytes:
     """A finished log with many small chunks."""
     path = tmp_path_factory.mktemp("log") / "many.mcap"
     with McapSink(path, CTX, chunk_size=400) as sink:

@@ -164,9 +164,10 @@ def test_parse_when() -> None:
     assert parse_when("1h", start) == start + 3600
     assert parse_when("12:00:05", start) == start + 5
     assert parse_when("2024-05-01T12:00:07", start) == start + 7
-    assert parse_when("2024-05-01T10:00:00Z", start) == dt.datetime(
-        2024, 5, 1, 10, tzinfo=dt.UTC
-    ).timestamp()
+    assert (
+        parse_when("2024-05-01T10:00:00Z", start)
+        == dt.datetime(2024, 5, 1, 10, tzinfo=dt.UTC).timestamp()
+    )
     assert parse_when("1714560000", start) == 1714560000.0
     for bad in ("+5 parsecs", "yesterday", ""):
         with pytest.raises(FilterError):

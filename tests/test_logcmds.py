@@ -1,0 +1,415 @@
+"""End to end through the CLI (subprocesses): read -w LOG.mcap, replay, info, export, signals.
+
+Round trip: ``read CAPTURE -w x.mcap`` then ``replay x.mcap --json`` prints what
+``read CAPTURE --json`` printed, for every capture in ``captures/`` and
+``../shared/captures/real/``. A recording killed with SIGKILL keeps every
+record older than a second; SIGINT and SIGTERM leave finished, indexed files.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
+
+from mbmon.io.mcap_reader import McapLog
+from mbmon.sources.pcapwrite import PcapWriter, TcpConversation
+
+REPO = Path(__file__).resolve().parents[1]
+OWN = REPO / "captures"
+REAL = REPO / ".." / "shared" / "captures" / "real"
+MBMON = [sys.executable, "-m", "mbmon.cli"]
+ENV = {**os.environ, "PYTHONPATH": str(REPO), "TZ": "UTC"}
+
+
+def mbmon(*args: str | Path, check: bool = True) -> subprocess.CompletedProcess[str]:
+    proc = subprocess.run(
+        [*MBMON, *map(str, args)], capture_output=True, text=True, env=ENV, timeout=600
+    )
+    assert "Traceback" not in proc.stderr, proc.stderr
+    if check:
+        assert proc.returncode == 0, proc.stderr
+    return proc
+
+
+def captures() -> Iterator[Path]:
+    yield from sorted(OWN.glob("*.pcap"))
+    if REAL.is_dir():
+        yield from sorted(p for p in REAL.iterdir() if p.suffix in (".pcap", ".pcapng"))
+
+
+def real(name: str) -> Path:
+    path = REAL / name
+    if not path.exists():
+        pytest.skip(f"{path}: ../shared/captures/real absent")
+    return path
+
+
+# --------------------------------------------------------------------------- round trips
+
+
+@pytest.mark.parametrize("capture", list(captures()), ids=lambda p: p.name)
+def test_replay_json_equals_read_json(tmp_path: Path, capture: Path) -> None:
+    log = tmp_path / "x.mcap"
+    proc = subprocess.run(
+        [*MBMON, "read", str(capture), "--json", "-w", str(log)],
+        capture_output=True,
+        text=True,
+        env=ENV,
+        timeout=600,
+    )
+    assert proc.stdout, proc.stderr
+    replayed = mbmon("replay", log, "--json").stdout
+    assert replayed.splitlines() == proc.stdout.splitlines()
+    with McapLog(log) as opened:
+        assert opened.finished  # also when read stopped at damaged input
+
+
+def test_real_captures_present_or_skipped() -> None:
+    if not REAL.is_dir():
+        pytest.skip("../shared/captures/real absent")
+    assert len([p for p in captures() if p.parent != OWN]) >= 20
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["captures/hrss_ptp.pcap", "--profile", "hrss", "--robot", "127.0.0.1:502"],
+        ["captures/hrss_rtu.pcap", "--profile", "hrss"],
+        ["--rtu-raw", "captures/hrss_rtu.bin", "--profile", "hrss"],
+    ],
+    ids=["tcp-robot-labels", "rtu-pcap", "rtu-raw"],
+)
+def test_replay_lines_and_redecode_equal_live(tmp_path: Path, args: list[str]) -> None:
+    paths = [str(REPO / a) if a.startswith("captures/") else a for a in args]
+    log = tmp_path / "h.mcap"
+    live = mbmon("read", *paths).stdout
+    live_json = mbmon("read", *paths, "--json", "-w", log).stdout
+    assert mbmon("replay", log).stdout == live
+    assert mbmon("replay", log, "--redecode").stdout == live
+    assert mbmon("replay", log, "--redecode", "--json").stdout == live_json
+
+
+def test_sinks_by_suffix_equal_console(tmp_path: Path) -> None:
+    capture = OWN / "hrss_ptp.pcap"
+    outs = {s: tmp_path / f"o{s}" for s in (".jsonl", ".txt", ".csv", ".pcap", ".mcap")}
+    args = [a for p in outs.values() for a in ("-w", p)]
+    text = mbmon("read", capture, "--profile", "hrss", *args).stdout
+    as_json = mbmon("read", capture, "--profile", "hrss", "--json").stdout
+    assert outs[".txt"].read_text("utf-8") == text
+    assert outs[".jsonl"].read_text("utf-8") == as_json
+    rows = list(csv.DictReader(outs[".csv"].open(newline="", encoding="utf-8")))
+    frames = [json.loads(x) for x in as_json.splitlines()]
+    assert len(rows) == sum(f["kind"] in ("request", "response", "exception") for f in frames)
+    assert (
+        mbmon("read", outs[".pcap"], "--profile", "hrss").stdout.splitlines()[1:]
+        == (text.splitlines()[1:])
+    )  # the handshake time is the connect event's; frames identical
+
+
+# --------------------------------------------------------------------------- export
+
+
+@pytest.mark.parametrize("suffix", [".jsonl", ".txt", ".csv"])
+def test_export_text_formats(tmp_path: Path, suffix: str) -> None:
+    capture = OWN / "hrss_ptp.pcap"
+    log = tmp_path / "h.mcap"
+    direct = tmp_path / f"direct{suffix}"
+    mbmon("read", capture, "--profile", "hrss", "-q", "-w", log, "-w", direct)
+    exported = tmp_path / f"exported{suffix}"
+    mbmon("export", log, "-o", exported)
+    assert exported.read_bytes() == direct.read_bytes()
+
+
+EXPORT_TSHARK = [
+    "tcp__emreekin__ModbusFloat.pcap",
+    "tcp__zeek__modbusSmall.pcap",
+    "tcp__ndpi__modbus_fc3_polling.pcap",
+    "tcp__yyjccc__modbus_5view_format.pcap",
+    "tcp__lemay__send_a_fake_command_6RTU_with_operate.pcap",
+]
+
+
+@pytest.mark.skipif(shutil.which("tshark") is None, reason="tshark not installed")
+@pytest.mark.parametrize("name", ["hrss_ptp.pcap", *EXPORT_TSHARK])
+def test_export_pcap_agrees_with_tshark(tmp_path: Path, name: str) -> None:
+    capture = OWN / name if (OWN / name).exists() else real(name)
+    log, out = tmp_path / "x.mcap", tmp_path / "x.pcap"
+    frames = [
+        json.loads(x) for x in mbmon("read", capture, "--json", "-w", log).stdout.splitlines()
+    ]
+    mbmon("export", log, "-o", out)
+    fields = ["-e", "modbus.func_code", "-e", "modbus.reference_num", "-e", "tcp.analysis.flags"]
+    res = subprocess.run(
+        ["tshark", "-r", str(out), "-Y", "modbus", "-T", "fields", *fields],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    rows = [line.split("\t") for line in res.stdout.splitlines()]
+    fcs = [int(x) for row in rows for x in row[0].split(",") if x]
+    assert fcs == [f["fc"] for f in frames if f["kind"] in ("request", "response", "exception")]
+    assert not any(row[2] for row in rows), "tshark TCP analysis flags: inconsistent numbering"
+    refs = sorted(int(x) for row in rows for x in row[1].split(",") if x)
+    requests = sorted(
+        f["address"] for f in frames if f["kind"] == "request" and f["address"] is not None
+    )
+    assert set(requests) <= set(refs)
+
+
+def test_export_rtu_pcap_reads_back(tmp_path: Path) -> None:
+    log, out = tmp_path / "r.mcap", tmp_path / "r.pcap"
+    bus = OWN / "hrss_rtu.bin"
+    live = [
+        json.loads(x)
+        for x in mbmon("read", "--rtu-raw", bus, "--json", "-w", log).stdout.splitlines()
+    ]
+    mbmon("export", log, "-o", out)
+    assert out.read_bytes()[20:24] == (147).to_bytes(4, "little")  # link type USER0
+    again = [json.loads(x) for x in mbmon("read", out, "--json").stdout.splitlines()]
+    key = ("kind", "unit", "fc", "pdu", "address", "count", "values")
+    assert [[f[k] for k in key] for f in again] == [[f[k] for k in key] for f in live]
+
+
+def test_export_repairs_an_unfinished_log(tmp_path: Path) -> None:
+    log = tmp_path / "h.mcap"
+    mbmon("read", OWN / "hrss_ptp.pcap", "--profile", "hrss", "-q", "-w", log)
+    data = log.read_bytes()
+    summary_start = int.from_bytes(data[-28:-20], "little")
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: summary_start - 5])
+    fixed = tmp_path / "fixed.mcap"
+    proc = mbmon("export", cut, "-o", fixed)
+    assert "not finished" in proc.stderr
+    with McapLog(fixed) as opened:
+        assert opened.finished and opened.profiles() and opened.metadata["mbmon"]
+    assert mbmon("replay", fixed).stdout == mbmon("replay", cut).stdout
+    assert mbmon("replay", fixed, "--redecode").stdout == mbmon("replay", log, "--redecode").stdout
+
+
+def test_export_usage_errors(tmp_path: Path) -> None:
+    log = tmp_path / "h.mcap"
+    mbmon("read", OWN / "hrss_ptp.pcap", "-q", "-w", log)
+    bad = mbmon("export", log, "-o", tmp_path / "x.xlsx", check=False)
+    assert bad.returncode == 2 and "unknown output format" in bad.stderr
+    bad = mbmon("export", log, "-o", tmp_path / "x.pcap", "--fc", "3", check=False)
+    assert bad.returncode == 2 and "--since/--until" in bad.stderr
+    bad = mbmon("export", log, "-o", log, check=False)
+    assert bad.returncode == 2 and "overwrite" in bad.stderr
+
+
+# --------------------------------------------------------------------------- replay options
+
+
+@pytest.fixture(scope="module")
+def hrss_log(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[dict]]:
+    log = tmp_path_factory.mktemp("h") / "h.mcap"
+    proc = mbmon("read", OWN / "hrss_ptp.pcap", "--profile", "hrss", "--json", "-w", log)
+    return log, [json.loads(x) for x in proc.stdout.splitlines()]
+
+
+def test_replay_filters(hrss_log: tuple[Path, list[dict]]) -> None:
+    log, objs = hrss_log
+
+    def replay(*args: str) -> list[dict]:
+        return [json.loads(x) for x in mbmon("replay", log, "--json", *args).stdout.splitlines()]
+
+    assert replay("--fc", "3,0x10") == [o for o in objs if o["fc"] in (3, 16)]
+    touching = [
+        o
+        for o in objs
+        if o["address"] is not None
+        and o["address"] <= 201
+        and o["address"] + max(o["count"] or 1, 1) - 1 >= 200
+    ]
+    assert replay("--address", "200-201") == touching and touching
+    assert replay("--unit", "1", "--fc", "4") == [o for o in objs if o["fc"] == 4]
+    assert replay("--unit", "7") == []
+    grep = replay("--grep", "ptp")
+    assert grep == [o for o in objs if "ptp" in o["line"].lower()] and grep
+    t0 = objs[0]["time"]
+    window = replay("--since", "+0.1s", "--until", "+0.3s")
+    assert window == [o for o in objs if t0 + 0.1 <= o["time"] <= t0 + 0.3] and window
+    text = mbmon("replay", log, "--fc", "5").stdout.splitlines()
+    assert text == [o["line"] for o in objs if o["fc"] == 5]
+    bad = mbmon("replay", log, "--since", "whenever", check=False)
+    assert bad.returncode == 2 and "not a time" in bad.stderr
+    bad = mbmon("replay", log, "--robot", "1.2.3.4", check=False)
+    assert bad.returncode == 2 and "--redecode" in bad.stderr
+
+
+def test_replay_speed(hrss_log: tuple[Path, list[dict]]) -> None:
+    log, objs = hrss_log
+    span = objs[-1]["time"] - objs[0]["time"]
+    assert span > 0.3
+
+    def timed(speed: str) -> float:
+        start = time.monotonic()
+        mbmon("replay", log, "--speed", speed)
+        return time.monotonic() - start
+
+    fast = timed("1000")
+    slow = timed("0.5")
+    assert slow - fast >= 2 * span * 0.9
+
+
+# --------------------------------------------------------------------------- info
+
+
+def test_info(hrss_log: tuple[Path, list[dict]]) -> None:
+    log, objs = hrss_log
+    info = json.loads(mbmon("info", log, "--json").stdout)
+    assert info["finished"] and info["profiles"] == ["hrss"]
+    assert info["profile_attachments"] == ["hrss.toml"]
+    frames = [o for o in objs if o["kind"] in ("request", "response", "exception")]
+    assert info["topics"]["/modbus/frames"] == len(frames)
+    assert info["topics"]["/modbus/monitor"] == len(objs)
+    assert sum(fc["total"] for fc in info["function_codes"].values()) == len(frames)
+    assert info["exceptions"] == [{"fc": 3, "code": 2, "name": "Illegal Data Address", "count": 1}]
+    assert info["commands"]["phases"] == {"written": 1, "executing": 1, "success": 1}
+    assert info["commands"]["outcomes"][0]["text"].startswith("PTP")
+    assert info["events"] == {"connect": 1, "disconnect": 1}
+    assert [s["client"] for s in info["streams"]] == [frames[0]["src"]]
+    assert info["start"] <= objs[0]["time"] and info["end"] >= objs[-1]["time"]
+    text = mbmon("info", log).stdout
+    for needle in ("finished log", "Illegal Data Address", "PTP", "/hrss/state", "hrss.toml"):
+        assert needle in text
+
+
+def test_info_and_replay_of_an_unfinished_log(tmp_path: Path, hrss_log: tuple) -> None:
+    log, objs = hrss_log
+    data = log.read_bytes()
+    summary_start = int.from_bytes(data[-28:-20], "little")
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: summary_start - 1])
+    info = json.loads(mbmon("info", cut, "--json").stdout)
+    assert not info["finished"] and info["recovered_messages"] > 0
+    assert info["stopped_at"] is not None
+    assert "not finished" in mbmon("info", cut).stdout
+    proc = mbmon("replay", cut, "--json")
+    assert [json.loads(x) for x in proc.stdout.splitlines()] == objs
+    assert "not finished: recovered" in proc.stderr
+
+
+def test_damaged_and_foreign_logs_fail_cleanly(tmp_path: Path, hrss_log: tuple) -> None:
+    log, _ = hrss_log
+    data = bytearray(log.read_bytes())
+    with open(log, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    chunk = summary.chunk_indexes[0]
+    data[chunk.chunk_start_offset + chunk.chunk_length - 2] ^= 0xFF
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    for cmd in (["replay"], ["info"], ["export", "-o", str(tmp_path / "o.jsonl")]):
+        proc = mbmon(*cmd[:1], bad, *cmd[1:], check=False)
+        assert proc.returncode == 1 and "chunk at byte" in proc.stderr
+    foreign = tmp_path / "f.mcap"
+    foreign.write_bytes(b"hello, not a log")
+    proc = mbmon("replay", foreign, check=False)
+    assert proc.returncode == 1 and "not an MCAP file" in proc.stderr
+    proc = mbmon("info", tmp_path / "missing.mcap", check=False)
+    assert proc.returncode == 1 and "cannot open" in proc.stderr
+
+
+# --------------------------------------------------------------------------- signals
+
+
+@pytest.fixture(scope="module")
+def long_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A Modbus/TCP capture that takes mbmon many seconds: 25 ADUs per segment."""
+    path = tmp_path_factory.mktemp("big") / "long.pcap"
+    conv = TcpConversation("10.0.0.2:40000", "10.0.0.1:502")
+    ts = 1_700_000_000.0
+    with PcapWriter(path) as w:
+        for frame in conv.open():
+            w.write(ts, frame)
+        tid = 0
+        for _ in range(6000):
+            reqs, resps = b"", b""
+            for _ in range(25):
+                tid = (tid + 1) & 0xFFFF
+                reqs += tid.to_bytes(2, "big") + bytes.fromhex("0000000601030064000A")
+                resps += tid.to_bytes(2, "big") + bytes.fromhex("00000017010314") + bytes(20)
+            ts += 0.001
+            w.write(ts, conv.send(True, reqs))
+            ts += 0.001
+            w.write(ts, conv.send(False, resps))
+    return path
+
+
+def _start_recording(capture: Path, log: Path) -> tuple[subprocess.Popen[str], list]:
+    proc = subprocess.Popen(
+        [*MBMON, "read", str(capture), "--json", "-w", str(log)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=ENV,
+    )
+    received: list[tuple[float, int]] = []
+
+    def reader() -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            received.append((time.monotonic(), json.loads(line)["index"]))
+
+    threading.Thread(target=reader, daemon=True).start()
+    deadline = time.monotonic() + 60
+    while not received and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    assert received, "mbmon read printed nothing"
+    return proc, received
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_signals_leave_finished_indexed_logs(
+    tmp_path: Path, long_capture: Path, sig: signal.Signals
+) -> None:
+    log = tmp_path / "sig.mcap"
+    proc, received = _start_recording(long_capture, log)
+    time.sleep(1.0)
+    assert proc.poll() is None, "the input must outlast the test"
+    proc.send_signal(sig)
+    proc.wait(timeout=60)
+    assert proc.returncode == 128 + sig
+    assert proc.stderr is not None and "Traceback" not in proc.stderr.read()
+    with open(log, "rb") as f:
+        summary = make_reader(f, validate_crcs=True).get_summary()
+    assert summary is not None and summary.chunk_indexes and summary.statistics.message_count
+    with McapLog(log) as opened:
+        assert opened.finished
+        got = [m.json()["line"] for m in opened.messages(["/modbus/monitor"])]
+    printed = [i for _, i in received]
+    assert got[: len(printed)] == printed  # everything printed was logged
+
+
+def test_sigkill_keeps_everything_older_than_a_second(tmp_path: Path, long_capture: Path) -> None:
+    log = tmp_path / "kill.mcap"
+    proc, received = _start_recording(long_capture, log)
+    time.sleep(2.0)
+    assert proc.poll() is None, "the input must outlast the test"
+    killed_at = time.monotonic()
+    proc.kill()
+    proc.wait(timeout=30)
+    # a record printed on stdout was handed to the sinks first (sinks, then console)
+    old = {i for t, i in received if t < killed_at - 1.0}
+    assert len(old) > 100
+    with McapLog(log) as opened:
+        assert not opened.finished
+        got = [m.json()["line"] for m in opened.messages(["/modbus/monitor"])]
+        assert opened.status.messages > 0
+    assert old <= set(got), f"lost {len(old - set(got))} records older than one second"
+    assert got == list(range(len(got)))
+    info = mbmon("info", log).stdout
+    assert "log was not finished: recovered" in info and "stopped at byte" in info
