@@ -6,9 +6,11 @@ to cover every block type the reader accepts), link-layer wrappers for every
 link type the reader dissects (:func:`link_frame`), IPv4/IPv6/TCP/UDP headers
 with valid checksums, and :class:`TcpConversation`, which keeps sequence and
 acknowledgement numbers consistent over a whole connection so that Wireshark
-shows no analysis warnings. The pcap export sink reuses it: one
-:class:`TcpConversation` per TCP stream (``send`` per chunk), :func:`udp_frame`
-for datagrams, and ``PcapWriter(out, LINKTYPE_USER0)`` for RTU bus bytes.
+shows no analysis warnings. :class:`ChunkWriter` turns mbmon's own chunks and
+events back into such a capture (the pcap export sink): one conversation per
+TCP stream, datagrams for UDP, link type 147 records for RTU bus bytes; reading
+its output with :func:`mbmon.sources.pcapfile.read_capture` gives the same
+chunks and events.
 
 Pure Python, no scapy.
 """
@@ -21,6 +23,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import BinaryIO
+
+from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport
 
 LINKTYPE_NULL = 0  # BSD loopback: 4-byte address family in the writer's byte order
 LINKTYPE_ETHERNET = 1
@@ -534,6 +538,149 @@ class PcapngWriter:
             self._f.flush()
 
     def __enter__(self) -> PcapngWriter:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+class ChunkWriter:
+    """Chunks and events back into a capture that :func:`read_capture` reads as the
+    same chunks and events: the pcap export.
+
+    TCP streams become Ethernet/IP/TCP conversations with consistent numbers: a
+    CONNECT event writes the three-way handshake, each chunk one segment, a GAP
+    skips its bytes (the peer then acknowledges them, so a re-read reports the same
+    gap), a DISCONNECT writes FIN-FIN-ACK or a RST from the side that sent it.
+    UDP chunks become datagrams; RTU bus chunks become link type 147 records.
+    Other events are not packets and are skipped. Stream endpoints that are not
+    ``IP:PORT`` get made-up addresses derived from the stream id.
+
+    A pcap file has one link type, so with ``pcapng=False`` the first chunk fixes
+    it (Ethernet, or 147 for a bus) and a chunk needing the other raises
+    ValueError; pcapng holds both (one interface per bus).
+    """
+
+    def __init__(self, out: str | Path | BinaryIO, *, pcapng: bool = False) -> None:
+        self._out = out
+        self._pcapng: PcapngWriter | None = PcapngWriter(out) if pcapng else None
+        self._pcap: PcapWriter | None = None
+        self._pcap_link: int | None = None
+        self._ether_iface: int | None = None
+        self._bus_ifaces: dict[int, int] = {}
+        self._tcp: dict[int, TcpConversation] = {}
+
+    def _emit(self, ts: float, frame: bytes, linktype: int, stream_id: int) -> None:
+        if self._pcapng is not None:
+            if linktype == LINKTYPE_USER0:
+                iface = self._bus_ifaces.get(stream_id)
+                if iface is None:
+                    iface = self._bus_ifaces[stream_id] = self._pcapng.add_interface(
+                        LINKTYPE_USER0, tsresol=9
+                    )
+            else:
+                if self._ether_iface is None:
+                    self._ether_iface = self._pcapng.add_interface(LINKTYPE_ETHERNET, tsresol=9)
+                iface = self._ether_iface
+            self._pcapng.write(ts, frame, interface=iface)
+            return
+        if self._pcap is None:
+            self._pcap = PcapWriter(self._out, linktype, nanosecond=True)
+            self._pcap_link = linktype
+        elif linktype != self._pcap_link:
+            raise ValueError(
+                f"a pcap file holds one link type ({self._pcap_link}); "
+                f"link type {linktype} needs pcapng"
+            )
+        self._pcap.write(ts, frame)
+
+    @staticmethod
+    def _endpoints(stream: Stream) -> tuple[str, str]:
+        """The stream's endpoints, or made-up ones when they are not ``IP:PORT``."""
+        try:
+            for endpoint in (stream.client, stream.server):
+                ipaddress.ip_address(parse_endpoint(endpoint)[0])
+        except ValueError:
+            sid = stream.id & 0xFFFF
+            return (
+                f"10.200.{sid >> 8}.{sid & 0xFF}:{49152 + stream.id % 16384}",
+                f"10.201.{sid >> 8}.{sid & 0xFF}:502",
+            )
+        return stream.client, stream.server
+
+    def _conversation(self, stream: Stream) -> TcpConversation:
+        conv = self._tcp.get(stream.id)
+        if conv is None:
+            client, server = self._endpoints(stream)
+            conv = self._tcp[stream.id] = TcpConversation(
+                client,
+                server,
+                client_isn=(stream.id * 2654435761 + 1000) & 0xFFFFFFFF,
+                server_isn=(stream.id * 2246822519 + 5000) & 0xFFFFFFFF,
+            )
+        return conv
+
+    def write(self, item: Chunk | Event) -> None:
+        """One chunk or event, in the order the reader produced them."""
+        stream = item.stream
+        if stream is None:
+            return
+        tcp = stream.transport in (Transport.TCP, Transport.RTU_OVER_TCP)
+        if isinstance(item, Event):
+            if tcp:
+                for frame in self._event_frames(item, self._conversation(stream)):
+                    self._emit(item.ts, frame, LINKTYPE_ETHERNET, stream.id)
+            return
+        from_client = item.direction is not Direction.S2C
+        if tcp:
+            frame = self._conversation(stream).send(from_client, item.data)
+        elif stream.transport in (Transport.UDP, Transport.RTU_OVER_UDP):
+            client, server = self._endpoints(stream)
+            (cip, cport), (sip, sport) = parse_endpoint(client), parse_endpoint(server)
+            if from_client:
+                frame = udp_frame(LINKTYPE_ETHERNET, cip, sip, cport, sport, item.data)
+            else:
+                frame = udp_frame(LINKTYPE_ETHERNET, sip, cip, sport, cport, item.data)
+        else:  # a serial bus
+            self._emit(item.ts, item.data, LINKTYPE_USER0, stream.id)
+            return
+        self._emit(item.ts, frame, LINKTYPE_ETHERNET, stream.id)
+
+    @staticmethod
+    def _event_frames(event: Event, conv: TcpConversation) -> list[bytes]:
+        if event.kind is EventKind.CONNECT:
+            return conv.open()
+        if event.kind is EventKind.GAP:
+            size = int(event.info.get("bytes", 0))
+            from_client = event.info.get("direction") == Direction.C2S.value
+            if from_client:
+                conv.client_next = (conv.client_next + size) & 0xFFFFFFFF
+            else:
+                conv.server_next = (conv.server_next + size) & 0xFFFFFFFF
+            return [conv.ack(not from_client)]  # the peer had them: the gap shows
+        if event.kind is EventKind.DISCONNECT:
+            by_client = event.info.get("by") != "server"
+            if event.info.get("how") == "rst":
+                return [conv.reset(by_client)]
+            if event.info.get("half_closed"):
+                return [conv.segment(by_client, FIN | ACK)]
+            return conv.close(by_client)
+        return []
+
+    def close(self) -> None:
+        if self._pcapng is not None:
+            self._pcapng.close()
+        elif self._pcap is not None:
+            self._pcap.close()
+        else:  # nothing written: still leave a valid (empty) capture
+            PcapWriter(self._out, LINKTYPE_ETHERNET, nanosecond=True).close()
+
+    def __enter__(self) -> ChunkWriter:
         return self
 
     def __exit__(
