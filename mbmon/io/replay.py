@@ -193,28 +193,46 @@ def recorded_annotator(log: McapLog, opts: RecordedOptions) -> Any:
     """The annotator for the profiles stored in the log, bound as they were recorded.
 
     Each ``--profile`` spec of the recording names a profile; its text is taken
-    from the log's attachment of that name (never from today's files), written
-    to a temporary file and bound with the same spec. ``None`` without profiles.
+    from the log's attachment (never from today's files: they may have changed
+    or gone), written to a temporary file and bound with the same spec. The
+    metadata's ``profile_bindings`` say which attachment each spec loaded;
+    older logs fall back to matching names. ``None`` without profiles.
     """
     stored = log.profiles()
     if not opts.profile_specs and not stored:
         return None
     from mbmon.cli import make_annotator
 
+    meta = log.metadata.get(METADATA_NAME, {})
+    try:
+        bindings = {
+            str(spec): int(number)
+            for spec, number in json.loads(meta.get("profile_bindings", "[]"))
+        }
+    except (ValueError, TypeError):
+        bindings = {}
     with tempfile.TemporaryDirectory(prefix="mbmon-profiles-") as tmp:
-        files: dict[str, str] = {}
-        for name, text in stored:
-            target = Path(tmp) / Path(name).name
+        paths: list[str] = []
+        by_name: dict[str, str] = {}
+        for number, (name, text) in enumerate(stored):
+            target = Path(tmp) / f"{number}-{Path(name).name}"
             target.write_text(text, "utf-8")
-            files[Path(name).stem] = str(target)
-        specs = opts.profile_specs or [files[k] for k in files]
+            paths.append(str(target))
+            by_name.setdefault(Path(name).stem, str(target))
+        specs = opts.profile_specs or paths
         rewritten = []
         for spec in specs:
             target, eq, name = spec.rpartition("=")
-            path = _stored_file_for(name.strip() if eq else spec.strip(), files)
+            number = bindings.get(spec)
+            if number is not None and 0 <= number < len(paths):
+                path: str | None = paths[number]
+            elif spec in paths:
+                path = spec
+            else:
+                path = _stored_file_for(name.strip() if eq else spec.strip(), by_name)
             if path is None:
                 raise LogError(
-                    f"{log.path}: profile {name or spec!r} was in force when recording but "
+                    f"{log.path}: profile {spec!r} was in force when recording but "
                     "is not stored in the log"
                 )
             rewritten.append(f"{target}={path}" if eq else path)

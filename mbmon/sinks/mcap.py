@@ -146,6 +146,43 @@ def log_level(record: Record, obj: Mapping[str, Any]) -> int:
     return LOG_INFO
 
 
+def profile_specs(argv: list[str]) -> list[str]:
+    """The ``--profile`` values of a command line, in order."""
+    specs = []
+    for i, arg in enumerate(argv):
+        if arg == "--profile" and i + 1 < len(argv):
+            specs.append(argv[i + 1])
+        elif arg.startswith("--profile="):
+            specs.append(arg.split("=", 1)[1])
+    return specs
+
+
+def profile_bindings(argv: list[str], profiles: list[tuple[str, str]]) -> list[list[Any]]:
+    """``[spec, attachment number]`` for each ``--profile`` of the recording command.
+
+    The profile a spec names (a built-in or a file) is recognised by its text
+    among the profiles in force, so ``replay --redecode`` can bind the stored
+    copy exactly as recorded even when names and file names differ.
+    """
+    out: list[list[Any]] = []
+    texts = [text for _, text in profiles]
+    for spec in profile_specs(argv):
+        _target, eq, name = spec.rpartition("=")
+        name = name.strip() if eq else spec.strip()
+        try:
+            from mbmon.semantics.regmap import BUILTIN_PROFILES, builtin_profile_text
+
+            if name in BUILTIN_PROFILES:
+                text = builtin_profile_text(name)
+            else:
+                text = Path(name).read_text("utf-8")
+        except (OSError, UnicodeDecodeError, ValueError, ImportError):
+            continue
+        if text in texts:
+            out.append([spec, texts.index(text)])
+    return out
+
+
 def _ns(ts: float) -> int:
     """Nanoseconds of a capture time, to the microsecond.
 
@@ -452,6 +489,9 @@ class McapSink(SinkBase):
                 "command_line": json.dumps(list(ctx.command_line), ensure_ascii=False),
                 "source": ctx.source,
                 "profiles": json.dumps([name for name, _ in ctx.profiles], ensure_ascii=False),
+                "profile_bindings": json.dumps(
+                    profile_bindings(ctx.command_line, ctx.profiles), ensure_ascii=False
+                ),
                 "robot": ctx.view.robot or "",
                 "robot_is_client": "true" if ctx.view.robot_is_client else "false",
                 "started": time.strftime("%Y-%m-%dT%H:%M:%S%z", time.localtime(now_ns / 1e9)),

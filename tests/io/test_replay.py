@@ -218,3 +218,49 @@ def test_pacer_never_sleeps_when_behind() -> None:
     assert fake.sleeps == []
     with pytest.raises(ValueError):
         Pacer(0)
+
+
+def test_redecode_binds_each_stored_profile_as_recorded(tmp_path: Path) -> None:
+    """Two profile files whose names differ from their file names, bound to two units."""
+    from mbmon.cli import make_annotator
+
+    one = tmp_path / "plc.toml"
+    two = tmp_path / "gripper.toml"
+    one.write_text(CELL_TOML)
+    two.write_text(CELL_TOML.replace('"cell"', '"tool"').replace("conveyor speed", "jaw force"))
+    specs = [f"unit:1={one}", f"unit:2={two}"]
+    items = records.session_items()
+    items.insert(
+        1,
+        records.Chunk(
+            records.T0,
+            records.TCP,
+            records.Direction.C2S,
+            records.mbap(9, 2, bytes.fromhex("0600C80005")),
+        ),
+    )
+    stream = records.run_pipeline(items, make_annotator(specs))
+    argv = ["mbmon", "read", "x.pcap", "--profile", specs[0], f"--profile={specs[1]}"]
+    ctx = SinkContext(
+        view=View(),
+        command_line=argv,
+        source="x.pcap",
+        profiles=[("cell", one.read_text()), ("tool", two.read_text())],
+    )
+    path = tmp_path / "two.mcap"
+    with McapSink(path, ctx) as sink:
+        records.feed(sink, stream)
+    one.unlink()
+    two.unlink()
+    with McapLog(path) as log:
+        assert json.loads(log.metadata["mbmon"]["profile_bindings"]) == [
+            [specs[0], 0],
+            [specs[1], 1],
+        ]
+        again = list(
+            Pipeline(recorded_annotator(log, recorded_options(log))).run(list(raw_items(log)))
+        )
+    lines = [record_line(r, View()) for r in again]
+    assert lines == [record_line(r, View()) for r in stream if isinstance(r, Record)]
+    text = "\n".join(lines)
+    assert "conveyor speed" in text and "jaw force" in text
