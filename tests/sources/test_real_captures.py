@@ -25,8 +25,6 @@ DIFFERENTIAL = [
     "tcp__zeek__modbusBig.pcap",  # retransmission + an unseen acknowledged segment
     "tcp__lemay__send_a_fake_command_6RTU_with_operate.pcap",  # 1233 connections
     "tcp__emreekin__crash.pcap",  # RST then a new SYN on the same addresses
-    "tcp__aaronderybel__modbus_fc5_flood.pcapng",
-    "tcp__emreekin__modbusAnalog.pcap",  # retransmissions, IPv6 background
     "tcp__zeek__fuzz-1011.pcap",  # holes acknowledged by the peer
 ]
 
