@@ -325,10 +325,9 @@ def summarize(log: Any) -> dict[str, Any]:
                         "frames": 0,
                     }
                 if data.get("type") == "chunk" and sid is not None:
+                    b64 = str(data.get("data") or "")
                     streams[sid]["chunks"] += 1
-                    streams[sid]["bytes"] += len(data.get("data") or "") * 3 // 4 - str(
-                        data.get("data") or ""
-                    ).count("=")
+                    streams[sid]["bytes"] += len(b64) * 3 // 4 - b64.count("=", -2)
                 continue
             if msg.topic not in (TOPIC_FRAMES, TOPIC_EVENTS, TOPIC_COMMANDS):
                 continue
