@@ -30,8 +30,9 @@ from mbmon.sources import pcapfile
 from mbmon.sources.pcapwrite import PcapngWriter, PcapWriter, TcpConversation
 
 
-def build(path: Path, packets: int, fmt: str) -> int:
-    """Write a Modbus/TCP polling capture of about ``packets`` packets; returns the count."""
+def build(path: Path, packets: int, fmt: str) -> tuple[int, int]:
+    """Write a Modbus/TCP polling capture of about ``packets`` packets; returns the
+    number of packets and of segments that carry payload."""
     conns = [
         TcpConversation(f"192.168.1.{10 + i}:{40000 + i}", "192.168.1.2:502", client_isn=i * 7919)
         for i in range(4)
@@ -42,7 +43,7 @@ def build(path: Path, packets: int, fmt: str) -> int:
     else:
         writer = PcapngWriter(path)
         writer.add_interface(1, tsresol=9)
-    count = 0
+    count = data = 0
     ts = 1_700_000_000.0
     with writer:
         for conn in conns:
@@ -60,10 +61,11 @@ def build(path: Path, packets: int, fmt: str) -> int:
             ts += 0.0005
             writer.write(ts, conn.send(False, response))
             count += 2
+            data += 2
             if tid % 10 == 0:
                 writer.write(ts, conn.ack(True))
                 count += 1
-    return count
+    return count, data
 
 
 def best_of(runs: int, run: Callable[[], int]) -> tuple[int, float]:
@@ -90,7 +92,7 @@ def main() -> None:
     tmp = tempfile.TemporaryDirectory()
     path = args.keep or Path(tmp.name) / f"bench.{args.format}"
     start = time.perf_counter()
-    packets = build(path, args.packets, args.format)
+    packets, segments = build(path, args.packets, args.format)
     size = path.stat().st_size
     print(
         f"built {path.name}: {packets:,} packets, {size / 1e6:.1f} MB "
@@ -104,10 +106,8 @@ def main() -> None:
 
     def mbmon_full() -> int:
         stats: dict[str, int] = {}
-        chunks = 0
-        for item in pcapfile.read_capture(path, stats=stats):
-            if type(item) is Chunk:
-                chunks += 1
+        chunks = sum(1 for item in pcapfile.read_capture(path, stats=stats) if type(item) is Chunk)
+        assert chunks == segments  # one chunk per payload segment
         return stats["packets"]
 
     def mbmon_records() -> int:
