@@ -162,7 +162,7 @@ def generic_note(pdu: Pdu, request: Pdu | None = None) -> str:
     elif count is not None:
         parts.append(f"count {count}")
     text = " ".join(parts)
-    if fc == 0x16 and "and_mask" in pdu.fields:
+    if fc == 0x16 and "and_mask" in pdu.fields and "or_mask" in pdu.fields:
         text += f" and=0x{pdu.fields['and_mask']:04X} or=0x{pdu.fields['or_mask']:04X}"
     if fc == 0x17 and pdu.kind is Kind.REQUEST and "write_address" in pdu.fields:
         text += f", write {_range(pdu.fields['write_address'], pdu.fields.get('write_count'))}"
