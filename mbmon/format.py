@@ -59,10 +59,16 @@ def monitor_hex(raw: bytes) -> str:
     return raw.hex(" ").upper()
 
 
+_last_second: list[Any] = [None, ""]
+
+
 def format_time(ts: float) -> str:
     """Time of day in local time with microseconds, like tcpdump."""
     whole = int(ts // 1)
-    return time.strftime("%H:%M:%S", time.localtime(whole)) + f".{int((ts - whole) * 1e6):06d}"
+    if _last_second[0] != whole:  # one strftime per second of capture, not per record
+        _last_second[0] = whole
+        _last_second[1] = time.strftime("%H:%M:%S", time.localtime(whole))
+    return f"{_last_second[1]}.{int((ts - whole) * 1e6):06d}"
 
 
 # --------------------------------------------------------------------------- labels
@@ -226,14 +232,18 @@ def _event_text(record: Record, view: View) -> str:
     return event.kind.value
 
 
-def record_line(record: Record, view: View) -> str:
-    """The full console/text line of a record: time, label, monitor hex, notes (plain text)."""
+def record_line(record: Record, view: View, notes: tuple[str, ...] | None = None) -> str:
+    """The full console/text line of a record: time, label, monitor hex, notes (plain text).
+
+    ``notes`` are the record's :func:`frame_notes` when the caller has them already.
+    """
     when = format_time(record.ts)
     kind = record.kind
     if record.frame is not None:
         frame = record.frame
         label = view.label(frame.stream, frame.direction)
-        notes = frame_notes(record)
+        if notes is None:
+            notes = frame_notes(record)
         extra = []
         if record.latency is not None:
             extra.append(f"{record.latency * 1000:.1f} ms")
@@ -290,7 +300,6 @@ def record_to_json(record: Record, view: View) -> dict[str, Any]:
     out["index"] = record.index
     out["time"] = record.ts
     out["kind"] = record.kind.value
-    out["line"] = record_line(record, view)
     stream = record.stream
     if stream is not None:
         out["stream"] = stream.id
@@ -311,14 +320,18 @@ def record_to_json(record: Record, view: View) -> dict[str, Any]:
         out["count"] = count
         out["values"] = list(pdu.values) if pdu.values is not None else None
         out["pdu"] = monitor_hex(pdu.raw)
-        out["notes"] = list(frame_notes(record))
+        notes = frame_notes(record)
+        out["notes"] = list(notes)
+        out["line"] = record_line(record, view, notes)
         out["crc_ok"] = frame.crc_ok
         out["latency_ms"] = round(record.latency * 1000, 3) if record.latency is not None else None
         out["malformed"] = pdu.malformed
         out["request_index"] = record.request_index
         if pdu.fields:
             out["fields"] = _jsonable(pdu.fields)
-    elif record.noise is not None:
+    else:
+        out["line"] = record_line(record, view)
+    if record.noise is not None:
         noise = record.noise
         out["src"] = noise.stream.src(noise.direction)
         out["dst"] = noise.stream.dst(noise.direction)

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from mbmon.model import Direction, Frame, Kind, Transaction, TxStatus
+from mbmon.model import Direction, Frame, Kind, Pdu, Transaction, TxStatus
 from mbmon.protocol.pdu import decode_pdu
 
 __all__ = ["DEFAULT_MAX_PENDING", "Pairer"]
@@ -142,7 +142,24 @@ class Pairer:
         del pend[key]
         if not pend:
             del self._pending[sid]
-        pdu = decode_pdu(resp.pdu.raw, True, request=req.pdu)
-        resp = replace(resp, pdu=pdu)
+        pdu = resp.pdu
+        if _needs_request(pdu, req.pdu):
+            pdu = decode_pdu(pdu.raw, True, request=req.pdu)
+            resp = replace(resp, pdu=pdu)
         status = TxStatus.EXCEPTION if pdu.kind is Kind.EXCEPTION else TxStatus.ANSWERED
         return Transaction(resp.ts, status, req, resp, resp.ts - req.ts)
+
+
+def _needs_request(resp: Pdu, req: Pdu) -> bool:
+    """Whether decoding ``resp`` with its request changes it (hot path: skip when not).
+
+    Bit reads are trimmed to the requested count; register reads are only
+    checked against it, which matters when the byte count disagrees; diagnostics
+    and file records copy or compare fields of the request.
+    """
+    if resp.kind is Kind.EXCEPTION:
+        return False
+    fc = resp.fc
+    if fc in (0x03, 0x04, 0x17):
+        return req.count is not None and resp.byte_count != 2 * req.count
+    return fc in (0x01, 0x02, 0x08, 0x14)
