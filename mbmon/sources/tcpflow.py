@@ -239,6 +239,10 @@ class TcpConnection:
                 )
             )
             return
+        if flags & SYN and flags & FIN:
+            # SYN+FIN is no valid segment (stacks drop it; fuzzers send it): the FIN
+            # must not end a direction whose real bytes are still to come.
+            flags &= ~FIN
         if flags & SYN:
             if half.isn is None and half.nxt is None:
                 half.isn = seq

@@ -302,3 +302,13 @@ def test_fast_chunk_is_an_ordinary_frozen_chunk() -> None:
     assert repr(made) == repr(plain)
     with pytest.raises(dataclasses.FrozenInstanceError):
         made.ts = 2.0  # type: ignore[misc]
+
+
+def test_syn_fin_segment_does_not_close_the_direction() -> None:
+    """A fuzzer's SYN+FIN (zeek fuzz-72 frame 1) must not end the sender's direction."""
+    conn = TcpConnection(STREAM)
+    out: list[Chunk | Event] = []
+    conn.segment(1.0, False, 9000, 0, SYN | FIN | PSH, b"abcdef", out)
+    conn.segment(1.1, False, 9007, 0, PSH | ACK, b"gh", out)
+    assert delivered(out, Direction.S2C) == b"abcdefgh"
+    assert "disconnect" not in kinds(out)
