@@ -289,16 +289,15 @@ def emit_records(
     sinks: list[Any],
 ) -> None:
     """Hand each record to the console (text or JSON) and to every sink."""
-    from mbmon.format import record_line, record_to_json
+    from mbmon.format import json_line, record_line, record_to_json
 
     write = out.write if out is not None else None
-    dumps = json.JSONEncoder(ensure_ascii=False, separators=(", ", ": ")).encode
     for record in records:
         for sink in sinks:
             sink.write(record)
         if write is not None:
             if as_json:
-                write(dumps(record_to_json(record, view)) + "\n")
+                write(json_line(record_to_json(record, view)) + "\n")
             else:
                 write(record_line(record, view) + "\n")
 

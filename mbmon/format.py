@@ -54,9 +54,19 @@ def exception_name(code: int) -> str:
     return _names()[1].get(code) or f"Exception 0x{code:02X}"
 
 
+_HEX_CACHE: dict[bytes, str] = {}
+_NOTE_CACHE: dict[tuple[bytes, Kind, bytes | None], str] = {}
+_CACHE_SIZE = 8192
+
+
 def monitor_hex(raw: bytes) -> str:
     """PDU bytes as the robot's Modbus Monitor shows them: ``02 01 2C 00 05``."""
-    return raw.hex(" ").upper()
+    text = _HEX_CACHE.get(raw)
+    if text is None:
+        if len(_HEX_CACHE) >= _CACHE_SIZE:
+            _HEX_CACHE.clear()
+        text = _HEX_CACHE[raw] = raw.hex(" ").upper()
+    return text
 
 
 _last_second: list[Any] = [None, ""]
@@ -149,7 +159,18 @@ def generic_note(pdu: Pdu, request: Pdu | None = None) -> str:
     """Short protocol-level meaning of one PDU: name, address range, values in decimal.
 
     A response is read with its request (``request``) for the address of a read.
+    The text depends only on the two PDUs' bytes, so repeats (polling) are cached.
     """
+    key = (pdu.raw, pdu.kind, request.raw if request is not None else None)
+    text = _NOTE_CACHE.get(key)
+    if text is None:
+        if len(_NOTE_CACHE) >= _CACHE_SIZE:
+            _NOTE_CACHE.clear()
+        text = _NOTE_CACHE[key] = _generic_note(pdu, request)
+    return text
+
+
+def _generic_note(pdu: Pdu, request: Pdu | None) -> str:
     if pdu.kind is Kind.EXCEPTION:
         code = pdu.exception_code if pdu.exception_code is not None else 0
         return f"Exception {code:02X} {exception_name(code)} ({function_name(pdu.fc)})"
@@ -294,43 +315,70 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
+try:  # orjson is several times faster than the standard encoder on the hot path
+    import orjson as _orjson
+
+    def json_line(obj: dict[str, Any]) -> str:
+        """One JSON record as a compact line (no trailing newline), non-ASCII kept."""
+        return _orjson.dumps(obj).decode()
+
+except ImportError:  # pragma: no cover - orjson is a dependency; keep working without it
+    import json as _json
+
+    _encode = _json.JSONEncoder(ensure_ascii=False, separators=(",", ":")).encode
+
+    def json_line(obj: dict[str, Any]) -> str:
+        """One JSON record as a compact line (no trailing newline), non-ASCII kept."""
+        return _encode(obj)
+
+
 def record_to_json(record: Record, view: View) -> dict[str, Any]:
     """The stable JSON object of ``read --json`` (keys documented in docs/json.md)."""
+    frame: Frame | None = record.frame
+    if frame is not None:  # the hot path: one dict literal, keys in documented order
+        pdu = frame.pdu
+        stream = frame.stream
+        address, count = pdu.address, pdu.count
+        request = record.request
+        if address is None and request is not None and pdu.kind is not Kind.REQUEST:
+            address, count = request.pdu.address, request.pdu.count
+        notes = frame_notes(record)
+        latency = record.latency
+        values = pdu.values
+        obj: dict[str, Any] = {
+            "index": record.index,
+            "time": record.ts,
+            "stream": stream.id,
+            "src": stream.src(frame.direction),
+            "dst": stream.dst(frame.direction),
+            "transport": stream.transport,
+            "tid": frame.tid,
+            "unit": frame.unit,
+            "fc": pdu.fc,
+            "kind": record.kind,
+            "exception_code": pdu.exception_code,
+            "address": address,
+            "count": count,
+            "values": list(values) if values is not None else None,
+            "pdu": monitor_hex(pdu.raw),
+            "line": record_line(record, view, notes),
+            "notes": list(notes),
+            "crc_ok": frame.crc_ok,
+            "latency_ms": round(latency * 1000, 3) if latency is not None else None,
+            "malformed": pdu.malformed,
+            "request_index": record.request_index,
+        }
+        if pdu.fields:
+            obj["fields"] = _jsonable(pdu.fields)
+        return obj
     out: dict[str, Any] = dict.fromkeys(_JSON_KEYS)
     out["index"] = record.index
     out["time"] = record.ts
     out["kind"] = record.kind.value
-    stream = record.stream
-    if stream is not None:
-        out["stream"] = stream.id
-        out["transport"] = stream.transport.value
-    frame: Frame | None = record.frame
-    if frame is not None:
-        pdu = frame.pdu
-        out["src"] = frame.stream.src(frame.direction)
-        out["dst"] = frame.stream.dst(frame.direction)
-        out["tid"] = frame.tid
-        out["unit"] = frame.unit
-        out["fc"] = pdu.fc
-        out["exception_code"] = pdu.exception_code
-        address, count = pdu.address, pdu.count
-        if pdu.kind is not Kind.REQUEST and record.request is not None and address is None:
-            address, count = record.request.pdu.address, record.request.pdu.count
-        out["address"] = address
-        out["count"] = count
-        out["values"] = list(pdu.values) if pdu.values is not None else None
-        out["pdu"] = monitor_hex(pdu.raw)
-        notes = frame_notes(record)
-        out["notes"] = list(notes)
-        out["line"] = record_line(record, view, notes)
-        out["crc_ok"] = frame.crc_ok
-        out["latency_ms"] = round(record.latency * 1000, 3) if record.latency is not None else None
-        out["malformed"] = pdu.malformed
-        out["request_index"] = record.request_index
-        if pdu.fields:
-            out["fields"] = _jsonable(pdu.fields)
-    else:
-        out["line"] = record_line(record, view)
+    if record.stream is not None:
+        out["stream"] = record.stream.id
+        out["transport"] = record.stream.transport.value
+    out["line"] = record_line(record, view)
     if record.noise is not None:
         noise = record.noise
         out["src"] = noise.stream.src(noise.direction)

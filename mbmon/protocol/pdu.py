@@ -762,6 +762,27 @@ def decode_pdu(
     checks. Never raises: spec violations become ``malformed``.
     """
     d = bytes(data)
+    if request is None:
+        key = (d, response)
+        hit = _CACHE.get(key)
+        if hit is not None:
+            return hit
+        pdu = _decode(d, response, None)
+        if len(_CACHE) >= _CACHE_SIZE:
+            _CACHE.clear()
+        _CACHE[key] = pdu
+        return pdu
+    return _decode(d, response, request)
+
+
+#: Decoded PDUs by (bytes, response). Polling repeats the same PDUs over and over
+#: and a Pdu is immutable, so a repeat is a dict hit; the cache is emptied when full.
+_CACHE: dict[tuple[bytes, bool], Pdu] = {}
+_CACHE_SIZE: Final = 8192
+
+
+def _decode(d: bytes, response: bool, request: Pdu | None) -> Pdu:
+    """:func:`decode_pdu` without the cache."""
     if not d:
         return Pdu(
             raw=d,
