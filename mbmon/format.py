@@ -110,7 +110,8 @@ class View:
         if self.robot is None or stream is None:
             return None
         if stream.transport is Transport.RTU:
-            if self.robot in (stream.server, _host(stream.server)):
+            name = self.robot.rstrip("/").rsplit("/", 1)[-1]
+            if self.robot == stream.server or name == stream.server.rsplit("/", 1)[-1]:
                 return "client" if self.robot_is_client else "server"
             return None
         for role, endpoint in (("server", stream.server), ("client", stream.client)):
