@@ -243,7 +243,7 @@ def _profile_sources(annotator: Any) -> list[tuple[str, str]]:
 class _Progress:
     """A rich progress bar on stderr for long files, only when stderr is a terminal."""
 
-    MIN_BYTES = 8 << 20
+    MIN_BYTES = 4 << 20  # about a second of reading
 
     def __init__(self, label: str, enabled: bool):
         self._bar: Any = None

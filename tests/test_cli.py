@@ -164,3 +164,35 @@ def test_broken_pipe_is_quiet(tmp_path: Path) -> None:
     )
     assert len(proc.stdout.splitlines()) == 2
     assert "Traceback" not in proc.stderr and "BrokenPipe" not in proc.stderr
+
+
+def test_progress_bar_on_a_terminal_only(tmp_path: Path) -> None:
+    """A long file shows a rich progress bar on stderr when stderr is a TTY, never otherwise."""
+    import os
+    import pty
+
+    cap = tmp_path / "big.pcap"
+    write_polling_pcap(cap, polls=30_000)  # > 4 MiB: the bar's threshold
+    assert cap.stat().st_size > 4 << 20
+    master, slave = pty.openpty()
+    proc = subprocess.Popen(
+        [*MBMON, "read", "-q", str(cap)],
+        stdout=subprocess.DEVNULL,
+        stderr=slave,
+        env={**os.environ, "COLUMNS": "100", "TERM": "xterm"},
+    )
+    os.close(slave)
+    seen = b""
+    while True:
+        try:
+            data = os.read(master, 65536)
+        except OSError:  # the child closed the terminal
+            break
+        if not data:
+            break
+        seen += data
+    assert proc.wait(timeout=120) == 0
+    os.close(master)
+    assert b"reading big.pcap" in seen
+    piped = run("read", "-q", str(cap))
+    assert piped.returncode == 0 and piped.stderr == ""
