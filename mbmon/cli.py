@@ -137,7 +137,9 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=_READ_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    read.add_argument("file", nargs="?", metavar="FILE", help="pcap or pcapng file")
+    read.add_argument(
+        "file", nargs="?", metavar="FILE", help="pcap or pcapng file (gzip too; - for stdin)"
+    )
     src = read.add_argument_group("input")
     src.add_argument(
         "--port",
@@ -333,6 +335,8 @@ def run_read(args: argparse.Namespace) -> int:
     annotator = make_annotator(args.profile)
     pipeline = Pipeline(annotator, PipelineConfig(timeout=args.timeout, baudrate=args.baud))
     path = args.rtu_raw or args.file
+    if path == "-":
+        path = "/dev/stdin"  # a pipe: the readers never seek
     progress = _Progress(f"reading {Path(path).name}", sys.stderr.isatty())
 
     if args.rtu_raw:
