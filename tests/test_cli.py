@@ -196,3 +196,17 @@ def test_progress_bar_on_a_terminal_only(tmp_path: Path) -> None:
     assert b"reading big.pcap" in seen
     piped = run("read", "-q", str(cap))
     assert piped.returncode == 0 and piped.stderr == ""
+
+
+def test_read_from_stdin(tmp_path: Path) -> None:
+    cap = tmp_path / "poll.pcap"
+    write_polling_pcap(cap, polls=4)
+    res = subprocess.run(
+        [*MBMON, "read", "-", "--json"],
+        input=cap.read_bytes(),
+        capture_output=True,
+        timeout=120,
+        check=True,
+    )
+    rows = [json.loads(x) for x in res.stdout.splitlines()]
+    assert sum(r["kind"] == "response" for r in rows) == 4
