@@ -1,23 +1,22 @@
 """JSON Lines sink (``-w FILE.jsonl``): exactly the lines ``mbmon read --json`` prints.
 
-Owns the one JSON line encoding shared by ``read --json``, ``replay --json``,
-``-w .jsonl`` and ``export .jsonl``, so that all four agree byte for byte.
+Uses the one JSON line encoding of ``read --json`` (:func:`mbmon.format.json_line`),
+as do ``replay --json`` and ``export .jsonl``, so that all four agree byte for byte.
 """
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from mbmon.format import record_to_json
+from mbmon.format import json_line, record_to_json
 from mbmon.model import Record
 from mbmon.sinks.base import SinkBase, SinkContext
 
-#: the encoder of ``read --json`` lines (non-ASCII kept, default separators)
-dumps_line = json.JSONEncoder(ensure_ascii=False, separators=(", ", ": ")).encode
+#: the encoder of ``read --json`` lines (mbmon.format.json_line: compact, non-ASCII kept)
+dumps_line = json_line
 
 FLUSH_EVERY = 1.0  # seconds of wall time between flushes of text sinks
 

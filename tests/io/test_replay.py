@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 import pytest
-from conftest import records
+import sink_records as records
 
 from mbmon.format import View, record_line, record_to_json
 from mbmon.io.mcap_reader import McapLog

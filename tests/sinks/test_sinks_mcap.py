@@ -14,8 +14,8 @@ from pathlib import Path
 
 import jsonschema
 import pytest
-from conftest import REPO, feed, hrss_context
 from mcap.reader import NonSeekingReader, make_reader
+from sink_records import REPO, feed, hrss_context
 
 from mbmon import __version__
 from mbmon.format import View, record_line, record_to_json
@@ -335,7 +335,7 @@ def test_idle_flush_by_timer(tmp_path: Path, session_stream: list) -> None:
 _WRITER = r"""
 import dataclasses, sys, time
 sys.path.insert(0, sys.argv[2])
-from conftest import session_items, run_pipeline
+from sink_records import session_items, run_pipeline
 from mbmon.format import View
 from mbmon.model import Chunk
 from mbmon.sinks.base import SinkContext

@@ -13,7 +13,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from conftest import feed, run_pipeline
+from sink_records import feed, run_pipeline
 
 from mbmon.format import View, record_to_json
 from mbmon.model import Chunk, Record, RecordKind
