@@ -20,7 +20,6 @@ record and the profile attachments, and the crash-safety policy:
 
 from __future__ import annotations
 
-import base64
 import json
 import math
 import signal
@@ -28,6 +27,7 @@ import struct
 import threading
 import time
 import zlib
+from binascii import b2a_base64
 from collections.abc import Callable, Mapping
 from importlib import resources
 from pathlib import Path
@@ -35,10 +35,11 @@ from typing import IO, Any
 
 from mbmon import __version__
 from mbmon.format import View, record_to_json
-from mbmon.model import Chunk, Event, EventKind, Record, RecordKind, Stream
+from mbmon.model import Chunk, Direction, Event, EventKind, Record, RecordKind, Stream
 from mbmon.sinks.base import SinkBase, SinkContext
 
 _json_str = json.encoder.encode_basestring  # C-accelerated, keeps non-ASCII
+_DIRECTIONS = {d: d.value for d in Direction}
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")  # opcode, length, channel, sequence, log, publish
 
@@ -542,10 +543,10 @@ class McapSink(SinkBase):
             fields = _stream_fields(stream)
             prefix = encode({"type": "chunk", **fields}).decode()[:-1]
             self._raw_prefix[stream.id] = prefix
-        data = base64.b64encode(chunk.data).decode("ascii")
+        data = b2a_base64(chunk.data, newline=False).decode("ascii")
         ts = chunk.ts
         body = (
-            f'{prefix},"ts":{ts!r},"direction":"{chunk.direction.value}",'
+            f'{prefix},"ts":{ts!r},"direction":"{_DIRECTIONS[chunk.direction]}",'
             f'"data":"{data}","event":null,"info":null}}'
         )
         self._counts["chunks"] += 1
