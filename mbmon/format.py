@@ -11,7 +11,7 @@ spaces: no unit id, no MBAP header, no CRC (manual §5.5, Table 57).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from mbmon.model import (
@@ -54,6 +54,7 @@ def exception_name(code: int) -> str:
     return _names()[1].get(code) or f"Exception 0x{code:02X}"
 
 
+_S2C = Direction.S2C
 _HEX_CACHE: dict[bytes, str] = {}
 _NOTE_CACHE: dict[tuple[bytes, Kind, bytes | None], str] = {}
 _CACHE_SIZE = 8192
@@ -104,6 +105,9 @@ class View:
 
     robot: str | None = None
     robot_is_client: bool = False
+    _labels: dict[tuple[int, Direction], tuple[Stream, str]] = field(
+        default_factory=dict, compare=False, repr=False
+    )
 
     def robot_role(self, stream: Stream | None) -> str | None:
         """``"server"``, ``"client"`` or ``None`` (the robot is not on this stream)."""
@@ -125,13 +129,25 @@ class View:
         return None
 
     def label(self, stream: Stream | None, direction: Direction) -> str:
+        """The label of one direction of a stream (cached per stream: it is per-record work)."""
+        if stream is None:
+            return ""
+        key = (stream.id, direction)
+        hit = self._labels.get(key)
+        if hit is not None and hit[0] is stream:
+            return hit[1]
+        text = self._label(stream, direction)
+        if len(self._labels) > 65536:
+            self._labels.clear()
+        self._labels[key] = (stream, text)
+        return text
+
+    def _label(self, stream: Stream, direction: Direction) -> str:
         role = self.robot_role(stream)
         if role == "server":
             return "Receive from client" if direction is Direction.C2S else "Send to client"
         if role == "client":
             return "Send to server" if direction is Direction.C2S else "Receive from server"
-        if stream is None:
-            return ""
         if stream.transport is Transport.RTU:
             return "master → slave" if direction is Direction.C2S else "slave → master"
         return f"{stream.src(direction)} → {stream.dst(direction)}"
@@ -266,15 +282,14 @@ def record_line(record: Record, view: View, notes: tuple[str, ...] | None = None
         label = view.label(frame.stream, frame.direction)
         if notes is None:
             notes = frame_notes(record)
-        extra = []
-        if record.latency is not None:
-            extra.append(f"{record.latency * 1000:.1f} ms")
-        if record.request is None and frame.direction is Direction.S2C:
-            extra.append("no matching request")
         tail = "; ".join(notes)
-        if extra:
-            tail += f" ({', '.join(extra)})"
-        ids = f"u{frame.unit}" + (f" t{frame.tid}" if frame.tid is not None else "")
+        latency = record.latency
+        if latency is not None:
+            tail += f" ({latency * 1000:.1f} ms)"
+        elif record.request is None and frame.direction is _S2C:
+            tail += " (no matching request)"
+        tid = frame.tid
+        ids = f"u{frame.unit} t{tid}" if tid is not None else f"u{frame.unit}"
         return f"{when}  {label}  [{ids}]  {monitor_hex(frame.pdu.raw)}  | {tail}"
     if kind is RecordKind.NOISE and record.noise is not None:
         noise = record.noise
@@ -333,12 +348,21 @@ except ImportError:  # pragma: no cover - orjson is a dependency; keep working w
         return _encode(obj)
 
 
+#: enum member -> its plain str value (orjson serialises a plain str several times
+#: faster than a str-enum member, and ``.value`` is a slow descriptor)
+_PLAIN: dict[Any, str] = {m: str(m.value) for e in (RecordKind, Transport) for m in e}
+
+
 def record_to_json(record: Record, view: View) -> dict[str, Any]:
     """The stable JSON object of ``read --json`` (keys documented in docs/json.md)."""
     frame: Frame | None = record.frame
     if frame is not None:  # the hot path: one dict literal, keys in documented order
         pdu = frame.pdu
         stream = frame.stream
+        if frame.direction is _S2C:
+            src, dst = stream.server, stream.client
+        else:
+            src, dst = stream.client, stream.server
         address, count = pdu.address, pdu.count
         request = record.request
         if address is None and request is not None and pdu.kind is not Kind.REQUEST:
@@ -350,13 +374,13 @@ def record_to_json(record: Record, view: View) -> dict[str, Any]:
             "index": record.index,
             "time": record.ts,
             "stream": stream.id,
-            "src": stream.src(frame.direction),
-            "dst": stream.dst(frame.direction),
-            "transport": stream.transport,
+            "src": src,
+            "dst": dst,
+            "transport": _PLAIN[stream.transport],
             "tid": frame.tid,
             "unit": frame.unit,
             "fc": pdu.fc,
-            "kind": record.kind,
+            "kind": _PLAIN[record.kind],
             "exception_code": pdu.exception_code,
             "address": address,
             "count": count,
