@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 from mbmon.model import (
     Annotation,
@@ -175,15 +175,7 @@ class Pipeline:
             else:
                 self.counts["noise"] += 1
                 self.counts["noise_bytes"] += len(item.raw)
-                out.append(
-                    Record(
-                        index=self._next_index(),
-                        ts=item.ts,
-                        kind=RecordKind.NOISE,
-                        stream=item.stream,
-                        noise=item,
-                    )
-                )
+                out.append(self._record(item.ts, RecordKind.NOISE, item.stream, noise=item))
 
     def _emit_transactions(self, txs: list[Transaction], out: list[Record]) -> None:
         annotator = self.annotator
@@ -226,22 +218,12 @@ class Pipeline:
             )
             if annotation is not None and annotation.commands:
                 for cmd in annotation.commands:
-                    out.append(
-                        Record(
-                            index=self._next_index(),
-                            ts=cmd.ts,
-                            kind=RecordKind.COMMAND,
-                            stream=cmd.stream,
-                            command=cmd,
-                        )
-                    )
+                    out.append(self._record(cmd.ts, RecordKind.COMMAND, cmd.stream, command=cmd))
 
     def _event_record(self, event: Event) -> Record:
         self.counts["events"] += 1
-        return Record(
-            index=self._next_index(),
-            ts=event.ts,
-            kind=RecordKind.EVENT,
-            stream=event.stream,
-            event=event,
-        )
+        return self._record(event.ts, RecordKind.EVENT, event.stream, event=event)
+
+    def _record(self, ts: float, kind: RecordKind, stream: Stream | None, **item: Any) -> Record:
+        """A record for something other than a frame (noise, event, command)."""
+        return Record(index=self._next_index(), ts=ts, kind=kind, stream=stream, **item)
