@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import math
+import queue
 import signal
 import struct
 import threading
@@ -29,6 +30,7 @@ import time
 import zlib
 from binascii import b2a_base64
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 from typing import IO, Any
@@ -36,12 +38,24 @@ from typing import IO, Any
 from mbmon import __version__
 from mbmon.format import View, record_to_json
 from mbmon.model import Chunk, Direction, Event, EventKind, Record, RecordKind, Stream
-from mbmon.sinks.base import SinkBase, SinkContext
+from mbmon.sinks.base import SinkBase, SinkContext, SinkError
 
 _json_str = json.encoder.encode_basestring  # C-accelerated, keeps non-ASCII
 _DIRECTIONS = {d: d.value for d in Direction}
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")  # opcode, length, channel, sequence, log, publish
+_CHUNK_HEAD = struct.Struct("<BQQQQII")  # opcode, length, start, end, size, crc, name length
+_U64 = struct.Struct("<Q")
+
+
+@dataclass(frozen=True, slots=True)
+class PendingChunk:
+    """A closed chunk's uncompressed records and time range, waiting to be written."""
+
+    data: bytes
+    start: int
+    end: int
+
 
 TOPIC_RAW = "/modbus/raw"
 TOPIC_FRAMES = "/modbus/frames"
@@ -259,7 +273,6 @@ class McapFileWriter:
         self._schemas: list[Any] = []
         self._channels: list[Any] = []
         self._counts: dict[int, int] = {}
-        self._message_count = 0
         self._start_time = 0
         self._end_time = 0
         self._chunk_indexes: list[Any] = []
@@ -360,39 +373,44 @@ class McapFileWriter:
         if self.append(channel_id, log_time, data) > self.chunk_size:
             self.close_chunk()
 
-    def close_chunk(self) -> None:
-        """Compress and write the open chunk, if it holds any message."""
-        from mcap.records import Chunk, ChunkIndex
-
+    def take_chunk(self) -> PendingChunk | None:
+        """Detach the open chunk (``None`` if empty); :meth:`write_chunk` writes it later."""
+        if not self._chunk:
+            return None
         data = bytes(self._chunk)
-        if not data:
-            return
         self._chunk.clear()
-        n = sum(self._counts.values()) - self._message_count
-        if self._message_count == 0:
-            self._start_time, self._end_time = self._chunk_start, self._chunk_end
+        return PendingChunk(data, self._chunk_start, self._chunk_end)
+
+    def write_chunk(self, pending: PendingChunk) -> None:
+        """Compress and write a detached chunk, and index it (chunks in order)."""
+        from mcap.records import ChunkIndex
+
+        data = pending.data
+        if self._chunk_indexes:
+            self._start_time = min(self._start_time, pending.start)
+            self._end_time = max(self._end_time, pending.end)
         else:
-            self._start_time = min(self._start_time, self._chunk_start)
-            self._end_time = max(self._end_time, self._chunk_end)
-        self._message_count += n
+            self._start_time, self._end_time = pending.start, pending.end
         packed = self._compress(data) if self._compress is not None else data
+        name = self.compression.encode()
+        head = _CHUNK_HEAD.pack(
+            0x06,
+            8 + 8 + 8 + 4 + 4 + len(name) + 8 + len(packed),
+            pending.start,
+            pending.end,
+            len(data),
+            zlib.crc32(data),
+            len(name),
+        )
         offset = self._f.tell()
-        Chunk(
-            compression=self.compression,
-            data=packed,
-            message_start_time=self._chunk_start,
-            message_end_time=self._chunk_end,
-            uncompressed_crc=zlib.crc32(data),
-            uncompressed_size=len(data),
-        ).write(self._rb)
-        length = self._rb.count
-        self._emit()
+        self._f.write(head + name + _U64.pack(len(packed)))
+        self._f.write(packed)
         self._chunk_indexes.append(
             ChunkIndex(
-                message_start_time=self._chunk_start,
-                message_end_time=self._chunk_end,
+                message_start_time=pending.start,
+                message_end_time=pending.end,
                 chunk_start_offset=offset,
-                chunk_length=length,
+                chunk_length=len(head) + len(name) + 8 + len(packed),
                 message_index_offsets={},
                 message_index_length=0,
                 compression=self.compression,
@@ -400,6 +418,12 @@ class McapFileWriter:
                 uncompressed_size=len(data),
             )
         )
+
+    def close_chunk(self) -> None:
+        """Compress and write the open chunk, if it holds any message."""
+        pending = self.take_chunk()
+        if pending is not None:
+            self.write_chunk(pending)
 
     def flush(self) -> None:
         """Close the open chunk and hand everything to the operating system."""
@@ -419,7 +443,7 @@ class McapFileWriter:
         b = RecordBuilder()
         offsets: list[SummaryOffset] = []
         stats = Statistics(
-            message_count=self._message_count,
+            message_count=sum(self._counts.values()),
             schema_count=len(self._schemas),
             channel_count=len(self._channels),
             attachment_count=len(self._attachment_indexes),
@@ -476,7 +500,10 @@ class McapSink(SinkBase):
         self._writer = McapFileWriter(self._file, chunk_size=chunk_size)
         self._chunk_size = chunk_size
         self._append = self._writer.append
-        self._lock = threading.Lock()  # the timer thread closes chunks too
+        self._lock = threading.Lock()  # the writer thread takes idle chunks too
+        self._chunks: queue.Queue[PendingChunk | None] = queue.Queue(maxsize=4)
+        self._error: BaseException | None = None
+        self._error_raised = False
         self._closed = False
         self._source = ctx.source
         self._raw_prefix: dict[int, str] = {}
@@ -529,9 +556,8 @@ class McapSink(SinkBase):
             )
         self._file.flush()
         self._last_flush = time.monotonic()
-        self._stop = threading.Event()
-        self._timer = threading.Thread(target=self._flusher, name="mbmon-mcap-flush", daemon=True)
-        self._timer.start()
+        self._worker = threading.Thread(target=self._work, name="mbmon-mcap-writer", daemon=True)
+        self._worker.start()
 
     # ------------------------------------------------------------------ sink API
 
@@ -621,38 +647,86 @@ class McapSink(SinkBase):
         self._put(out, log_time)
 
     def close(self) -> None:
-        """Finish the file (summary, index, footer), with SIGINT/SIGTERM held back meanwhile."""
+        """Write what is left and finish the file (summary, index, footer).
+
+        SIGINT/SIGTERM are held back meanwhile: a second Ctrl-C cannot leave
+        the file unfinished.
+        """
         if self._closed:
             return
         self._closed = True
-        self._stop.set()
-        if self._timer.is_alive() and self._timer is not threading.current_thread():
-            self._timer.join(timeout=5)
-        with self._lock:
-            old = _block_signals()
-            try:
+        old = _block_signals()
+        try:
+            with self._lock:
                 if self._last_ts is not None:
-                    self._append(
-                        self._ch_events, _ns(self._last_ts), self._stats(self._last_ts, True)
-                    )
+                    stats = self._stats(self._last_ts, True)
+                    self._append(self._ch_events, _ns(self._last_ts), stats)
+                pending = self._writer.take_chunk()
+                if pending is not None:
+                    self._chunks.put(pending)
+                self._chunks.put(None)
+            self._worker.join()
+            if self._error is None:
                 self._writer.finish()
+        finally:
+            try:
+                self._file.close()
             finally:
-                try:
-                    self._file.close()
-                finally:
-                    _restore_signals(old)
+                _restore_signals(old)
+        self._raise_error()
 
     # ------------------------------------------------------------------ internals
 
     def _put(self, messages: list[tuple[int, bytes]], log_time: int) -> None:
-        """Append a record's messages to the open chunk; close it when full or due."""
+        """Append a record's messages to the open chunk; hand it on when full or due."""
+        if self._error is not None:
+            self._raise_error()
         with self._lock:
             append = self._append
             size = 0
             for channel, data in messages:
                 size = append(channel, log_time, data)
             if size > self._chunk_size or time.monotonic() - self._last_flush >= self.flush_every:
-                self._flush()
+                pending = self._writer.take_chunk()
+                self._last_flush = time.monotonic()
+                if pending is not None:
+                    # under the lock: chunks reach the writer thread in order; blocks
+                    # (back pressure) when it is four chunks behind
+                    self._chunks.put(pending)
+
+    def _raise_error(self) -> None:
+        if self._error is not None and not self._error_raised:
+            self._error_raised = True
+            error = self._error
+            raise SinkError(f"{self.path}: cannot write: {error}") from error
+
+    def _work(self) -> None:
+        """Writer thread: compress and write chunks (zstd and the file release the GIL, so
+        this overlaps with decoding), and close the open chunk when records stop coming."""
+        tick = max(0.05, self.flush_every / 4)
+        chunks = self._chunks
+        while True:
+            try:
+                pending = chunks.get(timeout=tick)
+            except queue.Empty:
+                if time.monotonic() - self._last_flush < self.flush_every:
+                    continue
+                with self._lock:
+                    if not chunks.empty():
+                        continue  # write the older chunks first
+                    pending = self._writer.take_chunk()
+                    self._last_flush = time.monotonic()
+                if pending is None:
+                    continue
+            if pending is None:
+                return
+            if self._error is not None:
+                continue  # after a write error: drain, so the writing thread never blocks
+            try:
+                self._writer.write_chunk(pending)
+                self._file.flush()
+            except Exception as exc:  # disk full, I/O error: reported on the next write
+                self._error = exc
 
     def _raw_event(self, event: Event) -> bytes:
         body = {
@@ -681,35 +755,6 @@ class McapSink(SinkBase):
         }  # fmt: skip
         obj["line"] = f"{line_ts}  -- Stats: " + ", ".join(f"{k}={v}" for k, v in info.items())
         return encode(obj)
-
-    def _flush(self) -> None:
-        """Close the open chunk and hand it to the OS. Call with the lock held."""
-        old = _block_signals()
-        try:
-            self._writer.flush()
-        finally:
-            _restore_signals(old)
-        self._last_flush = time.monotonic()
-
-    def _flusher(self) -> None:
-        """Timer thread: flush what waits when no record arrived for a while."""
-        tick = max(0.05, self.flush_every / 4)
-        while not self._stop.wait(tick):
-            if time.monotonic() - self._last_flush < self.flush_every:
-                continue
-            if not self._lock.acquire(timeout=tick):
-                continue
-            try:
-                if self._closed:
-                    return
-                if self._writer.pending:
-                    self._flush()
-                else:
-                    self._last_flush = time.monotonic()
-            except Exception:  # the main thread will see the same error on its next write
-                return
-            finally:
-                self._lock.release()
 
 
 def _block_signals() -> set[signal.Signals] | None:

@@ -391,3 +391,9 @@ def test_sigkill_loses_at_most_the_last_second(tmp_path: Path) -> None:
     assert set(got) >= old, f"lost {len(old - set(got))} records older than 1 s"
     assert got == list(range(len(got))), "recovered records must be a prefix, in order"
     assert status.messages > 0 and status.describe().startswith("log was not finished")
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="/dev/full absent")
+def test_full_disk_is_an_error_not_a_hang() -> None:
+    with pytest.raises(OSError):
+        McapSink("/dev/full", CTX)
