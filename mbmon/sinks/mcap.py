@@ -6,16 +6,21 @@ record and the profile attachments, and the crash-safety policy:
 
 - every message is JSON encoded and matches its schema; log and publish times
   are the capture timestamps in nanoseconds, never the wall clock;
-- chunks are zstd compressed (lz4, then none, when those are missing) and are
-  closed and written to the file every half second of wall time, by the
-  writing thread when records flow and by a small timer thread when they do
-  not, so a killed process loses at most the last second;
+- chunks are zstd compressed (lz4, then none, when those are missing); the
+  open chunk is closed every half second of wall time (by ``write()`` while
+  records flow, by the writer thread when they stop) and a writer thread
+  compresses it and hands it to the OS, so a killed process loses at most the
+  last second; zstd and file writes release the GIL, so that work overlaps
+  with decoding;
 - ``close()`` always finishes the file (summary, index, footer); the CLI turns
   SIGINT/SIGTERM into exceptions so ``close()`` runs from ``__exit__``;
-- a message enters the open chunk with one in-place extend, and chunks are
-  closed and the file finished with SIGINT/SIGTERM held back, so a signal
-  handler that raises can never leave half a message or half a chunk in the
-  file (at worst a record has some of its topics).
+- a message enters the open chunk with one in-place extend, chunks are written
+  by a thread signal handlers never interrupt, and the file is finished with
+  SIGINT/SIGTERM held back, so a signal handler that raises can never leave
+  half a message or half a chunk in the file (at worst a record has some of
+  its topics);
+- a write error (disk full) in the writer thread is raised as ``SinkError``
+  by the next ``write()`` or by ``close()``.
 """
 
 from __future__ import annotations
