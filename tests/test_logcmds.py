@@ -328,7 +328,7 @@ def test_damaged_and_foreign_logs_fail_cleanly(tmp_path: Path, hrss_log: tuple) 
 
 @pytest.fixture(scope="module")
 def long_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A Modbus/TCP capture that takes mbmon many seconds: 25 ADUs per segment."""
+    """A Modbus/TCP capture that takes mbmon many seconds to read (25 ADUs per segment)."""
     path = tmp_path_factory.mktemp("big") / "long.pcap"
     conv = TcpConversation("10.0.0.2:40000", "10.0.0.1:502")
     ts = 1_700_000_000.0
@@ -336,7 +336,7 @@ def long_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
         for frame in conv.open():
             w.write(ts, frame)
         tid = 0
-        for _ in range(6000):
+        for _ in range(16000):  # 400,000 ADUs: many seconds even on a fast machine
             reqs, resps = b"", b""
             for _ in range(25):
                 tid = (tid + 1) & 0xFFFF
