@@ -34,6 +34,7 @@ import threading
 import time
 import zlib
 from binascii import b2a_base64
+from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from importlib import resources
@@ -91,6 +92,12 @@ PROFILE_MEDIA_TYPE = "application/toml"
 
 # foxglove.LogLevel
 LOG_DEBUG, LOG_INFO, LOG_WARNING, LOG_ERROR = 1, 2, 3, 4
+_LEVEL_OF = {  # by record kind alone; events and commands look closer (log_level)
+    RecordKind.REQUEST: LOG_INFO,
+    RecordKind.RESPONSE: LOG_INFO,
+    RecordKind.EXCEPTION: LOG_WARNING,
+    RecordKind.NOISE: LOG_ERROR,
+}
 
 STATS_EVERY = 10.0  # seconds of capture time between the writer's own stats events
 FLUSH_EVERY = 0.5  # seconds of wall time between chunk flushes (at most 1 s is promised)
@@ -507,21 +514,19 @@ class McapSink(SinkBase):
         self._append = self._writer.append
         self._lock = threading.Lock()  # the writer thread takes idle chunks too
         self._chunks: queue.Queue[PendingChunk | None] = queue.Queue(maxsize=4)
+        self._raw: deque[tuple[int, bytes]] = deque()  # raw chunks waiting for the lock
         self._error: BaseException | None = None
         self._error_raised = False
         self._closed = False
         self._source = ctx.source
         self._raw_prefix: dict[int, str] = {}
-        self._names: dict[int | None, str] = {}
+        self._names: dict[Stream | None, str] = {}
         self._file_json = _json_str(ctx.source)
         self._counts: dict[str, int] = dict.fromkeys(
-            (
-                "records", "requests", "responses", "exceptions", "noise", "noise_bytes",
-                "crc_errors", "events", "commands", "chunks", "bytes",
-            ),
-            0,
-        )  # fmt: skip
-        self._next_stats: float | None = None
+            ("noise_bytes", "crc_errors", "chunks", "bytes"), 0
+        )
+        self._kinds: dict[RecordKind, int] = dict.fromkeys(RecordKind, 0)
+        self._next_stats = 0.0
         self._last_ts: float | None = None
         w = self._writer
         w.start(library=f"mbmon {__version__}")
@@ -535,6 +540,14 @@ class McapSink(SinkBase):
         self._ch_state = self._channels[TOPIC_STATE]
         self._ch_commands = self._channels[TOPIC_COMMANDS]
         self._ch_events = self._channels[TOPIC_EVENTS]
+        self._topic_of = {
+            RecordKind.REQUEST: self._ch_frames,
+            RecordKind.RESPONSE: self._ch_frames,
+            RecordKind.EXCEPTION: self._ch_frames,
+            RecordKind.NOISE: self._ch_frames,
+            RecordKind.EVENT: self._ch_events,
+            RecordKind.COMMAND: self._ch_commands,
+        }
         now_ns = time.time_ns()
         w.add_metadata(
             METADATA_NAME,
@@ -567,7 +580,7 @@ class McapSink(SinkBase):
     # ------------------------------------------------------------------ sink API
 
     def write_chunk(self, chunk: Chunk) -> None:
-        """Queue one captured chunk on /modbus/raw."""
+        """One captured chunk on /modbus/raw."""
         stream = chunk.stream
         prefix = self._raw_prefix.get(stream.id)
         if prefix is None:
@@ -582,7 +595,9 @@ class McapSink(SinkBase):
         )
         self._counts["chunks"] += 1
         self._counts["bytes"] += len(chunk.data)
-        self._put([(self._ch_raw, body.encode("utf-8"))], _ns(ts))
+        # no lock here: the next record's write (or the writer thread) moves it into
+        # the chunk, ahead of the records it produced
+        self._raw.append((_ns(ts), body.encode("utf-8")))
 
     def write(self, record: Record) -> None:
         """Write the messages of one record on their topics."""
@@ -590,51 +605,42 @@ class McapSink(SinkBase):
         ts = record.ts
         log_time = _ns(ts)
         kind = record.kind
-        counts = self._counts
-        counts["records"] += 1
+        self._kinds[kind] += 1
         payload = encode(obj)
-        out: list[tuple[int, bytes]] = []
-        if kind is RecordKind.REQUEST:
-            counts["requests"] += 1
-            out.append((self._ch_frames, payload))
-        elif kind is RecordKind.RESPONSE:
-            counts["responses"] += 1
-            out.append((self._ch_frames, payload))
-            if obj.get("crc_ok") is False:
-                counts["crc_errors"] += 1
-                out.append((self._ch_events, payload))
-        elif kind is RecordKind.EXCEPTION:
-            counts["exceptions"] += 1
-            out.append((self._ch_frames, payload))
-        elif kind is RecordKind.NOISE:
-            counts["noise"] += 1
+        out: list[tuple[int, bytes]] = [(self._topic_of[kind], payload)]
+        if kind is RecordKind.NOISE:
+            out.append((self._ch_events, payload))
             if record.noise is not None:
-                counts["noise_bytes"] += len(record.noise.raw)
+                self._counts["noise_bytes"] += len(record.noise.raw)
                 if "crc" in record.noise.reason.lower():
-                    counts["crc_errors"] += 1
-            out.append((self._ch_frames, payload))
-            out.append((self._ch_events, payload))
+                    self._counts["crc_errors"] += 1
         elif kind is RecordKind.EVENT:
-            counts["events"] += 1
-            out.append((self._ch_events, payload))
             event = record.event
             if event is not None and event.kind in SOURCE_EVENTS:
                 out.append((self._ch_raw, self._raw_event(event)))
-        elif kind is RecordKind.COMMAND:
-            counts["commands"] += 1
-            out.append((self._ch_commands, payload))
-        sec, nsec = divmod(log_time, 1_000_000_000)
+        elif kind is RecordKind.RESPONSE and obj.get("crc_ok") is False:
+            self._counts["crc_errors"] += 1
+            out.append((self._ch_events, payload))
         stream = record.stream
-        name = self._names.get(stream.id if stream is not None else None)
+        name = self._names.get(stream)
         if name is None:
-            name = _json_str(stream_name(stream))
-            self._names[stream.id if stream is not None else None] = name
-        monitor = (
-            f'{{"timestamp":{{"sec":{sec},"nsec":{nsec}}},"level":{log_level(record, obj)},'
-            f'"message":{_json_str(obj["line"])},"name":{name},"file":{self._file_json},'
-            f'"line":{record.index}}}'
+            name = self._names[stream] = _json_str(stream_name(stream))
+        sec, nsec = divmod(log_time, 1_000_000_000)
+        level = _LEVEL_OF.get(kind) or log_level(record, obj)
+        if level == LOG_INFO and (obj.get("malformed") or obj.get("crc_ok") is False):
+            level = LOG_WARNING
+        if kind is RecordKind.RESPONSE and record.request is None:
+            level = LOG_WARNING  # unsolicited
+        out.append(
+            (
+                self._ch_monitor,
+                (
+                    f'{{"timestamp":{{"sec":{sec},"nsec":{nsec}}},"level":{level},'
+                    f'"message":{_json_str(obj["line"])},"name":{name},'
+                    f'"file":{self._file_json},"line":{record.index}}}'
+                ).encode(),
+            )
         )
-        out.append((self._ch_monitor, monitor.encode("utf-8")))
         if record.state is not None:
             state: dict[str, Any] = {"time": ts, "index": record.index}
             for key, value in record.state.items():
@@ -644,11 +650,10 @@ class McapSink(SinkBase):
                     state[key] = value  # flat numbers only: NaN/inf have no JSON form
             out.append((self._ch_state, encode(state)))
         self._last_ts = ts
-        if self._next_stats is None:
+        if ts >= self._next_stats:
+            if self._next_stats > 0:
+                out.append((self._ch_events, self._stats(ts)))
             self._next_stats = ts + STATS_EVERY
-        elif ts >= self._next_stats:
-            self._next_stats = ts + STATS_EVERY
-            out.append((self._ch_events, self._stats(ts)))
         self._put(out, log_time)
 
     def close(self) -> None:
@@ -663,6 +668,7 @@ class McapSink(SinkBase):
         old = _block_signals()
         try:
             with self._lock:
+                self._drain_raw()
                 if self._last_ts is not None:
                     stats = self._stats(self._last_ts, True)
                     self._append(self._ch_events, _ns(self._last_ts), stats)
@@ -687,6 +693,8 @@ class McapSink(SinkBase):
         if self._error is not None:
             self._raise_error()
         with self._lock:
+            if self._raw:
+                self._drain_raw()
             append = self._append
             size = 0
             for channel, data in messages:
@@ -698,6 +706,16 @@ class McapSink(SinkBase):
                     # under the lock: chunks reach the writer thread in order; blocks
                     # (back pressure) when it is four chunks behind
                     self._chunks.put(pending)
+
+    def _drain_raw(self) -> None:
+        """Move the waiting raw chunks into the open chunk. Call with the lock held."""
+        raw = self._raw
+        pop = raw.popleft  # deque: append (writing thread) and popleft are atomic
+        append = self._append
+        channel = self._ch_raw
+        while raw:
+            log_time, data = pop()
+            append(channel, log_time, data)
 
     def _raise_error(self) -> None:
         if self._error is not None and not self._error_raised:
@@ -719,6 +737,7 @@ class McapSink(SinkBase):
                 with self._lock:
                     if not chunks.empty():
                         continue  # write the older chunks first
+                    self._drain_raw()
                     pending = self._writer.take_chunk()
                     self._last_flush = time.monotonic()
                 if pending is None:
@@ -747,7 +766,17 @@ class McapSink(SinkBase):
 
     def _stats(self, ts: float, final: bool = False) -> bytes:
         """The writer's own counters as an /mbmon/events message (index null)."""
-        info: dict[str, Any] = dict(self._counts)
+        kinds = self._kinds
+        info: dict[str, Any] = {
+            "records": sum(kinds.values()),
+            "requests": kinds[RecordKind.REQUEST],
+            "responses": kinds[RecordKind.RESPONSE],
+            "exceptions": kinds[RecordKind.EXCEPTION],
+            "noise": kinds[RecordKind.NOISE],
+            "events": kinds[RecordKind.EVENT],
+            "commands": kinds[RecordKind.COMMAND],
+            **self._counts,
+        }
         if final:
             info["final"] = True
         line_ts = time.strftime("%H:%M:%S", time.localtime(ts))
