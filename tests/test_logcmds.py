@@ -109,7 +109,8 @@ def test_sinks_by_suffix_equal_console(tmp_path: Path) -> None:
     as_json = mbmon("read", capture, "--profile", "hrss", "--json").stdout
     assert outs[".txt"].read_text("utf-8") == text
     assert outs[".jsonl"].read_text("utf-8") == as_json
-    rows = list(csv.DictReader(outs[".csv"].open(newline="", encoding="utf-8")))
+    with outs[".csv"].open(newline="", encoding="utf-8") as f:
+        rows = list(csv.DictReader(f))
     frames = [json.loads(x) for x in as_json.splitlines()]
     assert len(rows) == sum(f["kind"] in ("request", "response", "exception") for f in frames)
     assert (
@@ -349,7 +350,9 @@ def long_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
-def _start_recording(capture: Path, log: Path) -> tuple[subprocess.Popen[str], list]:
+def _start_recording(
+    capture: Path, log: Path
+) -> tuple[subprocess.Popen[str], list, threading.Thread]:
     proc = subprocess.Popen(
         [*MBMON, "read", str(capture), "--json", "-w", str(log)],
         stdout=subprocess.PIPE,
@@ -362,14 +365,23 @@ def _start_recording(capture: Path, log: Path) -> tuple[subprocess.Popen[str], l
     def reader() -> None:
         assert proc.stdout is not None
         for line in proc.stdout:
-            received.append((time.monotonic(), json.loads(line)["index"]))
+            if line.endswith("\n"):  # a killed process may leave half a line
+                received.append((time.monotonic(), json.loads(line)["index"]))
 
-    threading.Thread(target=reader, daemon=True).start()
+    thread = threading.Thread(target=reader, daemon=True)
+    thread.start()
     deadline = time.monotonic() + 60
     while not received and time.monotonic() < deadline and proc.poll() is None:
         time.sleep(0.05)
     assert received, "mbmon read printed nothing"
-    return proc, received
+    return proc, received, thread
+
+
+def _close_pipes(proc: subprocess.Popen[str], thread: threading.Thread) -> None:
+    thread.join(timeout=10)  # the process is gone: the reader sees the end of stdout
+    for pipe in (proc.stdout, proc.stderr):
+        if pipe is not None:
+            pipe.close()
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
@@ -377,13 +389,14 @@ def test_signals_leave_finished_indexed_logs(
     tmp_path: Path, long_capture: Path, sig: signal.Signals
 ) -> None:
     log = tmp_path / "sig.mcap"
-    proc, received = _start_recording(long_capture, log)
+    proc, received, thread = _start_recording(long_capture, log)
     time.sleep(1.0)
     assert proc.poll() is None, "the input must outlast the test"
     proc.send_signal(sig)
     proc.wait(timeout=60)
     assert proc.returncode == 128 + sig
     assert proc.stderr is not None and "Traceback" not in proc.stderr.read()
+    _close_pipes(proc, thread)
     with open(log, "rb") as f:
         summary = make_reader(f, validate_crcs=True).get_summary()
     assert summary is not None and summary.chunk_indexes and summary.statistics.message_count
@@ -396,12 +409,13 @@ def test_signals_leave_finished_indexed_logs(
 
 def test_sigkill_keeps_everything_older_than_a_second(tmp_path: Path, long_capture: Path) -> None:
     log = tmp_path / "kill.mcap"
-    proc, received = _start_recording(long_capture, log)
+    proc, received, thread = _start_recording(long_capture, log)
     time.sleep(2.0)
     assert proc.poll() is None, "the input must outlast the test"
     killed_at = time.monotonic()
     proc.kill()
     proc.wait(timeout=30)
+    _close_pipes(proc, thread)
     # a record printed on stdout was handed to the sinks first (sinks, then console)
     old = {i for t, i in received if t < killed_at - 1.0}
     assert len(old) > 100

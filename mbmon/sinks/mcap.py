@@ -528,6 +528,17 @@ class McapSink(SinkBase):
         self._kinds: dict[RecordKind, int] = dict.fromkeys(RecordKind, 0)
         self._next_stats = 0.0
         self._last_ts: float | None = None
+        try:
+            self._start(ctx)
+        except BaseException:
+            self._file.close()
+            raise
+        self._last_flush = time.monotonic()
+        self._worker = threading.Thread(target=self._work, name="mbmon-mcap-writer", daemon=True)
+        self._worker.start()
+
+    def _start(self, ctx: SinkContext) -> None:
+        """Header, schemas, channels, metadata and profile attachments, on disk at once."""
         w = self._writer
         w.start(library=f"mbmon {__version__}")
         self._channels: dict[str, int] = {}
@@ -573,9 +584,6 @@ class McapSink(SinkBase):
                 data=text.encode("utf-8"),
             )
         self._file.flush()
-        self._last_flush = time.monotonic()
-        self._worker = threading.Thread(target=self._work, name="mbmon-mcap-writer", daemon=True)
-        self._worker.start()
 
     # ------------------------------------------------------------------ sink API
 
