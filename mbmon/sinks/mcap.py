@@ -380,6 +380,29 @@ class McapFileWriter:
         self._counts[channel_id] += 1
         return len(chunk)
 
+    def head(self, channel_id: int, log_time: int, size: int) -> bytes:
+        """The 31-byte head of a message record of ``size`` data bytes (and count it).
+
+        With :meth:`extend`, a writer can join the messages of one record
+        into a single block and append that.
+        """
+        self._counts[channel_id] += 1
+        return _MESSAGE_HEAD.pack(0x05, 22 + size, channel_id, 0, log_time, log_time)
+
+    def extend(self, records: bytes, start: int, end: int) -> int:
+        """Append serialized message records logged from ``start`` to ``end`` (ns) in one
+        step; return the open chunk's size (the caller closes it)."""
+        chunk = self._chunk
+        if not chunk:
+            self._chunk_start, self._chunk_end = start, end
+        else:
+            if start < self._chunk_start:
+                self._chunk_start = start
+            if end > self._chunk_end:
+                self._chunk_end = end
+        chunk += records
+        return len(chunk)
+
     def add_message(self, channel_id: int, log_time: int, data: bytes) -> None:
         """Append one message; close the chunk when it exceeds ``chunk_size``."""
         if self.append(channel_id, log_time, data) > self.chunk_size:
@@ -512,6 +535,7 @@ class McapSink(SinkBase):
         self._writer = McapFileWriter(self._file, chunk_size=chunk_size)
         self._chunk_size = chunk_size
         self._append = self._writer.append
+        self._extend = self._writer.extend
         self._lock = threading.Lock()  # the writer thread takes idle chunks too
         self._chunks: queue.Queue[PendingChunk | None] = queue.Queue(maxsize=4)
         self._raw: deque[tuple[int, bytes]] = deque()  # raw chunks waiting for the lock
@@ -520,7 +544,7 @@ class McapSink(SinkBase):
         self._closed = False
         self._source = ctx.source
         self._raw_prefix: dict[int, str] = {}
-        self._names: dict[Stream | None, str] = {}
+        self._names: dict[int, str] = {}
         self._file_json = _json_str(ctx.source)
         self._counts: dict[str, int] = dict.fromkeys(
             ("noise_bytes", "crc_errors", "chunks", "bytes"), 0
@@ -605,7 +629,9 @@ class McapSink(SinkBase):
         self._counts["bytes"] += len(chunk.data)
         # no lock here: the next record's write (or the writer thread) moves it into
         # the chunk, ahead of the records it produced
-        self._raw.append((_ns(ts), body.encode("utf-8")))
+        data = body.encode()
+        log_time = _ns(ts)
+        self._raw.append((log_time, self._writer.head(self._ch_raw, log_time, len(data)) + data))
 
     def write(self, record: Record) -> None:
         """Write the messages of one record on their topics."""
@@ -615,9 +641,11 @@ class McapSink(SinkBase):
         kind = record.kind
         self._kinds[kind] += 1
         payload = encode(obj)
-        out: list[tuple[int, bytes]] = [(self._topic_of[kind], payload)]
+        head = self._writer.head
+        n = len(payload)
+        parts = [head(self._topic_of[kind], log_time, n), payload]
         if kind is RecordKind.NOISE:
-            out.append((self._ch_events, payload))
+            parts += (head(self._ch_events, log_time, n), payload)
             if record.noise is not None:
                 self._counts["noise_bytes"] += len(record.noise.raw)
                 if "crc" in record.noise.reason.lower():
@@ -625,30 +653,35 @@ class McapSink(SinkBase):
         elif kind is RecordKind.EVENT:
             event = record.event
             if event is not None and event.kind in SOURCE_EVENTS:
-                out.append((self._ch_raw, self._raw_event(event)))
-        elif kind is RecordKind.RESPONSE and obj.get("crc_ok") is False:
+                raw = self._raw_event(event)
+                parts += (head(self._ch_raw, log_time, len(raw)), raw)
+        elif kind is RecordKind.RESPONSE and obj["crc_ok"] is False:
             self._counts["crc_errors"] += 1
-            out.append((self._ch_events, payload))
+            parts += (head(self._ch_events, log_time, n), payload)
         stream = record.stream
-        name = self._names.get(stream)
+        key = stream.id if stream is not None else -1  # a Stream hashes slowly
+        name = self._names.get(key)
         if name is None:
-            name = self._names[stream] = _json_str(stream_name(stream))
+            name = self._names[key] = _json_str(stream_name(stream))
         sec, nsec = divmod(log_time, 1_000_000_000)
-        level = _LEVEL_OF.get(kind) or log_level(record, obj)
-        if level == LOG_INFO and (obj.get("malformed") or obj.get("crc_ok") is False):
-            level = LOG_WARNING
-        if kind is RecordKind.RESPONSE and record.request is None:
-            level = LOG_WARNING  # unsolicited
-        out.append(
-            (
-                self._ch_monitor,
-                (
-                    f'{{"timestamp":{{"sec":{sec},"nsec":{nsec}}},"level":{level},'
-                    f'"message":{_json_str(obj["line"])},"name":{name},'
-                    f'"file":{self._file_json},"line":{record.index}}}'
-                ).encode(),
-            )
-        )
+        if kind is RecordKind.REQUEST or kind is RecordKind.RESPONSE:
+            level = LOG_INFO
+            if (
+                obj["malformed"]
+                or obj["crc_ok"] is False
+                or (
+                    kind is RecordKind.RESPONSE and record.request is None  # unsolicited
+                )
+            ):
+                level = LOG_WARNING
+        else:
+            level = log_level(record, obj)
+        monitor = (
+            f'{{"timestamp":{{"sec":{sec},"nsec":{nsec}}},"level":{level},'
+            f'"message":{_json_str(obj["line"])},"name":{name},'
+            f'"file":{self._file_json},"line":{record.index}}}'
+        ).encode()
+        parts += (head(self._ch_monitor, log_time, len(monitor)), monitor)
         if record.state is not None:
             state: dict[str, Any] = {"time": ts, "index": record.index}
             for key, value in record.state.items():
@@ -656,13 +689,15 @@ class McapSink(SinkBase):
                     state[key] = int(value)
                 elif isinstance(value, int | float) and math.isfinite(value):
                     state[key] = value  # flat numbers only: NaN/inf have no JSON form
-            out.append((self._ch_state, encode(state)))
+            data = encode(state)
+            parts += (head(self._ch_state, log_time, len(data)), data)
         self._last_ts = ts
         if ts >= self._next_stats:
             if self._next_stats > 0:
-                out.append((self._ch_events, self._stats(ts)))
+                data = self._stats(ts)
+                parts += (head(self._ch_events, log_time, len(data)), data)
             self._next_stats = ts + STATS_EVERY
-        self._put(out, log_time)
+        self._put(b"".join(parts), log_time)
 
     def close(self) -> None:
         """Write what is left and finish the file (summary, index, footer).
@@ -696,17 +731,14 @@ class McapSink(SinkBase):
 
     # ------------------------------------------------------------------ internals
 
-    def _put(self, messages: list[tuple[int, bytes]], log_time: int) -> None:
+    def _put(self, records: bytes, log_time: int) -> None:
         """Append a record's messages to the open chunk; hand it on when full or due."""
         if self._error is not None:
             self._raise_error()
         with self._lock:
             if self._raw:
                 self._drain_raw()
-            append = self._append
-            size = 0
-            for channel, data in messages:
-                size = append(channel, log_time, data)
+            size = self._extend(records, log_time, log_time)
             if size > self._chunk_size or time.monotonic() - self._last_flush >= self.flush_every:
                 pending = self._writer.take_chunk()
                 self._last_flush = time.monotonic()
@@ -719,11 +751,10 @@ class McapSink(SinkBase):
         """Move the waiting raw chunks into the open chunk. Call with the lock held."""
         raw = self._raw
         pop = raw.popleft  # deque: append (writing thread) and popleft are atomic
-        append = self._append
-        channel = self._ch_raw
+        extend = self._extend
         while raw:
-            log_time, data = pop()
-            append(channel, log_time, data)
+            log_time, record = pop()
+            extend(record, log_time, log_time)
 
     def _raise_error(self) -> None:
         if self._error is not None and not self._error_raised:
