@@ -48,6 +48,7 @@ from mbmon.sinks.base import SinkBase, SinkContext, SinkError
 
 _json_str = json.encoder.encode_basestring  # C-accelerated, keeps non-ASCII
 _DIRECTIONS = {d: d.value for d in Direction}
+_RAW_TAIL = b'","event":null,"info":null}'
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")  # opcode, length, channel, sequence, log, publish
 _CHUNK_HEAD = struct.Struct("<BQQQQII")  # opcode, length, start, end, size, crc, name length
@@ -58,7 +59,7 @@ _U64 = struct.Struct("<Q")
 class PendingChunk:
     """A closed chunk's uncompressed records and time range, waiting to be written."""
 
-    data: bytes
+    data: bytes | bytearray
     start: int
     end: int
 
@@ -410,10 +411,10 @@ class McapFileWriter:
 
     def take_chunk(self) -> PendingChunk | None:
         """Detach the open chunk (``None`` if empty); :meth:`write_chunk` writes it later."""
-        if not self._chunk:
+        data = self._chunk
+        if not data:
             return None
-        data = bytes(self._chunk)
-        self._chunk.clear()
+        self._chunk = bytearray()  # hand the buffer itself over: no copy
         return PendingChunk(data, self._chunk_start, self._chunk_end)
 
     def write_chunk(self, pending: PendingChunk) -> None:
@@ -543,7 +544,7 @@ class McapSink(SinkBase):
         self._error_raised = False
         self._closed = False
         self._source = ctx.source
-        self._raw_prefix: dict[int, str] = {}
+        self._raw_prefix: dict[tuple[int, Direction], bytes] = {}
         self._names: dict[int, str] = {}
         self._file_json = _json_str(ctx.source)
         self._counts: dict[str, int] = dict.fromkeys(
@@ -614,24 +615,26 @@ class McapSink(SinkBase):
     def write_chunk(self, chunk: Chunk) -> None:
         """One captured chunk on /modbus/raw."""
         stream = chunk.stream
-        prefix = self._raw_prefix.get(stream.id)
+        key = (stream.id, chunk.direction)
+        prefix = self._raw_prefix.get(key)
         if prefix is None:
             fields = _stream_fields(stream)
             prefix = encode({"type": "chunk", **fields}).decode()[:-1]
-            self._raw_prefix[stream.id] = prefix
-        data = b2a_base64(chunk.data, newline=False).decode("ascii")
+            self._raw_prefix[key] = prefix = (
+                f'{prefix},"direction":"{_DIRECTIONS[chunk.direction]}","ts":'
+            ).encode()
         ts = chunk.ts
-        body = (
-            f'{prefix},"ts":{ts!r},"direction":"{_DIRECTIONS[chunk.direction]}",'
-            f'"data":"{data}","event":null,"info":null}}'
+        raw = chunk.data
+        body = b"".join(
+            (prefix, repr(ts).encode(), b',"data":"', b2a_base64(raw, newline=False), _RAW_TAIL)
         )
-        self._counts["chunks"] += 1
-        self._counts["bytes"] += len(chunk.data)
+        counts = self._counts
+        counts["chunks"] += 1
+        counts["bytes"] += len(raw)
         # no lock here: the next record's write (or the writer thread) moves it into
         # the chunk, ahead of the records it produced
-        data = body.encode()
         log_time = _ns(ts)
-        self._raw.append((log_time, self._writer.head(self._ch_raw, log_time, len(data)) + data))
+        self._raw.append((log_time, self._writer.head(self._ch_raw, log_time, len(body)) + body))
 
     def write(self, record: Record) -> None:
         """Write the messages of one record on their topics."""
