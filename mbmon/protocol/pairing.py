@@ -30,8 +30,6 @@ source for timeouts.
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 from mbmon.model import Direction, Frame, Kind, Pdu, Transaction, TxStatus
 from mbmon.protocol.pdu import decode_pdu
 
@@ -145,7 +143,16 @@ class Pairer:
         pdu = resp.pdu
         if _needs_request(pdu, req.pdu):
             pdu = decode_pdu(pdu.raw, True, request=req.pdu)
-            resp = replace(resp, pdu=pdu)
+            resp = Frame(
+                resp.ts,
+                resp.stream,
+                resp.direction,
+                resp.unit,
+                resp.tid,
+                pdu,
+                resp.raw,
+                resp.crc_ok,
+            )
         status = TxStatus.EXCEPTION if pdu.kind is Kind.EXCEPTION else TxStatus.ANSWERED
         return Transaction(resp.ts, status, req, resp, resp.ts - req.ts)
 

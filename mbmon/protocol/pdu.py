@@ -772,13 +772,26 @@ def decode_pdu(
             _CACHE.clear()
         _CACHE[key] = pdu
         return pdu
-    return _decode(d, response, request)
+    paired_key = (d, response, id(request))
+    paired = _PAIRED_CACHE.get(paired_key)
+    if paired is not None and paired[0] is request:
+        return paired[1]
+    pdu = _decode(d, response, request)
+    if len(_PAIRED_CACHE) >= _CACHE_SIZE:
+        _PAIRED_CACHE.clear()
+    _PAIRED_CACHE[paired_key] = (request, pdu)
+    return pdu
 
 
 #: Decoded PDUs by (bytes, response). Polling repeats the same PDUs over and over
 #: and a Pdu is immutable, so a repeat is a dict hit; the cache is emptied when full.
 _CACHE: dict[tuple[bytes, bool], Pdu] = {}
 _CACHE_SIZE: Final = 8192
+#: The same for PDUs decoded with their request, by (bytes, response, id(request)):
+#: requests come from ``_CACHE`` too, so a polled read's answer is decoded once
+#: (and is the same object each time, which lets ``mbmon.format`` cache by it).
+#: The request is kept with the PDU so that an id is never taken for a later object's.
+_PAIRED_CACHE: dict[tuple[bytes, bool, int], tuple[Pdu, Pdu]] = {}
 
 
 def _decode(d: bytes, response: bool, request: Pdu | None) -> Pdu:
