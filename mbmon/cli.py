@@ -305,7 +305,7 @@ def emit_records(
     arrives as it happens, e.g. a pipe) each batch is written as soon as it is
     complete, so no line waits for later input.
     """
-    from mbmon.format import json_line, record_line, record_to_json
+    from mbmon.format import record_json_line, record_line
 
     write = out.write if out is not None else None
     lines: list[str] = []
@@ -316,7 +316,7 @@ def emit_records(
         if write is None:
             continue
         if as_json:
-            lines.extend([json_line(record_to_json(record, view)) for record in batch])
+            lines.extend([record_json_line(record, view) for record in batch])
         else:
             lines.extend([record_line(record, view) for record in batch])
         if lines and (live or len(lines) >= _OUT_BLOCK):

@@ -75,11 +75,13 @@ _last_second: list[Any] = [None, ""]
 
 def format_time(ts: float) -> str:
     """Time of day in local time with microseconds, like tcpdump."""
-    whole = int(ts // 1)
+    whole = ts // 1
     if _last_second[0] != whole:  # one strftime per second of capture, not per record
         _last_second[0] = whole
-        _last_second[1] = time.strftime("%H:%M:%S", time.localtime(whole))
-    return f"{_last_second[1]}.{int((ts - whole) * 1e6):06d}"
+        _last_second[1] = time.strftime("%H:%M:%S.", time.localtime(int(whole)))
+    # %d truncates like int(), and %-formatting is about twice as fast as an f-string
+    # with int() and a format spec (0.3 vs 0.6 us)
+    return "%s%06d" % (_last_second[1], (ts - whole) * 1e6)  # noqa: UP031
 
 
 # --------------------------------------------------------------------------- labels
@@ -106,6 +108,10 @@ class View:
     robot: str | None = None
     robot_is_client: bool = False
     _labels: dict[tuple[int, Direction], tuple[Stream, str]] = field(
+        default_factory=dict, compare=False, repr=False
+    )
+    #: per stream direction: (stream, JSON text from "stream" to "tid":, label JSON-escaped)
+    _json_heads: dict[tuple[int, Direction], tuple[Stream, str, str]] = field(
         default_factory=dict, compare=False, repr=False
     )
 
@@ -270,6 +276,24 @@ def _event_text(record: Record, view: View) -> str:
     return event.kind.value
 
 
+def _frame_line(when: str, label: str, frame: Frame, hex_text: str, tail: str) -> str:
+    """The monitor line of a frame from its parts (also used JSON-escaped, by
+    :func:`record_json_line`: escaping text piece by piece escapes the whole)."""
+    tid = frame.tid
+    ids = f"u{frame.unit} t{tid}" if tid is not None else f"u{frame.unit}"
+    return f"{when}  {label}  [{ids}]  {hex_text}  | {tail}"
+
+
+def _latency_text(record: Record, frame: Frame) -> str:
+    """The end of a frame's line: the latency of a response, or why it has none."""
+    latency = record.latency
+    if latency is not None:
+        return f" ({latency * 1000:.1f} ms)"
+    if record.request is None and frame.direction is _S2C:
+        return " (no matching request)"
+    return ""
+
+
 def record_line(record: Record, view: View, notes: tuple[str, ...] | None = None) -> str:
     """The full console/text line of a record: time, label, monitor hex, notes (plain text).
 
@@ -279,18 +303,15 @@ def record_line(record: Record, view: View, notes: tuple[str, ...] | None = None
     kind = record.kind
     if record.frame is not None:
         frame = record.frame
-        label = view.label(frame.stream, frame.direction)
         if notes is None:
             notes = frame_notes(record)
-        tail = "; ".join(notes)
-        latency = record.latency
-        if latency is not None:
-            tail += f" ({latency * 1000:.1f} ms)"
-        elif record.request is None and frame.direction is _S2C:
-            tail += " (no matching request)"
-        tid = frame.tid
-        ids = f"u{frame.unit} t{tid}" if tid is not None else f"u{frame.unit}"
-        return f"{when}  {label}  [{ids}]  {monitor_hex(frame.pdu.raw)}  | {tail}"
+        return _frame_line(
+            when,
+            view.label(frame.stream, frame.direction),
+            frame,
+            monitor_hex(frame.pdu.raw),
+            "; ".join(notes) + _latency_text(record, frame),
+        )
     if kind is RecordKind.NOISE and record.noise is not None:
         noise = record.noise
         shown = monitor_hex(noise.raw[:_MAX_NOISE_HEX]) + (
@@ -433,3 +454,121 @@ def record_to_json(record: Record, view: View) -> dict[str, Any]:
         }
         out["notes"] = [cmd.text]
     return out
+
+
+# --------------------------------------------------------------------------- JSON lines, fast
+
+#: Stands for a per-record value while the fixed parts of a JSON line are cut out.
+_SENTINEL = "\x00mbmon: per-record value\x00"
+_PER_RECORD = ("index", "time", "tid", "line", "notes", "latency_ms", "request_index")
+
+#: Fixed JSON parts of frame records by (id(pdu), id(request pdu), kind, unit, crc_ok):
+#: (pdu, request pdu, text from "unit" to "line":, monitor hex, generic note as JSON,
+#: the same JSON-escaped, text from "crc_ok" to "latency_ms":, text from "malformed"
+#: to "request_index":, end of the object). The PDUs are kept so that an id is never
+#: taken for a later object's.
+_JSON_PARTS: dict[tuple[Any, ...], tuple[Any, ...]] = {}
+
+
+def record_json_line(record: Record, view: View) -> str:
+    """``json_line(record_to_json(record, view))``, about 3x faster for frame records.
+
+    A frame record's JSON differs from one record to the next only in its index,
+    time, transaction id, latency, request index and device notes; the rest is
+    fixed by its stream and direction (endpoints, label) or by its PDU, request
+    PDU, kind, unit and crc_ok, which polling repeats. Those fixed parts are cut
+    once out of the full encoding (:func:`_cache_json_parts`, which checks its
+    work against it) and cached; a record then only fills in its own values.
+    """
+    frame = record.frame
+    if frame is None:
+        return json_line(record_to_json(record, view))
+    stream = frame.stream
+    pdu = frame.pdu
+    request = record.request
+    req_pdu = request.pdu if request is not None else None
+    head = view._json_heads.get((stream.id, frame.direction))
+    parts = _JSON_PARTS.get((id(pdu), id(req_pdu), record.kind, frame.unit, frame.crc_ok))
+    if (
+        head is None
+        or head[0] is not stream
+        or parts is None
+        or parts[0] is not pdu
+        or parts[1] is not req_pdu
+    ):
+        return _cache_json_parts(record, view)
+    return _json_from_parts(record, frame, head, parts)
+
+
+def _json_from_parts(
+    record: Record, frame: Frame, head: tuple[Stream, str, str], parts: tuple[Any, ...]
+) -> str:
+    """A frame record's JSON line from its cached fixed parts and its own values."""
+    _, _, to_line, hex_text, note_json, note_escaped, to_latency, to_index, end = parts
+    notes = record.notes
+    if notes:  # device notes vary with state: encoded per record
+        encoded = [json_line(note) for note in notes]
+        notes_json = f"[{note_json},{','.join(encoded)}]"
+        note_escaped += "; " + "; ".join(text[1:-1] for text in encoded)
+    else:
+        notes_json = f"[{note_json}]"
+    latency = record.latency
+    tid = frame.tid
+    request_index = record.request_index
+    line = _frame_line(
+        format_time(record.ts),
+        head[2],
+        frame,
+        hex_text,
+        note_escaped + _latency_text(record, frame),
+    )
+    return (
+        f'{{"index":{record.index},"time":{json_line(record.ts)}{head[1]}'
+        f'{"null" if tid is None else tid}{to_line}"{line}"'
+        f',"notes":{notes_json}{to_latency}'
+        f"{'null' if latency is None else json_line(round(latency * 1000, 3))}"
+        f"{to_index}{'null' if request_index is None else request_index}{end}"
+    )
+
+
+def _cache_json_parts(record: Record, view: View) -> str:
+    """``record``'s JSON line, encoded in full; its fixed parts are cut out of it and
+    cached when they give it back (a note that held the sentinel would not)."""
+    frame = record.frame
+    assert frame is not None
+    obj = record_to_json(record, view)
+    full = json_line(obj)
+    for key in _PER_RECORD:
+        obj[key] = _SENTINEL
+    pieces = json_line(obj).split(json_line(_SENTINEL))
+    if len(pieces) != len(_PER_RECORD) + 1 or pieces[:2] != ['{"index":', ',"time":']:
+        return full
+    _, _, head_text, to_line, notes_key, to_latency, to_index, end = pieces
+    if notes_key != ',"notes":':
+        return full
+    stream, pdu = frame.stream, frame.pdu
+    req_pdu = record.request.pdu if record.request is not None else None
+    note_json = json_line(generic_note(pdu, req_pdu))
+    label_escaped = json_line(view.label(stream, frame.direction))[1:-1]
+    head = (stream, head_text, label_escaped)
+    parts = (
+        pdu,
+        req_pdu,
+        to_line,
+        monitor_hex(pdu.raw),
+        note_json,
+        note_json[1:-1],
+        to_latency,
+        to_index,
+        end,
+    )
+    if _json_from_parts(record, frame, head, parts) != full:
+        return full
+    heads = view._json_heads
+    if len(heads) > 65536:
+        heads.clear()
+    heads[(stream.id, frame.direction)] = head
+    if len(_JSON_PARTS) >= _CACHE_SIZE:
+        _JSON_PARTS.clear()
+    _JSON_PARTS[(id(pdu), id(req_pdu), record.kind, frame.unit, frame.crc_ok)] = parts
+    return full

@@ -2,11 +2,27 @@
 
 from __future__ import annotations
 
-import pytest
+from pathlib import Path
 
-from mbmon.format import View, generic_note, monitor_hex, record_line, record_to_json
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mbmon.format import (
+    View,
+    format_time,
+    generic_note,
+    json_line,
+    monitor_hex,
+    record_json_line,
+    record_line,
+    record_to_json,
+)
 from mbmon.model import Direction, Event, EventKind, Frame, Record, RecordKind, Stream, Transport
 from mbmon.protocol.pdu import decode_pdu
+
+REPO = Path(__file__).resolve().parents[1]
+REAL = REPO / ".." / "shared" / "captures" / "real"
 
 TCP = Stream(3, Transport.TCP, "10.0.0.1:50000", "10.0.0.2:502")
 BUS = Stream(0, Transport.RTU, "/dev/ttyUSB0", "/dev/ttyUSB0")
@@ -122,3 +138,127 @@ def test_json_keys_are_stable() -> None:
     assert obj["address"] == 400 and obj["count"] == 2 and obj["values"] == [400, 0]
     assert obj["pdu"] == "03 04 01 90 00 00" and obj["latency_ms"] == 2.1
     assert obj["kind"] == "response" and obj["request_index"] == 0 and obj["stream"] == 3
+
+
+# --------------------------------------------------------------------------- fast JSON lines
+
+
+def _slow(record: Record, view: View) -> str:
+    return json_line(record_to_json(record, view))
+
+
+def _records_of(path: Path, profile: list[str] | None = None) -> list[Record]:
+    from mbmon.cli import make_annotator
+    from mbmon.pipeline import Pipeline
+    from mbmon.sources.pcapfile import read_capture
+
+    return list(Pipeline(make_annotator(profile or [])).run(read_capture(path)))
+
+
+def _views(records: list[Record]) -> list[View]:
+    """A neutral view and the robot's view as the server of the first stream."""
+    views = [View()]
+    streams = [r.stream for r in records if r.stream is not None]
+    if streams:
+        views.append(View(robot=streams[0].server))
+    return views
+
+
+@pytest.mark.parametrize(
+    ("name", "profile"),
+    [("hrss_ptp.pcap", None), ("hrss_ptp.pcap", ["hrss"]), ("hrss_rtu.pcap", ["hrss"])],
+)
+def test_fast_json_line_is_the_full_encoding_on_own_captures(
+    name: str, profile: list[str] | None
+) -> None:
+    records = _records_of(REPO / "captures" / name, profile)
+    assert any(r.notes for r in records) == bool(profile)
+    for view in _views(records):
+        for _ in range(2):  # the second pass reads every fixed part from the caches
+            for record in records:
+                assert record_json_line(record, view) == _slow(record, view)
+
+
+def test_fast_json_line_is_the_full_encoding_on_real_captures() -> None:
+    if not REAL.is_dir():
+        pytest.skip("../shared/captures/real absent")
+    paths = sorted(p for p in REAL.iterdir() if p.suffix in (".pcap", ".pcapng"))
+    assert paths
+    for path in paths:
+        records = _records_of(path)
+        for view in _views(records):
+            for record in records:
+                assert record_json_line(record, view) == _slow(record, view), path.name
+
+
+#: (request, response) PDUs: registers, bits trimmed by the request, PDU fields
+#: (mask write, MEI objects with a quote in them), diagnostics, an exception
+PAIRS = [
+    ("03 01 90 00 02", "03 04 01 90 00 00"),
+    ("02 01 2C 00 05", "02 01 13"),
+    ("16 00 04 00 F2 00 25", "16 00 04 00 F2 00 25"),
+    ("2B 0E 01 00", "2B 0E 01 01 00 00 01 00 03 41 22 43"),
+    ("08 00 00 12 34", "08 00 00 12 34"),
+    ("03 00 00 00 01", "83 02"),
+]
+_text = st.text(st.characters(codec="utf-8", exclude_categories=("Cs",)), max_size=12)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    notes=st.lists(_text | st.sampled_from(['"', "\\", "\n", "\x00", "→", "\u2028"]), max_size=3),
+    latency=st.none() | st.floats(0, 1e6, allow_nan=False),
+    tid=st.none() | st.integers(0, 0xFFFF),
+    crc_ok=st.sampled_from([None, True, False]),
+    index=st.integers(0, 10**12),
+    ts=st.floats(0, 4e9, allow_nan=False),
+    request_index=st.none() | st.integers(0, 10**9),
+    hexes=st.sampled_from(PAIRS),
+    paired=st.booleans(),
+    robot=st.sampled_from([None, "10.0.0.2", "10.0.0.1:50000"]),
+)
+def test_fast_json_line_equals_the_full_encoding(
+    notes: list[str],
+    latency: float | None,
+    tid: int | None,
+    crc_ok: bool | None,
+    index: int,
+    ts: float,
+    request_index: int | None,
+    hexes: tuple[str, str],
+    paired: bool,
+    robot: str | None,
+) -> None:
+    """Whatever the record holds (notes needing JSON escapes, no tid, no latency,
+    PDU fields), the line cut from cached parts is the full encoding."""
+    view = View(robot=robot)
+    req_pdu = decode_pdu(bytes.fromhex(hexes[0]), False)
+    resp_pdu = decode_pdu(bytes.fromhex(hexes[1]), True, req_pdu if paired else None)
+    req = Frame(ts, TCP, Direction.C2S, 1, tid, req_pdu, b"", crc_ok)
+    resp = Frame(ts, TCP, Direction.S2C, 1, tid, resp_pdu, b"", crc_ok)
+    kind = RecordKind.EXCEPTION if resp_pdu.fc != resp_pdu.raw[0] else RecordKind.RESPONSE
+    records = [
+        Record(index, ts, RecordKind.REQUEST, TCP, frame=req, notes=tuple(notes)),
+        Record(
+            index,
+            ts,
+            kind,
+            TCP,
+            frame=resp,
+            request=req if paired else None,
+            request_index=request_index,
+            latency=latency if paired else None,
+            notes=tuple(notes),
+        ),
+    ]
+    for record in records * 2:
+        assert record_json_line(record, view) == _slow(record, view)
+
+
+def test_format_time_truncates_to_microseconds() -> None:
+    import time
+
+    for ts in (0.0, 1.5, 1700000000.000097, 1700000000.9999999, 1381967744.641998):
+        whole = int(ts // 1)
+        expected = time.strftime("%H:%M:%S", time.localtime(whole))
+        assert format_time(ts) == f"{expected}.{int((ts - whole) * 1e6):06d}"
