@@ -563,6 +563,8 @@ def main(argv: list[str] | None = None) -> int:
     if func is None:
         parser.print_help()
         return EXIT_USAGE
+    from mbmon.sinks.base import SinkError
+
     _install_signal_handlers()
     try:
         return func(args)
@@ -575,6 +577,13 @@ def main(argv: list[str] | None = None) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return EXIT_OK
+    except SinkError as exc:  # an output failed while running (disk full, ...)
+        print(f"mbmon: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except OSError as exc:  # stdout or an output file failed while running
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"mbmon: {where}{exc.strerror or exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     return EXIT_OK
 
 

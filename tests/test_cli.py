@@ -210,3 +210,15 @@ def test_read_from_stdin(tmp_path: Path) -> None:
     )
     rows = [json.loads(x) for x in res.stdout.splitlines()]
     assert sum(r["kind"] == "response" for r in rows) == 4
+
+
+@pytest.mark.parametrize("suffix", [".jsonl", ".mcap", ".txt"])
+def test_full_disk_is_one_clear_error(tmp_path: Path, suffix: str) -> None:
+    """Writing to a full disk (/dev/full) ends with a message and exit 1, no traceback."""
+    if not Path("/dev/full").exists():
+        pytest.skip("no /dev/full on this machine")
+    target = tmp_path / f"full{suffix}"
+    target.symlink_to("/dev/full")
+    res = run("read", str(REPO / "captures" / "hrss_ptp.pcap"), "-q", "-w", str(target))
+    assert res.returncode == 1
+    assert "No space left on device" in res.stderr and "Traceback" not in res.stderr
