@@ -29,6 +29,7 @@ from mbmon.model import (
     Transaction,
     Transport,
     TxStatus,
+    fast_constructor,
 )
 from mbmon.protocol.mbap import MbapDecoder
 from mbmon.protocol.pairing import Pairer
@@ -63,11 +64,11 @@ _KIND_OF_PDU = {
 }
 
 # Per ADU: enum members as module constants (an attribute of an enum class costs
-# about 70 ns, a global 10 ns).
+# about 70 ns, a global 10 ns) and a Record constructor about twice as fast as the class.
 _DATAGRAM = frozenset({Transport.UDP, Transport.RTU_OVER_UDP})
 _EXCEPTION = Kind.EXCEPTION
 _PENDING, _TIMEOUT = TxStatus.PENDING, TxStatus.TIMEOUT
-_new_record = Record
+_new_record = fast_constructor(Record)
 
 
 class Pipeline:

@@ -24,7 +24,7 @@ Pure: no I/O, no clocks; time is the ``ts`` given with each chunk.
 
 from __future__ import annotations
 
-from mbmon.model import Direction, Frame, Noise, Stream
+from mbmon.model import Direction, Frame, Noise, Stream, fast_constructor
 from mbmon.protocol.pdu import NEED_MORE, decode_pdu, pdu_length
 
 __all__ = ["DEFAULT_MAX_LENGTH", "MBAP_HEADER_LEN", "NOISE_CAP", "MbapDecoder", "encode_adu"]
@@ -42,6 +42,8 @@ _NO_HEADER = "no plausible MBAP header"
 
 NOISE_CAP = 65536
 """A noise run longer than this is reported in pieces of this size."""
+
+_new_frame = fast_constructor(Frame)  # one per ADU: about twice as fast as Frame(...)
 
 
 def encode_adu(tid: int, unit: int, pdu: bytes) -> bytes:
@@ -206,7 +208,7 @@ class MbapDecoder:
                     self._synced = True
                     raw = bytes(buf[pos:end])
                     append(
-                        Frame(
+                        _new_frame(
                             ts,
                             stream,
                             direction,

@@ -38,6 +38,7 @@ from mbmon.model import (
     Pdu,
     Transaction,
     TxStatus,
+    fast_constructor,
 )
 from mbmon.protocol.pdu import decode_pdu
 
@@ -49,13 +50,13 @@ DEFAULT_MAX_PENDING = 10_000
 _Key = tuple[int, int]  # (tid, unit) for MBAP; (0, 0) for the one RTU slot
 
 # Per frame: enum members as module constants (an attribute of an enum class costs
-# about 70 ns, a global 10 ns).
+# about 70 ns, a global 10 ns) and constructors about twice as fast as the classes'.
 _C2S, _S2C = Direction.C2S, Direction.S2C
 _REQUEST, _EXCEPTION = Kind.REQUEST, Kind.EXCEPTION
 _PENDING, _ANSWERED, _EXC = TxStatus.PENDING, TxStatus.ANSWERED, TxStatus.EXCEPTION
 _UNSOLICITED = TxStatus.UNSOLICITED
-_new_tx = Transaction
-_new_frame = Frame
+_new_tx = fast_constructor(Transaction)
+_new_frame = fast_constructor(Frame)
 
 
 class Pairer:

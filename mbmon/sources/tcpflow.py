@@ -43,11 +43,9 @@ Pure: no I/O, no clocks; the caller feeds parsed segments.
 
 from __future__ import annotations
 
-import dataclasses
 from bisect import insort
-from collections.abc import Callable
 
-from mbmon.model import Chunk, Direction, Event, EventKind, Stream
+from mbmon.model import Chunk, Direction, Event, EventKind, Stream, fast_constructor
 
 FIN = 0x01
 SYN = 0x02
@@ -64,35 +62,8 @@ MAX_ACK_JUMP = 1 << 24
 REUSE_DISTANCE = 1 << 20
 
 
-def _chunk_factory() -> Callable[[float, Stream, Direction, bytes], Chunk]:
-    """``Chunk(ts, stream, direction, data)``, made about twice as fast: a frozen
-    dataclass's ``__init__`` goes through ``object.__setattr__`` per field, while
-    the slot descriptors set them directly. Used only while Chunk is exactly the
-    four-field slotted dataclass this was written for; else the constructor."""
-    if (
-        [f.name for f in dataclasses.fields(Chunk)] != ["ts", "stream", "direction", "data"]
-        or hasattr(Chunk, "__post_init__")
-        or "__slots__" not in Chunk.__dict__
-    ):
-        return Chunk
-    new = object.__new__
-    set_ts = Chunk.__dict__["ts"].__set__
-    set_stream = Chunk.__dict__["stream"].__set__
-    set_direction = Chunk.__dict__["direction"].__set__
-    set_data = Chunk.__dict__["data"].__set__
-
-    def make(ts: float, stream: Stream, direction: Direction, data: bytes) -> Chunk:
-        chunk = new(Chunk)
-        set_ts(chunk, ts)
-        set_stream(chunk, stream)
-        set_direction(chunk, direction)
-        set_data(chunk, data)
-        return chunk
-
-    return make
-
-
-make_chunk = _chunk_factory()
+#: ``Chunk(ts, stream, direction, data)`` made about twice as fast (one per segment)
+make_chunk = fast_constructor(Chunk)
 _C2S = Direction.C2S
 _S2C = Direction.S2C
 
