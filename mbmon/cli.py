@@ -8,6 +8,7 @@ records go to the console and to every ``-w`` sink.
 from __future__ import annotations
 
 import argparse
+import codecs
 import itertools
 import json
 import os
@@ -285,9 +286,8 @@ class _Progress:
 
 
 #: Console lines are written in blocks of this many records: one ``write`` per
-#: block instead of one per line. With stdout unbuffered (``PYTHONUNBUFFERED``,
-#: ``python -u``) every line was a system call; buffered, the text layer still
-#: costs per call. Measured on 100,000 ADUs: 2.4 s -> 2.0 s (--json).
+#: block instead of one per line (with stdout unbuffered, ``PYTHONUNBUFFERED`` or
+#: ``python -u``, every line was a system call).
 _OUT_BLOCK = 512
 
 
@@ -303,30 +303,63 @@ def emit_records(
 
     ``batches`` are the record lists of successive pipeline steps. Lines are
     written in blocks of about ``_OUT_BLOCK`` records; with ``live`` (input that
-    arrives as it happens, e.g. a pipe) each batch is written as soon as it is
-    complete, so no line waits for later input.
+    arrives as it happens, e.g. a pipe) each batch is written and flushed as soon
+    as it is complete, so no line waits for later input. JSON lines are made in
+    UTF-8 and go straight to the binary buffer under ``out`` when that gives the
+    same bytes (:func:`_utf8_buffer`): no text to encode on the way out.
     """
-    from mbmon.format import record_json_line, record_line
+    from mbmon.format import record_json_bytes, record_line
 
-    write = out.write if out is not None else None
-    lines: list[str] = []
+    if out is None:
+        for batch in batches:
+            for record in batch:
+                for sink in sinks:
+                    sink.write(record)
+        return
+    buffer = _utf8_buffer(out) if as_json else None
+    if buffer is not None:
+        encode: Callable[[Any, Any], Any] = record_json_bytes
+        newline: Any = b"\n"
+        target: Any = buffer
+    elif as_json:
+        encode = lambda record, view: record_json_bytes(record, view).decode()  # noqa: E731
+        newline, target = "\n", out
+    else:
+        encode, newline, target = record_line, "\n", out
+    write = target.write
+    lines: list[Any] = []
     for batch in batches:
         for record in batch:
             for sink in sinks:
                 sink.write(record)
-        if write is None:
-            continue
-        if as_json:
-            lines.extend([record_json_line(record, view) for record in batch])
-        else:
-            lines.extend([record_line(record, view) for record in batch])
+        lines.extend([encode(record, view) for record in batch])
         if lines and (live or len(lines) >= _OUT_BLOCK):
-            lines.append("")
-            write("\n".join(lines))
+            lines.append(newline[:0])
+            write(newline.join(lines))
             lines.clear()
-    if write is not None and lines:
-        lines.append("")
-        write("\n".join(lines))
+            if live:
+                target.flush()
+    if lines:
+        lines.append(newline[:0])
+        write(newline.join(lines))
+    target.flush()
+
+
+def _utf8_buffer(out: IO[str]) -> IO[bytes] | None:
+    """The binary buffer under the text stream ``out`` when writing UTF-8 bytes there
+    is the same as writing their text to ``out`` (UTF-8 encoding, no newline
+    translation), after flushing ``out``; else ``None``."""
+    buffer = getattr(out, "buffer", None)
+    encoding = getattr(out, "encoding", None)
+    if buffer is None or not isinstance(encoding, str) or os.linesep != "\n":
+        return None
+    try:
+        if codecs.lookup(encoding).name != "utf-8":
+            return None
+    except LookupError:
+        return None
+    out.flush()
+    return buffer
 
 
 def _batches(
