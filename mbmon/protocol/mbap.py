@@ -186,6 +186,7 @@ class MbapDecoder:
         stream = self.stream
         direction = self.direction
         append = out.append
+        copy = type(buf) is not bytes  # a slice of bytes is bytes already
         while n - pos >= 6:
             if buf[pos + 2] == 0 and buf[pos + 3] == 0:
                 length = (buf[pos + 4] << 8) | buf[pos + 5]
@@ -203,10 +204,11 @@ class MbapDecoder:
                         continue
                     elif end > n:
                         break
+                    else:
+                        self._synced = True
                     if self._noise:
                         append(self._flush_noise_run())
-                    self._synced = True
-                    raw = bytes(buf[pos:end])
+                    raw = bytes(buf[pos:end]) if copy else buf[pos:end]
                     append(
                         _new_frame(
                             ts,

@@ -761,7 +761,7 @@ def decode_pdu(
     an 01/02 reply, the read count of 0x17, file sub-requests of 0x14, echo
     checks. Never raises: spec violations become ``malformed``.
     """
-    d = bytes(data)
+    d = data if type(data) is bytes else bytes(data)
     if request is None:
         key = (d, response)
         hit = _CACHE.get(key)
