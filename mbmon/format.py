@@ -286,26 +286,32 @@ def _event_text(record: Record, view: View) -> str:
     return event.kind.value
 
 
-#: The monitor line of a frame: time, label, [uUNIT tTID], PDU hex, notes. In
-#: %-format so that the same layout also makes the line in UTF-8 (``_LINE_BYTES``,
-#: for :func:`record_json_bytes`, JSON-escaped piece by piece: escaping the pieces
+#: The monitor line of a frame (time, label, [uUNIT tTID], PDU hex, notes) and its
+#: parts, as %-formats: the same texts also make the line in UTF-8 (``*_BYTES``, for
+#: :func:`record_json_bytes`, JSON-escaped piece by piece: escaping the pieces
 #: escapes the whole).
 _LINE = "%s  %s  [%s]  %s  | %s"
-_LINE_BYTES = _LINE.replace("%s", "%b").encode()
+_IDS = "u%d t%d"  # unit, transaction id
+_IDS_NO_TID = "u%d"  # unit (RTU)
+_LATENCY = " (%.1f ms)"  # a response's latency in ms
+_NO_REQUEST = " (no matching request)"  # a response that nothing asked for
+_LINE_BYTES, _IDS_BYTES, _IDS_NO_TID_BYTES, _LATENCY_BYTES, _NO_REQUEST_BYTES = (
+    text.replace("%s", "%b").encode() for text in (_LINE, _IDS, _IDS_NO_TID, _LATENCY, _NO_REQUEST)
+)
 
 
 def _ids(frame: Frame) -> str:
     tid = frame.tid
-    return f"u{frame.unit} t{tid}" if tid is not None else f"u{frame.unit}"
+    return _IDS % (frame.unit, tid) if tid is not None else _IDS_NO_TID % frame.unit
 
 
 def _latency_text(record: Record, frame: Frame) -> str:
     """The end of a frame's line: the latency of a response, or why it has none."""
     latency = record.latency
     if latency is not None:
-        return f" ({latency * 1000:.1f} ms)"
+        return _LATENCY % (latency * 1000)
     if record.request is None and frame.direction is _S2C:
-        return " (no matching request)"
+        return _NO_REQUEST
     return ""
 
 
@@ -533,26 +539,31 @@ def _json_from_parts(
         note_json += b"," + b",".join(encoded)
         note_escaped += b"; " + b"; ".join(text[1:-1] for text in encoded)
     latency = record.latency
+    if latency is not None:  # as _latency_text
+        note_escaped += _LATENCY_BYTES % (latency * 1000)
+        latency_json = _json_bytes(round(latency * 1000, 3))
+    else:
+        latency_json = b"null"
+        if record.request is None and frame.direction is _S2C:
+            note_escaped += _NO_REQUEST_BYTES
     tid = frame.tid
     request_index = record.request_index
     ts = record.ts
-    line = _LINE_BYTES % (
-        _time_bytes(ts),
-        head[2],
-        _ids(frame).encode(),
-        hex_text,
-        note_escaped + _latency_text(record, frame).encode(),
-    )
+    if tid is None:
+        ids, tid_json = _IDS_NO_TID_BYTES % frame.unit, b"null"
+    else:
+        ids, tid_json = _IDS_BYTES % (frame.unit, tid), b"%d" % tid
+    line = _LINE_BYTES % (_time_bytes(ts), head[2], ids, hex_text, note_escaped)
     return b'{"index":%d,"time":%b%b%b%b"%b","notes":[%b]%b%b%b%b%b' % (
         record.index,
         _json_bytes(ts),
         head[1],
-        b"null" if tid is None else b"%d" % tid,
+        tid_json,
         to_line,
         line,
         note_json,
         to_latency,
-        b"null" if latency is None else _json_bytes(round(latency * 1000, 3)),
+        latency_json,
         to_index,
         b"null" if request_index is None else b"%d" % request_index,
         end,
