@@ -329,9 +329,10 @@ def emit_records(
     write = target.write
     lines: list[Any] = []
     for batch in batches:
-        for record in batch:
-            for sink in sinks:
-                sink.write(record)
+        if sinks:
+            for record in batch:
+                for sink in sinks:
+                    sink.write(record)
         lines.extend([encode(record, view) for record in batch])
         if lines and (live or len(lines) >= _OUT_BLOCK):
             lines.append(newline[:0])

@@ -1,0 +1,81 @@
+"""How `mbmon read` hands lines to stdout (cli.emit_records): blocks, live input,
+UTF-8 written as bytes, any other encoding as text — always the same lines."""
+
+from __future__ import annotations
+
+import io
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+from mbmon.cli import _OUT_BLOCK, emit_records
+from mbmon.format import View, json_line, record_line, record_to_json
+from mbmon.model import Record
+from mbmon.pipeline import Pipeline
+from mbmon.sources.pcapfile import read_capture
+
+REPO = Path(__file__).resolve().parents[1]
+CAPTURE = REPO / "captures" / "hrss_ptp.pcap"
+
+
+def _records() -> list[Record]:
+    return list(Pipeline().run(read_capture(CAPTURE)))
+
+
+def _stdout() -> tuple[io.TextIOWrapper, io.BytesIO]:
+    """A text stream over a buffered binary one, like sys.stdout; and the bytes out."""
+    raw = io.BytesIO()
+    return io.TextIOWrapper(io.BufferedWriter(raw), encoding="utf-8", newline="\n"), raw
+
+
+def test_lines_in_blocks_are_every_line_in_order() -> None:
+    records = _records()
+    batches = [records] * (2 * _OUT_BLOCK // len(records) + 1)  # several blocks
+    view = View(robot="127.0.0.1:502")
+    for as_json, line in ((True, lambda r: json_line(record_to_json(r, view))), (False, None)):
+        out, raw = _stdout()
+        emit_records(iter(batches), out, as_json, view, [])
+        expected = [line(r) if line else record_line(r, view) for b in batches for r in b]
+        assert raw.getvalue().decode().split("\n") == [*expected, ""]
+
+
+def test_live_batches_are_written_before_the_next_one_is_asked_for() -> None:
+    records = _records()
+    out, raw = _stdout()
+    seen: list[bytes] = []
+
+    def batches(live_output: io.BytesIO) -> Iterator[list[Record]]:
+        for record in records[:3]:
+            yield [record]
+            seen.append(live_output.getvalue())
+
+    emit_records(batches(raw), out, True, View(), [], live=True)
+    assert [s.count(b"\n") for s in seen] == [1, 2, 3]
+    out, raw = _stdout()
+    seen.clear()
+    emit_records(batches(raw), out, True, View(), [], live=False)
+    assert seen == [b"", b"", b""]  # a file: lines wait for a full block
+    assert raw.getvalue().count(b"\n") == 3
+
+
+def test_json_is_the_same_text_in_any_stdout_encoding() -> None:
+    """UTF-8 stdout gets bytes made in UTF-8; another encoding gets the text."""
+
+    def run(encoding: str) -> str:
+        env = dict(os.environ, PYTHONIOENCODING=encoding)
+        res = subprocess.run(
+            [sys.executable, "-m", "mbmon", "read", str(CAPTURE), "--json"],
+            capture_output=True,
+            env=env,
+            timeout=120,
+            check=True,
+        )
+        return res.stdout.decode(encoding)
+
+    utf8 = run("utf-8")
+    assert "→" in utf8  # non-ASCII labels
+    assert run("utf-16") == utf8
+    view = View()
+    assert utf8 == "".join(json_line(record_to_json(r, view)) + "\n" for r in _records())
