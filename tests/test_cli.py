@@ -222,3 +222,33 @@ def test_full_disk_is_one_clear_error(tmp_path: Path, suffix: str) -> None:
     res = run("read", str(REPO / "captures" / "hrss_ptp.pcap"), "-q", "-w", str(target))
     assert res.returncode == 1
     assert "No space left on device" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_a_pipe_streams_records_as_they_arrive(tmp_path: Path) -> None:
+    """`tcpdump -w - | mbmon read -`: records come out before the writer is done."""
+    import select
+
+    cap = tmp_path / "poll.pcap"
+    write_polling_pcap(cap, polls=50)
+    data = cap.read_bytes()
+    proc = subprocess.Popen(
+        [*MBMON, "read", "-"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    assert proc.stdin is not None and proc.stdout is not None
+    try:
+        proc.stdin.write(data[: len(data) // 4])
+        proc.stdin.flush()
+        ready, _, _ = select.select([proc.stdout], [], [], 30)
+        assert ready, "no record within 30 s while the pipe stays open"
+        first = proc.stdout.readline().decode()
+        assert "Connect 10.0.0.1:50000" in first
+        proc.stdin.write(data[len(data) // 4 :])
+        proc.stdin.close()
+        rest = proc.stdout.read().decode().splitlines()
+        assert proc.wait(timeout=60) == 0
+        assert len(rest) == 100 + 1  # 50 requests, 50 responses, the disconnect
+    finally:
+        proc.kill()

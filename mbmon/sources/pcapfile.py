@@ -126,8 +126,11 @@ class _Input:
         if avail >= need:
             return True
         parts = [self.buf[self.pos :]]
+        # read1: what is there now (up to a block), so a pipe fed slowly (tcpdump -w -)
+        # streams record by record instead of waiting for a whole block
+        read = getattr(self.f, "read1", self.f.read)
         while avail < need and not self.eof:
-            data = self.f.read(max(_BLOCK, need - avail))
+            data = read(max(_BLOCK, need - avail))
             if not data:
                 self.eof = True
                 break
