@@ -262,3 +262,11 @@ def test_format_time_truncates_to_microseconds() -> None:
         whole = int(ts // 1)
         expected = time.strftime("%H:%M:%S", time.localtime(whole))
         assert format_time(ts) == f"{expected}.{int((ts - whole) * 1e6):06d}"
+
+
+def test_time_rounds_to_the_microsecond() -> None:
+    from mbmon.format import format_time
+
+    assert format_time(1700000000.26).endswith(".260000")
+    assert format_time(1700000000.0000004).endswith(".000000")
+    assert format_time(1700000000.9999996).endswith(".999999")
