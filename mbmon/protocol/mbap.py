@@ -26,6 +26,7 @@ from __future__ import annotations
 
 from mbmon.model import Direction, Frame, Noise, Stream, fast_constructor
 from mbmon.protocol.pdu import NEED_MORE, decode_pdu, pdu_length
+from mbmon.protocol.stream import StreamDecoder
 
 __all__ = ["DEFAULT_MAX_LENGTH", "MBAP_HEADER_LEN", "NOISE_CAP", "MbapDecoder", "encode_adu"]
 
@@ -58,7 +59,7 @@ def encode_adu(tid: int, unit: int, pdu: bytes) -> bytes:
     return bytes((tid >> 8, tid & 0xFF, 0, 0, length >> 8, length & 0xFF, unit)) + bytes(pdu)
 
 
-class MbapDecoder:
+class MbapDecoder(StreamDecoder):
     """Sans-I/O decoder of one TCP/UDP direction carrying MBAP ADUs.
 
     ``direction`` is C2S (requests, decoded with ``response=False``) or S2C
@@ -68,15 +69,9 @@ class MbapDecoder:
     """
 
     __slots__ = (
-        "_buf",
         "_max_length",
-        "_noise",
-        "_noise_reason",
-        "_noise_ts",
         "_response",
         "_synced",
-        "direction",
-        "stream",
     )
 
     def __init__(
@@ -84,14 +79,9 @@ class MbapDecoder:
     ) -> None:
         if direction is Direction.BUS:
             raise ValueError("an MBAP stream direction must be C2S or S2C")
-        self.stream = stream
-        self.direction = direction
+        super().__init__(stream, direction)
         self._response = direction is Direction.S2C
         self._max_length = max(2, min(int(max_length), 0xFFFF))
-        self._buf = bytearray()
-        self._noise = bytearray()
-        self._noise_reason = ""
-        self._noise_ts = 0.0
         self._synced = True
 
     # ------------------------------------------------------------------ public
@@ -137,30 +127,11 @@ class MbapDecoder:
         The next bytes are taken as the start of an ADU (a TCP segment after a
         gap usually starts one); if they are not, the decoder resynchronises.
         """
-        out: list[Noise] = []
-        run = self._take_noise()
-        if run is not None:
-            out.append(run)
-        if self._buf:
-            out.append(
-                Noise(ts, self.stream, self.direction, bytes(self._buf), "discarded after gap")
-            )
-            self._buf = bytearray()
+        out = self._discard(ts)
         self._synced = True
         return out
 
     # ------------------------------------------------------------------ internals
-
-    def _take_noise(self) -> Noise | None:
-        """End the current noise run and return it (``None`` when there is none)."""
-        return self._flush_noise_run() if self._noise else None
-
-    def _flush_noise_run(self) -> Noise:
-        run = Noise(
-            self._noise_ts, self.stream, self.direction, bytes(self._noise), self._noise_reason
-        )
-        self._noise = bytearray()
-        return run
 
     def _add_noise(
         self, chunk: bytes | bytearray, reason: str, ts: float, out: list[Frame | Noise]

@@ -43,6 +43,7 @@ from __future__ import annotations
 from mbmon.model import Direction, Frame, Noise, Stream
 from mbmon.protocol.crc import CRC_TABLE, add_crc
 from mbmon.protocol.pdu import NEED_MORE, decode_pdu, pdu_length
+from mbmon.protocol.stream import StreamDecoder
 
 __all__ = ["MAX_ADU", "NOISE_CAP", "RtuDecoder", "encode_rtu", "t35"]
 
@@ -106,7 +107,7 @@ def _scan(buf: bytes | bytearray, start: int, limit: int) -> int:
     return 0
 
 
-class RtuDecoder:
+class RtuDecoder(StreamDecoder):
     """Sans-I/O decoder of one RTU byte stream.
 
     ``direction`` is ``BUS`` for a serial line carrying both directions (the
@@ -121,18 +122,12 @@ class RtuDecoder:
     __slots__ = (
         "_allow_req",
         "_allow_resp",
-        "_buf",
         "_char",
         "_last_ts",
-        "_noise",
-        "_noise_reason",
-        "_noise_ts",
         "_pending",
         "_t35",
         "baudrate",
-        "direction",
         "stats",
-        "stream",
     )
 
     def __init__(
@@ -141,8 +136,7 @@ class RtuDecoder:
         direction: Direction = Direction.BUS,
         baudrate: int | None = None,
     ) -> None:
-        self.stream = stream
-        self.direction = direction
+        super().__init__(stream, direction)
         self.baudrate = baudrate
         self._allow_req = direction is not Direction.S2C
         self._allow_resp = direction is not Direction.C2S
@@ -152,10 +146,6 @@ class RtuDecoder:
         else:
             self._char = None
             self._t35 = 0.0
-        self._buf = bytearray()
-        self._noise = bytearray()
-        self._noise_reason = ""
-        self._noise_ts = 0.0
         self._pending: tuple[int, int] | None = None
         self._last_ts: float | None = None
         self.stats: dict[str, int] = {
@@ -208,32 +198,13 @@ class RtuDecoder:
 
     def reset(self, ts: float) -> list[Noise]:
         """Drop the buffer and the pending request (e.g. after a gap); report dropped bytes."""
-        out: list[Noise] = []
-        run = self._take_noise()
-        if run is not None:
-            out.append(run)
-        if self._buf:
-            self.stats["noise_bytes"] += len(self._buf)
-            out.append(
-                Noise(ts, self.stream, self.direction, bytes(self._buf), "discarded after gap")
-            )
-            self._buf = bytearray()
+        self.stats["noise_bytes"] += len(self._buf)
+        out = self._discard(ts)
         self._pending = None
         self._last_ts = None
         return out
 
     # ------------------------------------------------------------------ internals
-
-    def _take_noise(self) -> Noise | None:
-        """End the current noise run and return it (``None`` when there is none)."""
-        return self._flush_noise_run() if self._noise else None
-
-    def _flush_noise_run(self) -> Noise:
-        run = Noise(
-            self._noise_ts, self.stream, self.direction, bytes(self._noise), self._noise_reason
-        )
-        self._noise = bytearray()
-        return run
 
     def _add_noise(self, byte: int, reason: str, ts: float, out: list[Frame | Noise]) -> None:
         if not self._noise:
