@@ -255,13 +255,14 @@ def test_json_bytes_equals_the_full_encoding(
         assert record_json_bytes(record, view) == _slow(record, view)
 
 
-def test_format_time_truncates_to_microseconds() -> None:
-    import time
+def test_time_as_text_and_in_utf8_agree() -> None:
+    """The JSON path's time (bytes) is the text time, whichever second was cached last."""
+    from mbmon.format import _time_bytes
 
-    for ts in (0.0, 1.5, 1700000000.000097, 1700000000.9999999, 1381967744.641998):
-        whole = int(ts // 1)
-        expected = time.strftime("%H:%M:%S", time.localtime(whole))
-        assert format_time(ts) == f"{expected}.{int((ts - whole) * 1e6):06d}"
+    stamps = [0.0, 1.5, 1700000000.000097, 1700000000.26, 1700000000.9999996, 1381967744.641998]
+    for ts in stamps + stamps[::-1]:
+        assert _time_bytes(ts) == format_time(ts).encode()
+        assert format_time(ts) == _time_bytes(ts).decode()
 
 
 def test_time_rounds_to_the_microsecond() -> None:
