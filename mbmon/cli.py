@@ -589,6 +589,10 @@ def main(argv: list[str] | None = None) -> int:
     from mbmon.sinks.base import SinkError
 
     _install_signal_handlers()
+    if hasattr(sys.stdout, "reconfigure"):
+        # a terminal that cannot show "→" or "°" gets \u2192 escapes (valid inside JSON
+        # strings too) instead of a traceback
+        sys.stdout.reconfigure(errors="backslashreplace")
     try:
         return func(args)
     except UsageError as exc:

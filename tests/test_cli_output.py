@@ -4,6 +4,7 @@ UTF-8 written as bytes, any other encoding as text — always the same lines."""
 from __future__ import annotations
 
 import io
+import json
 import os
 import subprocess
 import sys
@@ -79,3 +80,17 @@ def test_json_is_the_same_text_in_any_stdout_encoding() -> None:
     assert run("utf-16") == utf8
     view = View()
     assert utf8 == "".join(json_line(record_to_json(r, view)) + "\n" for r in _records())
+
+
+def test_stdout_that_cannot_encode_the_text_gets_escapes_not_a_traceback() -> None:
+    env = dict(os.environ, PYTHONIOENCODING="ascii")
+    res = subprocess.run(
+        [sys.executable, "-m", "mbmon", "read", str(CAPTURE), "--json"],
+        capture_output=True,
+        env=env,
+        timeout=120,
+        check=True,
+    )
+    rows = [json.loads(line) for line in res.stdout.decode("ascii").splitlines()]
+    assert "→" in rows[0]["line"]  # the JSON escape decodes to the real character
+    assert b"Traceback" not in res.stderr
