@@ -22,7 +22,7 @@ import struct
 from collections.abc import Sequence
 from pathlib import Path
 from types import TracebackType
-from typing import BinaryIO
+from typing import BinaryIO, Self
 
 from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport
 
@@ -367,7 +367,40 @@ class TcpConversation:
         return self.segment(from_client, RST | ACK, advance=False)
 
 
-class PcapWriter:
+class _CaptureFile:
+    """The output file of a capture writer: a path (opened and closed here) or a
+    binary file object (flushed, and left open for its owner, on :meth:`close`)."""
+
+    def __init__(self, out: str | Path | BinaryIO) -> None:
+        if isinstance(out, str | Path):
+            self._f: BinaryIO = open(out, "wb")
+            self._own = True
+        else:
+            self._f = out
+            self._own = False
+
+    def flush(self) -> None:
+        self._f.flush()
+
+    def close(self) -> None:
+        if self._own:
+            self._f.close()
+        else:
+            self._f.flush()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+class PcapWriter(_CaptureFile):
     """Classic pcap file with one link type (micro- or nanosecond timestamps).
 
     ``out`` is a path or a binary file object (left open on :meth:`close` when it
@@ -383,12 +416,7 @@ class PcapWriter:
         nanosecond: bool = False,
         big_endian: bool = False,
     ) -> None:
-        if isinstance(out, str | Path):
-            self._f: BinaryIO = open(out, "wb")
-            self._own = True
-        else:
-            self._f = out
-            self._own = False
+        super().__init__(out)
         self._e = ">" if big_endian else "<"
         self._scale = 1_000_000_000 if nanosecond else 1_000_000
         self._snaplen = snaplen
@@ -406,28 +434,8 @@ class PcapWriter:
         )
         self._f.write(cap)
 
-    def flush(self) -> None:
-        self._f.flush()
 
-    def close(self) -> None:
-        if self._own:
-            self._f.close()
-        else:
-            self._f.flush()
-
-    def __enter__(self) -> PcapWriter:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
-
-
-class PcapngWriter:
+class PcapngWriter(_CaptureFile):
     """Pcapng file: sections, interfaces, and every packet block type (EPB, SPB, PB).
 
     Interfaces are added with :meth:`add_interface` (returns the interface id);
@@ -436,12 +444,7 @@ class PcapngWriter:
     """
 
     def __init__(self, out: str | Path | BinaryIO, *, big_endian: bool = False) -> None:
-        if isinstance(out, str | Path):
-            self._f: BinaryIO = open(out, "wb")
-            self._own = True
-        else:
-            self._f = out
-            self._own = False
+        super().__init__(out)
         self._e = ">" if big_endian else "<"
         self._ifaces: list[tuple[int, int]] = []  # (resolution divisor, snaplen)
         self.new_section()
@@ -527,26 +530,6 @@ class PcapngWriter:
     def write_block(self, block_type: int, body: bytes) -> None:
         """Any other block (name resolution, statistics, custom...) as raw body bytes."""
         self._block(block_type, body)
-
-    def flush(self) -> None:
-        self._f.flush()
-
-    def close(self) -> None:
-        if self._own:
-            self._f.close()
-        else:
-            self._f.flush()
-
-    def __enter__(self) -> PcapngWriter:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
 
 class ChunkWriter:
