@@ -165,9 +165,14 @@ def _err(message: str) -> None:
 
 
 def _open(path: str) -> Any:
-    from mbmon.io.mcap_reader import McapLog
+    """The log at ``path``, or ``None`` after saying why it cannot be read."""
+    from mbmon.io.mcap_reader import LogError, McapLog
 
-    return McapLog(path)
+    try:
+        return McapLog(path)
+    except LogError as exc:
+        _err(str(exc))
+        return None
 
 
 def _build_filter(args: argparse.Namespace, log: Any) -> Any:
@@ -218,10 +223,8 @@ def run_replay(args: argparse.Namespace) -> int:
     if (args.robot or args.robot_client) and not args.redecode:
         _err("error: --robot relabels lines only with --redecode (stored lines are as recorded)")
         return EXIT_USAGE
-    try:
-        log = _open(args.log)
-    except LogError as exc:
-        _err(str(exc))
+    log = _open(args.log)
+    if log is None:
         return EXIT_BAD_INPUT
     out = sys.stdout
     with log:
@@ -519,12 +522,9 @@ def _print_info(s: dict[str, Any], out: IO[str]) -> None:
 
 def run_info(args: argparse.Namespace) -> int:
     """``mbmon info``: the summary of a log (text or --json)."""
-    from mbmon.io.mcap_reader import LogError
 
-    try:
-        log = _open(args.log)
-    except LogError as exc:
-        _err(str(exc))
+    log = _open(args.log)
+    if log is None:
         return EXIT_BAD_INPUT
     with log:
         summary = summarize(log)
@@ -554,10 +554,8 @@ def run_export(args: argparse.Namespace) -> int:
         _err(f"error: {target}: unknown output format {suffix or '(no suffix)'!r}; use one "
              f"of {', '.join(sorted(SINKS))}")  # fmt: skip
         return EXIT_USAGE
-    try:
-        log = _open(args.log)
-    except LogError as exc:
-        _err(str(exc))
+    log = _open(args.log)
+    if log is None:
         return EXIT_BAD_INPUT
     if target.exists() and target.resolve() == log.path.resolve():
         log.close()
