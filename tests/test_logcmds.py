@@ -119,6 +119,25 @@ def test_sinks_by_suffix_equal_console(tmp_path: Path) -> None:
     )  # the handshake time is the connect event's; frames identical
 
 
+@pytest.mark.parametrize(
+    "view", [[], ["--robot", "127.0.0.1:502"]], ids=["neutral-labels", "robot-labels"]
+)
+def test_jsonl_file_is_read_json_bytes(tmp_path: Path, view: list[str]) -> None:
+    """``-w x.jsonl`` holds the bytes ``read --json`` prints, with a profile (notes, state,
+    commands) and non-ASCII text (the neutral labels' arrow, degree signs in the notes)."""
+    capture = OWN / "hrss_ptp.pcap"
+    out = tmp_path / "x.jsonl"
+    args = [*MBMON, "read", str(capture), "--profile", "hrss", *view]
+    utf8 = {**ENV, "PYTHONIOENCODING": "utf-8"}
+    printed = subprocess.run([*args, "--json"], capture_output=True, env=utf8, timeout=600)
+    assert printed.returncode == 0, printed.stderr
+    written = subprocess.run([*args, "-q", "-w", out], capture_output=True, env=ENV, timeout=600)
+    assert written.returncode == 0 and not written.stdout, written.stderr
+    assert out.read_bytes() == printed.stdout
+    text = printed.stdout.decode("utf-8")
+    assert "°" in text and '"command":{' in text and ("→" in text) is (not view)
+
+
 # --------------------------------------------------------------------------- export
 
 

@@ -38,6 +38,27 @@ def test_jsonl_lines_are_read_json_lines(tmp_path: Path, session_stream: list) -
     assert json.loads(lines[1])["line"].split("  ")[1] == "Receive from client"
 
 
+@pytest.mark.parametrize("robot", [None, "127.0.0.1:502"], ids=["neutral-labels", "robot-labels"])
+def test_jsonl_bytes_with_profile_and_non_ascii(tmp_path: Path, hrss_stream: list, robot) -> None:
+    """The HRSS capture through the HRSS profile: device notes, robot state, commands and
+    non-ASCII text (the neutral labels' arrow, degree signs in notes), written as the UTF-8
+    bytes of ``json_line(record_to_json(...))`` with one newline each."""
+    view = View(robot=robot)
+    ctx = SinkContext(view=view, source="captures/hrss_ptp.pcap")
+    path = tmp_path / "h.jsonl"
+    with open_sink(path, ctx) as sink:
+        feed(sink, hrss_stream)
+    recs = records_of(hrss_stream)
+    expect = "".join(json_line(record_to_json(r, View(robot=robot))) + "\n" for r in recs)
+    data = path.read_bytes()
+    assert data == expect.encode("utf-8")
+    assert any(r.notes for r in recs) and any(r.kind is RecordKind.COMMAND for r in recs)
+    assert "°" in expect
+    assert ("→" in expect) is (robot is None)
+    labels = {json.loads(line)["line"].split("  ")[1] for line in data.splitlines()}
+    assert ("Receive from client" in labels) is (robot is not None)
+
+
 def test_text_lines_are_console_lines(tmp_path: Path, session_stream: list) -> None:
     path = tmp_path / "out.txt"
     with open_sink(path, CTX) as sink:
