@@ -533,30 +533,58 @@ def _json_from_parts(
     record: Record, frame: Frame, head: tuple[Stream, bytes, bytes], parts: tuple[Any, ...]
 ) -> bytes:
     """A frame record's JSON line from its cached fixed parts and its own values."""
+    return frame_json_bytes(
+        record.index,
+        record.ts,
+        frame.unit,
+        frame.tid,
+        head,
+        parts,
+        record.latency,
+        record.request_index,
+        record.request is None and frame.direction is _S2C,
+        record.notes,
+    )
+
+
+def frame_json_bytes(
+    index: int,
+    ts: float,
+    unit: int,
+    tid: int | None,
+    head: tuple[Stream, bytes, bytes],
+    parts: tuple[Any, ...],
+    latency: float | None,
+    request_index: int | None,
+    unmatched_response: bool,
+    notes: tuple[str, ...] = (),
+) -> bytes:
+    """The JSON line of a frame record from its values and its cached fixed parts.
+
+    ``head`` and ``parts`` are what :func:`record_json_bytes` cached for the record's
+    stream direction and PDU; ``unmatched_response`` is a response without a request
+    (its line says so). The one place that lays out a frame record's line, for
+    :func:`record_json_bytes` and for the fused reader (:mod:`mbmon.fastlane`).
+    """
     _, _, to_line, hex_text, note_json, note_escaped, to_latency, to_index, end = parts
-    notes = record.notes
     if notes:  # device notes vary with state: encoded per record
         encoded = [_json_bytes(note) for note in notes]
         note_json += b"," + b",".join(encoded)
         note_escaped += b"; " + b"; ".join(text[1:-1] for text in encoded)
-    latency = record.latency
     if latency is not None:  # as _latency_text
         note_escaped += _LATENCY_BYTES % (latency * 1000)
         latency_json = _json_bytes(round(latency * 1000, 3))
     else:
         latency_json = b"null"
-        if record.request is None and frame.direction is _S2C:
+        if unmatched_response:
             note_escaped += _NO_REQUEST_BYTES
-    tid = frame.tid
-    request_index = record.request_index
-    ts = record.ts
     if tid is None:
-        ids, tid_json = _IDS_NO_TID_BYTES % frame.unit, b"null"
+        ids, tid_json = _IDS_NO_TID_BYTES % unit, b"null"
     else:
-        ids, tid_json = _IDS_BYTES % (frame.unit, tid), b"%d" % tid
+        ids, tid_json = _IDS_BYTES % (unit, tid), b"%d" % tid
     line = _LINE_BYTES % (_time_bytes(ts), head[2], ids, hex_text, note_escaped)
     return b'{"index":%d,"time":%b%b%b%b"%b","notes":[%b]%b%b%b%b%b' % (
-        record.index,
+        index,
         _json_bytes(ts),
         head[1],
         tid_json,

@@ -791,6 +791,7 @@ def read_capture(
     config: CaptureConfig = CaptureConfig(),
     progress: Callable[[int, int], None] | None = None,
     stats: dict[str, int] | None = None,
+    lane: Callable[[_Dissector], _Packet] | None = None,
 ) -> Iterator[Chunk | Event]:
     """Chunks and events of the Modbus traffic in a capture file, in capture order.
 
@@ -803,6 +804,9 @@ def read_capture(
     ``fragments``, ``malformed``, ``unsupported_link``, ``bus_records``,
     ``streams``, ``retransmissions``, ``overlaps``, ``out_of_order``, ``gaps``,
     ``gap_bytes``, ``after_close``, ``bytes``).
+    ``lane``, when given, makes the packet callback from the dissector instead of
+    using ``dissector.packet``: the fused reader (:mod:`mbmon.fastlane`) handles
+    packets itself and hands the others to the dissector.
     """
     path = Path(path)
     name = str(path)
@@ -826,7 +830,7 @@ def read_capture(
     except BaseException:
         raw.close()
         raise
-    return _iterate(pump, inp, raw, name, config, stats)
+    return _iterate(pump, inp, raw, name, config, stats, lane)
 
 
 def _iterate(
@@ -836,14 +840,16 @@ def _iterate(
     name: str,
     config: CaptureConfig,
     stats: dict[str, int] | None,
+    lane: Callable[[_Dissector], _Packet] | None,
 ) -> Iterator[Chunk | Event]:
     dissector = _Dissector(config, Path(name).name)
+    packet = dissector.packet if lane is None else lane(dissector)
     out: list[Any] = []
     error: str | None = None
     complete = False
     try:
         try:
-            yield from pump(dissector.packet, out)
+            yield from pump(packet, out)
         except _Damage as damage:
             error = (
                 f"{name}: {damage.what} at byte {damage.offset} (packet {inp.count + 1}); "
