@@ -14,7 +14,7 @@ record and the profile attachments, and the crash-safety policy:
   with decoding;
 - ``close()`` always finishes the file (summary, index, footer); the CLI turns
   SIGINT/SIGTERM into exceptions so ``close()`` runs from ``__exit__``;
-- a message enters the open chunk with one in-place extend, chunks are written
+- a record's messages enter the open chunk with one list operation, chunks are written
   by a thread signal handlers never interrupt, and the file is finished with
   SIGINT/SIGTERM held back, so a signal handler that raises can never leave
   half a message or half a chunk in the file (at worst a record has some of
@@ -34,32 +34,35 @@ import threading
 import time
 import zlib
 from binascii import b2a_base64
-from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from importlib import resources
+from operator import itemgetter
 from pathlib import Path
 from typing import IO, Any
 
 from mbmon import __version__
-from mbmon.format import View, record_to_json
+from mbmon.format import View, record_json_bytes, record_to_json
 from mbmon.model import Chunk, Direction, Event, EventKind, Record, RecordKind, Stream
 from mbmon.sinks.base import SinkBase, SinkContext, SinkError
 
 _json_str = json.encoder.encode_basestring  # C-accelerated, keeps non-ASCII
 _DIRECTIONS = {d: d.value for d in Direction}
-_RAW_TAIL = b'","event":null,"info":null}'
+#: a /modbus/raw chunk message: prefix (type, stream, direction, "ts":), ts, base64 data
+_RAW_BODY = b'%b%b,"data":"%b","event":null,"info":null}'
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")  # opcode, length, channel, sequence, log, publish
 _CHUNK_HEAD = struct.Struct("<BQQQQII")  # opcode, length, start, end, size, crc, name length
 _U64 = struct.Struct("<Q")
+_LOG_TIME, _RECORDS = itemgetter(0), itemgetter(1)  # of a (log time, records) pair
 
 
 @dataclass(frozen=True, slots=True)
 class PendingChunk:
-    """A closed chunk's uncompressed records and time range, waiting to be written."""
+    """A closed chunk's uncompressed records (in pieces, joined when written) and time range,
+    waiting to be written."""
 
-    data: bytes | bytearray
+    data: list[bytes]
     start: int
     end: int
 
@@ -93,6 +96,15 @@ PROFILE_MEDIA_TYPE = "application/toml"
 
 # foxglove.LogLevel
 LOG_DEBUG, LOG_INFO, LOG_WARNING, LOG_ERROR = 1, 2, 3, 4
+#: a /modbus/monitor message (foxglove.Log): sec, nsec, level, the line (a JSON string),
+#: its stream's tail (:data:`_MONITOR_TAIL`) and the record index
+_MONITOR = b'{"timestamp":{"sec":%d,"nsec":%d},"level":%d,"message":%b%b%d}'
+_MONITOR_TAIL = b',"name":%b,"file":%b,"line":'  # name and file as JSON strings
+#: the same with the level filled in: one value less to format per frame record
+_MONITOR_INFO, _MONITOR_WARNING = (
+    _MONITOR.replace(b'"level":%d', b'"level":%d' % level) for level in (LOG_INFO, LOG_WARNING)
+)
+_FRAME_KINDS = (RecordKind.REQUEST, RecordKind.RESPONSE, RecordKind.EXCEPTION)
 _LEVEL_OF = {  # by record kind alone; events and commands look closer (log_level)
     RecordKind.REQUEST: LOG_INFO,
     RecordKind.RESPONSE: LOG_INFO,
@@ -102,7 +114,9 @@ _LEVEL_OF = {  # by record kind alone; events and commands look closer (log_leve
 
 STATS_EVERY = 10.0  # seconds of capture time between the writer's own stats events
 FLUSH_EVERY = 0.5  # seconds of wall time between chunk flushes (at most 1 s is promised)
+_BATCH = 128  # records (and raw chunks) moved into the open chunk at once, at most
 _SIGNALS = {signal.SIGINT, signal.SIGTERM}
+ZSTD_LEVEL = 1  # chunk compression level
 
 
 def schema_text(name: str) -> bytes:
@@ -125,6 +139,12 @@ try:  # several times faster than the standard encoder; NaN/inf become null
     import orjson as _orjson
 except ImportError:  # pragma: no cover - orjson is a dependency
     _orjson = None  # type: ignore[assignment]
+
+#: a float as a JSON number that reads back as the same float (orjson: about 4x faster
+#: than repr; both print the shortest round-trip digits)
+_float_json: Callable[[float], bytes] = (
+    _orjson.dumps if _orjson is not None else lambda x: repr(x).encode()
+)
 
 _ENCODER = json.JSONEncoder(ensure_ascii=False, separators=(",", ":"), allow_nan=False, default=str)
 
@@ -248,7 +268,7 @@ def _pick_compression() -> tuple[str, Callable[[bytes], bytes] | None]:
     try:
         import zstandard
 
-        return "zstd", zstandard.ZstdCompressor(level=3).compress
+        return "zstd", zstandard.ZstdCompressor(level=ZSTD_LEVEL).compress
     except ImportError:
         pass
     try:
@@ -280,7 +300,10 @@ class McapFileWriter:
         self._rb = RecordBuilder()
         self.compression, self._compress = _pick_compression()
         self.chunk_size = chunk_size
-        self._chunk = bytearray()
+        #: the open chunk: its message records in pieces, joined once when it is written
+        #: (growing one buffer would copy every byte again at each reallocation)
+        self._parts: list[bytes] = []
+        self._size = 0  # bytes in _parts
         self._chunk_start = 0
         self._chunk_end = 0
         self._schemas: list[Any] = []
@@ -362,24 +385,30 @@ class McapFileWriter:
     @property
     def pending(self) -> int:
         """Bytes in the open chunk, not yet in the file."""
-        return len(self._chunk)
+        return self._size
+
+    def _span(self, start: int, end: int) -> None:
+        """Widen the open chunk's time range to take messages logged from ``start`` to ``end``."""
+        if not self._parts:
+            self._chunk_start, self._chunk_end = start, end
+        else:
+            if start < self._chunk_start:
+                self._chunk_start = start
+            if end > self._chunk_end:
+                self._chunk_end = end
 
     def append(self, channel_id: int, log_time: int, data: bytes) -> int:
         """Append one message to the open chunk; return the chunk's size (the caller closes it).
 
-        The message goes in with one in-place extend, so a signal handler that
+        The message goes in with one list append, so a signal handler that
         raises between bytecodes can never leave half a message in the chunk.
         """
-        chunk = self._chunk
-        if not chunk:
-            self._chunk_start = self._chunk_end = log_time
-        elif log_time < self._chunk_start:
-            self._chunk_start = log_time
-        elif log_time > self._chunk_end:
-            self._chunk_end = log_time
-        chunk += _MESSAGE_HEAD.pack(0x05, 22 + len(data), channel_id, 0, log_time, log_time) + data
+        self._span(log_time, log_time)
+        record = _MESSAGE_HEAD.pack(0x05, 22 + len(data), channel_id, 0, log_time, log_time) + data
+        self._parts.append(record)
         self._counts[channel_id] += 1
-        return len(chunk)
+        self._size += len(record)
+        return self._size
 
     def head(self, channel_id: int, log_time: int, size: int) -> bytes:
         """The 31-byte head of a message record of ``size`` data bytes (and count it).
@@ -390,19 +419,41 @@ class McapFileWriter:
         self._counts[channel_id] += 1
         return _MESSAGE_HEAD.pack(0x05, 22 + size, channel_id, 0, log_time, log_time)
 
+    def count(self, channel_id: int, messages: int) -> None:
+        """Count ``messages`` more on a channel in the statistics: messages whose heads
+        the caller packed itself (with ``_MESSAGE_HEAD``) and handed to :meth:`extend`."""
+        self._counts[channel_id] += messages
+
     def extend(self, records: bytes, start: int, end: int) -> int:
         """Append serialized message records logged from ``start`` to ``end`` (ns) in one
         step; return the open chunk's size (the caller closes it)."""
-        chunk = self._chunk
-        if not chunk:
-            self._chunk_start, self._chunk_end = start, end
-        else:
-            if start < self._chunk_start:
-                self._chunk_start = start
-            if end > self._chunk_end:
-                self._chunk_end = end
-        chunk += records
-        return len(chunk)
+        self._span(start, end)
+        self._parts.append(records)
+        self._size += len(records)
+        return self._size
+
+    def take_from(self, pending: list[tuple[int, bytes]]) -> int:
+        """Move the message records waiting in ``pending`` ((log time, records) pairs, in
+        order) to the end of the open chunk and remove them from the list; return the
+        open chunk's size (the caller closes it).
+
+        Another thread may append to ``pending`` meanwhile: only the pairs there at
+        the start are moved. The chunk gains them by one in-place list concatenation
+        and the list loses them by one slice deletion, with no call in between (where
+        CPython runs signal handlers), so a handler that raises leaves every record
+        either in the chunk or still waiting, never both or neither.
+        """
+        n = len(pending)
+        if not n:
+            return self._size
+        batch = pending[:n]
+        self._span(min(batch, key=_LOG_TIME)[0], max(batch, key=_LOG_TIME)[0])
+        records = list(map(_RECORDS, batch))
+        parts = self._parts
+        parts += records
+        del pending[:n]
+        self._size += sum(map(len, records))
+        return self._size
 
     def add_message(self, channel_id: int, log_time: int, data: bytes) -> None:
         """Append one message; close the chunk when it exceeds ``chunk_size``."""
@@ -411,17 +462,18 @@ class McapFileWriter:
 
     def take_chunk(self) -> PendingChunk | None:
         """Detach the open chunk (``None`` if empty); :meth:`write_chunk` writes it later."""
-        data = self._chunk
-        if not data:
+        parts = self._parts
+        if not parts:
             return None
-        self._chunk = bytearray()  # hand the buffer itself over: no copy
-        return PendingChunk(data, self._chunk_start, self._chunk_end)
+        self._parts = []
+        self._size = 0
+        return PendingChunk(parts, self._chunk_start, self._chunk_end)
 
     def write_chunk(self, pending: PendingChunk) -> None:
         """Compress and write a detached chunk, and index it (chunks in order)."""
         from mcap.records import ChunkIndex
 
-        data = pending.data
+        data = b"".join(pending.data)  # copies without the GIL from 1 MiB on
         if self._chunk_indexes:
             self._start_time = min(self._start_time, pending.start)
             self._end_time = max(self._end_time, pending.end)
@@ -536,17 +588,20 @@ class McapSink(SinkBase):
         self._writer = McapFileWriter(self._file, chunk_size=chunk_size)
         self._chunk_size = chunk_size
         self._append = self._writer.append
-        self._extend = self._writer.extend
         self._lock = threading.Lock()  # the writer thread takes idle chunks too
         self._chunks: queue.Queue[PendingChunk | None] = queue.Queue(maxsize=4)
-        self._raw: deque[tuple[int, bytes]] = deque()  # raw chunks waiting for the lock
+        #: (log time, message records) of raw chunks and records, in order, waiting to
+        #: enter the open chunk: appended without the lock (one atomic list append),
+        #: moved in batches under it (McapFileWriter.take_from)
+        self._pending: list[tuple[int, bytes]] = []
+        self._batch = max(1, min(_BATCH, chunk_size >> 12))
         self._error: BaseException | None = None
         self._error_raised = False
         self._closed = False
         self._source = ctx.source
         self._raw_prefix: dict[tuple[int, Direction], bytes] = {}
-        self._names: dict[int, str] = {}
-        self._file_json = _json_str(ctx.source)
+        self._tails: dict[int, bytes] = {}
+        self._file_json = _json_str(ctx.source).encode()
         self._counts: dict[str, int] = dict.fromkeys(
             ("noise_bytes", "crc_errors", "chunks", "bytes"), 0
         )
@@ -576,6 +631,9 @@ class McapSink(SinkBase):
         self._ch_state = self._channels[TOPIC_STATE]
         self._ch_commands = self._channels[TOPIC_COMMANDS]
         self._ch_events = self._channels[TOPIC_EVENTS]
+        #: messages per channel whose heads this sink packed (the writer is told on close)
+        self._messages: dict[int, int] = dict.fromkeys(self._channels.values(), 0)
+        self._slow_frames = 0  # frame records that took _write_obj
         self._topic_of = {
             RecordKind.REQUEST: self._ch_frames,
             RecordKind.RESPONSE: self._ch_frames,
@@ -625,26 +683,91 @@ class McapSink(SinkBase):
             ).encode()
         ts = chunk.ts
         raw = chunk.data
-        body = b"".join(
-            (prefix, repr(ts).encode(), b',"data":"', b2a_base64(raw, newline=False), _RAW_TAIL)
-        )
+        body = _RAW_BODY % (prefix, _float_json(ts), b2a_base64(raw, newline=False))
         counts = self._counts
-        counts["chunks"] += 1
+        counts["chunks"] += 1  # also the count of these messages (told to the writer on close)
         counts["bytes"] += len(raw)
-        # no lock here: the next record's write (or the writer thread) moves it into
+        # no lock here: the next records' write (or the writer thread) moves it into
         # the chunk, ahead of the records it produced
-        log_time = _ns(ts)
-        self._raw.append((log_time, self._writer.head(self._ch_raw, log_time, len(body)) + body))
+        log_time = round(ts * 1_000_000) * 1000 if ts > 0.0 else 0  # _ns(ts)
+        self._pending.append(
+            (log_time, _MESSAGE_HEAD.pack(5, 22 + len(body), self._ch_raw, 0, log_time, log_time)
+             + body)
+        )  # fmt: skip
 
     def write(self, record: Record) -> None:
-        """Write the messages of one record on their topics."""
+        """Write the messages of one record on their topics.
+
+        A frame record (nearly every record) takes the fast path: its
+        /modbus/frames message is the ``read --json`` line that
+        :func:`mbmon.format.record_json_bytes` makes from cached parts, and its
+        /modbus/monitor message reuses the JSON-escaped monitor line cut out of
+        those bytes; other records go through :meth:`_write_obj`.
+        """
+        frame = record.frame
+        if frame is None:
+            self._write_obj(record)
+            return
+        payload = record_json_bytes(record, self.view)
+        start = payload.find(b',"line":"') + 8  # the opening quote of the line text
+        end = payload.find(b'","notes":', start) + 1  # just past its closing quote
+        if start < 8 or end <= start:  # not a frame line as documented: the slow path
+            self._write_obj(record)
+            return
+        kind = record.kind
+        self._kinds[kind] += 1  # also the count of its two messages (told on close)
+        ts = record.ts
+        log_time = round(ts * 1_000_000) * 1000 if ts > 0.0 else 0  # _ns(ts)
+        crc_error = False
+        if kind is RecordKind.EXCEPTION:
+            monitor = _MONITOR_WARNING
+        elif (
+            frame.crc_ok is False
+            or frame.pdu.malformed
+            or (kind is RecordKind.RESPONSE and record.request is None)  # unsolicited
+        ):
+            monitor = _MONITOR_WARNING
+            crc_error = frame.crc_ok is False and kind is RecordKind.RESPONSE
+        else:
+            monitor = _MONITOR_INFO
+        tail = self._tails.get(frame.stream.id)
+        if tail is None:
+            tail = self._tail(frame.stream)
+        sec, nsec = divmod(log_time, 1_000_000_000)
+        monitor %= (sec, nsec, payload[start:end], tail, record.index)
+        pack = _MESSAGE_HEAD.pack
+        n = len(payload)
+        records = b"%b%b%b%b" % (
+            pack(5, 22 + n, self._ch_frames, 0, log_time, log_time),
+            payload,
+            pack(5, 22 + len(monitor), self._ch_monitor, 0, log_time, log_time),
+            monitor,
+        )
+        if crc_error:
+            self._counts["crc_errors"] += 1
+            records += self._head(self._ch_events, log_time, n) + payload
+        if record.state is not None:
+            records += self._state_message(record, log_time)
+        self._last_ts = ts
+        if ts >= self._next_stats:
+            records += self._due_stats(ts, log_time)
+        pending = self._pending
+        pending.append((log_time, records))
+        if len(pending) >= self._batch:
+            self._move()
+
+    def _write_obj(self, record: Record) -> None:
+        """Write the messages of a record from its ``read --json`` object (noise, events,
+        commands: few records, so the plain encoder does)."""
         obj = record_to_json(record, self.view)
         ts = record.ts
         log_time = _ns(ts)
         kind = record.kind
         self._kinds[kind] += 1
+        if kind in _FRAME_KINDS:
+            self._slow_frames += 1  # its messages are counted by _head
         payload = encode(obj)
-        head = self._writer.head
+        head = self._head
         n = len(payload)
         parts = [head(self._topic_of[kind], log_time, n), payload]
         if kind is RecordKind.NOISE:
@@ -662,45 +785,53 @@ class McapSink(SinkBase):
             self._counts["crc_errors"] += 1
             parts += (head(self._ch_events, log_time, n), payload)
         stream = record.stream
-        key = stream.id if stream is not None else -1  # a Stream hashes slowly
-        name = self._names.get(key)
-        if name is None:
-            name = self._names[key] = _json_str(stream_name(stream))
+        tail = self._tails.get(stream.id if stream is not None else -1)
+        if tail is None:
+            tail = self._tail(stream)
         sec, nsec = divmod(log_time, 1_000_000_000)
-        if kind is RecordKind.REQUEST or kind is RecordKind.RESPONSE:
-            level = LOG_INFO
-            if (
-                obj["malformed"]
-                or obj["crc_ok"] is False
-                or (
-                    kind is RecordKind.RESPONSE and record.request is None  # unsolicited
-                )
-            ):
-                level = LOG_WARNING
-        else:
-            level = log_level(record, obj)
-        monitor = (
-            f'{{"timestamp":{{"sec":{sec},"nsec":{nsec}}},"level":{level},'
-            f'"message":{_json_str(obj["line"])},"name":{name},'
-            f'"file":{self._file_json},"line":{record.index}}}'
-        ).encode()
+        monitor = _MONITOR % (
+            sec, nsec, log_level(record, obj), _json_str(obj["line"]).encode(), tail, record.index
+        )  # fmt: skip
         parts += (head(self._ch_monitor, log_time, len(monitor)), monitor)
         if record.state is not None:
-            state: dict[str, Any] = {"time": ts, "index": record.index}
-            for key, value in record.state.items():
-                if isinstance(value, bool):
-                    state[key] = int(value)
-                elif isinstance(value, int | float) and math.isfinite(value):
-                    state[key] = value  # flat numbers only: NaN/inf have no JSON form
-            data = encode(state)
-            parts += (head(self._ch_state, log_time, len(data)), data)
+            parts.append(self._state_message(record, log_time))
         self._last_ts = ts
         if ts >= self._next_stats:
-            if self._next_stats > 0:
-                data = self._stats(ts)
-                parts += (head(self._ch_events, log_time, len(data)), data)
-            self._next_stats = ts + STATS_EVERY
-        self._put(b"".join(parts), log_time)
+            parts.append(self._due_stats(ts, log_time))
+        self._pending.append((log_time, b"".join(parts)))
+        self._move()
+
+    def _tail(self, stream: Stream | None) -> bytes:
+        """The end of a stream's monitor messages (name, file, "line" key), cached by stream id
+        (a Stream hashes slowly); -1 stands for records of no stream."""
+        tail = _MONITOR_TAIL % (_json_str(stream_name(stream)).encode(), self._file_json)
+        self._tails[stream.id if stream is not None else -1] = tail
+        return tail
+
+    def _head(self, channel_id: int, log_time: int, size: int) -> bytes:
+        """The head of a message record of ``size`` data bytes on a channel (and count it)."""
+        self._messages[channel_id] += 1
+        return _MESSAGE_HEAD.pack(5, 22 + size, channel_id, 0, log_time, log_time)
+
+    def _state_message(self, record: Record, log_time: int) -> bytes:
+        """The /hrss/state message record of a record that carries robot state."""
+        state: dict[str, Any] = {"time": record.ts, "index": record.index}
+        for key, value in (record.state or {}).items():
+            if isinstance(value, bool):
+                state[key] = int(value)
+            elif isinstance(value, int | float) and math.isfinite(value):
+                state[key] = value  # flat numbers only: NaN/inf have no JSON form
+        data = encode(state)
+        return self._head(self._ch_state, log_time, len(data)) + data
+
+    def _due_stats(self, ts: float, log_time: int) -> bytes:
+        """The stats message record due at ``ts`` (none for the first record)."""
+        data = b""
+        if self._next_stats > 0:
+            stats = self._stats(ts)
+            data = self._head(self._ch_events, log_time, len(stats)) + stats
+        self._next_stats = ts + STATS_EVERY
+        return data
 
     def close(self) -> None:
         """Write what is left and finish the file (summary, index, footer).
@@ -714,10 +845,17 @@ class McapSink(SinkBase):
         old = _block_signals()
         try:
             with self._lock:
-                self._drain_raw()
+                self._writer.take_from(self._pending)
                 if self._last_ts is not None:
                     stats = self._stats(self._last_ts, True)
                     self._append(self._ch_events, _ns(self._last_ts), stats)
+                messages = self._messages
+                messages[self._ch_raw] += self._counts["chunks"]
+                fast = sum(self._kinds[k] for k in _FRAME_KINDS) - self._slow_frames
+                messages[self._ch_frames] += fast
+                messages[self._ch_monitor] += fast
+                for channel_id, count in messages.items():
+                    self._writer.count(channel_id, count)
                 pending = self._writer.take_chunk()
                 if pending is not None:
                     self._chunks.put(pending)
@@ -734,14 +872,12 @@ class McapSink(SinkBase):
 
     # ------------------------------------------------------------------ internals
 
-    def _put(self, records: bytes, log_time: int) -> None:
-        """Append a record's messages to the open chunk; hand it on when full or due."""
+    def _move(self) -> None:
+        """Move the waiting message records into the open chunk; hand it on when full or due."""
         if self._error is not None:
             self._raise_error()
         with self._lock:
-            if self._raw:
-                self._drain_raw()
-            size = self._extend(records, log_time, log_time)
+            size = self._writer.take_from(self._pending)
             if size > self._chunk_size or time.monotonic() - self._last_flush >= self.flush_every:
                 pending = self._writer.take_chunk()
                 self._last_flush = time.monotonic()
@@ -749,15 +885,6 @@ class McapSink(SinkBase):
                     # under the lock: chunks reach the writer thread in order; blocks
                     # (back pressure) when it is four chunks behind
                     self._chunks.put(pending)
-
-    def _drain_raw(self) -> None:
-        """Move the waiting raw chunks into the open chunk. Call with the lock held."""
-        raw = self._raw
-        pop = raw.popleft  # deque: append (writing thread) and popleft are atomic
-        extend = self._extend
-        while raw:
-            log_time, record = pop()
-            extend(record, log_time, log_time)
 
     def _raise_error(self) -> None:
         if self._error is not None and not self._error_raised:
@@ -779,7 +906,7 @@ class McapSink(SinkBase):
                 with self._lock:
                     if not chunks.empty():
                         continue  # write the older chunks first
-                    self._drain_raw()
+                    self._writer.take_from(self._pending)
                     pending = self._writer.take_chunk()
                     self._last_flush = time.monotonic()
                 if pending is None:
