@@ -400,3 +400,84 @@ def test_sigkill_loses_at_most_the_last_second(tmp_path: Path) -> None:
 def test_full_disk_is_an_error_not_a_hang() -> None:
     with pytest.raises(OSError):
         McapSink("/dev/full", CTX)
+
+
+ODD_TOML = """\
+[profile]
+name = "odd"
+
+[[holding_registers]]
+name = "SPEED"
+address = 200
+type = "u16"
+label = 'speed "fast" \\ ° ","notes":["x'
+"""
+
+
+def test_frame_messages_match_the_slow_encoding(tmp_path: Path) -> None:
+    """Frame records take a fast path (the read --json bytes, the line cut out of them):
+    its frames bytes, monitor lines and levels equal what record_to_json, record_line and
+    log_level give, also for a label with quotes, a backslash, non-ASCII text and a
+    fake key, for unsolicited, malformed and exception frames."""
+    from sink_records import T0, TCP, mbap, run_pipeline
+
+    from mbmon.cli import make_annotator
+    from mbmon.format import json_line
+    from mbmon.model import Direction
+    from mbmon.sinks.mcap import log_level
+
+    profile = tmp_path / "odd.toml"
+    profile.write_text(ODD_TOML, "utf-8")
+    c2s, s2c = Direction.C2S, Direction.S2C
+    frames = [
+        (c2s, mbap(1, 1, bytes.fromhex("0300C80001"))),
+        (s2c, mbap(1, 1, bytes.fromhex("0302002A"))),
+        (s2c, mbap(77, 1, bytes.fromhex("0302002B"))),  # unsolicited
+        (c2s, mbap(2, 1, bytes.fromhex("0300C8"))),  # malformed (truncated)
+        (c2s, mbap(3, 1, bytes.fromhex("0600C80005"))),
+        (s2c, mbap(3, 1, bytes.fromhex("8604"))),  # exception
+    ]
+    items = [Chunk(T0 + 0.01 * i, TCP, d, data) for i, (d, data) in enumerate(frames)]
+    stream = run_pipeline(items, make_annotator([str(profile)]))
+    recs = records_of(stream)
+    # the malformed request times out: an event, which takes the slow path
+    kinds = ["request", "response", "response", "request", "request", "exception", "event"]
+    assert [r.kind.value for r in recs] == kinds
+    assert recs[3].frame is not None and recs[3].frame.pdu.malformed
+    view = View(robot="192.168.0.10")
+    ctx = SinkContext(view=view, source='odd "source" °.pcap')
+    path = write_log(tmp_path / "odd.mcap", stream, ctx)
+    raw_frames, monitor = [], []
+    with open(path, "rb") as f:
+        for _, channel, msg in make_reader(f, validate_crcs=True).iter_messages():
+            if channel.topic == "/modbus/frames":
+                raw_frames.append(msg.data)
+            elif channel.topic == "/modbus/monitor":
+                monitor.append(json.loads(msg.data))
+    frame_recs = [r for r in recs if r.frame is not None]
+    assert raw_frames == [json_line(record_to_json(r, view)).encode() for r in frame_recs]
+    assert [m["message"] for m in monitor] == [record_line(r, view) for r in recs]
+    assert [m["level"] for m in monitor] == [log_level(r, record_to_json(r, view)) for r in recs]
+    assert [m["level"] for m in monitor] == [2, 2, 3, 3, 2, 3, 3]
+    assert {m["file"] for m in monitor} == {ctx.source}
+    assert 'speed "fast" \\ ° ","notes":["x' in monitor[0]["message"]
+
+
+def test_statistics_count_every_message(tmp_path: Path, hrss_stream: list) -> None:
+    """Messages whose heads the sink packs itself are counted per channel on close."""
+    path = tmp_path / "n.mcap"
+    with McapSink(path, hrss_context(), chunk_size=2000) as sink:
+        feed(sink, hrss_stream)
+    with open(path, "rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        summary = reader.get_summary()
+        assert summary is not None
+        counted = {
+            summary.channels[cid].topic: n
+            for cid, n in summary.statistics.channel_message_counts.items()
+        }
+    read: dict[str, int] = {}
+    for topic, *_ in messages(path):
+        read[topic] = read.get(topic, 0) + 1
+    assert {t: n for t, n in counted.items() if n} == read
+    assert read["/hrss/state"] > 0 and read["/mbmon/events"] > 0
