@@ -116,7 +116,7 @@ STATS_EVERY = 10.0  # seconds of capture time between the writer's own stats eve
 FLUSH_EVERY = 0.5  # seconds of wall time between chunk flushes (at most 1 s is promised)
 _BATCH = 128  # records (and raw chunks) moved into the open chunk at once, at most
 _SIGNALS = {signal.SIGINT, signal.SIGTERM}
-ZSTD_LEVEL = 1  # chunk compression level
+ZSTD_LEVEL = 3  # chunk compression level (1 measured no faster on 1M ADUs, 14 % larger)
 
 
 def schema_text(name: str) -> bytes:
