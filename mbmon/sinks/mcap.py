@@ -37,7 +37,6 @@ from binascii import b2a_base64
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from importlib import resources
-from operator import itemgetter
 from pathlib import Path
 from typing import IO, Any
 
@@ -54,7 +53,8 @@ MCAP_MAGIC = b"\x89MCAP0\r\n"
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")  # opcode, length, channel, sequence, log, publish
 _CHUNK_HEAD = struct.Struct("<BQQQQII")  # opcode, length, start, end, size, crc, name length
 _U64 = struct.Struct("<Q")
-_LOG_TIME, _RECORDS = itemgetter(0), itemgetter(1)  # of a (log time, records) pair
+#: makes waiting items into message records: (records, first log time, last log time)
+Converter = Callable[[list[Any]], tuple[list[bytes], int, int]]
 
 
 @dataclass(frozen=True, slots=True)
@@ -100,10 +100,13 @@ LOG_DEBUG, LOG_INFO, LOG_WARNING, LOG_ERROR = 1, 2, 3, 4
 #: its stream's tail (:data:`_MONITOR_TAIL`) and the record index
 _MONITOR = b'{"timestamp":{"sec":%d,"nsec":%d},"level":%d,"message":%b%b%d}'
 _MONITOR_TAIL = b',"name":%b,"file":%b,"line":'  # name and file as JSON strings
-#: the same with the level filled in: one value less to format per frame record
+#: the same in two parts, for frame records: the timestamp (sec, nsec), made once per
+#: capture time, then the rest with the level filled in (one value less to format)
+_MONITOR_STAMP = b'{"timestamp":{"sec":%d,"nsec":%d},"level":'
 _MONITOR_INFO, _MONITOR_WARNING = (
-    _MONITOR.replace(b'"level":%d', b'"level":%d' % level) for level in (LOG_INFO, LOG_WARNING)
+    b'%%b%d,"message":%%b%%b%%d}' % level for level in (LOG_INFO, LOG_WARNING)
 )
+assert _MONITOR_STAMP + b'%d,"message":%b%b%d}' == _MONITOR
 _FRAME_KINDS = (RecordKind.REQUEST, RecordKind.RESPONSE, RecordKind.EXCEPTION)
 _LEVEL_OF = {  # by record kind alone; events and commands look closer (log_level)
     RecordKind.REQUEST: LOG_INFO,
@@ -432,23 +435,24 @@ class McapFileWriter:
         self._size += len(records)
         return self._size
 
-    def take_from(self, pending: list[tuple[int, bytes]]) -> int:
-        """Move the message records waiting in ``pending`` ((log time, records) pairs, in
-        order) to the end of the open chunk and remove them from the list; return the
-        open chunk's size (the caller closes it).
+    def take_from(self, pending: list[Any], convert: Converter) -> int:
+        """Move what waits in ``pending`` to the end of the open chunk as message records
+        (``convert`` makes them) and remove it from the list; return the open chunk's
+        size (the caller closes it).
 
-        Another thread may append to ``pending`` meanwhile: only the pairs there at
-        the start are moved. The chunk gains them by one in-place list concatenation
-        and the list loses them by one slice deletion, with no call in between (where
-        CPython runs signal handlers), so a handler that raises leaves every record
-        either in the chunk or still waiting, never both or neither.
+        Another thread may append to ``pending`` meanwhile: only the items there at
+        the start are moved. The chunk gains their records by one in-place list
+        concatenation and the list loses them by one slice deletion, with no call
+        in between (where CPython runs signal handlers), so a handler that raises
+        leaves every item either in the chunk or still waiting, never both or
+        neither.
         """
         n = len(pending)
         if not n:
             return self._size
-        batch = pending[:n]
-        self._span(min(batch, key=_LOG_TIME)[0], max(batch, key=_LOG_TIME)[0])
-        records = list(map(_RECORDS, batch))
+        records, start, end = convert(pending[:n])
+        if records:
+            self._span(start, end)
         parts = self._parts
         parts += records
         del pending[:n]
@@ -590,10 +594,11 @@ class McapSink(SinkBase):
         self._append = self._writer.append
         self._lock = threading.Lock()  # the writer thread takes idle chunks too
         self._chunks: queue.Queue[PendingChunk | None] = queue.Queue(maxsize=4)
-        #: (log time, message records) of raw chunks and records, in order, waiting to
-        #: enter the open chunk: appended without the lock (one atomic list append),
-        #: moved in batches under it (McapFileWriter.take_from)
-        self._pending: list[tuple[int, bytes]] = []
+        #: chunks and (record, its read --json line or object), in order, waiting to
+        #: become messages in the open chunk: appended without the lock (one atomic
+        #: list append), made into messages and moved in batches under it
+        #: (McapFileWriter.take_from with _make_messages)
+        self._pending: list[Any] = []
         self._batch = max(1, min(_BATCH, chunk_size >> 12))
         self._error: BaseException | None = None
         self._error_raised = False
@@ -633,7 +638,7 @@ class McapSink(SinkBase):
         self._ch_events = self._channels[TOPIC_EVENTS]
         #: messages per channel whose heads this sink packed (the writer is told on close)
         self._messages: dict[int, int] = dict.fromkeys(self._channels.values(), 0)
-        self._slow_frames = 0  # frame records that took _write_obj
+        self._slow_frames = 0  # frame records that took _obj_messages
         self._topic_of = {
             RecordKind.REQUEST: self._ch_frames,
             RecordKind.RESPONSE: self._ch_frames,
@@ -671,97 +676,146 @@ class McapSink(SinkBase):
     # ------------------------------------------------------------------ sink API
 
     def write_chunk(self, chunk: Chunk) -> None:
-        """One captured chunk on /modbus/raw."""
-        stream = chunk.stream
-        key = (stream.id, chunk.direction)
-        prefix = self._raw_prefix.get(key)
-        if prefix is None:
-            fields = _stream_fields(stream)
-            prefix = encode({"type": "chunk", **fields}).decode()[:-1]
-            self._raw_prefix[key] = prefix = (
-                f'{prefix},"direction":"{_DIRECTIONS[chunk.direction]}","ts":'
-            ).encode()
-        ts = chunk.ts
-        raw = chunk.data
-        body = _RAW_BODY % (prefix, _float_json(ts), b2a_base64(raw, newline=False))
-        counts = self._counts
-        counts["chunks"] += 1  # also the count of these messages (told to the writer on close)
-        counts["bytes"] += len(raw)
-        # no lock here: the next records' write (or the writer thread) moves it into
-        # the chunk, ahead of the records it produced
-        log_time = round(ts * 1_000_000) * 1000 if ts > 0.0 else 0  # _ns(ts)
-        self._pending.append(
-            (log_time, _MESSAGE_HEAD.pack(5, 22 + len(body), self._ch_raw, 0, log_time, log_time)
-             + body)
-        )  # fmt: skip
+        """One captured chunk on /modbus/raw (made into its message with the next batch)."""
+        self._pending.append(chunk)
 
     def write(self, record: Record) -> None:
         """Write the messages of one record on their topics.
 
-        A frame record (nearly every record) takes the fast path: its
-        /modbus/frames message is the ``read --json`` line that
-        :func:`mbmon.format.record_json_bytes` makes from cached parts, and its
-        /modbus/monitor message reuses the JSON-escaped monitor line cut out of
-        those bytes; other records go through :meth:`_write_obj`.
+        What depends on the view is made here, in the calling thread: the
+        ``read --json`` line of a frame record (by :func:`record_json_bytes`,
+        from cached parts) or the object of another record. The messages are
+        made from it in batches, by :meth:`_make_messages`.
         """
-        frame = record.frame
-        if frame is None:
-            self._write_obj(record)
-            return
-        payload = record_json_bytes(record, self.view)
-        start = payload.find(b',"line":"') + 8  # the opening quote of the line text
-        end = payload.find(b'","notes":', start) + 1  # just past its closing quote
-        if start < 8 or end <= start:  # not a frame line as documented: the slow path
-            self._write_obj(record)
-            return
-        kind = record.kind
-        self._kinds[kind] += 1  # also the count of its two messages (told on close)
-        ts = record.ts
-        log_time = round(ts * 1_000_000) * 1000 if ts > 0.0 else 0  # _ns(ts)
-        crc_error = False
-        if kind is RecordKind.EXCEPTION:
-            monitor = _MONITOR_WARNING
-        elif (
-            frame.crc_ok is False
-            or frame.pdu.malformed
-            or (kind is RecordKind.RESPONSE and record.request is None)  # unsolicited
-        ):
-            monitor = _MONITOR_WARNING
-            crc_error = frame.crc_ok is False and kind is RecordKind.RESPONSE
-        else:
-            monitor = _MONITOR_INFO
-        tail = self._tails.get(frame.stream.id)
-        if tail is None:
-            tail = self._tail(frame.stream)
-        sec, nsec = divmod(log_time, 1_000_000_000)
-        monitor %= (sec, nsec, payload[start:end], tail, record.index)
-        pack = _MESSAGE_HEAD.pack
-        n = len(payload)
-        records = b"%b%b%b%b" % (
-            pack(5, 22 + n, self._ch_frames, 0, log_time, log_time),
-            payload,
-            pack(5, 22 + len(monitor), self._ch_monitor, 0, log_time, log_time),
-            monitor,
-        )
-        if crc_error:
-            self._counts["crc_errors"] += 1
-            records += self._head(self._ch_events, log_time, n) + payload
-        if record.state is not None:
-            records += self._state_message(record, log_time)
-        self._last_ts = ts
-        if ts >= self._next_stats:
-            records += self._due_stats(ts, log_time)
         pending = self._pending
-        pending.append((log_time, records))
-        if len(pending) >= self._batch:
-            self._move()
+        if record.frame is not None:
+            pending.append((record, record_json_bytes(record, self.view)))
+            if len(pending) < self._batch:
+                return
+        else:  # events, noise, commands: few, and written out at once
+            pending.append((record, record_to_json(record, self.view)))
+        self._move()
 
-    def _write_obj(self, record: Record) -> None:
-        """Write the messages of a record from its ``read --json`` object (noise, events,
-        commands: few records, so the plain encoder does)."""
-        obj = record_to_json(record, self.view)
+    def _make_messages(self, items: list[Any]) -> tuple[list[bytes], int, int]:
+        """The message records of waiting chunks and records (one or more bytes per item,
+        in order) and their first and last log time. Runs with the lock held (in
+        either thread).
+
+        A frame record's /modbus/frames message is its ``read --json`` line and its
+        /modbus/monitor message takes the line's JSON-escaped text cut out of that
+        line; other records go through :meth:`_obj_messages`. This is the writer's
+        per-record work, so it is one loop with the sink's state in locals, and what
+        depends on the capture time alone (log time, the monitor's timestamp) is
+        made once per distinct time: a chunk and the records it completes share it.
+        """
+        out: list[bytes] = []
+        append = out.append
+        pack = _MESSAGE_HEAD.pack
+        first = last = -1
+        kinds, tails, raw_prefix = self._kinds, self._tails, self._raw_prefix
+        ch_frames, ch_monitor, ch_raw = self._ch_frames, self._ch_monitor, self._ch_raw
+        n_chunks = n_bytes = 0
+        last_ts: float | None = None
+        time_of = log_time = 0  # the capture time whose log time and stamp are below
+        stamp = b""
+        for item in items:
+            if type(item) is not tuple:  # a Chunk, on /modbus/raw
+                ts = item.ts
+                if ts != time_of:
+                    time_of, log_time, stamp = ts, _ns(ts), b""
+                stream = item.stream
+                prefix = raw_prefix.get((stream.id, item.direction))
+                if prefix is None:
+                    prefix = self._raw_prefix_of(item)
+                raw = item.data
+                body = _RAW_BODY % (prefix, _float_json(ts), b2a_base64(raw, newline=False))
+                n_chunks += 1
+                n_bytes += len(raw)
+                append(pack(5, 22 + len(body), ch_raw, 0, log_time, log_time) + body)
+            else:
+                record, payload = item
+                ts = last_ts = record.ts
+                if ts != time_of:
+                    time_of, log_time, stamp = ts, _ns(ts), b""
+                frame = record.frame
+                start = end = 0
+                if type(payload) is bytes:
+                    if payload[-2] != 125:  # no "fields" object at the end (no "}}")
+                        end = payload.rfind(b'","notes":[') + 1  # just past the line's end
+                        start = payload.rfind(b',"line":"', 0, end) + 8  # its opening quote
+                    else:  # a "fields" key could hold anything: search from the start
+                        start = payload.find(b',"line":"') + 8
+                        end = payload.find(b'","notes":', start) + 1
+                if start < 8 or end <= start or frame is None:  # not a frame line: slow path
+                    if type(payload) is bytes:
+                        payload = record_to_json(record, self.view)
+                    self._add_chunk_counts(n_chunks, n_bytes)  # its stats may be due
+                    n_chunks = n_bytes = 0
+                    append(self._obj_messages(record, payload, log_time))
+                else:
+                    kind = record.kind
+                    kinds[kind] += 1  # also the count of its two messages (told on close)
+                    if not stamp:
+                        stamp = _MONITOR_STAMP % divmod(log_time, 1_000_000_000)
+                    crc_error = False
+                    if kind is RecordKind.EXCEPTION:
+                        monitor = _MONITOR_WARNING
+                    elif (
+                        frame.crc_ok is False
+                        or frame.pdu.malformed
+                        or (kind is RecordKind.RESPONSE and record.request is None)  # unsolicited
+                    ):
+                        monitor = _MONITOR_WARNING
+                        crc_error = frame.crc_ok is False and kind is RecordKind.RESPONSE
+                    else:
+                        monitor = _MONITOR_INFO
+                    tail = tails.get(frame.stream.id)
+                    if tail is None:
+                        tail = self._tail(frame.stream)
+                    monitor %= (stamp, payload[start:end], tail, record.index)
+                    n = len(payload)
+                    out += (
+                        pack(5, 22 + n, ch_frames, 0, log_time, log_time),
+                        payload,
+                        pack(5, 22 + len(monitor), ch_monitor, 0, log_time, log_time),
+                        monitor,
+                    )
+                    if crc_error:
+                        self._counts["crc_errors"] += 1
+                        append(self._head(self._ch_events, log_time, n) + payload)
+                    if record.state is not None:
+                        append(self._state_message(record, log_time))
+                    if ts >= self._next_stats:
+                        self._add_chunk_counts(n_chunks, n_bytes)
+                        n_chunks = n_bytes = 0
+                        append(self._due_stats(ts, log_time))
+            if first < 0:
+                first = last = log_time
+            elif log_time < first:
+                first = log_time
+            elif log_time > last:
+                last = log_time
+        self._add_chunk_counts(n_chunks, n_bytes)
+        if last_ts is not None:
+            self._last_ts = last_ts
+        return out, first, last
+
+    def _add_chunk_counts(self, chunks: int, size: int) -> None:
+        counts = self._counts
+        counts["chunks"] += chunks  # also the count of their messages (told on close)
+        counts["bytes"] += size
+
+    def _raw_prefix_of(self, chunk: Chunk) -> bytes:
+        """The JSON of a chunk message up to its ``ts`` value, cached by stream direction."""
+        prefix = encode({"type": "chunk", **_stream_fields(chunk.stream)}).decode()[:-1]
+        text = f'{prefix},"direction":"{_DIRECTIONS[chunk.direction]}","ts":'.encode()
+        self._raw_prefix[(chunk.stream.id, chunk.direction)] = text
+        return text
+
+    def _obj_messages(self, record: Record, obj: Mapping[str, Any], log_time: int) -> bytes:
+        """The message records of a record made from its ``read --json`` object (noise,
+        events, commands: few records, so the plain encoder does)."""
         ts = record.ts
-        log_time = _ns(ts)
         kind = record.kind
         self._kinds[kind] += 1
         if kind in _FRAME_KINDS:
@@ -795,11 +849,9 @@ class McapSink(SinkBase):
         parts += (head(self._ch_monitor, log_time, len(monitor)), monitor)
         if record.state is not None:
             parts.append(self._state_message(record, log_time))
-        self._last_ts = ts
         if ts >= self._next_stats:
             parts.append(self._due_stats(ts, log_time))
-        self._pending.append((log_time, b"".join(parts)))
-        self._move()
+        return b"".join(parts)
 
     def _tail(self, stream: Stream | None) -> bytes:
         """The end of a stream's monitor messages (name, file, "line" key), cached by stream id
@@ -845,7 +897,7 @@ class McapSink(SinkBase):
         old = _block_signals()
         try:
             with self._lock:
-                self._writer.take_from(self._pending)
+                self._writer.take_from(self._pending, self._make_messages)
                 if self._last_ts is not None:
                     stats = self._stats(self._last_ts, True)
                     self._append(self._ch_events, _ns(self._last_ts), stats)
@@ -877,7 +929,7 @@ class McapSink(SinkBase):
         if self._error is not None:
             self._raise_error()
         with self._lock:
-            size = self._writer.take_from(self._pending)
+            size = self._writer.take_from(self._pending, self._make_messages)
             if size > self._chunk_size or time.monotonic() - self._last_flush >= self.flush_every:
                 pending = self._writer.take_chunk()
                 self._last_flush = time.monotonic()
@@ -906,7 +958,7 @@ class McapSink(SinkBase):
                 with self._lock:
                     if not chunks.empty():
                         continue  # write the older chunks first
-                    self._writer.take_from(self._pending)
+                    self._writer.take_from(self._pending, self._make_messages)
                     pending = self._writer.take_chunk()
                     self._last_flush = time.monotonic()
                 if pending is None:

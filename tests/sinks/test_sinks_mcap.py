@@ -418,7 +418,7 @@ def test_frame_messages_match_the_slow_encoding(tmp_path: Path) -> None:
     """Frame records take a fast path (the read --json bytes, the line cut out of them):
     its frames bytes, monitor lines and levels equal what record_to_json, record_line and
     log_level give, also for a label with quotes, a backslash, non-ASCII text and a
-    fake key, for unsolicited, malformed and exception frames."""
+    fake key, for unsolicited, malformed and exception frames and frames with "fields"."""
     from sink_records import T0, TCP, mbap, run_pipeline
 
     from mbmon.cli import make_annotator
@@ -436,12 +436,16 @@ def test_frame_messages_match_the_slow_encoding(tmp_path: Path) -> None:
         (c2s, mbap(2, 1, bytes.fromhex("0300C8"))),  # malformed (truncated)
         (c2s, mbap(3, 1, bytes.fromhex("0600C80005"))),
         (s2c, mbap(3, 1, bytes.fromhex("8604"))),  # exception
+        (c2s, mbap(4, 1, bytes.fromhex("170000000200C80001021234"))),  # with "fields"
+        (s2c, mbap(4, 1, bytes.fromhex("170400010002"))),
+        (c2s, mbap(5, 1, bytes.fromhex("2B0E0100"))),  # with "fields"
     ]
     items = [Chunk(T0 + 0.01 * i, TCP, d, data) for i, (d, data) in enumerate(frames)]
     stream = run_pipeline(items, make_annotator([str(profile)]))
     recs = records_of(stream)
     # the malformed request times out: an event, which takes the slow path
-    kinds = ["request", "response", "response", "request", "request", "exception", "event"]
+    kinds = ["request", "response", "response", "request", "request", "exception"]
+    kinds += ["request", "response", "request", "event", "event"]
     assert [r.kind.value for r in recs] == kinds
     assert recs[3].frame is not None and recs[3].frame.pdu.malformed
     view = View(robot="192.168.0.10")
@@ -458,7 +462,9 @@ def test_frame_messages_match_the_slow_encoding(tmp_path: Path) -> None:
     assert raw_frames == [json_line(record_to_json(r, view)).encode() for r in frame_recs]
     assert [m["message"] for m in monitor] == [record_line(r, view) for r in recs]
     assert [m["level"] for m in monitor] == [log_level(r, record_to_json(r, view)) for r in recs]
-    assert [m["level"] for m in monitor] == [2, 2, 3, 3, 2, 3, 3]
+    assert [m["level"] for m in monitor] == [2, 2, 3, 3, 2, 3, 2, 2, 2, 3, 3]
+    with_fields = [data for data in raw_frames if data.endswith(b"}}")]
+    assert len(with_fields) == 2 and b"SPEED" in with_fields[0]
     assert {m["file"] for m in monitor} == {ctx.source}
     assert 'speed "fast" \\ ° ","notes":["x' in monitor[0]["message"]
 
