@@ -108,6 +108,9 @@ _MONITOR_INFO, _MONITOR_WARNING = (
 )
 assert _MONITOR_STAMP + b'%d,"message":%b%b%d}' == _MONITOR
 _FRAME_KINDS = (RecordKind.REQUEST, RecordKind.RESPONSE, RecordKind.EXCEPTION)
+#: enum members as module constants: ``RecordKind.RESPONSE`` costs a class attribute
+#: lookup through the enum machinery each time, several per record
+_RESPONSE, _EXCEPTION = RecordKind.RESPONSE, RecordKind.EXCEPTION
 _LEVEL_OF = {  # by record kind alone; events and commands look closer (log_level)
     RecordKind.REQUEST: LOG_INFO,
     RecordKind.RESPONSE: LOG_INFO,
@@ -717,12 +720,14 @@ class McapSink(SinkBase):
         n_chunks = n_bytes = 0
         last_ts: float | None = None
         time_of = log_time = 0  # the capture time whose log time and stamp are below
+        next_stats = self._next_stats
         stamp = b""
         for item in items:
             if type(item) is not tuple:  # a Chunk, on /modbus/raw
                 ts = item.ts
-                if ts != time_of:
-                    time_of, log_time, stamp = ts, _ns(ts), b""
+                if ts != time_of:  # _ns(ts), inline
+                    log_time = round(ts * 1_000_000) * 1000 if ts > 0.0 else 0
+                    time_of, stamp = ts, b""
                 stream = item.stream
                 prefix = raw_prefix.get((stream.id, item.direction))
                 if prefix is None:
@@ -752,21 +757,22 @@ class McapSink(SinkBase):
                     self._add_chunk_counts(n_chunks, n_bytes)  # its stats may be due
                     n_chunks = n_bytes = 0
                     append(self._obj_messages(record, payload, log_time))
+                    next_stats = self._next_stats
                 else:
                     kind = record.kind
                     kinds[kind] += 1  # also the count of its two messages (told on close)
                     if not stamp:
                         stamp = _MONITOR_STAMP % divmod(log_time, 1_000_000_000)
                     crc_error = False
-                    if kind is RecordKind.EXCEPTION:
+                    if kind is _EXCEPTION:
                         monitor = _MONITOR_WARNING
                     elif (
                         frame.crc_ok is False
                         or frame.pdu.malformed
-                        or (kind is RecordKind.RESPONSE and record.request is None)  # unsolicited
+                        or (kind is _RESPONSE and record.request is None)  # unsolicited
                     ):
                         monitor = _MONITOR_WARNING
-                        crc_error = frame.crc_ok is False and kind is RecordKind.RESPONSE
+                        crc_error = frame.crc_ok is False and kind is _RESPONSE
                     else:
                         monitor = _MONITOR_INFO
                     tail = tails.get(frame.stream.id)
@@ -785,10 +791,11 @@ class McapSink(SinkBase):
                         append(self._head(self._ch_events, log_time, n) + payload)
                     if record.state is not None:
                         append(self._state_message(record, log_time))
-                    if ts >= self._next_stats:
+                    if ts >= next_stats:
                         self._add_chunk_counts(n_chunks, n_bytes)
                         n_chunks = n_bytes = 0
                         append(self._due_stats(ts, log_time))
+                        next_stats = self._next_stats
             if first < 0:
                 first = last = log_time
             elif log_time < first:
