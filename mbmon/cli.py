@@ -479,6 +479,9 @@ def run_read(args: argparse.Namespace) -> int:
         command_line=["mbmon", *sys.argv[1:]],
         source=str(path),
         profiles=_profile_sources(annotator),
+        profile_specs=list(args.profile),
+        timeout=args.timeout,
+        baud=args.baud,
     )
     out = None if args.quiet else sys.stdout
     errors: list[str] = []

@@ -578,6 +578,9 @@ def run_export(args: argparse.Namespace) -> int:
             command_line=opts.command_line,
             source=str(log.path),
             profiles=log.profiles(),
+            profile_specs=opts.profile_specs,
+            timeout=opts.timeout,
+            baud=opts.baud,
         )
         try:
             if suffix == ".mcap":

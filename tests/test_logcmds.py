@@ -101,6 +101,21 @@ def test_replay_lines_and_redecode_equal_live(tmp_path: Path, args: list[str]) -
     assert mbmon("replay", log, "--redecode", "--json").stdout == live_json
 
 
+def test_read_stores_its_analysis_settings(tmp_path: Path) -> None:
+    """read -w x.mcap stores --profile, --timeout and --baud as given (keys of the metadata
+    record) and replay --redecode uses them: the same lines as live."""
+    log = tmp_path / "r.mcap"
+    args = ["--rtu-raw", OWN / "hrss_rtu.bin", "--profile", "hrss", "--timeout", "0.3"]
+    args += ["--baud", "19200"]
+    live = mbmon("read", *args, "-w", log).stdout
+    with McapLog(log) as opened:
+        meta = opened.metadata["mbmon"]
+    assert json.loads(meta["profile_specs"]) == ["hrss"]
+    assert (json.loads(meta["timeout"]), json.loads(meta["baud"])) == (0.3, 19200)
+    assert json.loads(meta["profile_bindings"]) == [["hrss", 0]]
+    assert mbmon("replay", log, "--redecode").stdout == live
+
+
 def test_sinks_by_suffix_equal_console(tmp_path: Path) -> None:
     capture = OWN / "hrss_ptp.pcap"
     outs = {s: tmp_path / f"o{s}" for s in (".jsonl", ".txt", ".csv", ".pcap", ".mcap")}

@@ -11,7 +11,8 @@ This module owns the meaning of a log for the log commands (``replay``,
 - :func:`raw_items` rebuilds the chunks and source events of ``/modbus/raw``
   so the current decoder can run again (``--redecode``);
 - :func:`recorded_options` recovers the options of the recording command
-  (profiles, timeout, robot) from the log's metadata and attachments;
+  (profiles, timeout, baud, robot) from the log's metadata (older logs: from
+  their stored command line) and attachments;
 - :class:`RecordFilter` and :func:`parse_when` implement the filters, and
   :class:`Pacer` the ``--speed`` schedule (one monotonic start, no drift).
 """
@@ -156,7 +157,13 @@ class RecordedOptions:
 
 
 def recorded_options(log: McapLog) -> RecordedOptions:
-    """Options of the recording command, from the metadata record ``mbmon``."""
+    """Options of the recording command, from the metadata record ``mbmon``.
+
+    The analysis settings come from the keys ``profile_specs``, ``timeout`` and
+    ``baud``, which the writer stores from what the recording was given. A log
+    written before those keys existed (or with one of them damaged) has them
+    recovered by parsing its stored ``command_line`` with today's parser.
+    """
     meta = log.metadata.get(METADATA_NAME, {})
     opts = RecordedOptions()
     try:
@@ -167,13 +174,52 @@ def recorded_options(log: McapLog) -> RecordedOptions:
         pass
     opts.robot = meta.get("robot") or None
     opts.robot_is_client = meta.get("robot_is_client") == "true"
-    if len(opts.command_line) > 1:
-        parsed = _reparse(opts.command_line[1:])
+    specs = _stored(meta, "profile_specs", _is_spec_list)
+    timeout = _stored(meta, "timeout", _is_timeout)
+    baud = _stored(meta, "baud", _is_baud)
+    if _MISSING in (specs, timeout, baud) and len(opts.command_line) > 1:
+        parsed = _reparse(opts.command_line[1:])  # an older log: the command line says
         if parsed is not None:
-            opts.profile_specs = list(getattr(parsed, "profile", None) or [])
-            opts.timeout = float(getattr(parsed, "timeout", None) or 1.0)
-            opts.baud = getattr(parsed, "baud", None)
+            if specs is _MISSING:
+                specs = list(getattr(parsed, "profile", None) or [])
+            if timeout is _MISSING:
+                timeout = float(getattr(parsed, "timeout", None) or 1.0)
+            if baud is _MISSING:
+                baud = getattr(parsed, "baud", None)
+    if specs is not _MISSING:
+        opts.profile_specs = [str(spec) for spec in specs]
+    if timeout is not _MISSING:
+        opts.timeout = float(timeout)
+    if baud is not _MISSING:
+        opts.baud = baud
     return opts
+
+
+_MISSING: Any = object()
+
+
+def _stored(meta: Mapping[str, str], key: str, valid: Callable[[Any], bool]) -> Any:
+    """The JSON value a metadata key holds, or ``_MISSING`` when it is absent or not valid."""
+    text = meta.get(key)
+    if text is None:
+        return _MISSING
+    try:
+        value = json.loads(text)
+    except ValueError:
+        return _MISSING
+    return value if valid(value) else _MISSING
+
+
+def _is_spec_list(value: Any) -> bool:
+    return isinstance(value, list) and all(isinstance(spec, str) for spec in value)
+
+
+def _is_timeout(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and value > 0
+
+
+def _is_baud(value: Any) -> bool:
+    return value is None or (isinstance(value, int) and not isinstance(value, bool) and value > 0)
 
 
 def _reparse(argv: list[str]) -> argparse.Namespace | None:

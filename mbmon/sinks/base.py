@@ -23,12 +23,22 @@ class SinkError(Exception):
 
 @dataclass(frozen=True, slots=True)
 class SinkContext:
-    """What a sink may want to know besides the records: labels, provenance, semantics in force."""
+    """What a sink may want to know besides the records: labels, provenance, semantics in force.
+
+    ``profile_specs``, ``timeout`` and ``baud`` are the analysis settings the
+    records were made with (``--profile`` values in order, ``--timeout`` in
+    seconds, ``--baud``), given directly so that a log can store them and
+    ``replay --redecode`` decode its raw bytes the same way; ``command_line``
+    is provenance only.
+    """
 
     view: View = field(default_factory=View)
     command_line: list[str] = field(default_factory=list)
     source: str = ""
     profiles: list[tuple[str, str]] = field(default_factory=list)  # (name, TOML text)
+    profile_specs: list[str] = field(default_factory=list)
+    timeout: float = 1.0
+    baud: int | None = None
 
 
 @runtime_checkable

@@ -10,17 +10,21 @@ record and the profile attachments, and the crash-safety policy:
   open chunk is closed every half second of wall time (by ``write()`` while
   records flow, by the writer thread when they stop) and a writer thread
   compresses it and hands it to the OS, so a killed process loses at most the
-  last second; zstd and file writes release the GIL, so that work overlaps
-  with decoding;
+  last second; zstd, joining the chunk and file writes release the GIL, so
+  that work overlaps with decoding;
+- ``write()`` and ``write_chunk()`` only queue what they are given (a frame
+  record with its ``read --json`` line, made in the calling thread); queued
+  items become messages in batches (:meth:`McapSink._make_messages`, the
+  per-record work, at most ``_BATCH`` items or at the half-second flush);
 - ``close()`` always finishes the file (summary, index, footer); the CLI turns
   SIGINT/SIGTERM into exceptions so ``close()`` runs from ``__exit__``;
-- a record's messages enter the open chunk with one list operation, chunks are written
-  by a thread signal handlers never interrupt, and the file is finished with
-  SIGINT/SIGTERM held back, so a signal handler that raises can never leave
-  half a message or half a chunk in the file (at worst a record has some of
-  its topics);
+- a batch's messages enter the open chunk with one list operation, chunks are
+  written by a thread signal handlers never interrupt, and the file is
+  finished with SIGINT/SIGTERM held back, so a signal handler that raises can
+  never leave half a message or half a chunk in the file (at worst a record
+  has some of its topics);
 - a write error (disk full) in the writer thread is raised as ``SinkError``
-  by the next ``write()`` or by ``close()``.
+  by a later ``write()`` (the next batch) or by ``close()``.
 """
 
 from __future__ import annotations
@@ -209,19 +213,8 @@ def log_level(record: Record, obj: Mapping[str, Any]) -> int:
     return LOG_INFO
 
 
-def profile_specs(argv: list[str]) -> list[str]:
-    """The ``--profile`` values of a command line, in order."""
-    specs = []
-    for i, arg in enumerate(argv):
-        if arg == "--profile" and i + 1 < len(argv):
-            specs.append(argv[i + 1])
-        elif arg.startswith("--profile="):
-            specs.append(arg.split("=", 1)[1])
-    return specs
-
-
-def profile_bindings(argv: list[str], profiles: list[tuple[str, str]]) -> list[list[Any]]:
-    """``[spec, attachment number]`` for each ``--profile`` of the recording command.
+def profile_bindings(specs: list[str], profiles: list[tuple[str, str]]) -> list[list[Any]]:
+    """``[spec, attachment number]`` for each ``--profile`` spec of the recording.
 
     The profile a spec names (a built-in or a file) is recognised by its text
     among the profiles in force, so ``replay --redecode`` can bind the stored
@@ -229,7 +222,7 @@ def profile_bindings(argv: list[str], profiles: list[tuple[str, str]]) -> list[l
     """
     out: list[list[Any]] = []
     texts = [text for _, text in profiles]
-    for spec in profile_specs(argv):
+    for spec in specs:
         _target, eq, name = spec.rpartition("=")
         name = name.strip() if eq else spec.strip()
         try:
@@ -659,8 +652,11 @@ class McapSink(SinkBase):
                 "source": ctx.source,
                 "profiles": json.dumps([name for name, _ in ctx.profiles], ensure_ascii=False),
                 "profile_bindings": json.dumps(
-                    profile_bindings(ctx.command_line, ctx.profiles), ensure_ascii=False
+                    profile_bindings(ctx.profile_specs, ctx.profiles), ensure_ascii=False
                 ),
+                "profile_specs": json.dumps(list(ctx.profile_specs), ensure_ascii=False),
+                "timeout": json.dumps(ctx.timeout),
+                "baud": json.dumps(ctx.baud),
                 "robot": ctx.view.robot or "",
                 "robot_is_client": "true" if ctx.view.robot_is_client else "false",
                 "started": time.strftime("%Y-%m-%dT%H:%M:%S%z", time.localtime(now_ns / 1e9)),

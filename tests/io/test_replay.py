@@ -34,6 +34,7 @@ CTX = SinkContext(
     view=VIEW,
     command_line=["mbmon", "read", "x.pcap", "--robot", "192.168.0.10", "--timeout", "0.25"],
     source="x.pcap",
+    timeout=0.25,
 )
 
 
@@ -99,6 +100,7 @@ def test_redecode_uses_the_profile_text_stored_in_the_log(tmp_path: Path) -> Non
         command_line=["mbmon", "read", "x.pcap", "--profile", spec],
         source="x.pcap",
         profiles=[("cell", CELL_TOML)],
+        profile_specs=[spec],
     )
     path = tmp_path / "p.mcap"
     with McapSink(path, ctx) as sink:
@@ -246,6 +248,7 @@ def test_redecode_binds_each_stored_profile_as_recorded(tmp_path: Path) -> None:
         command_line=argv,
         source="x.pcap",
         profiles=[("cell", one.read_text()), ("tool", two.read_text())],
+        profile_specs=specs,
     )
     path = tmp_path / "two.mcap"
     with McapSink(path, ctx) as sink:
@@ -264,3 +267,170 @@ def test_redecode_binds_each_stored_profile_as_recorded(tmp_path: Path) -> None:
     assert lines == [record_line(r, View()) for r in stream if isinstance(r, Record)]
     text = "\n".join(lines)
     assert "conveyor speed" in text and "jaw force" in text
+
+
+# --------------------------------------------------------------------------- analysis settings
+
+
+def timeout_items() -> list:
+    """Two requests 0.5 s apart, the first never answered: a 0.25 s timeout reports it
+    while the second arrives, the default 1 s only when the capture ends."""
+    c2s = records.Direction.C2S
+    return [
+        records.Chunk(
+            records.T0, records.TCP, c2s, records.mbap(1, 1, bytes.fromhex("0300C80001"))
+        ),
+        records.Chunk(
+            records.T0 + 0.5, records.TCP, c2s, records.mbap(2, 1, bytes.fromhex("0300C90001"))
+        ),
+        records.Chunk(
+            records.T0 + 0.51,
+            records.TCP,
+            records.Direction.S2C,
+            records.mbap(2, 1, bytes.fromhex("0302002A")),
+        ),
+    ]
+
+
+def lines_of(recs: list) -> list[str]:
+    return [record_line(r, View()) for r in recs if isinstance(r, Record)]
+
+
+def test_redecode_uses_the_stored_settings_not_the_command_line(tmp_path: Path) -> None:
+    """The metadata keys profile_specs, timeout and baud are what the recording was given;
+    they win over a command line that says otherwise (a wrapper, an alias, a shell)."""
+    profile = tmp_path / "cell.toml"
+    profile.write_text(CELL_TOML)
+    from mbmon.cli import make_annotator
+    from mbmon.pipeline import PipelineConfig
+
+    spec = f"unit:1={profile}"
+    items = timeout_items()
+    out: list = []
+    live = Pipeline(make_annotator([spec]), PipelineConfig(timeout=0.25, baudrate=19200))
+    for item in items:
+        out.append(item)
+        out.extend(live.feed(item))
+    out.extend(live.finish())
+    ctx = SinkContext(
+        view=View(),
+        command_line=["mbmon", "read", "x.pcap", "--timeout", "5"],  # not what was in force
+        source="x.pcap",
+        profiles=[("cell", CELL_TOML)],
+        profile_specs=[spec],
+        timeout=0.25,
+        baud=19200,
+    )
+    path = tmp_path / "s.mcap"
+    with McapSink(path, ctx) as sink:
+        records.feed(sink, out)
+    with McapLog(path) as log:
+        meta = log.metadata["mbmon"]
+        assert json.loads(meta["profile_specs"]) == [spec]
+        assert (json.loads(meta["timeout"]), json.loads(meta["baud"])) == (0.25, 19200)
+        opts = recorded_options(log)
+        assert (opts.profile_specs, opts.timeout, opts.baud) == ([spec], 0.25, 19200)
+        config = PipelineConfig(timeout=opts.timeout, baudrate=opts.baud)
+        again = list(Pipeline(recorded_annotator(log, opts), config).run(list(raw_items(log))))
+    assert lines_of(again) == lines_of(out)
+    text = "\n".join(lines_of(out))
+    assert "SPEED" in text or "conveyor speed" in text
+    early = [r for r in again if r.event is not None and r.ts < records.T0 + 0.6]
+    assert [r.event.kind.value for r in early] == ["timeout"]  # the 0.25 s timeout, stored
+
+
+def without_keys(src: Path, dst: Path, keys: set[str]) -> Path:
+    """A copy of a log as an older mbmon wrote it: the same records and attachments, its
+    metadata without ``keys`` (written with the ``mcap`` package's own writer)."""
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType, Writer
+
+    with open(src, "rb") as f, open(dst, "wb") as out:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None
+        writer = Writer(out, compression=CompressionType.ZSTD)
+        writer.start(profile="", library="mbmon 0.1 (older)")
+        schema_ids = {
+            sid: writer.register_schema(s.name, s.encoding, s.data)
+            for sid, s in summary.schemas.items()
+        }
+        channel_ids = {
+            cid: writer.register_channel(c.topic, c.message_encoding, schema_ids[c.schema_id])
+            for cid, c in summary.channels.items()
+        }
+        for meta in reader.iter_metadata():
+            writer.add_metadata(
+                meta.name, {k: v for k, v in meta.metadata.items() if k not in keys}
+            )
+        for att in reader.iter_attachments():
+            writer.add_attachment(att.create_time, att.log_time, att.name, att.media_type, att.data)
+        for _, channel, msg in reader.iter_messages(log_time_order=False):
+            writer.add_message(channel_ids[channel.id], msg.log_time, msg.data, msg.publish_time)
+        writer.finish()
+    return dst
+
+
+NEW_KEYS = {"profile_specs", "timeout", "baud"}
+
+
+def test_older_log_settings_come_from_its_command_line(tmp_path: Path) -> None:
+    """A log written before the settings keys: they are parsed from its command line."""
+    profile = tmp_path / "cell.toml"
+    profile.write_text(CELL_TOML)
+    from mbmon.cli import make_annotator
+    from mbmon.pipeline import PipelineConfig
+
+    spec = f"unit:1={profile}"
+    live = Pipeline(make_annotator([spec]), PipelineConfig(timeout=0.25))
+    out: list = []
+    for item in timeout_items():
+        out.append(item)
+        out.extend(live.feed(item))
+    out.extend(live.finish())
+    argv = ["mbmon", "read", "x.pcap", "--profile", spec, "--timeout", "0.25", "--baud", "9600"]
+    ctx = SinkContext(
+        view=View(),
+        command_line=argv,
+        source="x.pcap",
+        profiles=[("cell", CELL_TOML)],
+        profile_specs=[spec],
+        timeout=0.25,
+        baud=9600,
+    )
+    new = tmp_path / "new.mcap"
+    with McapSink(new, ctx) as sink:
+        records.feed(sink, out)
+    old = without_keys(new, tmp_path / "old.mcap", NEW_KEYS)
+    with McapLog(old) as log:
+        assert NEW_KEYS.isdisjoint(log.metadata["mbmon"])
+        opts = recorded_options(log)
+        assert (opts.profile_specs, opts.timeout, opts.baud) == ([spec], 0.25, 9600)
+        config = PipelineConfig(timeout=opts.timeout, baudrate=opts.baud)
+        again = list(Pipeline(recorded_annotator(log, opts), config).run(list(raw_items(log))))
+        assert [g.text for g in logged_records(log)] == lines_of(out)
+    assert lines_of(again) == lines_of(out)
+    # one key missing or damaged: that one from the command line, the others as stored
+    partly = without_keys(new, tmp_path / "partly.mcap", {"timeout"})
+    with McapLog(partly) as log:
+        assert recorded_options(log).timeout == 0.25
+    ctx5 = SinkContext(view=View(), command_line=[*argv, "--timeout", "5"], timeout=0.25)
+    with McapSink(tmp_path / "five.mcap", ctx5) as sink:
+        records.feed(sink, out)
+    older = without_keys(tmp_path / "five.mcap", tmp_path / "five-old.mcap", {"timeout"})
+    with McapLog(older) as log:
+        assert recorded_options(log).timeout == 5.0  # argparse: the last --timeout
+    with McapLog(tmp_path / "five.mcap") as log:
+        assert recorded_options(log).timeout == 0.25
+
+
+def test_recorded_options_without_any_settings(tmp_path: Path, session_stream: list) -> None:
+    """No keys and no usable command line: the defaults."""
+    ctx = SinkContext(view=View(), command_line=[], source="x")
+    path = tmp_path / "bare.mcap"
+    with McapSink(path, ctx) as sink:
+        records.feed(sink, session_stream)
+    bare = without_keys(path, tmp_path / "bare-old.mcap", NEW_KEYS)
+    with McapLog(bare) as log:
+        opts = recorded_options(log)
+    assert (opts.profile_specs, opts.timeout, opts.baud) == ([], 1.0, None)

@@ -97,6 +97,7 @@ def hrss_context(robot: str | None = None) -> SinkContext:
         command_line=["mbmon", "read", "captures/hrss_ptp.pcap", "--profile", "hrss"],
         source="captures/hrss_ptp.pcap",
         profiles=[("hrss", builtin_profile_text("hrss"))],
+        profile_specs=["hrss"],
     )
 
 

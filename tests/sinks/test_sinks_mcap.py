@@ -239,6 +239,10 @@ def test_metadata_and_profile_attachments(tmp_path: Path, hrss_stream: list) -> 
     assert json.loads(info["command_line"]) == ctx.command_line
     assert info["source"] == "captures/hrss_ptp.pcap"
     assert json.loads(info["profiles"]) == ["hrss"]
+    # the analysis settings as given in the context (not parsed from the command line)
+    assert json.loads(info["profile_specs"]) == ["hrss"]
+    assert json.loads(info["profile_bindings"]) == [["hrss", 0]]
+    assert (json.loads(info["timeout"]), json.loads(info["baud"])) == (1.0, None)
     assert [(a.name, a.media_type) for a in attachments] == [("hrss.toml", "application/toml")]
     assert attachments[0].data.decode() == ctx.profiles[0][1]
 
