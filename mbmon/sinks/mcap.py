@@ -115,12 +115,6 @@ _FRAME_KINDS = (RecordKind.REQUEST, RecordKind.RESPONSE, RecordKind.EXCEPTION)
 #: enum members as module constants: ``RecordKind.RESPONSE`` costs a class attribute
 #: lookup through the enum machinery each time, several per record
 _RESPONSE, _EXCEPTION = RecordKind.RESPONSE, RecordKind.EXCEPTION
-_LEVEL_OF = {  # by record kind alone; events and commands look closer (log_level)
-    RecordKind.REQUEST: LOG_INFO,
-    RecordKind.RESPONSE: LOG_INFO,
-    RecordKind.EXCEPTION: LOG_WARNING,
-    RecordKind.NOISE: LOG_ERROR,
-}
 
 STATS_EVERY = 10.0  # seconds of capture time between the writer's own stats events
 FLUSH_EVERY = 0.5  # seconds of wall time between chunk flushes (at most 1 s is promised)
@@ -282,10 +276,12 @@ class McapFileWriter:
     """An MCAP writer for many small messages, built on the ``mcap`` package's records.
 
     ``mcap.writer.Writer`` spends about 20 us of Python per message (a record
-    object, a message index entry, eight small writes); this writer serialises a
-    message with one ``struct.pack`` into the open chunk and lets the ``mcap``
-    package write every other record (header, schemas, channels, chunks,
-    metadata, attachments, statistics, indexes, footer), laid out as
+    object, a message index entry, eight small writes); here a message record is
+    one ``struct.pack`` of its head and its data, handed over in batches
+    (:meth:`take_from`) into the open chunk, a list of pieces joined once when
+    the chunk is written, and the ``mcap`` package writes every other record
+    (header, schemas, channels, chunks, metadata, attachments, statistics,
+    indexes, footer), laid out as
     ``Writer.finish`` does. Schemas and channels are written once, before the
     first chunk and outside it, so that every chunk of a file cut short can be
     read on its own. No message index records are written (readers scan a
@@ -381,11 +377,6 @@ class McapFileWriter:
             )
         )
 
-    @property
-    def pending(self) -> int:
-        """Bytes in the open chunk, not yet in the file."""
-        return self._size
-
     def _span(self, start: int, end: int) -> None:
         """Widen the open chunk's time range to take messages logged from ``start`` to ``end``."""
         if not self._parts:
@@ -409,27 +400,10 @@ class McapFileWriter:
         self._size += len(record)
         return self._size
 
-    def head(self, channel_id: int, log_time: int, size: int) -> bytes:
-        """The 31-byte head of a message record of ``size`` data bytes (and count it).
-
-        With :meth:`extend`, a writer can join the messages of one record
-        into a single block and append that.
-        """
-        self._counts[channel_id] += 1
-        return _MESSAGE_HEAD.pack(0x05, 22 + size, channel_id, 0, log_time, log_time)
-
     def count(self, channel_id: int, messages: int) -> None:
         """Count ``messages`` more on a channel in the statistics: messages whose heads
-        the caller packed itself (with ``_MESSAGE_HEAD``) and handed to :meth:`extend`."""
+        the caller packed itself (with ``_MESSAGE_HEAD``) and handed to :meth:`take_from`."""
         self._counts[channel_id] += messages
-
-    def extend(self, records: bytes, start: int, end: int) -> int:
-        """Append serialized message records logged from ``start`` to ``end`` (ns) in one
-        step; return the open chunk's size (the caller closes it)."""
-        self._span(start, end)
-        self._parts.append(records)
-        self._size += len(records)
-        return self._size
 
     def take_from(self, pending: list[Any], convert: Converter) -> int:
         """Move what waits in ``pending`` to the end of the open chunk as message records
