@@ -413,15 +413,12 @@ def _fast_lane(args: argparse.Namespace, pipeline: Any, view: Any, path: str) ->
 def _read_fast(lane: Any, items: Iterable[Any], progress: Any) -> int:
     """Finish ``read`` through the fused reader: what the capture iterator still
     yields (releases at its end, a damage report) goes through the general flow."""
-    from mbmon.model import Event, EventKind
-
     errors: list[str] = []
     try:
-        for item in items:
-            if isinstance(item, Event) and item.kind is EventKind.ERROR and item.stream is None:
-                errors.append(str(item.info.get("message", "damaged input")))
-            lane.feed(item)
-        lane.finish()
+        for records in _batches(lane.pipeline, items, [], errors):
+            lane.records(records)
+            lane.flush(_OUT_BLOCK)
+        lane.flush(0)
     finally:
         progress.close()
     sys.stdout.flush()

@@ -48,17 +48,14 @@ from mbmon.format import (
     record_json_bytes,
 )
 from mbmon.model import (
-    Chunk,
     Direction,
-    Event,
     Frame,
     Kind,
     Record,
-    RecordKind,
     Transport,
     fast_constructor,
 )
-from mbmon.pipeline import Pipeline
+from mbmon.pipeline import _KIND_OF_PDU, Pipeline
 from mbmon.protocol.pairing import _needs_request
 from mbmon.protocol.pdu import decode_pdu
 from mbmon.sources.pcapfile import _Dissector, _eth_ipv4_tcp
@@ -73,12 +70,7 @@ _new_frame = fast_constructor(Frame)
 _new_record = fast_constructor(Record)
 _C2S, _S2C = Direction.C2S, Direction.S2C
 _TCP = Transport.TCP
-_REQUEST, _EXCEPTION = Kind.REQUEST, Kind.EXCEPTION
-_KIND = {
-    Kind.REQUEST: RecordKind.REQUEST,
-    Kind.RESPONSE: RecordKind.RESPONSE,
-    Kind.EXCEPTION: RecordKind.EXCEPTION,
-}
+_EXCEPTION = Kind.EXCEPTION
 
 
 def _esc(text: bytes) -> bytes:
@@ -96,9 +88,9 @@ class FastLane:
 
     ``pipeline`` must have no annotator (its notes would vary per record).
     ``write`` takes UTF-8 bytes (stdout's binary buffer). Use :meth:`bind` as
-    the ``lane`` of :func:`~mbmon.sources.pcapfile.read_capture`, hand every item
-    that the capture iterator still yields to :meth:`feed`, then call
-    :meth:`finish`.
+    the ``lane`` of :func:`~mbmon.sources.pcapfile.read_capture`; what the capture
+    iterator still yields (releases at its end, a damage report) goes through the
+    pipeline as usual, its records to :meth:`records`; :meth:`flush` writes.
     """
 
     def __init__(self, pipeline: Pipeline, view: View, write: Callable[[bytes], Any]) -> None:
@@ -117,16 +109,6 @@ class FastLane:
         """JSON lines of records made by the general flow."""
         view = self.view
         self.lines.extend([record_json_bytes(record, view) for record in records])
-
-    def feed(self, item: Chunk | Event) -> None:
-        """An item the capture iterator yielded (end-of-capture releases, errors)."""
-        self.records(self.pipeline.feed(item))
-        self.flush(_BLOCK)
-
-    def finish(self) -> None:
-        """End of input: the pipeline's last records, and every line written."""
-        self.records(self.pipeline.finish())
-        self.flush(0)
 
     def flush(self, at_least: int) -> None:
         """Write the pending lines when there are at least ``at_least`` (0: always)."""
@@ -347,7 +329,7 @@ class FastLane:
                                            tid))  # fmt: skip
                         continue
                     line, tpl = template(_new_record(
-                        index, ts, _KIND[pdu.kind], stream, frame, None, None, None,
+                        index, ts, _KIND_OF_PDU[pdu.kind], stream, frame, None, None, None,
                         None, None, None, (), None,
                     ))  # fmt: skip
                     append(line)
@@ -400,7 +382,7 @@ class FastLane:
                     if first.malformed:
                         malformed += 1
                     line, tpl = template(_new_record(
-                        index, ts, _KIND[pdu.kind], stream,
+                        index, ts, _KIND_OF_PDU[pdu.kind], stream,
                         _new_frame(ts, stream, _S2C, unit, tid, pdu, raw, None),
                         req, request_index, latency, None, None, None, (), None,
                     ))  # fmt: skip

@@ -58,8 +58,9 @@ def lane_output(
     lane = FastLane(Pipeline(None, PipelineConfig(timeout=timeout)), view, out.write)
     stats: dict[str, int] = {}
     for item in read_capture(path, config, stats=stats, lane=lane.bind):
-        lane.feed(item)
-    lane.finish()
+        lane.records(lane.pipeline.feed(item))
+    lane.records(lane.pipeline.finish())
+    lane.flush(0)
     return out.getvalue(), lane, stats
 
 
