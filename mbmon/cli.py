@@ -8,16 +8,15 @@ records go to the console and to every ``-w`` sink.
 from __future__ import annotations
 
 import argparse
-import codecs
 import itertools
 import json
 import os
 import signal
 import sys
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable
 from contextlib import ExitStack
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 from mbmon import __version__
 
@@ -223,17 +222,14 @@ def _install_signal_handlers() -> None:
 
 
 def make_annotator(specs: list[str]) -> Any:
-    """The annotator for ``--profile`` values, or ``None`` when no profile is asked for."""
-    if not specs:
-        return None
-    from mbmon.semantics.annotate import Annotator
-    from mbmon.semantics.regmap import ProfileBinding, ProfileError
+    """The annotator for ``--profile`` values (``None`` without); bad specs are usage errors."""
+    from mbmon.semantics.annotate import annotator_for
+    from mbmon.semantics.regmap import ProfileError
 
     try:
-        binding = ProfileBinding.parse(specs)
+        return annotator_for(specs)
     except ProfileError as exc:
         raise UsageError(str(exc)) from None
-    return Annotator(binding)
 
 
 def _profile_sources(annotator: Any) -> list[tuple[str, str]]:
@@ -275,6 +271,9 @@ class _Progress:
                 TimeRemainingColumn(),
                 console=Console(stderr=True),
                 transient=True,
+                # records go to stdout, the bar to stderr: rich must not take stdout
+                redirect_stdout=False,
+                redirect_stderr=False,
             )
             self._bar.start()
             self._task = self._bar.add_task(self._label, total=total)
@@ -285,110 +284,6 @@ class _Progress:
             self._bar.stop()
 
 
-#: Console lines are written in blocks of this many records: one ``write`` per
-#: block instead of one per line (with stdout unbuffered, ``PYTHONUNBUFFERED`` or
-#: ``python -u``, every line was a system call).
-_OUT_BLOCK = 512
-
-
-def emit_records(
-    batches: Iterable[Sequence[Any]],
-    out: IO[str] | None,
-    as_json: bool,
-    view: Any,
-    sinks: list[Any],
-    live: bool = False,
-) -> None:
-    """Hand each record to every sink and its line (text or JSON) to ``out``.
-
-    ``batches`` are the record lists of successive pipeline steps. Lines are
-    written in blocks of about ``_OUT_BLOCK`` records; with ``live`` (input that
-    arrives as it happens, e.g. a pipe) each batch is written and flushed as soon
-    as it is complete, so no line waits for later input. JSON lines are made in
-    UTF-8 and go straight to the binary buffer under ``out`` when that gives the
-    same bytes (:func:`_utf8_buffer`): no text to encode on the way out.
-    """
-    from mbmon.format import record_json_bytes, record_line
-
-    if out is None:
-        for batch in batches:
-            for record in batch:
-                for sink in sinks:
-                    sink.write(record)
-        return
-    buffer = _utf8_buffer(out) if as_json else None
-    if buffer is not None:
-        encode: Callable[[Any, Any], Any] = record_json_bytes
-        newline: Any = b"\n"
-        target: Any = buffer
-    elif as_json:
-        encode = lambda record, view: record_json_bytes(record, view).decode()  # noqa: E731
-        newline, target = "\n", out
-    else:
-        encode, newline, target = record_line, "\n", out
-    write = target.write
-    lines: list[Any] = []
-    for batch in batches:
-        if sinks:
-            for record in batch:
-                for sink in sinks:
-                    sink.write(record)
-        lines.extend([encode(record, view) for record in batch])
-        if lines and (live or len(lines) >= _OUT_BLOCK):
-            lines.append(newline[:0])
-            write(newline.join(lines))
-            lines.clear()
-            if live:
-                target.flush()
-    if lines:
-        lines.append(newline[:0])
-        write(newline.join(lines))
-    target.flush()
-
-
-def _utf8_buffer(out: IO[str]) -> IO[bytes] | None:
-    """The binary buffer under the text stream ``out`` when writing UTF-8 bytes there
-    is the same as writing their text to ``out`` (UTF-8 encoding, no newline
-    translation), after flushing ``out``; else ``None``."""
-    buffer = getattr(out, "buffer", None)
-    encoding = getattr(out, "encoding", None)
-    if buffer is None or not isinstance(encoding, str) or os.linesep != "\n":
-        return None
-    try:
-        if codecs.lookup(encoding).name != "utf-8":
-            return None
-    except LookupError:
-        return None
-    out.flush()
-    return buffer
-
-
-def _batches(
-    pipeline: Any, items: Iterable[Any], sinks: list[Any], errors: list[str]
-) -> Iterator[list[Any]]:
-    """The records of each pipeline step over ``items``, then those of ``finish()``.
-
-    On the way, raw chunks go to the sinks first (for /modbus/raw) and the message
-    of a source error (an ERROR event without a stream: damaged input) is added to
-    ``errors``. One loop for the three jobs: a generator per job cost about 0.1 us
-    per item each.
-    """
-    from mbmon.model import Chunk, Event, EventKind
-
-    feed = pipeline.feed
-    error = EventKind.ERROR
-    for item in items:
-        if isinstance(item, Chunk):
-            for sink in sinks:
-                sink.write_chunk(item)
-        elif isinstance(item, Event) and item.kind is error and item.stream is None:
-            errors.append(str(item.info.get("message", "damaged input")))
-        records = feed(item)
-        if records:
-            yield records
-    yield pipeline.finish()
-
-
 # --------------------------------------------------------------------------- read
 
 
@@ -396,6 +291,7 @@ def _fast_lane(args: argparse.Namespace, pipeline: Any, view: Any, path: str) ->
     """The fused reader (:mod:`mbmon.fastlane`) when it gives the same output faster:
     a capture file to ``--json`` on a UTF-8 stdout, no ``-w``, no ``--profile``."""
     from mbmon import fastlane
+    from mbmon.sinks.console import utf8_buffer
 
     if (
         not args.json
@@ -406,32 +302,16 @@ def _fast_lane(args: argparse.Namespace, pipeline: Any, view: Any, path: str) ->
         or not Path(path).is_file()
     ):
         return None
-    buffer = _utf8_buffer(sys.stdout)
+    buffer = utf8_buffer(sys.stdout)
     return fastlane.FastLane(pipeline, view, buffer.write) if buffer is not None else None
-
-
-def _read_fast(lane: Any, items: Iterable[Any], progress: Any) -> int:
-    """Finish ``read`` through the fused reader: what the capture iterator still
-    yields (releases at its end, a damage report) goes through the general flow."""
-    errors: list[str] = []
-    try:
-        for records in _batches(lane.pipeline, items, [], errors):
-            lane.records(records)
-            lane.flush(_OUT_BLOCK)
-        lane.flush(0)
-    finally:
-        progress.close()
-    sys.stdout.flush()
-    if errors:
-        print(f"mbmon: {errors[-1]}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    return EXIT_OK
 
 
 def run_read(args: argparse.Namespace) -> int:
     from mbmon.format import View
+    from mbmon.hub import Hub
     from mbmon.pipeline import Pipeline, PipelineConfig
     from mbmon.sinks.base import SinkContext, SinkError, open_sink
+    from mbmon.sinks.console import ConsoleListener
 
     if args.rtu_raw and args.file:
         raise UsageError("give either FILE or --rtu-raw FILE, not both")
@@ -444,6 +324,7 @@ def run_read(args: argparse.Namespace) -> int:
     if path == "-":
         path = "/dev/stdin"  # a pipe: the readers never seek
     progress = _Progress(f"reading {Path(path).name}", sys.stderr.isatty())
+    lane = None
 
     if args.rtu_raw:
         from mbmon.sources.rawfile import read_rtu_raw
@@ -468,8 +349,6 @@ def run_read(args: argparse.Namespace) -> int:
             print(f"mbmon: {exc}", file=sys.stderr)
             return EXIT_BAD_INPUT
         items = itertools.chain(() if first is None else (first,), iter_items)
-        if lane is not None:
-            return _read_fast(lane, items, progress)
 
     ctx = SinkContext(
         view=view,
@@ -480,32 +359,49 @@ def run_read(args: argparse.Namespace) -> int:
         timeout=args.timeout,
         baud=args.baud,
     )
-    out = None if args.quiet else sys.stdout
-    errors: list[str] = []
-
+    hub = Hub(pipeline)
     with ExitStack() as stack:
-        sinks = []
+        stack.callback(hub.close)
+        stack.callback(progress.close)
+        if lane is not None:
+            hub.add_listener(_LaneOutput(lane))
+        elif not args.quiet:
+            live = not Path(path).is_file()  # stdin or a FIFO: print as it comes
+            hub.add_listener(ConsoleListener(sys.stdout, view, as_json=args.json, live=live))
         for target in args.write:
             try:
-                sinks.append(stack.enter_context(open_sink(target, ctx)))
+                hub.add_listener(open_sink(target, ctx))
             except SinkError as exc:
                 print(f"mbmon: {exc}", file=sys.stderr)
                 return EXIT_BAD_INPUT
-        stack.callback(progress.close)
-        emit_records(
-            _batches(pipeline, items, sinks, errors),
-            out,
-            args.json,
-            view,
-            sinks,
-            live=not Path(path).is_file(),  # stdin or a FIFO: print as it comes
-        )
-    if out is not None:
-        out.flush()
-    if errors:
-        print(f"mbmon: {errors[-1]}", file=sys.stderr)
+        hub.run_items(items)
+    if hub.errors:
+        print(f"mbmon: {hub.errors[-1]}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    if any(why != "broken pipe" for _name, why in hub.failures):
         return EXIT_BAD_INPUT
     return EXIT_OK
+
+
+class _LaneOutput:
+    """The fused reader's output as a listener: records the general flow made
+    become its JSON lines, written in blocks."""
+
+    name = "stdout"
+
+    def __init__(self, lane: Any) -> None:
+        self.lane = lane
+
+    def on_records(self, records: list[Any]) -> None:
+        self.lane.records(records)
+        self.lane.flush(_LANE_BLOCK)
+
+    def close(self) -> None:
+        self.lane.flush(0)
+        sys.stdout.flush()
+
+
+_LANE_BLOCK = 512
 
 
 # --------------------------------------------------------------------------- decode

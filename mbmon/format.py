@@ -282,6 +282,10 @@ def _event_text(record: Record, view: View) -> str:
         return f"No response to {what}" + (f" (record #{idx})" if idx is not None else "")
     if event.kind is EventKind.ERROR:
         return f"Error: {info.get('message', '')}"
+    if event.kind is EventKind.NOTICE:
+        return f"Notice: {info.get('message', '')}"
+    if event.kind is EventKind.GUARD:
+        return f"Guard: {info.get('message', '')}"
     if event.kind is EventKind.STATS:
         return "Stats: " + ", ".join(f"{k}={v}" for k, v in info.items())
     return event.kind.value

@@ -621,9 +621,9 @@ def _export_pcap(log: Any, target: Path, ctx: Any, flt: Any) -> None:
             if flt.until is not None and item.ts > flt.until:
                 continue
             if isinstance(item, Chunk):
-                sink.write_chunk(item)
+                sink.on_chunk(item)
             else:
-                sink.write_event(item)
+                sink.on_event(item)
     if sink.companion is not None:
         _err(f"note: RTU and IP streams mixed: the other kind is in {sink.companion}")
 

@@ -151,6 +151,8 @@ class EventKind(StrEnum):
     UNSOLICITED = "unsolicited"  # a response with no matching request
     ERROR = "error"  # source-level problem (truncated capture, read error); info["message"]
     STATS = "stats"  # periodic counters; info holds them
+    NOTICE = "notice"  # the run itself: a listener detached, a port lost/back; info["message"]
+    GUARD = "guard"  # the proxy's guard refused (or let through) a request; info holds the rule
 
 
 @dataclass(frozen=True, slots=True)

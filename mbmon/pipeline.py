@@ -138,6 +138,10 @@ class Pipeline:
         self._emit_transactions(self.pairer.tick(now), out)
         return out
 
+    def next_deadline(self) -> float | None:
+        """The earliest time a :meth:`tick` would report something, or ``None``."""
+        return self.pairer.next_deadline()
+
     def finish(self, ts: float | None = None) -> list[Record]:
         """End of input: flush every decoder and report every request still unanswered."""
         when = self._last_ts if ts is None else ts

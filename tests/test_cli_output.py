@@ -1,4 +1,4 @@
-"""How `mbmon read` hands lines to stdout (cli.emit_records): blocks, live input,
+"""How `mbmon read` hands lines to stdout (the console listener): blocks, live input,
 UTF-8 written as bytes, any other encoding as text — always the same lines."""
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ import sys
 from collections.abc import Iterator
 from pathlib import Path
 
-from mbmon.cli import _OUT_BLOCK, emit_records
 from mbmon.format import View, json_line, record_line, record_to_json
 from mbmon.model import Record
 from mbmon.pipeline import Pipeline
+from mbmon.sinks.console import BLOCK, ConsoleListener
 from mbmon.sources.pcapfile import read_capture
 
 REPO = Path(__file__).resolve().parents[1]
@@ -25,6 +25,20 @@ def _records() -> list[Record]:
     return list(Pipeline().run(read_capture(CAPTURE)))
 
 
+def _emit(
+    batches: Iterator[list[Record]],
+    out: io.TextIOWrapper,
+    as_json: bool,
+    view: View,
+    live: bool = False,
+) -> None:
+    """Each batch to the console listener as the hub hands it over, then close."""
+    console = ConsoleListener(out, view, as_json=as_json, live=live)
+    for batch in batches:
+        console.on_records(batch)
+    console.close()
+
+
 def _stdout() -> tuple[io.TextIOWrapper, io.BytesIO]:
     """A text stream over a buffered binary one, like sys.stdout; and the bytes out."""
     raw = io.BytesIO()
@@ -33,11 +47,11 @@ def _stdout() -> tuple[io.TextIOWrapper, io.BytesIO]:
 
 def test_lines_in_blocks_are_every_line_in_order() -> None:
     records = _records()
-    batches = [records] * (2 * _OUT_BLOCK // len(records) + 1)  # several blocks
+    batches = [records] * (2 * BLOCK // len(records) + 1)  # several blocks
     view = View(robot="127.0.0.1:502")
     for as_json, line in ((True, lambda r: json_line(record_to_json(r, view))), (False, None)):
         out, raw = _stdout()
-        emit_records(iter(batches), out, as_json, view, [])
+        _emit(iter(batches), out, as_json, view)
         expected = [line(r) if line else record_line(r, view) for b in batches for r in b]
         assert raw.getvalue().decode().split("\n") == [*expected, ""]
 
@@ -52,11 +66,11 @@ def test_live_batches_are_written_before_the_next_one_is_asked_for() -> None:
             yield [record]
             seen.append(live_output.getvalue())
 
-    emit_records(batches(raw), out, True, View(), [], live=True)
+    _emit(batches(raw), out, True, View(), live=True)
     assert [s.count(b"\n") for s in seen] == [1, 2, 3]
     out, raw = _stdout()
     seen.clear()
-    emit_records(batches(raw), out, True, View(), [], live=False)
+    _emit(batches(raw), out, True, View(), live=False)
     assert seen == [b"", b"", b""]  # a file: lines wait for a full block
     assert raw.getvalue().count(b"\n") == 3
 

@@ -105,6 +105,11 @@ class Pairer:
                 del self._pending[sid]
         return out
 
+    def next_deadline(self) -> float | None:
+        """When the oldest pending request of any stream times out, or ``None``."""
+        oldest = [next(iter(pend.values())).ts for pend in self._pending.values() if pend]
+        return min(oldest) + self.timeout if oldest else None
+
     def flush(self, ts: float) -> list[Transaction]:
         """End of input: every pending request times out at ``ts``."""
         out = [

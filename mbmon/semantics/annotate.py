@@ -34,7 +34,7 @@ from mbmon.semantics.regmap import (
 )
 from mbmon.semantics.words import join_u32, s16, u32_to_f32
 
-__all__ = ["Annotator", "SelectorMemory", "field_notes"]
+__all__ = ["Annotator", "SelectorMemory", "annotator_for", "field_notes"]
 
 _EMPTY = Annotation()
 
@@ -514,3 +514,14 @@ def _mask_note(profile: Profile, address: int | None, fields: Any) -> list[str]:
     name = _one_name(ref, "holding_registers", address, address)
     head = _one_name(ref, "holding_registers", address, address, with_label=True)
     return [f"{head} = ({name} AND 0x{and_mask:04X}) OR 0x{or_mask:04X}"]
+
+
+def annotator_for(specs: Sequence[str]) -> Annotator | None:
+    """The annotator for ``--profile`` values, or ``None`` when none is given.
+
+    Raises :class:`~mbmon.semantics.regmap.ProfileError` for a spec that does not
+    load or bind; the message names the file, line and key.
+    """
+    if not specs:
+        return None
+    return Annotator(ProfileBinding.parse(specs))

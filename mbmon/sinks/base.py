@@ -1,8 +1,12 @@
-"""The sink contract: every writer is a listener fed the same records (DESIGN rule 7).
+"""The listener contract: every writer and view is a listener of the hub (DESIGN rule 7).
 
-A sink is a context manager with ``write(record)``, ``write_chunk(chunk)`` and
-``close()``; closing flushes and finalises. The format of ``-w FILE`` is chosen
-by the file's suffix; sink modules are imported only when used.
+A listener has any of the optional hooks ``on_chunk(chunk)`` and
+``on_event(event)`` (input as the sources gave it: raw bytes and connection
+events, for lossless logs and pcap), ``on_record(record)`` (every annotated
+record, in order), ``on_tick(now)`` (time moves on while nothing arrives) and
+``close()``; :class:`mbmon.hub.Hub` calls only the hooks a listener defines.
+A sink is a listener that writes a file, opened by :func:`open_sink` from the
+suffix of ``-w FILE``; sink modules are imported only when used.
 """
 
 from __future__ import annotations
@@ -11,10 +15,9 @@ import importlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
-from typing import Protocol, runtime_checkable
+from typing import Protocol, Self, runtime_checkable
 
 from mbmon.format import View
-from mbmon.model import Chunk, Record
 
 
 class SinkError(Exception):
@@ -42,36 +45,23 @@ class SinkContext:
 
 
 @runtime_checkable
-class Sink(Protocol):
-    def write(self, record: Record) -> None: ...
-
-    def write_chunk(self, chunk: Chunk) -> None: ...
+class Listener(Protocol):
+    """The one hook every listener has; the others are optional (see the module text)."""
 
     def close(self) -> None: ...
 
-    def __enter__(self) -> Sink: ...
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None: ...
+#: The optional hooks, in the order the hub looks them up.
+HOOKS = ("on_chunk", "on_event", "on_record", "on_tick", "close")
 
 
 class SinkBase:
-    """Convenience base: context manager that always closes, chunks ignored by default."""
-
-    def write(self, record: Record) -> None:  # pragma: no cover - overridden
-        raise NotImplementedError
-
-    def write_chunk(self, chunk: Chunk) -> None:
-        return None
+    """A file-writing listener: a context manager whose ``close()`` always runs once."""
 
     def close(self) -> None:
         return None
 
-    def __enter__(self) -> SinkBase:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(
@@ -93,7 +83,7 @@ SINKS: dict[str, tuple[str, str]] = {
 }
 
 
-def open_sink(path: str | Path, ctx: SinkContext) -> Sink:
+def open_sink(path: str | Path, ctx: SinkContext) -> SinkBase:
     """Open the sink that the suffix of ``path`` names; :class:`SinkError` when none does."""
     path = Path(path)
     suffix = path.suffix.lower()
@@ -105,7 +95,7 @@ def open_sink(path: str | Path, ctx: SinkContext) -> Sink:
     module_name, class_name = SINKS[suffix]
     cls = getattr(importlib.import_module(module_name), class_name)
     try:
-        sink: Sink = cls(path, ctx)
+        sink: SinkBase = cls(path, ctx)
     except OSError as exc:
         raise SinkError(f"{path}: cannot write: {exc.strerror or exc}") from None
     return sink

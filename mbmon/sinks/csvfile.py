@@ -64,7 +64,7 @@ class CsvSink(TextFileSink):
         self._csv = csv.writer(self._f)
         self._csv.writerow(COLUMNS)
 
-    def write(self, record: Record) -> None:
+    def on_record(self, record: Record) -> None:
         if record.kind in _ROW_RECORDS:
             self._csv.writerow(csv_row(record_to_json(record, self.view)))
             self._tick()

@@ -61,7 +61,7 @@ class JsonlSink(TextFileSink):
     def _open(self, newline: str | None) -> IO[Any]:
         return open(self.path, "wb", buffering=BUFFER_SIZE)
 
-    def write(self, record: Record) -> None:
+    def on_record(self, record: Record) -> None:
         self._f.write(record_json_bytes(record, self.view) + b"\n")
         now = time.monotonic()  # _tick, inlined: this runs once per record
         if now - self._last_flush >= FLUSH_EVERY:

@@ -648,11 +648,11 @@ class McapSink(SinkBase):
 
     # ------------------------------------------------------------------ sink API
 
-    def write_chunk(self, chunk: Chunk) -> None:
+    def on_chunk(self, chunk: Chunk) -> None:
         """One captured chunk on /modbus/raw (made into its message with the next batch)."""
         self._pending.append(chunk)
 
-    def write(self, record: Record) -> None:
+    def on_record(self, record: Record) -> None:
         """Write the messages of one record on their topics.
 
         What depends on the view is made here, in the calling thread: the

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from mbmon.model import Chunk, Direction, Event, EventKind, Record, Stream, Transport
+from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport
 from mbmon.sinks.base import SinkBase, SinkContext
 from mbmon.sources.pcapwrite import (
     ACK,
@@ -95,7 +95,7 @@ class PcapSink(SinkBase):
 
     # ------------------------------------------------------------------ sink API
 
-    def write_chunk(self, chunk: Chunk) -> None:
+    def on_chunk(self, chunk: Chunk) -> None:
         stream = chunk.stream
         transport = stream.transport
         ts = chunk.ts
@@ -122,11 +122,7 @@ class PcapSink(SinkBase):
             return
         self._writer(_IP).write(ts, frame)
 
-    def write(self, record: Record) -> None:
-        if record.event is not None:
-            self.write_event(record.event)
-
-    def write_event(self, event: Event) -> None:
+    def on_event(self, event: Event) -> None:
         """Connect: a three-way handshake; disconnect: FIN/FIN/ACK or an RST."""
         stream = event.stream
         if stream is None or stream.transport not in (Transport.TCP, Transport.RTU_OVER_TCP):

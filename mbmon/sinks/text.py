@@ -14,7 +14,7 @@ from mbmon.sinks.jsonl import TextFileSink
 class TextSink(TextFileSink):
     """The console's monitor line for every record."""
 
-    def write(self, record: Record) -> None:
+    def on_record(self, record: Record) -> None:
         self.write_line(record_line(record, self.view))
 
     def write_line(self, line: str) -> None:

@@ -102,8 +102,17 @@ def hrss_context(robot: str | None = None) -> SinkContext:
 
 
 def feed(sink: object, stream: list[Chunk | Record]) -> None:
+    """Hand ``stream`` to ``sink`` as the hub does: only the hooks it has; a source
+    event (an event record) also reaches ``on_event``."""
+    on_chunk = getattr(sink, "on_chunk", None)
+    on_event = getattr(sink, "on_event", None)
+    on_record = getattr(sink, "on_record", None)
     for item in stream:
         if isinstance(item, Chunk):
-            sink.write_chunk(item)  # type: ignore[attr-defined]
-        else:
-            sink.write(item)  # type: ignore[attr-defined]
+            if on_chunk is not None:
+                on_chunk(item)
+            continue
+        if on_event is not None and item.event is not None:
+            on_event(item.event)
+        if on_record is not None:
+            on_record(item)

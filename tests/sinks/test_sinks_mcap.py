@@ -351,7 +351,7 @@ index, t = 0, 1_700_000_000.0
 while True:
     for rec in base:
         t += 0.001
-        sink.write(dataclasses.replace(rec, index=index, ts=t))
+        sink.on_record(dataclasses.replace(rec, index=index, ts=t))
         sys.stdout.write(f"{index}\n")
         sys.stdout.flush()
         index += 1

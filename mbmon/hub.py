@@ -1,0 +1,437 @@
+"""The one loop of a run: sources in, pipeline in the middle, listeners out.
+
+A :class:`Hub` owns one run of any command (``read``, ``replay --redecode``,
+``sniff``, ``proxy``, ``demo``). Sources hand it chunks and events; it feeds the
+:class:`~mbmon.pipeline.Pipeline`, fans the records out to its listeners, moves
+time on (``tick``) and closes everything in order. Model: python-can's
+``Notifier`` and mitmproxy's addons.
+
+Two ways in:
+
+* :meth:`Hub.feed` / :meth:`Hub.run_items`: the caller's own thread (files,
+  whose time is the capture's).
+* :meth:`Hub.put` / :meth:`Hub.submit`: thread-safe, from source threads
+  (pyserial, scapy) or an asyncio loop (the proxy); :meth:`Hub.run` takes them
+  from one queue in one thread, so the pipeline, the formatter's caches and the
+  listeners are only ever touched from that thread. ``submit(fn)`` runs ``fn``
+  in the hub's thread and feeds what it returns: that is how a live capture
+  runs the packet dissector (whose TCP reassembly is hub-thread state).
+
+Listeners have optional hooks, called only where defined:
+``on_chunk(chunk)`` and ``on_event(event)`` for input as the sources gave it,
+``on_records(records)`` (a batch, when the listener wants one call per batch)
+or else ``on_record(record)``, ``on_tick(now)``, and ``close()``. A listener
+that raises is reported once (stderr and an ``/mbmon/events`` notice to the
+others) and detached; the sources and the other listeners go on. Broken pipes
+(``mbmon read … | head``) detach the listener quietly.
+
+Time: for files, the capture's; for live sources, the packets' own timestamps,
+and the wall clock only to move time on while nothing arrives (:meth:`run`).
+Stateful stages say when they next need a tick (``next_deadline()``), so the
+live loop sleeps until then.
+"""
+
+from __future__ import annotations
+
+import queue
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import IO, Any, Protocol
+
+from mbmon.model import Chunk, Event, EventKind, Record, Stream, Transport
+from mbmon.pipeline import Pipeline
+
+Item = Chunk | Event
+Producer = Callable[[], Iterable[Item]]
+
+#: Hooks of a listener, looked up once when it is added.
+_HOOKS = ("on_chunk", "on_event", "on_records", "on_record", "on_tick", "close")
+
+#: How often listeners' ``on_tick`` runs on a live stream (text flushed within 0.5 s).
+LISTENER_TICK = 0.25
+#: The longest a live loop sleeps without looking at the clock.
+MAX_SLEEP = 0.5
+
+
+class Ticking(Protocol):
+    """A stage outside the pipeline that needs time (the packet dissector's reassembly)."""
+
+    def tick(self, now: float) -> Iterable[Item]: ...
+
+    def next_deadline(self) -> float | None: ...
+
+
+@dataclass
+class _Slot:
+    """One attached listener and its bound hooks (``None`` where it has none)."""
+
+    listener: Any
+    name: str
+    hooks: dict[str, Callable[..., Any] | None] = field(default_factory=dict)
+
+
+class _Stop:
+    """The queue's end marker."""
+
+
+_STOP = _Stop()
+
+
+def listener_name(listener: Any) -> str:
+    """How a listener is named in reports: its ``name`` or its path, else its class."""
+    name = getattr(listener, "name", None) or getattr(listener, "path", None)
+    return str(name) if name else type(listener).__name__
+
+
+class Hub:
+    """Drives one run: feeds the pipeline, fans records out, ticks, isolates and closes."""
+
+    def __init__(
+        self,
+        pipeline: Pipeline | None = None,
+        listeners: Iterable[Any] = (),
+        *,
+        stderr: IO[str] | None = None,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        self.pipeline = pipeline if pipeline is not None else Pipeline()
+        self._slots: list[_Slot] = []
+        self._by_hook: dict[str, list[tuple[_Slot, Callable[..., Any]]]] = {h: [] for h in _HOOKS}
+        self._stderr = stderr
+        self._clock = clock
+        self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._ids = 0
+        self._id_lock = threading.Lock()
+        self._tickers: list[Ticking] = []
+        self._closed = False
+        self._finished = False
+        self.now = 0.0  # the run's time: the newest input timestamp, or the clock when live
+        self._next_listener_tick = 0.0
+        #: messages of source errors (ERROR events without a stream: damaged input)
+        self.errors: list[str] = []
+        #: ``(listener name, message)`` of every listener detached after an error
+        self.failures: list[tuple[str, str]] = []
+        self.records = 0
+        #: every listener was detached after an error: nobody is left to feed
+        self.deserted = False
+        for listener in listeners:
+            self.add_listener(listener)
+
+    # ------------------------------------------------------------------ wiring
+
+    def add_listener(self, listener: Any) -> None:
+        """Attach ``listener``; its hooks are looked up now and called only where defined."""
+        slot = _Slot(listener, listener_name(listener))
+        for hook in _HOOKS:
+            fn = getattr(listener, hook, None)
+            slot.hooks[hook] = fn if callable(fn) else None
+        if slot.hooks["on_records"] is not None:
+            slot.hooks["on_record"] = None  # the batch hook wins
+        self._slots.append(slot)
+        self._index_hooks()
+
+    def add_ticker(self, stage: Ticking) -> None:
+        """A stage before the pipeline (a dissector) that needs ``tick(now)`` and says when."""
+        self._tickers.append(stage)
+
+    @property
+    def listeners(self) -> list[Any]:
+        """The listeners still attached, in the order they were added."""
+        return [slot.listener for slot in self._slots]
+
+    def new_stream(self, transport: Transport, client: str, server: str) -> Stream:
+        """A stream with an id no other source of this run has (thread-safe)."""
+        return Stream(self.new_stream_id(), transport, client, server)
+
+    def new_stream_id(self) -> int:
+        """The next stream id of the run (thread-safe), for sources that build their own."""
+        with self._id_lock:
+            sid = self._ids
+            self._ids += 1
+            return sid
+
+    def _index_hooks(self) -> None:
+        by_hook: dict[str, list[tuple[_Slot, Callable[..., Any]]]] = {h: [] for h in _HOOKS}
+        for slot in self._slots:
+            for hook, fn in slot.hooks.items():
+                if fn is not None:
+                    by_hook[hook].append((slot, fn))
+        self._by_hook = by_hook
+
+    # ------------------------------------------------------------------ same-thread input
+
+    def feed(self, item: Item) -> None:
+        """Take one chunk or event now, in the calling thread."""
+        if isinstance(item, Chunk):
+            for slot, fn in self._by_hook["on_chunk"]:
+                self._call(slot, fn, item)
+        else:
+            if item.kind is EventKind.ERROR and item.stream is None:
+                self.errors.append(str(item.info.get("message", "damaged input")))
+            for slot, fn in self._by_hook["on_event"]:
+                self._call(slot, fn, item)
+        if item.ts > self.now:
+            self.now = item.ts
+        records = self.pipeline.feed(item)
+        if records:
+            self._dispatch(records)
+
+    def run_items(self, items: Iterable[Item]) -> None:
+        """Feed every item of ``items`` (a file's), then finish the pipeline.
+
+        The per-item work of :meth:`feed`, inlined: this is the loop a 1M-ADU
+        capture goes through.
+        """
+        chunk_hooks = self._by_hook["on_chunk"]
+        event_hooks = self._by_hook["on_event"]
+        pipeline_feed = self.pipeline.feed
+        dispatch = self._dispatch
+        error = EventKind.ERROR
+        now = self.now
+        for item in items:
+            if type(item) is Chunk:
+                if chunk_hooks:
+                    for slot, fn in chunk_hooks:
+                        self._call(slot, fn, item)
+                    chunk_hooks = self._by_hook["on_chunk"]
+            else:
+                if item.kind is error and item.stream is None:
+                    self.errors.append(str(item.info.get("message", "damaged input")))
+                if event_hooks:
+                    for slot, fn in event_hooks:
+                        self._call(slot, fn, item)
+                    event_hooks = self._by_hook["on_event"]
+            if item.ts > now:
+                now = item.ts
+            records = pipeline_feed(item)
+            if records:
+                self.now = now
+                dispatch(records)
+                if self.deserted:
+                    break  # every listener is gone (stdout closed, nothing recorded)
+        self.now = now
+        self.finish()
+
+    def tick(self, now: float | None = None) -> None:
+        """Move the run's time to ``now`` (default: the clock): stages, pipeline, listeners."""
+        if now is None:
+            now = self._clock()
+        if now > self.now:
+            self.now = now
+        for stage in self._tickers:
+            for item in stage.tick(now):
+                self.feed(item)
+        records = self.pipeline.tick(now)
+        if records:
+            self._dispatch(records)
+        for slot, fn in self._by_hook["on_tick"]:
+            self._call(slot, fn, now)
+
+    def next_deadline(self) -> float | None:
+        """The earliest time a stage or the pipeline needs a tick, or ``None``."""
+        deadlines = [self.pipeline.next_deadline()]
+        deadlines.extend(stage.next_deadline() for stage in self._tickers)
+        known = [d for d in deadlines if d is not None]
+        return min(known) if known else None
+
+    def finish(self) -> None:
+        """End of input: the stages and the pipeline report what they still hold."""
+        if self._finished:
+            return
+        self._finished = True
+        for stage in self._tickers:
+            finish = getattr(stage, "finish", None)
+            if callable(finish):
+                for item in finish(self.now):
+                    self.feed(item)
+        records = self.pipeline.finish()
+        if records:
+            self._dispatch(records)
+
+    # ------------------------------------------------------------------ thread-safe input
+
+    def put(self, item: Item) -> None:
+        """Queue a chunk or event from any thread; :meth:`run` feeds it in the hub's thread."""
+        self._queue.put(item)
+
+    def submit(self, producer: Producer) -> None:
+        """Queue ``producer`` from any thread: it runs in the hub's thread, and the
+        chunks and events it returns are fed (a dissector's ``packet`` call)."""
+        self._queue.put(producer)
+
+    def stop(self) -> None:
+        """Ask :meth:`run` to finish what is queued and return (any thread, signal handlers)."""
+        self._queue.put(_STOP)
+
+    def run(self, stop: threading.Event | None = None, *, until_idle: bool = False) -> None:
+        """The live loop: feed queued input, tick on the deadlines, until :meth:`stop`.
+
+        Sleeps until the next deadline of any stage (at most ``MAX_SLEEP``), so an
+        unanswered request is reported at its timeout while the line is silent, and
+        listeners' ``on_tick`` runs every ``LISTENER_TICK`` seconds. ``until_idle``
+        returns as soon as the queue is empty (tests). Finishes the pipeline on the
+        way out; :meth:`close` is the caller's.
+        """
+        get = self._queue.get
+        while stop is None or not stop.is_set():
+            wait = self._sleep_time()
+            try:
+                item = get(timeout=wait) if wait > 0 else get_nowait(self._queue)
+            except queue.Empty:
+                item = None
+                if until_idle:
+                    break
+            if item is _STOP:
+                break
+            if item is not None:
+                self._take(item)
+            now = self._clock()
+            deadline = self.next_deadline()
+            if (deadline is not None and now >= deadline) or now >= self._next_listener_tick:
+                self._next_listener_tick = now + LISTENER_TICK
+                self.tick(now)
+        self._drain()
+        self.finish()
+
+    def _take(self, item: Any) -> None:
+        if isinstance(item, (Chunk, Event)):
+            self.feed(item)
+            return
+        try:
+            produced = item()
+        except Exception as exc:  # a source's own bug must not end the run
+            self._notice(f"source failed: {type(exc).__name__}: {exc}")
+            return
+        for it in produced or ():
+            self.feed(it)
+
+    def _drain(self) -> None:
+        while True:
+            try:
+                item = self._queue.get_nowait()
+            except queue.Empty:
+                return
+            if item is not _STOP:
+                self._take(item)
+
+    def _sleep_time(self) -> float:
+        now = self._clock()
+        wake = self._next_listener_tick
+        deadline = self.next_deadline()
+        if deadline is not None and deadline < wake:
+            wake = deadline
+        return max(0.0, min(MAX_SLEEP, wake - now))
+
+    # ------------------------------------------------------------------ fan-out and isolation
+
+    def _dispatch(self, records: list[Record]) -> None:
+        self.records += len(records)
+        for slot, fn in self._by_hook["on_records"]:
+            self._call(slot, fn, records)
+        for slot, fn in self._by_hook["on_record"]:
+            try:
+                for record in records:
+                    fn(record)
+            except Exception as exc:
+                self._detach(slot, exc)
+
+    def _call(self, slot: _Slot, fn: Callable[..., Any], arg: Any) -> None:
+        try:
+            fn(arg)
+        except Exception as exc:
+            self._detach(slot, exc)
+
+    def _detach(self, slot: _Slot, exc: BaseException) -> None:
+        """Report a failed listener once, close it, and go on without it."""
+        if slot not in self._slots:
+            return
+        self._slots.remove(slot)
+        self._index_hooks()
+        self.deserted = not self._slots
+        if isinstance(exc, BrokenPipeError):
+            _quiet_stdout()  # the reader went away (| head): nothing to report
+            self.failures.append((slot.name, "broken pipe"))
+            return
+        message = _describe(exc)
+        self.failures.append((slot.name, message))
+        text = f"{slot.name} stopped: {message}" if slot.name not in message else message
+        self._say(f"mbmon: {text}; the rest of the run goes on")
+        close = slot.hooks.get("close")
+        if close is not None:
+            try:
+                close()
+            except Exception:
+                pass
+        self._notice(f"{text}; detached")
+
+    def _notice(self, message: str) -> None:
+        """A NOTICE event about the run itself, shown to the listeners still attached."""
+        event = Event(self.now, None, EventKind.NOTICE, {"message": message})
+        records = self.pipeline.feed(event)
+        if records:
+            self._dispatch(records)
+
+    def _say(self, text: str) -> None:
+        out = self._stderr if self._stderr is not None else sys.stderr
+        try:
+            print(text, file=out, flush=True)
+        except (OSError, ValueError):
+            pass
+
+    # ------------------------------------------------------------------ end
+
+    def close(self) -> None:
+        """Close every listener, in the order they were added; each close runs whatever
+        the others do. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        for slot in list(self._slots):
+            close = slot.hooks.get("close")
+            if close is None:
+                continue
+            try:
+                close()
+            except Exception as exc:
+                self._slots.remove(slot)
+                if isinstance(exc, BrokenPipeError):
+                    _quiet_stdout()
+                    continue
+                message = _describe(exc)
+                self.failures.append((slot.name, message))
+                self._say(f"mbmon: {message}")
+
+    def __enter__(self) -> Hub:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def get_nowait(q: queue.SimpleQueue[Any]) -> Any:
+    """``q.get_nowait()``, named for the loop's one call site."""
+    return q.get_nowait()
+
+
+def _describe(exc: BaseException) -> str:
+    """One line for a listener's failure: the file and the OS's words when there are some."""
+    if isinstance(exc, OSError) and exc.strerror:
+        where = f"{exc.filename}: " if exc.filename else ""
+        return f"{where}{exc.strerror}"
+    text = str(exc)
+    return text if text else type(exc).__name__
+
+
+def _quiet_stdout() -> None:
+    """Point stdout at /dev/null so the interpreter's last flush cannot fail again."""
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):
+        pass
