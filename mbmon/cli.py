@@ -206,6 +206,12 @@ def build_parser() -> argparse.ArgumentParser:
         logcmds = None  # type: ignore[assignment]
     if logcmds is not None:
         logcmds.add_subcommands(sub)
+    import importlib
+
+    from mbmon.commands import COMMANDS
+
+    for name in COMMANDS:
+        importlib.import_module(f"mbmon.commands.{name}").register(sub)
     return parser
 
 
