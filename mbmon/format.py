@@ -568,7 +568,7 @@ def frame_json_bytes(
     ``head`` and ``parts`` are what :func:`record_json_bytes` cached for the record's
     stream direction and PDU; ``unmatched_response`` is a response without a request
     (its line says so). The one place that lays out a frame record's line, for
-    :func:`record_json_bytes` and for the fused reader (:mod:`mbmon.fastlane`).
+    :func:`record_json_bytes`.
     """
     _, _, to_line, hex_text, note_json, note_escaped, to_latency, to_index, end = parts
     if notes:  # device notes vary with state: encoded per record

@@ -96,6 +96,7 @@ class Hub:
         *,
         stderr: IO[str] | None = None,
         clock: Callable[[], float] = time.time,
+        max_records: int | None = None,
     ) -> None:
         self.pipeline = pipeline if pipeline is not None else Pipeline()
         self._slots: list[_Slot] = []
@@ -115,8 +116,10 @@ class Hub:
         #: ``(listener name, message)`` of every listener detached after an error
         self.failures: list[tuple[str, str]] = []
         self.records = 0
-        #: every listener was detached after an error: nobody is left to feed
-        self.deserted = False
+        #: ``-c N``: the run ends once this many records went out (``None``: no limit)
+        self.max_records = max_records
+        #: no more input is wanted: every listener is gone, or -c N was reached
+        self.done = False
         for listener in listeners:
             self.add_listener(listener)
 
@@ -210,7 +213,7 @@ class Hub:
             if records:
                 self.now = now
                 dispatch(records)
-                if self.deserted:
+                if self.done:
                     break  # every listener is gone (stdout closed, nothing recorded)
         self.now = now
         self.finish()
@@ -328,6 +331,14 @@ class Hub:
     # ------------------------------------------------------------------ fan-out and isolation
 
     def _dispatch(self, records: list[Record]) -> None:
+        limit = self.max_records
+        if limit is not None:
+            if self.records + len(records) >= limit:
+                records = records[: limit - self.records]
+                self.done = True  # nothing more is wanted: the input loop stops
+                self._queue.put(_STOP)
+            if not records:
+                return
         self.records += len(records)
         for slot, fn in self._by_hook["on_records"]:
             self._call(slot, fn, records)
@@ -350,7 +361,7 @@ class Hub:
             return
         self._slots.remove(slot)
         self._index_hooks()
-        self.deserted = not self._slots
+        self.done = not self._slots
         if isinstance(exc, BrokenPipeError):
             _quiet_stdout()  # the reader went away (| head): nothing to report
             self.failures.append((slot.name, "broken pipe"))

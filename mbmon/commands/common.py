@@ -1,0 +1,249 @@
+"""What every command shares: exit codes, usage errors, option groups, progress, outputs.
+
+Commands are wiring (DESIGN): they parse options with these groups, build a
+:class:`~mbmon.hub.Hub`, attach listeners and sources, and map the run's
+outcome to one of the exit codes below.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import sys
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+EXIT_OK = 0
+EXIT_BAD_INPUT = 1  # bad or damaged input, or an output that failed
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+
+
+class UsageError(Exception):
+    """Bad command-line values; printed with the command's usage, exit status 2."""
+
+
+# --------------------------------------------------------------------------- value types
+
+
+def port(text: str) -> int:
+    """An argparse type: a TCP/UDP port 1..65535."""
+    try:
+        value = int(text, 0)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
+    if not 0 < value < 65536:
+        raise argparse.ArgumentTypeError(f"port out of range 1..65535: {value}")
+    return value
+
+
+def positive(text: str) -> float:
+    """An argparse type: a number > 0 (seconds, speeds)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not value > 0 or value != value or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0: {text}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    """An argparse type: a whole number > 0 (baud rates, counts)."""
+    try:
+        value = int(text, 0)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0: {value}")
+    return value
+
+
+def endpoint(text: str) -> str:
+    """An argparse type: ``HOST``, ``HOST:PORT``, ``[IPv6]:PORT`` or a serial device name."""
+    value = text.strip()
+    if not value or any(c.isspace() for c in value):
+        raise argparse.ArgumentTypeError(f"not an endpoint: {text!r} (use HOST or HOST:PORT)")
+    if value.startswith("/"):
+        return value  # an RTU bus (serial device or dump file name)
+    if value.startswith("["):
+        close = value.find("]")
+        if close < 0 or (close + 1 < len(value) and value[close + 1] != ":"):
+            raise argparse.ArgumentTypeError(f"not an endpoint: {text!r} (use [ADDR]:PORT)")
+        rest = value[close + 2 :] if close + 1 < len(value) else ""
+    elif value.count(":") == 1:
+        host, _, rest = value.partition(":")
+        if not host:
+            raise argparse.ArgumentTypeError(f"not an endpoint: {text!r} (no host)")
+    else:
+        rest = ""
+    if rest:
+        port(rest)  # raises with a clear message
+    return value
+
+
+# --------------------------------------------------------------------------- option groups
+
+
+def add_view_options(parser: argparse.ArgumentParser) -> None:
+    """Options that decide how records are labelled and annotated (every observing command)."""
+    group = parser.add_argument_group("labels and meaning")
+    group.add_argument(
+        "--robot",
+        metavar="HOST[:PORT]",
+        type=endpoint,
+        help="the robot's endpoint: print the robot's own Modbus Monitor labels "
+        '("Receive from client", "Send to server", ...); for RTU give the bus name',
+    )
+    group.add_argument(
+        "--robot-client",
+        action="store_true",
+        help="on an RTU bus, the robot named by --robot is the master (client)",
+    )
+    group.add_argument(
+        "--profile",
+        action="append",
+        default=[],
+        metavar="SPEC",
+        help="device profile for annotations: NAME or FILE.toml for all servers, "
+        "HOST[:PORT]=NAME or unit:N=NAME for one (repeatable; built-in: hrss, xeg)",
+    )
+
+
+def add_output_options(parser: argparse.ArgumentParser) -> None:
+    """``--json``, ``-w FILE``, ``-q``: where records go (every observing command)."""
+    group = parser.add_argument_group("output")
+    group.add_argument(
+        "--json", action="store_true", help="one JSON object per line (docs/json.md)"
+    )
+    group.add_argument(
+        "-w",
+        "--write",
+        action="append",
+        default=[],
+        metavar="FILE",
+        help="also write records to FILE; format by suffix: .mcap .jsonl .csv .txt .pcap "
+        "(repeatable)",
+    )
+    group.add_argument(
+        "-q",
+        "--quiet",
+        action="store_true",
+        help="print no records and no summary (use with -w)",
+    )
+
+
+# --------------------------------------------------------------------------- shared steps
+
+
+def install_signal_handlers() -> None:
+    """SIGTERM ends the run like Ctrl-C does, so every listener's close() runs."""
+
+    def _terminate(signum: int, frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, _terminate)
+
+
+def make_annotator(specs: list[str]) -> Any:
+    """The annotator for ``--profile`` values (``None`` without); bad specs are usage errors."""
+    from mbmon.semantics.annotate import annotator_for
+    from mbmon.semantics.regmap import ProfileError
+
+    try:
+        return annotator_for(specs)
+    except ProfileError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def profile_sources(annotator: Any) -> list[tuple[str, str]]:
+    """``(name, TOML text)`` of every profile the annotator loaded (for logs)."""
+    if annotator is None:
+        return []
+    binding = getattr(annotator, "binding", None)
+    sources = getattr(binding, "sources", None)
+    return list(sources()) if callable(sources) else []
+
+
+def check_outputs(outputs: Iterable[str], inputs: Iterable[str]) -> None:
+    """Refuse, as a usage error, an output with no known format or one that is an input.
+
+    "The same file" is the same device and inode, so links and other spellings
+    of a path are caught too; an output that does not exist yet is never an input.
+    """
+    from mbmon.sinks.base import SINKS
+
+    in_stats = []
+    for name in inputs:
+        try:
+            in_stats.append((name, os.stat(name)))
+        except OSError:
+            continue
+    for out in outputs:
+        suffix = Path(out).suffix.lower()
+        if suffix not in SINKS:
+            known = ", ".join(sorted(SINKS))
+            raise UsageError(
+                f"{out}: unknown output format {suffix or '(no suffix)'!r}; use one of {known}"
+            )
+        try:
+            st = os.stat(out)
+        except OSError:
+            continue
+        for name, ist in in_stats:
+            if (st.st_dev, st.st_ino) == (ist.st_dev, ist.st_ino):
+                raise UsageError(f"{out}: is the input {name}; refusing to overwrite it")
+
+
+class Progress:
+    """A rich progress bar on stderr for long work, only when stderr is a terminal.
+
+    It never takes stdout: records go to stdout, progress to stderr.
+    """
+
+    MIN_BYTES = 4 << 20  # about a second of reading
+
+    def __init__(self, label: str, enabled: bool | None = None):
+        self._bar: Any = None
+        self._task: Any = None
+        self._label = label
+        self._enabled = sys.stderr.isatty() if enabled is None else enabled
+
+    def __call__(self, done: int, total: int) -> None:
+        if not self._enabled or total < self.MIN_BYTES:
+            return
+        if self._bar is None:
+            from rich.console import Console
+            from rich.progress import (
+                BarColumn,
+                DownloadColumn,
+                Progress,
+                TextColumn,
+                TimeRemainingColumn,
+            )
+
+            self._bar = Progress(
+                TextColumn("{task.description}"),
+                BarColumn(),
+                DownloadColumn(),
+                TimeRemainingColumn(),
+                console=Console(stderr=True),
+                transient=True,
+                redirect_stdout=False,
+                redirect_stderr=False,
+            )
+            self._bar.start()
+            self._task = self._bar.add_task(self._label, total=total)
+        self._bar.update(self._task, completed=done)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.stop()
+            self._bar = None
+
+
+def err(message: str) -> None:
+    """One line on stderr, prefixed like every mbmon message."""
+    print(f"mbmon: {message}", file=sys.stderr, flush=True)

@@ -1,0 +1,252 @@
+"""``mbmon read``: a capture file or a raw RTU bus dump through the hub, to the console and logs."""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import os
+import stat
+import sys
+from collections.abc import Iterable
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Any
+
+from mbmon.commands.common import (
+    EXIT_BAD_INPUT,
+    EXIT_OK,
+    UsageError,
+    add_output_options,
+    add_view_options,
+    check_outputs,
+    err,
+    make_annotator,
+    port,
+    positive,
+    positive_int,
+    profile_sources,
+)
+
+EPILOG = """\
+examples:
+  mbmon read captures/hrss_ptp.pcap
+      print every Modbus ADU as the robot's Modbus Monitor shows it
+  mbmon read plant.pcapng --port 1502 --json > frames.jsonl
+      Modbus/TCP on a non-standard port, one JSON object per line
+  mbmon read cell.pcap --robot 192.168.0.10 --profile hrss
+      label lines from the robot's point of view and add HRSS meaning
+  mbmon read bus.pcap --rtu-port 4001          RTU frames carried in TCP/UDP port 4001
+  mbmon read --rtu-raw bus.bin                 a raw byte dump of an RS485 bus
+  cat /dev/ttyUSB0 | mbmon read --rtu-raw -    the same, as the bytes arrive
+  mbmon read cell.pcap -c 20                   the first 20 records only
+  mbmon read cell.pcap -w cell.mcap            also record an MCAP log (Foxglove)
+
+output lines: TIME  LABEL  [uUNIT tTID]  FUNCTION-CODE + DATA (hex)  | meaning
+a summary goes to stderr at the end (-q: none)
+exit status: 0 ok, 1 bad or damaged input (everything before the damage is printed), 2 usage
+"""
+
+#: The first bytes of an MCAP file (mbmon's logs).
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def register(sub: Any) -> None:
+    """Add ``read`` to the CLI's sub-parsers."""
+    read = sub.add_parser(
+        "read",
+        help="decode a capture file (pcap/pcapng) or a raw RTU bus dump",
+        description="Decode every Modbus ADU in a capture file and print it as the robot's "
+        "Modbus Monitor (manual Table 57) shows it, with its meaning.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    read.add_argument(
+        "file", nargs="?", metavar="FILE", help="pcap or pcapng file (gzip too; - for stdin)"
+    )
+    src = read.add_argument_group("input")
+    src.add_argument(
+        "--port",
+        action="append",
+        type=port,
+        default=[],
+        metavar="N",
+        help="Modbus/TCP (and Modbus/UDP) server port, besides 502 (repeatable)",
+    )
+    src.add_argument(
+        "--rtu-port",
+        action="append",
+        type=port,
+        default=[],
+        metavar="N",
+        help="TCP/UDP port carrying RTU ADUs with CRC, as some gateways do (repeatable)",
+    )
+    src.add_argument(
+        "--rtu-raw",
+        metavar="FILE",
+        help="read FILE as a raw byte dump of an RS485 bus (RTU, both directions, no "
+        "timing); a pipe, FIFO or serial device works too (- for stdin)",
+    )
+    src.add_argument(
+        "--timeout",
+        type=positive,
+        default=1.0,
+        metavar="S",
+        help="report a request unanswered after S seconds of capture time (default 1.0)",
+    )
+    src.add_argument(
+        "--baud",
+        type=positive_int,
+        metavar="N",
+        help="RTU baud rate (silence gaps become health hints)",
+    )
+    src.add_argument(
+        "-c",
+        "--count",
+        type=positive_int,
+        metavar="N",
+        help="stop after N records (like tshark -c)",
+    )
+    add_view_options(read)
+    add_output_options(read)
+    read.set_defaults(func=run)
+
+
+def _is_stream_input(path: str) -> bool:
+    """A pipe, FIFO, socket or character device: read as it comes, print as it comes."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return False
+    return stat.S_ISFIFO(mode) or stat.S_ISCHR(mode) or stat.S_ISSOCK(mode)
+
+
+def _looks_like_mcap(path: str) -> bool:
+    try:
+        with open(path, "rb") as f:
+            return f.read(len(MCAP_MAGIC)) == MCAP_MAGIC
+    except OSError:
+        return False
+
+
+def run(args: argparse.Namespace) -> int:
+    """``mbmon read``: every record of the input to the console, the logs and the summary."""
+    from mbmon.format import View
+    from mbmon.hub import Hub
+    from mbmon.pipeline import Pipeline, PipelineConfig
+    from mbmon.sinks.base import SinkContext, SinkError, open_sink
+    from mbmon.sinks.console import ConsoleListener
+    from mbmon.sinks.summary import Summary
+
+    if args.rtu_raw and args.file:
+        raise UsageError("give either FILE or --rtu-raw FILE, not both")
+    if not args.rtu_raw and not args.file:
+        raise UsageError("read needs a FILE (pcap/pcapng) or --rtu-raw FILE")
+    path = args.rtu_raw or args.file
+    if path == "-":
+        path = "/dev/stdin"  # a pipe: the readers never seek
+    check_outputs(args.write, [path])
+    view = View(robot=args.robot, robot_is_client=args.robot_client)
+    annotator = make_annotator(args.profile)
+    pipeline = Pipeline(annotator, PipelineConfig(timeout=args.timeout, baudrate=args.baud))
+    from mbmon.commands.common import Progress
+
+    progress = Progress(f"reading {Path(path).name}")
+    live = _is_stream_input(path)
+    capture_stats: dict[str, Any] = {}
+
+    if not os.path.exists(path):
+        err(f"{path}: no such file")
+        return EXIT_BAD_INPUT
+    if args.rtu_raw:
+        from mbmon.sources.pcapfile import CaptureError
+        from mbmon.sources.rawfile import read_rtu_raw
+
+        try:
+            items: Iterable[Any] = read_rtu_raw(path)
+        except CaptureError as exc:
+            err(str(exc))
+            return EXIT_BAD_INPUT
+    else:
+        from mbmon.sources.pcapfile import CaptureConfig, CaptureError, read_capture
+
+        if not live and _looks_like_mcap(path):
+            err(f"{path} is an MCAP log, not a capture: try 'mbmon replay {args.file}'")
+            return EXIT_BAD_INPUT
+        config = CaptureConfig(
+            tcp_ports=frozenset({502, *args.port}), rtu_ports=frozenset(args.rtu_port)
+        )
+        try:
+            items = read_capture(path, config, progress=progress, stats=capture_stats)
+            first = next(iter_items := iter(items), None)
+        except CaptureError as exc:
+            err(str(exc))
+            return EXIT_BAD_INPUT
+        items = itertools.chain(() if first is None else (first,), iter_items)
+
+    ctx = SinkContext(
+        view=view,
+        command_line=["mbmon", *sys.argv[1:]],
+        source=str(path),
+        profiles=profile_sources(annotator),
+        profile_specs=list(args.profile),
+        timeout=args.timeout,
+        baud=args.baud,
+    )
+    hub = Hub(pipeline, max_records=args.count)
+    summary = Summary(view if args.robot else None)
+    logs: list[Any] = []
+    interrupted = False
+    with ExitStack() as stack:
+        stack.callback(hub.close)
+        stack.callback(progress.close)
+        if not args.quiet:
+            hub.add_listener(ConsoleListener(sys.stdout, view, as_json=args.json, live=live))
+        for target in args.write:
+            try:
+                sink = open_sink(target, ctx)
+            except SinkError as exc:
+                err(str(exc))
+                return EXIT_BAD_INPUT
+            logs.append(sink)
+            hub.add_listener(sink)
+        if not args.quiet:
+            hub.add_listener(summary)
+        try:
+            hub.run_items(items)
+        except KeyboardInterrupt:
+            interrupted = True
+    if not args.quiet:
+        _report(summary, capture_stats, args, timed=not args.rtu_raw)
+    if interrupted:
+        for sink in logs:
+            if sink in hub.listeners:
+                err(f"interrupted; {getattr(sink, 'path', 'the log')} was finished and is complete "
+                    "up to here")  # fmt: skip
+        return 130
+    if hub.errors:
+        err(hub.errors[-1])
+        return EXIT_BAD_INPUT
+    if any(why != "broken pipe" for _name, why in hub.failures):
+        return EXIT_BAD_INPUT
+    return EXIT_OK
+
+
+def _report(
+    summary: Any, capture_stats: dict[str, Any], args: argparse.Namespace, *, timed: bool
+) -> None:
+    """The summary and the hints a user needs after a read, on stderr."""
+    try:
+        print(summary.text(timed=timed), file=sys.stderr, flush=True)
+    except (OSError, ValueError):
+        return
+    if summary.frames == 0 and not args.rtu_raw:
+        busiest = capture_stats.get("busiest_ports") or []
+        ports = ", ".join(f"{proto}/{p} ({n} packets)" for proto, p, n in busiest[:5])
+        asked = ", ".join(str(p) for p in sorted({502, *args.port, *args.rtu_port}))
+        hint = f"no Modbus found on port {asked}"
+        if ports:
+            first = busiest[0][1]
+            hint += f"; busiest ports: {ports}; try --port {first} (or --rtu-port {first})"
+        err(hint)
+    if args.robot and summary.streams and not summary.robot_seen:
+        err(f"warning: the robot {args.robot} (--robot) appears in no stream of this capture")
