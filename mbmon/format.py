@@ -118,6 +118,9 @@ class View:
 
     robot: str | None = None
     robot_is_client: bool = False
+    #: the robot's peers seen so far (client endpoints when it serves, servers when it
+    #: asks), up to two: with several, the robot's labels name the peer
+    _peers: set[str] = field(default_factory=set, compare=False, repr=False)
     _labels: dict[tuple[int, Direction], tuple[Stream, str]] = field(
         default_factory=dict, compare=False, repr=False
     )
@@ -161,13 +164,26 @@ class View:
 
     def _label(self, stream: Stream, direction: Direction) -> str:
         role = self.robot_role(stream)
+        if role is None:
+            if stream.transport is Transport.RTU:
+                return "master → slave" if direction is Direction.C2S else "slave → master"
+            return f"{stream.src(direction)} → {stream.dst(direction)}"
         if role == "server":
-            return "Receive from client" if direction is Direction.C2S else "Send to client"
-        if role == "client":
-            return "Send to server" if direction is Direction.C2S else "Receive from server"
+            text = "Receive from client" if direction is Direction.C2S else "Send to client"
+        else:
+            text = "Send to server" if direction is Direction.C2S else "Receive from server"
         if stream.transport is Transport.RTU:
-            return "master → slave" if direction is Direction.C2S else "slave → master"
-        return f"{stream.src(direction)} → {stream.dst(direction)}"
+            return text  # one bus, one master: nobody to tell apart
+        peer = stream.client if role == "server" else stream.server
+        peers = self._peers
+        if len(peers) < 2 and peer not in peers:
+            peers.add(peer)
+            if len(peers) == 2:
+                # a second peer: from now on every label names its peer (the cached
+                # labels and JSON heads were made without)
+                self._labels.clear()
+                self._json_heads.clear()
+        return f"{text} {peer}" if len(peers) > 1 else text
 
 
 # --------------------------------------------------------------------------- generic notes

@@ -67,8 +67,11 @@ class ConsoleListener:
             self._write()
 
     def on_tick(self, now: float) -> None:
+        """Time moved on with nothing new: what waits goes out now (a live stream that
+        fell idle shows its last lines within one listener tick)."""
         if self._lines:
             self._write()
+            self._target.flush()
 
     def _write(self) -> None:
         lines = self._lines
