@@ -54,6 +54,10 @@ _HOOKS = ("on_chunk", "on_event", "on_records", "on_record", "on_tick", "close")
 LISTENER_TICK = 0.25
 #: The longest a live loop sleeps without looking at the clock.
 MAX_SLEEP = 0.5
+#: A live loop takes up to this many queued items before it looks at the clock again.
+BATCH = 1000
+#: and looks at deadlines at most this often (seconds).
+CHECK_EVERY = 0.02
 
 
 class Ticking(Protocol):
@@ -279,10 +283,14 @@ class Hub:
         way out; :meth:`close` is the caller's.
         """
         get = self._queue.get
+        get_nowait = self._queue.get_nowait
+        next_check = 0.0
         while stop is None or not stop.is_set():
             wait = self._sleep_time()
+            if wait <= 0:  # a deadline is due: wait no longer than the next look at it
+                wait = max(0.0, next_check - self._clock())
             try:
-                item = get(timeout=wait) if wait > 0 else get_nowait(self._queue)
+                item = get(timeout=wait) if wait > 0 else get_nowait()
             except queue.Empty:
                 item = None
                 if until_idle:
@@ -290,8 +298,23 @@ class Hub:
             if item is _STOP:
                 break
             if item is not None:
+                # take what else is queued (up to a batch) before looking at the clock:
+                # deadlines are looked at per batch, not per packet
                 self._take(item)
+                for _ in range(BATCH):
+                    try:
+                        item = get_nowait()
+                    except queue.Empty:
+                        break
+                    if item is _STOP:
+                        self._drain()
+                        self.finish()
+                        return
+                    self._take(item)
             now = self._clock()
+            if now < next_check:
+                continue
+            next_check = now + CHECK_EVERY
             deadline = self.next_deadline()
             if (deadline is not None and now >= deadline) or now >= self._next_listener_tick:
                 self._next_listener_tick = now + LISTENER_TICK
@@ -420,11 +443,6 @@ class Hub:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def get_nowait(q: queue.SimpleQueue[Any]) -> Any:
-    """``q.get_nowait()``, named for the loop's one call site."""
-    return q.get_nowait()
 
 
 def _describe(exc: BaseException) -> str:
