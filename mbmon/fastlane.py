@@ -43,8 +43,6 @@ from mbmon.format import (
     _NO_REQUEST_BYTES,
     View,
     _json_bytes,
-    _last_second,
-    format_time,
     record_json_bytes,
 )
 from mbmon.model import (
@@ -170,8 +168,11 @@ class FastLane:
         ts = record.ts
         whole = ts // 1
         usec = min((ts - whole) * 1e6 + 0.5, 999999)
+        second = self.view.time_format._second[2]
+        if second is None:
+            return line, None
         values: tuple[Any, ...] = (record.index, _json_bytes(ts), head[1], frame.tid,
-                                   _last_second[2], usec, head[2], frame.tid)
+                                   second, usec, head[2], frame.tid)
         latency = record.latency
         if latency is not None:
             values += (latency * 1000, _json_bytes(round(latency * 1000, 3)), record.request_index)
@@ -201,7 +202,9 @@ class FastLane:
         tick_every = pipeline.config.tick_every
         template = self.template
         dumps = _json_bytes
-        last_second = _last_second
+        # the view's time format: [second, per-second prefix or None, its UTF-8]
+        time_text = self.view.time_format.text
+        last_second = self.view.time_format._second
         # id(TCP half) -> [MBAP decoder, JSON head or None]: a half lives as long as
         # the capture (the dissector keeps its connections), so its id is never reused
         halves: dict[int, list[Any]] = {}
@@ -267,6 +270,12 @@ class FastLane:
             decoder, head = state
             if decoder._noise or not decoder._synced:
                 return general(ts, link, iface, buf, off, end, out)
+            whole = ts // 1
+            if whole != last_second[0]:
+                time_text(ts)
+            second = last_second[2]
+            if second is None:  # a time without a per-second form (-t r, impossible times)
+                return general(ts, link, iface, buf, off, end, out)
             dissector.modbus_packets += 1
             half.nxt = (seq + size) & 0xFFFFFFFF
             if decoder._buf:  # the rest of a split ADU: framed from the joined bytes
@@ -277,10 +286,6 @@ class FastLane:
             counts["chunks"] += 1
             counts["bytes"] += size
             size = len(payload)
-            whole = ts // 1
-            if whole != last_second[0]:
-                format_time(ts)
-            second = last_second[2]
             usec = min((ts - whole) * 1e6 + 0.5, 999999)
             ts_json = dumps(ts)
             sid = stream.id
