@@ -238,12 +238,20 @@ def parse_when(text: str, start: float | None, fmt: TimeFormat | None = None) ->
       what ``-t e`` and the fallback print).
 
     ``start`` is the first frame's time; ``fmt`` the output's time format: with
-    ``u``/``ud``, times of day and dates without a zone are UTC.
+    ``u``/``ud``, times of day and dates without a zone are UTC; with ``r`` a bare
+    number is always an offset, with ``e`` always epoch seconds.
     """
     value = text.strip()
     if not value:
         raise TimeParseError("empty time")
     utc = fmt is not None and fmt.utc
+    mode = fmt.mode if fmt is not None else None
+    if mode in ("r", "e") and _FLOAT.fullmatch(value):  # a bare number as that mode prints
+        if mode == "e":
+            return float(value)
+        if start is None:
+            raise TimeParseError("there are no records to measure an offset from")
+        return start + float(value)
     if value.startswith("+") or (_OFFSET.match(value) and not _EPOCH.fullmatch(value)):
         if not _OFFSET.match(value):
             raise TimeParseError(f"not an offset: {text!r} (e.g. +5s, +1m30s, +250ms)")
