@@ -135,7 +135,11 @@ def raw_items(log: McapLog) -> Iterator[Chunk | Event]:
                 stream = streams.get(sid)
                 if stream is None:
                     stream = Stream(
-                        sid, Transport(data["transport"]), data["client"], data["server"]
+                        sid,
+                        Transport(data["transport"]),
+                        data["client"],
+                        data["server"],
+                        data.get("timed", True) is not False,
                     )
                     streams[sid] = stream
             ts = float(data["ts"])
