@@ -10,7 +10,6 @@ spaces: no unit id, no MBAP header, no CRC (manual §5.5, Table 57).
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -25,6 +24,7 @@ from mbmon.model import (
     Stream,
     Transport,
 )
+from mbmon.timefmt import TimeFormat
 
 #: Function code names (Modbus Application Protocol v1.1b); kept here so that
 #: formatting never depends on the decoder's import graph.
@@ -70,29 +70,21 @@ def monitor_hex(raw: bytes) -> str:
     return text
 
 
-#: the second of the last time formatted, and its text (str and UTF-8)
-_last_second: list[Any] = [None, "", b""]
+#: the default time format (``-t a`` without the automatic date): :func:`format_time`
+_DEFAULT_TIME = TimeFormat(auto_date=False)
+#: its per-second cache: [second, "HH:MM:SS." text, the same in UTF-8]
+_last_second: list[Any] = _DEFAULT_TIME._second
 
 
 def format_time(ts: float) -> str:
-    """Time of day in local time with microseconds, like tcpdump."""
-    whole = ts // 1
-    if _last_second[0] != whole:  # one strftime per second of capture, not per record
-        _last_second[0] = whole
-        text = time.strftime("%H:%M:%S.", time.localtime(int(whole)))
-        _last_second[1:] = text, text.encode()
-    # %d truncates, so +0.5 rounds to the microsecond a float timestamp stands for
-    # (1700000000.26 is 0.2599999 s after the second); min() keeps a nanosecond
-    # .9999996 in this second. %-formatting is about twice as fast as an f-string.
-    return "%s%06d" % (_last_second[1], min((ts - whole) * 1e6 + 0.5, 999999))  # noqa: UP031
+    """Time of day in local time with microseconds, like tcpdump (any float prints:
+    see :mod:`mbmon.timefmt`; a view's own format is ``view.time_format``)."""
+    return _DEFAULT_TIME.text(ts)
 
 
 def _time_bytes(ts: float) -> bytes:
     """``format_time(ts)`` in UTF-8."""
-    whole = ts // 1
-    if _last_second[0] != whole:
-        format_time(ts)
-    return b"%b%06d" % (_last_second[2], min((ts - whole) * 1e6 + 0.5, 999999))
+    return _DEFAULT_TIME.bytes(ts)
 
 
 # --------------------------------------------------------------------------- labels
@@ -118,6 +110,8 @@ class View:
 
     robot: str | None = None
     robot_is_client: bool = False
+    #: how times print (``-t``); each view has its own (it remembers the first day)
+    time_format: TimeFormat = field(default_factory=TimeFormat, compare=False)
     #: the robot's peers seen so far (client endpoints when it serves, servers when it
     #: asks), up to two: with several, the robot's labels name the peer
     _peers: set[str] = field(default_factory=set, compare=False, repr=False)
@@ -330,7 +324,7 @@ def _latency_text(record: Record, frame: Frame) -> str:
     """The end of a frame's line: the latency of a response, or why it has none."""
     latency = record.latency
     if latency is not None:
-        return _LATENCY % (latency * 1000)
+        return _LATENCY % (latency * 1000) if frame.stream.timed else ""
     if record.request is None and frame.direction is _S2C:
         return _NO_REQUEST
     return ""
@@ -341,7 +335,11 @@ def record_line(record: Record, view: View, notes: tuple[str, ...] | None = None
 
     ``notes`` are the record's :func:`frame_notes` when the caller has them already.
     """
-    when = format_time(record.ts)
+    stream = record.stream
+    if stream is None or stream.timed:
+        when = view.time_format.text(record.ts)
+    else:  # no capture times (a raw RTU dump): the record number instead
+        when = "#%d" % record.index  # noqa: UP031
     kind = record.kind
     if record.frame is not None:
         frame = record.frame
@@ -368,7 +366,11 @@ def record_line(record: Record, view: View, notes: tuple[str, ...] | None = None
         return f"{when}  -- {_event_text(record, view)}"
     if kind is RecordKind.COMMAND and record.command is not None:
         cmd = record.command
-        dur = f" after {cmd.duration:.3f} s" if cmd.duration is not None else ""
+        dur = (
+            f" after {cmd.duration:.3f} s"
+            if cmd.duration is not None and cmd.stream.timed
+            else ""
+        )
         return f"{when}  >> [{cmd.phase.value}{dur}] unit {cmd.unit}: {cmd.text}"
     return f"{when}  ?"
 
@@ -438,9 +440,12 @@ def record_to_json(record: Record, view: View) -> dict[str, Any]:
         notes = frame_notes(record)
         latency = record.latency
         values = pdu.values
+        timed = stream.timed
+        if not timed:
+            latency = None
         obj: dict[str, Any] = {
             "index": record.index,
-            "time": record.ts,
+            "time": record.ts if timed else None,
             "stream": stream.id,
             "src": src,
             "dst": dst,
@@ -466,7 +471,7 @@ def record_to_json(record: Record, view: View) -> dict[str, Any]:
         return obj
     out: dict[str, Any] = dict.fromkeys(_JSON_KEYS)
     out["index"] = record.index
-    out["time"] = record.ts
+    out["time"] = record.ts if record.stream is None or record.stream.timed else None
     out["kind"] = record.kind.value
     if record.stream is not None:
         out["stream"] = record.stream.id
@@ -546,11 +551,15 @@ def record_json_bytes(record: Record, view: View) -> bytes:
         or parts[1] is not req_pdu
     ):
         return _cache_json_parts(record, view)
-    return _json_from_parts(record, frame, head, parts)
+    return _json_from_parts(record, frame, head, parts, view.time_format)
 
 
 def _json_from_parts(
-    record: Record, frame: Frame, head: tuple[Stream, bytes, bytes], parts: tuple[Any, ...]
+    record: Record,
+    frame: Frame,
+    head: tuple[Stream, bytes, bytes],
+    parts: tuple[Any, ...],
+    time_format: TimeFormat,
 ) -> bytes:
     """A frame record's JSON line from its cached fixed parts and its own values."""
     return frame_json_bytes(
@@ -564,6 +573,7 @@ def _json_from_parts(
         record.request_index,
         record.request is None and frame.direction is _S2C,
         record.notes,
+        time_format,
     )
 
 
@@ -578,6 +588,7 @@ def frame_json_bytes(
     request_index: int | None,
     unmatched_response: bool,
     notes: tuple[str, ...] = (),
+    time_format: TimeFormat = _DEFAULT_TIME,
 ) -> bytes:
     """The JSON line of a frame record from its values and its cached fixed parts.
 
@@ -602,7 +613,7 @@ def frame_json_bytes(
         ids, tid_json = _IDS_NO_TID_BYTES % unit, b"null"
     else:
         ids, tid_json = _IDS_BYTES % (unit, tid), b"%d" % tid
-    line = _LINE_BYTES % (_time_bytes(ts), head[2], ids, hex_text, note_escaped)
+    line = _LINE_BYTES % (time_format.bytes(ts), head[2], ids, hex_text, note_escaped)
     return b'{"index":%d,"time":%b%b%b%b"%b","notes":[%b]%b%b%b%b%b' % (
         index,
         _json_bytes(ts),
@@ -650,7 +661,7 @@ def _cache_json_parts(record: Record, view: View) -> bytes:
         to_index,
         end,
     )
-    if _json_from_parts(record, frame, head, parts) != full:
+    if _json_from_parts(record, frame, head, parts, view.time_format) != full:
         return full
     heads = view._json_heads
     if len(heads) > 65536:

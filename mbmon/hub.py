@@ -100,11 +100,11 @@ class Hub:
         *,
         stderr: IO[str] | None = None,
         clock: Callable[[], float] = time.time,
-        max_records: int | None = None,
     ) -> None:
         self.pipeline = pipeline if pipeline is not None else Pipeline()
         self._slots: list[_Slot] = []
         self._by_hook: dict[str, list[tuple[_Slot, Callable[..., Any]]]] = {h: [] for h in _HOOKS}
+        self._record_hooks: list[tuple[_Slot, Any, Any]] = []
         self._stderr = stderr
         self._clock = clock
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
@@ -120,8 +120,6 @@ class Hub:
         #: ``(listener name, message)`` of every listener detached after an error
         self.failures: list[tuple[str, str]] = []
         self.records = 0
-        #: ``-c N``: the run ends once this many records went out (``None``: no limit)
-        self.max_records = max_records
         #: no more input is wanted: every listener is gone, or -c N was reached
         self.done = False
         for listener in listeners:
@@ -167,6 +165,11 @@ class Hub:
                 if fn is not None:
                     by_hook[hook].append((slot, fn))
         self._by_hook = by_hook
+        self._record_hooks = [
+            (slot, slot.hooks["on_records"], slot.hooks["on_record"])
+            for slot in self._slots
+            if slot.hooks["on_records"] is not None or slot.hooks["on_record"] is not None
+        ]
 
     # ------------------------------------------------------------------ same-thread input
 
@@ -353,22 +356,24 @@ class Hub:
 
     # ------------------------------------------------------------------ fan-out and isolation
 
+    def enough(self) -> None:
+        """No more input is wanted (``-c N`` reached): :meth:`run_items` and :meth:`run`
+        stop taking input, and the pipeline finishes as at the end of the input."""
+        self.done = True
+        self._queue.put(_STOP)
+
     def _dispatch(self, records: list[Record]) -> None:
-        limit = self.max_records
-        if limit is not None:
-            if self.records + len(records) >= limit:
-                records = records[: limit - self.records]
-                self.done = True  # nothing more is wanted: the input loop stops
-                self._queue.put(_STOP)
-            if not records:
-                return
+        """Each listener gets the batch in the order listeners were added (a log added
+        before the console has every record the console printed, whenever a signal
+        comes): the batch hook at once, or ``on_record`` per record."""
         self.records += len(records)
-        for slot, fn in self._by_hook["on_records"]:
-            self._call(slot, fn, records)
-        for slot, fn in self._by_hook["on_record"]:
+        for slot, batch, each in self._record_hooks:
             try:
-                for record in records:
-                    fn(record)
+                if batch is not None:
+                    batch(records)
+                else:
+                    for record in records:
+                        each(record)
             except Exception as exc:
                 self._detach(slot, exc)
 

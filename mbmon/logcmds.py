@@ -15,6 +15,9 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
 
+from mbmon.filters import add_filter_options
+from mbmon.timefmt import add_time_option
+
 EXIT_OK = 0
 EXIT_BAD_INPUT = 1
 EXIT_USAGE = 2
@@ -30,9 +33,10 @@ examples:
                                               and the profiles stored in the log
   mbmon replay cell.mcap --speed 1            at the original pace (2 = twice as fast)
 
-times: +5s / +1m30s / +250ms from the start of the log, 12:00:05 (time of day on the
-log's first day), 2024-05-01T12:00:05 (ISO 8601, local time unless it says otherwise),
-or epoch seconds. --since and --until are inclusive.
+times: +5s / +1m30s / +250ms / 2.5 from the start of the log, 12:00:05.123456 (time of
+day on the log's first day), 2024-05-01 12:00:05 (ISO 8601, local time unless it says
+otherwise; UTC with -t u/ud), or epoch seconds: every form -t prints. --since and
+--until are inclusive.
 exit status: 0 ok (also for an unfinished log: a note says how much was recovered),
 1 unreadable or damaged log (everything before the damage is printed), 2 usage
 """
@@ -72,7 +76,7 @@ def add_subcommands(sub: Any) -> None:
         formatter_class=fmt,
     )
     replay.add_argument("log", metavar="LOG.mcap", help="an MCAP log written by mbmon")
-    _add_filter_options(replay)
+    add_filter_options(replay)
     out = replay.add_argument_group("output")
     out.add_argument(
         "--json", action="store_true", help="one read --json object per line (docs/json.md)"
@@ -93,6 +97,7 @@ def add_subcommands(sub: Any) -> None:
         action="store_true",
         help="with --redecode, on an RTU bus: the robot named by --robot is the master",
     )
+    add_time_option(out)
     out.add_argument(
         "--speed",
         type=_speed,
@@ -111,6 +116,7 @@ def add_subcommands(sub: Any) -> None:
     )
     info.add_argument("log", metavar="LOG.mcap", help="an MCAP log written by mbmon")
     info.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_time_option(info)
     info.set_defaults(func=run_info)
 
     export = sub.add_parser(
@@ -125,7 +131,14 @@ def add_subcommands(sub: Any) -> None:
     )
     export.add_argument("log", metavar="LOG.mcap", help="an MCAP log written by mbmon")
     export.add_argument("-o", "--output", required=True, metavar="OUT", help="output file")
-    _add_filter_options(export)
+    export.add_argument(
+        "--keep-segments",
+        action="store_true",
+        help=".pcap: keep the original TCP segmentation (default: one ADU per segment, so "
+        "that Wireshark dissects every ADU)",
+    )
+    add_time_option(export)
+    add_filter_options(export)
     export.set_defaults(func=run_export)
 
 
@@ -137,24 +150,6 @@ def _speed(text: str) -> float:
     if not value > 0:
         raise argparse.ArgumentTypeError(f"must be > 0: {text}")
     return value
-
-
-def _add_filter_options(parser: argparse.ArgumentParser) -> None:
-    group = parser.add_argument_group("filters")
-    group.add_argument(
-        "--unit", action="append", metavar="N", help="only this unit id (N[,N], repeatable)"
-    )
-    group.add_argument(
-        "--fc", action="append", metavar="N[,N]", help="only these function codes (3,0x10)"
-    )
-    group.add_argument(
-        "--address",
-        metavar="A[-B]",
-        help="only requests/responses touching register or coil addresses A..B",
-    )
-    group.add_argument("--since", metavar="TIME", help="from TIME on (see 'times' below)")
-    group.add_argument("--until", metavar="TIME", help="up to TIME")
-    group.add_argument("--grep", metavar="TEXT", help="only lines containing TEXT (any case)")
 
 
 # --------------------------------------------------------------------------- shared
@@ -175,34 +170,31 @@ def _open(path: str) -> Any:
         return None
 
 
-def _build_filter(args: argparse.Namespace, log: Any) -> Any:
-    from mbmon.io.replay import (
-        RecordFilter,
-        first_record_time,
-        parse_fcs,
-        parse_int,
-        parse_range,
-        parse_when,
-    )
+def _log_times(args: argparse.Namespace, log: Any) -> tuple[Any, Any]:
+    """The log's time format (``-t``, origin and date rule from its span) and filter."""
+    from mbmon.filters import build_filter
+    from mbmon.io.replay import first_record_time
+    from mbmon.timefmt import TimeFormat
 
-    flt = RecordFilter()
-    if args.unit:
-        flt.units = frozenset(
-            parse_int(p) for value in args.unit for p in value.split(",") if p.strip()
-        )
-    if args.fc:
-        flt.fcs = frozenset().union(*(parse_fcs(v) for v in args.fc))
-    if args.address:
-        flt.address = parse_range(args.address)
-    if args.since or args.until:
-        start = first_record_time(log)
-        if args.since:
-            flt.since = parse_when(args.since, start)
-        if args.until:
-            flt.until = parse_when(args.until, start)
-    if args.grep:
-        flt.grep = args.grep
-    return flt
+    start = first_record_time(log)
+    # the rule `read` prints by while streaming (a date on times of another day than
+    # the first record's), so replayed lines are the lines read printed
+    fmt = TimeFormat(getattr(args, "time_format", "a"), origin=start)
+    return fmt, build_filter(args, start, fmt)
+
+
+def _retimed(
+    obj: dict[str, Any] | None, line: str, ts: float, fmt: Any
+) -> tuple[dict[str, Any] | None, str]:
+    """A logged record's object and line with the line's time printed in ``fmt``."""
+    from mbmon.timefmt import replace_time
+
+    new = replace_time(line, fmt.text(ts))
+    if new == line:
+        return obj, line
+    if obj is not None and obj.get("line") == line:
+        obj = {**obj, "line": new}
+    return obj, new
 
 
 def _note_status(log: Any) -> None:
@@ -216,8 +208,8 @@ def _note_status(log: Any) -> None:
 
 def run_replay(args: argparse.Namespace) -> int:
     """``mbmon replay``: stored lines (or --json objects, or a re-decode), filtered and paced."""
+    from mbmon.filters import FilterError, Pacer
     from mbmon.io.mcap_reader import LogError
-    from mbmon.io.replay import FilterError, Pacer
     from mbmon.sinks.jsonl import dumps_line
 
     if (args.robot or args.robot_client) and not args.redecode:
@@ -229,16 +221,16 @@ def run_replay(args: argparse.Namespace) -> int:
     out = sys.stdout
     with log:
         try:
-            flt = _build_filter(args, log)
+            fmt, flt = _log_times(args, log)
         except FilterError as exc:
             _err(f"error: {exc}")
             return EXIT_USAGE
         pacer = Pacer(args.speed) if args.speed else None
         try:
             if args.redecode:
-                rows = _redecoded(log, args)
+                rows = _redecoded(log, args, fmt)
             else:
-                rows = ((r.obj, r.text, r.time) for r in _stored(log))
+                rows = ((*_retimed(r.obj, r.text, r.time, fmt), r.time) for r in _stored(log))
             for obj, line, ts in rows:
                 if not flt.matches(obj, line, ts):
                     continue
@@ -267,16 +259,18 @@ def _stored(log: Any) -> Iterator[Any]:
     return logged_records(log)
 
 
-def _redecoded(log: Any, args: argparse.Namespace) -> Iterator[tuple[dict[str, Any], str, float]]:
+def _redecoded(
+    log: Any, args: argparse.Namespace, fmt: Any
+) -> Iterator[tuple[dict[str, Any], str, float]]:
     from mbmon.format import View, record_to_json
     from mbmon.io.replay import raw_items, recorded_annotator, recorded_options
     from mbmon.pipeline import Pipeline, PipelineConfig
 
     opts = recorded_options(log)
     if args.robot:
-        view = View(robot=args.robot, robot_is_client=args.robot_client)
+        view = View(robot=args.robot, robot_is_client=args.robot_client, time_format=fmt)
     else:
-        view = View(robot=opts.robot, robot_is_client=opts.robot_is_client)
+        view = View(robot=opts.robot, robot_is_client=opts.robot_is_client, time_format=fmt)
     annotator = recorded_annotator(log, opts)
     pipeline = Pipeline(annotator, PipelineConfig(timeout=opts.timeout, baudrate=opts.baud))
     for record in pipeline.run(raw_items(log)):
@@ -444,15 +438,16 @@ def summarize(log: Any) -> dict[str, Any]:
     }
 
 
-def _when(ts: float | None) -> str:
-    import datetime as dt
+def _print_info(s: dict[str, Any], out: IO[str], mode: str = "a") -> None:
+    """The summary as text; times in the ``-t`` mode ``mode`` (the span with its date)."""
+    from mbmon.timefmt import TimeFormat, human_span
 
-    if ts is None:
-        return "-"
-    return dt.datetime.fromtimestamp(ts).astimezone().isoformat(timespec="microseconds")
+    fmt = TimeFormat.for_span(mode, s["start"], s["end"])
+    dated = TimeFormat({"a": "ad", "u": "ud"}.get(mode, mode), origin=s["start"])
 
+    def _when(ts: float | None, fmt: TimeFormat = fmt) -> str:
+        return "-" if ts is None else fmt.text(ts)
 
-def _print_info(s: dict[str, Any], out: IO[str]) -> None:
     w = out.write
     w(f"file:        {s['file']} ({s['size']} bytes)\n")
     w(f"state:       {s['status']}\n")
@@ -468,8 +463,8 @@ def _print_info(s: dict[str, Any], out: IO[str]) -> None:
     w("\n")
     if s["robot"]:
         w(f"robot:       {s['robot']}\n")
-    dur = f" ({s['duration']:.3f} s)" if s["duration"] is not None else ""
-    w(f"time span:   {_when(s['start'])} .. {_when(s['end'])}{dur}\n")
+    dur = f" ({human_span(s['duration'])})" if s["duration"] is not None else ""
+    w(f"time span:   {_when(s['start'], dated)} .. {_when(s['end'], dated)}{dur}\n")
     w("messages per topic:\n")
     for topic, n in s["topics"].items():
         w(f"  {topic:<18} {n}\n")
@@ -531,7 +526,7 @@ def run_info(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(summary, ensure_ascii=False, indent=2))
     else:
-        _print_info(summary, sys.stdout)
+        _print_info(summary, sys.stdout, args.time_format)
     if summary["error"]:
         _err(summary["error"])
         return EXIT_BAD_INPUT
@@ -543,9 +538,10 @@ def run_info(args: argparse.Namespace) -> int:
 
 def run_export(args: argparse.Namespace) -> int:
     """``mbmon export``: the log converted by the suffix of ``-o``."""
+    from mbmon.filters import FilterError, RecordFilter
     from mbmon.format import View
     from mbmon.io.mcap_reader import LogError
-    from mbmon.io.replay import FilterError, RecordFilter, recorded_options
+    from mbmon.io.replay import recorded_options
     from mbmon.sinks.base import SINKS, SinkContext, SinkError, open_sink
 
     target = Path(args.output)
@@ -563,7 +559,7 @@ def run_export(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     with log:
         try:
-            flt = _build_filter(args, log)
+            fmt, flt = _log_times(args, log)
         except FilterError as exc:
             _err(f"error: {exc}")
             return EXIT_USAGE
@@ -574,7 +570,7 @@ def run_export(args: argparse.Namespace) -> int:
             return EXIT_USAGE
         opts = recorded_options(log)
         ctx = SinkContext(
-            view=View(robot=opts.robot, robot_is_client=opts.robot_is_client),
+            view=View(robot=opts.robot, robot_is_client=opts.robot_is_client, time_format=fmt),
             command_line=opts.command_line,
             source=str(log.path),
             profiles=log.profiles(),
@@ -586,16 +582,19 @@ def run_export(args: argparse.Namespace) -> int:
             if suffix == ".mcap":
                 _export_mcap(log, target, RecordFilter(since=flt.since, until=flt.until))
             elif suffix == ".pcap":
-                _export_pcap(log, target, ctx, flt)
+                _export_pcap(log, target, ctx, flt, keep_segments=args.keep_segments)
             else:
                 with open_sink(target, ctx) as sink:
-                    from mbmon.io.replay import iter_filtered, logged_records
+                    from mbmon.io.replay import logged_records
 
-                    for rec in iter_filtered(logged_records(log), flt):
+                    for rec in logged_records(log):
+                        obj, line = _retimed(rec.obj, rec.text, rec.time, fmt)
+                        if not flt.matches(obj, line, rec.time):
+                            continue
                         if suffix == ".txt":
-                            sink.write_line(rec.text)  # type: ignore[attr-defined]
-                        elif rec.obj is not None:
-                            sink.write_obj(rec.obj)  # type: ignore[attr-defined]
+                            sink.write_line(line)  # type: ignore[attr-defined]
+                        elif obj is not None:
+                            sink.write_obj(obj)  # type: ignore[attr-defined]
         except SinkError as exc:
             _err(str(exc))
             return EXIT_BAD_INPUT
@@ -609,12 +608,13 @@ def run_export(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _export_pcap(log: Any, target: Path, ctx: Any, flt: Any) -> None:
+def _export_pcap(log: Any, target: Path, ctx: Any, flt: Any, *, keep_segments: bool) -> None:
+    """The raw bytes as a pcap: one ADU per TCP segment unless ``keep_segments``."""
     from mbmon.io.replay import raw_items
     from mbmon.model import Chunk
     from mbmon.sinks.pcap import PcapSink
 
-    with PcapSink(target, ctx) as sink:
+    with PcapSink(target, ctx, adu_segments=not keep_segments) as sink:
         for item in raw_items(log):
             if flt.since is not None and item.ts < flt.since:
                 continue

@@ -62,12 +62,15 @@ class Stream:
     ``client`` and ``server`` are ``IP:PORT`` (IPv6 as ``[addr]:port``); for a
     serial bus both are the port or file name. ``id`` is assigned in order of
     first appearance by the source (like tshark's ``tcp.stream``), starting at 0.
+    ``timed`` is ``False`` for a source without capture times (a raw RTU byte
+    dump): its timestamps are placeholders, so no time or latency is shown.
     """
 
     id: int
     transport: Transport
     client: str
     server: str
+    timed: bool = True
 
     def src(self, direction: Direction) -> str:
         return self.server if direction is Direction.S2C else self.client

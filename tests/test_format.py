@@ -271,3 +271,78 @@ def test_time_rounds_to_the_microsecond() -> None:
     assert format_time(1700000000.26).endswith(".260000")
     assert format_time(1700000000.0000004).endswith(".000000")
     assert format_time(1700000000.9999996).endswith(".999999")
+
+
+# --------------------------------------------------------------------------- time basis
+
+
+IMPOSSIBLE_TIMES = [1e17, 1.8e19, 1.7e12, -1e12, float("nan"), float("inf"), -(2.0**63)]
+
+
+def _pair(ts: float, stream: Stream = TCP) -> list[Record]:
+    req = Frame(ts, stream, Direction.C2S, 1, 7 if stream is TCP else None,
+                decode_pdu(bytes.fromhex("0300000001"), False), b"")  # fmt: skip
+    resp = Frame(ts, stream, Direction.S2C, 1, 7 if stream is TCP else None,
+                 decode_pdu(bytes.fromhex("03020007"), True, req.pdu), b"")  # fmt: skip
+    return [
+        Record(0, ts, RecordKind.REQUEST, stream, frame=req),
+        Record(
+            1, ts, RecordKind.RESPONSE, stream, frame=resp, request=req, request_index=0,
+            latency=0.0125,
+        ),
+        Record(2, ts, RecordKind.EVENT, stream, event=Event(ts, stream, EventKind.CONNECT)),
+    ]
+
+
+@pytest.mark.parametrize("mode", ["a", "ad", "r", "e", "u", "ud"])
+def test_every_time_mode_reaches_lines_and_json_alike(mode: str) -> None:
+    """-t: the view's time format makes the line's time; the fast JSON path agrees with
+    the general encoder; the JSON ``time`` stays epoch seconds."""
+    import json
+
+    from mbmon.timefmt import TimeFormat
+
+    ts = 1714564805.123456
+    view = View(time_format=TimeFormat(mode, origin=ts - 2.5))
+    want = TimeFormat(mode, origin=ts - 2.5).text(ts)
+    for record in _pair(ts) * 2:
+        line = record_line(record, view)
+        assert line.startswith(want + "  ")
+        assert record_json_bytes(record, view) == json_line(record_to_json(record, view)).encode()
+        obj = json.loads(record_json_bytes(record, view))
+        assert obj["time"] == ts and obj["line"] == line
+
+
+@pytest.mark.parametrize("ts", IMPOSSIBLE_TIMES)
+def test_impossible_times_print(ts: float) -> None:
+    """Item 22: a timestamp no calendar shows prints (as epoch seconds), never raises."""
+    import json
+
+    from mbmon.timefmt import epoch_text
+
+    for view in (View(), View(robot="10.0.0.2")):
+        for record in _pair(ts) * 2:
+            line = record_line(record, view)
+            assert line.startswith(epoch_text(ts) + "  ")
+            data = record_json_bytes(record, view)
+            assert data == json_line(record_to_json(record, view)).encode()
+            assert json.loads(data)["line"] == line
+    assert format_time(ts) == epoch_text(ts)
+
+
+def test_untimed_streams_show_record_numbers_and_no_latency() -> None:
+    """Item 11: a raw RTU dump has no capture times: ``#N`` instead of a time, no
+    latency, and null ``time``/``latency_ms`` in valid JSON."""
+    import json
+
+    dump = Stream(0, Transport.RTU, "bus.bin", "bus.bin", timed=False)
+    records = _pair(0.0, dump)
+    lines = [record_line(r, View()) for r in records]
+    assert [line.split("  ")[0] for line in lines] == ["#0", "#1", "#2"]
+    assert not any("00:00:00" in line or " ms)" in line for line in lines)
+    for record in records:
+        obj = json.loads(record_json_bytes(record, View()))
+        assert obj["time"] is None and obj["latency_ms"] is None
+        assert obj == json.loads(json_line(record_to_json(record, View())))
+    timed = record_line(_pair(0.0, BUS)[1], View())
+    assert "(12.5 ms)" in timed  # the same records on a timed bus: latency shown

@@ -26,6 +26,8 @@ from mbmon.commands.common import (
     positive_int,
     profile_sources,
 )
+from mbmon.filters import FilterError, add_filter_options, build_filter
+from mbmon.timefmt import TimeFormat, add_time_option
 
 EPILOG = """\
 examples:
@@ -39,6 +41,8 @@ examples:
   mbmon read --rtu-raw bus.bin                 a raw byte dump of an RS485 bus
   cat /dev/ttyUSB0 | mbmon read --rtu-raw -    the same, as the bytes arrive
   mbmon read cell.pcap -c 20                   the first 20 records only
+  mbmon read cell.pcap --fc 6,16 --address 200-251 -t r
+      only writes touching R200..R251, times relative to the first record
   mbmon read cell.pcap -w cell.mcap            also record an MCAP log (Foxglove)
 
 output lines: TIME  LABEL  [uUNIT tTID]  FUNCTION-CODE + DATA (hex)  | meaning
@@ -108,6 +112,8 @@ def register(sub: Any) -> None:
     )
     add_view_options(read)
     add_output_options(read)
+    add_time_option(read)
+    add_filter_options(read)
     read.set_defaults(func=run)
 
 
@@ -135,6 +141,7 @@ def run(args: argparse.Namespace) -> int:
     from mbmon.pipeline import Pipeline, PipelineConfig
     from mbmon.sinks.base import SinkContext, SinkError, open_sink
     from mbmon.sinks.console import ConsoleListener
+    from mbmon.sinks.select import Selection
     from mbmon.sinks.summary import Summary
 
     if args.rtu_raw and args.file:
@@ -145,7 +152,15 @@ def run(args: argparse.Namespace) -> int:
     if path == "-":
         path = "/dev/stdin"  # a pipe: the readers never seek
     check_outputs(args.write, [path])
-    view = View(robot=args.robot, robot_is_client=args.robot_client)
+    view = View(
+        robot=args.robot,
+        robot_is_client=args.robot_client,
+        time_format=TimeFormat(args.time_format),
+    )
+    try:
+        flt = build_filter(args, time_format=view.time_format, start_known=False)
+    except FilterError as exc:
+        raise UsageError(str(exc)) from None
     annotator = make_annotator(args.profile)
     pipeline = Pipeline(annotator, PipelineConfig(timeout=args.timeout, baudrate=args.baud))
     from mbmon.commands.common import Progress
@@ -192,15 +207,18 @@ def run(args: argparse.Namespace) -> int:
         timeout=args.timeout,
         baud=args.baud,
     )
-    hub = Hub(pipeline, max_records=args.count)
+    hub = Hub(pipeline)
     summary = Summary(view if args.robot else None)
     logs: list[Any] = []
     interrupted = False
     with ExitStack() as stack:
         stack.callback(hub.close)
         stack.callback(progress.close)
-        if not args.quiet:
-            hub.add_listener(ConsoleListener(sys.stdout, view, as_json=args.json, live=live))
+        shown = (
+            [] if args.quiet else [ConsoleListener(sys.stdout, view, as_json=args.json, live=live)]
+        )
+        if shown or args.count:
+            hub.add_listener(Selection(shown, view, flt, args.count, on_full=hub.enough))
         for target in args.write:
             try:
                 sink = open_sink(target, ctx)

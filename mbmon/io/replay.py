@@ -13,8 +13,10 @@ This module owns the meaning of a log for the log commands (``replay``,
 - :func:`recorded_options` recovers the options of the recording command
   (profiles, timeout, baud, robot) from the log's metadata (older logs: from
   their stored command line) and attachments;
-- :class:`RecordFilter` and :func:`parse_when` implement the filters, and
-  :class:`Pacer` the ``--speed`` schedule (one monotonic start, no drift).
+- :func:`first_record_time` is the origin of ``--since +5s`` and ``-t r``.
+
+The filters and the ``--speed`` pace live in :mod:`mbmon.filters` (re-exported
+here for older callers).
 """
 
 from __future__ import annotations
@@ -22,17 +24,25 @@ from __future__ import annotations
 import argparse
 import base64
 import contextlib
-import datetime as _dt
 import io
 import json
-import re
 import tempfile
-import time
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from mbmon.filters import (  # noqa: F401  (re-exported: their home is mbmon.filters)
+    FilterError,
+    Pacer,
+    RecordFilter,
+    iter_filtered,
+    parse_fcs,
+    parse_int,
+    parse_range,
+    parse_when,
+    touches,
+)
 from mbmon.io.mcap_reader import LogError, McapLog
 from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport
 from mbmon.sinks.mcap import (
@@ -125,7 +135,11 @@ def raw_items(log: McapLog) -> Iterator[Chunk | Event]:
                 stream = streams.get(sid)
                 if stream is None:
                     stream = Stream(
-                        sid, Transport(data["transport"]), data["client"], data["server"]
+                        sid,
+                        Transport(data["transport"]),
+                        data["client"],
+                        data["server"],
+                        data.get("timed", True) is not False,
                     )
                     streams[sid] = stream
             ts = float(data["ts"])
@@ -305,172 +319,6 @@ def stored_profile_names(log: McapLog) -> list[str]:
     return [str(n) for n in names] if isinstance(names, list) else []
 
 
-# --------------------------------------------------------------------------- filters
-
-_OFFSET = re.compile(r"^\+?\s*((?:\d+(?:\.\d*)?|\.\d+)\s*(?:ms|min|s|m|h)?\s*)+$")
-_PART = re.compile(r"(\d+(?:\.\d*)?|\.\d+)\s*(ms|min|s|m|h)?")
-_UNIT = {"ms": 0.001, "s": 1.0, "": 1.0, "m": 60.0, "min": 60.0, "h": 3600.0}
-
-
-class FilterError(ValueError):
-    """A filter value that cannot be understood (a usage error)."""
-
-
-def parse_when(text: str, start: float | None) -> float:
-    """A ``--since``/``--until`` value as epoch seconds.
-
-    Accepts an offset from the start of the log (``+5s``, ``+1m30s``, ``+250ms``,
-    ``+2.5``: seconds), an ISO 8601 date and time (local time unless it says
-    otherwise), a time of day (``12:00:05``, on the log's first day) or epoch
-    seconds (a number of 9 digits or more).
-    """
-    value = text.strip()
-    if not value:
-        raise FilterError("empty time")
-    if value.startswith("+") or (
-        _OFFSET.match(value) and not re.fullmatch(r"\d{9,}(\.\d*)?", value)
-    ):
-        if not _OFFSET.match(value):
-            raise FilterError(f"not an offset: {text!r} (e.g. +5s, +1m30s, +250ms)")
-        offset = sum(float(n) * _UNIT[u] for n, u in _PART.findall(value))
-        if start is None:
-            raise FilterError("the log has no records to measure an offset from")
-        return start + offset
-    if re.fullmatch(r"\d{9,}(\.\d*)?", value):
-        return float(value)
-    if re.fullmatch(r"\d{1,2}:\d{2}(:\d{2}(\.\d+)?)?", value):
-        if start is None:
-            raise FilterError("the log has no records to take the day from")
-        day = _dt.datetime.fromtimestamp(start).date()
-        clock = _dt.time.fromisoformat(value if value.count(":") == 2 else value + ":00")
-        return _dt.datetime.combine(day, clock).timestamp()
-    try:
-        moment = _dt.datetime.fromisoformat(value.replace("Z", "+00:00"))
-    except ValueError:
-        raise FilterError(
-            f"not a time: {text!r} (use +5s, 12:00:05, 2024-05-01T12:00:05 or epoch seconds)"
-        ) from None
-    return moment.timestamp()
-
-
-def parse_int(text: str) -> int:
-    try:
-        return int(text.strip(), 0)
-    except ValueError:
-        raise FilterError(f"not a number: {text!r}") from None
-
-
-def parse_fcs(text: str) -> frozenset[int]:
-    """``--fc 3,0x10`` -> {3, 16}."""
-    out = {parse_int(part) for part in text.split(",") if part.strip()}
-    if not out or any(not 0 <= fc <= 0xFF for fc in out):
-        raise FilterError(f"function codes are 1..127: {text!r}")
-    return frozenset(fc & 0x7F for fc in out)
-
-
-def parse_range(text: str) -> tuple[int, int]:
-    """``--address 200`` or ``200-251`` (inclusive; 0x.. accepted)."""
-    first, dash, last = text.partition("-")
-    lo = parse_int(first)
-    hi = parse_int(last) if dash else lo
-    if lo > hi or lo < 0 or hi > 0xFFFF:
-        raise FilterError(f"not an address range A[-B] within 0..65535: {text!r}")
-    return lo, hi
-
-
-@dataclass(slots=True)
-class RecordFilter:
-    """The replay/export filters; an unset filter lets everything through.
-
-    Frame filters (unit, function code, address) let only records that have
-    those fields through: events pass only when no frame filter is set.
-    """
-
-    units: frozenset[int] | None = None
-    fcs: frozenset[int] | None = None
-    address: tuple[int, int] | None = None
-    since: float | None = None
-    until: float | None = None
-    grep: str | None = None
-
-    @property
-    def active(self) -> bool:
-        return any(
-            v is not None
-            for v in (self.units, self.fcs, self.address, self.since, self.until, self.grep)
-        )
-
-    def matches(self, obj: Mapping[str, Any] | None, line: str, ts: float) -> bool:
-        if self.since is not None and ts < self.since:
-            return False
-        if self.until is not None and ts > self.until:
-            return False
-        if self.grep is not None and self.grep.lower() not in line.lower():
-            return False
-        if self.units is None and self.fcs is None and self.address is None:
-            return True
-        if obj is None:
-            return False
-        if self.units is not None and obj.get("unit") not in self.units:
-            return False
-        if self.fcs is not None and obj.get("fc") not in self.fcs:
-            return False
-        return self.address is None or touches(obj, *self.address)
-
-
-def touches(obj: Mapping[str, Any], lo: int, hi: int) -> bool:
-    """Whether a frame's register/coil range (or 0x17's write range) meets [lo, hi]."""
-    spans = []
-    address = obj.get("address")
-    if isinstance(address, int):
-        count = obj.get("count")
-        n = count if isinstance(count, int) and count > 0 else 1
-        spans.append((address, address + n - 1))
-    fields = obj.get("fields")
-    if isinstance(fields, Mapping) and isinstance(fields.get("write_address"), int):
-        wa = fields["write_address"]
-        wc = fields.get("write_count")
-        spans.append((wa, wa + (wc if isinstance(wc, int) and wc > 0 else 1) - 1))
-    return any(a <= hi and b >= lo for a, b in spans)
-
-
-# --------------------------------------------------------------------------- pacing
-
-
-class Pacer:
-    """Hold output back to ``speed`` times the original pace.
-
-    Every record's due time is computed from one monotonic start and the first
-    record's capture time (start + (ts - ts0) / speed), so sleeping late once
-    never accumulates into drift over a long replay.
-    """
-
-    def __init__(
-        self,
-        speed: float,
-        clock: Callable[[], float] = time.monotonic,
-        sleep: Callable[[float], None] = time.sleep,
-    ) -> None:
-        if speed <= 0:
-            raise ValueError("speed must be > 0")
-        self.speed = speed
-        self._clock = clock
-        self._sleep = sleep
-        self._start: float | None = None
-        self._ts0 = 0.0
-
-    def wait(self, ts: float) -> None:
-        """Return when the record captured at ``ts`` is due."""
-        if self._start is None:
-            self._start = self._clock()
-            self._ts0 = ts
-            return
-        due = self._start + (ts - self._ts0) / self.speed
-        delay = due - self._clock()
-        if delay > 0:
-            self._sleep(delay)
-
-
 def first_record_time(log: McapLog) -> float | None:
     """Capture time of the first record (the origin of ``+5s`` offsets)."""
     span = log.time_span
@@ -479,9 +327,3 @@ def first_record_time(log: McapLog) -> float | None:
     for msg in log.messages((*RECORD_TOPICS, TOPIC_MONITOR, TOPIC_RAW)):
         return msg.log_time / 1e9
     return None
-
-
-def iter_filtered(records: Iterable[LoggedRecord], flt: RecordFilter) -> Iterator[LoggedRecord]:
-    for rec in records:
-        if flt.matches(rec.obj, rec.text, rec.time):
-            yield rec

@@ -17,6 +17,7 @@ from mbmon.format import record_to_json
 from mbmon.model import Record, RecordKind
 from mbmon.sinks.base import SinkContext
 from mbmon.sinks.jsonl import TextFileSink
+from mbmon.timefmt import CALENDAR_MAX, CALENDAR_MIN, epoch_text
 
 COLUMNS = (
     "index", "time", "utc", "stream", "src", "dst", "transport", "tid", "unit", "fc", "kind",
@@ -32,8 +33,14 @@ _ROW_RECORDS = frozenset(
 
 
 def utc_text(ts: float) -> str:
-    """ISO 8601 UTC with microseconds: ``2024-05-01T12:00:00.123456Z``."""
-    moment = _dt.datetime.fromtimestamp(ts, _dt.UTC)
+    """ISO 8601 UTC with microseconds: ``2024-05-01T12:00:00.123456Z``; a time no
+    calendar shows (year 55840, NaN) as epoch seconds (:func:`mbmon.timefmt.epoch_text`)."""
+    if not CALENDAR_MIN <= ts < CALENDAR_MAX:
+        return epoch_text(ts)
+    try:
+        moment = _dt.datetime.fromtimestamp(ts, _dt.UTC)
+    except (OverflowError, OSError, ValueError):
+        return epoch_text(ts)
     return moment.strftime("%Y-%m-%dT%H:%M:%S.%f") + "Z"
 
 
@@ -62,15 +69,24 @@ class CsvSink(TextFileSink):
     def __init__(self, path: str | Path, ctx: SinkContext) -> None:
         super().__init__(path, ctx, newline="")
         self._csv = csv.writer(self._f)
-        self._csv.writerow(COLUMNS)
+        try:
+            self._csv.writerow(COLUMNS)
+        except OSError as exc:
+            raise self._named(exc) from exc
 
     def on_record(self, record: Record) -> None:
         if record.kind in _ROW_RECORDS:
-            self._csv.writerow(csv_row(record_to_json(record, self.view)))
+            try:
+                self._csv.writerow(csv_row(record_to_json(record, self.view)))
+            except OSError as exc:
+                raise self._named(exc) from exc
             self._tick()
 
     def write_obj(self, obj: Mapping[str, Any]) -> None:
         """Write the row of an already-made ``read --json`` object if it is a frame or noise."""
         if obj.get("kind") in ROW_KINDS:
-            self._csv.writerow(csv_row(obj))
+            try:
+                self._csv.writerow(csv_row(obj))
+            except OSError as exc:
+                raise self._named(exc) from exc
             self._tick()

@@ -7,7 +7,8 @@ no text layer, no encode step); already-made objects (``mbmon export``) through
 does, so that all four agree byte for byte.
 
 Also owns :class:`TextFileSink`, the base of the line-oriented sinks (file
-opening and the at-least-once-a-second flush).
+opening, the at-least-once-a-second flush, and write errors that name the file:
+``x.jsonl: No space left on device``).
 """
 
 from __future__ import annotations
@@ -39,6 +40,11 @@ class TextFileSink(SinkBase):
         self._last_flush = time.monotonic()
         self._closed = False
 
+    def _named(self, exc: OSError) -> OSError:
+        """``exc`` with this sink's file named: the hub and ``export`` report
+        ``FILE: reason`` (a full disk: ``x.jsonl: No space left on device``)."""
+        return OSError(exc.errno, exc.strerror or str(exc), exc.filename or str(self.path))
+
     def _open(self, newline: str | None) -> IO[Any]:
         """The output file: UTF-8 text, lines ended by ``newline``."""
         return open(self.path, "w", encoding="utf-8", newline=newline, buffering=BUFFER_SIZE)
@@ -46,13 +52,19 @@ class TextFileSink(SinkBase):
     def _tick(self) -> None:
         now = time.monotonic()
         if now - self._last_flush >= FLUSH_EVERY:
-            self._f.flush()
             self._last_flush = now
+            try:
+                self._f.flush()
+            except OSError as exc:
+                raise self._named(exc) from exc
 
     def close(self) -> None:
         if not self._closed:
             self._closed = True
-            self._f.close()
+            try:
+                self._f.close()
+            except OSError as exc:
+                raise self._named(exc) from exc
 
 
 class JsonlSink(TextFileSink):
@@ -62,13 +74,18 @@ class JsonlSink(TextFileSink):
         return open(self.path, "wb", buffering=BUFFER_SIZE)
 
     def on_record(self, record: Record) -> None:
-        self._f.write(record_json_bytes(record, self.view) + b"\n")
+        try:
+            self._f.write(record_json_bytes(record, self.view) + b"\n")
+        except OSError as exc:
+            raise self._named(exc) from exc
         now = time.monotonic()  # _tick, inlined: this runs once per record
         if now - self._last_flush >= FLUSH_EVERY:
-            self._f.flush()
-            self._last_flush = now
+            self._tick()
 
     def write_obj(self, obj: Mapping[str, Any]) -> None:
         """Write one already-made ``read --json`` object (used by ``mbmon export``)."""
-        self._f.write((dumps_line(obj) + "\n").encode("utf-8"))
+        try:
+            self._f.write((dumps_line(obj) + "\n").encode("utf-8"))
+        except OSError as exc:
+            raise self._named(exc) from exc
         self._tick()

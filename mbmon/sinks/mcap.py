@@ -248,12 +248,15 @@ def _ns(ts: float) -> int:
 def _stream_fields(stream: Stream | None) -> dict[str, Any]:
     if stream is None:
         return {"stream": None, "transport": None, "client": None, "server": None}
-    return {
+    fields = {
         "stream": stream.id,
         "transport": stream.transport.value,
         "client": stream.client,
         "server": stream.server,
     }
+    if not stream.timed:  # a raw RTU dump: its times are placeholders (replay --redecode)
+        fields["timed"] = False
+    return fields
 
 
 def _pick_compression() -> tuple[str, Callable[[bytes], bytes] | None]:

@@ -19,5 +19,8 @@ class TextSink(TextFileSink):
 
     def write_line(self, line: str) -> None:
         """Write one already-made monitor line (used by ``mbmon export``)."""
-        self._f.write(line + "\n")
+        try:
+            self._f.write(line + "\n")
+        except OSError as exc:
+            raise self._named(exc) from exc
         self._tick()

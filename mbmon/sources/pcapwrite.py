@@ -6,11 +6,12 @@ to cover every block type the reader accepts), link-layer wrappers for every
 link type the reader dissects (:func:`link_frame`), IPv4/IPv6/TCP/UDP headers
 with valid checksums, and :class:`TcpConversation`, which keeps sequence and
 acknowledgement numbers consistent over a whole connection so that Wireshark
-shows no analysis warnings. :class:`ChunkWriter` turns mbmon's own chunks and
-events back into such a capture (the pcap export sink): one conversation per
-TCP stream, datagrams for UDP, link type 147 records for RTU bus bytes; reading
-its output with :func:`mbmon.sources.pcapfile.read_capture` gives the same
-chunks and events.
+shows no analysis warnings. :class:`ChunkWriter` is mbmon's one pcap writer: it
+turns chunks and events back into such a capture (``-w x.pcap`` and ``export -o
+x.pcap`` through :class:`mbmon.sinks.pcap.PcapSink`, a thin listener over it):
+one conversation per TCP stream (optionally one ADU per segment), datagrams for
+UDP, link type 147 records for RTU bus bytes; reading its output with
+:func:`mbmon.sources.pcapfile.read_capture` gives the same chunks and events.
 
 Pure Python, no scapy.
 """
@@ -19,10 +20,10 @@ from __future__ import annotations
 
 import ipaddress
 import struct
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import TracebackType
-from typing import BinaryIO, Self
+from typing import Any, BinaryIO, Self
 
 from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport
 
@@ -534,31 +535,74 @@ class PcapngWriter(_CaptureFile):
 
 class ChunkWriter:
     """Chunks and events back into a capture that :func:`read_capture` reads as the
-    same chunks and events: the pcap export.
+    same chunks and events: the one pcap writer (``-w x.pcap``, ``export -o x.pcap``).
 
     TCP streams become Ethernet/IP/TCP conversations with consistent numbers: a
-    CONNECT event writes the three-way handshake, each chunk one segment, a GAP
-    skips its bytes (the peer then acknowledges them, so a re-read reports the same
-    gap), a DISCONNECT writes FIN-FIN-ACK or a RST from the side that sent it.
-    UDP chunks become datagrams; RTU bus chunks become link type 147 records.
-    Other events are not packets and are skipped. Stream endpoints that are not
-    ``IP:PORT`` get made-up addresses derived from the stream id.
+    CONNECT event writes the three-way handshake, each chunk one segment (cut in
+    pieces of at most 32 KiB), a GAP skips its bytes (the peer then acknowledges
+    them, so a re-read reports the same gap), a DISCONNECT writes FIN-FIN-ACK or a
+    RST from the side that sent it. UDP chunks become datagrams; RTU bus chunks
+    become link type 147 records. Other events are not packets and are skipped.
+    Stream endpoints that are not ``IP:PORT`` get made-up addresses derived from
+    the stream id.
+
+    ``adu_segments``: Modbus/TCP streams are written one ADU per TCP segment
+    (framed by :class:`~mbmon.protocol.mbap.MbapDecoder`; bytes it cannot frame
+    become segments of their own, in order), each at the time of the chunk that
+    carried its last byte, so that Wireshark dissects every ADU even where the
+    original segmentation split an MBAP header. Every byte is written once.
 
     A pcap file has one link type, so with ``pcapng=False`` the first chunk fixes
-    it (Ethernet, or 147 for a bus) and a chunk needing the other raises
-    ValueError; pcapng holds both (one interface per bus).
+    it (Ethernet, or 147 for a bus) and a chunk needing the other goes to the file
+    ``companion(linktype)`` names, or raises ValueError without one; pcapng holds
+    both (one interface per bus). A capture time the file cannot hold (negative,
+    beyond 2106 for pcap, NaN...) is written as the previous packet's time and
+    counted in :attr:`bad_times` (the first in :attr:`first_bad_time`).
     """
 
-    def __init__(self, out: str | Path | BinaryIO, *, pcapng: bool = False) -> None:
+    MAX_SEGMENT = 32768  # larger chunks are cut into several segments (IPv4 length limit)
+
+    def __init__(
+        self,
+        out: str | Path | BinaryIO,
+        *,
+        pcapng: bool = False,
+        nanosecond: bool = True,
+        adu_segments: bool = False,
+        companion: Callable[[int], str | Path] | None = None,
+    ) -> None:
         self._out = out
+        self._nanosecond = nanosecond
         self._pcapng: PcapngWriter | None = PcapngWriter(out) if pcapng else None
         self._pcap: PcapWriter | None = None
         self._pcap_link: int | None = None
+        self._other: PcapWriter | None = None
+        self._companion = companion
+        self.companion_path: Path | None = None
         self._ether_iface: int | None = None
         self._bus_ifaces: dict[int, int] = {}
         self._tcp: dict[int, TcpConversation] = {}
+        self._adu_segments = adu_segments
+        # (stream id, direction) -> (stream, its MBAP decoder), with adu_segments
+        self._framers: dict[tuple[int, Direction], tuple[Stream, Any]] = {}
+        # the range of times the file holds: pcap has 32-bit seconds; pcapng 64-bit units
+        self._max_ts = 1.8e10 if pcapng else 4294967295.0
+        self._last_ts = 0.0
+        self.bad_times = 0
+        self.first_bad_time: float | None = None
+
+    def _time(self, ts: float) -> float:
+        """``ts``, or the previous packet's time when the file cannot hold it."""
+        if 0.0 <= ts < self._max_ts:
+            self._last_ts = ts
+            return ts
+        self.bad_times += 1
+        if self.first_bad_time is None:
+            self.first_bad_time = ts
+        return self._last_ts
 
     def _emit(self, ts: float, frame: bytes, linktype: int, stream_id: int) -> None:
+        ts = self._time(ts)
         if self._pcapng is not None:
             if linktype == LINKTYPE_USER0:
                 iface = self._bus_ifaces.get(stream_id)
@@ -573,13 +617,21 @@ class ChunkWriter:
             self._pcapng.write(ts, frame, interface=iface)
             return
         if self._pcap is None:
-            self._pcap = PcapWriter(self._out, linktype, nanosecond=True)
+            self._pcap = PcapWriter(self._out, linktype, nanosecond=self._nanosecond)
             self._pcap_link = linktype
         elif linktype != self._pcap_link:
-            raise ValueError(
-                f"a pcap file holds one link type ({self._pcap_link}); "
-                f"link type {linktype} needs pcapng"
-            )
+            if self._companion is None:
+                raise ValueError(
+                    f"a pcap file holds one link type ({self._pcap_link}); "
+                    f"link type {linktype} needs pcapng"
+                )
+            if self._other is None:
+                self.companion_path = Path(self._companion(linktype))
+                self._other = PcapWriter(
+                    self.companion_path, linktype, nanosecond=self._nanosecond
+                )
+            self._other.write(ts, frame)
+            return
         self._pcap.write(ts, frame)
 
     @staticmethod
@@ -616,23 +668,57 @@ class ChunkWriter:
         tcp = stream.transport in (Transport.TCP, Transport.RTU_OVER_TCP)
         if isinstance(item, Event):
             if tcp:
+                if self._adu_segments:
+                    self._flush_adus(stream, item.ts)
                 for frame in self._event_frames(item, self._conversation(stream)):
                     self._emit(item.ts, frame, LINKTYPE_ETHERNET, stream.id)
             return
         from_client = item.direction is not Direction.S2C
         if tcp:
-            frame = self._conversation(stream).send(from_client, item.data)
-        elif stream.transport in (Transport.UDP, Transport.RTU_OVER_UDP):
+            if self._adu_segments and stream.transport is Transport.TCP:
+                for piece in self._adus(stream, item.direction, item.data, item.ts):
+                    self._segments(stream, from_client, piece, item.ts)
+            else:
+                self._segments(stream, from_client, item.data, item.ts)
+            return
+        if stream.transport in (Transport.UDP, Transport.RTU_OVER_UDP):
             client, server = self._endpoints(stream)
             (cip, cport), (sip, sport) = parse_endpoint(client), parse_endpoint(server)
             if from_client:
                 frame = udp_frame(LINKTYPE_ETHERNET, cip, sip, cport, sport, item.data)
             else:
                 frame = udp_frame(LINKTYPE_ETHERNET, sip, cip, sport, cport, item.data)
-        else:  # a serial bus
-            self._emit(item.ts, item.data, LINKTYPE_USER0, stream.id)
+            self._emit(item.ts, frame, LINKTYPE_ETHERNET, stream.id)
             return
-        self._emit(item.ts, frame, LINKTYPE_ETHERNET, stream.id)
+        self._emit(item.ts, item.data, LINKTYPE_USER0, stream.id)  # a serial bus
+
+    def _segments(self, stream: Stream, from_client: bool, data: bytes, ts: float) -> None:
+        """``data`` as TCP segments of at most :attr:`MAX_SEGMENT` bytes."""
+        conv = self._conversation(stream)
+        for start in range(0, max(len(data), 1), self.MAX_SEGMENT):
+            frame = conv.send(from_client, data[start : start + self.MAX_SEGMENT])
+            self._emit(ts, frame, LINKTYPE_ETHERNET, stream.id)
+
+    def _adus(self, stream: Stream, direction: Direction, data: bytes, ts: float) -> list[bytes]:
+        """The complete ADUs (and unframable runs) of one direction that ``data`` ends."""
+        key = (stream.id, direction)
+        entry = self._framers.get(key)
+        if entry is None:
+            from mbmon.protocol.mbap import MbapDecoder
+
+            decoder = MbapDecoder(
+                stream, Direction.S2C if direction is Direction.S2C else Direction.C2S
+            )
+            entry = self._framers[key] = (stream, decoder)
+        return [item.raw for item in entry[1].feed(data, ts)]
+
+    def _flush_adus(self, stream: Stream, ts: float) -> None:
+        """Write what the framers of ``stream`` hold (before a gap, connect or close)."""
+        for direction in (Direction.C2S, Direction.S2C):
+            entry = self._framers.pop((stream.id, direction), None)
+            if entry is not None:
+                for item in entry[1].flush(ts):
+                    self._segments(stream, direction is not Direction.S2C, item.raw, ts)
 
     @staticmethod
     def _event_frames(event: Event, conv: TcpConversation) -> list[bytes]:
@@ -656,12 +742,20 @@ class ChunkWriter:
         return []
 
     def close(self) -> None:
-        if self._pcapng is not None:
-            self._pcapng.close()
-        elif self._pcap is not None:
-            self._pcap.close()
-        else:  # nothing written: still leave a valid (empty) capture
-            PcapWriter(self._out, LINKTYPE_ETHERNET, nanosecond=True).close()
+        """Write what the framers hold, then finish the file(s); a capture that got
+        nothing is still a valid (empty) one."""
+        try:
+            for stream, _ in list(self._framers.values()):
+                self._flush_adus(stream, self._last_ts)
+        finally:
+            if self._pcapng is not None:
+                self._pcapng.close()
+            elif self._pcap is not None:
+                self._pcap.close()
+            else:
+                PcapWriter(self._out, LINKTYPE_ETHERNET, nanosecond=self._nanosecond).close()
+            if self._other is not None:
+                self._other.close()
 
     def __enter__(self) -> ChunkWriter:
         return self

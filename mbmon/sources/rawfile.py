@@ -2,8 +2,11 @@
 
 This module owns turning such a file (``cat /dev/ttyUSB0 > bus.bin``, a logic
 analyser export, a serial sniffer's binary log) into chunks of one RTU bus
-stream. The file has no timestamps, so every chunk has ``ts`` 0.0 and framing
-relies on length prediction and CRC alone (silence gaps are unknown).
+stream. The file has no timestamps: the stream is marked untimed
+(``Stream.timed`` is ``False``), every chunk has ``ts`` 0.0 as a placeholder
+(lines show record numbers ``#N`` instead of times, no latency is shown, the
+JSON ``time`` and ``latency_ms`` are null), and framing relies on length
+prediction and CRC alone (silence gaps are unknown).
 """
 
 from __future__ import annotations
@@ -20,8 +23,8 @@ __all__ = ["read_rtu_raw"]
 
 def read_rtu_raw(path: str | Path, chunk_size: int = 4096) -> Iterator[Chunk]:
     """Chunks of at most ``chunk_size`` bytes of the file, in order, on one stream
-    ``Stream(0, Transport.RTU, name, name)`` (``name`` = the file name), direction
-    BUS, ts 0.0. Raises :class:`CaptureError` at once if the file cannot be opened."""
+    ``Stream(0, Transport.RTU, name, name, timed=False)`` (``name`` = the file name),
+    direction BUS, ts 0.0. Raises :class:`CaptureError` at once if the file cannot be opened."""
     if chunk_size < 1:
         raise ValueError("chunk_size must be at least 1")
     path = Path(path)
@@ -29,7 +32,7 @@ def read_rtu_raw(path: str | Path, chunk_size: int = 4096) -> Iterator[Chunk]:
         f: BinaryIO = open(path, "rb")
     except OSError as exc:
         raise CaptureError(f"{path}: cannot open ({exc.strerror or exc})") from None
-    return _chunks(f, Stream(0, Transport.RTU, path.name, path.name), chunk_size)
+    return _chunks(f, Stream(0, Transport.RTU, path.name, path.name, timed=False), chunk_size)
 
 
 def _chunks(f: BinaryIO, stream: Stream, chunk_size: int) -> Iterator[Chunk]:

@@ -7,6 +7,8 @@ import json
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from sink_records import feed
 
 from mbmon.format import View, json_line, record_line, record_to_json
@@ -121,3 +123,43 @@ def test_unknown_suffix_and_unwritable_path(tmp_path: Path) -> None:
         open_sink(tmp_path / "x.xlsx", CTX)
     with pytest.raises(SinkError, match="cannot write"):
         open_sink(tmp_path / "missing-dir" / "x.jsonl", CTX)
+
+
+# --------------------------------------------------------------------------- hostile times
+
+
+def _retimed(stream: list[Chunk | Record], ts: float) -> list[Chunk | Record]:
+    """The session with every time replaced by ``ts`` (a damaged capture's)."""
+    import dataclasses
+
+    return [dataclasses.replace(x, ts=ts) for x in stream]
+
+
+@settings(
+    max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    st.one_of(
+        st.floats(allow_nan=True, allow_infinity=True),
+        st.sampled_from([1e17, 1.8e19, 1.7e12, -1e12, -(2.0**63), 2.0**64]),
+    )
+)
+def test_fuzz_every_line_sink_writes_any_time(session_stream: list, ts: float) -> None:
+    """Issue 8 item 22: a record with any timestamp is written by .jsonl, .csv and .txt
+    (times print as epoch seconds where no calendar shows them), never raises."""
+    import tempfile
+
+    stream = _retimed(session_stream, ts)
+    with tempfile.TemporaryDirectory() as tmp:
+        for suffix in (".jsonl", ".csv", ".txt"):
+            path = Path(tmp) / f"x{suffix}"
+            with open_sink(path, CTX) as sink:
+                feed(sink, stream)
+            text = path.read_text("utf-8")
+            assert text
+        rows = list(csv.DictReader((Path(tmp) / "x.csv").open(newline="", encoding="utf-8")))
+        assert rows and all(row["utc"] for row in rows)
+        jsonl = (Path(tmp) / "x.jsonl").read_text("utf-8").splitlines()
+        assert len(jsonl) == len(records_of(stream))
+        for line in jsonl:
+            json.loads(line)

@@ -6,6 +6,8 @@ from collections.abc import Iterable
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport
 from mbmon.sources.pcapfile import CaptureConfig, read_capture
@@ -99,3 +101,56 @@ def test_nothing_written_is_a_valid_empty_capture(tmp_path: Path) -> None:
     with ChunkWriter(tmp_path / "x.pcap"):
         pass
     assert list(read_capture(tmp_path / "x.pcap")) == []
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    st.one_of(
+        st.floats(allow_nan=True, allow_infinity=True),
+        st.sampled_from([1e17, 1.8e19, 1.7e12, -1e12, 4294967296.0, 2.0**64]),
+    ),
+    st.booleans(),
+)
+def test_fuzz_any_time_is_written_or_counted(ts: float, pcapng: bool) -> None:
+    """Issue 8 item 22: a time the file cannot hold never raises (it was struct.error):
+    the packet is written at the previous packet's time and counted."""
+    import dataclasses
+    import io
+
+    items = [dataclasses.replace(x, ts=ts) if k == 1 else x for k, x in enumerate(SCRIPT[:3])]
+    out = io.BytesIO()
+    writer = ChunkWriter(out, pcapng=pcapng)
+    for item in items:
+        if pcapng or item.stream is not UDP:
+            writer.write(item)
+    writer.close()
+    limit = 1.8e10 if pcapng else 4294967295.0
+    assert writer.bad_times == (0 if 0 <= ts < limit else 1)
+
+
+def test_adu_segments_cover_every_byte_in_order(tmp_path: Path) -> None:
+    """adu_segments: one ADU per segment, bytes that frame as no ADU in segments of
+    their own; the bytes of each direction, read back, are the bytes written."""
+    req = b"\x00\x01\x00\x00\x00\x06\x01\x03\x00\x00\x00\x01"
+    resp = b"\x00\x01\x00\x00\x00\x05\x01\x03\x02\x00\x07"
+    c2s = req[:3] + b"", req[3:] + req[:9], req[9:] + b"\xff\xfe junk", req
+    items: list[Chunk | Event] = [Event(1.0, TCP, EventKind.CONNECT)]
+    t = 1.0
+    for part in c2s:
+        t += 0.1
+        items.append(Chunk(t, TCP, Direction.C2S, part))
+    items.append(Chunk(t + 0.1, TCP, Direction.S2C, resp[:4]))
+    items.append(Chunk(t + 0.2, TCP, Direction.S2C, resp[4:]))
+    items.append(Event(t + 0.3, TCP, EventKind.DISCONNECT, {"how": "fin", "by": "client"}))
+    path = tmp_path / "a.pcap"
+    with ChunkWriter(path, adu_segments=True) as writer:
+        for item in items:
+            writer.write(item)
+    again = [c for c in read_capture(path) if isinstance(c, Chunk)]
+    sent = b"".join(c.data for c in items if isinstance(c, Chunk) and c.direction is Direction.C2S)
+    assert b"".join(c.data for c in again if c.direction is Direction.C2S) == sent
+    assert [c.data for c in again if c.direction is Direction.S2C] == [resp]
+    assert [round(c.ts, 6) for c in again if c.direction is Direction.S2C] == [round(t + 0.2, 6)]
+    c2s_segments = [c.data for c in again if c.direction is Direction.C2S]
+    assert c2s_segments[:2] == [req, req]  # each ADU whole, at its last byte's time
+    assert req in c2s_segments[2:]
