@@ -369,17 +369,18 @@ def run_read(args: argparse.Namespace) -> int:
     with ExitStack() as stack:
         stack.callback(hub.close)
         stack.callback(progress.close)
-        if lane is not None:
-            hub.add_listener(_LaneOutput(lane))
-        elif not args.quiet:
-            live = not Path(path).is_file()  # stdin or a FIFO: print as it comes
-            hub.add_listener(ConsoleListener(sys.stdout, view, as_json=args.json, live=live))
+        # logs first: a record printed on stdout has reached them when a signal stops the run
         for target in args.write:
             try:
                 hub.add_listener(open_sink(target, ctx))
             except SinkError as exc:
                 print(f"mbmon: {exc}", file=sys.stderr)
                 return EXIT_BAD_INPUT
+        if lane is not None:
+            hub.add_listener(_LaneOutput(lane))
+        elif not args.quiet:
+            live = not Path(path).is_file()  # stdin or a FIFO: print as it comes
+            hub.add_listener(ConsoleListener(sys.stdout, view, as_json=args.json, live=live))
         hub.run_items(items)
     if hub.errors:
         print(f"mbmon: {hub.errors[-1]}", file=sys.stderr)

@@ -166,7 +166,7 @@ def _err(message: str) -> None:
 
 def _open(path: str) -> Any:
     """The log at ``path``, or ``None`` after saying why it cannot be read."""
-    from mbmon.io.mcap_reader import LogError, McapLog
+    from mbmon.io.mcap.reader import LogError, McapLog
 
     try:
         return McapLog(path)
@@ -216,7 +216,7 @@ def _note_status(log: Any) -> None:
 
 def run_replay(args: argparse.Namespace) -> int:
     """``mbmon replay``: stored lines (or --json objects, or a re-decode), filtered and paced."""
-    from mbmon.io.mcap_reader import LogError
+    from mbmon.io.mcap.reader import LogError
     from mbmon.io.replay import FilterError, Pacer
     from mbmon.sinks.jsonl import dumps_line
 
@@ -289,8 +289,8 @@ def _redecoded(log: Any, args: argparse.Namespace) -> Iterator[tuple[dict[str, A
 
 def summarize(log: Any) -> dict[str, Any]:
     """Everything ``mbmon info`` reports, as one JSON-able dict (one pass over the log)."""
+    from mbmon.io.mcap.layout import METADATA_NAME, TOPIC_COMMANDS, TOPIC_EVENTS, TOPIC_FRAMES
     from mbmon.io.replay import FRAME_KINDS, stored_profile_names
-    from mbmon.sinks.mcap import METADATA_NAME, TOPIC_COMMANDS, TOPIC_EVENTS, TOPIC_FRAMES
 
     topics: Counter[str] = Counter({t: 0 for t in log.topics})
     first = last = None
@@ -306,7 +306,7 @@ def summarize(log: Any) -> dict[str, Any]:
     latencies: list[float] = []
     writer_stats: dict[str, Any] | None = None
     error: str | None = None
-    from mbmon.io.mcap_reader import LogError
+    from mbmon.io.mcap.reader import LogError
 
     try:
         for msg in log.messages():
@@ -544,7 +544,7 @@ def run_info(args: argparse.Namespace) -> int:
 def run_export(args: argparse.Namespace) -> int:
     """``mbmon export``: the log converted by the suffix of ``-o``."""
     from mbmon.format import View
-    from mbmon.io.mcap_reader import LogError
+    from mbmon.io.mcap.reader import LogError
     from mbmon.io.replay import FilterError, RecordFilter, recorded_options
     from mbmon.sinks.base import SINKS, SinkContext, SinkError, open_sink
 
@@ -631,7 +631,8 @@ def _export_pcap(log: Any, target: Path, ctx: Any, flt: Any) -> None:
 def _export_mcap(log: Any, target: Path, flt: Any) -> None:
     """Copy every (recovered) message into a new, finished and indexed MCAP file."""
     from mbmon import __version__
-    from mbmon.sinks.mcap import TOPIC_SCHEMAS, McapFileWriter, schema_text
+    from mbmon.io.mcap.layout import TOPIC_SCHEMAS, schema_text
+    from mbmon.io.mcap.writer import McapFileWriter
 
     with open(target, "wb") as f:
         writer = McapFileWriter(f)

@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from mbmon.io.mcap_reader import McapLog
+from mbmon.io.mcap.reader import McapLog
 from mbmon.sources.pcapwrite import PcapWriter, TcpConversation
 
 REPO = Path(__file__).resolve().parents[1]

@@ -33,14 +33,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from mbmon.io.mcap_reader import LogError, McapLog
+from mbmon.io.mcap.layout import METADATA_NAME, RECORD_TOPICS, TOPIC_MONITOR, TOPIC_RAW
+from mbmon.io.mcap.reader import LogError, McapLog
 from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport
-from mbmon.sinks.mcap import (
-    METADATA_NAME,
-    RECORD_TOPICS,
-    TOPIC_MONITOR,
-    TOPIC_RAW,
-)
 
 FRAME_KINDS = frozenset({"request", "response", "exception"})
 

@@ -10,7 +10,7 @@ import pytest
 import sink_records as records
 
 from mbmon.format import View, record_line, record_to_json
-from mbmon.io.mcap_reader import McapLog
+from mbmon.io.mcap.reader import McapLog
 from mbmon.io.replay import (
     FilterError,
     Pacer,

@@ -1,0 +1,470 @@
+"""Tolerant reader for the MCAP logs mbmon writes.
+
+A finished file (footer, summary and chunk index present) is read through its
+chunk index. A file that was never finished (the process was killed, the disk
+filled up) is read linearly: every complete chunk is recovered, and
+:attr:`McapLog.status` says how many messages came back and at which byte the
+read stopped. Bytes that are not MCAP, or a chunk that fails its CRC or does
+not decompress, raise :class:`LogError` with the offset, never a traceback from
+the ``mcap`` package.
+
+Messages are yielded in file order, which is the order mbmon wrote them (the
+order of records on the console), not re-sorted by log time.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import struct
+import zlib
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, BinaryIO
+
+MAGIC = b"\x89MCAP0\r\n"
+_OP_HEADER = 0x01
+_OP_FOOTER = 0x02
+_OP_SCHEMA = 0x03
+_OP_CHANNEL = 0x04
+_OP_MESSAGE = 0x05
+_OP_CHUNK = 0x06
+_OP_ATTACHMENT = 0x09
+_OP_METADATA = 0x0C
+_OP_DATA_END = 0x0F
+_FOOTER_RECORD = 1 + 8 + 8 + 8 + 4  # opcode, length, summary_start, summary_offset_start, crc
+_MAX_RECORD = 1 << 31  # no record mbmon writes comes near this; larger lengths mean damage
+
+_REC_HEAD = struct.Struct("<BQ")
+_MSG_HEAD = struct.Struct("<HIQQ")
+_U16 = struct.Struct("<H")
+_U32 = struct.Struct("<I")
+_U64 = struct.Struct("<Q")
+
+
+class LogError(Exception):
+    """A log that cannot be read (not MCAP, corrupt chunk, unreadable file)."""
+
+
+@dataclass(frozen=True, slots=True)
+class LogMessage:
+    """One message as stored: topic, capture times in ns, and its JSON payload."""
+
+    topic: str
+    log_time: int
+    publish_time: int
+    sequence: int
+    raw: bytes
+
+    def json(self) -> Any:
+        """Decode the JSON payload (every mbmon topic is JSON encoded)."""
+        try:
+            return json.loads(self.raw)
+        except ValueError as exc:
+            raise LogError(f"message on {self.topic} is not valid JSON: {exc}") from None
+
+
+@dataclass(frozen=True, slots=True)
+class LogAttachment:
+    """An attachment record (mbmon stores the profile TOML files in force)."""
+
+    name: str
+    media_type: str
+    data: bytes
+    log_time: int
+
+
+@dataclass(slots=True)
+class ReadStatus:
+    """How far reading a log got.
+
+    ``finished``: the file has a footer and was read through its chunk index.
+    ``messages``: messages delivered so far (after a full pass: all recovered).
+    ``stopped_at``: byte offset where a linear read stopped because the rest is
+    missing or damaged (``None`` if the file ended cleanly).
+    ``problem``: why it stopped, in words.
+    """
+
+    finished: bool
+    file_size: int
+    messages: int = 0
+    stopped_at: int | None = None
+    problem: str | None = None
+
+    def describe(self) -> str:
+        """One line for the user about the state of the file."""
+        if self.finished:
+            return f"finished log, {self.messages} messages"
+        where = f"stopped at byte {self.stopped_at} of {self.file_size}"
+        why = f" ({self.problem})" if self.problem else ""
+        return f"log was not finished: recovered {self.messages} messages, {where}{why}"
+
+
+@dataclass(slots=True)
+class _Channel:
+    id: int
+    topic: str
+    schema_id: int
+    encoding: str
+
+
+@dataclass(slots=True)
+class _Span:
+    """A top-level chunk found by the index or by the linear pre-scan."""
+
+    offset: int
+    length: int
+    channels: frozenset[int] | None = None  # channel ids inside, when the index says
+
+
+@dataclass(slots=True)
+class _Layout:
+    header_end: int = 0
+    chunks: list[_Span] = field(default_factory=list)
+    loose: list[tuple[int, int, int]] = field(default_factory=list)  # (opcode, offset, len)
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    attachments: list[LogAttachment] = field(default_factory=list)
+    channels: dict[int, _Channel] = field(default_factory=dict)
+    schemas: dict[int, tuple[str, str, bytes]] = field(default_factory=dict)
+    stats_counts: dict[int, int] | None = None
+    stats_span: tuple[int, int] | None = None
+    stopped_at: int | None = None
+    problem: str | None = None
+
+
+class McapLog:
+    """An mbmon MCAP log opened for reading; use as a context manager.
+
+    Opening reads the layout (index when finished, else a linear scan of the
+    record headers) plus metadata and attachments; :meth:`messages` then reads
+    the chunks.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        try:
+            self._f: BinaryIO = open(self.path, "rb")
+        except OSError as exc:
+            raise LogError(f"{self.path}: cannot open: {exc.strerror or exc}") from None
+        try:
+            self.size = self._f.seek(0, io.SEEK_END)
+            self._f.seek(0)
+            head = self._f.read(len(MAGIC))
+            if head != MAGIC:
+                what = "empty file" if not head else "not an MCAP file (bad magic)"
+                raise LogError(f"{self.path}: {what}")
+            layout = self._read_index()
+            self.finished = layout is not None
+            if layout is None:
+                layout = self._scan()
+        except LogError:
+            self._f.close()
+            raise
+        except OSError as exc:
+            self._f.close()
+            raise LogError(f"{self.path}: read error: {exc}") from None
+        self._layout = layout
+        self.metadata: dict[str, dict[str, str]] = layout.metadata
+        self.attachments: list[LogAttachment] = layout.attachments
+        self.status = ReadStatus(
+            finished=self.finished,
+            file_size=self.size,
+            stopped_at=layout.stopped_at,
+            problem=layout.problem,
+        )
+
+    # -- public -----------------------------------------------------------
+
+    def __enter__(self) -> McapLog:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._f.close()
+
+    @property
+    def topics(self) -> dict[str, int]:
+        """Message count per topic from the statistics record (finished files only)."""
+        counts = self._layout.stats_counts or {}
+        return {ch.topic: counts.get(ch.id, 0) for ch in self._layout.channels.values()}
+
+    @property
+    def time_span(self) -> tuple[int, int] | None:
+        """(first, last) log time in ns from the statistics record, if finished."""
+        return self._layout.stats_span
+
+    def schema_of(self, topic: str) -> tuple[str, str, bytes] | None:
+        """(name, encoding, data) of the schema of ``topic``, once its channel was seen."""
+        for ch in self._layout.channels.values():
+            if ch.topic == topic:
+                return self._layout.schemas.get(ch.schema_id)
+        return None
+
+    def profiles(self) -> list[tuple[str, str]]:
+        """The profile TOML files recorded with the log, as (name, text)."""
+        out = []
+        for att in self.attachments:
+            if att.media_type == "application/toml" or att.name.endswith(".toml"):
+                out.append((att.name, att.data.decode("utf-8", "replace")))
+        return out
+
+    def messages(self, topics: Iterable[str] | None = None) -> Iterator[LogMessage]:
+        """Yield messages in file order, optionally only those on ``topics``.
+
+        After the generator is exhausted, :attr:`status` holds the count.
+        Raises :class:`LogError` when a chunk is damaged, after yielding
+        every message before it.
+        """
+        wanted = set(topics) if topics is not None else None
+        layout = self._layout
+        self.status.messages = 0
+        channels = layout.channels
+        wanted_ids: set[int] | None = None
+        for span in layout.chunks:
+            if wanted is not None and span.channels is not None:
+                if wanted_ids is None or len(wanted_ids) < len(channels):
+                    wanted_ids = {c.id for c in channels.values() if c.topic in wanted}
+                if not (span.channels & wanted_ids):
+                    continue
+            data = self._chunk_records(span)
+            for msg in self._parse_records(data, span.offset):
+                if wanted is not None and msg.topic not in wanted:
+                    continue
+                self.status.messages += 1
+                yield msg
+
+    # -- layout -----------------------------------------------------------
+
+    def _read_index(self) -> _Layout | None:
+        """Read the summary of a finished file; ``None`` if there is none usable."""
+        f = self._f
+        if self.size < 2 * len(MAGIC) + _FOOTER_RECORD:
+            return None
+        f.seek(self.size - len(MAGIC))
+        if f.read(len(MAGIC)) != MAGIC:
+            return None
+        f.seek(self.size - len(MAGIC) - _FOOTER_RECORD)
+        foot = f.read(_FOOTER_RECORD)
+        op, length = _REC_HEAD.unpack_from(foot)
+        if op != _OP_FOOTER or length != 20:
+            return None
+        summary_start = _U64.unpack_from(foot, 9)[0]
+        if summary_start == 0 or summary_start >= self.size:
+            return None
+        try:
+            from mcap.reader import SeekingReader
+
+            f.seek(0)
+            reader = SeekingReader(f, validate_crcs=True)
+            summary = reader.get_summary()
+            if summary is None or not summary.chunk_indexes:
+                return None
+            layout = _Layout()
+            for ch in summary.channels.values():
+                layout.channels[ch.id] = _Channel(
+                    ch.id, ch.topic, ch.schema_id, ch.message_encoding
+                )
+            for sc in summary.schemas.values():
+                layout.schemas[sc.id] = (sc.name, sc.encoding, sc.data)
+            for ci in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+                ids = frozenset(ci.message_index_offsets) if ci.message_index_offsets else None
+                layout.chunks.append(_Span(ci.chunk_start_offset, ci.chunk_length, ids))
+            if summary.statistics is not None:
+                st = summary.statistics
+                layout.stats_counts = dict(st.channel_message_counts)
+                if st.message_count:
+                    layout.stats_span = (st.message_start_time, st.message_end_time)
+            for md in reader.iter_metadata():
+                layout.metadata[md.name] = dict(md.metadata)
+            for att in reader.iter_attachments():
+                layout.attachments.append(
+                    LogAttachment(att.name, att.media_type, bytes(att.data), att.log_time)
+                )
+        except Exception:  # a damaged summary: fall back to the linear read
+            return None
+        return layout
+
+    def _scan(self) -> _Layout:
+        """Walk the top-level records of an unfinished file without decompressing chunks."""
+        f = self._f
+        layout = _Layout()
+        pos = len(MAGIC)
+        size = self.size
+        f.seek(pos)
+        while True:
+            if pos == size:
+                layout.stopped_at, layout.problem = pos, "file ends without a summary and footer"
+                break
+            if size - pos < 9:
+                layout.stopped_at, layout.problem = pos, "record header cut off"
+                break
+            head = f.read(9)
+            op, length = _REC_HEAD.unpack(head)
+            body_at = pos + 9
+            if op == 0 and length == 0:
+                layout.stopped_at, layout.problem = pos, "zero bytes (file not completely written)"
+                break
+            if length > _MAX_RECORD or body_at + length > size:
+                layout.stopped_at = pos
+                layout.problem = f"record (opcode 0x{op:02X}) cut off at end of file"
+                break
+            if op == _OP_HEADER and pos == len(MAGIC):
+                layout.header_end = body_at + length
+            elif op == _OP_CHUNK:
+                layout.chunks.append(_Span(pos, 9 + length))
+            elif op in (_OP_METADATA, _OP_ATTACHMENT, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE):
+                body = f.read(length)
+                try:
+                    self._loose_record(layout, op, body, pos)
+                except LogError:
+                    layout.stopped_at, layout.problem = pos, "damaged record"
+                    break
+            elif op in (_OP_DATA_END, _OP_FOOTER):
+                # the summary section follows but the file was cut inside it
+                layout.stopped_at, layout.problem = pos, "summary section incomplete"
+                break
+            elif op == 0 or 0x10 <= op < 0x80:
+                layout.stopped_at = pos
+                layout.problem = f"invalid record opcode 0x{op:02X}"
+                break
+            pos = body_at + length
+            f.seek(pos)
+        return layout
+
+    def _loose_record(self, layout: _Layout, op: int, body: bytes, pos: int) -> None:
+        from mcap.data_stream import ReadDataStream
+        from mcap.records import Attachment, Metadata
+
+        try:
+            if op == _OP_METADATA:
+                md = Metadata.read(ReadDataStream(io.BytesIO(body)))
+                layout.metadata[md.name] = dict(md.metadata)
+            elif op == _OP_ATTACHMENT:
+                att = Attachment.read(ReadDataStream(io.BytesIO(body)))
+                layout.attachments.append(
+                    LogAttachment(att.name, att.media_type, bytes(att.data), att.log_time)
+                )
+            else:
+                # schemas, channels and messages outside chunks: parse with the chunk parser
+                layout.loose.append((op, pos, len(body)))
+                record = _REC_HEAD.pack(op, len(body)) + body
+                for _ in self._parse_records(record, pos, layout):
+                    pass
+        except LogError:
+            raise
+        except Exception as exc:
+            raise LogError(f"damaged record at byte {pos}: {exc}") from None
+
+    # -- chunks -----------------------------------------------------------
+
+    def _chunk_records(self, span: _Span) -> bytes:
+        """Read, decompress and CRC-check one chunk; its inner records as bytes."""
+        f = self._f
+        f.seek(span.offset)
+        raw = f.read(span.length)
+        where = f"chunk at byte {span.offset}"
+        if len(raw) != span.length:
+            raise self._damage(span.offset, f"{where} is cut off")
+        try:
+            op, _length = _REC_HEAD.unpack_from(raw)
+            if op != _OP_CHUNK:
+                raise ValueError(f"expected a chunk record, found opcode 0x{op:02X}")
+            p = 9 + 16  # message start/end time
+            usize = _U64.unpack_from(raw, p)[0]
+            crc = _U32.unpack_from(raw, p + 8)[0]
+            p += 12
+            clen = _U32.unpack_from(raw, p)[0]
+            compression = raw[p + 4 : p + 4 + clen].decode()
+            p += 4 + clen
+            rlen = _U64.unpack_from(raw, p)[0]
+            p += 8
+            comp = raw[p : p + rlen]
+            if len(comp) != rlen:
+                raise ValueError("records length beyond the chunk")
+        except (struct.error, UnicodeDecodeError, ValueError) as exc:
+            raise self._damage(span.offset, f"{where}: {exc}") from None
+        try:
+            if compression == "zstd":
+                import zstandard
+
+                data = zstandard.ZstdDecompressor().decompress(comp, max_output_size=usize)
+            elif compression == "lz4":
+                import lz4.frame  # type: ignore[import-not-found]
+
+                data = lz4.frame.decompress(comp)
+            elif compression == "":
+                data = bytes(comp)
+            else:
+                raise ValueError(f"unsupported compression {compression!r}")
+        except ImportError as exc:
+            raise LogError(f"{where}: {compression} support missing: {exc}") from None
+        except Exception as exc:
+            raise self._damage(span.offset, f"{where} does not decompress: {exc}") from None
+        if len(data) != usize:
+            raise self._damage(span.offset, f"{where}: size {len(data)} != {usize}")
+        if crc and zlib.crc32(data) != crc:
+            raise self._damage(span.offset, f"{where} fails its CRC")
+        return data
+
+    def _damage(self, offset: int, why: str) -> LogError:
+        self.status.stopped_at = offset
+        self.status.problem = why
+        return LogError(f"{self.path}: {why}; {self.status.messages} messages read before it")
+
+    def _parse_records(
+        self, data: bytes, chunk_offset: int, layout: _Layout | None = None
+    ) -> Iterator[LogMessage]:
+        """Parse the records inside a chunk (schemas, channels, messages)."""
+        layout = layout or self._layout
+        channels = layout.channels
+        view = memoryview(data)
+        n = len(data)
+        p = 0
+        try:
+            while p < n:
+                op, length = _REC_HEAD.unpack_from(view, p)
+                body = p + 9
+                end = body + length
+                if end > n:
+                    raise ValueError("record runs past the end of the chunk")
+                if op == _OP_MESSAGE:
+                    cid, seq, log_time, pub_time = _MSG_HEAD.unpack_from(view, body)
+                    ch = channels.get(cid)
+                    if ch is None:
+                        raise ValueError(f"message on unknown channel {cid}")
+                    data = bytes(view[body + 22 : end])
+                    yield LogMessage(ch.topic, log_time, pub_time, seq, data)
+                elif op == _OP_CHANNEL:
+                    cid, sid = _U16.unpack_from(view, body)[0], _U16.unpack_from(view, body + 2)[0]
+                    q = body + 4
+                    topic, q = _string(view, q)
+                    encoding, q = _string(view, q)
+                    channels.setdefault(cid, _Channel(cid, topic, sid, encoding))
+                elif op == _OP_SCHEMA:
+                    sid = _U16.unpack_from(view, body)[0]
+                    q = body + 2
+                    name, q = _string(view, q)
+                    encoding, q = _string(view, q)
+                    dlen = _U32.unpack_from(view, q)[0]
+                    layout.schemas.setdefault(
+                        sid, (name, encoding, bytes(view[q + 4 : q + 4 + dlen]))
+                    )
+                p = end
+        except (struct.error, UnicodeDecodeError, ValueError) as exc:
+            raise self._damage(chunk_offset, f"chunk at byte {chunk_offset}: {exc}") from None
+
+
+def _string(view: memoryview, p: int) -> tuple[str, int]:
+    n = _U32.unpack_from(view, p)[0]
+    end = p + 4 + n
+    if end > len(view):
+        raise ValueError("string runs past its record")
+    return str(view[p + 4 : end], "utf-8"), end
+
+
+def open_log(path: str | Path) -> McapLog:
+    """Open an mbmon MCAP log for reading (see :class:`McapLog`)."""
+    return McapLog(path)
