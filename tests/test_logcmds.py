@@ -463,3 +463,52 @@ def test_sigkill_keeps_everything_older_than_a_second(tmp_path: Path, long_captu
     assert got == list(range(len(got)))
     info = mbmon("info", log).stdout
     assert "log was not finished: recovered" in info and "stopped at byte" in info
+
+
+def test_signal_statistics_count_what_the_chunks_hold(tmp_path: Path, long_capture: Path) -> None:
+    """Item 25: a recording stopped by SIGINT/SIGTERM at random moments (10 runs) has a
+    Statistics record whose per-channel counts and time span are exactly those of a
+    linear read of its chunks, and a final stats event that counts the logged records."""
+    import random
+
+    rng = random.Random(25)
+    for run in range(10):
+        log = tmp_path / f"stop{run}.mcap"
+        sig = (signal.SIGINT, signal.SIGTERM)[run % 2]
+        proc = subprocess.Popen(
+            [*MBMON, "read", str(long_capture), "-q", "-w", str(log)],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=ENV,
+        )
+        deadline = time.monotonic() + 60
+        while not log.exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.02)  # the log is open: records flow from now on
+        time.sleep(rng.uniform(0.1, 2.5))
+        assert proc.poll() is None, "the input must outlast the test"
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=60)
+        assert proc.returncode == 128 + sig and "Traceback" not in err, err
+        with open(log, "rb") as f:
+            reader = make_reader(f, validate_crcs=True)
+            summary = reader.get_summary()
+            assert summary is not None and summary.statistics is not None
+            stats = summary.statistics
+            topic_of = {cid: ch.topic for cid, ch in summary.channels.items()}
+            counted = {topic_of[cid]: n for cid, n in stats.channel_message_counts.items() if n}
+            times = []
+            read: dict[str, int] = {}
+            final = None
+            for _, channel, msg in reader.iter_messages(log_time_order=False):
+                read[channel.topic] = read.get(channel.topic, 0) + 1
+                times.append(msg.log_time)
+                if channel.topic == "/mbmon/events":
+                    obj = json.loads(msg.data)
+                    if obj["index"] is None and obj["info"].get("final"):
+                        final = obj["info"]
+        assert counted == read, f"run {run} ({sig.name}): summary {counted}, chunks {read}"
+        assert stats.message_count == sum(read.values())
+        assert (stats.message_start_time, stats.message_end_time) == (min(times), max(times))
+        assert final is not None and final["records"] == read["/modbus/monitor"]
+        assert final["chunks"] == read["/modbus/raw"] - 1  # and the connection's event
