@@ -164,15 +164,47 @@ def _err(message: str) -> None:
     print(f"mbmon: {message}", file=sys.stderr)
 
 
-def _open(path: str) -> Any:
-    """The log at ``path``, or ``None`` after saying why it cannot be read."""
+#: first bytes of packet captures: pcap (both byte orders, us and ns) and pcapng
+_CAPTURE_MAGICS = (b"\xd4\xc3\xb2\xa1", b"\xa1\xb2\xc3\xd4", b"\x4d\x3c\xb2\xa1",
+                   b"\xa1\xb2\x3c\x4d", b"\x0a\x0d\x0d\x0a")  # fmt: skip
+
+
+def is_capture(path: str | Path) -> bool:
+    """Whether ``path`` starts like a pcap or pcapng file (what ``mbmon read`` takes)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(4) in _CAPTURE_MAGICS
+    except OSError:
+        return False
+
+
+def _open(path: str, command: str) -> tuple[Any, int]:
+    """The log at ``path`` and 0, or ``None`` and the exit status after saying, in one
+    line, why it cannot be read (a packet capture: exit 2 and ``mbmon read`` suggested)."""
     from mbmon.io.mcap.reader import LogError, McapLog
 
     try:
-        return McapLog(path)
+        return McapLog(path), EXIT_OK
     except LogError as exc:
-        _err(str(exc))
-        return None
+        if is_capture(path):
+            _err(f"error: {path} is a packet capture, not an MCAP log: "
+                 f"use 'mbmon read {path}' (add -w LOG.mcap to record one)")  # fmt: skip
+            return None, EXIT_USAGE
+        text = str(exc)
+        if "not an MCAP file" in text:
+            text += f"; {command} reads the MCAP logs written by 'mbmon read ... -w LOG.mcap'"
+        _err(text)
+        return None, EXIT_BAD_INPUT
+
+
+def _progress(log: Any) -> Any:
+    """A progress bar on stderr for a big log, when stderr is a terminal (never stdout's):
+    the one ``read`` shows for big captures, fed by the reader after every chunk."""
+    from mbmon.cli import _Progress
+
+    bar = _Progress(f"reading {log.path.name}", sys.stderr.isatty())
+    log.progress = bar
+    return bar
 
 
 def _build_filter(args: argparse.Namespace, log: Any) -> Any:
@@ -223,10 +255,11 @@ def run_replay(args: argparse.Namespace) -> int:
     if (args.robot or args.robot_client) and not args.redecode:
         _err("error: --robot relabels lines only with --redecode (stored lines are as recorded)")
         return EXIT_USAGE
-    log = _open(args.log)
+    log, status = _open(args.log, "replay")
     if log is None:
-        return EXIT_BAD_INPUT
+        return status
     out = sys.stdout
+    bar = _progress(log)
     with log:
         try:
             flt = _build_filter(args, log)
@@ -254,8 +287,11 @@ def run_replay(args: argparse.Namespace) -> int:
                     out.flush()
         except LogError as exc:
             out.flush()
+            bar.close()  # before the message: the bar shares stderr
             _err(str(exc))
             return EXIT_BAD_INPUT
+        finally:
+            bar.close()
         out.flush()
         _note_status(log)
     return EXIT_OK
@@ -523,11 +559,15 @@ def _print_info(s: dict[str, Any], out: IO[str]) -> None:
 def run_info(args: argparse.Namespace) -> int:
     """``mbmon info``: the summary of a log (text or --json)."""
 
-    log = _open(args.log)
+    log, status = _open(args.log, "info")
     if log is None:
-        return EXIT_BAD_INPUT
+        return status
+    bar = _progress(log)
     with log:
-        summary = summarize(log)
+        try:
+            summary = summarize(log)
+        finally:
+            bar.close()
     if args.json:
         print(json.dumps(summary, ensure_ascii=False, indent=2))
     else:
@@ -554,9 +594,9 @@ def run_export(args: argparse.Namespace) -> int:
         _err(f"error: {target}: unknown output format {suffix or '(no suffix)'!r}; use one "
              f"of {', '.join(sorted(SINKS))}")  # fmt: skip
         return EXIT_USAGE
-    log = _open(args.log)
+    log, status = _open(args.log, "export")
     if log is None:
-        return EXIT_BAD_INPUT
+        return status
     if target.exists() and target.resolve() == log.path.resolve():
         log.close()
         _err("error: the output would overwrite the log itself")

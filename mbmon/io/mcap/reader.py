@@ -18,7 +18,7 @@ import io
 import json
 import struct
 import zlib
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -168,6 +168,9 @@ class McapLog:
             self._f.close()
             raise LogError(f"{self.path}: read error: {exc}") from None
         self._layout = layout
+        #: ``progress(bytes done, file size)`` after each chunk :meth:`messages` reads
+        #: (a progress bar for big logs), or ``None``
+        self.progress: Callable[[int, int], None] | None = None
         self.metadata: dict[str, dict[str, str]] = layout.metadata
         self.attachments: list[LogAttachment] = layout.attachments
         self.status = ReadStatus(
@@ -217,9 +220,11 @@ class McapLog:
     def messages(self, topics: Iterable[str] | None = None) -> Iterator[LogMessage]:
         """Yield messages in file order, optionally only those on ``topics``.
 
-        After the generator is exhausted, :attr:`status` holds the count.
-        Raises :class:`LogError` when a chunk is damaged, after yielding
-        every message before it.
+        After the generator is exhausted, :attr:`status` holds the count of
+        messages recovered from the chunks read, on every topic (so a read of
+        some topics reports what a read of all would). Raises
+        :class:`LogError` when a chunk is damaged, after yielding every
+        message before it.
         """
         wanted = set(topics) if topics is not None else None
         layout = self._layout
@@ -233,11 +238,14 @@ class McapLog:
                 if not (span.channels & wanted_ids):
                     continue
             data = self._chunk_records(span)
+            status = self.status
             for msg in self._parse_records(data, span.offset):
+                status.messages += 1
                 if wanted is not None and msg.topic not in wanted:
                     continue
-                self.status.messages += 1
                 yield msg
+            if self.progress is not None:
+                self.progress(span.offset + span.length, self.size)
 
     # -- layout -----------------------------------------------------------
 
