@@ -479,6 +479,8 @@ def test_statistics_count_every_message(tmp_path: Path, hrss_stream: list) -> No
     path = tmp_path / "n.mcap"
     with McapSink(path, hrss_context(), chunk_size=2000) as sink:
         feed(sink, hrss_stream)
+        assert 0 < sink.messages_written
+    assert sink.path == path  # what the CLI says after an interrupted recording
     with open(path, "rb") as f:
         reader = make_reader(f, validate_crcs=True)
         summary = reader.get_summary()
@@ -491,4 +493,5 @@ def test_statistics_count_every_message(tmp_path: Path, hrss_stream: list) -> No
     for topic, *_ in messages(path):
         read[topic] = read.get(topic, 0) + 1
     assert {t: n for t, n in counted.items() if n} == read
+    assert sink.messages_written == summary.statistics.message_count == sum(read.values())
     assert read["/hrss/state"] > 0 and read["/mbmon/events"] > 0
