@@ -159,15 +159,47 @@ def _err(message: str) -> None:
     print(f"mbmon: {message}", file=sys.stderr)
 
 
-def _open(path: str) -> Any:
-    """The log at ``path``, or ``None`` after saying why it cannot be read."""
-    from mbmon.io.mcap_reader import LogError, McapLog
+#: first bytes of packet captures: pcap (both byte orders, us and ns) and pcapng
+_CAPTURE_MAGICS = (b"\xd4\xc3\xb2\xa1", b"\xa1\xb2\xc3\xd4", b"\x4d\x3c\xb2\xa1",
+                   b"\xa1\xb2\x3c\x4d", b"\x0a\x0d\x0d\x0a")  # fmt: skip
+
+
+def is_capture(path: str | Path) -> bool:
+    """Whether ``path`` starts like a pcap or pcapng file (what ``mbmon read`` takes)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(4) in _CAPTURE_MAGICS
+    except OSError:
+        return False
+
+
+def _open(path: str, command: str) -> tuple[Any, int]:
+    """The log at ``path`` and 0, or ``None`` and the exit status after saying, in one
+    line, why it cannot be read (a packet capture: exit 2 and ``mbmon read`` suggested)."""
+    from mbmon.io.mcap.reader import LogError, McapLog
 
     try:
-        return McapLog(path)
+        return McapLog(path), EXIT_OK
     except LogError as exc:
-        _err(str(exc))
-        return None
+        if is_capture(path):
+            _err(f"error: {path} is a packet capture, not an MCAP log: "
+                 f"use 'mbmon read {path}' (add -w LOG.mcap to record one)")  # fmt: skip
+            return None, EXIT_USAGE
+        text = str(exc)
+        if "not an MCAP file" in text:
+            text += f"; {command} reads the MCAP logs written by 'mbmon read ... -w LOG.mcap'"
+        _err(text)
+        return None, EXIT_BAD_INPUT
+
+
+def _progress(log: Any) -> Any:
+    """A progress bar on stderr for a big log, when stderr is a terminal (never stdout's):
+    the one ``read`` shows for big captures, fed by the reader after every chunk."""
+    from mbmon.commands.common import Progress
+
+    bar = Progress(f"reading {log.path.name}")
+    log.progress = bar
+    return bar
 
 
 def _log_times(args: argparse.Namespace, log: Any) -> tuple[Any, Any]:
@@ -209,16 +241,17 @@ def _note_status(log: Any) -> None:
 def run_replay(args: argparse.Namespace) -> int:
     """``mbmon replay``: stored lines (or --json objects, or a re-decode), filtered and paced."""
     from mbmon.filters import FilterError, Pacer
-    from mbmon.io.mcap_reader import LogError
+    from mbmon.io.mcap.reader import LogError
     from mbmon.sinks.jsonl import dumps_line
 
     if (args.robot or args.robot_client) and not args.redecode:
         _err("error: --robot relabels lines only with --redecode (stored lines are as recorded)")
         return EXIT_USAGE
-    log = _open(args.log)
+    log, status = _open(args.log, "replay")
     if log is None:
-        return EXIT_BAD_INPUT
+        return status
     out = sys.stdout
+    bar = _progress(log)
     with log:
         try:
             fmt, flt = _log_times(args, log)
@@ -246,8 +279,11 @@ def run_replay(args: argparse.Namespace) -> int:
                     out.flush()
         except LogError as exc:
             out.flush()
+            bar.close()  # before the message: the bar shares stderr
             _err(str(exc))
             return EXIT_BAD_INPUT
+        finally:
+            bar.close()
         out.flush()
         _note_status(log)
     return EXIT_OK
@@ -283,8 +319,8 @@ def _redecoded(
 
 def summarize(log: Any) -> dict[str, Any]:
     """Everything ``mbmon info`` reports, as one JSON-able dict (one pass over the log)."""
+    from mbmon.io.mcap.layout import METADATA_NAME, TOPIC_COMMANDS, TOPIC_EVENTS, TOPIC_FRAMES
     from mbmon.io.replay import FRAME_KINDS, stored_profile_names
-    from mbmon.sinks.mcap import METADATA_NAME, TOPIC_COMMANDS, TOPIC_EVENTS, TOPIC_FRAMES
 
     topics: Counter[str] = Counter({t: 0 for t in log.topics})
     first = last = None
@@ -300,7 +336,7 @@ def summarize(log: Any) -> dict[str, Any]:
     latencies: list[float] = []
     writer_stats: dict[str, Any] | None = None
     error: str | None = None
-    from mbmon.io.mcap_reader import LogError
+    from mbmon.io.mcap.reader import LogError
 
     try:
         for msg in log.messages():
@@ -518,11 +554,15 @@ def _print_info(s: dict[str, Any], out: IO[str], mode: str = "a") -> None:
 def run_info(args: argparse.Namespace) -> int:
     """``mbmon info``: the summary of a log (text or --json)."""
 
-    log = _open(args.log)
+    log, status = _open(args.log, "info")
     if log is None:
-        return EXIT_BAD_INPUT
+        return status
+    bar = _progress(log)
     with log:
-        summary = summarize(log)
+        try:
+            summary = summarize(log)
+        finally:
+            bar.close()
     if args.json:
         print(json.dumps(summary, ensure_ascii=False, indent=2))
     else:
@@ -540,7 +580,7 @@ def run_export(args: argparse.Namespace) -> int:
     """``mbmon export``: the log converted by the suffix of ``-o``."""
     from mbmon.filters import FilterError, RecordFilter
     from mbmon.format import View
-    from mbmon.io.mcap_reader import LogError
+    from mbmon.io.mcap.reader import LogError
     from mbmon.io.replay import recorded_options
     from mbmon.sinks.base import SINKS, SinkContext, SinkError, open_sink
 
@@ -550,9 +590,9 @@ def run_export(args: argparse.Namespace) -> int:
         _err(f"error: {target}: unknown output format {suffix or '(no suffix)'!r}; use one "
              f"of {', '.join(sorted(SINKS))}")  # fmt: skip
         return EXIT_USAGE
-    log = _open(args.log)
+    log, status = _open(args.log, "export")
     if log is None:
-        return EXIT_BAD_INPUT
+        return status
     if target.exists() and target.resolve() == log.path.resolve():
         log.close()
         _err("error: the output would overwrite the log itself")
@@ -631,7 +671,8 @@ def _export_pcap(log: Any, target: Path, ctx: Any, flt: Any, *, keep_segments: b
 def _export_mcap(log: Any, target: Path, flt: Any) -> None:
     """Copy every (recovered) message into a new, finished and indexed MCAP file."""
     from mbmon import __version__
-    from mbmon.sinks.mcap import TOPIC_SCHEMAS, McapFileWriter, schema_text
+    from mbmon.io.mcap.layout import TOPIC_SCHEMAS, schema_text
+    from mbmon.io.mcap.writer import McapFileWriter
 
     with open(target, "wb") as f:
         writer = McapFileWriter(f)

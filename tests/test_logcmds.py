@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from mbmon.io.mcap_reader import McapLog
+from mbmon.io.mcap.reader import McapLog
 from mbmon.sources.pcapwrite import PcapWriter, TcpConversation
 
 REPO = Path(__file__).resolve().parents[1]
@@ -360,6 +360,113 @@ def test_damaged_and_foreign_logs_fail_cleanly(tmp_path: Path, hrss_log: tuple) 
     assert proc.returncode == 1 and "cannot open" in proc.stderr
 
 
+def test_info_and_replay_recover_the_same_count(tmp_path: Path, hrss_log: tuple) -> None:
+    """Item 21: every way of reading a truncated log reports the same recovered count."""
+    import re
+
+    log, _ = hrss_log
+    data = log.read_bytes()
+    summary_start = int.from_bytes(data[-28:-20], "little")
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: summary_start - 1])
+    n = json.loads(mbmon("info", cut, "--json").stdout)["recovered_messages"]
+    assert n > 0
+    assert f"recovered {n} messages" in mbmon("info", cut).stdout
+    for extra in ([], ["--json"], ["--redecode"], ["--fc", "3"]):
+        err = mbmon("replay", cut, *extra).stderr
+        assert re.findall(r"recovered (\d+) messages", err) == [str(n)], (extra, err)
+
+
+def test_logs_without_profiles_have_no_hrss_channels(tmp_path: Path) -> None:
+    """Item 21: no empty /hrss/* channels in a log written without --profile."""
+    log = tmp_path / "plain.mcap"
+    mbmon("read", OWN / "hrss_ptp.pcap", "-q", "-w", log)
+    with open(log, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    topics = {ch.topic for ch in summary.channels.values()}
+    assert topics == {"/modbus/raw", "/modbus/frames", "/modbus/monitor", "/mbmon/events"}
+    assert all(summary.statistics.channel_message_counts.get(c, 0) for c in summary.channels)
+    info = mbmon("info", log).stdout
+    assert "/hrss/state" not in info and "/hrss/commands" not in info
+
+
+def test_captures_and_foreign_files_get_one_clear_line(tmp_path: Path) -> None:
+    """Item 13: a pcap given to a log command suggests mbmon read (usage, exit 2); any
+    other file that is not a log is one line (exit 1)."""
+    capture = OWN / "hrss_ptp.pcap"
+    other = tmp_path / "notes.mcap"
+    other.write_bytes(b"just some text\n")
+    for cmd in (["info"], ["replay"], ["export", "-o", str(tmp_path / "o.jsonl")]):
+        proc = mbmon(cmd[0], capture, *cmd[1:], check=False)
+        assert proc.returncode == 2 and proc.stdout == ""
+        assert proc.stderr.count("\n") == 1 and f"mbmon read {capture}" in proc.stderr
+        proc = mbmon(cmd[0], other, *cmd[1:], check=False)
+        assert proc.returncode == 1 and proc.stdout == ""
+        assert proc.stderr.count("\n") == 1 and "not an MCAP file" in proc.stderr
+    assert not (tmp_path / "o.jsonl").exists()
+
+
+def test_progress_on_a_terminal_never_takes_stdout(tmp_path: Path) -> None:
+    """Item 21: on a big log, info and replay show a progress bar on stderr when it is a
+    terminal (a real pty here) and stdout (a file) still gets every line."""
+    import pty
+    import random
+
+    if "sink_records" not in sys.modules:  # tests/sinks/sink_records.py, by file
+        import importlib.util
+
+        spec = importlib.util.spec_from_file_location(
+            "sink_records", REPO / "tests" / "sinks" / "sink_records.py"
+        )
+        assert spec is not None and spec.loader is not None
+        sys.modules["sink_records"] = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(sys.modules["sink_records"])
+    from sink_records import feed, run_pipeline, session_items
+
+    from mbmon.format import View
+    from mbmon.model import Chunk, Direction
+    from mbmon.sinks.base import SinkContext
+    from mbmon.sinks.mcap import McapSink
+
+    stream = run_pipeline(session_items())
+    first = next(x for x in stream if isinstance(x, Chunk))
+    rng = random.Random(1)
+    log = tmp_path / "big.mcap"
+    with McapSink(log, SinkContext(view=View(), source="big")) as sink:
+        feed(sink, stream)
+        for i in range(500):  # incompressible raw chunks: a log of more than 4 MiB
+            sink.on_chunk(Chunk(first.ts + i, first.stream, Direction.C2S, rng.randbytes(12000)))
+    assert log.stat().st_size > 5 << 20
+    expected = mbmon("replay", log).stdout
+    assert expected.count("\n") > 10
+    for cmd in (["replay"], ["info"]):
+        master, slave = pty.openpty()
+        out = tmp_path / "out.txt"
+        with open(out, "w") as stdout:
+            proc = subprocess.Popen([*MBMON, cmd[0], str(log)], stdout=stdout, stderr=slave,
+                                    env={**ENV, "COLUMNS": "100"})  # fmt: skip
+            os.close(slave)
+            seen = b""
+            while True:
+                try:
+                    block = os.read(master, 4096)
+                except OSError:  # the child closed the terminal
+                    break
+                if not block:
+                    break
+                seen += block
+            proc.wait(timeout=60)
+        os.close(master)
+        assert proc.returncode == 0, seen
+        assert b"reading big.mcap" in seen, seen
+        text = out.read_text()
+        if cmd == ["replay"]:
+            assert text == expected
+        else:
+            assert "finished log" in text and "reading" not in text
+
+
 # --------------------------------------------------------------------------- signals
 
 
@@ -463,3 +570,52 @@ def test_sigkill_keeps_everything_older_than_a_second(tmp_path: Path, long_captu
     assert got == list(range(len(got)))
     info = mbmon("info", log).stdout
     assert "log was not finished: recovered" in info and "stopped at byte" in info
+
+
+def test_signal_statistics_count_what_the_chunks_hold(tmp_path: Path, long_capture: Path) -> None:
+    """Item 25: a recording stopped by SIGINT/SIGTERM at random moments (10 runs) has a
+    Statistics record whose per-channel counts and time span are exactly those of a
+    linear read of its chunks, and a final stats event that counts the logged records."""
+    import random
+
+    rng = random.Random(25)
+    for run in range(10):
+        log = tmp_path / f"stop{run}.mcap"
+        sig = (signal.SIGINT, signal.SIGTERM)[run % 2]
+        proc = subprocess.Popen(
+            [*MBMON, "read", str(long_capture), "-q", "-w", str(log)],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=ENV,
+        )
+        deadline = time.monotonic() + 60
+        while not log.exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.02)  # the log is open: records flow from now on
+        time.sleep(rng.uniform(0.1, 2.5))
+        assert proc.poll() is None, "the input must outlast the test"
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=60)
+        assert proc.returncode == 128 + sig and "Traceback" not in err, err
+        with open(log, "rb") as f:
+            reader = make_reader(f, validate_crcs=True)
+            summary = reader.get_summary()
+            assert summary is not None and summary.statistics is not None
+            stats = summary.statistics
+            topic_of = {cid: ch.topic for cid, ch in summary.channels.items()}
+            counted = {topic_of[cid]: n for cid, n in stats.channel_message_counts.items() if n}
+            times = []
+            read: dict[str, int] = {}
+            final = None
+            for _, channel, msg in reader.iter_messages(log_time_order=False):
+                read[channel.topic] = read.get(channel.topic, 0) + 1
+                times.append(msg.log_time)
+                if channel.topic == "/mbmon/events":
+                    obj = json.loads(msg.data)
+                    if obj["index"] is None and obj["info"].get("final"):
+                        final = obj["info"]
+        assert counted == read, f"run {run} ({sig.name}): summary {counted}, chunks {read}"
+        assert stats.message_count == sum(read.values())
+        assert (stats.message_start_time, stats.message_end_time) == (min(times), max(times))
+        assert final is not None and final["records"] == read["/modbus/monitor"]
+        assert final["chunks"] == read["/modbus/raw"] - 1  # and the connection's event

@@ -214,11 +214,7 @@ def run(args: argparse.Namespace) -> int:
     with ExitStack() as stack:
         stack.callback(hub.close)
         stack.callback(progress.close)
-        shown = (
-            [] if args.quiet else [ConsoleListener(sys.stdout, view, as_json=args.json, live=live)]
-        )
-        if shown or args.count:
-            hub.add_listener(Selection(shown, view, flt, args.count, on_full=hub.enough))
+        # logs first: a record printed on stdout has reached them when a signal stops the run
         for target in args.write:
             try:
                 sink = open_sink(target, ctx)
@@ -227,6 +223,11 @@ def run(args: argparse.Namespace) -> int:
                 return EXIT_BAD_INPUT
             logs.append(sink)
             hub.add_listener(sink)
+        shown = (
+            [] if args.quiet else [ConsoleListener(sys.stdout, view, as_json=args.json, live=live)]
+        )
+        if shown or args.count:
+            hub.add_listener(Selection(shown, view, flt, args.count, on_full=hub.enough))
         if not args.quiet:
             hub.add_listener(summary)
         try:

@@ -12,7 +12,8 @@ This module owns the meaning of a log for the log commands (``replay``,
   so the current decoder can run again (``--redecode``);
 - :func:`recorded_options` recovers the options of the recording command
   (profiles, timeout, baud, robot) from the log's metadata (older logs: from
-  their stored command line) and attachments;
+  their stored command line, read by :func:`argv_settings`, not the CLI's
+  parser: ``mbmon.io`` never imports ``mbmon.cli``) and attachments;
 - :func:`first_record_time` is the origin of ``--since +5s`` and ``-t r``.
 
 The filters and the ``--speed`` pace live in :mod:`mbmon.filters` (re-exported
@@ -21,10 +22,7 @@ here for older callers).
 
 from __future__ import annotations
 
-import argparse
 import base64
-import contextlib
-import io
 import json
 import tempfile
 from collections.abc import Callable, Iterator, Mapping
@@ -43,14 +41,9 @@ from mbmon.filters import (  # noqa: F401  (re-exported: their home is mbmon.fil
     parse_when,
     touches,
 )
-from mbmon.io.mcap_reader import LogError, McapLog
+from mbmon.io.mcap.layout import METADATA_NAME, RECORD_TOPICS, TOPIC_MONITOR, TOPIC_RAW
+from mbmon.io.mcap.reader import LogError, McapLog
 from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport
-from mbmon.sinks.mcap import (
-    METADATA_NAME,
-    RECORD_TOPICS,
-    TOPIC_MONITOR,
-    TOPIC_RAW,
-)
 
 FRAME_KINDS = frozenset({"request", "response", "exception"})
 
@@ -176,7 +169,7 @@ def recorded_options(log: McapLog) -> RecordedOptions:
     The analysis settings come from the keys ``profile_specs``, ``timeout`` and
     ``baud``, which the writer stores from what the recording was given. A log
     written before those keys existed (or with one of them damaged) has them
-    recovered by parsing its stored ``command_line`` with today's parser.
+    recovered from its stored ``command_line`` (:func:`argv_settings`).
     """
     meta = log.metadata.get(METADATA_NAME, {})
     opts = RecordedOptions()
@@ -192,14 +185,13 @@ def recorded_options(log: McapLog) -> RecordedOptions:
     timeout = _stored(meta, "timeout", _is_timeout)
     baud = _stored(meta, "baud", _is_baud)
     if _MISSING in (specs, timeout, baud) and len(opts.command_line) > 1:
-        parsed = _reparse(opts.command_line[1:])  # an older log: the command line says
-        if parsed is not None:
-            if specs is _MISSING:
-                specs = list(getattr(parsed, "profile", None) or [])
-            if timeout is _MISSING:
-                timeout = float(getattr(parsed, "timeout", None) or 1.0)
-            if baud is _MISSING:
-                baud = getattr(parsed, "baud", None)
+        parsed = argv_settings(opts.command_line[1:])  # an older log: the command line says
+        if specs is _MISSING:
+            specs = parsed["profile"]
+        if timeout is _MISSING:
+            timeout = parsed.get("timeout", 1.0)
+        if baud is _MISSING:
+            baud = parsed.get("baud")
     if specs is not _MISSING:
         opts.profile_specs = [str(spec) for spec in specs]
     if timeout is not _MISSING:
@@ -236,17 +228,65 @@ def _is_baud(value: Any) -> bool:
     return value is None or (isinstance(value, int) and not isinstance(value, bool) and value > 0)
 
 
-def _reparse(argv: list[str]) -> argparse.Namespace | None:
-    """Parse a stored command line with today's parser (``None`` if it no longer parses)."""
-    from mbmon.cli import build_parser
+#: options of the recording command (``read``) that take a value, for reading its stored
+#: command line; the value of any other option is never mistaken for one of these
+_VALUE_OPTIONS = (
+    "--robot", "--profile", "--write", "--port", "--rtu-port", "--rtu-raw", "--timeout", "--baud",
+)  # fmt: skip
+_SHORT_VALUE_OPTIONS = {"-w": "--write"}
 
-    parser = build_parser()
-    with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
-        try:
-            args, _rest = parser.parse_known_args(argv)
-        except SystemExit:
-            return None
-    return args
+
+def argv_settings(argv: list[str]) -> dict[str, Any]:
+    """The analysis settings in a stored ``read`` command line (without the program name):
+    ``profile`` (every ``--profile`` value, in order), ``timeout`` and ``baud`` (the last
+    valid value, when given), read as argparse would (``--opt value``, ``--opt=value``,
+    unambiguous abbreviations, ``--`` ends the options) without importing the CLI."""
+    out: dict[str, Any] = {"profile": []}
+    i = 0
+    while i < len(argv):
+        token = argv[i]
+        i += 1
+        if token == "--":
+            break
+        if not token.startswith("-") or token == "-":
+            continue
+        value: str | None = None
+        if token.startswith("--"):
+            name, eq, rest = token.partition("=")
+            if eq:
+                value = rest
+            if name not in _VALUE_OPTIONS:
+                matches = [o for o in _VALUE_OPTIONS if o.startswith(name)]
+                if len(matches) != 1:
+                    continue  # another option (a flag): nothing to take
+                name = matches[0]
+        elif token[:2] in _SHORT_VALUE_OPTIONS:
+            name = _SHORT_VALUE_OPTIONS[token[:2]]
+            value = token[2:] or None
+        else:
+            continue
+        if value is None:
+            if i >= len(argv):
+                break
+            value = argv[i]
+            i += 1
+        if name == "--profile":
+            out["profile"].append(value)
+        elif name == "--timeout":
+            try:
+                timeout = float(value)
+            except ValueError:
+                continue
+            if _is_timeout(timeout):
+                out["timeout"] = timeout
+        elif name == "--baud":
+            try:
+                baud = int(value)
+            except ValueError:
+                continue
+            if _is_baud(baud):
+                out["baud"] = baud
+    return out
 
 
 def recorded_annotator(log: McapLog, opts: RecordedOptions) -> Any:

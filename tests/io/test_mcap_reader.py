@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from mcap.reader import make_reader
 
 from mbmon.format import View
-from mbmon.io.mcap_reader import LogError, McapLog
+from mbmon.io.mcap.reader import LogError, McapLog
 from mbmon.sinks.base import SinkContext
 from mbmon.sinks.mcap import McapSink
 

@@ -10,7 +10,7 @@ import pytest
 import sink_records as records
 
 from mbmon.format import View, record_line, record_to_json
-from mbmon.io.mcap_reader import McapLog
+from mbmon.io.mcap.reader import McapLog
 from mbmon.io.replay import (
     FilterError,
     Pacer,
@@ -434,3 +434,19 @@ def test_recorded_options_without_any_settings(tmp_path: Path, session_stream: l
     with McapLog(bare) as log:
         opts = recorded_options(log)
     assert (opts.profile_specs, opts.timeout, opts.baud) == ([], 1.0, None)
+
+
+def test_argv_settings_read_a_stored_command_line_like_argparse() -> None:
+    """Older logs: the settings come from the stored argv without the CLI's parser."""
+    from mbmon.io.replay import argv_settings
+
+    argv = ["read", "x.pcap", "--profile", "hrss", "-w", "--timeout"]  # -w takes the next word
+    argv += ["--profile=unit:2=a.toml", "--timeout", "0.25", "--baud=9600", "--json"]
+    argv += ["--prof", "xeg", "--", "--baud", "1"]  # an abbreviation; "--" ends the options
+    assert argv_settings(argv) == {
+        "profile": ["hrss", "unit:2=a.toml", "xeg"], "timeout": 0.25, "baud": 9600
+    }  # fmt: skip
+    # a value that is not a number is left out, not an error
+    assert argv_settings(["read", "--timeout", "soon", "--baud", "-3"]) == {"profile": []}
+    assert argv_settings(["read", "-wlog.mcap", "--timeout", "2"])["timeout"] == 2.0
+    assert argv_settings([]) == {"profile": []}

@@ -19,7 +19,7 @@ from sink_records import REPO, feed, hrss_context
 
 from mbmon import __version__
 from mbmon.format import View, record_line, record_to_json
-from mbmon.io.mcap_reader import McapLog
+from mbmon.io.mcap.reader import McapLog
 from mbmon.model import Chunk, Record, RecordKind
 from mbmon.sinks.base import SinkContext, open_sink
 from mbmon.sinks.mcap import TOPIC_SCHEMAS, McapSink, schema_text
@@ -65,7 +65,8 @@ def test_topics_schemas_and_summary(tmp_path: Path, session_stream: list) -> Non
         summary = reader.get_summary()
         assert summary is not None
         topics = {ch.topic: summary.schemas[ch.schema_id] for ch in summary.channels.values()}
-        assert set(topics) == set(TOPIC_SCHEMAS)
+        # written without a profile: no (empty) /hrss channels
+        assert set(topics) == set(TOPIC_SCHEMAS) - {"/hrss/state", "/hrss/commands"}
         for topic, schema in topics.items():
             assert schema.name == TOPIC_SCHEMAS[topic]
             assert schema.encoding == "jsonschema"
@@ -267,7 +268,7 @@ def test_non_finite_state_values_are_left_out(tmp_path: Path, hrss_stream: list)
 
     rec = next(r for r in records_of(hrss_stream) if r.state is not None)
     odd = dataclasses.replace(rec, state={"a1": float("nan"), "a2": 1.5, "x": float("inf")})
-    path = write_log(tmp_path / "nan.mcap", [odd])
+    path = write_log(tmp_path / "nan.mcap", [odd], hrss_context())
     states = [d for t, _, d, _, _ in messages(path) if t == "/hrss/state"]
     assert states == [{"time": rec.ts, "index": rec.index, "a2": 1.5}]
 
@@ -478,6 +479,8 @@ def test_statistics_count_every_message(tmp_path: Path, hrss_stream: list) -> No
     path = tmp_path / "n.mcap"
     with McapSink(path, hrss_context(), chunk_size=2000) as sink:
         feed(sink, hrss_stream)
+        assert 0 < sink.messages_written
+    assert sink.path == path  # what the CLI says after an interrupted recording
     with open(path, "rb") as f:
         reader = make_reader(f, validate_crcs=True)
         summary = reader.get_summary()
@@ -490,4 +493,5 @@ def test_statistics_count_every_message(tmp_path: Path, hrss_stream: list) -> No
     for topic, *_ in messages(path):
         read[topic] = read.get(topic, 0) + 1
     assert {t: n for t, n in counted.items() if n} == read
+    assert sink.messages_written == summary.statistics.message_count == sum(read.values())
     assert read["/hrss/state"] > 0 and read["/mbmon/events"] > 0

@@ -18,7 +18,7 @@ import io
 import json
 import struct
 import zlib
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -35,6 +35,9 @@ _OP_METADATA = 0x0C
 _OP_DATA_END = 0x0F
 _FOOTER_RECORD = 1 + 8 + 8 + 8 + 4  # opcode, length, summary_start, summary_offset_start, crc
 _MAX_RECORD = 1 << 31  # no record mbmon writes comes near this; larger lengths mean damage
+#: the largest uncompressed chunk believed (mbmon writes about 1 MiB): a larger size
+#: field is damage, found before anything is allocated or decompressed
+_MAX_CHUNK_DATA = 1 << 28
 
 _REC_HEAD = struct.Struct("<BQ")
 _MSG_HEAD = struct.Struct("<HIQQ")
@@ -165,6 +168,9 @@ class McapLog:
             self._f.close()
             raise LogError(f"{self.path}: read error: {exc}") from None
         self._layout = layout
+        #: ``progress(bytes done, file size)`` after each chunk :meth:`messages` reads
+        #: (a progress bar for big logs), or ``None``
+        self.progress: Callable[[int, int], None] | None = None
         self.metadata: dict[str, dict[str, str]] = layout.metadata
         self.attachments: list[LogAttachment] = layout.attachments
         self.status = ReadStatus(
@@ -214,9 +220,11 @@ class McapLog:
     def messages(self, topics: Iterable[str] | None = None) -> Iterator[LogMessage]:
         """Yield messages in file order, optionally only those on ``topics``.
 
-        After the generator is exhausted, :attr:`status` holds the count.
-        Raises :class:`LogError` when a chunk is damaged, after yielding
-        every message before it.
+        After the generator is exhausted, :attr:`status` holds the count of
+        messages recovered from the chunks read, on every topic (so a read of
+        some topics reports what a read of all would). Raises
+        :class:`LogError` when a chunk is damaged, after yielding every
+        message before it.
         """
         wanted = set(topics) if topics is not None else None
         layout = self._layout
@@ -230,11 +238,14 @@ class McapLog:
                 if not (span.channels & wanted_ids):
                     continue
             data = self._chunk_records(span)
+            status = self.status
             for msg in self._parse_records(data, span.offset):
+                status.messages += 1
                 if wanted is not None and msg.topic not in wanted:
                     continue
-                self.status.messages += 1
                 yield msg
+            if self.progress is not None:
+                self.progress(span.offset + span.length, self.size)
 
     # -- layout -----------------------------------------------------------
 
@@ -251,9 +262,17 @@ class McapLog:
         op, length = _REC_HEAD.unpack_from(foot)
         if op != _OP_FOOTER or length != 20:
             return None
-        summary_start = _U64.unpack_from(foot, 9)[0]
-        if summary_start == 0 or summary_start >= self.size:
+        summary_start, offset_start = _U64.unpack_from(foot, 9)[0], _U64.unpack_from(foot, 17)[0]
+        summary_crc = _U32.unpack_from(foot, 25)[0]
+        footer_at = self.size - len(MAGIC) - _FOOTER_RECORD
+        if not len(MAGIC) < summary_start <= footer_at or offset_start > footer_at:
             return None
+        if summary_crc:  # a damaged summary is not trusted: the linear read takes over
+            f.seek(summary_start)
+            crc = zlib.crc32(f.read(footer_at - summary_start))
+            crc = zlib.crc32(foot[: 1 + 8 + 8 + 8], crc)
+            if crc != summary_crc:
+                return None
         try:
             from mcap.reader import SeekingReader
 
@@ -270,8 +289,17 @@ class McapLog:
             for sc in summary.schemas.values():
                 layout.schemas[sc.id] = (sc.name, sc.encoding, sc.data)
             for ci in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+                if not self._is_record(ci.chunk_start_offset, ci.chunk_length, summary_start,
+                                       _OP_CHUNK):  # fmt: skip
+                    return None  # an index that does not match the file
                 ids = frozenset(ci.message_index_offsets) if ci.message_index_offsets else None
                 layout.chunks.append(_Span(ci.chunk_start_offset, ci.chunk_length, ids))
+            for ai in summary.attachment_indexes:
+                if not self._is_record(ai.offset, ai.length, summary_start, _OP_ATTACHMENT):
+                    return None
+            for mi in summary.metadata_indexes:
+                if not self._is_record(mi.offset, mi.length, summary_start, _OP_METADATA):
+                    return None
             if summary.statistics is not None:
                 st = summary.statistics
                 layout.stats_counts = dict(st.channel_message_counts)
@@ -286,6 +314,17 @@ class McapLog:
         except Exception:  # a damaged summary: fall back to the linear read
             return None
         return layout
+
+    def _is_record(self, offset: int, length: int, end: int, opcode: int) -> bool:
+        """Whether an index entry points at a whole record of that opcode before ``end``."""
+        if not len(MAGIC) <= offset or length < 9 or offset + length > end:
+            return False
+        self._f.seek(offset)
+        head = self._f.read(9)
+        if len(head) != 9:
+            return False
+        op, body = _REC_HEAD.unpack(head)
+        return op == opcode and body == length - 9
 
     def _scan(self) -> _Layout:
         """Walk the top-level records of an unfinished file without decompressing chunks."""
@@ -309,7 +348,10 @@ class McapLog:
                 break
             if length > _MAX_RECORD or body_at + length > size:
                 layout.stopped_at = pos
-                layout.problem = f"record (opcode 0x{op:02X}) cut off at end of file"
+                layout.problem = (
+                    f"record (opcode 0x{op:02X}) cut off at end of file: it claims "
+                    f"{length} bytes, {size - body_at} remain"
+                )
                 break
             if op == _OP_HEADER and pos == len(MAGIC):
                 layout.header_end = body_at + length
@@ -363,9 +405,11 @@ class McapLog:
     def _chunk_records(self, span: _Span) -> bytes:
         """Read, decompress and CRC-check one chunk; its inner records as bytes."""
         f = self._f
+        where = f"chunk at byte {span.offset}"
+        if span.length < 9 or span.offset + span.length > self.size:  # before reading it
+            raise self._damage(span.offset, f"{where}: length {span.length} beyond the file")
         f.seek(span.offset)
         raw = f.read(span.length)
-        where = f"chunk at byte {span.offset}"
         if len(raw) != span.length:
             raise self._damage(span.offset, f"{where} is cut off")
         try:
@@ -377,13 +421,19 @@ class McapLog:
             crc = _U32.unpack_from(raw, p + 8)[0]
             p += 12
             clen = _U32.unpack_from(raw, p)[0]
+            if clen > len(raw) - p - 4:
+                raise ValueError(f"compression name length {clen} beyond the chunk")
             compression = raw[p + 4 : p + 4 + clen].decode()
             p += 4 + clen
             rlen = _U64.unpack_from(raw, p)[0]
+            if usize > _MAX_CHUNK_DATA:
+                raise ValueError(f"uncompressed size {usize} is not believable")
+            if compression == "" and usize != rlen:
+                raise ValueError(f"uncompressed size {usize} != records length {rlen}")
             p += 8
+            if p + rlen != len(raw):  # the records are the last field: they fill the chunk
+                raise ValueError(f"records length {rlen} does not fill the chunk")
             comp = raw[p : p + rlen]
-            if len(comp) != rlen:
-                raise ValueError("records length beyond the chunk")
         except (struct.error, UnicodeDecodeError, ValueError) as exc:
             raise self._damage(span.offset, f"{where}: {exc}") from None
         try:

@@ -1,0 +1,690 @@
+"""The layout of mbmon's MCAP logs: topics, schemas, and how records become messages.
+
+This module owns what the log (and the live Foxglove feed) says, not how MCAP
+stores it (:mod:`mbmon.io.mcap.writer`): the topics and their JSON schemas
+(``mbmon/schemas/*.json``), the metadata record and profile attachments, and
+what goes into each message:
+
+- ``/modbus/frames``: a record's ``read --json`` object (frames, noise);
+- ``/modbus/monitor``: its monitor line as a ``foxglove.Log`` message (the
+  record index in ``line``, the conversation in ``name``, the source in ``file``);
+- ``/mbmon/events``: events' objects, noise and CRC errors again, and the
+  writer's own stats (index null) every :data:`STATS_EVERY` seconds of capture time;
+- ``/hrss/commands``: command records' objects; ``/hrss/state``: flat robot state;
+- ``/modbus/raw``: captured chunks (base64) and the source events, for a
+  lossless ``replay --redecode``.
+
+Every message is JSON and matches its schema; its log and publish times are the
+capture time in ns (:func:`log_time_ns`: clamped to what MCAP can hold, the
+true time stays in the message). Two ways to the same bytes:
+
+- :func:`item_messages` / :meth:`LogLayout.messages`: one record or chunk to
+  ``(topic, log_time_ns, json_bytes)`` messages, for any consumer (the live
+  Foxglove feed serves these over WebSocket);
+- :meth:`LogLayout.convert`: the log writer's fused batch form (message
+  records with packed MCAP heads, frame records on a fast path), whose bytes
+  equal the former's (a differential test keeps them so).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from binascii import b2a_base64
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from mbmon.format import View, record_json_bytes, record_to_json
+from mbmon.io.mcap.writer import MAX_LOG_TIME, MESSAGE_HEAD
+from mbmon.model import Chunk, Direction, Event, EventKind, Record, RecordKind, Stream
+
+_json_str = json.encoder.encode_basestring  # C-accelerated, keeps non-ASCII
+_DIRECTIONS = {d: d.value for d in Direction}
+#: a /modbus/raw chunk message: prefix (type, stream, direction, "ts":), ts, base64 data
+_RAW_BODY = b'%b%b,"data":"%b","event":null,"info":null}'
+_HEAD_SIZE = MESSAGE_HEAD.size
+
+#: one message: (topic, log time in ns, JSON bytes)
+Message = tuple[str, int, bytes]
+
+TOPIC_RAW = "/modbus/raw"
+TOPIC_FRAMES = "/modbus/frames"
+TOPIC_MONITOR = "/modbus/monitor"
+TOPIC_STATE = "/hrss/state"
+TOPIC_COMMANDS = "/hrss/commands"
+TOPIC_EVENTS = "/mbmon/events"
+
+#: topics written only when a profile is in force (no empty channels otherwise)
+PROFILE_TOPICS = frozenset({TOPIC_STATE, TOPIC_COMMANDS})
+
+#: topic -> schema file stem in ``mbmon/schemas`` (also the MCAP schema name)
+TOPIC_SCHEMAS: dict[str, str] = {
+    TOPIC_RAW: "modbus.Raw.v1",
+    TOPIC_FRAMES: "modbus.Frame.v1",
+    TOPIC_MONITOR: "foxglove.Log",
+    TOPIC_STATE: "hrss.State.v1",
+    TOPIC_COMMANDS: "hrss.Command.v1",
+    TOPIC_EVENTS: "mbmon.Event.v1",
+}
+
+#: topics that carry the ``read --json`` object of a record (merged by index on replay)
+RECORD_TOPICS = (TOPIC_FRAMES, TOPIC_EVENTS, TOPIC_COMMANDS)
+
+#: events that come from a source (fed into the pipeline), as opposed to the
+#: ones pairing makes up (timeouts); only these are re-fed by ``replay --redecode``
+SOURCE_EVENTS = frozenset({EventKind.CONNECT, EventKind.DISCONNECT, EventKind.GAP, EventKind.ERROR})
+
+METADATA_NAME = "mbmon"
+PROFILE_MEDIA_TYPE = "application/toml"
+
+# foxglove.LogLevel
+LOG_DEBUG, LOG_INFO, LOG_WARNING, LOG_ERROR = 1, 2, 3, 4
+#: a /modbus/monitor message (foxglove.Log): sec, nsec, level, the line (a JSON string),
+#: its stream's tail (:data:`_MONITOR_TAIL`) and the record index
+_MONITOR = b'{"timestamp":{"sec":%d,"nsec":%d},"level":%d,"message":%b%b%d}'
+_MONITOR_TAIL = b',"name":%b,"file":%b,"line":'  # name and file as JSON strings
+#: the same in two parts, for frame records: the timestamp (sec, nsec), made once per
+#: capture time, then the rest with the level filled in (one value less to format)
+_MONITOR_STAMP = b'{"timestamp":{"sec":%d,"nsec":%d},"level":'
+_MONITOR_INFO, _MONITOR_WARNING = (
+    b'%%b%d,"message":%%b%%b%%d}' % level for level in (LOG_INFO, LOG_WARNING)
+)
+assert _MONITOR_STAMP + b'%d,"message":%b%b%d}' == _MONITOR
+_FRAME_KINDS = (RecordKind.REQUEST, RecordKind.RESPONSE, RecordKind.EXCEPTION)
+#: enum members as module constants: ``RecordKind.RESPONSE`` costs a class attribute
+#: lookup through the enum machinery each time, several per record
+_RESPONSE, _EXCEPTION = RecordKind.RESPONSE, RecordKind.EXCEPTION
+
+
+STATS_EVERY = 10.0  # seconds of capture time between the writer's own stats events
+#: capture times (s) whose log time fits a message record; outside, log times are clamped
+_MAX_TS = MAX_LOG_TIME // 1000 / 1_000_000 - 1.0
+
+
+def schema_text(name: str) -> bytes:
+    """The JSON schema file ``mbmon/schemas/<name>.json`` as bytes."""
+    return resources.files("mbmon").joinpath("schemas", f"{name}.json").read_bytes()
+
+
+def _finite(value: Any) -> Any:
+    """Replace NaN/inf (not JSON) by None, recursively."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    return value
+
+
+try:  # several times faster than the standard encoder; NaN/inf become null
+    import orjson as _orjson
+except ImportError:  # pragma: no cover - orjson is a dependency
+    _orjson = None  # type: ignore[assignment]
+
+#: a float as a JSON number that reads back as the same float (orjson: about 4x faster
+#: than repr; both print the shortest round-trip digits)
+_float_json: Callable[[float], bytes] = (
+    _orjson.dumps if _orjson is not None else lambda x: repr(x).encode()
+)
+
+_ENCODER = json.JSONEncoder(ensure_ascii=False, separators=(",", ":"), allow_nan=False, default=str)
+
+
+def encode(obj: Any) -> bytes:
+    """Compact JSON bytes of one message (non-finite numbers become null)."""
+    if _orjson is not None:
+        try:
+            return bytes(_orjson.dumps(obj, default=str))
+        except TypeError:  # non-string keys: the standard encoder converts them
+            pass
+    try:
+        text = _ENCODER.encode(obj)
+    except ValueError:
+        text = _ENCODER.encode(_finite(obj))
+    return text.encode("utf-8")
+
+
+def stream_name(stream: Stream | None) -> str:
+    """The ``name`` of a monitor message: which conversation a line belongs to."""
+    if stream is None:
+        return "mbmon"
+    if stream.client == stream.server:
+        return f"#{stream.id} {stream.client}"
+    return f"#{stream.id} {stream.client} <> {stream.server}"
+
+
+def log_level(record: Record, obj: Mapping[str, Any]) -> int:
+    """foxglove.LogLevel of a record's monitor line."""
+    kind = record.kind
+    if kind is RecordKind.REQUEST or kind is RecordKind.RESPONSE:
+        if obj.get("malformed") or obj.get("crc_ok") is False:
+            return LOG_WARNING
+        if record.request is None and kind is RecordKind.RESPONSE:
+            return LOG_WARNING  # unsolicited
+        return LOG_INFO
+    if kind is RecordKind.EXCEPTION:
+        return LOG_WARNING
+    if kind is RecordKind.NOISE:
+        return LOG_ERROR
+    if kind is RecordKind.EVENT and record.event is not None:
+        ek = record.event.kind
+        if ek is EventKind.ERROR:
+            return LOG_ERROR
+        if ek is EventKind.STATS:
+            return LOG_DEBUG
+        if ek in (EventKind.GAP, EventKind.TIMEOUT, EventKind.UNSOLICITED):
+            return LOG_WARNING
+        return LOG_INFO
+    if kind is RecordKind.COMMAND and record.command is not None:
+        phase = record.command.phase.value
+        if phase == "fail":
+            return LOG_ERROR
+        if phase == "warning":
+            return LOG_WARNING
+    return LOG_INFO
+
+
+def profile_bindings(specs: list[str], profiles: list[tuple[str, str]]) -> list[list[Any]]:
+    """``[spec, attachment number]`` for each ``--profile`` spec of the recording.
+
+    The profile a spec names (a built-in or a file) is recognised by its text
+    among the profiles in force, so ``replay --redecode`` can bind the stored
+    copy exactly as recorded even when names and file names differ.
+    """
+    out: list[list[Any]] = []
+    texts = [text for _, text in profiles]
+    for spec in specs:
+        _target, eq, name = spec.rpartition("=")
+        name = name.strip() if eq else spec.strip()
+        try:
+            from mbmon.semantics.regmap import BUILTIN_PROFILES, builtin_profile_text
+
+            if name in BUILTIN_PROFILES:
+                text = builtin_profile_text(name)
+            else:
+                text = Path(name).read_text("utf-8")
+        except (OSError, UnicodeDecodeError, ValueError, ImportError):
+            continue
+        if text in texts:
+            out.append([spec, texts.index(text)])
+    return out
+
+
+
+def log_time_ns(ts: float) -> int:
+    """A capture time as a message's log time: ns, to the microsecond, within 0..2**64-1.
+
+    ``round(ts * 1e9)`` would turn 1795317020.786844 into ...786843904 ns: an
+    epoch-seconds float has about 0.24 us resolution, so microseconds are all
+    it can carry faithfully (and all that pcap records). Times an MCAP record
+    cannot hold (negative, NaN, past the year 2554) are clamped: the message
+    keeps the true time in its JSON.
+    """
+    if 0.0 < ts < _MAX_TS:
+        return round(ts * 1_000_000) * 1000
+    return MAX_LOG_TIME if ts >= _MAX_TS else 0
+
+
+def plausible_time(ts: float) -> bool:
+    """Whether a capture time fits a log time unclamped (and a calendar)."""
+    return 0.0 <= ts < _MAX_TS
+
+
+def topics(profiles: bool) -> list[str]:
+    """The topics of a log, in channel order: the /hrss ones only with profiles in force."""
+    return [t for t in TOPIC_SCHEMAS if profiles or t not in PROFILE_TOPICS]
+
+
+def metadata(
+    *,
+    version: str,
+    command_line: Iterable[str],
+    source: str,
+    profiles: list[tuple[str, str]],
+    profile_specs: list[str],
+    timeout: float,
+    baud: int | None,
+    view: View,
+    started_ns: int,
+) -> dict[str, str]:
+    """The ``mbmon`` metadata record: provenance and the analysis settings (docs/logs.md)."""
+    return {
+        "version": version,
+        "command_line": json.dumps(list(command_line), ensure_ascii=False),
+        "source": source,
+        "profiles": json.dumps([name for name, _ in profiles], ensure_ascii=False),
+        "profile_bindings": json.dumps(
+            profile_bindings(profile_specs, profiles), ensure_ascii=False
+        ),
+        "profile_specs": json.dumps(list(profile_specs), ensure_ascii=False),
+        "timeout": json.dumps(timeout),
+        "baud": json.dumps(baud),
+        "robot": view.robot or "",
+        "robot_is_client": "true" if view.robot_is_client else "false",
+        "started": time.strftime("%Y-%m-%dT%H:%M:%S%z", time.localtime(started_ns / 1e9)),
+    }
+
+
+def profile_attachment_name(name: str) -> str:
+    return name if name.endswith(".toml") else f"{name}.toml"
+
+
+def _stream_fields(stream: Stream | None) -> dict[str, Any]:
+    if stream is None:
+        return {"stream": None, "transport": None, "client": None, "server": None}
+    fields = {
+        "stream": stream.id,
+        "transport": stream.transport.value,
+        "client": stream.client,
+        "server": stream.server,
+    }
+    if not stream.timed:  # a raw RTU dump: its times are placeholders (replay --redecode)
+        fields["timed"] = False
+    return fields
+
+
+
+@dataclass(slots=True)
+class Totals:
+    """A log's running counters, as of the messages in its chunks.
+
+    :meth:`LogLayout.convert` works on a copy and returns it; the writer keeps
+    it with the messages it made (``McapFileWriter.take_from``), so counters
+    and chunks never disagree, whatever interrupts a batch.
+    """
+
+    kinds: dict[RecordKind, int] = field(default_factory=lambda: dict.fromkeys(RecordKind, 0))
+    #: noise bytes, CRC errors, raw chunks and their bytes
+    counts: dict[str, int] = field(
+        default_factory=lambda: dict.fromkeys(("noise_bytes", "crc_errors", "chunks", "bytes"), 0)
+    )
+    #: messages per channel whose heads the layout packed one by one
+    messages: dict[int, int] = field(default_factory=dict)
+    slow_frames: int = 0  # frame records that took the general path (counted in messages)
+    next_stats: float = 0.0  # capture time the next stats event is due (0: none yet)
+    last_ts: float | None = None  # capture time of the last record
+
+    def copy(self) -> Totals:
+        return Totals(
+            dict(self.kinds), dict(self.counts), dict(self.messages),
+            self.slow_frames, self.next_stats, self.last_ts,
+        )  # fmt: skip
+
+
+class LogLayout:
+    """Makes the messages of one log (or one live feed): its view, source and channels.
+
+    ``channels`` maps the topics this log has (:func:`topics`) to channel ids;
+    state of a log without ``/hrss/state`` is left out, command records go to
+    ``/mbmon/events`` then. Per-stream pieces of messages are cached by stream
+    id, so one layout serves one run.
+    """
+
+    def __init__(self, view: View, source: str, channels: Mapping[str, int]) -> None:
+        self.view = view
+        self.channels = dict(channels)
+        self._topic_of_channel = {cid: topic for topic, cid in self.channels.items()}
+        events = self.channels[TOPIC_EVENTS]
+        self._ch_raw = self.channels[TOPIC_RAW]
+        self._ch_frames = self.channels[TOPIC_FRAMES]
+        self._ch_monitor = self.channels[TOPIC_MONITOR]
+        self._ch_events = events
+        self._ch_state = self.channels.get(TOPIC_STATE)
+        self._ch_commands = self.channels.get(TOPIC_COMMANDS, events)
+        self._topic_of = {
+            RecordKind.REQUEST: self._ch_frames,
+            RecordKind.RESPONSE: self._ch_frames,
+            RecordKind.EXCEPTION: self._ch_frames,
+            RecordKind.NOISE: self._ch_frames,
+            RecordKind.EVENT: events,
+            RecordKind.COMMAND: self._ch_commands,
+        }
+        self._file_json = _json_str(source).encode()
+        self._raw_prefix: dict[tuple[int, Direction], bytes] = {}
+        self._tails: dict[int, bytes] = {}
+        self._t = Totals()  # the batch in the making (convert's working copy)
+
+    def new_totals(self) -> Totals:
+        """Counters of an empty log."""
+        return Totals(messages=dict.fromkeys(self.channels.values(), 0))
+
+    # ------------------------------------------------------------------ one at a time
+
+    def waiting_item(self, record: Record) -> tuple[Record, bytes | dict[str, Any]]:
+        """What :meth:`convert` takes for a record: the record and its ``read --json``
+        line (frames, made from cached parts) or object (other records).
+
+        A record whose time cannot be shown (far beyond any calendar) becomes a
+        notice that says so, with its index and the time as a number: it is
+        reported, and the log stays readable.
+        """
+        try:
+            if record.frame is not None:
+                return record, record_json_bytes(record, self.view)
+            return record, record_to_json(record, self.view)
+        except (OverflowError, OSError, ValueError) as exc:
+            notice = Record(
+                record.index, 0.0, RecordKind.EVENT, record.stream,
+                event=Event(0.0, record.stream, EventKind.NOTICE, {
+                    "message": f"record {record.index} ({record.kind.value}) not logged: its "
+                    f"capture time {record.ts!r} cannot be shown ({exc})",
+                    "time": record.ts if math.isfinite(record.ts) else None,
+                }),
+            )  # fmt: skip
+            return notice, record_to_json(notice, self.view)
+
+    def messages(self, item: Record | Chunk) -> list[Message]:
+        """The messages of one record (on its topics, in log order) or of one captured
+        chunk (on ``/modbus/raw``), as ``(topic, log_time_ns, json_bytes)``: the same
+        bytes the log holds, without the writer's stats events.
+
+        This is the reusable form of the layout: a live Foxglove feed serves these
+        messages (same topics, same schemas) over WebSocket. No I/O, no counters;
+        per-stream pieces are cached in the layout.
+        """
+        totals = self.new_totals()
+        totals.next_stats = math.inf  # stats events are the log writer's
+        waiting = [item if isinstance(item, Chunk) else self.waiting_item(item)]
+        records, _first, _last, _totals = self.convert(waiting, totals)
+        return self.split(b"".join(records))
+
+    def split(self, data: bytes) -> list[Message]:
+        """Message records (packed heads and data) back into ``(topic, log_time, data)``."""
+        out: list[Message] = []
+        p, n = 0, len(data)
+        topic_of = self._topic_of_channel
+        while p < n:
+            _op, length, channel, _seq, log_time, _pub = MESSAGE_HEAD.unpack_from(data, p)
+            end = p + 9 + length
+            out.append((topic_of[channel], log_time, data[p + _HEAD_SIZE : end]))
+            p = end
+        return out
+
+    # ------------------------------------------------------------------ the writer's batches
+
+    def convert(
+        self, items: list[Any], totals: Totals | None
+    ) -> tuple[list[bytes], int, int, Totals]:
+        """The message records of waiting chunks and records (one or more bytes per item,
+        in order), their first and last log time, and the counters ``totals`` (``None``:
+        an empty log's) with them counted: a new object, ``totals`` is left as it was.
+        Items are chunks and :meth:`waiting_item` tuples. The writer runs it with its
+        lock held (in either thread).
+
+        A frame record's /modbus/frames message is its ``read --json`` line and its
+        /modbus/monitor message takes the line's JSON-escaped text cut out of that
+        line; other records go through :meth:`_obj_messages`. This is the writer's
+        per-record work, so it is one loop with the layout's state in locals, and what
+        depends on the capture time alone (log time, the monitor's timestamp) is
+        made once per distinct time: a chunk and the records it completes share it.
+        """
+        t = self._t = (totals if totals is not None else self.new_totals()).copy()
+        out: list[bytes] = []
+        append = out.append
+        pack = MESSAGE_HEAD.pack
+        first = last = -1
+        kinds, tails, raw_prefix = t.kinds, self._tails, self._raw_prefix
+        ch_frames, ch_monitor, ch_raw = self._ch_frames, self._ch_monitor, self._ch_raw
+        n_chunks = n_bytes = 0
+        last_ts: float | None = None
+        time_of = log_time = 0  # the capture time whose log time and stamp are below
+        next_stats = t.next_stats
+        stamp = b""
+        for item in items:
+            if type(item) is not tuple:  # a Chunk, on /modbus/raw
+                ts = item.ts
+                if ts != time_of:  # log_time_ns(ts), inline
+                    if 0.0 < ts < _MAX_TS:
+                        log_time = round(ts * 1_000_000) * 1000
+                    else:
+                        log_time = log_time_ns(ts)
+                    time_of, stamp = ts, b""
+                stream = item.stream
+                prefix = raw_prefix.get((stream.id, item.direction))
+                if prefix is None:
+                    prefix = self._raw_prefix_of(item)
+                raw = item.data
+                body = _RAW_BODY % (prefix, _float_json(ts), b2a_base64(raw, newline=False))
+                n_chunks += 1
+                n_bytes += len(raw)
+                append(pack(5, 22 + len(body), ch_raw, 0, log_time, log_time) + body)
+            else:
+                record, payload = item
+                ts = last_ts = record.ts
+                if ts != time_of:
+                    time_of, log_time, stamp = ts, log_time_ns(ts), b""
+                frame = record.frame
+                start = end = 0
+                if type(payload) is bytes:
+                    if payload[-2] != 125:  # no "fields" object at the end (no "}}")
+                        end = payload.rfind(b'","notes":[') + 1  # just past the line's end
+                        start = payload.rfind(b',"line":"', 0, end) + 8  # its opening quote
+                    else:  # a "fields" key could hold anything: search from the start
+                        start = payload.find(b',"line":"') + 8
+                        end = payload.find(b'","notes":', start) + 1
+                if start < 8 or end <= start or frame is None:  # not a frame line: slow path
+                    if type(payload) is bytes:
+                        payload = record_to_json(record, self.view)
+                    self._add_chunk_counts(n_chunks, n_bytes)  # its stats may be due
+                    n_chunks = n_bytes = 0
+                    append(self._obj_messages(record, payload, log_time))
+                    next_stats = t.next_stats
+                else:
+                    kind = record.kind
+                    kinds[kind] += 1  # also the count of its two messages (told on close)
+                    if not stamp:
+                        stamp = _MONITOR_STAMP % divmod(log_time, 1_000_000_000)
+                    crc_error = False
+                    if kind is _EXCEPTION:
+                        monitor = _MONITOR_WARNING
+                    elif (
+                        frame.crc_ok is False
+                        or frame.pdu.malformed
+                        or (kind is _RESPONSE and record.request is None)  # unsolicited
+                    ):
+                        monitor = _MONITOR_WARNING
+                        crc_error = frame.crc_ok is False and kind is _RESPONSE
+                    else:
+                        monitor = _MONITOR_INFO
+                    tail = tails.get(frame.stream.id)
+                    if tail is None:
+                        tail = self._tail(frame.stream)
+                    monitor %= (stamp, payload[start:end], tail, record.index)
+                    n = len(payload)
+                    out += (
+                        pack(5, 22 + n, ch_frames, 0, log_time, log_time),
+                        payload,
+                        pack(5, 22 + len(monitor), ch_monitor, 0, log_time, log_time),
+                        monitor,
+                    )
+                    if crc_error:
+                        t.counts["crc_errors"] += 1
+                        append(self._head(self._ch_events, log_time, n) + payload)
+                    if record.state is not None:
+                        append(self._state_message(record, log_time))
+                    if ts >= next_stats:
+                        self._add_chunk_counts(n_chunks, n_bytes)
+                        n_chunks = n_bytes = 0
+                        append(self._due_stats(ts, log_time))
+                        next_stats = t.next_stats
+            if first < 0:
+                first = last = log_time
+            elif log_time < first:
+                first = log_time
+            elif log_time > last:
+                last = log_time
+        self._add_chunk_counts(n_chunks, n_bytes)
+        if last_ts is not None:
+            t.last_ts = last_ts
+        return out, first, last, t
+
+    def _add_chunk_counts(self, chunks: int, size: int) -> None:
+        counts = self._t.counts
+        counts["chunks"] += chunks  # also the count of their messages (told on close)
+        counts["bytes"] += size
+
+    def _raw_prefix_of(self, chunk: Chunk) -> bytes:
+        """The JSON of a chunk message up to its ``ts`` value, cached by stream direction."""
+        prefix = encode({"type": "chunk", **_stream_fields(chunk.stream)}).decode()[:-1]
+        text = f'{prefix},"direction":"{_DIRECTIONS[chunk.direction]}","ts":'.encode()
+        self._raw_prefix[(chunk.stream.id, chunk.direction)] = text
+        return text
+
+    def _obj_messages(self, record: Record, obj: Mapping[str, Any], log_time: int) -> bytes:
+        """The message records of a record made from its ``read --json`` object (noise,
+        events, commands: few records, so the plain encoder does)."""
+        ts = record.ts
+        kind = record.kind
+        t = self._t
+        t.kinds[kind] += 1
+        if kind in _FRAME_KINDS:
+            t.slow_frames += 1  # its messages are counted by _head
+        payload = encode(obj)
+        head = self._head
+        n = len(payload)
+        parts = [head(self._topic_of[kind], log_time, n), payload]
+        if kind is RecordKind.NOISE:
+            parts += (head(self._ch_events, log_time, n), payload)
+            if record.noise is not None:
+                t.counts["noise_bytes"] += len(record.noise.raw)
+                if "crc" in record.noise.reason.lower():
+                    t.counts["crc_errors"] += 1
+        elif kind is RecordKind.EVENT:
+            event = record.event
+            if event is not None and event.kind in SOURCE_EVENTS:
+                raw = self._raw_event(event)
+                parts += (head(self._ch_raw, log_time, len(raw)), raw)
+        elif kind is RecordKind.RESPONSE and obj["crc_ok"] is False:
+            t.counts["crc_errors"] += 1
+            parts += (head(self._ch_events, log_time, n), payload)
+        stream = record.stream
+        tail = self._tails.get(stream.id if stream is not None else -1)
+        if tail is None:
+            tail = self._tail(stream)
+        sec, nsec = divmod(log_time, 1_000_000_000)
+        monitor = _MONITOR % (
+            sec, nsec, log_level(record, obj), _json_str(obj["line"]).encode(), tail, record.index
+        )  # fmt: skip
+        parts += (head(self._ch_monitor, log_time, len(monitor)), monitor)
+        if record.state is not None:
+            parts.append(self._state_message(record, log_time))
+        if ts >= t.next_stats:
+            parts.append(self._due_stats(ts, log_time))
+        return b"".join(parts)
+
+    def _tail(self, stream: Stream | None) -> bytes:
+        """The end of a stream's monitor messages (name, file, "line" key), cached by stream id
+        (a Stream hashes slowly); -1 stands for records of no stream."""
+        tail = _MONITOR_TAIL % (_json_str(stream_name(stream)).encode(), self._file_json)
+        self._tails[stream.id if stream is not None else -1] = tail
+        return tail
+
+    def _head(self, channel_id: int, log_time: int, size: int) -> bytes:
+        """The head of a message record of ``size`` data bytes on a channel (and count it)."""
+        self._t.messages[channel_id] += 1
+        return MESSAGE_HEAD.pack(5, 22 + size, channel_id, 0, log_time, log_time)
+
+    def _state_message(self, record: Record, log_time: int) -> bytes:
+        """The /hrss/state message record of a record that carries robot state."""
+        state: dict[str, Any] = {"time": record.ts, "index": record.index}
+        for key, value in (record.state or {}).items():
+            if isinstance(value, bool):
+                state[key] = int(value)
+            elif isinstance(value, int | float) and math.isfinite(value):
+                state[key] = value  # flat numbers only: NaN/inf have no JSON form
+        if self._ch_state is None:  # a log without profiles has no /hrss/state
+            return b""
+        data = encode(state)
+        return self._head(self._ch_state, log_time, len(data)) + data
+
+    def _due_stats(self, ts: float, log_time: int) -> bytes:
+        """The stats message record due at ``ts`` (none for the first record)."""
+        t = self._t
+        data = b""
+        if not plausible_time(ts):  # an impossible time schedules nothing
+            return data
+        if t.next_stats > 0:
+            stats = self._stats(t, ts)
+            data = self._head(self._ch_events, log_time, len(stats)) + stats
+        t.next_stats = ts + STATS_EVERY
+        return data
+
+    def final_stats(self, totals: Totals) -> Message | None:
+        """The closing stats event (``"final": true``) of a log that holds records."""
+        if totals.last_ts is None:
+            return None
+        ts = totals.last_ts
+        return TOPIC_EVENTS, log_time_ns(ts), self._stats(totals, ts, True)
+
+    def channel_counts(self, totals: Totals) -> dict[int, int]:
+        """Messages per channel that :meth:`convert` made, as counted by ``totals``:
+        those it counted one by one, raw chunks, and two per frame on the fast path."""
+        counts = dict(totals.messages)
+        counts[self._ch_raw] = counts.get(self._ch_raw, 0) + totals.counts["chunks"]
+        kinds = totals.kinds
+        fast = sum(kinds[k] for k in _FRAME_KINDS) - totals.slow_frames
+        counts[self._ch_frames] = counts.get(self._ch_frames, 0) + fast
+        counts[self._ch_monitor] = counts.get(self._ch_monitor, 0) + fast
+        return counts
+
+
+    def _raw_event(self, event: Event) -> bytes:
+        body = {
+            "type": "event",
+            **_stream_fields(event.stream),
+            "ts": event.ts,
+            "direction": None,
+            "data": "",
+            "event": event.kind.value,
+            "info": dict(event.info),
+        }
+        return encode(body)
+
+    def _stats(self, totals: Totals, ts: float, final: bool = False) -> bytes:
+        """The writer's own counters as an /mbmon/events message (index null)."""
+        kinds = totals.kinds
+        info: dict[str, Any] = {
+            "records": sum(kinds.values()),
+            "requests": kinds[RecordKind.REQUEST],
+            "responses": kinds[RecordKind.RESPONSE],
+            "exceptions": kinds[RecordKind.EXCEPTION],
+            "noise": kinds[RecordKind.NOISE],
+            "events": kinds[RecordKind.EVENT],
+            "commands": kinds[RecordKind.COMMAND],
+            **totals.counts,
+        }
+        if final:
+            info["final"] = True
+        try:
+            line_ts = time.strftime("%H:%M:%S", time.localtime(ts))
+        except (OverflowError, OSError, ValueError):  # an impossible capture time
+            line_ts = "--:--:--"
+        obj: dict[str, Any] = {
+            "index": None, "time": ts, "stream": None, "src": None, "dst": None,
+            "transport": None, "tid": None, "unit": None, "fc": None, "kind": "event",
+            "exception_code": None, "address": None, "count": None, "values": None,
+            "pdu": None, "line": "", "notes": None, "crc_ok": None, "latency_ms": None,
+            "malformed": None, "request_index": None, "event": "stats", "info": info,
+        }  # fmt: skip
+        obj["line"] = f"{line_ts}  -- Stats: " + ", ".join(f"{k}={v}" for k, v in info.items())
+        return encode(obj)
+
+
+def item_messages(item: Record | Chunk, view: View, source: str = "") -> list[Message]:
+    """The messages of one record or captured chunk as ``(topic, log_time_ns, json_bytes)``,
+    exactly as a log made with ``view`` from ``source`` stores them (stats events aside).
+
+    Pure: a throwaway :class:`LogLayout` with every topic. A long-lived consumer
+    (the live Foxglove feed) keeps one ``LogLayout(view, source, channels)`` and
+    calls :meth:`LogLayout.messages` instead, which caches per-stream pieces.
+    """
+    return LogLayout(view, source, ALL_CHANNELS).messages(item)
+
+
+#: every topic on a channel id of its own (channel ids only matter inside one file)
+ALL_CHANNELS: dict[str, int] = {topic: n for n, topic in enumerate(TOPIC_SCHEMAS, 1)}

@@ -1,0 +1,129 @@
+"""The MCAP layout: the reusable record -> (topic, log_time_ns, json_bytes) form is what
+the log holds, byte for byte; impossible capture times leave readable logs."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+import pytest
+import sink_records as records
+from mcap.reader import make_reader
+
+from mbmon.format import View
+from mbmon.io.mcap.layout import (
+    ALL_CHANNELS,
+    TOPIC_SCHEMAS,
+    LogLayout,
+    item_messages,
+    log_time_ns,
+)
+from mbmon.io.mcap.reader import McapLog
+from mbmon.io.mcap.writer import MAX_LOG_TIME
+from mbmon.model import Chunk, Record
+from mbmon.sinks.base import SinkContext
+from mbmon.sinks.mcap import McapSink
+
+
+def logged(path: Path) -> list[tuple[str, int, bytes]]:
+    """Every message in file order, as the mcap package reads it, without stats events."""
+    out = []
+    with open(path, "rb") as f:
+        for _, channel, msg in make_reader(f, validate_crcs=True).iter_messages(
+            log_time_order=False
+        ):
+            data = bytes(msg.data)
+            if channel.topic == "/mbmon/events" and json.loads(data).get("event") == "stats":
+                continue
+            assert msg.publish_time == msg.log_time
+            out.append((channel.topic, msg.log_time, data))
+    return out
+
+
+@pytest.mark.parametrize("which", ["session", "hrss"])
+@pytest.mark.parametrize("robot", [None, "192.168.0.10"])
+def test_item_messages_are_the_log(
+    tmp_path: Path, which: str, robot: str | None, session_stream: list, hrss_stream: list
+) -> None:
+    """The function a live feed reuses gives the log's messages, byte for byte."""
+    stream = session_stream if which == "session" else hrss_stream
+    ctx = records.hrss_context(robot) if which == "hrss" else SinkContext(
+        view=View(robot=robot), source="x.pcap"
+    )  # fmt: skip
+    path = tmp_path / "x.mcap"
+    with McapSink(path, ctx, chunk_size=2000) as sink:
+        records.feed(sink, stream)
+    expected = [m for item in stream for m in item_messages(item, ctx.view, ctx.source)]
+    assert logged(path) == expected
+    topics = {t for t, _, _ in expected}
+    assert {"/modbus/raw", "/modbus/frames", "/modbus/monitor"} <= topics
+    if which == "hrss":
+        assert {"/hrss/state", "/hrss/commands"} <= topics
+    # one long-lived layout (what a live feed keeps) gives the same
+    layout = LogLayout(ctx.view, ctx.source, ALL_CHANNELS)
+    assert [m for item in stream for m in layout.messages(item)] == expected
+
+
+def test_item_messages_signature(session_stream: list) -> None:
+    rec = next(x for x in session_stream if isinstance(x, Record) and x.frame is not None)
+    msgs = item_messages(rec, View())
+    assert [t for t, _, _ in msgs] == ["/modbus/frames", "/modbus/monitor"]
+    assert all(lt == log_time_ns(rec.ts) for _, lt, _ in msgs)
+    assert json.loads(msgs[0][2])["index"] == rec.index
+    chunk = next(x for x in session_stream if isinstance(x, Chunk))
+    [(topic, lt, data)] = item_messages(chunk, View())
+    assert lt == log_time_ns(chunk.ts)
+    assert topic == "/modbus/raw" and json.loads(data)["type"] == "chunk"
+    assert set(ALL_CHANNELS) == set(TOPIC_SCHEMAS)
+
+
+def test_log_time_is_clamped() -> None:
+    assert log_time_ns(1_700_000_000.25) == 1_700_000_000_250_000_000
+    for ts in (-5.0, 0.0, float("nan"), -float("inf")):
+        assert log_time_ns(ts) == 0
+    for ts in (1e17, 1.8e19, float("inf")):
+        assert log_time_ns(ts) == MAX_LOG_TIME
+
+
+IMPOSSIBLE = [1e17, 5.5e17, 1.8e19, -5.0, -1e17, float("inf"), float("nan")]
+
+
+def test_impossible_times_leave_a_readable_log(tmp_path: Path, session_stream: list) -> None:
+    """Item 22: each record at an impossible time is logged (clamped log time, the true
+    time in its JSON) or reported by a notice naming it; the records around it are
+    logged and the file is finished."""
+    recs = [x for x in session_stream if isinstance(x, Record)]
+    chunks = [x for x in session_stream if isinstance(x, Chunk)]
+    odd = [dataclasses.replace(recs[1 + i % (len(recs) - 1)], index=1000 + i, ts=ts)
+           for i, ts in enumerate(IMPOSSIBLE)]  # fmt: skip
+    odd_chunks = [dataclasses.replace(chunks[0], ts=ts) for ts in IMPOSSIBLE]
+    stream: list[Chunk | Record] = [*session_stream, *odd_chunks, *odd, *session_stream[:5]]
+    path = tmp_path / "odd.mcap"
+    with McapSink(path, SinkContext(source="odd")) as sink:
+        records.feed(sink, stream)
+    with open(path, "rb") as f:
+        summary = make_reader(f, validate_crcs=True).get_summary()
+    assert summary is not None and summary.statistics is not None
+    with McapLog(path) as log:
+        assert log.finished
+        msgs = list(log.messages())
+    assert all(0 <= m.log_time <= MAX_LOG_TIME for m in msgs)
+    assert sum(summary.statistics.channel_message_counts.values()) == len(msgs)
+    objs = [m.json() for m in msgs if m.topic in ("/modbus/frames", "/mbmon/events")]
+    for i, ts in enumerate(IMPOSSIBLE):
+        mine = [o for o in objs if o.get("index") == 1000 + i]
+        assert mine, f"record at {ts!r} neither logged nor reported"
+        obj = mine[0]
+        if obj["kind"] == "event" and obj["event"] == "notice":
+            assert f"record {1000 + i}" in obj["info"]["message"]
+        elif math.isfinite(ts):
+            assert obj["time"] == ts
+    raw_ts = [m.json()["ts"] for m in msgs if m.topic == "/modbus/raw"]
+    rest = iter(raw_ts)  # the chunks at impossible times are logged, in order
+    assert all(x in rest for x in [ts if math.isfinite(ts) else None for ts in IMPOSSIBLE])
+    # the records after them are all there
+    indexes = [m.json()["line"] for m in msgs if m.topic == "/modbus/monitor"]
+    tail = [r.index for r in stream[-5:] if isinstance(r, Record)]
+    assert tail and indexes[-len(tail) :] == tail
