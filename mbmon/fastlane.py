@@ -269,7 +269,8 @@ class FastLane:
                 return general(ts, link, iface, buf, off, end, out)
             dissector.modbus_packets += 1
             half.nxt = (seq + size) & 0xFFFFFFFF
-            if decoder._buf:  # the rest of a split ADU: framed from the joined bytes
+            held = len(decoder._buf)
+            if held:  # the rest of a split ADU: framed from the joined bytes
                 payload = bytes(decoder._buf) + payload
                 decoder._buf = bytearray()
             # ---- the pipeline's feed, for this chunk
@@ -293,6 +294,9 @@ class FastLane:
                 if payload[pos + 2] or payload[pos + 3] or not 2 <= length <= max_len:
                     # noise: the general decoder takes the rest of this chunk
                     recs: list[Record] = []
+                    if pos < held:  # bytes of an earlier packet keep their arrival time
+                        decoder._buf = bytearray(payload[pos:held])
+                        pos = held
                     emit_decoded(decoder.feed(payload[pos:], ts), recs)
                     records(recs)
                     pos = size
@@ -401,6 +405,8 @@ class FastLane:
                         head = None
             if pos < size:
                 decoder._buf = bytearray(payload[pos:])
+                if pos >= held:  # else its first byte came with an earlier packet
+                    decoder._buf_ts = ts
             counts["frames"] += frames
             if malformed:
                 counts["malformed"] += malformed

@@ -81,6 +81,7 @@ Pure: no I/O.
 
 from __future__ import annotations
 
+import dataclasses
 import struct
 from collections.abc import Callable, Mapping, Sequence
 from itertools import chain
@@ -105,6 +106,7 @@ __all__ = [
     "encode_write_single",
     "pdu_length",
     "table_of",
+    "with_malformed",
 ]
 
 NEED_MORE: Final = -1
@@ -554,6 +556,8 @@ def _read_file_resp(o: _Out, request: Pdu | None) -> None:
     if not o.need(2):
         return
     data = o.counted(1)
+    if o.byte_count == 0:  # as the request (7..245) and both 0x15 frames (9..251)
+        o.bad.append("byte count 0")
     records = []
     i = 0
     while i < len(data):
@@ -854,6 +858,13 @@ def _decode(d: bytes, response: bool, request: Pdu | None) -> Pdu:
         fields=_fields(o.fields),
         malformed="; ".join(o.bad) or None,
     )
+
+
+def with_malformed(pdu: Pdu, reason: str) -> Pdu:
+    """``pdu`` with ``reason`` put first in its ``malformed`` (a breach found outside
+    the PDU, e.g. by the framing), the PDU's own reasons after it."""
+    text = reason if pdu.malformed is None else f"{reason}; {pdu.malformed}"
+    return dataclasses.replace(pdu, malformed=text)
 
 
 # --------------------------------------------------------------------------- encoders
