@@ -319,12 +319,17 @@ class FastLane:
                     frame = _new_frame(ts, stream, _C2S, unit, tid, pdu, raw, None)
                     if pend is None:
                         pend = pending[sid] = {}
-                    elif (tid, unit) in pend or len(pend) >= pairer.max_pending:
+                    if (
+                        (tid, unit) in pend
+                        or len(pend) >= pairer.max_pending
+                        or pairer._total >= pairer.max_total
+                    ):
                         recs = []  # a reused id or a full table: timeouts first
                         emit_transactions(pairer.feed(frame), recs)
                         records(recs)
                         continue
                     pend[(tid, unit)] = frame
+                    pairer._total += 1
                     index = pipeline._index
                     pipeline._index = index + 1
                     pending_index[id(frame)] = index
@@ -349,6 +354,7 @@ class FastLane:
                         req_pdu = req.pdu
                         if req_pdu.fc == body[0] & 0x7F:
                             del pend[(tid, unit)]
+                            pairer._total -= 1
                             if not pend:
                                 del pending[sid]
                             latency = ts - req.ts

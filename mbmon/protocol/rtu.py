@@ -225,7 +225,7 @@ class RtuDecoder(StreamDecoder):
         if last is None or not (self._buf or self._noise):
             return []
         out: list[Frame | Noise] = []
-        if self._char is not None and self._ticked != last and now - last > self._t35:
+        if self._char is not None and self._ticked != last and now >= last + self._t35 + 1e-6:
             self._ticked = last
             if self._buf:
                 pos = self._decode(self._buf, last, out, len(self._buf), _SILENCE)
@@ -233,7 +233,7 @@ class RtuDecoder(StreamDecoder):
             run = self._take_noise()
             if run is not None:
                 out.append(run)
-        if self._silence is not None and self._settled != last and now - last >= self._silence:
+        if self._silence is not None and self._settled != last and now >= last + self._silence:
             self._settled = last
             out.extend(self._settle(last))
         return out
