@@ -42,6 +42,8 @@ from mbmon.model import (
     TxStatus,
     fast_constructor,
 )
+from mbmon.protocol.functions import PAIR_ALWAYS as _PAIR_ALWAYS
+from mbmon.protocol.functions import PAIR_ON_COUNT as _PAIR_ON_COUNT
 from mbmon.protocol.pdu import decode_pdu
 
 __all__ = ["DEFAULT_MAX_PENDING", "DEFAULT_MAX_TOTAL", "Pairer"]
@@ -226,13 +228,15 @@ class Pairer:
 def _needs_request(resp: Pdu, req: Pdu) -> bool:
     """Whether decoding ``resp`` with its request changes it (hot path: skip when not).
 
-    Bit reads are trimmed to the requested count; register reads are only
-    checked against it, which matters when the byte count disagrees; diagnostics
-    and file records copy or compare fields of the request.
+    Which codes need it is in the function-code table: bit reads are trimmed to
+    the requested count (:data:`~mbmon.protocol.functions.PAIR_ALWAYS`); register
+    reads are only checked against it, which matters when the byte count
+    disagrees (:data:`~mbmon.protocol.functions.PAIR_ON_COUNT`); diagnostics and
+    file records copy or compare fields of the request.
     """
     if resp.kind is _EXCEPTION:
         return False
     fc = resp.fc
-    if fc in (0x03, 0x04, 0x17):
+    if fc in _PAIR_ON_COUNT:
         return req.count is not None and resp.byte_count != 2 * req.count
-    return fc in (0x01, 0x02, 0x08, 0x14)
+    return fc in _PAIR_ALWAYS
