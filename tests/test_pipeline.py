@@ -318,3 +318,29 @@ def test_memory_stays_flat_over_many_short_streams() -> None:
     small = peak_kb(8_000, 8_000)
     large = peak_kb(40_000, 40_000)
     assert large - small < 8_000, (small, large)  # KiB: flat, not 5x
+
+
+def test_short_garbage_reply_is_one_noise_record_when_it_arrived() -> None:
+    # issue 8 item 8, through the pipeline: no second record at the connection's end
+    recs = run(
+        [
+            c2s(TCP, 1.0, encode_adu(1, 1, encode_read_request(3, 0, 1))),
+            s2c(TCP, 1.01, bytes.fromhex("DE AD BE EF 12 34 56")),
+            Event(30.0, TCP, EventKind.DISCONNECT, {"how": "fin"}),
+        ]
+    )
+    noise = [r for r in recs if r.kind is RecordKind.NOISE]
+    assert len(noise) == 1 and noise[0].ts == 1.01 and len(noise[0].noise.raw) == 7
+
+
+def test_http_bytes_on_502_make_no_frame_and_no_made_up_timeout() -> None:
+    # issue 8 item 4, through the pipeline: was "Function 0x41" then "No response"
+    http = (
+        b"GET / HTTP/1.1\r\nHost: x\r\nX-Pad: "
+        + bytes.fromhex("00 00 00 00 00 04 07 41 42 43")
+        + b"\r\n\r\n"
+    )
+    recs = run([c2s(TCP, 1.0, http), Event(9.0, TCP, EventKind.DISCONNECT, {"how": "fin"})])
+    assert [(r.kind, r.ts) for r in recs] == [(RecordKind.EVENT, 9.0), (RecordKind.NOISE, 1.0)]
+    assert recs[1].noise is not None and recs[1].noise.raw == http
+    assert not any(r.event is not None and r.event.kind is EventKind.TIMEOUT for r in recs)
