@@ -24,6 +24,7 @@ from mbmon.model import (
     Stream,
     Transport,
 )
+from mbmon.protocol.functions import FUNCTIONS
 from mbmon.timefmt import TimeFormat
 
 #: Function code names (Modbus Application Protocol v1.1b); kept here so that
@@ -43,6 +44,10 @@ def _names() -> tuple[dict[int, str], dict[int, str]]:
 
         _FC_NAMES, _EXC_NAMES = FUNCTION_NAMES, EXCEPTION_NAMES
     return _FC_NAMES, _EXC_NAMES
+
+
+#: The function-code table's entry for a code (:mod:`mbmon.protocol.functions`).
+_function = FUNCTIONS.get
 
 
 def function_name(fc: int) -> str:
@@ -220,10 +225,11 @@ def _generic_note(pdu: Pdu, request: Pdu | None) -> str:
         return f"Exception {code:02X} {exception_name(code)} ({function_name(pdu.fc)})"
     name = function_name(pdu.fc)
     fc = pdu.fc
-    bits = fc in (1, 2, 5, 15)
+    spec = _function(fc)
+    bits = spec is not None and spec.bits
     address = pdu.address
     count = pdu.count
-    if pdu.kind is Kind.RESPONSE and fc in (1, 2, 3, 4, 0x17) and request is not None:
+    if pdu.kind is Kind.RESPONSE and spec is not None and spec.read and request is not None:
         address, count = request.address, request.count
     parts = [name]
     if fc == 8 and "sub_function" in pdu.fields:

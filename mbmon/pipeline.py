@@ -5,6 +5,14 @@ proxy): each calls ``feed(chunk_or_event)`` and gets the records to hand to
 the sinks. It keeps one sans-I/O decoder per (stream, direction) — one per bus
 for RTU — one :class:`~mbmon.protocol.pairing.Pairer` for all streams, and the
 annotator. Nothing here knows where bytes came from or where records go.
+
+Time reaches every stage through :meth:`Pipeline.tick`: decoders holding bytes
+settle them after a silence, pairing times requests out, the annotator's
+``tick`` (when it has one) reports commands, and streams idle for
+``idle_timeout`` are flushed and forgotten. :meth:`Pipeline.next_deadline` is the
+earliest time any of them needs a tick. Memory is bounded for runs of weeks: a
+stream's state goes at its DISCONNECT (or when idle), pending requests are
+bounded per stream and in total.
 """
 
 from __future__ import annotations
@@ -32,7 +40,7 @@ from mbmon.model import (
     fast_constructor,
 )
 from mbmon.protocol.mbap import MbapDecoder
-from mbmon.protocol.pairing import Pairer
+from mbmon.protocol.pairing import DEFAULT_MAX_TOTAL, Pairer
 from mbmon.protocol.rtu import RtuDecoder
 
 
@@ -41,11 +49,19 @@ class Annotator(Protocol):
 
 
 class _Decoder(Protocol):
+    _buf: bytearray
+    _noise: bytearray
+    _last_ts: float | None
+
     def feed(self, data: bytes, ts: float) -> list[Frame | Noise]: ...
 
     def flush(self, ts: float) -> list[Frame | Noise]: ...
 
     def reset(self, ts: float) -> list[Noise]: ...
+
+    def tick(self, now: float) -> list[Frame | Noise]: ...
+
+    def next_deadline(self) -> float | None: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -53,8 +69,12 @@ class PipelineConfig:
     """Knobs of the analysis, not of any source."""
 
     timeout: float = 1.0  # seconds before an unanswered request is reported
-    baudrate: int | None = None  # RTU bus speed, for silence hints only
+    baudrate: int | None = None  # RTU bus speed, for silence hints and t3.5 ticks
     tick_every: float = 0.1  # how often (capture time) pending requests are checked
+    silence: float | None = None  # quiet seconds before a decoder settles what it holds
+    #                               (None: ``timeout``); see RtuDecoder/MbapDecoder.tick
+    idle_timeout: float = 600.0  # seconds without input before tick forgets a stream
+    max_pending: int = DEFAULT_MAX_TOTAL  # outstanding requests over all streams
 
 
 _KIND_OF_PDU = {
@@ -77,13 +97,21 @@ class Pipeline:
     def __init__(self, annotator: Annotator | None = None, config: PipelineConfig | None = None):
         self.config = config or PipelineConfig()
         self.annotator = annotator
-        self.pairer = Pairer(timeout=self.config.timeout)
+        cfg = self.config
+        self.pairer = Pairer(timeout=cfg.timeout, max_total=cfg.max_pending)
+        self._silence = cfg.timeout if cfg.silence is None else cfg.silence
         self._decoders: dict[tuple[int, Direction], _Decoder] = {}
-        self._streams: dict[int, Stream] = {}
-        self._pending_index: dict[int, int] = {}  # id(request frame) -> record index
+        # decoders that held bytes after a chunk: the only ones a tick may concern
+        self._waiting: dict[tuple[int, Direction], _Decoder] = {}
+        self._streams: dict[int, Stream] = {}  # streams with a decoder
+        # id(request frame) -> record index, for requests the pairer holds: an entry
+        # goes when its request is answered or times out (or is cut off by damage)
+        self._pending_index: dict[int, int] = {}
         self._index = 0
         self._next_tick = float("-inf")
+        self._next_sweep = float("-inf")
         self._last_ts = 0.0
+        self._damage_ts = float("-inf")  # last source damage (ERROR without a stream)
         self.counts: dict[str, int] = {
             "chunks": 0,
             "bytes": 0,
@@ -116,12 +144,19 @@ class Pipeline:
                 self._emit_decoded(decoded, out)
             if stream.transport in _DATAGRAM:
                 self._emit_decoded(decoder.flush(ts), out)
+            elif decoder._buf or decoder._noise:
+                self._waiting[(stream.id, item.direction)] = decoder
             if ts >= self._next_tick:
                 self._next_tick = ts + self.config.tick_every
                 self._emit_transactions(self.pairer.tick(ts), out)
             return out
         self._last_ts = max(self._last_ts, item.ts)
         stream = item.stream
+        if item.kind is EventKind.ERROR and stream is None:
+            # requests still waiting may have had their answers in the damaged part:
+            # those not yet expired are never reported as unanswered
+            self._emit_transactions(self.pairer.tick(item.ts), out)
+            self._damage_ts = max(self._damage_ts, item.ts)
         if item.kind is EventKind.GAP and stream is not None:
             direction = Direction(item.info.get("direction", Direction.C2S.value))
             decoder = self._decoders.get((stream.id, direction))
@@ -133,14 +168,50 @@ class Pipeline:
         return out
 
     def tick(self, now: float) -> list[Record]:
-        """Report requests that have waited longer than the timeout at time ``now``."""
+        """Time is ``now``: every stage reports what time alone completes.
+
+        Decoders settle bytes held after a silence (frames and noise stamped when
+        their bytes arrived), requests older than the timeout are reported
+        unanswered, the annotator's ``tick`` (when it has one) reports command
+        updates, and streams idle for ``idle_timeout`` are flushed and forgotten.
+        """
         out: list[Record] = []
+        waiting = self._waiting
+        if waiting:
+            for key, decoder in list(waiting.items()):
+                deadline = decoder.next_deadline()
+                if deadline is not None and deadline <= now:
+                    decoded = decoder.tick(now)
+                    if decoded:
+                        self._emit_decoded(decoded, out)
+                    deadline = decoder.next_deadline()
+                if deadline is None and not (decoder._buf or decoder._noise):
+                    del waiting[key]
         self._emit_transactions(self.pairer.tick(now), out)
+        annotator_tick = getattr(self.annotator, "tick", None)
+        if annotator_tick is not None:
+            for cmd in annotator_tick(now) or ():
+                out.append(self._record(cmd.ts, RecordKind.COMMAND, cmd.stream, command=cmd))
+        if now >= self._next_sweep:
+            idle = self.config.idle_timeout
+            self._next_sweep = now + min(max(idle / 10, 0.01), 60.0)
+            self._expire_idle(now - idle, out)
         return out
 
     def next_deadline(self) -> float | None:
-        """The earliest time a :meth:`tick` would report something, or ``None``."""
-        return self.pairer.next_deadline()
+        """The earliest time a :meth:`tick` would report something, or ``None``:
+        the minimum over the decoders holding bytes, the pairer and the annotator."""
+        deadlines = [self.pairer.next_deadline()]
+        for key, decoder in list(self._waiting.items()):
+            deadline = decoder.next_deadline()
+            if deadline is None and not (decoder._buf or decoder._noise):
+                del self._waiting[key]
+            deadlines.append(deadline)
+        annotator_deadline = getattr(self.annotator, "next_deadline", None)
+        if annotator_deadline is not None:
+            deadlines.append(annotator_deadline())
+        known = [d for d in deadlines if d is not None]
+        return min(known) if known else None
 
     def finish(self, ts: float | None = None) -> list[Record]:
         """End of input: flush every decoder and report every request still unanswered."""
@@ -148,6 +219,8 @@ class Pipeline:
         out: list[Record] = []
         for key in list(self._decoders):
             self._emit_decoded(self._decoders.pop(key).flush(when), out)
+        self._waiting.clear()
+        self._streams.clear()
         self._emit_transactions(self.pairer.flush(when), out)
         return out
 
@@ -165,17 +238,36 @@ class Pipeline:
         if decoder is None:
             self._streams[stream.id] = stream
             if stream.transport in RTU_TRANSPORTS:
-                decoder = RtuDecoder(stream, direction, baudrate=self.config.baudrate)
+                decoder = RtuDecoder(
+                    stream, direction, baudrate=self.config.baudrate, silence=self._silence
+                )
             else:
-                decoder = MbapDecoder(stream, direction)
+                decoder = MbapDecoder(stream, direction, silence=self._silence)
             self._decoders[key] = decoder
         return decoder
 
     def _close_stream(self, stream: Stream, ts: float, out: list[Record]) -> None:
+        """Flush the stream's decoders and forget them (a DISCONNECT, or idle)."""
+        sid = stream.id
         for direction in (Direction.C2S, Direction.S2C, Direction.BUS):
-            decoder = self._decoders.pop((stream.id, direction), None)
+            decoder = self._decoders.pop((sid, direction), None)
             if decoder is not None:
+                self._waiting.pop((sid, direction), None)
                 self._emit_decoded(decoder.flush(ts), out)
+        self._streams.pop(sid, None)
+
+    def _expire_idle(self, before: float, out: list[Record]) -> None:
+        """Streams with no input since ``before``: flushed (nothing is lost) and forgotten."""
+        idle: dict[int, float] = {}
+        for (sid, _), decoder in self._decoders.items():
+            last = decoder._last_ts
+            if last is not None and last > idle.get(sid, float("-inf")):
+                idle[sid] = last
+        for sid, last in idle.items():
+            if last < before:
+                stream = self._streams.get(sid)
+                if stream is not None:
+                    self._close_stream(stream, last, out)
 
     def _next_index(self) -> int:
         index = self._index
@@ -204,8 +296,10 @@ class Pipeline:
             if status is _TIMEOUT:
                 request = tx.request
                 assert request is not None
-                self.counts["timeouts"] += 1
                 req_index = pending_index.pop(id(request), None)
+                if request.ts <= self._damage_ts < request.ts + self.pairer.timeout:
+                    continue  # its answer may have been lost to damage: not made up
+                self.counts["timeouts"] += 1
                 info = {"request_index": req_index, "unit": request.unit, "fc": request.pdu.fc}
                 if request.tid is not None:
                     info["tid"] = request.tid
@@ -221,7 +315,8 @@ class Pipeline:
             self._index = index + 1
             request_index = None
             if status is _PENDING:
-                pending_index[id(frame)] = index
+                if frame.tid is not None or frame.unit:  # an RTU broadcast is not held
+                    pending_index[id(frame)] = index
             elif request is not None:
                 request_index = pending_index.pop(id(request), None)
             kind = frame.pdu.kind

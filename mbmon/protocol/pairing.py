@@ -23,9 +23,11 @@ Matching rules, one :class:`Pairer` for all streams (keyed by ``stream.id``):
   else it is unsolicited (and the pending request stays). A broadcast request
   (unit 0) expects no response and is never pending.
 
-Memory is bounded: at most ``max_pending`` requests wait per stream; beyond
-that the oldest times out. Pure: no clocks, ``tick(now)`` is the only time
-source for timeouts.
+Memory is bounded: at most ``max_pending`` requests wait per stream and at
+most ``max_total`` over all streams; beyond either bound the oldest time out
+(over all streams, the oldest eighth of the bound at once, so that a flood of
+unanswered requests costs amortised O(log n) per request). Pure: no clocks,
+``tick(now)`` is the only time source for timeouts.
 """
 
 from __future__ import annotations
@@ -40,12 +42,17 @@ from mbmon.model import (
     TxStatus,
     fast_constructor,
 )
+from mbmon.protocol.functions import PAIR_ALWAYS as _PAIR_ALWAYS
+from mbmon.protocol.functions import PAIR_ON_COUNT as _PAIR_ON_COUNT
 from mbmon.protocol.pdu import decode_pdu
 
-__all__ = ["DEFAULT_MAX_PENDING", "Pairer"]
+__all__ = ["DEFAULT_MAX_PENDING", "DEFAULT_MAX_TOTAL", "Pairer"]
 
 DEFAULT_MAX_PENDING = 10_000
 """Largest number of outstanding requests remembered per stream."""
+
+DEFAULT_MAX_TOTAL = 100_000
+"""Largest number of outstanding requests remembered over all streams."""
 
 _Key = tuple[int, int]  # (tid, unit) for MBAP; (0, 0) for the one RTU slot
 
@@ -68,18 +75,27 @@ class Pairer:
     first and stops at the first that has not expired.
     """
 
-    __slots__ = ("_pending", "max_pending", "timeout")
+    __slots__ = ("_pending", "_total", "max_pending", "max_total", "timeout")
 
-    def __init__(self, timeout: float = 1.0, max_pending: int = DEFAULT_MAX_PENDING) -> None:
+    def __init__(
+        self,
+        timeout: float = 1.0,
+        max_pending: int = DEFAULT_MAX_PENDING,
+        max_total: int = DEFAULT_MAX_TOTAL,
+    ) -> None:
         self.timeout = timeout
         self.max_pending = max(1, max_pending)
+        self.max_total = max(1, max_total)
         # stream id -> pending requests in arrival order (dicts keep insertion order)
         self._pending: dict[int, dict[_Key, Frame]] = {}
+        # how many requests _pending holds (kept by every writer of _pending,
+        # the fused reader in mbmon.fastlane included)
+        self._total = 0
 
     @property
     def pending_count(self) -> int:
         """How many requests are waiting for a response, over all streams."""
-        return sum(len(p) for p in self._pending.values())
+        return self._total
 
     def feed(self, frame: Frame) -> list[Transaction]:
         """Pair one frame; return its step, preceded by any timeouts it causes."""
@@ -100,6 +116,7 @@ class Pairer:
                 if req.ts > limit:
                     break
                 del pend[key]
+                self._total -= 1
                 out.append(Transaction(now, TxStatus.TIMEOUT, req, None))
             if not pend:
                 del self._pending[sid]
@@ -118,6 +135,7 @@ class Pairer:
             for req in pend.values()
         ]
         self._pending.clear()
+        self._total = 0
         return out
 
     # ------------------------------------------------------------------ internals
@@ -131,11 +149,13 @@ class Pairer:
                 out.extend(
                     Transaction(req.ts, TxStatus.TIMEOUT, old, None) for old in pend.values()
                 )
+                self._total -= len(pend)
                 pend.clear()
             if req.unit != 0:
                 if pend is None:
                     pend = self._pending[sid] = {}
                 pend[(0, 0)] = req
+                self._total += 1
         else:
             key = (req.tid or 0, req.unit)
             if pend is None:
@@ -143,14 +163,39 @@ class Pairer:
             old = pend.pop(key, None)
             if old is not None:
                 out.append(Transaction(req.ts, TxStatus.TIMEOUT, old, None))
+                self._total -= 1
             pend[key] = req
+            self._total += 1
             while len(pend) > self.max_pending:
                 oldest = next(iter(pend))
                 out.append(Transaction(req.ts, TxStatus.TIMEOUT, pend.pop(oldest), None))
+                self._total -= 1
         if pend is not None and not pend:
             del self._pending[sid]
+        if self._total > self.max_total:
+            self._evict(req.ts, out)
         out.append(_new_tx(req.ts, _PENDING, req, None, None))
         return out
+
+    def _evict(self, ts: float, out: list[Transaction]) -> None:
+        """Over ``max_total``: the oldest requests of all streams time out at ``ts``
+        until an eighth of the bound is free again."""
+        keep = self.max_total - max(1, self.max_total // 8)
+        drop = self._total - keep
+        if drop <= 0:
+            return
+        every = [
+            (req.ts, n, sid, key)
+            for sid, pend in self._pending.items()
+            for n, (key, req) in enumerate(pend.items())
+        ]
+        every.sort()  # by time, then arrival order within a stream
+        for _, _, sid, key in every[:drop]:
+            pend = self._pending[sid]
+            out.append(Transaction(ts, TxStatus.TIMEOUT, pend.pop(key), None))
+            if not pend:
+                del self._pending[sid]
+        self._total -= drop
 
     def _response(self, resp: Frame) -> Transaction:
         sid = resp.stream.id
@@ -160,6 +205,7 @@ class Pairer:
         if pend is None or req is None or req.unit != resp.unit or req.pdu.fc != resp.pdu.fc:
             return _new_tx(resp.ts, _UNSOLICITED, None, resp, None)
         del pend[key]
+        self._total -= 1
         if not pend:
             del self._pending[sid]
         pdu = resp.pdu
@@ -182,13 +228,15 @@ class Pairer:
 def _needs_request(resp: Pdu, req: Pdu) -> bool:
     """Whether decoding ``resp`` with its request changes it (hot path: skip when not).
 
-    Bit reads are trimmed to the requested count; register reads are only
-    checked against it, which matters when the byte count disagrees; diagnostics
-    and file records copy or compare fields of the request.
+    Which codes need it is in the function-code table: bit reads are trimmed to
+    the requested count (:data:`~mbmon.protocol.functions.PAIR_ALWAYS`); register
+    reads are only checked against it, which matters when the byte count
+    disagrees (:data:`~mbmon.protocol.functions.PAIR_ON_COUNT`); diagnostics and
+    file records copy or compare fields of the request.
     """
     if resp.kind is _EXCEPTION:
         return False
     fc = resp.fc
-    if fc in (0x03, 0x04, 0x17):
+    if fc in _PAIR_ON_COUNT:
         return req.count is not None and resp.byte_count != 2 * req.count
-    return fc in (0x01, 0x02, 0x08, 0x14)
+    return fc in _PAIR_ALWAYS

@@ -81,6 +81,7 @@ Pure: no I/O.
 
 from __future__ import annotations
 
+import dataclasses
 import struct
 from collections.abc import Callable, Mapping, Sequence
 from itertools import chain
@@ -88,6 +89,7 @@ from types import MappingProxyType
 from typing import Any, Final
 
 from mbmon.model import EMPTY, Kind, Pdu
+from mbmon.protocol.functions import FUNCTIONS, NEED_MORE, LengthRule
 
 __all__ = [
     "DIAGNOSTIC_NAMES",
@@ -105,32 +107,11 @@ __all__ = [
     "encode_write_single",
     "pdu_length",
     "table_of",
+    "with_malformed",
 ]
 
-NEED_MORE: Final = -1
-""":func:`pdu_length` result: more bytes are needed before the length is known."""
-
-FUNCTION_NAMES: Final[dict[int, str]] = {
-    0x01: "Read Coils",
-    0x02: "Read Discrete Inputs",
-    0x03: "Read Holding Registers",
-    0x04: "Read Input Registers",
-    0x05: "Write Single Coil",
-    0x06: "Write Single Register",
-    0x07: "Read Exception Status",
-    0x08: "Diagnostics",
-    0x0B: "Get Comm Event Counter",
-    0x0C: "Get Comm Event Log",
-    0x0F: "Write Multiple Coils",
-    0x10: "Write Multiple Registers",
-    0x11: "Report Server ID",
-    0x14: "Read File Record",
-    0x15: "Write File Record",
-    0x16: "Mask Write Register",
-    0x17: "Read/Write Multiple Registers",
-    0x18: "Read FIFO Queue",
-    0x2B: "Encapsulated Interface Transport",
-}
+#: Names of the public function codes, from the one table (:mod:`mbmon.protocol.functions`).
+FUNCTION_NAMES: Final[dict[int, str]] = {code: f.name for code, f in FUNCTIONS.items()}
 
 EXCEPTION_NAMES: Final[dict[int, str]] = {
     0x01: "Illegal Function",
@@ -180,16 +161,7 @@ MEI_OBJECT_NAMES: Final[dict[int, str]] = {
 }
 
 _TABLES: Final[dict[int, str]] = {
-    0x01: "coil",
-    0x05: "coil",
-    0x0F: "coil",
-    0x02: "discrete_input",
-    0x03: "holding_register",
-    0x06: "holding_register",
-    0x10: "holding_register",
-    0x16: "holding_register",
-    0x17: "holding_register",
-    0x04: "input_register",
+    code: f.table for code, f in FUNCTIONS.items() if f.table is not None
 }
 
 
@@ -204,44 +176,13 @@ def table_of(fc: int) -> str | None:
 
 # --------------------------------------------------------------------------- lengths
 
-# Request lengths: int = fixed; (i, base) = base + data[i].
-_REQ_LEN: Final[dict[int, int | tuple[int, int]]] = {
-    0x01: 5,
-    0x02: 5,
-    0x03: 5,
-    0x04: 5,
-    0x05: 5,
-    0x06: 5,
-    0x07: 1,
-    0x0B: 1,
-    0x0C: 1,
-    0x0F: (5, 6),
-    0x10: (5, 6),
-    0x11: 1,
-    0x14: (1, 2),
-    0x15: (1, 2),
-    0x16: 7,
-    0x17: (9, 10),
-    0x18: 3,
+# Length rules by code, from the one table: int = fixed; (i, base) = base + data[i];
+# a function of the first bytes for the codes whose length depends on a sub-code.
+_REQ_LEN: Final[dict[int, LengthRule]] = {
+    code: f.request_length for code, f in FUNCTIONS.items() if f.request_length is not None
 }
-
-_RESP_LEN: Final[dict[int, int | tuple[int, int]]] = {
-    0x01: (1, 2),
-    0x02: (1, 2),
-    0x03: (1, 2),
-    0x04: (1, 2),
-    0x05: 5,
-    0x06: 5,
-    0x07: 2,
-    0x0B: 5,
-    0x0C: (1, 2),
-    0x0F: 5,
-    0x10: 5,
-    0x11: (1, 2),
-    0x14: (1, 2),
-    0x15: (1, 2),
-    0x16: 7,
-    0x17: (1, 2),
+_RESP_LEN: Final[dict[int, LengthRule]] = {
+    code: f.response_length for code, f in FUNCTIONS.items() if f.response_length is not None
 }
 
 
@@ -264,24 +205,13 @@ def pdu_length(data: bytes | bytearray | memoryview, response: bool) -> int | No
         return 2 if response else None
     spec = (_RESP_LEN if response else _REQ_LEN).get(fc)
     if spec is None:
-        if fc == 0x08:
-            if n < 3:
-                return NEED_MORE
-            sub = (data[1] << 8) | data[2]
-            if sub == 0x00 or (sub == 0x15 and response):
-                return None
-            return 5
-        if fc == 0x18 and response:
-            return NEED_MORE if n < 3 else 3 + ((data[1] << 8) | data[2])
-        if fc == 0x2B and not response:
-            if n < 2:
-                return NEED_MORE
-            return 4 if data[1] == 0x0E else None
         return None
-    if isinstance(spec, int):
+    if type(spec) is int:
         return spec
-    index, base = spec
-    return NEED_MORE if n <= index else base + data[index]
+    if type(spec) is tuple:
+        index, base = spec
+        return NEED_MORE if n <= index else base + data[index]
+    return spec(data)  # type: ignore[operator]
 
 
 # --------------------------------------------------------------------------- decoding
@@ -554,6 +484,8 @@ def _read_file_resp(o: _Out, request: Pdu | None) -> None:
     if not o.need(2):
         return
     data = o.counted(1)
+    if o.byte_count == 0:  # as the request (7..245) and both 0x15 frames (9..251)
+        o.bad.append("byte count 0")
     records = []
     i = 0
     while i < len(data):
@@ -747,6 +679,9 @@ _DECODERS: Final[dict[int, tuple[_Decoder, _Decoder]]] = {
 }
 
 
+assert set(_DECODERS) <= set(FUNCTIONS), "every decoded code is in the one table"
+
+
 def _fields(f: dict[str, Any]) -> Mapping[str, Any]:
     return MappingProxyType(f) if f else EMPTY
 
@@ -854,6 +789,13 @@ def _decode(d: bytes, response: bool, request: Pdu | None) -> Pdu:
         fields=_fields(o.fields),
         malformed="; ".join(o.bad) or None,
     )
+
+
+def with_malformed(pdu: Pdu, reason: str) -> Pdu:
+    """``pdu`` with ``reason`` put first in its ``malformed`` (a breach found outside
+    the PDU, e.g. by the framing), the PDU's own reasons after it."""
+    text = reason if pdu.malformed is None else f"{reason}; {pdu.malformed}"
+    return dataclasses.replace(pdu, malformed=text)
 
 
 # --------------------------------------------------------------------------- encoders

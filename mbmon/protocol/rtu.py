@@ -17,6 +17,11 @@ Framing is length prediction + CRC (DESIGN rules 2 and 3), never timing:
 * When a reading has no predictable length (unknown function codes, 0x2B
   responses, 0x08 sub-function 0x00, ...), the decoder tries the CRC at every
   length from 4 to 256 bytes, shortest first, once enough bytes are there.
+  Such a guess never swallows frames that validate on their own (issue 8
+  item 5): it is refused when a frame of predictable length with a good CRC
+  starts inside it and either reaches its end or is followed by a second
+  such frame (that parse explains more bytes with valid CRCs; a CRC match
+  found by scanning 250 lengths is far likelier chance than two in a row).
 * When nothing fits, one byte is skipped into a run of noise; one
   :class:`Noise` is reported per run (before the next frame, at a silence, or
   at ``flush``/``reset``), split only every ``NOISE_CAP`` bytes.
@@ -35,7 +40,13 @@ fits the bytes before the silence and one needs more, the decoder still
 waits, because USB adapters deliver bytes in bunches and the "silence" may be
 their latency. Timing is a hint only.
 
-Pure: no I/O, no clocks; time is the ``ts`` given with each chunk.
+Time moves on with :meth:`RtuDecoder.tick` too: t3.5 after the last byte (with
+``baudrate``) the bytes held are settled as at a silence seen by the next
+chunk, and ``silence`` seconds after it (without or with ``baudrate``) they are
+settled as at the end of the stream, so a quiet bus reports its last frame or
+noise without waiting for another byte. Noise is stamped when its bytes arrived.
+
+Pure: no I/O, no clocks; time is the ``ts`` given with each chunk or tick.
 """
 
 from __future__ import annotations
@@ -123,9 +134,11 @@ class RtuDecoder(StreamDecoder):
         "_allow_req",
         "_allow_resp",
         "_char",
-        "_last_ts",
         "_pending",
+        "_settled",
+        "_silence",
         "_t35",
+        "_ticked",
         "baudrate",
         "stats",
     )
@@ -135,8 +148,12 @@ class RtuDecoder(StreamDecoder):
         stream: Stream,
         direction: Direction = Direction.BUS,
         baudrate: int | None = None,
+        silence: float | None = None,
     ) -> None:
         super().__init__(stream, direction)
+        self._silence = silence
+        self._ticked: float | None = None  # the _last_ts a t3.5 tick settled
+        self._settled: float | None = None  # the _last_ts a silence tick settled
         self.baudrate = baudrate
         self._allow_req = direction is not Direction.S2C
         self._allow_resp = direction is not Direction.C2S
@@ -147,7 +164,6 @@ class RtuDecoder(StreamDecoder):
             self._char = None
             self._t35 = 0.0
         self._pending: tuple[int, int] | None = None
-        self._last_ts: float | None = None
         self.stats: dict[str, int] = {
             "frames": 0,
             "noise_bytes": 0,
@@ -165,33 +181,25 @@ class RtuDecoder(StreamDecoder):
             if silence > self._t35:
                 self.stats["timing_gaps"] += 1
                 if self._buf:
-                    pos = self._decode(self._buf, self._last_ts, out, _SILENCE)
+                    pos = self._decode(self._buf, self._last_ts, out, len(self._buf), _SILENCE)
                     del self._buf[:pos]
                 run = self._take_noise()
                 if run is not None:
                     out.append(run)
         self._last_ts = ts
-        if self._buf:
+        old = len(self._buf)
+        if old:
             self._buf += data
             buf: bytes | bytearray = self._buf
         else:
             buf = data  # fast path: decode straight from the chunk, no copy
-        pos = self._decode(buf, ts, out, _STREAM)
-        if buf is self._buf:
-            del self._buf[:pos]  # O(1) in CPython: moves the start pointer
-        elif pos < len(buf):
-            self._buf = bytearray(buf[pos:])
+        pos = self._decode(buf, ts, out, old, _STREAM)
+        self._keep(buf, pos, old, ts)
         return out
 
     def flush(self, ts: float) -> list[Frame | Noise]:
         """End of stream: decide every buffered byte; what is no frame becomes noise."""
-        out: list[Frame | Noise] = []
-        if self._buf:
-            self._decode(self._buf, ts, out, _FINAL)
-            self._buf = bytearray()
-        run = self._take_noise()
-        if run is not None:
-            out.append(run)
+        out = self._settle(ts)
         self._pending = None
         self._last_ts = None
         return out
@@ -204,7 +212,57 @@ class RtuDecoder(StreamDecoder):
         self._last_ts = None
         return out
 
+    def tick(self, now: float) -> list[Frame | Noise]:
+        """Time is ``now`` and no byte came since the last chunk: settle what waits.
+
+        t3.5 after the last byte (``baudrate`` known) the bytes held are decided
+        as the next chunk would after that silence (scans and noise settled,
+        predicted lengths still awaited: USB adapters bunch bytes); ``silence``
+        seconds after it everything held is decided as at the end of the stream
+        (a partial frame becomes noise). The pending request is kept.
+        """
+        last = self._last_ts
+        if last is None or not (self._buf or self._noise):
+            return []
+        out: list[Frame | Noise] = []
+        if self._char is not None and self._ticked != last and now >= last + self._t35 + 1e-6:
+            self._ticked = last
+            if self._buf:
+                pos = self._decode(self._buf, last, out, len(self._buf), _SILENCE)
+                del self._buf[:pos]
+            run = self._take_noise()
+            if run is not None:
+                out.append(run)
+        if self._silence is not None and self._settled != last and now >= last + self._silence:
+            self._settled = last
+            out.extend(self._settle(last))
+        return out
+
+    def next_deadline(self) -> float | None:
+        """When :meth:`tick` would settle bytes held, or ``None`` when none wait on time."""
+        last = self._last_ts
+        if last is None or not (self._buf or self._noise):
+            return None
+        deadline: float | None = None
+        if self._char is not None and self._ticked != last:
+            deadline = last + self._t35 + 1e-6  # tick settles strictly after t3.5
+        if self._silence is not None and self._settled != last:
+            at = last + self._silence
+            deadline = at if deadline is None else min(deadline, at)
+        return deadline
+
     # ------------------------------------------------------------------ internals
+
+    def _settle(self, ts: float) -> list[Frame | Noise]:
+        """Decide every byte held (frames stamped ``ts``, noise when it arrived)."""
+        out: list[Frame | Noise] = []
+        if self._buf:
+            self._decode(self._buf, ts, out, len(self._buf), _FINAL)
+            self._buf = bytearray()
+        run = self._take_noise()
+        if run is not None:
+            out.append(run)
+        return out
 
     def _add_noise(self, byte: int, reason: str, ts: float, out: list[Frame | Noise]) -> None:
         if not self._noise:
@@ -228,9 +286,13 @@ class RtuDecoder(StreamDecoder):
             self._noise_ts = ts
 
     def _decode(
-        self, buf: bytes | bytearray, ts: float, out: list[Frame | Noise], mode: int
+        self, buf: bytes | bytearray, ts: float, out: list[Frame | Noise], old: int, mode: int
     ) -> int:
-        """Frame ADUs from ``buf``; return the offset of the first undecided byte."""
+        """Frame ADUs from ``buf``; return the offset of the first undecided byte.
+
+        ``buf[:old]`` arrived at ``_buf_ts``, the rest at ``ts``: noise is
+        stamped when its bytes arrived, frames when their last byte did.
+        """
         n = len(buf)
         pos = 0
         stream = self.stream
@@ -256,7 +318,7 @@ class RtuDecoder(StreamDecoder):
             elif length == _WAIT:
                 break
             else:
-                self._add_noise(buf[pos], reason, ts, out)
+                self._add_noise(buf[pos], reason, self._buf_ts if pos < old else ts, out)
                 pos += 1
         return pos
 
@@ -324,7 +386,12 @@ class RtuDecoder(StreamDecoder):
             limit = min(MAX_ADU, avail)
             found = _scan(buf, pos, limit) if limit >= MIN_ADU else 0
             if found:
-                return found, unpredictable[0], ""
+                crossed = self._crosses_frames(buf, pos, pos + found, n, mode)
+                if crossed < 0:
+                    return _WAIT, False, ""
+                if not crossed:
+                    return found, unpredictable[0], ""
+                return _SKIP, False, _CROSSED
             if avail < MAX_ADU and mode == _STREAM:
                 return _WAIT, False, ""
         if crc_failed:
@@ -335,6 +402,62 @@ class RtuDecoder(StreamDecoder):
             return _SKIP, False, f"no valid frame (unknown function code 0x{fc:02X})"
         return _SKIP, False, f"no valid frame (function code 0x{fc:02X})"
 
+    def _crosses_frames(
+        self, buf: bytes | bytearray, start: int, end: int, n: int, mode: int
+    ) -> int:
+        """Whether the scanned candidate ``buf[start:end]`` swallows frames: 1 yes, 0 no,
+        -1 cannot tell yet (bytes missing while more will come).
 
+        Yes when a frame of predictable length with a valid CRC starts inside it
+        and either reaches ``end`` (or beyond) or is followed right away by a
+        second such frame.
+        """
+        for j in range(start + 1, end):
+            first = self._standalone(buf, j, n, mode)
+            if first < 0:
+                return -1
+            if not first:
+                continue
+            if j + first >= end:
+                return 1
+            second = self._standalone(buf, j + first, n, mode)
+            if second < 0:
+                return -1
+            if second:
+                return 1
+        return 0
+
+    def _standalone(self, buf: bytes | bytearray, k: int, n: int, mode: int) -> int:
+        """Length of a frame of predictable length with a valid CRC at ``k``, 0 when
+        there is none, -1 when the bytes to tell are still missing (``_STREAM``)."""
+        avail = n - k
+        if avail < 2:
+            return -1 if mode == _STREAM else 0
+        fc = buf[k + 1]
+        if fc == 0 or fc == 0x80:
+            return 0
+        short = False
+        for is_resp in (False, True):
+            if not (self._allow_resp if is_resp else self._allow_req):
+                continue
+            if fc & 0x80 and not is_resp:
+                continue
+            plen = pdu_length(buf[k + 1 : k + MAX_ADU], is_resp)
+            if plen is None:
+                continue
+            if plen == NEED_MORE:
+                short = True
+                continue
+            total = plen + 3
+            if plen < 1 or total > MAX_ADU:
+                continue
+            if total > avail:
+                short = True
+            elif _crc_ok(buf, k, k + total):
+                return total
+        return -1 if short and mode == _STREAM else 0
+
+
+_CROSSED = "no valid frame (a CRC match by scanning would swallow valid frames)"
 _BAD_CRC = "no valid frame (bad CRC)"
 _TRUNCATED = "truncated frame at end of stream"

@@ -24,6 +24,7 @@ from decimal import Decimal
 from typing import Any
 
 from mbmon.model import Annotation, Frame, Kind, Stream, Transaction, TxStatus
+from mbmon.protocol.functions import FUNCTIONS, PROFILE_TABLE
 from mbmon.semantics.regmap import (
     REGISTER_PREFIX,
     Field,
@@ -38,19 +39,8 @@ __all__ = ["Annotator", "SelectorMemory", "annotator_for", "field_notes"]
 
 _EMPTY = Annotation()
 
-#: function code -> profile table
-_TABLE = {
-    0x01: "coils",
-    0x05: "coils",
-    0x0F: "coils",
-    0x02: "discrete_inputs",
-    0x03: "holding_registers",
-    0x06: "holding_registers",
-    0x10: "holding_registers",
-    0x16: "holding_registers",
-    0x17: "holding_registers",
-    0x04: "input_registers",
-}
+#: function code -> profile table, from the one function-code table
+_TABLE = {code: PROFILE_TABLE[f.table] for code, f in FUNCTIONS.items() if f.table is not None}
 _BITS = frozenset({"coils", "discrete_inputs"})
 _MAX_RUN_WORDS = 12  # values shown in a merged run / block note before "…"
 _MAX_RUN_BITS = 8  # bits shown as ON/OFF words; longer runs list the ON ones

@@ -234,7 +234,11 @@ def test_flush_reports_truncated_tail() -> None:
     assert [f.raw for f in frames(out)] == [REQ_03]
     [n] = dec.flush(5.0)
     assert isinstance(n, Noise)
-    assert (n.raw, n.reason, n.ts) == (REQ_01[:5], "truncated ADU at end of stream", 5.0)
+    assert (n.raw, n.reason, n.ts) == (
+        REQ_01[:5],
+        "truncated ADU at end of stream",
+        1.0,
+    )  # when it arrived
     assert dec.flush(6.0) == []
 
 
@@ -242,7 +246,7 @@ def test_reset_after_gap_discards_and_resumes() -> None:
     dec = MbapDecoder(STREAM, Direction.C2S)
     assert frames(dec.feed(REQ_03 + REQ_10[:9], 1.0))[0].raw == REQ_03
     [n] = dec.reset(2.0)
-    assert (n.raw, n.reason, n.ts) == (REQ_10[:9], "discarded after gap", 2.0)
+    assert (n.raw, n.reason, n.ts) == (REQ_10[:9], "discarded after gap", 1.0)  # when it arrived
     assert dec.reset(2.5) == []
     [f] = dec.feed(REQ_05, 3.0)
     assert isinstance(f, Frame)

@@ -182,3 +182,14 @@ def test_request_context_ignored_when_not_a_pair() -> None:
     answer = decode_pdu(h("01 01 13"), True)
     pdu = decode_pdu(h("01 01 13"), True, answer)  # a response is no request
     assert pdu.values == (1, 1, 0, 0, 1, 0, 0, 0)
+
+
+def test_read_file_record_response_with_byte_count_0_is_malformed() -> None:
+    # issue 8 item 9: the request and both 0x15 frames were flagged, this was not
+    from mbmon.protocol.pdu import decode_pdu
+
+    pdu = decode_pdu(bytes([0x14, 0x00]), True)
+    assert pdu.malformed == "byte count 0"
+    assert decode_pdu(bytes([0x14, 0x00]), False).malformed is not None
+    ok = decode_pdu(bytes([0x14, 0x04, 0x03, 0x06, 0x00, 0x2A]), True)
+    assert ok.malformed is None

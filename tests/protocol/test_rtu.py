@@ -230,7 +230,7 @@ def test_reset_discards_buffer_and_pending_request() -> None:
     dec = RtuDecoder(BUS)
     assert frames(dec.feed(req + resp[:3], 1.0))[0].direction is Direction.C2S
     [n] = dec.reset(2.0)
-    assert (n.raw, n.reason, n.ts) == (resp[:3], "discarded after gap", 2.0)
+    assert (n.raw, n.reason, n.ts) == (resp[:3], "discarded after gap", 1.0)  # when it arrived
     # the request is forgotten: the echo bytes are now a request
     [f] = dec.feed(resp, 3.0)
     assert isinstance(f, Frame)
