@@ -19,14 +19,18 @@ frames its ADUs, pairs them and makes their JSON lines in one loop, on the
 *same* state objects the general flow uses: the TCP connection and its halves,
 the MBAP decoder, the pairer's pending requests, the pipeline's record index
 and counters, and the formatter's caches. Anything else (a handshake, a
-retransmission, a gap, noise, a reused transaction id, a timeout, a cache
+retransmission, a gap, noise, a reused transaction id, a timeout, a
+dissector timeout falling due (idle flows, holes, closed connections), a cache
 miss, another link type, UDP, RTU, IPv6, pcapng-only features) is handed to
 the general code for that packet, ADU or record, and the loop goes on. The
 output is therefore the general flow's, byte for byte, which
 ``tests/test_fastlane.py`` checks on every capture and on generated streams
 full of the cases above. ``MBMON_NO_FASTLANE=1`` turns the lane off.
 
-Owns no state of its own beyond its counters and the lines not yet written.
+Owns no state of its own beyond its counters and the lines not yet written
+(its per-direction decoder reference lives on the TCP half, so it goes when
+the dissector releases the connection). It keeps the dissector's idle clock
+(``last``) for the connections it serves.
 """
 
 from __future__ import annotations
@@ -58,7 +62,7 @@ from mbmon.model import (
 from mbmon.pipeline import _KIND_OF_PDU, Pipeline
 from mbmon.protocol.pairing import _needs_request
 from mbmon.protocol.pdu import decode_pdu
-from mbmon.sources.pcapfile import _Dissector, _eth_ipv4_tcp
+from mbmon.sources.dissect import Dissector, _eth_ipv4_tcp
 from mbmon.sources.tcpflow import ACK, MAX_ACK_JUMP
 
 __all__ = ["FastLane", "enabled"]
@@ -181,7 +185,7 @@ class FastLane:
             return line, None
         return line, (tpl if again == line else None)
 
-    def bind(self, dissector: _Dissector) -> Callable[..., None]:
+    def bind(self, dissector: Dissector) -> Callable[..., None]:
         """The packet callback for ``dissector``'s capture: the fused loop."""
         pipeline = self.pipeline
         lines = self.lines
@@ -202,9 +206,6 @@ class FastLane:
         template = self.template
         dumps = _json_bytes
         last_second = _last_second
-        # id(TCP half) -> [MBAP decoder, JSON head or None]: a half lives as long as
-        # the capture (the dissector keeps its connections), so its id is never reused
-        halves: dict[int, list[Any]] = {}
         # (PDU bytes, unit) -> (Pdu, template) of requests
         requests: dict[tuple[bytes, int], tuple[Any, bytes]] = {}
         # (PDU bytes, unit, id(request Pdu)) -> (request Pdu, exception?, malformed?,
@@ -225,7 +226,8 @@ class FastLane:
         def packet(
             ts: float, link: int, iface: int, buf: bytes, off: int, end: int, out: list[Any]
         ) -> None:
-            if link != 1 or end - off < 54:
+            if link != 1 or end - off < 54 or ts >= dissector._due:
+                # (a timeout fell due: the dissector handles it before the packet)
                 return general(ts, link, iface, buf, off, end, out)
             et, vihl, total, frag, proto, addrs, sport, dport, seq, ack, hl = _eth_ipv4_tcp(
                 buf, off
@@ -252,18 +254,21 @@ class FastLane:
                 if nxt is not None and nxt != ack and not other.done:
                     if 0 < (ack - nxt) & 0xFFFFFFFF <= MAX_ACK_JUMP:
                         return general(ts, link, iface, buf, off, end, out)
+            conn.last = dissector.good_ts = ts  # the dissector's clocks
             payload = buf[off + 34 + doff : ip_end]
             size = len(payload)
             if not size:  # a pure ACK
                 dissector.modbus_packets += 1
                 return None
-            state = halves.get(id(half))
+            # [MBAP decoder, JSON head or None], kept on the TCP half: it goes when the
+            # dissector releases the connection
+            state = half.lane
             if state is None:
                 direction = half.direction
                 decoder = decoders.get((stream.id, direction))
                 if decoder is None:
                     decoder = make_decoder(stream, direction)
-                state = halves[id(half)] = [decoder, None]
+                state = half.lane = [decoder, None]
             decoder, head = state
             if decoder._noise or not decoder._synced:
                 return general(ts, link, iface, buf, off, end, out)

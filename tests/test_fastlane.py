@@ -14,6 +14,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -40,24 +41,26 @@ REAL = REPO / ".." / "shared" / "captures" / "real"
 PSH_ACK = 0x18
 
 
-def general_output(path: Path, view: View, config: CaptureConfig, timeout: float = 1.0) -> bytes:
+def general_output(
+    path: Path, view: View, config: CaptureConfig, timeout: float = 1.0, **reader: Any
+) -> bytes:
     """The JSON lines of the general flow (what ``MBMON_NO_FASTLANE=1`` prints)."""
     pipeline = Pipeline(None, PipelineConfig(timeout=timeout))
     lines: list[bytes] = []
-    for item in read_capture(path, config):
+    for item in read_capture(path, config, **reader):
         lines += [record_json_bytes(r, view) for r in pipeline.feed(item)]
     lines += [record_json_bytes(r, view) for r in pipeline.finish()]
     return b"".join(line + b"\n" for line in lines)
 
 
 def lane_output(
-    path: Path, view: View, config: CaptureConfig, timeout: float = 1.0
-) -> tuple[bytes, FastLane, dict[str, int]]:
+    path: Path, view: View, config: CaptureConfig, timeout: float = 1.0, **reader: Any
+) -> tuple[bytes, FastLane, dict[str, Any]]:
     """The JSON lines of the fused reader, the lane itself and the capture statistics."""
     out = io.BytesIO()
     lane = FastLane(Pipeline(None, PipelineConfig(timeout=timeout)), view, out.write)
-    stats: dict[str, int] = {}
-    for item in read_capture(path, config, stats=stats, lane=lane.bind):
+    stats: dict[str, Any] = {}
+    for item in read_capture(path, config, stats=stats, lane=lane.bind, **reader):
         lane.records(lane.pipeline.feed(item))
     lane.records(lane.pipeline.finish())
     lane.flush(0)
@@ -255,6 +258,32 @@ def test_generated_captures_read_the_same_both_ways(tmp_path_factory: pytest.Tem
     path = tmp_path_factory.mktemp("lane") / "gen.pcap"
     _write_script(path, steps)
     same_both_ways(path)
+
+
+@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(captures())
+def test_dissector_timeouts_keep_both_ways_the_same(
+    tmp_path_factory: pytest.TempPathFactory, steps: list[tuple[str, object]]
+) -> None:
+    """Idle flows expiring and holes given up by time fall due between packets: the
+    fused loop hands such a packet to the dissector, which handles them first."""
+    path = tmp_path_factory.mktemp("lane") / "gen.pcap"
+    _write_script(path, steps)
+    reader = {"idle_timeout": 1.0, "hole_timeout": 0.4}
+    expected = general_output(path, View(), CaptureConfig(), **reader)
+    got, _, _ = lane_output(path, View(), CaptureConfig(), **reader)
+    assert got == expected
+
+
+def test_timeouts_reach_the_fused_loop(tmp_path: Path) -> None:
+    """A connection idle past the timeout is expired in both flows, at the same place."""
+    path = tmp_path / "idle.pcap"
+    _write_script(path, [("wait", 2.0), ("data", (0, True, ADUS[:1], 0))])
+    reader = {"idle_timeout": 1.0}
+    expected = general_output(path, View(), CaptureConfig(), **reader)
+    got, _, stats = lane_output(path, View(), CaptureConfig(), **reader)
+    assert got == expected
+    assert b'"how":"idle"' in got and stats["expired"] == 2
 
 
 def test_damaged_capture_same_lines_and_same_message(tmp_path: Path) -> None:
