@@ -178,7 +178,7 @@ class Dissector:
         self.malformed = 0
         self.unsupported_link = 0
         self.bus_records = 0
-        self.expired = 0  # flows ended by the idle timeout
+        self.expired = 0  # flows ended idle (timeout, or too many open: max_flows)
         self.hole_timeouts = 0  # holes given up by the hole timeout
         self.other_ports_dropped = 0  # non-Modbus packets whose port was not counted
 

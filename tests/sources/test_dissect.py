@@ -39,8 +39,7 @@ def feed(d: Dissector, packets: list[tuple[float, bytes]]) -> list[Chunk | Event
 
 def kinds(items: list[Chunk | Event]) -> list[str]:
     return [
-        f"{i.kind.value}" if isinstance(i, Event) else f"chunk@{i.ts}:{i.data.hex()}"
-        for i in items
+        f"{i.kind.value}" if isinstance(i, Event) else f"chunk@{i.ts}:{i.data.hex()}" for i in items
     ]
 
 
@@ -234,8 +233,10 @@ def test_a_million_connections_keep_memory_flat() -> None:
         tenth, full, streams, _, _ = map(int, stdout.split())
         assert streams == n, kind
         growth_mb = (full - tenth) / 1024
-        assert growth_mb < 16, f"{kind}: peak RSS {tenth / 1024:.0f} MB after {n // 10:,}, " \
+        assert growth_mb < 16, (
+            f"{kind}: peak RSS {tenth / 1024:.0f} MB after {n // 10:,}, "
             f"{full / 1024:.0f} MB after {n:,}"
+        )
 
 
 # --------------------------------------------------------------------------- time
@@ -373,3 +374,14 @@ def test_read_capture_stats_carry_the_busiest_ports(tmp_path: Path) -> None:
     stats: dict[str, object] = {}
     assert list(read_capture(path, stats=stats)) == []
     assert stats["busiest_ports"] == [("tcp", 1502, 5)]
+
+
+def test_the_dissector_imports_no_capture_library() -> None:
+    """Live capture uses scapy as a byte source only; the dissector never needs it."""
+    code = (
+        "import sys, mbmon.sources.dissect; "
+        "print(','.join(m for m in ('scapy', 'serial', 'pymodbus') if m in sys.modules))"
+    )
+    env = {"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert out.returncode == 0 and out.stdout.strip() == "", out.stderr
