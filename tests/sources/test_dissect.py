@@ -152,6 +152,19 @@ def test_udp_pairs_expire_when_idle() -> None:
     assert again[0].stream.id == first[0].stream.id + 1
 
 
+def test_rtu_buses_expire_when_idle_and_keep_their_names() -> None:
+    d = Dissector(CaptureConfig(), "bus", idle_timeout=10.0)
+    out: list[Chunk | Event] = []
+    for iface in (0, 1):
+        d.packet(1.0, pw.LINKTYPE_USER0, iface, b"\x01\x03", 0, 2, out)
+    assert [(c.stream.id, c.stream.client) for c in out] == [(0, "bus"), (1, "bus#1")]
+    bye = d.tick(11.0)
+    assert [(e.kind, e.info["how"]) for e in bye] == [(EventKind.DISCONNECT, "idle")] * 2
+    again: list[Chunk | Event] = []
+    d.packet(12.0, pw.LINKTYPE_USER0, 1, b"\x01", 0, 1, again)
+    assert [(c.stream.id, c.stream.client) for c in again] == [(2, "bus#1")]
+
+
 def test_open_connections_are_bounded_by_max_flows() -> None:
     d = Dissector(CaptureConfig(), max_flows=64)
     out: list[Chunk | Event] = []
