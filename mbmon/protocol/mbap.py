@@ -271,7 +271,8 @@ class MbapDecoder(StreamDecoder):
                         pdu = with_malformed(pdu, f"MBAP length {length} exceeds {max_len}")
                     append(
                         _new_frame(
-                            ts,
+                            # a resync candidate judged later keeps its own bytes' time
+                            ts if end > old else self._buf_ts,
                             stream,
                             direction,
                             raw[6],

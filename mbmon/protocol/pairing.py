@@ -88,8 +88,7 @@ class Pairer:
         self.max_total = max(1, max_total)
         # stream id -> pending requests in arrival order (dicts keep insertion order)
         self._pending: dict[int, dict[_Key, Frame]] = {}
-        # how many requests _pending holds (kept by every writer of _pending,
-        # the fused reader in mbmon.fastlane included)
+        # how many requests _pending holds (kept by every writer of _pending)
         self._total = 0
 
     @property

@@ -2,27 +2,25 @@
 
 This module owns reading capture containers (pcap in both byte orders with
 micro- or nanosecond stamps, pcapng with any mix of interfaces, InfoVista 5View,
-any of them gzip-compressed), dissecting link, IP and TCP/UDP headers, deciding
-which packets are Modbus (by port, :class:`CaptureConfig`), naming streams, and
-handing TCP segments to :mod:`mbmon.sources.tcpflow` for reassembly. The output
-is one iterator of :class:`~mbmon.model.Chunk` and :class:`~mbmon.model.Event`.
+any of them gzip-compressed) record by record and handing each record to the
+packet dissector, :class:`mbmon.sources.dissect.Dissector` (link, IP, TCP/UDP,
+which packets are Modbus, stream naming, reassembly; shared with live
+capture). The output is one iterator of :class:`~mbmon.model.Chunk` and
+:class:`~mbmon.model.Event`.
 
 Bytes never raise: headers that make no sense are counted (see ``stats``) and
 skipped; a file damaged in the middle ends the iteration with one ERROR event
-after everything before the damage. Only a file that cannot be opened or is not
-a capture at all raises :class:`CaptureError`, before anything is yielded.
+after everything before the damage, stamped with the time of the last good
+record (a record the damage garbled, read from the wrong offset, has a
+meaningless time). Only a file that cannot be opened or is not a capture at all
+raises :class:`CaptureError`, before anything is yielded.
 
-Streams: TCP and UDP packets to or from a configured port are Modbus; the
-endpoint with the configured port is the server (both configured: the SYN
-receiver, else the lower port). Stream ids count from 0 in order of first
-appearance; a TCP connection reopened on the same addresses (a SYN after the
-end, or with a new initial sequence number) is a new stream. UDP: one chunk per
-datagram. Link type 147 (USER0): each record is bytes of one RTU bus, stream
-``client = server = file name`` (``name#<interface>`` for a second bus).
-Timestamps are epoch seconds as floats; a pcapng Simple Packet Block has none
-and takes the previous packet's. IP fragments are not reassembled: they are
-counted; later fragments are skipped, a first fragment is read like a packet
-cut short (a TCP segment delivers what it holds, the rest becomes a GAP).
+Streams are the dissector's (ids from 0 in order of first appearance); RTU bus
+records (link type 147) are named after the file (``name#<interface>`` for a
+second bus). Timestamps are epoch seconds as floats; a pcapng Simple Packet
+Block has none and takes the previous packet's. Time is the capture's: the
+dissector's idle timeout and (when asked) hole timeout run on the records'
+timestamps.
 
 Pure Python and no scapy: on a 200k-packet capture this reader turns packets
 into chunks about 1.8x faster than scapy's ``RawPcapReader`` merely feeding the
@@ -33,40 +31,24 @@ same dissector, and its container reading alone is about 4x faster than
 from __future__ import annotations
 
 import gzip
-import ipaddress
 import os
 import struct
 import zlib
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport
-from mbmon.sources.tcpflow import ACK, SYN, TcpConnection, TcpStats, make_chunk
+from mbmon.model import Chunk, Event, EventKind
+from mbmon.sources.dissect import CaptureConfig, Dissector
 
 __all__ = ["CaptureConfig", "CaptureError", "read_capture"]
 
 _BLOCK = 1 << 20  # file read size; progress is reported once per block
 _MAX_RECORD = 1 << 26  # larger records or blocks mean a corrupt file
-_TCP_HOLD_LIMIT = 1 << 20  # out-of-order bytes held per TCP direction
 
-_C2S = Direction.C2S
-_S2C = Direction.S2C
-
-
-@dataclass(frozen=True, slots=True)
-class CaptureConfig:
-    """Which ports carry Modbus.
-
-    ``tcp_ports``: Modbus/TCP (MBAP) server ports, for TCP and UDP.
-    ``rtu_ports``: RTU-over-TCP/UDP server ports; a port in both sets is RTU
-    (the explicit choice wins over the default 502).
-    """
-
-    tcp_ports: frozenset[int] = frozenset({502})
-    rtu_ports: frozenset[int] = frozenset()
+_Dissector = Dissector  # the name bench/pcap_reader.py knows
+_DEFAULT_CONFIG = CaptureConfig()  # Modbus/TCP on port 502
 
 
 class CaptureError(Exception):
@@ -415,398 +397,40 @@ def _open_pump(inp: _Input, name: str) -> _Pump:
     raise CaptureError(f"{name}: not a pcap or pcapng file (magic 0x{magic_be:08x})")
 
 
-# --------------------------------------------------------------------------- dissection
-
-
-def _address(raw: bytes, port: int) -> str:
-    if len(raw) == 4:
-        return f"{raw[0]}.{raw[1]}.{raw[2]}.{raw[3]}:{port}"
-    return f"[{ipaddress.IPv6Address(raw).compressed}]:{port}"
-
-
-_ETHERNET = 1
-_RAW = frozenset({101, 12, 14})
-_LOOPBACK = frozenset({0, 108})
-_AF_INET6 = frozenset({10, 23, 24, 28, 30})
-_VLAN = frozenset({0x8100, 0x88A8, 0x9100})
-_IPV6_EXT = frozenset({0, 43, 60, 135, 139, 140, 253, 254})
-
-_tcp_unpack = struct.Struct("!HHIIH").unpack_from
-_udp_unpack = struct.Struct("!HHH").unpack_from
-_ipv4_unpack = struct.Struct("!BxHxxHxB").unpack_from
-# Ethernet type, IPv4 (version/IHL, length, flags/offset, protocol, addresses), TCP
-_eth_ipv4_tcp = struct.Struct("!12xHBxHxxHxBxx8sHHIIH").unpack_from
-_h_unpack = struct.Struct("!H").unpack_from
-_af_unpack = struct.Struct("<I").unpack_from
-
-
-class _Dissector:
-    """From link-layer records to chunks and events; owns stream identity."""
-
-    def __init__(self, config: CaptureConfig, bus_name: str) -> None:
-        self.rtu_ports = config.rtu_ports
-        self.ports = config.tcp_ports | config.rtu_ports
-        self.bus_name = bus_name
-        self.tcp: dict[tuple[bytes, int, int], tuple[TcpConnection, bool]] = {}
-        self.udp: dict[tuple[bytes, int, int], tuple[Stream, Direction]] = {}
-        self.buses: dict[int, Stream] = {}
-        self.connections: list[TcpConnection] = []
-        self.next_id = 0
-        self.tcp_stats = TcpStats()
-        self.modbus_packets = 0
-        self.non_modbus = 0
-        self.non_ip = 0
-        self.truncated = 0
-        self.fragments = 0
-        self.malformed = 0
-        self.unsupported_link = 0
-        self.bus_records = 0
-
-    def stats(self) -> dict[str, int]:
-        counters = {
-            "modbus_packets": self.modbus_packets,
-            "non_modbus": self.non_modbus,
-            "non_ip": self.non_ip,
-            "truncated": self.truncated,
-            "fragments": self.fragments,
-            "malformed": self.malformed,
-            "unsupported_link": self.unsupported_link,
-            "bus_records": self.bus_records,
-            "streams": self.next_id,
-        }
-        counters.update(self.tcp_stats.as_dict())
-        return counters
-
-    def _stream(self, transport: Transport, client: str, server: str) -> Stream:
-        stream = Stream(self.next_id, transport, client, server)
-        self.next_id += 1
-        return stream
-
-    def packet(
-        self, ts: float, link: int, iface: int, buf: bytes, off: int, end: int, out: list[Any]
-    ) -> None:
-        """Dissect one record; append the chunks and events it causes to ``out``."""
-        if link == 1 and end - off >= 54:
-            # Fast path for the common case, Ethernet + IPv4 without options + TCP,
-            # in one unpack; anything else takes the general path below.
-            et, vihl, total, frag, proto, addrs, sport, dport, seq, ack, hl = _eth_ipv4_tcp(
-                buf, off
-            )
-            if et == 0x0800 and vihl == 0x45 and proto == 6 and not frag & 0x3FFF:
-                ports = self.ports
-                if sport not in ports and dport not in ports:
-                    self.non_modbus += 1
-                    return
-                ip_end = off + 14 + total
-                doff = (hl >> 10) & 0x3C
-                if 40 <= total and ip_end <= end and 20 <= doff <= total - 20:
-                    self.modbus_packets += 1
-                    flags = hl & 0xFF
-                    key = (addrs, sport, dport)
-                    flow = self.tcp.get(key)
-                    payload = buf[off + 34 + doff : ip_end]
-                    if flow is None or flags & SYN or flow[0].closed:
-                        flow = self._tcp_flow(key, flow, ts, seq, flags, bool(payload), out)
-                    flow[0].segment(ts, flow[1], seq, ack, flags, payload, out)
-                    return
-        # ---- link layer -> ethertype
-        if link == _ETHERNET:
-            if end - off < 14:
-                self.truncated += 1
-                return
-            et = (buf[off + 12] << 8) | buf[off + 13]
-            off += 14
-        elif link == 147:
-            self._bus(ts, iface, buf[off:end], out)
-            return
-        elif link == 113:  # Linux cooked v1
-            if end - off < 16:
-                self.truncated += 1
-                return
-            et = (buf[off + 14] << 8) | buf[off + 15]
-            off += 16
-        elif link == 276:  # Linux cooked v2
-            if end - off < 20:
-                self.truncated += 1
-                return
-            et = (buf[off] << 8) | buf[off + 1]
-            off += 20
-        elif link in _RAW:
-            if end <= off:
-                self.truncated += 1
-                return
-            version = buf[off] >> 4
-            et = 0x0800 if version == 4 else 0x86DD if version == 6 else 0
-        elif link in _LOOPBACK:
-            if end - off < 4:
-                self.truncated += 1
-                return
-            family = _af_unpack(buf, off)[0]
-            if family > 0xFFFF:  # written in the other byte order
-                family = int.from_bytes(buf[off : off + 4], "big")
-            et = 0x0800 if family == 2 else 0x86DD if family in _AF_INET6 else 0
-            off += 4
-        elif link == 228:
-            et = 0x0800
-        elif link == 229:
-            et = 0x86DD
-        elif link < 0:  # a packet block naming an interface that was never described
-            self.malformed += 1
-            return
-        else:
-            self.unsupported_link += 1
-            return
-        while et in _VLAN:
-            if end - off < 4:
-                self.truncated += 1
-                return
-            et = (buf[off + 2] << 8) | buf[off + 3]
-            off += 4
-        # ---- network layer
-        short = False
-        if et == 0x0800:
-            if end - off < 20:
-                self.truncated += 1
-                return
-            vihl, total, frag, proto = _ipv4_unpack(buf, off)
-            ihl = (vihl & 15) << 2
-            if vihl >> 4 != 4 or ihl < 20:
-                self.malformed += 1
-                return
-            if total == 0:  # segmentation offload: the length is left to the capture
-                ip_end = end
-            elif total < ihl:
-                self.malformed += 1
-                return
-            else:
-                ip_end = off + total
-                if ip_end > end:  # cut by the snap length: counted if it matters below
-                    short = True
-                    ip_end = end
-            if frag & 0x3FFF:  # more-fragments or an offset
-                self.fragments += 1
-                if frag & 0x1FFF:  # not the first fragment: no transport header
-                    return
-                short = True  # the first one: a cut packet
-            addr_at, addr_len = off + 12, 8
-            l4 = off + ihl
-        elif et == 0x86DD:
-            if end - off < 40:
-                self.truncated += 1
-                return
-            if buf[off] >> 4 != 6:
-                self.malformed += 1
-                return
-            plen = (buf[off + 4] << 8) | buf[off + 5]
-            ip_end = off + 40 + plen if plen else end
-            if ip_end > end:
-                short = True
-                ip_end = end
-            proto = buf[off + 6]
-            addr_at, addr_len = off + 8, 32
-            l4 = off + 40
-            for _ in range(16):
-                if proto in _IPV6_EXT:
-                    if ip_end - l4 < 8:
-                        self.truncated += 1
-                        return
-                    proto, l4 = buf[l4], l4 + ((buf[l4 + 1] + 1) << 3)
-                elif proto == 44:  # fragment header
-                    if ip_end - l4 < 8:
-                        self.truncated += 1
-                        return
-                    frag = _h_unpack(buf, l4 + 2)[0]
-                    if frag & 0xFFF9:  # offset or more-fragments
-                        self.fragments += 1
-                        if frag & 0xFFF8:  # not the first fragment
-                            return
-                        short = True
-                    proto, l4 = buf[l4], l4 + 8
-                elif proto == 51:  # authentication header
-                    if ip_end - l4 < 8:
-                        self.truncated += 1
-                        return
-                    proto, l4 = buf[l4], l4 + ((buf[l4 + 1] + 2) << 2)
-                else:
-                    break
-        else:
-            self.non_ip += 1
-            return
-        # ---- transport layer
-        if proto == 6:
-            if ip_end - l4 < 20:
-                if ip_end < l4:
-                    self.malformed += 1
-                else:
-                    self.truncated += 1
-                return
-            sport, dport, seq, ack, hl = _tcp_unpack(buf, l4)
-            ports = self.ports
-            if sport not in ports and dport not in ports:
-                self.non_modbus += 1
-                return
-            self.modbus_packets += 1
-            doff = (hl >> 10) & 0x3C
-            if doff < 20:
-                self.malformed += 1
-                return
-            if l4 + doff > ip_end:
-                self.truncated += 1
-                return
-            flags = hl & 0xFF
-            key = (buf[addr_at : addr_at + addr_len], sport, dport)
-            flow = self.tcp.get(key)
-            payload = buf[l4 + doff : ip_end]
-            if flow is None or flags & SYN or flow[0].closed:
-                flow = self._tcp_flow(key, flow, ts, seq, flags, bool(payload), out)
-            flow[0].segment(ts, flow[1], seq, ack, flags, payload, out)
-            if short:
-                self.truncated += 1
-        elif proto == 17:
-            if ip_end - l4 < 8:
-                if ip_end < l4:
-                    self.malformed += 1
-                else:
-                    self.truncated += 1
-                return
-            sport, dport, ulen = _udp_unpack(buf, l4)
-            ports = self.ports
-            if sport not in ports and dport not in ports:
-                self.non_modbus += 1
-                return
-            self.modbus_packets += 1
-            if ulen < 8:
-                self.malformed += 1
-                return
-            if l4 + ulen > ip_end:  # cut, or a first fragment: half a datagram is none
-                self.truncated += 1
-                return
-            if ulen == 8:
-                return
-            key = (buf[addr_at : addr_at + addr_len], sport, dport)
-            dgram = self.udp.get(key)
-            if dgram is None:
-                dgram = self._new_udp(key)
-            out.append(make_chunk(ts, dgram[0], dgram[1], buf[l4 + 8 : l4 + ulen]))
-        else:
-            self.non_modbus += 1
-
-    def _roles(self, key: tuple[bytes, int, int], flags: int) -> tuple[bool, int]:
-        """Whether the sender of this first packet is the client, and the server port.
-
-        The server is the endpoint whose port is configured; when both are, the SYN
-        receiver (SYN-ACK sender) is, else the lower port, else the receiver."""
-        _, sport, dport = key
-        src_in, dst_in = sport in self.ports, dport in self.ports
-        if src_in and dst_in:
-            if flags & (SYN | ACK) == SYN:
-                sender_is_client = True
-            elif flags & (SYN | ACK) == SYN | ACK:
-                sender_is_client = False
-            else:
-                sender_is_client = dport <= sport
-        else:
-            sender_is_client = dst_in
-        server_port = dport if sender_is_client else sport
-        return sender_is_client, server_port
-
-    def _endpoints(self, key: tuple[bytes, int, int], sender_is_client: bool) -> tuple[str, str]:
-        addrs, sport, dport = key
-        half = len(addrs) // 2
-        src, dst = _address(addrs[:half], sport), _address(addrs[half:], dport)
-        return (src, dst) if sender_is_client else (dst, src)
-
-    def _tcp_flow(
-        self,
-        key: tuple[bytes, int, int],
-        flow: tuple[TcpConnection, bool] | None,
-        ts: float,
-        seq: int,
-        flags: int,
-        has_payload: bool,
-        out: list[Any],
-    ) -> tuple[TcpConnection, bool]:
-        """The connection a segment belongs to: a new one for new addresses, or when
-        the segment opens a new connection on addresses seen before."""
-        if flow is None:
-            return self._new_tcp(key, flags, out)
-        if (flags & SYN or flow[0].closed) and flow[0].is_new(flow[1], seq, flags, has_payload):
-            flow[0].finish(ts, out, "replaced")
-            return self._new_tcp(key, flags, out)
-        return flow
-
-    def _new_tcp(
-        self, key: tuple[bytes, int, int], flags: int, out: list[Any]
-    ) -> tuple[TcpConnection, bool]:
-        sender_is_client, server_port = self._roles(key, flags)
-        transport = Transport.RTU_OVER_TCP if server_port in self.rtu_ports else Transport.TCP
-        client, server = self._endpoints(key, sender_is_client)
-        conn = TcpConnection(
-            self._stream(transport, client, server), limit=_TCP_HOLD_LIMIT, stats=self.tcp_stats
-        )
-        self.connections.append(conn)
-        addrs, sport, dport = key
-        half = len(addrs) // 2
-        flow = (conn, sender_is_client)
-        self.tcp[key] = flow
-        self.tcp[(addrs[half:] + addrs[:half], dport, sport)] = (conn, not sender_is_client)
-        return flow
-
-    def _new_udp(self, key: tuple[bytes, int, int]) -> tuple[Stream, Direction]:
-        sender_is_client, server_port = self._roles(key, 0)
-        transport = Transport.RTU_OVER_UDP if server_port in self.rtu_ports else Transport.UDP
-        client, server = self._endpoints(key, sender_is_client)
-        stream = self._stream(transport, client, server)
-        addrs, sport, dport = key
-        half = len(addrs) // 2
-        flow = (stream, _C2S if sender_is_client else _S2C)
-        self.udp[key] = flow
-        self.udp[(addrs[half:] + addrs[:half], dport, sport)] = (
-            stream,
-            _S2C if sender_is_client else _C2S,
-        )
-        return flow
-
-    def _bus(self, ts: float, iface: int, data: bytes, out: list[Any]) -> None:
-        """Link type 147: each record is bytes read from one RS485 bus (RTU)."""
-        self.bus_records += 1
-        stream = self.buses.get(iface)
-        if stream is None:
-            name = self.bus_name if not self.buses else f"{self.bus_name}#{iface}"
-            stream = self.buses[iface] = self._stream(Transport.RTU, name, name)
-        if data:
-            out.append(make_chunk(ts, stream, Direction.BUS, data))
-
-    def finish(self, ts: float, out: list[Any]) -> None:
-        """The capture ended: release every held TCP byte and half-closed connection."""
-        for conn in self.connections:
-            conn.finish(ts, out)
-
-
 # --------------------------------------------------------------------------- API
 
 
 def read_capture(
     path: str | Path,
-    config: CaptureConfig = CaptureConfig(),
+    config: CaptureConfig = _DEFAULT_CONFIG,
     progress: Callable[[int, int], None] | None = None,
-    stats: dict[str, int] | None = None,
-    lane: Callable[[_Dissector], _Packet] | None = None,
+    stats: dict[str, Any] | None = None,
+    *,
+    idle_timeout: float | None = None,
+    hole_timeout: float | None = None,
 ) -> Iterator[Chunk | Event]:
     """Chunks and events of the Modbus traffic in a capture file, in capture order.
 
     Raises :class:`CaptureError` at once (before the iterator exists) when the file
     cannot be opened or is no capture. A file damaged later yields everything
-    before the damage, then one ``Event(ERROR, info={"message": ...})``.
+    before the damage, then one ``Event(ERROR, info={"message": ...})`` stamped
+    with the time of the last good record.
     ``progress(bytes_read, total_bytes)`` is called about once per MiB read.
     ``stats``, when given, is filled with counters when the iteration ends
-    (``packets``, ``modbus_packets``, ``non_modbus``, ``non_ip``, ``truncated``,
-    ``fragments``, ``malformed``, ``unsupported_link``, ``bus_records``,
-    ``streams``, ``retransmissions``, ``overlaps``, ``out_of_order``, ``gaps``,
-    ``gap_bytes``, ``after_close``, ``bytes``).
-    ``lane``, when given, makes the packet callback from the dissector instead of
-    using ``dissector.packet``: the fused reader (:mod:`mbmon.fastlane`) handles
-    packets itself and hands the others to the dissector.
+    (``packets``, ``bytes`` and the dissector's: ``modbus_packets``,
+    ``non_modbus``, ``non_ip``, ``truncated``, ``fragments``, ``malformed``,
+    ``unsupported_link``, ``bus_records``, ``streams``, ``expired``,
+    ``hole_timeouts``, ``open_connections``, ``retransmissions``, ``overlaps``,
+    ``out_of_order``, ``gaps``, ``gap_bytes``, ``after_close``), plus
+    ``busiest_ports``: the non-Modbus ports with the most packets, a list of
+    ``("tcp"|"udp", port, packets)`` (see :meth:`Dissector.busiest_ports`).
+    ``idle_timeout`` and ``hole_timeout`` are the dissector's, in capture time;
+    by default a file expires no flow for idleness (a Modbus client may poll
+    once in twenty minutes: its connection stays one stream) and waits for a
+    hole's retransmission (its ACKs, the hold limit or the end give a hole up);
+    state stays bounded all the same: closed connections are released and more
+    than :data:`~mbmon.sources.dissect.MAX_FLOWS` open ones expire the least
+    recently active.
     """
     path = Path(path)
     name = str(path)
@@ -830,7 +454,8 @@ def read_capture(
     except BaseException:
         raw.close()
         raise
-    return _iterate(pump, inp, raw, name, config, stats, lane)
+    dissector = Dissector(config, path.name, idle_timeout=idle_timeout, hole_timeout=hole_timeout)
+    return _iterate(pump, inp, raw, name, dissector, stats)
 
 
 def _iterate(
@@ -838,16 +463,15 @@ def _iterate(
     inp: _Input,
     raw: BinaryIO,
     name: str,
-    config: CaptureConfig,
-    stats: dict[str, int] | None,
-    lane: Callable[[_Dissector], _Packet] | None,
+    dissector: Dissector,
+    stats: dict[str, Any] | None,
 ) -> Iterator[Chunk | Event]:
-    dissector = _Dissector(config, Path(name).name)
-    packet = dissector.packet if lane is None else lane(dissector)
+    packet = dissector.packet
     out: list[Any] = []
     error: str | None = None
     complete = False
     try:
+        end_ts = 0.0
         try:
             yield from pump(packet, out)
         except _Damage as damage:
@@ -855,13 +479,18 @@ def _iterate(
                 f"{name}: {damage.what} at byte {damage.offset} (packet {inp.count + 1}); "
                 f"{inp.count} packets read"
             )
+            # the records read last may be the damage itself (a length field garbled,
+            # the next "records" read from the wrong offset, a zero-filled tail): their
+            # times are no times; the last record that parsed as a packet has a good one
+            end_ts = _last_good(inp, dissector)
         except (OSError, EOFError, zlib.error) as exc:
             error = f"{name}: read error after {inp.count} packets ({exc})"
-        dissector.finish(inp.last_ts, out)
-        yield from out
-        out.clear()
+            end_ts = inp.last_ts
+        else:
+            end_ts = inp.last_ts
+        yield from dissector.finish(end_ts)
         if error is not None:
-            yield Event(inp.last_ts, None, EventKind.ERROR, {"message": error})
+            yield Event(end_ts, None, EventKind.ERROR, {"message": error})
         complete = error is None
     finally:
         if inp.progress is not None:
@@ -871,3 +500,9 @@ def _iterate(
             stats.update(dissector.stats())
             stats["packets"] = inp.count
             stats["bytes"] = inp.base + inp.pos
+            stats["busiest_ports"] = dissector.busiest_ports()
+
+
+def _last_good(inp: _Input, dissector: Dissector) -> float:
+    """The time of the last record before the damage that made sense as a packet."""
+    return inp.last_ts if dissector.good_ts is None else dissector.good_ts

@@ -13,15 +13,21 @@ A connection turns the segments a capture saw into in-order payload
 * **Retransmission / overlap.** Bytes already delivered are dropped; a segment
   that overlaps old and new bytes delivers only the new ones.
 * **Out of order.** A segment ahead of the expected number is held (at most
-  ``limit`` bytes per direction) and delivered, with the timestamp of the packet
-  that filled the hole, as soon as the hole fills.
+  ``limit`` bytes per direction) and delivered as soon as the hole fills, as
+  chunks of its own that keep the segment's own capture time: every chunk
+  carries the time of the packet that carried its bytes, so an ADU held behind
+  a hole keeps the time it was sent (its last byte's segment), not the time
+  the hole was filled or given up.
 * **Gaps.** A hole is given up, reported as ``Event(GAP, info={"direction",
   "bytes", "reason"})`` and skipped, when (a) the other side acknowledges bytes
   beyond it (``reason="acked-unseen"``: the receiver has them, so no
   retransmission will ever show them to us; an ack more than 16 MiB ahead is
   ignored as garbage), (b) the held bytes exceed ``limit``
   (``"buffer-limit"``), (c) the connection is reset or replaced (``"reset"``,
-  ``"replaced"``), or (d) the capture ends (``"end-of-capture"``). Held bytes
+  ``"replaced"``), (d) the capture ends (``"end-of-capture"``), (e) the oldest
+  held segment has waited ``timeout`` seconds of capture time
+  (:meth:`TcpConnection.expire_holes`, ``"timeout"``; the GAP is stamped with
+  that deadline), or (f) the connection expires idle (``"idle"``). Held bytes
   after the hole are then delivered; the decoder resynchronises. A segment's
   acknowledgement is applied before its own payload: the bytes a hole was
   holding back were received before the reply was sent, so they come first.
@@ -33,17 +39,24 @@ A connection turns the segments a capture saw into in-order payload
   before the FINs (including the answer to a half-closed request) comes first.
   A connection that saw only one FIN when the capture ends gets its DISCONNECT
   from :meth:`TcpConnection.finish` with ``half_closed=True``.
+* **Idle.** :meth:`TcpConnection.expire` ends a connection that saw no packet
+  for a while (the dissector's idle timeout): held bytes are released first,
+  then ``DISCONNECT`` with ``how="idle"``.
 * **After the end.** Payload on a closed connection is counted and dropped; a
   new SYN on the same addresses is a new connection, and so is a SYN-ACK or
   payload far from the old sequence numbers after the end (the caller's job:
   see :meth:`TcpConnection.is_new`).
 
-Pure: no I/O, no clocks; the caller feeds parsed segments.
+Pure: no I/O, no clocks; the caller feeds parsed segments. A ``watcher`` (the
+dissector) is told when a connection starts holding bytes behind a hole and
+when it closes, so it can schedule hole timeouts and release closed
+connections without looking at every connection on every packet.
 """
 
 from __future__ import annotations
 
 from bisect import insort
+from typing import Protocol
 
 from mbmon.model import Chunk, Direction, Event, EventKind, Stream, fast_constructor
 
@@ -66,6 +79,16 @@ REUSE_DISTANCE = 1 << 20
 make_chunk = fast_constructor(Chunk)
 _C2S = Direction.C2S
 _S2C = Direction.S2C
+
+
+class Watcher(Protocol):
+    """Who is told about a connection's life (the dissector)."""
+
+    def held(self, conn: TcpConnection, ts: float) -> None:
+        """``conn`` started holding bytes behind a hole at ``ts`` (none held before)."""
+
+    def closed(self, conn: TcpConnection, ts: float) -> None:
+        """``conn`` ended (both FINs reached, a RST, or a half-closed end)."""
 
 
 class TcpStats:
@@ -101,7 +124,8 @@ class _Half:
         self.direction = direction
         self.nxt: int | None = None  # next expected sequence number (32-bit)
         self.isn: int | None = None  # from the SYN, when seen
-        self.held: list[tuple[int, bytes]] = []  # (seq, data), in sequence order
+        # (seq, data, capture time), in sequence order
+        self.held: list[tuple[int, bytes, float]] = []
         self.held_bytes = 0
         self.fin: int | None = None  # sequence number of the FIN
         self.done = False  # FIN reached in order
@@ -120,19 +144,42 @@ class TcpConnection:
     made per segment).
     """
 
-    __slots__ = ("_c2s", "_s2c", "closed", "connected", "fin_by", "limit", "stats", "stream")
+    __slots__ = (
+        "_c2s",
+        "_s2c",
+        "closed",
+        "connected",
+        "fin_by",
+        "last",
+        "limit",
+        "stats",
+        "stream",
+        "watcher",
+    )
 
     def __init__(
-        self, stream: Stream, *, limit: int = 1 << 20, stats: TcpStats | None = None
+        self,
+        stream: Stream,
+        *,
+        limit: int = 1 << 20,
+        stats: TcpStats | None = None,
+        watcher: Watcher | None = None,
     ) -> None:
         self.stream = stream
         self.limit = limit
         self.stats = stats if stats is not None else TcpStats()
+        self.watcher = watcher
         self._c2s = _Half(_C2S)
         self._s2c = _Half(_S2C)
         self.connected = False
         self.closed = False
         self.fin_by: str | None = None
+        self.last = float("-inf")  # capture time of the last segment (idle expiry)
+
+    def _closed(self, ts: float) -> None:
+        self.closed = True
+        if self.watcher is not None:
+            self.watcher.closed(self, ts)
 
     def is_new(self, from_client: bool, seq: int, flags: int, has_payload: bool) -> bool:
         """Whether this segment belongs to a new connection on the same addresses:
@@ -173,6 +220,7 @@ class TcpConnection:
         out: list[Chunk | Event],
     ) -> None:
         """Account for one captured segment; append what it releases to ``out``."""
+        self.last = ts
         if from_client:
             half, other = self._c2s, self._s2c
         else:
@@ -200,7 +248,6 @@ class TcpConnection:
         if flags & RST:
             self._flush(half, ts, out, "reset")
             self._flush(other, ts, out, "reset")
-            self.closed = True
             out.append(
                 Event(
                     ts,
@@ -209,6 +256,7 @@ class TcpConnection:
                     {"how": "rst", "by": "client" if from_client else "server"},
                 )
             )
+            self._closed(ts)
             return
         if flags & SYN and flags & FIN:
             # SYN+FIN is no valid segment (stacks drop it; fuzzers send it): the FIN
@@ -249,7 +297,6 @@ class TcpConnection:
         self._flush(self._c2s, ts, out, reason)
         self._flush(self._s2c, ts, out, reason)
         if not self.closed and self.fin_by is not None and reason == "end-of-capture":
-            self.closed = True
             out.append(
                 Event(
                     ts,
@@ -258,6 +305,48 @@ class TcpConnection:
                     {"how": "fin", "by": self.fin_by, "half_closed": True},
                 )
             )
+            self._closed(ts)
+
+    def seen(self) -> bool:
+        """Whether the connection showed anything (a SYN, payload or a FIN)."""
+        return self.connected or self._c2s.nxt is not None or self._s2c.nxt is not None
+
+    def expire(self, ts: float, out: list[Chunk | Event], reason: str) -> None:
+        """The connection went idle (no packet for the idle timeout; ``ts`` is when
+        it expired): give up every hole and deliver what was held, then one
+        ``DISCONNECT`` with ``how="idle"`` and ``reason`` (unless it showed nothing
+        at all: a lone ACK). Its state can then be dropped."""
+        if self.closed:
+            return
+        self._flush(self._c2s, ts, out, "idle")
+        self._flush(self._s2c, ts, out, "idle")
+        if not self.closed:
+            if self.seen():
+                info: dict[str, object] = {"how": "idle", "reason": reason}
+                if self.fin_by is not None:
+                    info["by"] = self.fin_by
+                    info["half_closed"] = True
+                out.append(Event(ts, self.stream, EventKind.DISCONNECT, info))
+            self._closed(ts)
+
+    def hole_deadline(self, timeout: float) -> float | None:
+        """When the oldest held segment will have waited ``timeout``, or ``None``."""
+        oldest = [t for half in (self._c2s, self._s2c) for _, _, t in half.held]
+        return min(oldest) + timeout if oldest else None
+
+    def expire_holes(self, now: float, timeout: float, out: list[Chunk | Event]) -> float | None:
+        """Give up the holes in front of every segment held ``timeout`` seconds or
+        longer at ``now`` (GAP ``reason="timeout"``, stamped with the moment the
+        segment's wait ran out); return the next such moment, or ``None``."""
+        for half in (self._c2s, self._s2c):
+            while half.held and half.nxt is not None and not self.closed:
+                due = min(t for _, _, t in half.held) + timeout
+                if due > now:
+                    break
+                self._skip(half, due, half.held[0][0], out, "timeout")
+        if self.closed:
+            return None
+        return self.hole_deadline(timeout)
 
     # -- internals ---------------------------------------------------------------
 
@@ -286,18 +375,23 @@ class TcpConnection:
                 self._drain(half, ts, out)
             return
         self.stats.out_of_order += 1
-        insort(half.held, (seq, payload), key=lambda item: _signed(item[0] - nxt))
+        if not half.held and self.watcher is not None:
+            other = self._s2c if half is self._c2s else self._c2s
+            if not other.held:
+                self.watcher.held(self, ts)
+        insort(half.held, (seq, payload, ts), key=lambda item: _signed(item[0] - nxt))
         half.held_bytes += len(payload)
         while half.held and half.held_bytes > self.limit:
             self._skip(half, ts, half.held[0][0], out, "buffer-limit")
 
     def _drain(self, half: _Half, ts: float, out: list[Chunk | Event]) -> None:
-        """Deliver held segments that became contiguous; notice a FIN reached."""
+        """Deliver held segments that became contiguous, each with its own capture
+        time; notice a FIN reached."""
         held = half.held
         nxt = half.nxt
         assert nxt is not None
         while held:
-            seq, data = held[0]
+            seq, data, at = held[0]
             diff = _signed(seq - nxt)
             if diff > 0:
                 break
@@ -307,7 +401,7 @@ class TcpConnection:
                 continue
             if diff:
                 data = data[-diff:]
-            out.append(make_chunk(ts, self.stream, half.direction, data))
+            out.append(make_chunk(at, self.stream, half.direction, data))
             nxt = (nxt + len(data)) & _MASK
         half.nxt = nxt
         if half.fin is not None and not half.done and _signed(nxt - half.fin) >= 0:
@@ -317,10 +411,10 @@ class TcpConnection:
             half.held_bytes = 0
             other = self._s2c if half is self._c2s else self._c2s
             if other.done and not self.closed:
-                self.closed = True
                 out.append(
                     Event(ts, self.stream, EventKind.DISCONNECT, {"how": "fin", "by": self.fin_by})
                 )
+                self._closed(ts)
 
     def _skip(self, half: _Half, ts: float, to: int, out: list[Chunk | Event], reason: str) -> None:
         """Give up the hole from ``half.nxt`` to ``to`` (a GAP), then drain."""

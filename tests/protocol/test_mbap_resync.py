@@ -195,3 +195,17 @@ def test_tick_leaves_partial_adu_in_sync_alone() -> None:
     assert dec.next_deadline() is None
     assert dec.tick(100.0) == []
     assert [f.raw for f in frames(dec.feed(REQ_03[5:], 101.0))] == [REQ_03]
+
+
+def test_a_candidate_corroborated_later_keeps_the_time_its_bytes_arrived() -> None:
+    """Noise, then a header whose code has no predictable length (0x22) at t=1; the next
+    header that corroborates it arrives at t=2: the frame is stamped 1, not 2 (zeek
+    fuzz-72 frame 7)."""
+    dec = MbapDecoder(STREAM, Direction.C2S)
+    first = dec.feed(
+        bytes.fromhex("00 00") + bytes.fromhex("00 02 00 00 00 06 01 22 00 00 00 00"), 1.0
+    )
+    assert not [x for x in first if isinstance(x, Frame)]  # undecided yet
+    later = dec.feed(REQ_03, 2.0)
+    frames = [x for x in later if isinstance(x, Frame)]
+    assert [(f.pdu.fc, f.ts) for f in frames] == [(0x22, 1.0), (0x03, 2.0)]

@@ -599,6 +599,27 @@ def test_truncated_pcap_at_every_offset(tmp_path: Path) -> None:
         assert len(chunks(body)) == expected_chunks
 
 
+@pytest.mark.parametrize(
+    "tail",
+    [
+        pytest.param(bytes(40), id="zero-filled"),  # the file was never written to the end
+        # a record whose length field was garbled: its "time" and bytes are noise
+        pytest.param(struct.pack("<IIII", 4_000_000_000, 7, 20, 20) + b"\xff" * 12, id="garbled"),
+    ],
+)
+def test_error_after_damage_carries_the_last_good_time(tmp_path: Path, tail: bytes) -> None:
+    """Issue 8 item 10: the ERROR event (and what the end releases) is stamped with
+    the time of the last record that made sense, not with a damaged record's."""
+    conv = TcpConversation(CLIENT, SERVER)
+    path = write_pcap(tmp_path / "x.pcap", [*conv.open(), conv.send(True, REQUEST)])
+    path.write_bytes(path.read_bytes() + tail)
+    items = read_all(path)
+    (error,) = events(items, EventKind.ERROR)
+    assert "truncated record" in error.info["message"]
+    assert error.ts == T0 + 3 / 100  # the request's record
+    assert max(i.ts for i in items) == T0 + 3 / 100
+
+
 def test_truncated_pcapng_at_every_offset(tmp_path: Path) -> None:
     path = tmp_path / "full.pcapng"
     with PcapngWriter(path) as writer:

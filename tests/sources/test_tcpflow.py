@@ -78,8 +78,13 @@ def test_out_of_order_segments_wait_for_the_hole() -> None:
     assert delivered(out) == b""
     c2s(conn, out, 0, b"ab", ts=4.0)
     assert delivered(out) == b"abcdef"
-    # held bytes come out with the time of the packet that filled the hole
-    assert {i.ts for i in out if isinstance(i, Chunk)} == {4.0}
+    # held bytes come out as chunks of their own, each with the time of the packet
+    # that carried them (issue 8 item 6), not the time the hole was filled
+    assert [(i.ts, i.data) for i in out if isinstance(i, Chunk)] == [
+        (4.0, b"ab"),
+        (3.0, b"cd"),
+        (2.0, b"ef"),
+    ]
     assert conn.stats.out_of_order == 2
 
 
