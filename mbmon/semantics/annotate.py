@@ -24,7 +24,7 @@ from decimal import Decimal
 from typing import Any
 
 from mbmon.model import Annotation, Frame, Kind, Stream, Transaction, TxStatus
-from mbmon.semantics.regmap import (
+from mbmon.semantics.profile import (
     REGISTER_PREFIX,
     Field,
     FieldRef,
@@ -120,13 +120,9 @@ class Annotator:
     def _hrss_class(self) -> Any:
         if not self._session_tried:
             self._session_tried = True
-            try:
-                from mbmon.semantics import hrss
-            except ModuleNotFoundError as err:  # the session module may not exist yet
-                if err.name not in ("mbmon.semantics.hrss",):
-                    raise
-                return None
-            self._session_cls = getattr(hrss, "HrssSession", None)
+            from mbmon.semantics.hrss.session import HrssSession  # loads its TOML: only when used
+
+            self._session_cls = HrssSession
         return self._session_cls
 
     # ------------------------------------------------------------------ notes
@@ -519,7 +515,7 @@ def _mask_note(profile: Profile, address: int | None, fields: Any) -> list[str]:
 def annotator_for(specs: Sequence[str]) -> Annotator | None:
     """The annotator for ``--profile`` values, or ``None`` when none is given.
 
-    Raises :class:`~mbmon.semantics.regmap.ProfileError` for a spec that does not
+    Raises :class:`~mbmon.semantics.profile.ProfileError` for a spec that does not
     load or bind; the message names the file, line and key.
     """
     if not specs:
