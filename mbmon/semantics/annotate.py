@@ -23,7 +23,7 @@ from collections.abc import Sequence
 from decimal import Decimal
 from typing import Any
 
-from mbmon.model import Annotation, Frame, Kind, Stream, Transaction, TxStatus
+from mbmon.model import Annotation, CommandUpdate, Frame, Kind, Stream, Transaction, TxStatus
 from mbmon.semantics.profile import (
     REGISTER_PREFIX,
     Field,
@@ -104,6 +104,25 @@ class Annotator:
                         state=extra.state,
                     )
         return Annotation(notes=notes) if notes else _EMPTY
+
+    def tick(self, now: float) -> list[CommandUpdate]:
+        """Time ``now`` passed: command steps the HRSS sessions make due (never-completed warnings).
+
+        The pipeline emits each as a COMMAND record; nothing here needs a frame.
+        """
+        out: list[CommandUpdate] = []
+        for session in self._sessions.values():
+            out += session.tick(now)
+        return out
+
+    def next_deadline(self) -> float | None:
+        """The earliest time a :meth:`tick` reports something, or ``None``."""
+        deadline: float | None = None
+        for session in self._sessions.values():
+            d = session.next_deadline()
+            if d is not None and (deadline is None or d < deadline):
+                deadline = d
+        return deadline
 
     # ------------------------------------------------------------------ sessions
 

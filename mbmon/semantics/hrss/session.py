@@ -18,6 +18,7 @@ Every command layout, enum, range and state register comes from
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -77,10 +78,19 @@ class HrssSession:
     answer puts the old values back. Reads (FC 03, 04, 17) update the images
     from the answer. ``complete_timeout`` (seconds of capture time, default from
     the TOML) bounds how long a command may go without completing while the
-    client is watching IR200/IR524.
+    client is watching IR200/IR524; :meth:`tick` and :meth:`next_deadline` let
+    that fire on time while the line is silent. At most ``max_writes``
+    unanswered writes are remembered (the oldest is dropped with a note).
     """
 
-    def __init__(self, stream: Stream, unit: int, *, complete_timeout: float | None = None) -> None:
+    def __init__(
+        self,
+        stream: Stream,
+        unit: int,
+        *,
+        complete_timeout: float | None = None,
+        max_writes: int = 256,
+    ) -> None:
         self.stream = stream
         self.unit = unit
         self._spec = load_spec()
@@ -95,7 +105,8 @@ class HrssSession:
         self._holding: dict[int, int] = {}
         self._inputs: dict[int, int] = {}
         self._unconfirmed: set[int] = set()
-        self._writes: dict[tuple[Any, ...], _Write] = {}
+        self._writes: dict[tuple[Any, ...], _Write] = {}  # unanswered, oldest first, bounded
+        self._max_writes = max_writes
         self._block: set[int] = set()  # R201..R251 written since the last execute
         self._block_code: int | None = None  # command whose WRITTEN was emitted for the block
         self._active: _Exec | None = None  # last executed command
@@ -130,10 +141,10 @@ class HrssSession:
 
     def feed(self, tx: Transaction) -> Annotation:
         """Follow one pairing step: the notes, command steps and state change it causes."""
-        out = _Out(self, tx)
         frame = tx.request if tx.request is not None else tx.response
         if frame is None or frame.unit != self.unit:
             return Annotation()
+        out = _Out(self, tx.ts, frame.stream)
         req = tx.request
         if tx.status is TxStatus.PENDING and req is not None:
             self._request(req, out)
@@ -149,6 +160,35 @@ class HrssSession:
             self._writes.pop(_key(req), None)  # values stay, still unconfirmed
         self._check_timeout(tx.ts, out)
         return out.annotation()
+
+    def tick(self, now: float) -> list[CommandUpdate]:
+        """Time ``now`` (capture time) passed with no transaction: the command steps it makes due.
+
+        A command that has gone ``complete_timeout`` without completing while the
+        client watched IR200/IR524 is reported "never completed" here, on time,
+        even while the line is silent; a later transaction does not repeat it.
+        """
+        a = self._active
+        if a is None:
+            return []
+        out = _Out(self, now, a.stream)
+        self._check_timeout(now, out)
+        return out.commands
+
+    def next_deadline(self) -> float | None:
+        """The earliest time at which :meth:`tick` reports something, or ``None``.
+
+        ``None`` while nothing can time out (no command in flight, the client
+        never looked at its status, a hold-to-run command still held, the robot
+        still moving): the next transaction changes that, not the clock.
+        """
+        a = self._active
+        if a is None or not self._may_time_out(a):
+            return None
+        deadline = a.t0 + self._timeout
+        while deadline - a.t0 <= self._timeout:  # the first time _check_timeout fires
+            deadline = math.nextafter(deadline, math.inf)
+        return deadline
 
     # ------------------------------------------------------------------ writes
 
@@ -183,9 +223,16 @@ class HrssSession:
                 self._holding[a] = v
                 w.new[a] = v
             self._unconfirmed.add(a)
-        self._writes[_key(req)] = w
-        while len(self._writes) > 256:
-            self._writes.pop(next(iter(self._writes)))
+        writes_map = self._writes
+        writes_map[_key(req)] = w
+        if len(writes_map) > self._max_writes:
+            _, dropped = _pop_oldest(writes_map)
+            lo, hi = min(dropped.old), max(dropped.old)
+            span = f"R{lo}" if lo == hi else f"R{lo}..R{hi}"
+            out.note(
+                f"warning: more than {self._max_writes} writes unanswered: "
+                f"the oldest ({span}) is forgotten, its values stay unconfirmed"
+            )
         self._commands(w, req.ts, out)
 
     def _commands(self, w: _Write, ts: float, out: _Out) -> None:
@@ -424,16 +471,18 @@ class HrssSession:
 
     # ------------------------------------------------------------------ completion
 
+    def _may_time_out(self, a: _Exec) -> bool:
+        """Whether the clock alone can make ``a`` "never completed" (its deadline aside)."""
+        if a.done or a.settled or a.warned or not a.looked:
+            return False
+        if a.spec is not None and a.spec.hold_to_run and self._holding.get(self._exec_reg) == 1:
+            return False  # JOG / GO HOME run while R200 = 1
+        return not (a.moving and self._motion in _MOVING)  # not while still moving
+
     def _check_timeout(self, ts: float, out: _Out) -> None:
         a = self._active
-        if a is None or a.done or a.settled or a.warned or not a.looked:
+        if a is None or ts - a.t0 <= self._timeout or not self._may_time_out(a):
             return
-        if ts - a.t0 <= self._timeout:
-            return
-        if a.spec is not None and a.spec.hold_to_run and self._holding.get(self._exec_reg) == 1:
-            return  # JOG / GO HOME run while R200 = 1
-        if a.moving and self._motion in _MOVING:
-            return  # still moving
         a.warned = True
         why = (
             "robot never moved"
@@ -451,14 +500,18 @@ def _key(req: Frame) -> tuple[Any, ...]:
     return (req.ts, req.stream.id, req.tid, req.raw)
 
 
-class _Out:
-    """What one feed produces, gathered in order."""
+def _pop_oldest(writes: dict[tuple[Any, ...], _Write]) -> tuple[tuple[Any, ...], _Write]:
+    key = next(iter(writes))
+    return key, writes.pop(key)
 
-    def __init__(self, session: HrssSession, tx: Transaction) -> None:
+
+class _Out:
+    """What one feed (or tick) produces, gathered in order, stamped ``ts`` on ``stream``."""
+
+    def __init__(self, session: HrssSession, ts: float, stream: Stream) -> None:
         self.session = session
-        self.ts = tx.ts
-        frame = tx.request if tx.request is not None else tx.response
-        self.stream = frame.stream if frame is not None else session.stream
+        self.ts = ts
+        self.stream = stream
         self.unit = session.unit
         self.notes: list[str] = []
         self.commands: list[CommandUpdate] = []
