@@ -19,7 +19,8 @@ annotation at once; with a profile, each field is one dict look-up.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from decimal import Decimal
 from typing import Any
 
@@ -32,7 +33,7 @@ from mbmon.semantics.profile import (
     ProfileBinding,
     Variant,
 )
-from mbmon.semantics.words import join_u32, s16, u32_to_f32
+from mbmon.semantics.words import s16, u32_to_f32
 
 __all__ = ["Annotator", "SelectorMemory", "annotator_for", "field_notes"]
 
@@ -68,6 +69,7 @@ class Annotator:
         self._session_tried = False
         # last value of group selectors (PR[n].type) per (server, unit, table, address)
         self._selectors: dict[tuple[str, int, str, int], int] = {}
+        self._memories: dict[tuple[str, int, str], SelectorMemory] = {}  # views of _selectors
 
     @property
     def binding(self) -> ProfileBinding:
@@ -190,7 +192,13 @@ class Annotator:
         return field_notes(profile, table, req.pdu.address, values, "read", selector)
 
     def _selector_reader(self, frame: Frame, profile: Profile, table: str) -> SelectorMemory:
-        return SelectorMemory(self._selectors, frame.stream.server, frame.unit, table)
+        key = (frame.stream.server, frame.unit, table)
+        memory = self._memories.get(key)
+        if memory is None:
+            if len(self._memories) >= 4096:  # one per server, unit and table: bounded all the same
+                self._memories.clear()
+            memory = self._memories[key] = SelectorMemory(self._selectors, *key)
+        return memory
 
 
 class SelectorMemory:
@@ -234,10 +242,48 @@ def field_notes(
     """
     if table in _BITS:
         return _bit_notes(profile, table, start, values)
+    key = (_LAYOUT, table, start, len(values))
+    memo = profile.memo
+    layout = memo.get(key)
+    if layout is None:
+        layout = _register_layout(profile, table, start, len(values))
+        _remember(memo, key, layout)
     notes: list[str] = []
-    end = start + len(values)
+    for item in layout:
+        kind, a, b = item[0], item[1], item[2]
+        if kind is _VALUE:  # one whole field that no selector re-reads: head fixed
+            notes.append(f"{item[3]} = {_format_value(item[4], values[a:b])}")
+        elif kind is _RUN:
+            notes.append(_run_note(item[3], values[a:b], item[4]))
+        else:
+            ref = item[3]
+            notes.append(
+                _register_note(ref, table, start + a, values[a:b], verb, start, values, selector)
+            )
+    return notes
+
+
+# Layout items: (_VALUE, a, b, head, _ValueFormat) | (_RUN, a, b, name, field) | (_FIELD, a, b, ref)
+# where values[a:b] are the words the note shows.
+_VALUE, _RUN, _FIELD = "value", "run", "field"
+_LAYOUT, _READ_NOTE, _SPAN_NOTE = "layout", "read note", "span note"
+_MEMO_MAX = 1024  # layouts and notes per profile: at most ~125 small tuples each, ~15 MB worst
+
+
+def _remember(memo: dict[Any, Any], key: tuple[Any, ...], value: Any) -> None:
+    """Keep ``value`` for ``key`` in a profile's memo; the memo is emptied when full."""
+    if len(memo) >= _MEMO_MAX:
+        memo.clear()
+    memo[key] = value
+
+
+def _register_layout(
+    profile: Profile, table: str, start: int, n: int
+) -> tuple[tuple[Any, ...], ...]:
+    """What :func:`field_notes` shows for ``n`` registers at ``start``: the value-free part."""
+    items: list[tuple[Any, ...]] = []
+    end = start + n
     i = 0
-    n = len(values)
     lookup = profile.lookup
     while i < n:
         ref = lookup(table, start + i)
@@ -257,13 +303,19 @@ def field_notes(
                 run.append(nxt)
                 j += 1
             if len(run) > 1:
-                notes.append(_run_note(run, values[i:j], f))
+                items.append((_RUN, i, j, _run_name(run), f))
                 i = j
                 continue
-        words = values[lo - start : hi - start]
-        notes.append(_register_note(ref, table, lo, words, verb, start, values, selector))
+        entry = ref.entry
+        selectable = entry is not None and entry.select is not None and ref.base is not None
+        if f.type != "block" and not selectable and hi - lo == f.words:
+            items.append(
+                (_VALUE, lo - start, hi - start, _ref_text(ref, None), _value_format(f, None))
+            )
+        else:
+            items.append((_FIELD, lo - start, hi - start, ref))
         i = hi - start
-    return notes
+    return tuple(items)
 
 
 def _plain(ref: FieldRef) -> bool:
@@ -283,11 +335,11 @@ def _plain(ref: FieldRef) -> bool:
     )
 
 
-def _run_note(run: list[FieldRef], values: Sequence[int], f: Field) -> str:
+def _run_note(name: str, values: Sequence[int], f: Field) -> str:
     shown = [str(s16(v) if f.type == "s16" else v) for v in values[:_MAX_RUN_WORDS]]
     if len(values) > _MAX_RUN_WORDS:
         shown.append(f"… (+{len(values) - _MAX_RUN_WORDS})")
-    return f"{_run_name(run)} = {' '.join(shown)}"
+    return f"{name} = {' '.join(shown)}"
 
 
 def _run_name(run: list[FieldRef]) -> str:
@@ -371,60 +423,104 @@ def _raw_word(f: Field, w: int) -> str:
 
 
 def _value_text(f: Field, variant: Variant | None, words: Sequence[int]) -> str:
-    t = f.type
-    if t == "version":
-        return (f.format or "").format(*(w & 0xFFFF for w in words))
-    if t in ("u16", "s16"):
-        raw = words[0] & 0xFFFF if t == "u16" else s16(words[0])
+    """The value of field ``f`` (read as ``variant`` says, if any) in its complete ``words``."""
+    return _format_value(_value_format(f, variant), words)
+
+
+@dataclass(frozen=True, slots=True)
+class _ValueFormat:
+    """How a field's words become text, decided once per field and variant (value-free)."""
+
+    type: str
+    words: int
+    high_low: bool  # word order of two-register types
+    template: str  # "version": the format string
+    enum: Mapping[int, str] | None
+    enum_by_value: bool  # enum_style "value": "1 (execute)"
+    hex: bool
+    scale: float  # f32: the factor; integers: used when ``spec`` is set
+    spec: str | None  # format spec of a scaled integer (".3f"); None: the integer as is
+    suffix: str  # the unit as written after the number ("°", " mm", "")
+    range: tuple[int, int] | None
+
+
+def _value_format(f: Field, variant: Variant | None) -> _ValueFormat:
+    scale, unit = f.scale, f.unit
+    if f.type == "f32":
+        if variant is not None and variant.scale is not None:
+            scale = variant.scale
+        if variant is not None and variant.unit:
+            unit = variant.unit
+        spec = None
     else:
-        low, high = (words[0], words[1]) if f.word_order == "low_high" else (words[1], words[0])
-        u = join_u32(low, high)
-        if t == "f32":
-            scale = variant.scale if variant and variant.scale is not None else f.scale
-            x = u32_to_f32(u) * (scale if scale is not None else 1.0)
-            return _with_unit(f"{x:g}", variant.unit if variant and variant.unit else f.unit)
-        raw = u - 0x100000000 if t == "i32" and u & 0x80000000 else u
-    if f.enum is not None:
-        name = f.enum.get(raw)
-        if name is None:
-            text = f"{raw} (unknown)"
-        elif f.enum_style == "value":
-            text = f"{raw} ({name})"
-        else:
-            text = f"{name} ({raw})"
-    elif f.display == "hex":
-        text = f"0x{raw & 0xFFFFFFFF:0{4 * f.words}X}"
-    else:
-        scale = f.scale
-        unit = f.unit
         if variant is not None:
             if variant.scale is not None:
                 scale = variant.scale
             if variant.unit is not None:
                 unit = variant.unit
-        text = _with_unit(_scaled(raw, scale), unit)
-    if f.range is not None and not f.range[0] <= raw <= f.range[1]:
-        text += f" (out of range {f.range[0]}..{f.range[1]})"
+        spec = None if scale is None or scale == 1 else f".{_decimals(scale)}f"
+    return _ValueFormat(
+        type=f.type,
+        words=f.words,
+        high_low=f.word_order != "low_high",
+        template=f.format or "",
+        enum=f.enum,
+        enum_by_value=f.enum_style == "value",
+        hex=f.display == "hex",
+        scale=1.0 if scale is None else scale,
+        spec=spec,
+        suffix="" if not unit else unit if unit in _NO_UNIT_SPACE else f" {unit}",
+        range=f.range,
+    )
+
+
+def _format_value(v: _ValueFormat, words: Sequence[int]) -> str:
+    t = v.type
+    if t == "version":
+        return v.template.format(*(w & 0xFFFF for w in words))
+    if t == "u16":
+        raw = words[0] & 0xFFFF
+    elif t == "s16":
+        raw = words[0] & 0xFFFF
+        if raw & 0x8000:
+            raw -= 0x10000
+    else:
+        low, high = (words[1], words[0]) if v.high_low else (words[0], words[1])
+        u = ((high & 0xFFFF) << 16) | (low & 0xFFFF)
+        if t == "f32":
+            return f"{u32_to_f32(u) * v.scale:g}{v.suffix}"
+        raw = u - 0x100000000 if t == "i32" and u & 0x80000000 else u
+    enum = v.enum
+    if enum is not None:
+        name = enum.get(raw)
+        if name is None:
+            text = f"{raw} (unknown)"
+        elif v.enum_by_value:
+            text = f"{raw} ({name})"
+        else:
+            text = f"{name} ({raw})"
+    elif v.hex:
+        text = f"0x{raw & 0xFFFFFFFF:0{4 * v.words}X}"
+    elif v.spec is None:
+        text = f"{raw}{v.suffix}"
+    else:
+        text = format(raw * v.scale, v.spec) + v.suffix
+    rng = v.range
+    if rng is not None and not rng[0] <= raw <= rng[1]:
+        text += f" (out of range {rng[0]}..{rng[1]})"
     return text
 
 
 _DECIMALS: dict[float, int] = {}
 
 
-def _scaled(raw: int, scale: float | None) -> str:
-    if scale is None or scale == 1:
-        return str(raw)
+def _decimals(scale: float) -> int:
+    """As many decimals as the scale has: 0.001 -> 3, 0.25 -> 2, 10 -> 0."""
     decimals = _DECIMALS.get(scale)
-    if decimals is None:  # as many decimals as the scale has: 0.001 -> 3, 0.25 -> 2, 10 -> 0
+    if decimals is None:
         exp = Decimal(repr(scale)).normalize().as_tuple().exponent
         decimals = _DECIMALS[scale] = min(-exp, 9) if isinstance(exp, int) and exp < 0 else 0
-    return f"{raw * scale:.{decimals}f}"
-
-
-def _with_unit(text: str, unit: str | None) -> str:
-    if not unit:
-        return text
-    return f"{text}{unit}" if unit in _NO_UNIT_SPACE else f"{text} {unit}"
+    return decimals
 
 
 def _bit_notes(profile: Profile, table: str, start: int, bits: Sequence[int]) -> list[str]:
@@ -506,8 +602,13 @@ def _read_request_note(
 ) -> list[str]:
     if address is None or not count:
         return []
-    names = _span_names(profile, table, address, min(count, 0x10000 - address))
-    return [f"read {names}"] if names else []
+    key = (_READ_NOTE, table, address, count)
+    note = profile.memo.get(key)
+    if note is None:
+        names = _span_names(profile, table, address, min(count, 0x10000 - address))
+        note = f"read {names}" if names else ""
+        _remember(profile.memo, key, note)
+    return [note] if note else []
 
 
 def _span_note(
@@ -515,8 +616,13 @@ def _span_note(
 ) -> list[str]:
     if address is None or not count:
         return []
-    names = _span_names(profile, table, address, min(count, 0x10000 - address))
-    return [f"{names} {verb}"] if names else []
+    key = (_SPAN_NOTE, table, address, count, verb)
+    note = profile.memo.get(key)
+    if note is None:
+        names = _span_names(profile, table, address, min(count, 0x10000 - address))
+        note = f"{names} {verb}" if names else ""
+        _remember(profile.memo, key, note)
+    return [note] if note else []
 
 
 def _mask_note(profile: Profile, address: int | None, fields: Any) -> list[str]:

@@ -19,7 +19,7 @@ Every command layout, enum, range and state register comes from
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
@@ -67,6 +67,27 @@ class _Write:
 
 
 _MOVING = (2, 3, 4)  # IR524 Running, Hold, Delay
+_WRITE_FCS = frozenset({0x06, 0x10, 0x16, 0x17})  # what _request applies to the holding image
+_PENDING, _ANSWERED = TxStatus.PENDING, TxStatus.ANSWERED
+_NOTHING = Annotation()
+
+_S16, _U16, _I32, _U32 = range(4)
+_WORD_TYPES = {"s16": _S16, "u16": _U16, "i32": _I32, "u32": _U32}
+#: (state key, offset of the first word, offset of the last word, word type, scale mode, factor);
+#: scale mode 0: the raw number, 1: raw / factor (a power of ten), 2: raw * factor
+_StateField = tuple[str, int, int, int, int, float]
+
+
+@dataclass(frozen=True, slots=True)
+class _ReadPlan:
+    """Offsets, in one FC 04 read, of the input registers the session watches (None: absent)."""
+
+    status: int | None
+    action: int | None
+    returns: tuple[int, ...]  # addresses of IR202..IR251 in the read
+    queue: int | None
+    motion: int | None
+    state: tuple[_StateField, ...]
 
 
 class HrssSession:
@@ -114,6 +135,7 @@ class HrssSession:
         self._motion: int | None = None
         self._queue_over = False
         self._state: dict[str, float] = {}
+        self._plans: dict[tuple[int, int], _ReadPlan] = {}  # (address, count) of FC 04 reads
 
     # ------------------------------------------------------------------ public views
 
@@ -141,18 +163,21 @@ class HrssSession:
 
     def feed(self, tx: Transaction) -> Annotation:
         """Follow one pairing step: the notes, command steps and state change it causes."""
-        frame = tx.request if tx.request is not None else tx.response
-        if frame is None or frame.unit != self.unit:
-            return Annotation()
-        out = _Out(self, tx.ts, frame.stream)
         req = tx.request
-        if tx.status is TxStatus.PENDING and req is not None:
-            self._request(req, out)
-        elif tx.status is TxStatus.ANSWERED and req is not None and tx.response is not None:
-            key = _key(req)
-            if key not in self._writes:
-                self._request(req, out)  # the request was never fed on its own
-            self._confirm(key)
+        frame = req if req is not None else tx.response
+        if frame is None or frame.unit != self.unit:
+            return _NOTHING
+        out = _Out(self, tx.ts, frame.stream)
+        status = tx.status
+        if status is _PENDING and req is not None:
+            if req.pdu.fc in _WRITE_FCS:  # reads change no image on request
+                self._request(req, out)
+        elif status is _ANSWERED and req is not None and tx.response is not None:
+            if req.pdu.fc in _WRITE_FCS:
+                key = _key(req)
+                if key not in self._writes:
+                    self._request(req, out)  # the request was never fed on its own
+                self._confirm(key)
             self._answer(req, tx.response, out)
         elif tx.status is TxStatus.EXCEPTION and req is not None:
             self._rejected(req, tx.response, out)  # a write never fed as PENDING: nothing to undo
@@ -358,20 +383,53 @@ class HrssSession:
                 self._holding[rq.address + i] = v
                 self._unconfirmed.discard(rq.address + i)
         elif rq.fc == 0x04:
-            got = {rq.address + i: v for i, v in enumerate(values)}
-            self._inputs.update(got)
-            self._inputs_read(got, resp.ts, out)
+            address = rq.address
+            self._inputs.update(zip(range(address, address + len(values)), values, strict=True))
+            plan = self._plans.get((address, len(values)))
+            if plan is None:
+                plan = self._read_plan(address, len(values))
+            self._inputs_read(plan, values, resp.ts, out)
 
-    def _inputs_read(self, got: Mapping[int, int], ts: float, out: _Out) -> None:
+    def _read_plan(self, address: int, count: int) -> _ReadPlan:
+        """Where the registers the session watches sit in a read of ``count`` from ``address``."""
+        end = address + count
+
+        def offset(reg: int) -> int | None:
+            return reg - address if address <= reg < end else None
+
         p = self._spec
-        status_reg = p.reg("status_reg")
-        if status_reg in got:
-            self._status(s16(got[status_reg]), got, ts, out)
-        if any(r in self._returns for r in got):
-            self._returns_read(got, ts, out)
-        queue_reg = p.reg("queue_reg")
-        if queue_reg in got:
-            q = s16(got[queue_reg])
+        state = []
+        for key, f in p.state:
+            regs = f.regs
+            if regs[0] < address or regs[-1] >= end:
+                continue  # both words from this very answer, or nothing
+            mode, k = (0, 1.0)
+            if f.scale != 1:
+                d = f.decimals
+                mode, k = (1, 10**d) if d and abs(f.scale - 10.0**-d) < 1e-12 else (2, f.scale)
+            state.append((key, regs[0] - address, regs[-1] - address, _WORD_TYPES[f.type], mode, k))
+        plan = _ReadPlan(
+            status=offset(p.reg("status_reg")),
+            action=offset(p.reg("action_reg")),
+            returns=tuple(r for r in range(address, end) if r in self._returns),
+            queue=offset(p.reg("queue_reg")),
+            motion=offset(p.reg("motion_reg")),
+            state=tuple(state),
+        )
+        if len(self._plans) >= 4096:  # bounded: a scan of every address cannot grow it
+            self._plans.clear()
+        self._plans[(address, count)] = plan
+        return plan
+
+    def _inputs_read(self, plan: _ReadPlan, values: Sequence[int], ts: float, out: _Out) -> None:
+        p = self._spec
+        if plan.status is not None:
+            action = None if plan.action is None else s16(values[plan.action])
+            self._status(s16(values[plan.status]), action, ts, out)
+        if plan.returns:
+            self._returns_read(plan.returns, ts, out)
+        if plan.queue is not None:
+            q = s16(values[plan.queue])
             limit = int(p.protocol["queue_max"])
             if q > limit and not self._queue_over:
                 out.warn(
@@ -380,12 +438,12 @@ class HrssSession:
                     code=None,
                 )
             self._queue_over = q > limit
-        motion_reg = p.reg("motion_reg")
-        if motion_reg in got:
-            self._motion_read(s16(got[motion_reg]), ts, out)
-        self._state_read(got, out)
+        if plan.motion is not None:
+            self._motion_read(s16(values[plan.motion]), ts, out)
+        if plan.state:
+            self._state_read(plan.state, values, out)
 
-    def _status(self, v: int, got: Mapping[int, int], ts: float, out: _Out) -> None:
+    def _status(self, v: int, action: int | None, ts: float, out: _Out) -> None:
         a = self._active
         if a is None or a.done or ts < a.t0:
             return
@@ -396,9 +454,8 @@ class HrssSession:
         phase = Phase.SUCCESS if v == 1 else Phase.FAIL
         params = dict(a.decoded.params)
         params["status"] = v
-        action_reg = self._spec.reg("action_reg")
-        if action_reg in got:
-            params["action"] = s16(got[action_reg])
+        if action is not None:
+            params["action"] = action
         dur = ts - a.t0
         word = "success" if v == 1 else "fail"
         out.command(
@@ -410,11 +467,11 @@ class HrssSession:
             note=f"{word}: {a.decoded.text} ({dur:.3f} s)",
         )
 
-    def _returns_read(self, got: Mapping[int, int], ts: float, out: _Out) -> None:
+    def _returns_read(self, returned: tuple[int, ...], ts: float, out: _Out) -> None:
         g = self._get
         if g is None or ts < g.t0 or g.status == 2 or g.decoded.code is None:
             return
-        g.return_seen.update(r for r in got if r in self._returns)
+        g.return_seen.update(returned)
         seen = {r: v for r, v in self._inputs.items() if r in g.return_seen}
         dec = decode_returns(g.decoded.code, seen, self._spec)
         if dec is None or dec.layout is None or dec.missing:
@@ -459,14 +516,26 @@ class HrssSession:
             a.settled = True
             out.note(f"motion done: {a.decoded.text} ({ts - a.t0:.3f} s after R200 = 1)")
 
-    def _state_read(self, got: Mapping[int, int], out: _Out) -> None:
-        for key, f in self._spec.state:
-            raw = f.raw(got.get)  # both words from this very answer
-            if raw is None:
-                continue
-            val = float(f.value(raw))
-            if self._state.get(key) != val:
-                self._state[key] = val
+    def _state_read(
+        self, fields: tuple[_StateField, ...], values: Sequence[int], out: _Out
+    ) -> None:
+        """State values whose words are all in this answer, read as ``Field.raw``/``value`` do."""
+        state = self._state
+        for key, lo, hi, wtype, mode, k in fields:
+            if wtype == _S16:
+                raw = values[lo] & 0xFFFF
+                if raw & 0x8000:
+                    raw -= 0x10000
+            elif wtype == _U16:
+                raw = values[lo] & 0xFFFF
+            elif wtype == _I32:
+                high = values[hi] & 0xFFFF
+                raw = (high - 0x10000 if high & 0x8000 else high) * 65536 + (values[lo] & 0xFFFF)
+            else:
+                raw = ((values[hi] & 0xFFFF) << 16) | (values[lo] & 0xFFFF)
+            val = float(raw) if mode == 0 else raw / k if mode == 1 else float(raw * k)
+            if state.get(key) != val:
+                state[key] = val
                 out.state_changed = True
 
     # ------------------------------------------------------------------ completion
@@ -507,6 +576,8 @@ def _pop_oldest(writes: dict[tuple[Any, ...], _Write]) -> tuple[tuple[Any, ...],
 
 class _Out:
     """What one feed (or tick) produces, gathered in order, stamped ``ts`` on ``stream``."""
+
+    __slots__ = ("commands", "notes", "session", "state_changed", "stream", "ts", "unit")
 
     def __init__(self, session: HrssSession, ts: float, stream: Stream) -> None:
         self.session = session
@@ -549,6 +620,8 @@ class _Out:
         self.command(Phase.WARNING, text, code, params={"warning": kind}, note=f"warning: {text}")
 
     def annotation(self) -> Annotation:
+        if not self.notes and not self.commands and not self.state_changed:
+            return _NOTHING
         return Annotation(
             notes=tuple(self.notes),
             commands=tuple(self.commands),

@@ -192,6 +192,9 @@ class Profile:
     _ranges: dict[str, tuple[tuple[int, int, Field], ...]] = field(
         default_factory=dict, init=False, compare=False, repr=False
     )
+    #: Views derived from this profile by its readers (the annotator's per-read
+    #: layouts), keyed by their owner's keys; each owner bounds its share.
+    memo: dict[Any, Any] = field(default_factory=dict, init=False, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         for table in TABLES:
