@@ -3,6 +3,7 @@
     python bench/hrss_session.py                     # 200,000 ADUs, 5 runs each, best of
     python bench/hrss_session.py --adus 50000 --runs 3
     python bench/hrss_session.py --profile           # cProfile of read --profile hrss, in process
+    python bench/hrss_session.py --tree /tmp/old     # time another tree (git archive REV | tar -x)
 
 What this script owns: a reproducible (seeded) capture of an HRSS robot cell
 as a PLC and an HMI see it, cached in ``bench/out/``, and the timing of both
@@ -220,13 +221,13 @@ def capture(adus: int) -> Path:
     return path
 
 
-def _env() -> dict[str, str]:
+def _env(tree: Path) -> dict[str, str]:
     env = dict(os.environ)
-    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    env["PYTHONPATH"] = str(tree) + os.pathsep + env.get("PYTHONPATH", "")
     return env
 
 
-def timed(cmd: list[str], runs: int) -> tuple[float, float]:
+def timed(cmd: list[str], runs: int, tree: Path = REPO) -> tuple[float, float]:
     """Best wall time and best CPU time (user + sys) of ``runs`` child runs, stdout to /dev/null.
 
     CPU time is the figure to compare on a loaded machine: other processes
@@ -235,7 +236,7 @@ def timed(cmd: list[str], runs: int) -> tuple[float, float]:
     wall = cpu = float("inf")
     for _ in range(runs):
         t0 = time.perf_counter()
-        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, env=_env())
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, env=_env(tree))
         _, status, ru = os.wait4(proc.pid, 0)
         wall = min(wall, time.perf_counter() - t0)
         cpu = min(cpu, ru.ru_utime + ru.ru_stime)
@@ -264,6 +265,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--adus", type=int, default=200_000)
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--profile", action="store_true", help="cProfile instead of timing")
+    ap.add_argument(
+        "--tree",
+        type=Path,
+        default=REPO,
+        help="the mbmon source tree to time (e.g. an unpacked older commit)",
+    )
     args = ap.parse_args(argv)
     path = capture(args.adus)
     if args.profile:
@@ -271,15 +278,18 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     base = [sys.executable, "-m", "mbmon", "read", str(path)]
     print(f"{path.name}: {path.stat().st_size / 1e6:.1f} MB, load {os.getloadavg()[0]:.2f}")
-    plain = timed(base, args.runs)
-    hrss = timed([*base, "--profile", "hrss"], args.runs)
+    print(f"  mbmon from {args.tree}")
+    plain = timed(base, args.runs, args.tree)
+    hrss = timed([*base, "--profile", "hrss"], args.runs, args.tree)
     for name, (wall, cpu) in (("read", plain), ("read --profile hrss", hrss)):
         rate = args.adus / cpu
         print(f"  {name:<20} wall {wall:7.2f} s  cpu {cpu:7.2f} s  {rate:>10,.0f} ADUs/cpu-s")
     ratio = hrss[1] / plain[1]
     verdict = "met" if ratio <= TARGET_RATIO else "NOT met"
-    print(f"  ratio (cpu) {ratio:.2f}x, (wall) {hrss[0] / plain[0]:.2f}x "
-          f"(target <= {TARGET_RATIO}x: {verdict})")
+    print(
+        f"  ratio (cpu) {ratio:.2f}x, (wall) {hrss[0] / plain[0]:.2f}x "
+        f"(target <= {TARGET_RATIO}x: {verdict})"
+    )
     return 0
 
 

@@ -38,6 +38,7 @@ from mbmon.semantics.words import s16, u32_to_f32
 __all__ = ["Annotator", "SelectorMemory", "annotator_for", "field_notes"]
 
 _EMPTY = Annotation()
+_PENDING, _TIMEOUT = TxStatus.PENDING, TxStatus.TIMEOUT
 
 #: function code -> profile table
 _TABLE = {
@@ -84,28 +85,25 @@ class Annotator:
         if self._off:
             return _EMPTY
         status = tx.status
-        frame = (
-            tx.request if status is TxStatus.PENDING or status is TxStatus.TIMEOUT else tx.response
-        )
+        frame = tx.request if status is _PENDING or status is _TIMEOUT else tx.response
         if frame is None:
             return _EMPTY
         profile = self._binding.for_(frame.stream, frame.unit)
         if profile is None:
             return _EMPTY
         notes: tuple[str, ...] = ()
-        if status is not TxStatus.TIMEOUT:
+        if status is not _TIMEOUT:
             notes = tuple(self._frame_notes(tx, frame, profile))
         if profile.session == "hrss":
-            session = self._session(frame.stream, frame.unit)
+            session = self._sessions.get((frame.stream.server, frame.unit))
+            if session is None:
+                session = self._session(frame.stream, frame.unit)
             if session is not None:
                 extra = session.feed(tx)
                 if extra.notes or extra.commands or extra.state is not None:
-                    return Annotation(
-                        notes=notes + tuple(extra.notes),
-                        commands=tuple(extra.commands),
-                        state=extra.state,
-                    )
-        return Annotation(notes=notes) if notes else _EMPTY
+                    notes += tuple(extra.notes)
+                    return Annotation(notes, tuple(extra.commands), extra.state)
+        return Annotation(notes) if notes else _EMPTY
 
     def tick(self, now: float) -> list[CommandUpdate]:
         """Time ``now`` passed: command steps the HRSS sessions make due (never-completed warnings).
@@ -148,18 +146,18 @@ class Annotator:
 
     # ------------------------------------------------------------------ notes
 
-    def _frame_notes(self, tx: Transaction, frame: Frame, profile: Profile) -> list[str]:
+    def _frame_notes(self, tx: Transaction, frame: Frame, profile: Profile) -> Sequence[str]:
         pdu = frame.pdu
         if pdu.kind is Kind.EXCEPTION:
-            return []
-        table = _TABLE.get(pdu.fc)
-        if table is None:
-            return []
+            return ()
         fc = pdu.fc
+        table = _TABLE.get(fc)
+        if table is None:
+            return ()
+        if pdu.kind is Kind.REQUEST and fc in (0x01, 0x02, 0x03, 0x04):
+            return _read_request_note(profile, table, pdu.address, pdu.count)
         selector = self._selector_reader(frame, profile, table)
         if pdu.kind is Kind.REQUEST:
-            if fc in (0x01, 0x02, 0x03, 0x04):
-                return _read_request_note(profile, table, pdu.address, pdu.count)
             if fc in (0x05, 0x06, 0x0F, 0x10):
                 if pdu.address is None or not pdu.values:
                     return []
@@ -599,16 +597,16 @@ def _one_name(ref: FieldRef, table: str, lo: int, hi: int, *, with_label: bool =
 
 def _read_request_note(
     profile: Profile, table: str, address: int | None, count: int | None
-) -> list[str]:
+) -> tuple[str, ...]:
     if address is None or not count:
-        return []
+        return ()
     key = (_READ_NOTE, table, address, count)
-    note = profile.memo.get(key)
-    if note is None:
+    notes = profile.memo.get(key)
+    if notes is None:
         names = _span_names(profile, table, address, min(count, 0x10000 - address))
-        note = f"read {names}" if names else ""
-        _remember(profile.memo, key, note)
-    return [note] if note else []
+        notes = (f"read {names}",) if names else ()
+        _remember(profile.memo, key, notes)
+    return notes  # type: ignore[no-any-return]
 
 
 def _span_note(

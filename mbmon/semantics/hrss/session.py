@@ -172,6 +172,10 @@ class HrssSession:
         if status is _PENDING and req is not None:
             if req.pdu.fc in _WRITE_FCS:  # reads change no image on request
                 self._request(req, out)
+            else:  # a read asked for: only the clock can say something
+                a = self._active
+                if a is None or tx.ts - a.t0 <= self._timeout or not self._may_time_out(a):
+                    return _NOTHING
         elif status is _ANSWERED and req is not None and tx.response is not None:
             if req.pdu.fc in _WRITE_FCS:
                 key = _key(req)
