@@ -223,7 +223,7 @@ def capture(adus: int) -> Path:
 
 def _env(tree: Path) -> dict[str, str]:
     env = dict(os.environ)
-    env["PYTHONPATH"] = str(tree) + os.pathsep + env.get("PYTHONPATH", "")
+    env["PYTHONPATH"] = str(tree) + os.pathsep + env.get("PYTHONPATH", "")  # and cwd=tree: -m
     return env
 
 
@@ -236,7 +236,7 @@ def timed(cmd: list[str], runs: int, tree: Path = REPO) -> tuple[float, float]:
     wall = cpu = float("inf")
     for _ in range(runs):
         t0 = time.perf_counter()
-        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, env=_env(tree))
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, env=_env(tree), cwd=tree)
         _, status, ru = os.wait4(proc.pid, 0)
         wall = min(wall, time.perf_counter() - t0)
         cpu = min(cpu, ru.ru_utime + ru.ru_stime)

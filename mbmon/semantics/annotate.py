@@ -39,6 +39,8 @@ __all__ = ["Annotator", "SelectorMemory", "annotator_for", "field_notes"]
 
 _EMPTY = Annotation()
 _PENDING, _TIMEOUT = TxStatus.PENDING, TxStatus.TIMEOUT
+_REQUEST = Kind.REQUEST
+_READ_FCS = frozenset({0x01, 0x02, 0x03, 0x04})
 
 #: function code -> profile table
 _TABLE = {
@@ -92,7 +94,21 @@ class Annotator:
         if profile is None:
             return _EMPTY
         notes: tuple[str, ...] = ()
-        if status is not _TIMEOUT:
+        plain: Annotation | None = None
+        pdu = frame.pdu
+        if status is _PENDING and pdu.kind is _REQUEST and pdu.fc in _READ_FCS:
+            # the most common step of all (a poll asked for): its annotation is cached
+            key = (_READ_ANNOTATION, pdu.fc, pdu.address, pdu.count)
+            plain = profile.memo.get(key)
+            if plain is None:
+                table = _TABLE[pdu.fc]
+                found = _read_request_note(profile, table, pdu.address, pdu.count)
+                plain = Annotation(found) if found else _EMPTY
+                _remember(profile.memo, key, plain)
+            if profile.session != "hrss":
+                return plain
+            notes = plain.notes
+        elif status is not _TIMEOUT:
             notes = tuple(self._frame_notes(tx, frame, profile))
         if profile.session == "hrss":
             session = self._sessions.get((frame.stream.server, frame.unit))
@@ -103,6 +119,8 @@ class Annotator:
                 if extra.notes or extra.commands or extra.state is not None:
                     notes += tuple(extra.notes)
                     return Annotation(notes, tuple(extra.commands), extra.state)
+        if plain is not None:
+            return plain
         return Annotation(notes) if notes else _EMPTY
 
     def tick(self, now: float) -> list[CommandUpdate]:
@@ -265,6 +283,7 @@ def field_notes(
 # where values[a:b] are the words the note shows.
 _VALUE, _RUN, _FIELD = "value", "run", "field"
 _LAYOUT, _READ_NOTE, _SPAN_NOTE = "layout", "read note", "span note"
+_READ_ANNOTATION = "read annotation"
 _MEMO_MAX = 1024  # layouts and notes per profile: at most ~125 small tuples each, ~15 MB worst
 
 

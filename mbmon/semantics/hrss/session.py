@@ -167,15 +167,16 @@ class HrssSession:
         frame = req if req is not None else tx.response
         if frame is None or frame.unit != self.unit:
             return _NOTHING
-        out = _Out(self, tx.ts, frame.stream)
         status = tx.status
+        if status is _PENDING and req is not None and req.pdu.fc not in _WRITE_FCS:
+            # a read asked for: it changes no image, only the clock can say something
+            a = self._active
+            if a is None or tx.ts - a.t0 <= self._timeout or not self._may_time_out(a):
+                return _NOTHING
+        out = _Out(self, tx.ts, frame.stream)
         if status is _PENDING and req is not None:
             if req.pdu.fc in _WRITE_FCS:  # reads change no image on request
                 self._request(req, out)
-            else:  # a read asked for: only the clock can say something
-                a = self._active
-                if a is None or tx.ts - a.t0 <= self._timeout or not self._may_time_out(a):
-                    return _NOTHING
         elif status is _ANSWERED and req is not None and tx.response is not None:
             if req.pdu.fc in _WRITE_FCS:
                 key = _key(req)
