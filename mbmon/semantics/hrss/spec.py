@@ -156,6 +156,7 @@ class Spec:
         return f"{name} ({value})" if name is not None else f"unknown ({value})"
 
 
+@lru_cache(maxsize=256)  # a handful of scales per spec: bounded all the same
 def _decimals(scale: float) -> int:
     if scale == 1:
         return 0
