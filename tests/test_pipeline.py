@@ -13,7 +13,7 @@ from mbmon.protocol.pdu import (
 )
 from mbmon.protocol.rtu import encode_rtu
 from mbmon.semantics.annotate import Annotator
-from mbmon.semantics.regmap import ProfileBinding
+from mbmon.semantics.profile import ProfileBinding
 
 TCP = Stream(0, Transport.TCP, "10.0.0.1:50000", "10.0.0.2:502")
 UDP = Stream(1, Transport.UDP, "10.0.0.1:50001", "10.0.0.2:502")

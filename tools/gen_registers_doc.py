@@ -16,7 +16,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from mbmon.semantics.regmap import (
+from mbmon.semantics.profile import (
     BUILTIN_PROFILES,
     REGISTER_PREFIX,
     TABLES,

@@ -150,7 +150,7 @@ def install_signal_handlers() -> None:
 def make_annotator(specs: list[str]) -> Any:
     """The annotator for ``--profile`` values (``None`` without); bad specs are usage errors."""
     from mbmon.semantics.annotate import annotator_for
-    from mbmon.semantics.regmap import ProfileError
+    from mbmon.semantics.profile import ProfileError
 
     try:
         return annotator_for(specs)

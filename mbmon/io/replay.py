@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import base64
 import json
-import tempfile
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -294,14 +293,17 @@ def recorded_annotator(log: McapLog, opts: RecordedOptions) -> Any:
 
     Each ``--profile`` spec of the recording names a profile; its text is taken
     from the log's attachment (never from today's files: they may have changed
-    or gone), written to a temporary file and bound with the same spec. The
-    metadata's ``profile_bindings`` say which attachment each spec loaded;
-    older logs fall back to matching names. ``None`` without profiles.
+    or gone), parsed with ``loads_profile`` and bound with the same spec
+    (``ProfileBinding.from_profiles``). The metadata's ``profile_bindings`` say
+    which attachment each spec loaded; older logs fall back to matching names.
+    ``None`` without profiles. A stored profile or spec that does not load is a
+    :class:`LogError`.
     """
     stored = log.profiles()
     if not opts.profile_specs and not stored:
         return None
-    from mbmon.cli import make_annotator
+    from mbmon.semantics.annotate import Annotator
+    from mbmon.semantics.profile import Profile, ProfileBinding, ProfileError, loads_profile
 
     meta = log.metadata.get(METADATA_NAME, {})
     try:
@@ -311,42 +313,51 @@ def recorded_annotator(log: McapLog, opts: RecordedOptions) -> Any:
         }
     except (ValueError, TypeError):
         bindings = {}
-    with tempfile.TemporaryDirectory(prefix="mbmon-profiles-") as tmp:
-        paths: list[str] = []
-        by_name: dict[str, str] = {}
-        for number, (name, text) in enumerate(stored):
-            target = Path(tmp) / f"{number}-{Path(name).name}"
-            target.write_text(text, "utf-8")
-            paths.append(str(target))
-            by_name.setdefault(Path(name).stem, str(target))
-        specs = opts.profile_specs or paths
-        rewritten = []
-        for spec in specs:
-            target, eq, name = spec.rpartition("=")
-            number = bindings.get(spec)
-            if number is not None and 0 <= number < len(paths):
-                path: str | None = paths[number]
-            elif spec in paths:
-                path = spec
-            else:
-                path = _stored_file_for(name.strip() if eq else spec.strip(), by_name)
-            if path is None:
-                raise LogError(
-                    f"{log.path}: profile {spec!r} was in force when recording but "
-                    "is not stored in the log"
+    loaded: dict[int, Profile] = {}  # one Profile per attachment, shared by its specs
+
+    def attachment(number: int) -> Profile:
+        if number not in loaded:
+            name, text = stored[number]
+            try:
+                loaded[number] = loads_profile(
+                    text, file=f"{log.path} (stored profile {name})", path=f"log:{name}"
                 )
-            rewritten.append(f"{target}={path}" if eq else path)
-        return make_annotator(rewritten)
+            except ProfileError as exc:
+                raise LogError(str(exc)) from None
+        return loaded[number]
+
+    by_name: dict[str, int] = {}
+    for number, (name, _text) in enumerate(stored):
+        by_name.setdefault(Path(name).stem, number)
+    bound: list[tuple[str, Profile]] = []
+    for spec in opts.profile_specs:
+        _target, eq, name = spec.rpartition("=")
+        found = bindings.get(spec)
+        if found is None or not 0 <= found < len(stored):
+            found = _stored_number_for(name.strip() if eq else spec.strip(), by_name)
+        if found is None:
+            raise LogError(
+                f"{log.path}: profile {spec!r} was in force when recording but "
+                "is not stored in the log"
+            )
+        bound.append((spec, attachment(found)))
+    if not opts.profile_specs:  # no specs recorded: every stored profile, the last as default
+        bound = [(name.replace("=", "_"), attachment(i)) for i, (name, _t) in enumerate(stored)]
+    try:
+        return Annotator(ProfileBinding.from_profiles(bound))
+    except ProfileError as exc:
+        raise LogError(f"{log.path}: recorded {exc}") from None
 
 
-def _stored_file_for(name: str, files: Mapping[str, str]) -> str | None:
-    if name in files:
-        return files[name]
+def _stored_number_for(name: str, numbers: Mapping[str, int]) -> int | None:
+    """The attachment a spec's profile name matches (name, then file stem, else the only one)."""
+    if name in numbers:
+        return numbers[name]
     stem = Path(name).stem
-    if stem in files:
-        return files[stem]
-    if len(files) == 1:
-        return next(iter(files.values()))
+    if stem in numbers:
+        return numbers[stem]
+    if len(numbers) == 1:
+        return next(iter(numbers.values()))
     return None
 
 

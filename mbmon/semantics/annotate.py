@@ -19,13 +19,14 @@ annotation at once; with a profile, each field is one dict look-up.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from decimal import Decimal
 from typing import Any
 
-from mbmon.model import Annotation, Frame, Kind, Stream, Transaction, TxStatus
+from mbmon.model import Annotation, CommandUpdate, Frame, Kind, Stream, Transaction, TxStatus
 from mbmon.protocol.functions import FUNCTIONS, PROFILE_TABLE
-from mbmon.semantics.regmap import (
+from mbmon.semantics.profile import (
     REGISTER_PREFIX,
     Field,
     FieldRef,
@@ -33,11 +34,14 @@ from mbmon.semantics.regmap import (
     ProfileBinding,
     Variant,
 )
-from mbmon.semantics.words import join_u32, s16, u32_to_f32
+from mbmon.semantics.words import s16, u32_to_f32
 
 __all__ = ["Annotator", "SelectorMemory", "annotator_for", "field_notes"]
 
 _EMPTY = Annotation()
+_PENDING, _TIMEOUT = TxStatus.PENDING, TxStatus.TIMEOUT
+_REQUEST = Kind.REQUEST
+_READ_FCS = frozenset({0x01, 0x02, 0x03, 0x04})
 
 #: function code -> profile table, from the one function-code table
 _TABLE = {code: PROFILE_TABLE[f.table] for code, f in FUNCTIONS.items() if f.table is not None}
@@ -58,6 +62,7 @@ class Annotator:
         self._session_tried = False
         # last value of group selectors (PR[n].type) per (server, unit, table, address)
         self._selectors: dict[tuple[str, int, str, int], int] = {}
+        self._memories: dict[tuple[str, int, str], SelectorMemory] = {}  # views of _selectors
 
     @property
     def binding(self) -> ProfileBinding:
@@ -72,28 +77,60 @@ class Annotator:
         if self._off:
             return _EMPTY
         status = tx.status
-        frame = (
-            tx.request if status is TxStatus.PENDING or status is TxStatus.TIMEOUT else tx.response
-        )
+        frame = tx.request if status is _PENDING or status is _TIMEOUT else tx.response
         if frame is None:
             return _EMPTY
         profile = self._binding.for_(frame.stream, frame.unit)
         if profile is None:
             return _EMPTY
         notes: tuple[str, ...] = ()
-        if status is not TxStatus.TIMEOUT:
+        plain: Annotation | None = None
+        pdu = frame.pdu
+        if status is _PENDING and pdu.kind is _REQUEST and pdu.fc in _READ_FCS:
+            # the most common step of all (a poll asked for): its annotation is cached
+            key = (_READ_ANNOTATION, pdu.fc, pdu.address, pdu.count)
+            plain = profile.memo.get(key)
+            if plain is None:
+                table = _TABLE[pdu.fc]
+                found = _read_request_note(profile, table, pdu.address, pdu.count)
+                plain = Annotation(found) if found else _EMPTY
+                _remember(profile.memo, key, plain)
+            if profile.session != "hrss":
+                return plain
+            notes = plain.notes
+        elif status is not _TIMEOUT:
             notes = tuple(self._frame_notes(tx, frame, profile))
         if profile.session == "hrss":
-            session = self._session(frame.stream, frame.unit)
+            session = self._sessions.get((frame.stream.server, frame.unit))
+            if session is None:
+                session = self._session(frame.stream, frame.unit)
             if session is not None:
                 extra = session.feed(tx)
                 if extra.notes or extra.commands or extra.state is not None:
-                    return Annotation(
-                        notes=notes + tuple(extra.notes),
-                        commands=tuple(extra.commands),
-                        state=extra.state,
-                    )
-        return Annotation(notes=notes) if notes else _EMPTY
+                    notes += tuple(extra.notes)
+                    return Annotation(notes, tuple(extra.commands), extra.state)
+        if plain is not None:
+            return plain
+        return Annotation(notes) if notes else _EMPTY
+
+    def tick(self, now: float) -> list[CommandUpdate]:
+        """Time ``now`` passed: command steps the HRSS sessions make due (never-completed warnings).
+
+        The pipeline emits each as a COMMAND record; nothing here needs a frame.
+        """
+        out: list[CommandUpdate] = []
+        for session in self._sessions.values():
+            out += session.tick(now)
+        return out
+
+    def next_deadline(self) -> float | None:
+        """The earliest time a :meth:`tick` reports something, or ``None``."""
+        deadline: float | None = None
+        for session in self._sessions.values():
+            d = session.next_deadline()
+            if d is not None and (deadline is None or d < deadline):
+                deadline = d
+        return deadline
 
     # ------------------------------------------------------------------ sessions
 
@@ -110,29 +147,25 @@ class Annotator:
     def _hrss_class(self) -> Any:
         if not self._session_tried:
             self._session_tried = True
-            try:
-                from mbmon.semantics import hrss
-            except ModuleNotFoundError as err:  # the session module may not exist yet
-                if err.name not in ("mbmon.semantics.hrss",):
-                    raise
-                return None
-            self._session_cls = getattr(hrss, "HrssSession", None)
+            from mbmon.semantics.hrss.session import HrssSession  # loads its TOML: only when used
+
+            self._session_cls = HrssSession
         return self._session_cls
 
     # ------------------------------------------------------------------ notes
 
-    def _frame_notes(self, tx: Transaction, frame: Frame, profile: Profile) -> list[str]:
+    def _frame_notes(self, tx: Transaction, frame: Frame, profile: Profile) -> Sequence[str]:
         pdu = frame.pdu
         if pdu.kind is Kind.EXCEPTION:
-            return []
-        table = _TABLE.get(pdu.fc)
-        if table is None:
-            return []
+            return ()
         fc = pdu.fc
+        table = _TABLE.get(fc)
+        if table is None:
+            return ()
+        if pdu.kind is Kind.REQUEST and fc in (0x01, 0x02, 0x03, 0x04):
+            return _read_request_note(profile, table, pdu.address, pdu.count)
         selector = self._selector_reader(frame, profile, table)
         if pdu.kind is Kind.REQUEST:
-            if fc in (0x01, 0x02, 0x03, 0x04):
-                return _read_request_note(profile, table, pdu.address, pdu.count)
             if fc in (0x05, 0x06, 0x0F, 0x10):
                 if pdu.address is None or not pdu.values:
                     return []
@@ -165,7 +198,13 @@ class Annotator:
         return field_notes(profile, table, req.pdu.address, values, "read", selector)
 
     def _selector_reader(self, frame: Frame, profile: Profile, table: str) -> SelectorMemory:
-        return SelectorMemory(self._selectors, frame.stream.server, frame.unit, table)
+        key = (frame.stream.server, frame.unit, table)
+        memory = self._memories.get(key)
+        if memory is None:
+            if len(self._memories) >= 4096:  # one per server, unit and table: bounded all the same
+                self._memories.clear()
+            memory = self._memories[key] = SelectorMemory(self._selectors, *key)
+        return memory
 
 
 class SelectorMemory:
@@ -209,10 +248,49 @@ def field_notes(
     """
     if table in _BITS:
         return _bit_notes(profile, table, start, values)
+    key = (_LAYOUT, table, start, len(values))
+    memo = profile.memo
+    layout = memo.get(key)
+    if layout is None:
+        layout = _register_layout(profile, table, start, len(values))
+        _remember(memo, key, layout)
     notes: list[str] = []
-    end = start + len(values)
+    for item in layout:
+        kind, a, b = item[0], item[1], item[2]
+        if kind is _VALUE:  # one whole field that no selector re-reads: head fixed
+            notes.append(f"{item[3]} = {_format_value(item[4], values[a:b])}")
+        elif kind is _RUN:
+            notes.append(_run_note(item[3], values[a:b], item[4]))
+        else:
+            ref = item[3]
+            notes.append(
+                _register_note(ref, table, start + a, values[a:b], verb, start, values, selector)
+            )
+    return notes
+
+
+# Layout items: (_VALUE, a, b, head, _ValueFormat) | (_RUN, a, b, name, field) | (_FIELD, a, b, ref)
+# where values[a:b] are the words the note shows.
+_VALUE, _RUN, _FIELD = "value", "run", "field"
+_LAYOUT, _READ_NOTE, _SPAN_NOTE = "layout", "read note", "span note"
+_READ_ANNOTATION = "read annotation"
+_MEMO_MAX = 1024  # layouts and notes per profile: at most ~125 small tuples each, ~15 MB worst
+
+
+def _remember(memo: dict[Any, Any], key: tuple[Any, ...], value: Any) -> None:
+    """Keep ``value`` for ``key`` in a profile's memo; the memo is emptied when full."""
+    if len(memo) >= _MEMO_MAX:
+        memo.clear()
+    memo[key] = value
+
+
+def _register_layout(
+    profile: Profile, table: str, start: int, n: int
+) -> tuple[tuple[Any, ...], ...]:
+    """What :func:`field_notes` shows for ``n`` registers at ``start``: the value-free part."""
+    items: list[tuple[Any, ...]] = []
+    end = start + n
     i = 0
-    n = len(values)
     lookup = profile.lookup
     while i < n:
         ref = lookup(table, start + i)
@@ -232,13 +310,19 @@ def field_notes(
                 run.append(nxt)
                 j += 1
             if len(run) > 1:
-                notes.append(_run_note(run, values[i:j], f))
+                items.append((_RUN, i, j, _run_name(run), f))
                 i = j
                 continue
-        words = values[lo - start : hi - start]
-        notes.append(_register_note(ref, table, lo, words, verb, start, values, selector))
+        entry = ref.entry
+        selectable = entry is not None and entry.select is not None and ref.base is not None
+        if f.type != "block" and not selectable and hi - lo == f.words:
+            items.append(
+                (_VALUE, lo - start, hi - start, _ref_text(ref, None), _value_format(f, None))
+            )
+        else:
+            items.append((_FIELD, lo - start, hi - start, ref))
         i = hi - start
-    return notes
+    return tuple(items)
 
 
 def _plain(ref: FieldRef) -> bool:
@@ -258,11 +342,11 @@ def _plain(ref: FieldRef) -> bool:
     )
 
 
-def _run_note(run: list[FieldRef], values: Sequence[int], f: Field) -> str:
+def _run_note(name: str, values: Sequence[int], f: Field) -> str:
     shown = [str(s16(v) if f.type == "s16" else v) for v in values[:_MAX_RUN_WORDS]]
     if len(values) > _MAX_RUN_WORDS:
         shown.append(f"… (+{len(values) - _MAX_RUN_WORDS})")
-    return f"{_run_name(run)} = {' '.join(shown)}"
+    return f"{name} = {' '.join(shown)}"
 
 
 def _run_name(run: list[FieldRef]) -> str:
@@ -346,60 +430,104 @@ def _raw_word(f: Field, w: int) -> str:
 
 
 def _value_text(f: Field, variant: Variant | None, words: Sequence[int]) -> str:
-    t = f.type
-    if t == "version":
-        return (f.format or "").format(*(w & 0xFFFF for w in words))
-    if t in ("u16", "s16"):
-        raw = words[0] & 0xFFFF if t == "u16" else s16(words[0])
+    """The value of field ``f`` (read as ``variant`` says, if any) in its complete ``words``."""
+    return _format_value(_value_format(f, variant), words)
+
+
+@dataclass(frozen=True, slots=True)
+class _ValueFormat:
+    """How a field's words become text, decided once per field and variant (value-free)."""
+
+    type: str
+    words: int
+    high_low: bool  # word order of two-register types
+    template: str  # "version": the format string
+    enum: Mapping[int, str] | None
+    enum_by_value: bool  # enum_style "value": "1 (execute)"
+    hex: bool
+    scale: float  # f32: the factor; integers: used when ``spec`` is set
+    spec: str | None  # format spec of a scaled integer (".3f"); None: the integer as is
+    suffix: str  # the unit as written after the number ("°", " mm", "")
+    range: tuple[int, int] | None
+
+
+def _value_format(f: Field, variant: Variant | None) -> _ValueFormat:
+    scale, unit = f.scale, f.unit
+    if f.type == "f32":
+        if variant is not None and variant.scale is not None:
+            scale = variant.scale
+        if variant is not None and variant.unit:
+            unit = variant.unit
+        spec = None
     else:
-        low, high = (words[0], words[1]) if f.word_order == "low_high" else (words[1], words[0])
-        u = join_u32(low, high)
-        if t == "f32":
-            scale = variant.scale if variant and variant.scale is not None else f.scale
-            x = u32_to_f32(u) * (scale if scale is not None else 1.0)
-            return _with_unit(f"{x:g}", variant.unit if variant and variant.unit else f.unit)
-        raw = u - 0x100000000 if t == "i32" and u & 0x80000000 else u
-    if f.enum is not None:
-        name = f.enum.get(raw)
-        if name is None:
-            text = f"{raw} (unknown)"
-        elif f.enum_style == "value":
-            text = f"{raw} ({name})"
-        else:
-            text = f"{name} ({raw})"
-    elif f.display == "hex":
-        text = f"0x{raw & 0xFFFFFFFF:0{4 * f.words}X}"
-    else:
-        scale = f.scale
-        unit = f.unit
         if variant is not None:
             if variant.scale is not None:
                 scale = variant.scale
             if variant.unit is not None:
                 unit = variant.unit
-        text = _with_unit(_scaled(raw, scale), unit)
-    if f.range is not None and not f.range[0] <= raw <= f.range[1]:
-        text += f" (out of range {f.range[0]}..{f.range[1]})"
+        spec = None if scale is None or scale == 1 else f".{_decimals(scale)}f"
+    return _ValueFormat(
+        type=f.type,
+        words=f.words,
+        high_low=f.word_order != "low_high",
+        template=f.format or "",
+        enum=f.enum,
+        enum_by_value=f.enum_style == "value",
+        hex=f.display == "hex",
+        scale=1.0 if scale is None else scale,
+        spec=spec,
+        suffix="" if not unit else unit if unit in _NO_UNIT_SPACE else f" {unit}",
+        range=f.range,
+    )
+
+
+def _format_value(v: _ValueFormat, words: Sequence[int]) -> str:
+    t = v.type
+    if t == "version":
+        return v.template.format(*(w & 0xFFFF for w in words))
+    if t == "u16":
+        raw = words[0] & 0xFFFF
+    elif t == "s16":
+        raw = words[0] & 0xFFFF
+        if raw & 0x8000:
+            raw -= 0x10000
+    else:
+        low, high = (words[1], words[0]) if v.high_low else (words[0], words[1])
+        u = ((high & 0xFFFF) << 16) | (low & 0xFFFF)
+        if t == "f32":
+            return f"{u32_to_f32(u) * v.scale:g}{v.suffix}"
+        raw = u - 0x100000000 if t == "i32" and u & 0x80000000 else u
+    enum = v.enum
+    if enum is not None:
+        name = enum.get(raw)
+        if name is None:
+            text = f"{raw} (unknown)"
+        elif v.enum_by_value:
+            text = f"{raw} ({name})"
+        else:
+            text = f"{name} ({raw})"
+    elif v.hex:
+        text = f"0x{raw & 0xFFFFFFFF:0{4 * v.words}X}"
+    elif v.spec is None:
+        text = f"{raw}{v.suffix}"
+    else:
+        text = format(raw * v.scale, v.spec) + v.suffix
+    rng = v.range
+    if rng is not None and not rng[0] <= raw <= rng[1]:
+        text += f" (out of range {rng[0]}..{rng[1]})"
     return text
 
 
 _DECIMALS: dict[float, int] = {}
 
 
-def _scaled(raw: int, scale: float | None) -> str:
-    if scale is None or scale == 1:
-        return str(raw)
+def _decimals(scale: float) -> int:
+    """As many decimals as the scale has: 0.001 -> 3, 0.25 -> 2, 10 -> 0."""
     decimals = _DECIMALS.get(scale)
-    if decimals is None:  # as many decimals as the scale has: 0.001 -> 3, 0.25 -> 2, 10 -> 0
+    if decimals is None:
         exp = Decimal(repr(scale)).normalize().as_tuple().exponent
         decimals = _DECIMALS[scale] = min(-exp, 9) if isinstance(exp, int) and exp < 0 else 0
-    return f"{raw * scale:.{decimals}f}"
-
-
-def _with_unit(text: str, unit: str | None) -> str:
-    if not unit:
-        return text
-    return f"{text}{unit}" if unit in _NO_UNIT_SPACE else f"{text} {unit}"
+    return decimals
 
 
 def _bit_notes(profile: Profile, table: str, start: int, bits: Sequence[int]) -> list[str]:
@@ -478,11 +606,16 @@ def _one_name(ref: FieldRef, table: str, lo: int, hi: int, *, with_label: bool =
 
 def _read_request_note(
     profile: Profile, table: str, address: int | None, count: int | None
-) -> list[str]:
+) -> tuple[str, ...]:
     if address is None or not count:
-        return []
-    names = _span_names(profile, table, address, min(count, 0x10000 - address))
-    return [f"read {names}"] if names else []
+        return ()
+    key = (_READ_NOTE, table, address, count)
+    notes = profile.memo.get(key)
+    if notes is None:
+        names = _span_names(profile, table, address, min(count, 0x10000 - address))
+        notes = (f"read {names}",) if names else ()
+        _remember(profile.memo, key, notes)
+    return notes  # type: ignore[no-any-return]
 
 
 def _span_note(
@@ -490,8 +623,13 @@ def _span_note(
 ) -> list[str]:
     if address is None or not count:
         return []
-    names = _span_names(profile, table, address, min(count, 0x10000 - address))
-    return [f"{names} {verb}"] if names else []
+    key = (_SPAN_NOTE, table, address, count, verb)
+    note = profile.memo.get(key)
+    if note is None:
+        names = _span_names(profile, table, address, min(count, 0x10000 - address))
+        note = f"{names} {verb}" if names else ""
+        _remember(profile.memo, key, note)
+    return [note] if note else []
 
 
 def _mask_note(profile: Profile, address: int | None, fields: Any) -> list[str]:
@@ -509,7 +647,7 @@ def _mask_note(profile: Profile, address: int | None, fields: Any) -> list[str]:
 def annotator_for(specs: Sequence[str]) -> Annotator | None:
     """The annotator for ``--profile`` values, or ``None`` when none is given.
 
-    Raises :class:`~mbmon.semantics.regmap.ProfileError` for a spec that does not
+    Raises :class:`~mbmon.semantics.profile.ProfileError` for a spec that does not
     load or bind; the message names the file, line and key.
     """
     if not specs:

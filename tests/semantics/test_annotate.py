@@ -6,7 +6,6 @@ Tables 44-50 (coils, PTP, Set PR), Table 14 (IR524, error codes), Table 56 (XEG)
 
 from __future__ import annotations
 
-import importlib.util
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -31,7 +30,7 @@ from mbmon.protocol.pdu import (
     encode_write_single,
 )
 from mbmon.semantics.annotate import Annotator
-from mbmon.semantics.regmap import ProfileBinding, builtin_profile_text
+from mbmon.semantics.profile import ProfileBinding, builtin_profile_text
 from mbmon.semantics.words import split_i32, u16
 
 ROBOT = Stream(0, Transport.TCP, "192.168.0.10:50123", "192.168.0.2:502")
@@ -380,10 +379,6 @@ def test_xeg_profile_has_no_session(xeg_only: Annotator) -> None:
     assert xeg_only.sessions() == {}
 
 
-@pytest.mark.skipif(
-    importlib.util.find_spec("mbmon.semantics.hrss") is None,
-    reason="mbmon/semantics/hrss.py (HRSS command session) not present yet",
-)
 def test_hrss_session_merged_after_profile_notes(hrss_notes: Annotator) -> None:
     from mbmon.semantics.hrss import HrssSession
 

@@ -595,3 +595,96 @@ def test_motion_state_changes_are_noted() -> None:
         ["motion: Running (2) -> Hold (3)"],
         ["motion: Hold (3) -> Idle (1)"],
     ]
+
+
+# --------------------------------------------------------------------------- time alone (ticks)
+
+
+def test_never_completes_on_time_while_the_line_is_silent() -> None:
+    """Execute, one IR200 poll (not done yet), then only ticks: the warning is on time."""
+    session = HrssSession(STREAM, 1, complete_timeout=2.0)
+    s = Script(session)
+    s(wr(201, [100, 3, 2, *i32(1), *([0] * 10)]))
+    assert session.next_deadline() is None  # nothing executed: no deadline
+    ex, _ = s(w6(200, 1))
+    t_exec = updates([ex])[0].ts
+    assert session.next_deadline() is None  # nobody looked at the status yet
+    s(rd(0x04, 200, [0]), dt=0.1)
+    deadline = session.next_deadline()
+    assert deadline is not None and deadline == pytest.approx(t_exec + 2.0)
+    assert session.tick(t_exec + 1.0) == []
+    assert session.tick(deadline - 1e-6) == []
+    [warn] = session.tick(deadline)
+    assert warn.phase is Phase.WARNING and warn.ts == deadline
+    assert warn.params["warning"] == "never_completed" and warn.code == 100
+    assert warn.stream == STREAM and warn.unit == 1
+    assert warn.text == (
+        "never completed: $PR[3] = {X 1, Y 0, Z 0, A 0, B 0, C 0} "
+        "(no IR200 status 2 s after R200 = 1)"
+    )
+    assert session.next_deadline() is None  # said once
+    assert session.tick(deadline + 10) == []
+    late, _ = s(rd(0x04, 200, [0]), dt=5.0)
+    assert warnings([late]) == []  # a later transaction does not repeat it
+
+
+def test_ticks_say_nothing_when_the_status_came_or_nobody_looked() -> None:
+    session = HrssSession(STREAM, 1, complete_timeout=1.0)
+    s = Script(session)
+    s(wr(201, [6]))
+    s(w6(200, 1))
+    assert session.next_deadline() is None and session.tick(s.t + 5.0) == []  # never looked
+    s(w6(200, 0))
+    s(w6(200, 1))
+    s(rd(0x04, 200, [0]), dt=0.2)
+    assert session.next_deadline() is not None
+    _, ok = s(rd(0x04, 200, [1]), dt=0.2)
+    assert phases([ok]) == [Phase.SUCCESS]
+    assert session.next_deadline() is None and session.tick(s.t + 5.0) == []
+
+
+def test_ticks_wait_while_hold_to_run_is_held() -> None:
+    session = HrssSession(STREAM, 1, complete_timeout=1.0)
+    s = Script(session)
+    s(wr(201, [3, 0, 1]))
+    s(w6(200, 1))
+    s(rd(0x04, 200, [0]), dt=0.2)
+    assert session.next_deadline() is None and session.tick(s.t + 5.0) == []  # JOG held
+
+
+def test_unanswered_writes_are_bounded_and_the_oldest_dropped_with_a_note() -> None:
+    session = HrssSession(STREAM, 1, max_writes=4)
+    s = Script(session)
+    notes = [s((w6(300 + i, i)[0], None))[0].notes for i in range(6)]  # never answered
+    assert notes[:4] == [(), (), (), ()]
+    assert notes[4] == (
+        "warning: more than 4 writes unanswered: the oldest (R300) is forgotten, "
+        "its values stay unconfirmed",
+    )
+    assert "(R301)" in notes[5][0]
+    assert session.unconfirmed == frozenset(range(300, 306))
+    assert len(session._writes) == 4
+
+
+def test_annotator_ticks_reach_the_hrss_sessions() -> None:
+    from mbmon.semantics.annotate import Annotator
+    from mbmon.semantics.profile import ProfileBinding
+
+    a = Annotator(ProfileBinding.parse(["hrss"]))
+    assert a.next_deadline() is None and a.tick(5.0) == []
+
+    class Fed:  # the annotator takes pairing steps as the session does
+        def feed(self, tx: Transaction) -> Annotation:
+            return a.annotate(tx)
+
+    s = Script()
+    s.session = Fed()  # type: ignore[assignment]
+    s(wr(201, [6]))
+    s(w6(200, 1))
+    s(rd(0x04, 200, [0]))
+    deadline = a.next_deadline()
+    assert deadline is not None
+    assert a.tick(deadline - 0.5) == []
+    [warn] = a.tick(deadline)
+    assert warn.params["warning"] == "never_completed" and warn.code == 6
+    assert a.next_deadline() is None

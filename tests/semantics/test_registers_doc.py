@@ -8,7 +8,7 @@ from types import ModuleType
 
 import pytest
 
-from mbmon.semantics.regmap import builtin_profile_text, load_profile, loads_profile
+from mbmon.semantics.profile import builtin_profile_text, load_profile, loads_profile
 
 ROOT = Path(__file__).resolve().parents[2]
 DOC = ROOT / "docs" / "registers.md"

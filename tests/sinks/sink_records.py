@@ -90,7 +90,7 @@ def run_pipeline(items: list[Chunk | Event], annotator: object = None) -> list[C
 
 
 def hrss_context(robot: str | None = None) -> SinkContext:
-    from mbmon.semantics.regmap import builtin_profile_text
+    from mbmon.semantics.profile import builtin_profile_text
 
     return SinkContext(
         view=View(robot=robot),

@@ -202,7 +202,7 @@ def profile_bindings(specs: list[str], profiles: list[tuple[str, str]]) -> list[
         _target, eq, name = spec.rpartition("=")
         name = name.strip() if eq else spec.strip()
         try:
-            from mbmon.semantics.regmap import BUILTIN_PROFILES, builtin_profile_text
+            from mbmon.semantics.profile import BUILTIN_PROFILES, builtin_profile_text
 
             if name in BUILTIN_PROFILES:
                 text = builtin_profile_text(name)

@@ -8,10 +8,11 @@ from pathlib import Path
 import pytest
 
 from mbmon.model import Stream, Transport
-from mbmon.semantics.regmap import (
+from mbmon.semantics.profile import (
     Profile,
     ProfileBinding,
     ProfileError,
+    builtin_profile_text,
     dump_profile,
     load_profile,
     loads_profile,
@@ -360,6 +361,38 @@ def test_binding_without_default() -> None:
     assert ProfileBinding.parse([]).empty and not b.empty
 
 
+
+def test_binding_from_loaded_profiles_reads_no_file(tmp_path: Path) -> None:
+    """Specs bound to profiles parsed from text: the name after '=' is never looked up."""
+    cell = loads_profile(USER, file="stored:cell")
+    xeg = loads_profile(builtin_profile_text("xeg"))
+    missing = tmp_path / "gone.toml"  # a file that does not exist: must not be read
+    b = ProfileBinding.from_profiles(
+        [(f"unit:7={missing}", xeg), (f"10.0.0.5={missing}", cell), ("whatever", xeg)]
+    )
+    name = lambda s, u: p.name if (p := b.for_(_stream(s), u)) else None  # noqa: E731
+    assert name("10.0.0.5:502", 1) == "cell"
+    assert name("10.0.0.5:502", 7) == "xeg"  # unit beats host, as with parse()
+    assert name("10.0.0.1:502", 1) == "xeg"  # the plain spec is the default
+    assert dict(b.sources())["cell"] == USER  # the stored text goes on into new logs
+    assert len(b.profiles()) == 2
+    with pytest.raises(ProfileError, match=r"unit must be 0\.\.255"):
+        ProfileBinding.from_profiles([("unit:300=x", cell)])
+
+
+def test_binding_parse_with_a_loader() -> None:
+    asked: list[str] = []
+
+    def loader(name: str) -> Profile:
+        asked.append(name)
+        return loads_profile(USER, file=name)
+
+    b = ProfileBinding.parse(["unit:1=a", "unit:2=a", "10.0.0.1=b"], loader=loader)
+    assert asked == ["a", "b"]  # each distinct name loaded once
+    got = b.for_(_stream("10.0.0.9:502"), 2)
+    assert got is not None and got.name == "cell"
+
+
 @pytest.mark.parametrize(
     ("spec", "match"),
     [
@@ -384,7 +417,7 @@ def test_profile_equality_ignores_source() -> None:
 
 
 def test_error_in_enum_sub_table_points_at_its_header() -> None:
-    from mbmon.semantics.regmap import builtin_profile_text
+    from mbmon.semantics.profile import builtin_profile_text
 
     text = builtin_profile_text("hrss")
     bad = text.replace('2 = "Fail"', 'two = "Fail"', 1)

@@ -1,0 +1,634 @@
+"""HRSS command session: the R200/R201..R251 handshake as a lifecycle of commands.
+
+A client drives an HRSS controller by writing a command number to R201 and its
+parameters to R202..R251 (FC 06/10/17, in any number of requests), then R200 = 1
+to execute; the controller answers in IR200 (1 success, 2 fail), IR201 (current
+action) and, for the Get commands, IR202..IR251; the client resets R200 = 0
+before the next command (manual §5.3.3.5, Tables 14-43).
+
+:class:`HrssSession` follows that handshake for one server endpoint and unit,
+from pairing steps (:class:`~mbmon.model.Transaction`). It keeps the register
+image seen so far, turns it into :class:`~mbmon.model.CommandUpdate` steps with
+the command in HRSS program form, decodes Get returns, warns about protocol
+misuse and keeps the robot state (joint angles, pose, speeds, errors, motion).
+
+Every command layout, enum, range and state register comes from
+``profiles/hrss_commands.toml``; this module is the code that reads it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
+
+from mbmon.model import (
+    Annotation,
+    CommandUpdate,
+    Frame,
+    Kind,
+    Phase,
+    Stream,
+    Transaction,
+    TxStatus,
+)
+from mbmon.semantics.hrss.render import Decoded, decode_command, decode_returns
+from mbmon.semantics.hrss.spec import CommandSpec, load_spec
+from mbmon.semantics.words import s16
+
+
+@dataclass(slots=True)
+class _Exec:
+    """One executed command, from R200 = 1 to its end."""
+
+    decoded: Decoded
+    spec: CommandSpec | None
+    t0: float
+    stream: Stream
+    done: bool = False  # IR200 showed 1/2, or the execute was rejected
+    status: int | None = None
+    settled: bool = False  # completion seen another way (motion ended, hold-to-run stopped)
+    looked: bool = False  # the client read IR200 or IR524 after the execute
+    moving: bool = False  # IR524 showed Running/Hold/Delay after the execute
+    warned: bool = False  # "never completes" already said
+    return_seen: set[int] = field(default_factory=set)
+    returned: tuple[Any, ...] | None = None
+
+
+@dataclass(slots=True)
+class _Write:
+    """A write request applied to the holding image, kept until its answer."""
+
+    old: dict[int, int | None]
+    new: dict[int, int]
+    execute: _Exec | None = None
+
+
+_MOVING = (2, 3, 4)  # IR524 Running, Hold, Delay
+_WRITE_FCS = frozenset({0x06, 0x10, 0x16, 0x17})  # what _request applies to the holding image
+_PENDING, _ANSWERED = TxStatus.PENDING, TxStatus.ANSWERED
+_NOTHING = Annotation()
+
+_S16, _U16, _I32, _U32 = range(4)
+_WORD_TYPES = {"s16": _S16, "u16": _U16, "i32": _I32, "u32": _U32}
+#: (state key, offset of the first word, offset of the last word, word type, scale mode, factor);
+#: scale mode 0: the raw number, 1: raw / factor (a power of ten), 2: raw * factor
+_StateField = tuple[str, int, int, int, int, float]
+
+
+@dataclass(frozen=True, slots=True)
+class _ReadPlan:
+    """Offsets, in one FC 04 read, of the input registers the session watches (None: absent)."""
+
+    status: int | None
+    action: int | None
+    returns: tuple[int, ...]  # addresses of IR202..IR251 in the read
+    queue: int | None
+    motion: int | None
+    state: tuple[_StateField, ...]
+
+
+class HrssSession:
+    """Per (server endpoint, unit): the register image seen so far and the command protocol.
+
+    Writes (FC 06, 10, 0x16, 17) update the holding image when the *request* is
+    seen, so that a command executes on the frame that carries R200 = 1; the
+    written registers stay unconfirmed until the answer, and an exception
+    answer puts the old values back. Reads (FC 03, 04, 17) update the images
+    from the answer. ``complete_timeout`` (seconds of capture time, default from
+    the TOML) bounds how long a command may go without completing while the
+    client is watching IR200/IR524; :meth:`tick` and :meth:`next_deadline` let
+    that fire on time while the line is silent. At most ``max_writes``
+    unanswered writes are remembered (the oldest is dropped with a note).
+    """
+
+    def __init__(
+        self,
+        stream: Stream,
+        unit: int,
+        *,
+        complete_timeout: float | None = None,
+        max_writes: int = 256,
+    ) -> None:
+        self.stream = stream
+        self.unit = unit
+        self._spec = load_spec()
+        p = self._spec
+        self._exec_reg = p.reg("execute_reg")
+        self._cmd_reg = p.reg("command_reg")
+        self._params = range(p.reg("param_first"), p.reg("param_last") + 1)
+        self._returns = range(p.reg("return_first"), p.reg("return_last") + 1)
+        self._timeout = float(
+            complete_timeout if complete_timeout is not None else p.protocol["complete_timeout"]
+        )
+        self._holding: dict[int, int] = {}
+        self._inputs: dict[int, int] = {}
+        self._unconfirmed: set[int] = set()
+        self._writes: dict[tuple[Any, ...], _Write] = {}  # unanswered, oldest first, bounded
+        self._max_writes = max_writes
+        self._block: set[int] = set()  # R201..R251 written since the last execute
+        self._block_code: int | None = None  # command whose WRITTEN was emitted for the block
+        self._active: _Exec | None = None  # last executed command
+        self._get: _Exec | None = None  # last executed command that has returns
+        self._motion: int | None = None
+        self._queue_over = False
+        self._state: dict[str, float] = {}
+        self._plans: dict[tuple[int, int], _ReadPlan] = {}  # (address, count) of FC 04 reads
+
+    # ------------------------------------------------------------------ public views
+
+    @property
+    def state(self) -> dict[str, float]:
+        """Current robot state (a copy): keys and units in docs/commands.md."""
+        return dict(self._state)
+
+    @property
+    def holding(self) -> Mapping[int, int]:
+        """Holding register image (address -> unsigned word), writes applied on request."""
+        return MappingProxyType(self._holding)
+
+    @property
+    def inputs(self) -> Mapping[int, int]:
+        """Input register image (address -> unsigned word) from FC 04 answers."""
+        return MappingProxyType(self._inputs)
+
+    @property
+    def unconfirmed(self) -> frozenset[int]:
+        """Holding registers written by a request whose answer has not been seen."""
+        return frozenset(self._unconfirmed)
+
+    # ------------------------------------------------------------------ feed
+
+    def feed(self, tx: Transaction) -> Annotation:
+        """Follow one pairing step: the notes, command steps and state change it causes."""
+        req = tx.request
+        frame = req if req is not None else tx.response
+        if frame is None or frame.unit != self.unit:
+            return _NOTHING
+        status = tx.status
+        if status is _PENDING and req is not None and req.pdu.fc not in _WRITE_FCS:
+            # a read asked for: it changes no image, only the clock can say something
+            a = self._active
+            if a is None or tx.ts - a.t0 <= self._timeout or not self._may_time_out(a):
+                return _NOTHING
+        out = _Out(self, tx.ts, frame.stream)
+        if status is _PENDING and req is not None:
+            if req.pdu.fc in _WRITE_FCS:  # reads change no image on request
+                self._request(req, out)
+        elif status is _ANSWERED and req is not None and tx.response is not None:
+            if req.pdu.fc in _WRITE_FCS:
+                key = _key(req)
+                if key not in self._writes:
+                    self._request(req, out)  # the request was never fed on its own
+                self._confirm(key)
+            self._answer(req, tx.response, out)
+        elif tx.status is TxStatus.EXCEPTION and req is not None:
+            self._rejected(req, tx.response, out)  # a write never fed as PENDING: nothing to undo
+        elif tx.status is TxStatus.TIMEOUT and req is not None:
+            self._writes.pop(_key(req), None)  # values stay, still unconfirmed
+        self._check_timeout(tx.ts, out)
+        return out.annotation()
+
+    def tick(self, now: float) -> list[CommandUpdate]:
+        """Time ``now`` (capture time) passed with no transaction: the command steps it makes due.
+
+        A command that has gone ``complete_timeout`` without completing while the
+        client watched IR200/IR524 is reported "never completed" here, on time,
+        even while the line is silent; a later transaction does not repeat it.
+        """
+        a = self._active
+        if a is None:
+            return []
+        out = _Out(self, now, a.stream)
+        self._check_timeout(now, out)
+        return out.commands
+
+    def next_deadline(self) -> float | None:
+        """The earliest time at which :meth:`tick` reports something, or ``None``.
+
+        ``None`` while nothing can time out (no command in flight, the client
+        never looked at its status, a hold-to-run command still held, the robot
+        still moving): the next transaction changes that, not the clock.
+        """
+        a = self._active
+        if a is None or not self._may_time_out(a):
+            return None
+        deadline = a.t0 + self._timeout
+        while deadline - a.t0 <= self._timeout:  # the first time _check_timeout fires
+            deadline = math.nextafter(deadline, math.inf)
+        return deadline
+
+    # ------------------------------------------------------------------ writes
+
+    def _request(self, req: Frame, out: _Out) -> None:
+        pdu = req.pdu
+        if pdu.kind is not Kind.REQUEST:
+            return
+        writes: list[tuple[int, int | None]] = []
+        if pdu.fc == 0x06 and pdu.address is not None and pdu.values:
+            writes = [(pdu.address, pdu.values[0])]
+        elif pdu.fc == 0x10 and pdu.address is not None and pdu.values is not None:
+            writes = [(pdu.address + i, v) for i, v in enumerate(pdu.values)]
+        elif pdu.fc == 0x17:
+            addr = pdu.fields.get("write_address")
+            vals = pdu.fields.get("write_values")
+            if addr is not None and vals is not None:
+                writes = [(addr + i, v) for i, v in enumerate(vals)]
+        elif pdu.fc == 0x16 and pdu.address is not None:
+            old = self._holding.get(pdu.address)
+            and_m, or_m = pdu.fields.get("and_mask"), pdu.fields.get("or_mask")
+            if old is None or and_m is None or or_m is None:
+                writes = [(pdu.address, None)]  # result unknown
+            else:
+                writes = [(pdu.address, (old & and_m) | (or_m & ~and_m & 0xFFFF))]
+        if not writes:
+            return
+        w = _Write(old={a: self._holding.get(a) for a, _ in writes}, new={})
+        for a, v in writes:
+            if v is None:
+                self._holding.pop(a, None)
+            else:
+                self._holding[a] = v
+                w.new[a] = v
+            self._unconfirmed.add(a)
+        writes_map = self._writes
+        writes_map[_key(req)] = w
+        if len(writes_map) > self._max_writes:
+            _, dropped = _pop_oldest(writes_map)
+            lo, hi = min(dropped.old), max(dropped.old)
+            span = f"R{lo}" if lo == hi else f"R{lo}..R{hi}"
+            out.note(
+                f"warning: more than {self._max_writes} writes unanswered: "
+                f"the oldest ({span}) is forgotten, its values stay unconfirmed"
+            )
+        self._commands(w, req.ts, out)
+
+    def _commands(self, w: _Write, ts: float, out: _Out) -> None:
+        params = {a for a in w.new if a == self._cmd_reg or a in self._params}
+        execute = w.new.get(self._exec_reg)
+        before = w.old.get(self._exec_reg)
+        if params:
+            new_code = w.new.get(self._cmd_reg)
+            if (
+                self._block_code is not None
+                and new_code is not None
+                and (s16(new_code) != self._block_code)
+            ):
+                self._block.clear()  # a different command is being written
+                self._block_code = None
+            self._block |= params
+        if execute == 1:
+            self._execute(w, before, ts, out)
+        elif params and self._block_code is None:
+            dec = decode_command(self._holding, self._spec)
+            covered = dec.regs <= self._block
+            if dec.code is not None and dec.layout is not None and covered and not dec.missing:
+                self._block_code = dec.code
+                out.command(
+                    Phase.WRITTEN,
+                    dec.text,
+                    dec.code,
+                    params=dec.params,
+                    note=f"written: {dec.text}",
+                )
+        if execute == 0 and before == 1:
+            a = self._active
+            if a is not None and a.spec is not None and a.spec.hold_to_run and not a.settled:
+                a.settled = True
+                out.note(f"stop: {a.decoded.text} (R200 = 0 after {ts - a.t0:.3f} s)")
+        elif execute is not None and execute not in (0, 1):
+            out.warn(
+                f"R200 = {s16(execute)} outside 0..1: not an execute or a reset",
+                kind="range",
+                code=None,
+            )
+
+    def _execute(self, w: _Write, before: int | None, ts: float, out: _Out) -> None:
+        dec = decode_command(self._holding, self._spec)
+        old = self._active
+        if old is not None and not old.done and not old.settled and old.looked and not old.warned:
+            old.warned = True
+            out.warn(
+                f"never completed: {old.decoded.text} (no IR200 status before the next "
+                f"execute, {ts - old.t0:.3f} s)",
+                kind="never_completed",
+                code=old.decoded.code,
+            )
+        cmd = self._spec.commands.get(dec.code) if dec.code is not None else None
+        ex = _Exec(decoded=dec, spec=cmd, t0=ts, stream=out.stream)
+        self._active = ex
+        w.execute = ex
+        if cmd is not None and cmd.returns is not None:
+            self._get = ex
+        self._block.clear()
+        self._block_code = None
+        if before == 1:
+            out.warn(
+                f"execute without reset: R200 was still 1 when {dec.text} was executed "
+                "(reset R200 = 0 first, §5.3.3.5)",
+                kind="no_reset",
+                code=dec.code,
+            )
+        out.command(
+            Phase.EXECUTING, dec.text, dec.code, params=dec.params, note=f"execute: {dec.text}"
+        )
+        if dec.problems:
+            out.warn(
+                f"out of range in {dec.text}: " + "; ".join(dec.problems),
+                kind="range",
+                code=dec.code,
+            )
+
+    def _confirm(self, key: tuple[Any, ...]) -> None:
+        w = self._writes.pop(key, None)
+        if w is None:
+            return
+        for a, v in w.new.items():
+            if self._holding.get(a) == v:
+                self._unconfirmed.discard(a)
+
+    def _rejected(self, req: Frame, resp: Frame | None, out: _Out) -> None:
+        w = self._writes.pop(_key(req), None)
+        if w is None:
+            return
+        exc = resp.pdu.exception_code if resp is not None else None
+        for a, old in w.old.items():
+            if a in w.new and self._holding.get(a) != w.new[a]:
+                continue  # written again since: keep the newer value
+            if old is None:
+                self._holding.pop(a, None)
+            else:
+                self._holding[a] = old
+            self._unconfirmed.discard(a)
+        lo, hi = min(w.old), max(w.old)
+        span = f"R{lo}" if lo == hi else f"R{lo}..R{hi}"
+        out.note(f"write rejected (exception {exc}): {span} unchanged")
+        ex = w.execute
+        if ex is not None and not ex.done:
+            ex.done = True
+            out.warn(
+                f"execute rejected (exception {exc}): {ex.decoded.text}",
+                kind="rejected",
+                code=ex.decoded.code,
+            )
+
+    # ------------------------------------------------------------------ reads
+
+    def _answer(self, req: Frame, resp: Frame, out: _Out) -> None:
+        rq, rs = req.pdu, resp.pdu
+        if rs.kind is not Kind.RESPONSE or rs.values is None or rq.address is None:
+            return
+        values = rs.values
+        if rq.count is not None:
+            values = values[: rq.count]
+        if rq.fc in (0x03, 0x17):
+            for i, v in enumerate(values):
+                self._holding[rq.address + i] = v
+                self._unconfirmed.discard(rq.address + i)
+        elif rq.fc == 0x04:
+            address = rq.address
+            self._inputs.update(zip(range(address, address + len(values)), values, strict=True))
+            plan = self._plans.get((address, len(values)))
+            if plan is None:
+                plan = self._read_plan(address, len(values))
+            self._inputs_read(plan, values, resp.ts, out)
+
+    def _read_plan(self, address: int, count: int) -> _ReadPlan:
+        """Where the registers the session watches sit in a read of ``count`` from ``address``."""
+        end = address + count
+
+        def offset(reg: int) -> int | None:
+            return reg - address if address <= reg < end else None
+
+        p = self._spec
+        state = []
+        for key, f in p.state:
+            regs = f.regs
+            if regs[0] < address or regs[-1] >= end:
+                continue  # both words from this very answer, or nothing
+            mode, k = (0, 1.0)
+            if f.scale != 1:
+                d = f.decimals
+                mode, k = (1, 10**d) if d and abs(f.scale - 10.0**-d) < 1e-12 else (2, f.scale)
+            state.append((key, regs[0] - address, regs[-1] - address, _WORD_TYPES[f.type], mode, k))
+        plan = _ReadPlan(
+            status=offset(p.reg("status_reg")),
+            action=offset(p.reg("action_reg")),
+            returns=tuple(r for r in range(address, end) if r in self._returns),
+            queue=offset(p.reg("queue_reg")),
+            motion=offset(p.reg("motion_reg")),
+            state=tuple(state),
+        )
+        if len(self._plans) >= 4096:  # bounded: a scan of every address cannot grow it
+            self._plans.clear()
+        self._plans[(address, count)] = plan
+        return plan
+
+    def _inputs_read(self, plan: _ReadPlan, values: Sequence[int], ts: float, out: _Out) -> None:
+        p = self._spec
+        if plan.status is not None:
+            action = None if plan.action is None else s16(values[plan.action])
+            self._status(s16(values[plan.status]), action, ts, out)
+        if plan.returns:
+            self._returns_read(plan.returns, ts, out)
+        if plan.queue is not None:
+            q = s16(values[plan.queue])
+            limit = int(p.protocol["queue_max"])
+            if q > limit and not self._queue_over:
+                out.warn(
+                    f"{q} commands queued (IR102 > {limit}): motion commands will fail",
+                    kind="queue",
+                    code=None,
+                )
+            self._queue_over = q > limit
+        if plan.motion is not None:
+            self._motion_read(s16(values[plan.motion]), ts, out)
+        if plan.state:
+            self._state_read(plan.state, values, out)
+
+    def _status(self, v: int, action: int | None, ts: float, out: _Out) -> None:
+        a = self._active
+        if a is None or a.done or ts < a.t0:
+            return
+        a.looked = True
+        if v not in (1, 2):
+            return
+        a.done, a.status = True, v
+        phase = Phase.SUCCESS if v == 1 else Phase.FAIL
+        params = dict(a.decoded.params)
+        params["status"] = v
+        if action is not None:
+            params["action"] = action
+        dur = ts - a.t0
+        word = "success" if v == 1 else "fail"
+        out.command(
+            phase,
+            a.decoded.text,
+            a.decoded.code,
+            params=params,
+            duration=dur,
+            note=f"{word}: {a.decoded.text} ({dur:.3f} s)",
+        )
+
+    def _returns_read(self, returned: tuple[int, ...], ts: float, out: _Out) -> None:
+        g = self._get
+        if g is None or ts < g.t0 or g.status == 2 or g.decoded.code is None:
+            return
+        g.return_seen.update(returned)
+        seen = {r: v for r, v in self._inputs.items() if r in g.return_seen}
+        dec = decode_returns(g.decoded.code, seen, self._spec)
+        if dec is None or dec.layout is None or dec.missing:
+            return
+        values = tuple(sorted((k, v) for k, v in dec.params.items()))
+        if values == g.returned:
+            return
+        g.returned = values
+        out.command(
+            Phase.RETURNED, dec.text, dec.code, params=dec.params, note=f"returned: {dec.text}"
+        )
+        spec = g.spec
+        key = spec.returns.match if spec is not None and spec.returns is not None else None
+        if key is not None:
+            asked, got_back = g.decoded.params.get(key), dec.params.get(key)
+            if asked is not None and got_back is not None and asked != got_back:
+                out.warn(
+                    f"{g.decoded.text} returned {dec.text.split(' = ')[0]}: stale returns?",
+                    kind="stale_returns",
+                    code=dec.code,
+                )
+        if dec.problems:
+            out.note("returns out of range: " + "; ".join(dec.problems))
+
+    def _motion_read(self, v: int, ts: float, out: _Out) -> None:
+        prev = self._motion
+        self._motion = v
+        if v != prev:
+            lab = self._spec.label("motion_state", v)
+            out.note(
+                f"motion: {lab}"
+                if prev is None
+                else f"motion: {self._spec.label('motion_state', prev)} -> {lab}"
+            )
+        a = self._active
+        if a is None or ts < a.t0 or a.spec is None or not a.spec.motion:
+            return
+        a.looked = True
+        if v in _MOVING:
+            a.moving = True
+        elif v == 1 and a.moving and not a.settled:
+            a.settled = True
+            out.note(f"motion done: {a.decoded.text} ({ts - a.t0:.3f} s after R200 = 1)")
+
+    def _state_read(
+        self, fields: tuple[_StateField, ...], values: Sequence[int], out: _Out
+    ) -> None:
+        """State values whose words are all in this answer, read as ``Field.raw``/``value`` do."""
+        state = self._state
+        for key, lo, hi, wtype, mode, k in fields:
+            if wtype == _S16:
+                raw = values[lo] & 0xFFFF
+                if raw & 0x8000:
+                    raw -= 0x10000
+            elif wtype == _U16:
+                raw = values[lo] & 0xFFFF
+            elif wtype == _I32:
+                high = values[hi] & 0xFFFF
+                raw = (high - 0x10000 if high & 0x8000 else high) * 65536 + (values[lo] & 0xFFFF)
+            else:
+                raw = ((values[hi] & 0xFFFF) << 16) | (values[lo] & 0xFFFF)
+            val = float(raw) if mode == 0 else raw / k if mode == 1 else float(raw * k)
+            if state.get(key) != val:
+                state[key] = val
+                out.state_changed = True
+
+    # ------------------------------------------------------------------ completion
+
+    def _may_time_out(self, a: _Exec) -> bool:
+        """Whether the clock alone can make ``a`` "never completed" (its deadline aside)."""
+        if a.done or a.settled or a.warned or not a.looked:
+            return False
+        if a.spec is not None and a.spec.hold_to_run and self._holding.get(self._exec_reg) == 1:
+            return False  # JOG / GO HOME run while R200 = 1
+        return not (a.moving and self._motion in _MOVING)  # not while still moving
+
+    def _check_timeout(self, ts: float, out: _Out) -> None:
+        a = self._active
+        if a is None or ts - a.t0 <= self._timeout or not self._may_time_out(a):
+            return
+        a.warned = True
+        why = (
+            "robot never moved"
+            if a.spec is not None and a.spec.motion and not a.moving
+            else "no IR200 status"
+        )
+        out.warn(
+            f"never completed: {a.decoded.text} ({why} {self._timeout:g} s after R200 = 1)",
+            kind="never_completed",
+            code=a.decoded.code,
+        )
+
+
+def _key(req: Frame) -> tuple[Any, ...]:
+    return (req.ts, req.stream.id, req.tid, req.raw)
+
+
+def _pop_oldest(writes: dict[tuple[Any, ...], _Write]) -> tuple[tuple[Any, ...], _Write]:
+    key = next(iter(writes))
+    return key, writes.pop(key)
+
+
+class _Out:
+    """What one feed (or tick) produces, gathered in order, stamped ``ts`` on ``stream``."""
+
+    __slots__ = ("commands", "notes", "session", "state_changed", "stream", "ts", "unit")
+
+    def __init__(self, session: HrssSession, ts: float, stream: Stream) -> None:
+        self.session = session
+        self.ts = ts
+        self.stream = stream
+        self.unit = session.unit
+        self.notes: list[str] = []
+        self.commands: list[CommandUpdate] = []
+        self.state_changed = False
+
+    def note(self, text: str) -> None:
+        self.notes.append(text)
+
+    def command(
+        self,
+        phase: Phase,
+        text: str,
+        code: int | None,
+        *,
+        params: Mapping[str, Any],
+        duration: float | None = None,
+        note: str | None = None,
+    ) -> None:
+        self.commands.append(
+            CommandUpdate(
+                ts=self.ts,
+                stream=self.stream,
+                unit=self.unit,
+                phase=phase,
+                text=text,
+                code=code,
+                duration=duration,
+                params=MappingProxyType(dict(params)),
+            )
+        )
+        if note is not None:
+            self.notes.append(note)
+
+    def warn(self, text: str, *, kind: str, code: int | None) -> None:
+        self.command(Phase.WARNING, text, code, params={"warning": kind}, note=f"warning: {text}")
+
+    def annotation(self) -> Annotation:
+        if not self.notes and not self.commands and not self.state_changed:
+            return _NOTHING
+        return Annotation(
+            notes=tuple(self.notes),
+            commands=tuple(self.commands),
+            state=self.session.state if self.state_changed else None,
+        )
