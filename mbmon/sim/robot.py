@@ -117,7 +117,7 @@ class SimEvent:
     """Something the robot did, for the console and tests: ``text`` says it in words."""
 
     ts: float
-    kind: str  # "execute" | "motion" | "stop" | "write-rejected"
+    kind: str  # "execute" | "motion" | "stop" | "ignored" | "write-rejected"
     text: str
     ok: bool = True
 
@@ -230,6 +230,10 @@ class SimRobot:
         if address <= R_EXECUTE < address + len(words):
             if before != 1 and after == 1:
                 self.execute()
+            elif before == 1 and after == 1:
+                self._event(
+                    "ignored", "R200 = 1 again without R200 = 0 first: nothing executed", ok=False
+                )
             elif before == 1 and after == 0:
                 self._r200_reset()
         return None

@@ -8,10 +8,11 @@ the unit filter. pymodbus keeps register blocks of its own; they are only a
 mirror the hook refreshes from the robot on every access, so the robot is the
 one state.
 
-Unit ids: on TCP a request for another unit is answered with exception 0x0B
-(gateway target failed to respond); on RTU it is left unanswered, as another
-device on the bus would answer it; RTU broadcasts (unit 0) are executed and not
-answered.
+Function codes: those of the manual's Table 10 (01, 02, 03, 04, 05, 06, 0F,
+10); any other is answered with exception 01. Unit ids: on TCP a request for
+another unit is answered with exception 0x0B (gateway target failed to
+respond); on RTU it is left unanswered, as another device on the bus would
+answer it; RTU broadcasts (unit 0) are executed and not answered.
 
 Written for pymodbus 3.16 (``pymodbus.simulator.SimDevice`` with ``action``,
 ``pymodbus.server.ModbusTcpServer``/``ModbusSerialServer`` taking a
@@ -41,9 +42,10 @@ _TABLE_OF_FC: dict[int, str] = {
     3: "holding_registers",
     6: "holding_registers",
     16: "holding_registers",
-    22: "holding_registers",
-    23: "holding_registers",
 }
+#: Table 10 of the manual: the function codes HRSS serves; any other is answered exception 01.
+FUNCTION_CODES = frozenset({1, 2, 3, 4, 5, 6, 15, 16})
+_EXC_ILLEGAL_FUNCTION = 1
 _BLOCK_BITS = 560  # coils / discrete inputs 0..555, padded to 16-bit words
 _EXC_GATEWAY_NO_RESPONSE = 0x0B
 
@@ -200,7 +202,11 @@ class SimServer:
         registers[: len(src)] = src  # the block starts at address 0
 
     def _trace_pdu(self, sending: bool, pdu: Any) -> Any:
-        """Requests in: filter units, check bit reads against the map (exact count known here)."""
+        """Requests in: filter units and function codes (Table 10), check bit reads.
+
+        Bit reads are checked against the map here, where their exact count is
+        known (pymodbus hands the ``action`` hook a count in 16-bit words).
+        """
         if sending:
             return pdu
         if pdu.dev_id != self.unit:
@@ -208,6 +214,8 @@ class SimServer:
                 return _Refusal(pdu, _EXC_GATEWAY_NO_RESPONSE)
             if pdu.dev_id != 0:
                 return None  # RTU: a request for another device on the bus
+        if pdu.function_code not in FUNCTION_CODES:
+            return _Refusal(pdu, _EXC_ILLEGAL_FUNCTION)
         if pdu.function_code in (1, 2):
             table = _TABLE_OF_FC[pdu.function_code]
             with self.lock:

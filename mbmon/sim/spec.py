@@ -11,7 +11,15 @@ from __future__ import annotations
 
 from functools import lru_cache
 
-from mbmon.semantics.hrss import CommandSpec, Decoded, Layout, Spec, decode_command, load_spec
+from mbmon.semantics.hrss import (
+    CommandSpec,
+    Decoded,
+    Layout,
+    Spec,
+    decode_command,
+    decode_returns,
+    load_spec,
+)
 from mbmon.semantics.hrss import Field as CommandField
 from mbmon.semantics.regmap import TABLES, Profile, load_profile
 from mbmon.semantics.words import join_i32, s16, split_i32, u16
@@ -27,6 +35,7 @@ __all__ = [
     "address_map",
     "command_spec",
     "decode_command",
+    "decode_returns",
     "hrss_profile",
     "join_i32",
     "s16",
