@@ -7,6 +7,7 @@ IR200 must read 1 (success) or 2 (fail); IR201 names the command.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 
 import pytest
@@ -249,3 +250,35 @@ def test_start_on_a_busy_port_raises_oserror(server: SimServer) -> None:
     with pytest.raises(OSError):
         other.start()
     other.stop()
+
+
+def a1(c: ModbusTcpClient) -> float:
+    rr = c.read_input_registers(300, count=2, device_id=UNIT)
+    low, high = rr.registers
+    return (u16(high) - (0x10000 if high & 0x8000 else 0)) * 65536 + low
+
+
+def test_jog_moves_while_r200_stays_1_and_stops_when_it_is_cleared(
+    client: ModbusTcpClient,
+) -> None:
+    command(client, 6, [])
+    write(client, 200, [0])
+    start = a1(client)
+    t0 = time.monotonic()
+    assert command(client, 3, [0, 1]) == [1, 3]  # JOG A1 + (Example 5)
+    assert client.read_input_registers(524, count=1, device_id=UNIT).registers == [2]
+    time.sleep(0.3)
+    moving = a1(client)
+    assert moving > start
+    time.sleep(0.3)
+    later = a1(client)
+    assert later > moving
+    assert client.read_input_registers(524, count=1, device_id=UNIT).registers == [2]
+    write(client, 200, [0])  # released
+    elapsed = time.monotonic() - t0
+    stopped = a1(client)
+    # 10 deg/s at 100 % override: never more than the time R200 stayed 1 allows
+    assert stopped - start <= 10_000 * elapsed + 1
+    assert client.read_input_registers(524, count=1, device_id=UNIT).registers == [1]
+    time.sleep(0.3)
+    assert a1(client) == stopped
