@@ -188,15 +188,7 @@ class SimRobot:
         if exc is not None:
             return exc
         self.step(now)
-        if table == "coils":
-            return self.coils[address : address + count]
-        if table == "discrete_inputs":
-            self._publish_so()
-            return self.discrete[address : address + count]
-        if table == "holding_registers":
-            return self.holding[address : address + count]
-        self._publish_inputs()
-        return self.inputs[address : address + count]
+        return self.table(table)[address : address + count]
 
     def write(self, table: str, address: int, values: Sequence[int], now: float) -> int | None:
         """Apply a client write (coils or holding registers); an exception code refuses it whole.
@@ -237,6 +229,22 @@ class SimRobot:
             elif before == 1 and after == 0:
                 self._r200_reset()
         return None
+
+    def table(self, table: str) -> list[int]:
+        """The whole live image of ``table`` (index = address), SO bits and inputs refreshed.
+
+        For a server that mirrors the robot into a store of its own; call
+        :meth:`step` first. The list is the robot's own: do not modify it.
+        """
+        if table == "coils":
+            return self.coils
+        if table == "discrete_inputs":
+            self._publish_so()
+            return self.discrete
+        if table == "holding_registers":
+            return self.holding
+        self._publish_inputs()
+        return self.inputs
 
     # ------------------------------------------------------------------ time
 

@@ -181,11 +181,8 @@ class SimServer:
         return None
 
     def _mirror(self, table: str, registers: list[int]) -> None:
-        robot = self.robot
+        src = self.robot.table(table)
         if table in ("coils", "discrete_inputs"):
-            if table == "discrete_inputs":
-                robot._publish_so()
-            src = robot.coils if table == "coils" else robot.discrete
             bits = src + [0] * (len(registers) * 16 - len(src))
             for w in range(len(registers) - 1):  # the last word is pymodbus's end marker
                 word = 0
@@ -193,13 +190,8 @@ class SimServer:
                     if bits[16 * w + b]:
                         word |= 1 << b
                 registers[w] = word
-            return
-        if table == "input_registers":
-            robot._publish_inputs()
-            src = robot.inputs
         else:
-            src = robot.holding
-        registers[: len(src)] = src  # the block starts at address 0
+            registers[: len(src)] = src  # the block starts at address 0
 
     def _trace_pdu(self, sending: bool, pdu: Any) -> Any:
         """Requests in: filter units and function codes (Table 10), check bit reads.

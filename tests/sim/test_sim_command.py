@@ -84,3 +84,13 @@ def test_serves_on_loopback_prints_its_address_and_stops_cleanly(sig: signal.Sig
     assert proc.returncode == 0, err
     assert out.endswith("mbmon sim: stopped\n")
     assert "Traceback" not in err
+
+
+def test_importing_mbmon_sim_loads_no_pymodbus_serial_or_scapy() -> None:
+    code = (
+        "import sys, mbmon.sim, mbmon.cli; mbmon.cli.build_parser(); "
+        "bad = [m for m in ('scapy', 'serial', 'pymodbus') if m in sys.modules]; "
+        "print(bad); sys.exit(1 if bad else 0)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV)
+    assert out.returncode == 0, out.stdout + out.stderr
