@@ -171,6 +171,7 @@ class SimRobot:
         self.acc_ms = 200
         self.timers = [_Timer() for _ in range(TIMERS + 1)]  # index 1..20
         self.executed = 0  # commands executed (R200 edges), for tests and the console
+        self.event_error: Exception | None = None  # why on_event was detached, if it was
 
     # ------------------------------------------------------------------ Modbus face
 
@@ -721,8 +722,14 @@ class SimRobot:
                 t.base_ms, t.since = join_i32(*self._timer_words(n)), self.now
 
     def _event(self, kind: str, text: str, *, ok: bool = True, ts: float | None = None) -> None:
-        if self.on_event is not None:
+        """Tell ``on_event``; a callback that raises is detached (kept in ``event_error``)."""
+        if self.on_event is None:
+            return
+        try:
             self.on_event(SimEvent(self.now if ts is None else ts, kind, text, ok))
+        except Exception as exc:  # a broken console must not break the robot
+            self.on_event = None
+            self.event_error = exc
 
 
 def _arc(
