@@ -2,8 +2,8 @@
 
 The §5.4.5.2 program runs through a pymodbus serial client on the other end of
 the pair; a request for another unit must stay unanswered (another slave on the
-bus would answer it), and the bytes on the line must frame with mbmon's own RTU
-decoder (CRC checked).
+bus would answer it), a broadcast is executed without an answer, and the bytes
+on the line must frame with mbmon's own RTU decoder (CRC checked).
 """
 
 from __future__ import annotations
@@ -71,7 +71,7 @@ def test_the_program_over_rtu_reaches_a1_90(pty_pair: tuple[str, str]) -> None:
     assert server.start() == server_pty
     try:
         client = ModbusSerialClient(
-            client_pty, framer=FramerType.RTU, baudrate=BAUD, parity="N", timeout=1, retries=0
+            client_pty, framer=FramerType.RTU, baudrate=BAUD, parity="N", timeout=0.5, retries=0
         )
         assert client.connect()
         try:
@@ -85,6 +85,13 @@ def test_the_program_over_rtu_reaches_a1_90(pty_pair: tuple[str, str]) -> None:
                 if rr.isError():
                     raise RuntimeError(rr)
             assert len(packets) == quiet + 1  # the request came in, nothing went out
+            # a broadcast (unit 0) is executed and not answered
+            with pytest.raises(Exception):  # noqa: B017 - no answer to wait for
+                rr = client.write_register(100, 50, device_id=0)
+                if rr.isError():
+                    raise RuntimeError(rr)
+            assert len(packets) == quiet + 2
+            assert server.snapshot()["speed_pct"] == 50
         finally:
             client.close()
     finally:
@@ -101,4 +108,4 @@ def test_the_program_over_rtu_reaches_a1_90(pty_pair: tuple[str, str]) -> None:
     assert not [r for r in records if r.kind is RecordKind.NOISE]
     frames = [r.frame for r in records if r.frame is not None]
     assert frames and all(f.crc_ok for f in frames)
-    assert {f.unit for f in frames} == {3, 4}
+    assert {f.unit for f in frames} == {0, 3, 4}
