@@ -34,6 +34,7 @@ from mbmon.sim.spec import (
     command_spec,
     decode_command,
     join_i32,
+    plan,
     s16,
     split_i32,
     u16,
@@ -51,22 +52,23 @@ __all__ = [
 EXC_ILLEGAL_ADDRESS = 2
 EXC_ILLEGAL_VALUE = 3
 
-# Registers (Tables 14 and 15); the address map itself comes from the profile.
-IR_SPEED, IR_CODE, IR_QUEUE = 100, 101, 102
-IR_STATUS, IR_ACTION, IR_RETURNS, IR_RETURNS_END = 200, 201, 202, 252
-IR_JOINTS, IR_POSE = 300, 400
-IR_DRIVE_ERROR, IR_HRSS_ERROR = 500, 502
-IR_TCP_SPEED, IR_EXCITED, IR_ACC_TIME, IR_MOTION = 520, 522, 523, 524
-R_SPEED, R_EXECUTE, R_COMMAND = 100, 200, 201
-R_PARAMS_END = 252
-R_TIMER, R_COUNTER, R_PR = 300, 400, 1000
-PR_WORDS, PR_IN_REGISTERS = 19, 50
-TIMERS = 20
-SO_RUN, SO_HELD, SO_FAULT, SO_READY = 0, 1, 2, 3  # SO1..SO4 at discrete inputs 0..3
-SI_HOLD, SI_STOP = 1, 2  # SI2 Hold, SI3 Stop at coils 1, 2
-IO_BASE = 299  # DI[n] / DO[n] at 299+n
+# Every address comes from the data (profiles/hrss.toml, hrss_commands.toml): see spec.Plan.
+_P = plan()
+IR_SPEED, IR_CODE, IR_QUEUE = _P.speed, _P.code, _P.queue
+IR_STATUS, IR_ACTION, IR_RETURNS, IR_RETURNS_END = _P.status, _P.action, _P.returns, _P.returns_end
+IR_JOINTS, IR_POSE = _P.joints, _P.pose
+IR_DRIVE_ERROR, IR_HRSS_ERROR = _P.drive_error, _P.hrss_error
+IR_TCP_SPEED, IR_EXCITED, IR_ACC_TIME, IR_MOTION = _P.tcp_speed, _P.excited, _P.acc_time, _P.motion
+R_SPEED, R_EXECUTE, R_COMMAND, R_PARAMS_END = _P.set_speed, _P.execute, _P.command, _P.params_end
+R_TIMER, TIMER_STRIDE, TIMERS = _P.timer, _P.timer_stride, _P.timers
+R_PR, PR_WORDS, PR_IN_REGISTERS = _P.pr, _P.pr_stride, _P.prs
+SO_RUN, SO_HELD, SO_FAULT, SO_READY = (_P.so + i for i in range(4))  # SO1..SO4
+SI_HOLD, SI_STOP = _P.si + 1, _P.si + 2  # SI2 Hold, SI3 Stop
+DI_BASE, DO_BASE = _P.di - 1, _P.do - 1  # DI[n] / DO[n] at 299+n
+SO_BASE = _P.so - 1  # SO[n] at n-1
+SRW_BASE = 0  # SRW[n] at n-1 (IR0..IR31)
 
-QUEUE_MAX = 8000  # Table 15: more than 8000 commands waiting -> motion commands fail
+QUEUE_MAX = _P.queue_max  # Table 15: more than 8000 waiting -> motion commands fail
 TIMER_LIMIT = 999_999_999
 NOMINAL_REACH_MM = 500.0  # IR520 for joint motions: fastest joint's angular speed x this
 MIN_MOTION_S = 0.1  # even a move to where the robot already is reports Running for this long
@@ -148,13 +150,14 @@ class SimRobot:
         self.rot_speed = rot_speed
         self.on_event = on_event
         self.now = now
-        self.coils = [0] * 556
-        self.discrete = [0] * 556
+        self.coils = [0] * _P.sizes["coils"]
+        self.discrete = [0] * _P.sizes["discrete_inputs"]
         for n in DEFAULT_DI:
-            self.discrete[IO_BASE + n] = 1
-        self.holding = [0] * 1950
+            self.discrete[DI_BASE + n] = 1
+        self.holding = [0] * _P.sizes["holding_registers"]
         self.holding[R_SPEED] = 100
-        self.inputs = [0] * 525  # stored part: SRW, IR200, IR201, returns; the rest is live
+        # inputs: SRW, IR200, IR201 and the returns are stored; the rest is refreshed on read
+        self.inputs = [0] * _P.sizes["input_registers"]
         self.joints = [0.0, 0.0, 0.0, 0.0, -90.0, 0.0]
         self.pose = list(DEFAULT_POSE)
         self.ext = [0.0, 0.0, 0.0]
@@ -292,19 +295,19 @@ class SimRobot:
         """Set digital input DI[n] (1..256), which clients read at discrete input 299+n."""
         if not 1 <= n <= 256:
             raise ValueError(f"DI[{n}]: n must be 1..256")
-        self.discrete[IO_BASE + n] = 1 if value else 0
+        self.discrete[DI_BASE + n] = 1 if value else 0
 
     def set_so(self, n: int, value: bool) -> None:
         """Set a user output SO[n] (5..256); SO1..SO4 follow the robot state."""
         if not 5 <= n <= 256:
             raise ValueError(f"SO{n}: n must be 5..256 (SO1..SO4 follow the state)")
-        self.discrete[n - 1] = 1 if value else 0
+        self.discrete[SO_BASE + n] = 1 if value else 0
 
     def set_srw(self, n: int, value: int) -> None:
         """Set fieldbus register SRW[n] (1..32), input register n-1."""
         if not 1 <= n <= 32:
             raise ValueError(f"SRW[{n}]: n must be 1..32")
-        self.inputs[n - 1] = u16(value)
+        self.inputs[SRW_BASE + n - 1] = u16(value)
 
     def set_fault(self, code: int, now: float | None = None) -> None:
         """Raise an HRSS error: IR502..IR503 = ``code``, SO3 Fault, motion stops, motions fail."""
@@ -698,7 +701,7 @@ class SimRobot:
         regs[at], regs[at + 1] = u16(low), u16(high)
 
     def _timer_words(self, n: int) -> tuple[int, int]:
-        at = R_TIMER + 2 * (n - 1)
+        at = R_TIMER + TIMER_STRIDE * (n - 1)
         return self.holding[at], self.holding[at + 1]
 
     def _timer_value(self, n: int) -> int:
@@ -711,12 +714,12 @@ class SimRobot:
     def _publish_timers(self) -> None:
         for n in range(1, TIMERS + 1):
             if self.timers[n].running:
-                self._put32(self.holding, R_TIMER + 2 * (n - 1), self._timer_value(n))
+                self._put32(self.holding, R_TIMER + TIMER_STRIDE * (n - 1), self._timer_value(n))
 
     def _timers_written(self, start: int, end: int) -> None:
         """A client wrote a running timer: it goes on counting from the written value."""
         for n in range(1, TIMERS + 1):
-            at = R_TIMER + 2 * (n - 1)
+            at = R_TIMER + TIMER_STRIDE * (n - 1)
             t = self.timers[n]
             if t.running and start < at + 2 and at < end:
                 t.base_ms, t.since = join_i32(*self._timer_words(n)), self.now

@@ -46,7 +46,6 @@ _TABLE_OF_FC: dict[int, str] = {
 #: Table 10 of the manual: the function codes HRSS serves; any other is answered exception 01.
 FUNCTION_CODES = frozenset({1, 2, 3, 4, 5, 6, 15, 16})
 _EXC_ILLEGAL_FUNCTION = 1
-_BLOCK_BITS = 560  # coils / discrete inputs 0..555, padded to 16-bit words
 _EXC_GATEWAY_NO_RESPONSE = 0x0B
 
 
@@ -138,7 +137,8 @@ class SimServer:
         from pymodbus.simulator import DataType, SimData, SimDevice
 
         bits, regs = DataType.BITS, DataType.REGISTERS
-        off = [False] * _BLOCK_BITS
+        n = max(len(self.robot.coils), len(self.robot.discrete))
+        off = [False] * (-(-n // 16) * 16)  # bit blocks are whole 16-bit words
         return SimDevice(
             self.unit,
             simdata=(
