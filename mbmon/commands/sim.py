@@ -39,8 +39,9 @@ examples:
       Modbus RTU on a serial port (try a pty pair: socat -d -d pty,raw,echo=0 pty,raw,echo=0)
   mbmon sim --listen 0.0.0.0:502            every interface (only when you mean it)
 
-then, from another terminal:
-  mbmon sniff ... / mbmon proxy ... / any Modbus client: read IR300..IR311 for A1..A6
+then, from another terminal, any Modbus client (A1..A6 are IR300..IR311), or the
+manual's 5.4.5.2 client program (PTP {A1 90}, then LIN, Set/Get PR, JOG):
+  python -c "from mbmon.sim import run_program; run_program('127.0.0.1', 1502, on_step=print)"
 
 exit status: 0 stopped by Ctrl-C or SIGTERM, 1 cannot listen or open the port, 2 usage
 """
