@@ -7,12 +7,7 @@ robot is :class:`mbmon.sim.robot.SimRobot`, the server :class:`mbmon.sim.server.
 from __future__ import annotations
 
 import argparse
-import asyncio
-import contextlib
-import logging
-import signal
 import sys
-import time
 from typing import TextIO
 
 __all__ = ["register", "run"]
@@ -112,6 +107,12 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
 def run(args: argparse.Namespace) -> int:
     """Serve until Ctrl-C or SIGTERM; print the address, then one line per command and motion."""
+    import asyncio
+    import contextlib
+    import logging
+    import signal
+    import time
+
     from mbmon.sim.robot import SimEvent
     from mbmon.sim.server import SimServer
 
