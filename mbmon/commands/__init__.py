@@ -12,4 +12,5 @@ from __future__ import annotations
 COMMANDS: list[str] = [
     "read",
     "decode",
+    "sim",
 ]

@@ -1,0 +1,314 @@
+"""SimServer: a :class:`~mbmon.sim.robot.SimRobot` served over Modbus/TCP or RTU by pymodbus.
+
+What it owns: the pymodbus server (``ModbusTcpServer`` or ``ModbusSerialServer``
+with a ``SimDevice`` whose ``action`` hook hands every access to the robot),
+the event loop it runs in (a background thread for :meth:`SimServer.start`, or
+the caller's loop for :meth:`SimServer.serve`), the lock around the robot and
+the unit filter. pymodbus keeps register blocks of its own; they are only a
+mirror the hook refreshes from the robot on every access, so the robot is the
+one state.
+
+Function codes: those of the manual's Table 10 (01, 02, 03, 04, 05, 06, 0F,
+10); any other is answered with exception 01. Unit ids: on TCP a request for
+another unit is answered with exception 0x0B (gateway target failed to
+respond); on RTU it is left unanswered, as another device on the bus would
+answer it; RTU broadcasts (unit 0) are executed and not answered.
+
+Written for pymodbus 3.16 (``pymodbus.simulator.SimDevice`` with ``action``,
+``pymodbus.server.ModbusTcpServer``/``ModbusSerialServer`` taking a
+``SimDevice``); pyproject.toml pins the range this was tested with.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+from mbmon.sim.robot import SimEvent, SimRobot
+
+__all__ = ["SimServer"]
+
+#: Function code -> register table, as pymodbus hands them to the ``action`` hook.
+_TABLE_OF_FC: dict[int, str] = {
+    1: "coils",
+    5: "coils",
+    15: "coils",
+    2: "discrete_inputs",
+    4: "input_registers",
+    3: "holding_registers",
+    6: "holding_registers",
+    16: "holding_registers",
+}
+#: Table 10 of the manual: the function codes HRSS serves; any other is answered exception 01.
+FUNCTION_CODES = frozenset({1, 2, 3, 4, 5, 6, 15, 16})
+_EXC_ILLEGAL_FUNCTION = 1
+_EXC_GATEWAY_NO_RESPONSE = 0x0B
+
+
+class _Refusal:
+    """Stands in for a request the robot refuses before pymodbus runs it: answered ``code``."""
+
+    def __init__(self, pdu: Any, code: int) -> None:
+        self.function_code = pdu.function_code
+        self.dev_id = pdu.dev_id
+        self.transaction_id = pdu.transaction_id
+        self.code = code
+
+    async def datastore_update(self, _context: Any, _dev_id: int) -> Any:
+        from pymodbus.pdu import ExceptionResponse
+
+        return ExceptionResponse(self.function_code, self.code)
+
+
+class SimServer:
+    """Serve a simulated HRSS robot.
+
+    ``SimServer()`` listens on 127.0.0.1 at a free port (``port=0``) for TCP;
+    ``SimServer(serial="/dev/ttyUSB0", baudrate=..., parity=..., stopbits=...)``
+    serves RTU on a serial port instead. ``robot`` defaults to a new
+    :class:`SimRobot` on the server's clock (``time.monotonic``).
+
+    Use :meth:`start` / :meth:`stop` (background thread; also a context
+    manager) from synchronous code and tests, or ``await serve(stop_event)`` in
+    an asyncio program. Read the robot under :attr:`lock`, or use
+    :meth:`snapshot`. ``on_packet(sending, data)`` sees every ADU the server
+    receives (False) or sends (True), as pymodbus frames them.
+    """
+
+    def __init__(
+        self,
+        robot: SimRobot | None = None,
+        *,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        unit: int = 1,
+        serial: str | None = None,
+        baudrate: int = 19200,
+        parity: str = "N",
+        stopbits: int = 1,
+        clock: Callable[[], float] = time.monotonic,
+        on_event: Callable[[SimEvent], None] | None = None,
+        on_packet: Callable[[bool, bytes], None] | None = None,
+    ) -> None:
+        if not 1 <= unit <= 247:
+            raise ValueError(f"unit must be 1..247, not {unit}")
+        self.clock = clock
+        self.robot = robot if robot is not None else SimRobot(clock())
+        if on_event is not None:
+            self.robot.on_event = on_event
+        self.host, self.port, self.unit = host, port, unit
+        self.serial, self.baudrate, self.parity, self.stopbits = serial, baudrate, parity, stopbits
+        self.on_packet = on_packet
+        self.lock = threading.RLock()
+        self._server: Any = None
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop: asyncio.Event | None = None
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+
+    # ------------------------------------------------------------------ robot access
+
+    def snapshot(self) -> dict[str, Any]:
+        """The robot's state now (see :meth:`SimRobot.state`), taken under the lock."""
+        with self.lock:
+            self.robot.step(self.clock())
+            return self.robot.state()
+
+    def call(self, fn: Callable[[SimRobot, float], Any]) -> Any:
+        """Run ``fn(robot, now)`` under the lock (to set DI, raise a fault, ...)."""
+        with self.lock:
+            now = self.clock()
+            self.robot.step(now)
+            return fn(self.robot, now)
+
+    @property
+    def address(self) -> str:
+        """``host:port`` for TCP, the serial port's path for RTU."""
+        return self.serial if self.serial else f"{self.host}:{self.port}"
+
+    # ------------------------------------------------------------------ pymodbus glue
+
+    def _device(self) -> Any:
+        from pymodbus.simulator import DataType, SimData, SimDevice
+
+        bits, regs = DataType.BITS, DataType.REGISTERS
+        n = max(len(self.robot.coils), len(self.robot.discrete))
+        off = [False] * (-(-n // 16) * 16)  # bit blocks are whole 16-bit words
+        return SimDevice(
+            self.unit,
+            simdata=(
+                [SimData(0, values=off, datatype=bits)],
+                [SimData(0, values=list(off), datatype=bits)],
+                [SimData(0, count=len(self.robot.holding), values=0, datatype=regs)],
+                [SimData(0, count=len(self.robot.inputs), values=0, datatype=regs)],
+            ),
+            action=self._action,
+        )
+
+    async def _action(
+        self,
+        fc: int,
+        start: int,
+        address: int,
+        count: int,
+        registers: list[int],
+        values: list[int] | list[bool] | None,
+    ) -> Any:
+        """pymodbus's hook, before every access: the robot answers, the block mirrors it."""
+        from pymodbus.constants import ExcCodes
+
+        table = _TABLE_OF_FC.get(fc)
+        if table is None:
+            return ExcCodes.ILLEGAL_FUNCTION
+        with self.lock:
+            now = self.clock()
+            if values is not None:
+                exc = self.robot.write(table, address, [int(v) for v in values], now)
+            elif table in ("coils", "discrete_inputs"):
+                exc = None  # bit reads were checked in _trace_pdu (here count is in words)
+            else:
+                exc = self.robot.check(table, address, count)
+            if exc is None:
+                self.robot.step(now)
+                self._mirror(table, registers)
+        if exc is not None:
+            return ExcCodes(exc)
+        return None
+
+    def _mirror(self, table: str, registers: list[int]) -> None:
+        src = self.robot.table(table)
+        if table in ("coils", "discrete_inputs"):
+            bits = src + [0] * (len(registers) * 16 - len(src))
+            for w in range(len(registers) - 1):  # the last word is pymodbus's end marker
+                word = 0
+                for b in range(16):
+                    if bits[16 * w + b]:
+                        word |= 1 << b
+                registers[w] = word
+        else:
+            registers[: len(src)] = src  # the block starts at address 0
+
+    def _trace_pdu(self, sending: bool, pdu: Any) -> Any:
+        """Requests in: filter units and function codes (Table 10), check bit reads.
+
+        Bit reads are checked against the map here, where their exact count is
+        known (pymodbus hands the ``action`` hook a count in 16-bit words).
+        """
+        if sending:
+            return pdu
+        if pdu.dev_id != self.unit:
+            if self.serial is None:
+                return _Refusal(pdu, _EXC_GATEWAY_NO_RESPONSE)
+            if pdu.dev_id != 0:
+                return None  # RTU: a request for another device on the bus
+        if pdu.function_code not in FUNCTION_CODES:
+            return _Refusal(pdu, _EXC_ILLEGAL_FUNCTION)
+        if pdu.function_code in (1, 2):
+            table = _TABLE_OF_FC[pdu.function_code]
+            with self.lock:
+                exc = self.robot.check(table, pdu.address, pdu.count)
+            if exc is not None:
+                return _Refusal(pdu, exc)
+        return pdu
+
+    def _trace_packet(self, sending: bool, data: bytes) -> bytes:
+        if self.on_packet is not None:
+            with contextlib.suppress(Exception):
+                self.on_packet(sending, bytes(data))
+        return data
+
+    async def _open(self) -> None:
+        from pymodbus import FramerType
+        from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+
+        common: dict[str, Any] = {
+            "trace_pdu": self._trace_pdu,
+            "trace_packet": self._trace_packet,
+        }
+        if self.serial is None:
+            self._server = ModbusTcpServer(self._device(), address=(self.host, self.port), **common)
+        else:
+            self._server = ModbusSerialServer(
+                self._device(),
+                framer=FramerType.RTU,
+                port=self.serial,
+                baudrate=self.baudrate,
+                parity=self.parity,
+                stopbits=self.stopbits,
+                broadcast_enable=True,
+                **common,
+            )
+        try:
+            await self._server.serve_forever(background=True)
+        except RuntimeError as err:
+            raise OSError(f"cannot listen on {self.address}: {err}") from None
+        if self.serial is None:
+            sock = self._server.transport.sockets[0]
+            self.host, self.port = sock.getsockname()[:2]
+
+    async def _close(self) -> None:
+        if self._server is not None:
+            with contextlib.suppress(Exception):
+                await self._server.shutdown()
+            self._server = None
+
+    # ------------------------------------------------------------------ running
+
+    async def serve(self, stop: asyncio.Event, on_ready: Callable[[], None] | None = None) -> None:
+        """Serve in the running loop until ``stop`` is set; ``on_ready`` once listening."""
+        await self._open()
+        try:
+            if on_ready is not None:
+                on_ready()
+            await stop.wait()
+        finally:
+            await self._close()
+
+    def start(self, timeout: float = 10.0) -> tuple[str, int] | str:
+        """Serve from a background thread; returns ``(host, port)`` (TCP) or the serial port."""
+        if self._thread is not None:
+            raise RuntimeError("SimServer already started")
+        self._thread = threading.Thread(target=self._run, name="mbmon-sim", daemon=True)
+        self._thread.start()
+        if not self._ready.wait(timeout):
+            raise TimeoutError(f"sim did not start within {timeout} s")
+        if self._error is not None:
+            self._thread.join()
+            self._thread = None
+            raise self._error
+        return self.serial if self.serial else (self.host, self.port)
+
+    def _run(self) -> None:
+        async def main() -> None:
+            self._loop = asyncio.get_running_loop()
+            self._stop = asyncio.Event()
+            try:
+                await self.serve(self._stop, self._ready.set)
+            except BaseException as err:  # reported to start()'s caller
+                self._error = err
+                self._ready.set()
+
+        asyncio.run(main())
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Stop serving and join the thread (idempotent)."""
+        thread, loop, stop = self._thread, self._loop, self._stop
+        if thread is None:
+            return
+        if loop is not None and stop is not None and not loop.is_closed():
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(stop.set)
+        thread.join(timeout)
+        self._thread = None
+
+    def __enter__(self) -> SimServer:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()

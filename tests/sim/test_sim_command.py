@@ -1,0 +1,96 @@
+"""``mbmon sim`` as a process: help text, address line, a real client, clean stop on signals."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from pymodbus.client import ModbusTcpClient
+
+ROOT = Path(__file__).resolve().parents[2]
+ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
+
+
+def mbmon(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "mbmon", *args], capture_output=True, text=True, env=ENV, timeout=60
+    )
+
+
+def test_help_says_it_is_a_test_partner_not_a_robot_simulator() -> None:
+    out = mbmon("sim", "--help")
+    assert out.returncode == 0
+    text = " ".join(out.stdout.split())
+    assert "test partner and a teaching tool, NOT a robot simulator" in text
+    assert "127.0.0.1:1502" in text
+    assert "sim" in mbmon("--help").stdout
+
+
+@pytest.mark.parametrize(
+    "args",
+    [["--listen", "nowhere"], ["--listen", "127.0.0.1:70000"], ["--unit", "0"],
+     ["--unit", "248"], ["--parity", "X"], ["--stopbits", "3"], ["--baud", "fast"]],
+)  # fmt: skip
+def test_bad_options_are_usage_errors(args: list[str]) -> None:
+    out = mbmon("sim", *args)
+    assert out.returncode == 2 and "error" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_a_missing_serial_port_is_a_clear_error() -> None:
+    out = mbmon("sim", "--serial", "/nonexistent/ttyX")
+    assert out.returncode == 1
+    assert "/nonexistent/ttyX" in out.stderr and "Traceback" not in out.stderr
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_serves_on_loopback_prints_its_address_and_stops_cleanly(sig: signal.Signals) -> None:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mbmon", "sim", "--listen", "127.0.0.1:0", "--unit", "5"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=ENV,
+    )
+    try:
+        assert proc.stdout is not None
+        first = proc.stdout.readline()
+        m = re.fullmatch(
+            r"mbmon sim: HRSS robot, unit 5, Modbus/TCP on 127\.0\.0\.1:(\d+)\n", first
+        )
+        assert m, first
+        assert "not a robot simulator" in proc.stdout.readline()
+        client = ModbusTcpClient("127.0.0.1", port=int(m.group(1)), timeout=3, retries=0)
+        assert client.connect()
+        try:
+            assert client.read_input_registers(100, count=1, device_id=5).registers == [100]
+            client.write_registers(201, [104, 6], device_id=5)  # Set Current BASE[6]
+            client.write_registers(200, [1], device_id=5)
+            assert client.read_input_registers(200, count=1, device_id=5).registers == [1]
+        finally:
+            client.close()
+        line = proc.stdout.readline()
+        assert "execute" in line and "success: Set Current BASE[6]" in line
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=15)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    assert out.endswith("mbmon sim: stopped\n")
+    assert "Traceback" not in err
+
+
+def test_importing_mbmon_sim_loads_no_pymodbus_serial_or_scapy() -> None:
+    code = (
+        "import sys, mbmon.sim, mbmon.cli; mbmon.cli.build_parser(); "
+        "bad = [m for m in ('scapy', 'serial', 'pymodbus') if m in sys.modules]; "
+        "print(bad); sys.exit(1 if bad else 0)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV)
+    assert out.returncode == 0, out.stdout + out.stderr
