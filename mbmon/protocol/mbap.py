@@ -86,6 +86,11 @@ class MbapDecoder(StreamDecoder):
 
     # ------------------------------------------------------------------ public
 
+    @property
+    def synced(self) -> bool:
+        """False while the decoder skips bytes that are not MBAP (a noise run is open)."""
+        return self._synced
+
     def feed(self, data: bytes, ts: float) -> list[Frame | Noise]:
         """Consume one chunk captured at ``ts``; return the frames and noise it completes."""
         out: list[Frame | Noise] = []
