@@ -41,6 +41,9 @@ exit status: 0 ok, 1 cannot listen or an output failed, 2 usage
 
 DEFAULT_LISTEN = ("127.0.0.1", 1502)
 
+#: The interpreter's thread switch interval while the proxy runs (default 5 ms).
+SWITCH_INTERVAL = 0.0005
+
 
 def _split_endpoint(text: str, what: str, default_host: str | None = None) -> tuple[str, int]:
     """``HOST:PORT`` or ``[V6]:PORT`` (or ``PORT`` when ``default_host`` is given)."""
@@ -234,6 +237,10 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_BAD_INPUT
     observer = Observer(hub.put, hub.new_stream, meter=meter, max_backlog=config.max_backlog)
     engine = ProxyEngine(config, observer)
+    # The engine's thread must get the GIL back quickly when a packet arrives while
+    # the hub's thread decodes and writes: the default 5 ms switch interval would add
+    # up to 5 ms to a forwarded answer whenever the hub is busy.
+    sys.setswitchinterval(SWITCH_INTERVAL)
     thread = ProxyThread(engine, on_exit=hub.stop)
     try:
         address = thread.start()

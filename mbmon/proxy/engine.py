@@ -82,6 +82,11 @@ GATEWAY_TARGET_FAILED = 0x0B
 #: so that their late answers are recognised and dropped.
 LATE_MEMORY = 4096
 
+#: The kernel send buffer of a client socket (the kernel doubles it): Modbus answers
+#: are at most 260 bytes, so this holds hundreds; a client that leaves more unread
+#: than this and the loop's 64 KiB is not reading, and is dropped after ``timeout``.
+CLIENT_SNDBUF = 64 * 1024
+
 _C2S = Direction.C2S
 _S2C = Direction.S2C
 
@@ -533,8 +538,8 @@ class _Link:
         if self.owner is None or not self.owner.closed:
             self._notice(
                 f"upstream {self.engine.config.upstream} closed the connection "
-                f"({how.upper()}{': ' + _why(exc) if exc else ''}); "
-                f"{len(in_flight)} requests in flight answered 0x0B",
+                f"({how.upper()}{': ' + _why(exc) if exc else ''})"
+                + (f"; {len(in_flight)} requests in flight answered 0x0B" if in_flight else ""),
                 {"upstream": self.engine.config.upstream, "how": how},
             )
         for entry in in_flight:
@@ -614,6 +619,12 @@ class _Client(asyncio.Protocol):
             )
             transport.abort()
             return
+        sock = transport.get_extra_info("socket")
+        if sock is not None:
+            try:  # bounded kernel buffering: a client that stops reading is seen soon
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, CLIENT_SNDBUF)
+            except OSError:
+                pass
         engine.stats.clients += 1
         engine.clients.add(self)
         self.stream = engine.observer.new_stream(Transport.TCP, self.peer, engine.config.upstream)
@@ -971,8 +982,12 @@ def _why(exc: BaseException | None) -> str:
     """Short words for a connection error."""
     if exc is None:
         return ""
-    if isinstance(exc, asyncio.TimeoutError):
+    if isinstance(exc, TimeoutError):
         return "connect timed out"
+    if isinstance(exc, ConnectionRefusedError):
+        return "connection refused"
+    if isinstance(exc, ConnectionResetError):
+        return "connection reset"
     if isinstance(exc, OSError) and exc.strerror:
         return exc.strerror
     return str(exc) or type(exc).__name__
