@@ -53,7 +53,7 @@ import asyncio
 import socket
 import threading
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from typing import Any
@@ -228,7 +228,7 @@ class Observer:
 class _Pending:
     """One request in flight upstream."""
 
-    __slots__ = ("client", "fc", "raw", "tid", "timer", "unit", "utid")
+    __slots__ = ("client", "deadline", "done", "fc", "link", "raw", "tid", "unit", "utid")
 
     def __init__(self, client: _Client, tid: int, utid: int, unit: int, fc: int, raw: bytes):
         self.client = client
@@ -237,7 +237,9 @@ class _Pending:
         self.unit = unit
         self.fc = fc
         self.raw = raw  # the ADU as sent upstream
-        self.timer: asyncio.TimerHandle | None = None
+        self.link: _Link | None = None
+        self.deadline: float | None = None  # loop time of its 0x0B, once armed
+        self.done = False  # answered, expired or forgotten: the deadline queue skips it
 
 
 class _Upstream(asyncio.Protocol):
@@ -400,20 +402,18 @@ class _Link:
             self.pending[entry.utid] = [entry]
         else:
             lst.append(entry)
-        if entry.timer is None:
+        if entry.deadline is None:
             self._start_timer(entry)
         entry.client.outstanding.add(entry)
 
     def _start_timer(self, entry: _Pending) -> None:
         entry.client.outstanding.add(entry)
-        loop = self.engine.loop
-        entry.timer = loop.call_at(loop.time() + self.engine.config.timeout, self._expire, entry)
+        entry.link = self
+        self.engine.arm(entry)
 
     @staticmethod
     def _cancel_timer(entry: _Pending) -> None:
-        if entry.timer is not None:
-            entry.timer.cancel()
-            entry.timer = None
+        entry.done = True
 
     def _remove(self, entry: _Pending) -> bool:
         lst = self.pending.get(entry.utid)
@@ -441,7 +441,7 @@ class _Link:
 
     def _expire(self, entry: _Pending) -> None:
         """No answer in time: 0x0B to the client; a half-received answer resets the link."""
-        entry.timer = None
+        entry.done = True
         engine = self.engine
         if entry in self.queued:  # still connecting after the whole timeout
             self.queued.remove(entry)
@@ -491,10 +491,7 @@ class _Link:
             entry = lst.pop(0)
             if not lst:
                 del pending[utid]  # type: ignore[arg-type]
-            timer = entry.timer
-            if timer is not None:
-                timer.cancel()
-                entry.timer = None
+            entry.done = True
             client = entry.client
             client.outstanding.discard(entry)
             if client.closed:
@@ -818,6 +815,40 @@ class ProxyEngine:
         self.address: tuple[str, int] | None = None
         self._server: asyncio.base_events.Server | None = None
         self._stop: asyncio.Event | None = None
+        #: requests waiting for their answer, in deadline order (one timeout for all)
+        self._deadlines: deque[_Pending] = deque()
+        self._expiry: asyncio.TimerHandle | None = None
+
+    def arm(self, entry: _Pending) -> None:
+        """Start ``entry``'s timeout: one loop timer serves every request, since all
+        share one timeout and so expire in the order they were sent."""
+        loop = self.loop
+        entry.deadline = deadline = loop.time() + self.config.timeout
+        self._deadlines.append(entry)
+        if self._expiry is None:
+            self._expiry = loop.call_at(deadline, self._expire_due)
+
+    def _expire_due(self) -> None:
+        """Expire every request past its deadline; re-arm for the next one."""
+        self._expiry = None
+        dq = self._deadlines
+        now = self.loop.time()
+        while dq:
+            entry = dq[0]
+            if entry.done:
+                dq.popleft()
+                continue
+            if entry.deadline is not None and entry.deadline > now:
+                break
+            dq.popleft()
+            if entry.link is not None:
+                entry.link._expire(entry)
+            else:
+                entry.done = True
+        while dq and dq[0].done:
+            dq.popleft()
+        if dq and dq[0].deadline is not None:
+            self._expiry = self.loop.call_at(dq[0].deadline, self._expire_due)
 
     def answer_exception(self, entry: _Pending, code: int) -> None:
         """Answer ``entry``'s client with exception ``code`` (0x0A or 0x0B)."""
