@@ -31,7 +31,8 @@ ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 #: ``port N`` once listening and writes ``fc XX`` to the file LOG for every request.
 #: Registers read as their own address + unit (03/04), coils as address parity,
 #: writes are echoed (05/06/0F/10 answered as the spec says), other codes get
-#: exception 01. Modes: ``normal``; ``silent`` (reads, never answers);
+#: exception 01. Modes: ``normal``; ``silent`` (reads, never answers); ``reset``
+#: (first connection: reset (RST) on the first request);
 #: ``half`` (first connection: half of each answer, then nothing); ``late``
 #: (the first request is answered after 1.5 s, the rest at once).
 FAKE = r"""
@@ -73,6 +74,12 @@ async def handle(reader, writer):
             os.write(log, b"fc %02X\n" % pdu[0])
             if mode == "silent":
                 continue
+            if mode == "reset" and first_conn:
+                import socket
+                sock = writer.get_extra_info("socket")
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+                writer.transport.abort()
+                return
             adu = answer(tid, unit, pdu)
             if mode == "half" and first_conn:
                 writer.write(adu[: len(adu) // 2])
@@ -360,7 +367,7 @@ async def _client(port: int, index: int, n: int, errors: list[str]) -> int:
     ok = 0
     try:
         for k in range(n):
-            tid = (index * 1000 + k) & 0xFFFF
+            tid = (k + index % 3) & 0xFFFF  # many clients use the same ids at once
             address = (index * 37 + k) % 1000
             count = 1 + (index + k) % 10
             writer.write(adu(tid, unit, read_hr(address, count)))
@@ -701,3 +708,50 @@ def test_usage_errors(args: list[str], words: str) -> None:
     )
     assert result.returncode == 2
     assert words in result.stderr
+
+
+def test_upstream_reset_answers_0B_at_once_and_reconnects(tmp_path: Path) -> None:
+    with (
+        fake("reset") as up,
+        proxy(up.port, "--quiet", "--timeout", "2", "-w", "rst.jsonl", tmp=tmp_path) as p,
+    ):
+        sock = connect(p.port)
+        start = time.monotonic()
+        assert rpc(sock, 1, read_hr(0, 1)) == exception(1, 3, 0x0B)
+        assert time.monotonic() - start < 1.0  # not the timeout: the reset is answered now
+        assert rpc(sock, 2, read_hr(0, 1)) == expected_hr(2, 1, 0, 1)
+        sock.close()
+        p.stop()
+    log = (tmp_path / "rst.jsonl").read_text()
+    assert "closed the connection (RST" in log
+    assert "1 requests in flight answered 0x0B" in log
+
+
+@pytest.mark.parametrize("shared", [False, True], ids=["per-client", "share-upstream"])
+def test_client_leaving_mid_request_and_half_close(tmp_path: Path, shared: bool) -> None:
+    extra = ["--share-upstream"] if shared else []
+    with (
+        fake("late") as up,
+        proxy(up.port, "--quiet", "--timeout", "3", "-w", "left.jsonl", *extra, tmp=tmp_path) as p,
+    ):
+        gone = connect(p.port)
+        gone.sendall(adu(1, 1, read_hr(0, 1)))  # answered by the upstream 1.5 s later
+        time.sleep(0.2)
+        gone.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+        gone.close()  # a reset: the client is gone for sure
+        half = connect(p.port)
+        half.sendall(adu(9, 1, read_hr(3, 2)))
+        half.shutdown(socket.SHUT_WR)  # half-close: the answer must still come
+        assert read_adu(half) == expected_hr(9, 1, 3, 2)
+        assert half.recv(10) == b""  # then the proxy closes
+        half.close()
+        time.sleep(1.6)
+        _out, err = p.stop()
+    log = (tmp_path / "left.jsonl").read_text()
+    assert '"unanswered":1' in log.replace(" ", "")
+    assert "client half-closed with 1 requests in flight" in log
+    if shared:  # the shared connection lives on: the answer comes, and is dropped
+        assert "dropped: its client left" in log
+        assert "late answers dropped 1" in err
+    else:  # the client's own upstream connection closed with it
+        assert "late answers dropped 0" in err
