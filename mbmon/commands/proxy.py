@@ -42,7 +42,7 @@ exit status: 0 ok, 1 cannot listen or an output failed, 2 usage
 DEFAULT_LISTEN = ("127.0.0.1", 1502)
 
 #: The interpreter's thread switch interval while the proxy runs (default 5 ms).
-SWITCH_INTERVAL = 0.0005
+SWITCH_INTERVAL = 0.0002
 
 
 def _split_endpoint(text: str, what: str, default_host: str | None = None) -> tuple[str, int]:
@@ -236,7 +236,7 @@ def run(args: argparse.Namespace) -> int:
         hub.close()
         return EXIT_BAD_INPUT
     observer = Observer(hub.put, hub.new_stream, meter=meter, max_backlog=config.max_backlog)
-    engine = ProxyEngine(config, observer)
+    engine = ProxyEngine(config, observer, submit=hub.submit)
     # The engine's thread must get the GIL back quickly when a packet arrives while
     # the hub's thread decodes and writes: the default 5 ms switch interval would add
     # up to 5 ms to a forwarded answer whenever the hub is busy.
@@ -274,15 +274,17 @@ def run(args: argparse.Namespace) -> int:
 
     old = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        hub.run()
-    finally:
-        thread.stop()
-        thread.join(5.0)
+        try:
+            hub.run()
+        finally:
+            thread.stop()
+            thread.join(5.0)
+            hub.close()
+        engine.stats.not_observed = observer.skipped
+        print("mbmon proxy: " + engine.stats.summary().replace("\n", "\n  "), file=sys.stderr)
+    finally:  # a late Ctrl-C must not cut the logs' close or the summary short
         for s, handler in old.items():
             signal.signal(s, handler)
-        hub.close()
-    engine.stats.not_observed = observer.skipped
-    print("mbmon proxy: " + engine.stats.summary().replace("\n", "\n  "), file=sys.stderr)
     if any(name != "stdout" or why != "broken pipe" for name, why in hub.failures):
         return EXIT_BAD_INPUT
     return EXIT_OK

@@ -181,6 +181,11 @@ class Observer:
 
     Chunks are skipped (and counted) while the hub is more than ``max_backlog``
     items behind; events always go through (they are few).
+
+    Once :meth:`bind` gives it the loop's ``call_soon`` and a ``submit``
+    (``hub.submit``), items wait in a batch that is handed over once per loop
+    iteration, after that iteration's forwarding: one queue operation and one
+    wake-up of the hub's thread per batch instead of per chunk.
     """
 
     def __init__(
@@ -200,6 +205,36 @@ class Observer:
         self.sent = 0
         self.skipped = 0
         self._skipping = 0
+        self._batch: list[Chunk | Event] = []
+        self._call_soon: Callable[[Callable[[], None]], Any] | None = None
+        self._submit: Callable[[Callable[[], list[Chunk | Event]]], None] | None = None
+
+    def bind(
+        self,
+        call_soon: Callable[[Callable[[], None]], Any],
+        submit: Callable[[Callable[[], list[Chunk | Event]]], None],
+    ) -> None:
+        """Batch items per loop iteration (``loop.call_soon``) and hand them over with
+        ``submit`` (in the loop's thread only)."""
+        self._call_soon = call_soon
+        self._submit = submit
+
+    def flush(self) -> None:
+        """Hand the waiting batch over now."""
+        batch = self._batch
+        if batch and self._submit is not None:
+            self._batch = []
+            self._submit(lambda: batch)
+
+    def _emit(self, item: Chunk | Event) -> None:
+        call_soon = self._call_soon
+        if call_soon is None:
+            self._put(item)
+            return
+        batch = self._batch
+        batch.append(item)
+        if len(batch) == 1:
+            call_soon(self.flush)
 
     def chunk(self, stream: Stream, direction: Direction, data: bytes, ts: float) -> None:
         meter = self._meter
@@ -216,13 +251,13 @@ class Observer:
                 ts,
             )
         self.sent += 1
-        self._put(Chunk(ts, stream, direction, data))
+        self._emit(Chunk(ts, stream, direction, data))
 
     def event(
         self, stream: Stream | None, kind: EventKind, info: dict[str, Any], ts: float | None = None
     ) -> None:
         self.sent += 1
-        self._put(Event(self.clock() if ts is None else ts, stream, kind, info))
+        self._emit(Event(self.clock() if ts is None else ts, stream, kind, info))
 
 
 class _Pending:
@@ -805,9 +840,17 @@ class _Client(asyncio.Protocol):
 class ProxyEngine:
     """The listening socket, the clients and the upstream links of one proxy run."""
 
-    def __init__(self, config: ProxyConfig, observer: Observer) -> None:
+    def __init__(
+        self,
+        config: ProxyConfig,
+        observer: Observer,
+        submit: Callable[[Callable[[], list[Chunk | Event]]], None] | None = None,
+    ) -> None:
+        """``submit`` (``hub.submit``): hand observations over in batches, once per
+        loop iteration (:meth:`Observer.bind`); without it, item by item."""
         self.config = config
         self.observer = observer
+        self._submit = submit
         self.stats = ProxyStats()
         self.clients: set[_Client] = set()
         self.shared: _Link | None = None
@@ -868,6 +911,8 @@ class ProxyEngine:
         """Bind the listening socket; the address actually bound (port 0 picks one)."""
         self.loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
+        if self._submit is not None:
+            self.observer.bind(self.loop.call_soon, self._submit)
         cfg = self.config
         if cfg.share_upstream:
             self.shared = _Link(self, None)
@@ -992,6 +1037,7 @@ class ProxyThread:
                 loop.run_until_complete(asyncio.sleep(0))
                 loop.close()
             finally:
+                self.engine.observer.flush()
                 if self._on_exit is not None:
                     self._on_exit()
 

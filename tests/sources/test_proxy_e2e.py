@@ -654,6 +654,7 @@ def test_summary_and_clean_exit_on_sigterm(tmp_path: Path) -> None:
         sock = connect(p.port)
         assert rpc(sock, 5, read_hr(2, 2)) == expected_hr(5, 1, 2, 2)
         p.proc.send_signal(signal.SIGTERM)
+        p.proc.wait(20)
         out, err = p.stop()
         sock.close()
     assert p.returncode == 0
