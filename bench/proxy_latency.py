@@ -207,6 +207,10 @@ def target(name: str, up: int, tmp: Path, mp_path: str | None) -> Iterator[tuple
         yield port, proc.pid
     finally:
         _stop(proc, signal.SIGINT if name.startswith("mbmon") else signal.SIGTERM)
+        if name.startswith("mbmon") and proc.stderr is not None:
+            summary = proc.stderr.read()
+            if "not observed" in summary or os.environ.get("BENCH_VERBOSE"):
+                print(f"[{name}] " + summary.strip().replace("\n", f"\n[{name}] "))
 
 
 def _client(port: int, seconds: float, start_at: float, queue: Any) -> None:

@@ -78,6 +78,10 @@ __all__ = [
 GATEWAY_PATH_UNAVAILABLE = 0x0A
 GATEWAY_TARGET_FAILED = 0x0B
 
+#: How far (chunks and events) the hub may fall behind before chunks are forwarded
+#: without a copy: bounds the queue's memory (about 250 bytes an item).
+MAX_BACKLOG = 50_000
+
 #: How many answered-with-0x0B (or orphaned) upstream transaction ids are remembered,
 #: so that their late answers are recognised and dropped.
 LATE_MEMORY = 4096
@@ -110,7 +114,7 @@ class ProxyConfig:
     clients: ClientFilter = field(default_factory=ClientFilter)
     backoff_min: float = 0.05
     backoff_max: float = 1.0
-    max_backlog: int = 200_000
+    max_backlog: int = MAX_BACKLOG
 
     @property
     def upstream(self) -> str:
@@ -194,7 +198,7 @@ class Observer:
         new_stream: Callable[[Transport, str, str], Stream],
         *,
         meter: BacklogMeter | None = None,
-        max_backlog: int = 200_000,
+        max_backlog: int = MAX_BACKLOG,
         clock: Callable[[], float] = time.time,
     ) -> None:
         self._put = put
@@ -913,6 +917,7 @@ class ProxyEngine:
         self._stop = asyncio.Event()
         if self._submit is not None:
             self.observer.bind(self.loop.call_soon, self._submit)
+        self.loop.set_exception_handler(self._loop_error)
         cfg = self.config
         if cfg.share_upstream:
             self.shared = _Link(self, None)
@@ -940,6 +945,15 @@ class ProxyEngine:
             self.shared.connect()
         self.loop.create_task(self._sweep())
         return self.address
+
+    def _loop_error(self, loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
+        """An error inside a callback (a bug, never a peer's bytes): one notice, the
+        loop goes on, no traceback on the console."""
+        exc = context.get("exception")
+        what = context.get("message", "error")
+        if exc is not None:
+            what = f"{what}: {type(exc).__name__}: {exc}"
+        self.observer.event(None, EventKind.NOTICE, {"message": f"proxy internal error: {what}"})
 
     async def serve(self) -> None:
         """Run until :meth:`request_stop`; then close every connection."""
