@@ -756,3 +756,18 @@ def test_client_leaving_mid_request_and_half_close(tmp_path: Path, shared: bool)
         assert "late answers dropped 1" in err
     else:  # the client's own upstream connection closed with it
         assert "late answers dropped 0" in err
+
+
+def test_full_disk_log_never_stops_traffic(tmp_path: Path) -> None:
+    (tmp_path / "full.jsonl").symlink_to("/dev/full")  # every write: ENOSPC
+    with fake() as up, proxy(up.port, "--quiet", "-w", "full.jsonl", tmp=tmp_path) as p:
+        sock = connect(p.port)
+        for tid in range(300):
+            assert rpc(sock, tid, read_hr(tid, 3)) == expected_hr(tid, 1, tid, 3)
+            if tid == 150:
+                time.sleep(0.6)  # the sink flushes on a tick, fails, and is detached
+        sock.close()
+        _out, err = p.stop()
+    assert "No space left on device" in err
+    assert "requests 300, responses 300" in err
+    assert p.returncode == 1  # an output failed: the run says so
