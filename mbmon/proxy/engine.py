@@ -322,6 +322,7 @@ class _Link:
         self.consumed = 0
         self.next_tid = 0
         self.last_error = ""
+        self.resetting = False  # the proxy itself is aborting the connection
 
     # -------------------------------------------------------------- connecting
 
@@ -568,15 +569,18 @@ class _Link:
             return
         self.state = "down"
         self.next_attempt = 0.0  # a lost connection is tried again at once
-        how = "rst" if exc is not None else "fin"
+        how = "rst" if exc is not None or self.resetting else "fin"
+        by = "proxy" if self.resetting else "upstream"
+        self.resetting = False
         in_flight = [e for lst in self.pending.values() for e in lst]
         self.pending = {}
         if self.owner is None or not self.owner.closed:
+            who = "the proxy reset" if by == "proxy" else "closed"
             self._notice(
-                f"upstream {self.engine.config.upstream} closed the connection "
+                f"upstream {self.engine.config.upstream} {who} the connection "
                 f"({how.upper()}{': ' + _why(exc) if exc else ''})"
                 + (f"; {len(in_flight)} requests in flight answered 0x0B" if in_flight else ""),
-                {"upstream": self.engine.config.upstream, "how": how},
+                {"upstream": self.engine.config.upstream, "how": how, "by": by},
             )
         for entry in in_flight:
             self._cancel_timer(entry)
@@ -588,6 +592,7 @@ class _Link:
         self._notice(f"{why}: upstream connection reset", {"upstream": self.engine.config.upstream})
         proto = self.proto
         if proto is not None and proto.transport is not None:
+            self.resetting = True
             proto.transport.abort()
 
     def write(self, data: bytes) -> None:

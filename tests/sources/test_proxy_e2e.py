@@ -590,6 +590,9 @@ def test_garbage_client_dropped_others_unaffected(tmp_path: Path) -> None:
         bad.close()
         out, err = p.stop()
     assert "dropped: client sent bytes that are not Modbus/TCP (bad MBAP header" in out
+    # the upstream is the robot by default: the robot's own Modbus Monitor labels
+    assert "Receive from client  [u1 t1]  03 00 00 00 01" in out
+    assert "Send to client  [u1 t1]  03 02 00 01" in out
     assert "clients 2 (refused 0, dropped 1)" in err
 
 
