@@ -774,3 +774,17 @@ def test_full_disk_log_never_stops_traffic(tmp_path: Path) -> None:
     assert "No space left on device" in err
     assert "requests 300, responses 300" in err
     assert p.returncode == 1  # an output failed: the run says so
+
+
+def test_profile_annotations_and_profile_stored_in_the_log(tmp_path: Path) -> None:
+    with fake() as up, proxy(up.port, "--profile", "hrss", "-w", "p.mcap", tmp=tmp_path) as p:
+        sock = connect(p.port)
+        pdu = bytes.fromhex("10 00 C9 00 03 06 00 6F 00 DE 01 4D")  # R201..R203
+        assert rpc(sock, 1, pdu) == adu(1, 1, pdu[:5])
+        sock.close()
+        out, _err = p.stop()
+    assert "R202..R203 parameters = 222 333" in out
+    from mbmon.io.mcap_reader import open_log
+
+    with open_log(tmp_path / "p.mcap") as log:
+        assert [name for name, _text in log.profiles()]
