@@ -85,19 +85,10 @@ def floor(path: str, stage: int) -> int:
             src = "%d.%d.%d.%d:%d" % (*addrs[:4], sport)  # noqa: UP031
             dst = "%d.%d.%d.%d:%d" % (*addrs[4:], dport)  # noqa: UP031
             head = b',"stream":%d,"src":"%b","dst":"%b","transport":"tcp","tid":' % (
-                len(conns) // 2,
-                src.encode(),
-                dst.encode(),
-            )
+                len(conns) // 2, src.encode(), dst.encode())
             label = ("%s \xe2\x86\x92 %s" % (src, dst)).encode("latin-1")  # noqa: UP031
-            conns[key] = [
-                (seq + (1 if hl & 2 else 0)) & 0xFFFFFFFF,
-                b"",
-                dport == 502,
-                len(conns) // 2,
-                head,
-                label,
-            ]
+            conns[key] = [(seq + (1 if hl & 2 else 0)) & 0xFFFFFFFF, b"", dport == 502,
+                          len(conns) // 2, head, label]
             continue
         if st[0] != seq or hl & 7:  # handshake and FIN: only the sequence number kept
             st[0] = (seq + len(payload) + (1 if hl & 3 else 0)) & 0xFFFFFFFF
@@ -151,7 +142,8 @@ def floor(path: str, stage: int) -> int:
             lines.append(
                 b'{"index":%d,"time":%b%b%d%b"%b","notes":["%b"],"crc_ok":null,"latency_ms":%b,'
                 b'"malformed":null,"request_index":%b}'
-                % (index, dumps(ts), st[4], tid, to_line, line, note, latency_json, request_index)
+                % (index, dumps(ts), st[4], tid, to_line, line, note, latency_json,
+                   request_index)
             )
             index += 1
             if len(lines) >= 512:
@@ -205,10 +197,8 @@ def main(argv: list[str] | None = None) -> int:
     n = args.adus
     path, stats = capture(n)
     load = os.getloadavg()
-    print(
-        f"capture: {path.relative_to(REPO)} ({stats['bytes']:,} bytes, {n:,} ADUs); "
-        f"{os.cpu_count()} CPUs, load average {load[0]:.2f}; python {sys.version.split()[0]}"
-    )
+    print(f"capture: {path.relative_to(REPO)} ({stats['bytes']:,} bytes, {n:,} ADUs); "
+          f"{os.cpu_count()} CPUs, load average {load[0]:.2f}; python {sys.version.split()[0]}")
     runs: list[Run] = []
     for number, name in enumerate(STAGES, 1):
         cmd = [sys.executable, __file__, "--stage", str(number), "--file", str(path)]
@@ -216,21 +206,8 @@ def main(argv: list[str] | None = None) -> int:
     runs.append(measure("mbmon read --json", [*mbmon_cmd(), "read", str(path), "--json"], None))
     tshark = None
     if not args.skip_tshark:
-        cmd = [
-            "tshark",
-            "-r",
-            str(path),
-            "-Y",
-            "modbus",
-            "-T",
-            "fields",
-            "-e",
-            "mbtcp.trans_id",
-            "-e",
-            "modbus.func_code",
-            "-e",
-            "modbus.reference_num",
-        ]
+        cmd = ["tshark", "-r", str(path), "-Y", "modbus", "-T", "fields",
+               "-e", "mbtcp.trans_id", "-e", "modbus.func_code", "-e", "modbus.reference_num"]
         tshark = measure("tshark -T fields", cmd, None)
         runs.append(tshark)
     print("results (stdout to /dev/null):")

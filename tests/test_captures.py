@@ -28,20 +28,8 @@ TABLE_46 = [0, 0, 24464, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 50, 100, 1, 2, 0, 0, 0
 # The session of captures/README.md: (fc, address, count) of the 28 requests, in order.
 POLL = [(4, 200, 1), (4, 524, 1), (4, 300, 12)]
 REQUESTS = [
-    (4, 100, 1),
-    (6, 100, 1),
-    (2, 0, 8),
-    (5, 0, 1),
-    (15, 300, 5),
-    (1, 0, 8),
-    (16, 200, 1),
-    (16, 201, 26),
-    (3, 200, 2),
-    (6, 200, 1),
-    *POLL * 5,
-    (6, 200, 1),
-    (3, 1000, 2),
-    (5, 0, 1),
+    (4, 100, 1), (6, 100, 1), (2, 0, 8), (5, 0, 1), (15, 300, 5), (1, 0, 8), (16, 200, 1),
+    (16, 201, 26), (3, 200, 2), (6, 200, 1), *POLL * 5, (6, 200, 1), (3, 1000, 2), (5, 0, 1),
 ]
 FC_ADUS = {1: 2, 2: 2, 3: 4, 4: 32, 5: 4, 6: 6, 15: 2, 16: 4}
 
@@ -59,9 +47,8 @@ JOINTS.append(_a(90000) + [0] * 10)
 
 @cache
 def read(*args: str) -> tuple[dict[str, Any], ...]:
-    p = subprocess.run(
-        [sys.executable, "-m", "mbmon", "read", *args, "--json"], capture_output=True, text=True
-    )
+    p = subprocess.run([sys.executable, "-m", "mbmon", "read", *args, "--json"],
+                       capture_output=True, text=True)
     assert p.returncode == 0, p.stderr
     return tuple(json.loads(line) for line in p.stdout.splitlines())
 
@@ -116,11 +103,8 @@ def test_register_values_are_the_manual_s(source: str) -> None:
     assert ptp[0]["pdu"].startswith("10 00 C9 00 1A 34 00 00 00 00 5F 90 00 01")
 
     def answers(fc: int, address: int) -> list[Any]:
-        return [
-            frames[i + 1]["values"]
-            for i in range(0, len(frames), 2)
-            if (frames[i]["fc"], frames[i]["address"]) == (fc, address)
-        ]
+        return [frames[i + 1]["values"] for i in range(0, len(frames), 2)
+                if (frames[i]["fc"], frames[i]["address"]) == (fc, address)]
 
     assert answers(4, 100) == [[100]]  # IR100 speed
     assert answers(2, 0) == [[0, 0, 0, 1, 0, 0, 0, 0]]  # SO4 Ready
@@ -132,12 +116,10 @@ def test_register_values_are_the_manual_s(source: str) -> None:
     coil_writes = [r["pdu"] for r in frames if r["kind"] == "request" and r["fc"] == 5]
     assert coil_writes == ["05 00 00 FF 00", "05 00 00 00 00"]
     assert [r["pdu"] for r in frames if r["kind"] == "request" and r["fc"] == 15] == [
-        "0F 01 2C 00 05 01 13"
-    ]
+        "0F 01 2C 00 05 01 13"]
     exc = [r for r in frames if r["kind"] == "exception"]
     assert [(r["fc"], r["exception_code"], r["address"], r["pdu"]) for r in exc] == [
-        (3, 2, 1000, "83 02")
-    ]
+        (3, 2, 1000, "83 02")]
 
 
 def test_tcp_capture_transport_and_ids() -> None:
@@ -164,8 +146,8 @@ def test_raw_dump_is_the_pcap_s_bytes() -> None:
     assert (magic, linktype) == (0xA1B2C3D4, 147)
     pos, body = 24, bytearray()
     while pos < len(data):
-        incl = int.from_bytes(data[pos + 8 : pos + 12], "little")
-        body += data[pos + 16 : pos + 16 + incl]
+        incl = int.from_bytes(data[pos + 8:pos + 12], "little")
+        body += data[pos + 16:pos + 16 + incl]
         pos += 16 + incl
     assert bytes(body) == (CAPTURES / "hrss_rtu.bin").read_bytes()
     assert len(body) == 594

@@ -204,11 +204,8 @@ def _write_script(path: Path, steps: list[tuple[str, object]]) -> None:
                     put(udp_frame(1, "10.0.0.9", "10.0.0.1", 5000, 502,
                                   encode_adu(9, 1, encode_read_request(3, 0, 1))))  # fmt: skip
                 else:
-                    put(
-                        TcpConversation("10.0.0.9:5555", "10.0.0.1:80").segment(
-                            True, PSH_ACK, b"GET /"
-                        )
-                    )
+                    put(TcpConversation("10.0.0.9:5555", "10.0.0.1:80").segment(True, PSH_ACK,
+                                                                                b"GET /"))
             elif kind == "data":
                 i, from_client, adus, cut = arg  # type: ignore[misc]
                 data = b"".join(adus)
@@ -244,11 +241,8 @@ def _write_script(path: Path, steps: list[tuple[str, object]]) -> None:
                     put(conv.segment(True, ACK))
                 else:  # syn: the same addresses open a new connection
                     reopened[i] = reopened.get(i, 0) + 1
-                    convs[i] = TcpConversation(
-                        f"10.0.0.{i + 5}:{41000 + i}",
-                        "10.0.0.1:502",
-                        client_isn=1000 + 99991 * reopened[i],
-                    )
+                    convs[i] = TcpConversation(f"10.0.0.{i + 5}:{41000 + i}", "10.0.0.1:502",
+                                               client_isn=1000 + 99991 * reopened[i])
                     put(convs[i].segment(True, SYN))
                     put(convs[i].segment(False, SYN | ACK))
                     put(convs[i].segment(True, ACK))
@@ -256,9 +250,8 @@ def _write_script(path: Path, steps: list[tuple[str, object]]) -> None:
 
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(captures())
-def test_generated_captures_read_the_same_both_ways(
-    tmp_path_factory: pytest.TempPathFactory, steps: list[tuple[str, object]]
-) -> None:
+def test_generated_captures_read_the_same_both_ways(tmp_path_factory: pytest.TempPathFactory,
+                                                    steps: list[tuple[str, object]]) -> None:
     path = tmp_path_factory.mktemp("lane") / "gen.pcap"
     _write_script(path, steps)
     same_both_ways(path)
