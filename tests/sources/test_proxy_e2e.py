@@ -472,10 +472,14 @@ def test_upstream_silent_answers_0B_within_timeout(tmp_path: Path) -> None:
     assert "0x0B 2" in err
 
 
-def test_late_answer_is_dropped_never_delivered(tmp_path: Path) -> None:
+@pytest.mark.parametrize("shared", [False, True], ids=["per-client", "share-upstream"])
+def test_late_answer_is_dropped_never_delivered(tmp_path: Path, shared: bool) -> None:
+    extra = ["--share-upstream"] if shared else []
     with (
         fake("late") as up,
-        proxy(up.port, "--quiet", "--timeout", "0.5", "-w", "late.jsonl", tmp=tmp_path) as p,
+        proxy(
+            up.port, "--quiet", "--timeout", "0.5", "-w", "late.jsonl", *extra, tmp=tmp_path
+        ) as p,
     ):
         sock = connect(p.port)
         assert rpc(sock, 1, read_hr(0, 1)) == exception(1, 3, 0x0B)
@@ -488,7 +492,8 @@ def test_late_answer_is_dropped_never_delivered(tmp_path: Path) -> None:
         _out, err = p.stop()
     assert "late answers dropped 1" in err
     log = (tmp_path / "late.jsonl").read_text()
-    assert "late answer from upstream (tid 1) dropped" in log
+    # the upstream id: the client's own, or the first remapped one (0) when shared
+    assert f"late answer from upstream (tid {0 if shared else 1}) dropped" in log
 
 
 def test_half_answer_gives_0B_and_a_fresh_upstream_connection(tmp_path: Path) -> None:
