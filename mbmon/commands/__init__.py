@@ -12,5 +12,6 @@ from __future__ import annotations
 COMMANDS: list[str] = [
     "read",
     "decode",
+    "proxy",
     "sim",
 ]

@@ -139,6 +139,7 @@ class MbapDecoder(StreamDecoder):
 
     # ------------------------------------------------------------------ public
 
+
     def feed(self, data: bytes, ts: float) -> list[Frame | Noise]:
         """Consume one chunk captured at ``ts``; return the frames and noise it completes."""
         out: list[Frame | Noise] = []

@@ -1,0 +1,364 @@
+"""Proxy latency and throughput: FC 03 (10 registers) through several forwarders.
+
+Usage::
+
+    python bench/proxy_latency.py [--seconds 3] [--clients 1 8] [--modbus-proxy PATH]
+    python bench/proxy_latency.py --soak 600          # memory of mbmon proxy -w x.mcap
+
+Every party is its own process on 127.0.0.1: a small asyncio Modbus/TCP server
+(the upstream: answers every request with 10 registers), the forwarder under
+test, and raw-socket clients (one process per client, blocking sockets, one
+request in flight each). Targets:
+
+* ``direct``          clients talk to the upstream itself (the anchor);
+* ``bare``            a bare asyncio byte forwarder (one upstream connection per
+                      client, bytes forwarded as they arrive, nothing else);
+* ``mbmon``           ``mbmon proxy --quiet``;
+* ``mbmon -w mcap``   ``mbmon proxy --quiet -w x.mcap``;
+* ``modbus-proxy``    the PyPI ``modbus-proxy`` package, when importable (install
+                      it, or give ``--modbus-proxy DIR`` with its module).
+
+Printed side by side: requests/s, p50 and p99 round-trip latency, the latency
+each forwarder adds over ``direct`` (p50), that added latency as a ratio of the
+bare forwarder's, and throughput as ratios of the bare forwarder's and
+modbus-proxy's. Issue 12's targets: added p50 at most 1.5x the bare
+forwarder's (with and without -w x.mcap); with 8 clients, throughput at least
+2.5x modbus-proxy's and at least 0.8x the bare forwarder's; memory flat over a
+10-minute soak. The figures are for the machine they ran on: compare ratios.
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import os
+import re
+import signal
+import socket
+import statistics
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
+
+UPSTREAM = r"""
+import asyncio, struct, sys
+BODY = bytes([3, 20]) + bytes(range(20))
+class P(asyncio.Protocol):
+    def connection_made(self, t):
+        self.t = t
+        self.buf = b""
+    def data_received(self, data):
+        buf = self.buf + data
+        out = []
+        while len(buf) >= 7:
+            n = 6 + ((buf[4] << 8) | buf[5])
+            if len(buf) < n:
+                break
+            out.append(buf[:2] + b"\0\0\0\x17" + buf[6:7] + BODY)
+            buf = buf[n:]
+        self.buf = buf
+        if out:
+            self.t.write(b"".join(out))
+async def main():
+    loop = asyncio.get_running_loop()
+    srv = await loop.create_server(P, "127.0.0.1", 0)
+    print(srv.sockets[0].getsockname()[1], flush=True)
+    await srv.serve_forever()
+asyncio.run(main())
+"""
+
+BARE = r"""
+import asyncio, sys
+up_port = int(sys.argv[1])
+class Up(asyncio.Protocol):
+    def __init__(self, client):
+        self.client = client
+    def connection_made(self, t):
+        self.t = t
+    def data_received(self, data):
+        self.client.write(data)
+    def connection_lost(self, exc):
+        self.client.close()
+class Client(asyncio.Protocol):
+    def connection_made(self, t):
+        self.t = t
+        self.up = None
+        self.pending = []
+        asyncio.get_running_loop().create_task(self.connect())
+    async def connect(self):
+        loop = asyncio.get_running_loop()
+        _, self.up = await loop.create_connection(lambda: Up(self.t), "127.0.0.1", up_port)
+        for d in self.pending:
+            self.up.t.write(d)
+    def data_received(self, data):
+        if self.up is None:
+            self.pending.append(data)
+        else:
+            self.up.t.write(data)
+    def connection_lost(self, exc):
+        if self.up is not None:
+            self.up.t.close()
+async def main():
+    loop = asyncio.get_running_loop()
+    srv = await loop.create_server(Client, "127.0.0.1", 0)
+    print(srv.sockets[0].getsockname()[1], flush=True)
+    await srv.serve_forever()
+asyncio.run(main())
+"""
+
+REQUEST = struct.pack(">HHHBBHH", 0, 0, 6, 1, 3, 0, 10)
+
+
+def _spawn_printing_port(args: list[str], env: dict[str, str] | None = None) -> tuple[Any, int]:
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, text=True, env=env)
+    assert proc.stdout is not None
+    port = int(proc.stdout.readline())
+    return proc, port
+
+
+def _wait_port(port: int, timeout: float = 15.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
+            return
+        except OSError:
+            time.sleep(0.05)
+    raise RuntimeError(f"nothing listens on {port}")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _stop(proc: Any, sig: int = signal.SIGTERM) -> None:
+    if proc.poll() is None:
+        proc.send_signal(sig)
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+@contextmanager
+def upstream() -> Iterator[int]:
+    proc, port = _spawn_printing_port([sys.executable, "-c", UPSTREAM])
+    try:
+        yield port
+    finally:
+        _stop(proc)
+
+
+@contextmanager
+def target(name: str, up: int, tmp: Path, mp_path: str | None) -> Iterator[tuple[int, int | None]]:
+    """Start the forwarder ``name`` in front of ``up``; yield (port, pid)."""
+    if name == "direct":
+        yield up, None
+        return
+    if name == "bare":
+        proc, port = _spawn_printing_port([sys.executable, "-c", BARE, str(up)])
+    elif name.startswith("mbmon"):
+        args = [sys.executable, "-m", "mbmon", "proxy", "--upstream", f"127.0.0.1:{up}",
+                "--listen", "127.0.0.1:0", "--quiet"]  # fmt: skip
+        if "mcap" in name:
+            args += ["-w", str(tmp / f"bench-{time.monotonic_ns()}.mcap")]
+        proc = subprocess.Popen(args, stderr=subprocess.PIPE, text=True, env=ENV)
+        assert proc.stderr is not None
+        line = proc.stderr.readline()
+        m = re.search(r"listening on 127\.0\.0\.1:(\d+)", line)
+        if not m:
+            raise RuntimeError(f"mbmon proxy did not start: {line}")
+        port = int(m.group(1))
+    elif name == "modbus-proxy":
+        port = _free_port()
+        env = dict(os.environ)
+        if mp_path:
+            env["PYTHONPATH"] = mp_path
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "modbus_proxy",
+                "-b",
+                f"tcp://127.0.0.1:{port}",
+                "--modbus",
+                f"tcp://127.0.0.1:{up}",
+            ],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        _wait_port(port)
+    else:
+        raise ValueError(name)
+    try:
+        yield port, proc.pid
+    finally:
+        _stop(proc, signal.SIGINT if name.startswith("mbmon") else signal.SIGTERM)
+        if name.startswith("mbmon") and proc.stderr is not None:
+            summary = proc.stderr.read()
+            if "not observed" in summary or os.environ.get("BENCH_VERBOSE"):
+                print(f"[{name}] " + summary.strip().replace("\n", f"\n[{name}] "))
+
+
+def _client(port: int, seconds: float, start_at: float, queue: Any) -> None:
+    """One client process: requests back to back for ``seconds``; latencies in µs."""
+    s = socket.create_connection(("127.0.0.1", port))
+    s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    recv, send = s.recv, s.sendall
+    perf = time.perf_counter
+    lat: list[float] = []
+    for _ in range(50):  # warm up (connection set-up upstream, caches)
+        send(REQUEST)
+        got = 0
+        while got < 29:
+            got += len(recv(64))
+    while time.time() < start_at:
+        time.sleep(0.001)
+    tid = 0
+    end = perf() + seconds
+    while True:
+        t0 = perf()
+        if t0 >= end:
+            break
+        tid = (tid + 1) & 0xFFFF
+        send(struct.pack(">H", tid) + REQUEST[2:])
+        got = 0
+        while got < 29:
+            chunk = recv(64)
+            if not chunk:
+                raise ConnectionError("closed")
+            got += len(chunk)
+        lat.append((perf() - t0) * 1e6)
+    s.close()
+    queue.put(lat)
+
+
+def measure(port: int, clients: int, seconds: float) -> dict[str, float]:
+    ctx = mp.get_context("fork")
+    queue = ctx.Queue()
+    start_at = time.time() + 0.5 + 0.05 * clients
+    procs = [
+        ctx.Process(target=_client, args=(port, seconds, start_at, queue)) for _ in range(clients)
+    ]
+    for p in procs:
+        p.start()
+    lats: list[float] = []
+    for _ in procs:
+        lats.extend(queue.get(timeout=seconds + 60))
+    for p in procs:
+        p.join()
+    lats.sort()
+    n = len(lats)
+    return {
+        "rps": n / seconds,
+        "p50": lats[n // 2],
+        "p99": lats[min(n - 1, int(n * 0.99))],
+        "n": n,
+    }
+
+
+def _has_modbus_proxy(path: str | None) -> bool:
+    env = dict(os.environ)
+    if path:
+        env["PYTHONPATH"] = path
+    r = subprocess.run([sys.executable, "-c", "import modbus_proxy"], env=env, capture_output=True)
+    return r.returncode == 0
+
+
+def bench(args: argparse.Namespace) -> None:
+    names = ["direct", "bare", "mbmon", "mbmon -w mcap"]
+    if _has_modbus_proxy(args.modbus_proxy):
+        names.append("modbus-proxy")
+    else:
+        print("modbus-proxy: not importable (pip install modbus-proxy, or --modbus-proxy DIR)")
+    results: dict[tuple[str, int], dict[str, float]] = {}
+    with tempfile.TemporaryDirectory() as tmp, upstream() as up:
+        for clients in args.clients:
+            for name in names:
+                with target(name, up, Path(tmp), args.modbus_proxy) as (port, _pid):
+                    results[(name, clients)] = measure(port, clients, args.seconds)
+    load = os.getloadavg()
+    print(f"\nFC 03 x 10 registers, {args.seconds:g} s per run, {os.cpu_count()} CPUs, "
+          f"load {load[0]:.1f} {load[1]:.1f} {load[2]:.1f}")  # fmt: skip
+    head = (f"{'target':<15} {'clients':>7} {'req/s':>8} {'p50 us':>8} {'p99 us':>8} "
+            f"{'added p50':>9} {'x bare':>7} {'rps/bare':>8} {'rps/m-p':>8}")  # fmt: skip
+    print(head)
+    print("-" * len(head))
+    for clients in args.clients:
+        direct = results[("direct", clients)]
+        bare = results[("bare", clients)]
+        bare_added = bare["p50"] - direct["p50"]
+        mproxy = results.get(("modbus-proxy", clients))
+        for name in names:
+            r = results[(name, clients)]
+            added = r["p50"] - direct["p50"]
+            x_bare = f"{added / bare_added:.2f}" if name != "direct" and bare_added > 0 else "-"
+            rps_bare = f"{r['rps'] / bare['rps']:.2f}"
+            rps_mp = f"{r['rps'] / mproxy['rps']:.2f}" if mproxy else "-"
+            print(f"{name:<15} {clients:>7} {r['rps']:>8.0f} {r['p50']:>8.0f} {r['p99']:>8.0f} "
+                  f"{added:>9.0f} {x_bare:>7} {rps_bare:>8} {rps_mp:>8}")  # fmt: skip
+
+
+def _rss_kib(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    return 0
+
+
+def soak(args: argparse.Namespace) -> None:
+    """8 clients through ``mbmon proxy -w x.mcap`` for ``--soak`` seconds; RSS samples."""
+    with tempfile.TemporaryDirectory() as tmp, upstream() as up:
+        with target("mbmon -w mcap", up, Path(tmp), None) as (port, pid):
+            assert pid is not None
+            ctx = mp.get_context("fork")
+            queue = ctx.Queue()
+            procs = [ctx.Process(target=_client, args=(port, args.soak, time.time() + 1, queue))
+                     for _ in range(8)]  # fmt: skip
+            for p in procs:
+                p.start()
+            samples = []
+            step = max(1.0, args.soak / 20)
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < args.soak + 1:
+                time.sleep(step)
+                samples.append((time.monotonic() - t0, _rss_kib(pid)))
+                print(f"{samples[-1][0]:7.0f} s  RSS {samples[-1][1] / 1024:7.1f} MiB", flush=True)
+            total = sum(len(queue.get(timeout=120)) for _ in procs)
+            for p in procs:
+                p.join()
+    first = statistics.mean(s[1] for s in samples[1:4]) if len(samples) > 4 else samples[0][1]
+    last = statistics.mean(s[1] for s in samples[-3:])
+    growth = (last - first) / 1024
+    print(f"{total} requests in {args.soak:g} s ({total / args.soak:.0f} req/s); "
+          f"RSS {first / 1024:.1f} -> {last / 1024:.1f} MiB ({growth:+.1f} MiB)")  # fmt: skip
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seconds", type=float, default=3.0, help="per run (default 3)")
+    parser.add_argument("--clients", type=int, nargs="+", default=[1, 8])
+    parser.add_argument("--modbus-proxy", metavar="DIR", help="directory holding modbus_proxy.py")
+    parser.add_argument("--soak", type=float, metavar="S", help="memory soak of S seconds instead")
+    args = parser.parse_args()
+    if args.soak:
+        soak(args)
+    else:
+        bench(args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,298 @@
+"""``mbmon proxy``: an active Modbus/TCP proxy between a client (PLC) and a server
+(the robot) that forwards every byte, answers like a gateway when the robot does
+not, can refuse writes, and shows and logs what passes through the one hub.
+
+Wiring only. The :class:`~mbmon.proxy.engine.ProxyEngine` runs on its own asyncio
+loop in a thread (:class:`~mbmon.proxy.engine.ProxyThread`) and hands copies of
+the traffic to the hub's thread-safe queue; the main thread runs ``hub.run``
+(pipeline, console, ``-w`` logs). Ctrl-C or SIGTERM stops the engine first (its
+last events reach the hub), then the hub finishes and closes every listener,
+and a summary goes to stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+from typing import Any
+
+_EPILOG = """\
+examples:
+  mbmon proxy --upstream 192.168.0.10:502
+      listen on 127.0.0.1:1502, forward to the robot, print every ADU with the
+      robot's labels (the upstream is the robot unless --robot says otherwise)
+  mbmon proxy --upstream robot:502 --listen 0.0.0.0:502 -w cell.mcap --profile hrss
+      take the robot's place on the cell network (all interfaces, port 502: both
+      only because they are asked for) and log to MCAP with HRSS meaning
+  mbmon proxy --upstream robot:502 --read-only --allow-write hr:200-251 -q -w audit.mcap
+      refuse every write except R200..R251 (exception 01), audit refusals in the log
+  mbmon proxy --upstream robot:502 --share-upstream --allow-from 10.0.0.0/24
+      many clients over one robot connection; only clients of 10.0.0.0/24
+
+listening: 127.0.0.1:1502 by default. Other interfaces and port 502 are used only
+when --listen names them explicitly (e.g. --listen 0.0.0.0:502).
+gateway rules: upstream down -> exception 0x0A; no answer in --timeout -> 0x0B;
+the client stays connected; late answers are dropped and logged (docs/proxy.md).
+write specs: hr:100  hr:200-251  coil:0-7  unit:2  unit:2,hr:100-110 ; --deny-write
+always wins; with --read-only or any --allow-write only allowed writes pass.
+exit status: 0 ok, 1 cannot listen or an output failed, 2 usage
+"""
+
+DEFAULT_LISTEN = ("127.0.0.1", 1502)
+
+#: The interpreter's thread switch interval while the proxy runs (default 5 ms).
+SWITCH_INTERVAL = 0.0002
+
+
+def _split_endpoint(text: str, what: str, default_host: str | None = None) -> tuple[str, int]:
+    """``HOST:PORT`` or ``[V6]:PORT`` (or ``PORT`` when ``default_host`` is given)."""
+    from mbmon.commands.common import UsageError
+
+    text = text.strip()
+    host: str | None
+    if text.startswith("["):
+        host, sep, port_text = text[1:].partition("]:")
+        if not sep:
+            raise UsageError(f"{what} {text!r}: use [ADDR]:PORT for IPv6")
+    elif ":" in text:
+        host, _, port_text = text.rpartition(":")
+    elif default_host is not None:
+        host, port_text = default_host, text
+    else:
+        raise UsageError(f"{what} {text!r}: use HOST:PORT")
+    if not host:
+        if default_host is None:
+            raise UsageError(f"{what} {text!r}: the host is missing")
+        host = default_host
+    try:
+        port = int(port_text, 10)
+    except ValueError:
+        raise UsageError(f"{what} {text!r}: not a port number") from None
+    lowest = 0 if what == "--listen" else 1
+    if not lowest <= port <= 65535:
+        raise UsageError(f"{what} {text!r}: port out of range {lowest}..65535")
+    return host, port
+
+
+def register(sub: Any) -> None:
+    """Add the ``proxy`` subparser to ``sub``."""
+    from mbmon.commands.common import add_output_options, add_view_options
+    from mbmon.commands.common import positive as _positive
+
+    p = sub.add_parser(
+        "proxy",
+        help="forward Modbus/TCP between a client and the robot, and show it",
+        description="An active Modbus/TCP proxy: clients connect to it, it forwards every "
+        "request to the upstream server (the robot) and every answer back, unchanged, and "
+        "shows and logs what passes as the robot's Modbus Monitor does. When the upstream "
+        "is down or silent it answers like a Modbus gateway (exceptions 0x0A/0x0B); it can "
+        "refuse writes (--read-only, --allow-write, --deny-write) and clients (--allow-from).",
+        epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    net = p.add_argument_group("network")
+    net.add_argument(
+        "--upstream",
+        required=True,
+        metavar="HOST:PORT",
+        help="the Modbus/TCP server to forward to (the robot), e.g. 192.168.0.10:502",
+    )
+    net.add_argument(
+        "--listen",
+        metavar="ADDR:PORT",
+        help="where clients connect (default 127.0.0.1:1502, loopback only); other "
+        "interfaces or port 502 only when named here, e.g. 0.0.0.0:502; a bare PORT "
+        "means 127.0.0.1:PORT; port 0 picks a free port (printed)",
+    )
+    net.add_argument(
+        "--timeout",
+        type=_positive,
+        default=3.0,
+        metavar="S",
+        help="answer 0x0B when the upstream has not answered in S seconds; also how long "
+        "a client may stay half-way through a request or not read (default 3)",
+    )
+    net.add_argument(
+        "--share-upstream",
+        action="store_true",
+        help="all clients over one upstream connection, transaction ids remapped (for "
+        "servers that accept few connections); default: one upstream connection per "
+        "client, transaction ids untouched",
+    )
+    guard = p.add_argument_group("guard")
+    guard.add_argument(
+        "--read-only",
+        action="store_true",
+        help="refuse every write (FC 05 06 0F 10 15 16, the write of 17) except what "
+        "--allow-write allows",
+    )
+    guard.add_argument(
+        "--allow-write",
+        action="append",
+        default=[],
+        metavar="SPEC",
+        help="writes allowed (hr:100, hr:200-251, coil:0-7, unit:2, unit:2,hr:0-9); with "
+        "any --allow-write, writes not covered are refused (repeatable)",
+    )
+    guard.add_argument(
+        "--deny-write",
+        action="append",
+        default=[],
+        metavar="SPEC",
+        help="writes refused whatever else allows them (repeatable)",
+    )
+    guard.add_argument(
+        "--guard-exception",
+        type=lambda s: int(s, 0),
+        default=0x01,
+        metavar="N",
+        help="exception code a refused write is answered with (default 1, Illegal Function)",
+    )
+    guard.add_argument(
+        "--allow-from",
+        action="append",
+        default=[],
+        metavar="CIDR",
+        help="accept clients only from these networks (repeatable; default: any)",
+    )
+    add_view_options(p)
+    add_output_options(p)
+    p.add_argument(
+        "--plain",
+        action="store_true",
+        help="plain monitor lines (the console output of the proxy is always plain lines)",
+    )
+    p.set_defaults(func=run, robot="upstream")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Start the engine, run the hub until Ctrl-C/SIGTERM, print the summary."""
+    from mbmon.commands.common import EXIT_BAD_INPUT, EXIT_OK, UsageError, make_annotator
+    from mbmon.format import View
+    from mbmon.hub import Hub
+    from mbmon.pipeline import Pipeline, PipelineConfig
+    from mbmon.proxy.engine import (
+        BacklogMeter,
+        Observer,
+        ProxyConfig,
+        ProxyEngine,
+        ProxyThread,
+        endpoint,
+    )
+    from mbmon.proxy.guard import ClientFilter, Guard, GuardSpecError
+    from mbmon.sinks.base import SinkContext, SinkError, open_sink
+    from mbmon.sinks.console import ConsoleListener
+
+    up_host, up_port = _split_endpoint(args.upstream, "--upstream")
+    if args.listen is None:
+        listen_host, listen_port = DEFAULT_LISTEN
+    else:
+        listen_host, listen_port = _split_endpoint(args.listen, "--listen", "127.0.0.1")
+    try:
+        guard = Guard.from_options(
+            args.read_only, args.allow_write, args.deny_write, args.guard_exception
+        )
+        clients = ClientFilter(args.allow_from)
+    except GuardSpecError as exc:
+        raise UsageError(str(exc)) from None
+    upstream = endpoint(up_host, up_port)
+    robot = None if args.robot in ("none", "") else args.robot
+    if robot == "upstream":
+        robot = upstream
+    view = View(robot=robot, robot_is_client=args.robot_client)
+    annotator = make_annotator(args.profile)
+    # the proxy answers 0x0B at --timeout itself: the pipeline waits a little
+    # longer, so that answer pairs with its request instead of racing it
+    pipe_timeout = args.timeout + 1.0
+    pipeline = Pipeline(annotator, PipelineConfig(timeout=pipe_timeout))
+    config = ProxyConfig(
+        upstream_host=up_host,
+        upstream_port=up_port,
+        listen_host=listen_host,
+        listen_port=listen_port,
+        timeout=args.timeout,
+        share_upstream=args.share_upstream,
+        guard=guard,
+        clients=clients,
+    )
+    ctx = SinkContext(
+        view=view,
+        command_line=["mbmon", *sys.argv[1:]],
+        source=f"proxy {endpoint(listen_host, listen_port)} -> {upstream}",
+        profiles=_profile_sources(annotator),
+        profile_specs=list(args.profile),
+        timeout=pipe_timeout,
+    )
+    hub = Hub(pipeline)
+    meter = BacklogMeter()
+    hub.add_listener(meter)
+    try:
+        if not args.quiet:
+            hub.add_listener(ConsoleListener(sys.stdout, view, as_json=args.json, live=True))
+        for target in args.write:
+            hub.add_listener(open_sink(target, ctx))
+    except SinkError as exc:
+        print(f"mbmon: {exc}", file=sys.stderr)
+        hub.close()
+        return EXIT_BAD_INPUT
+    observer = Observer(hub.put, hub.new_stream, meter=meter, max_backlog=config.max_backlog)
+    engine = ProxyEngine(config, observer, submit=hub.submit)
+    # The engine's thread must get the GIL back quickly when a packet arrives while
+    # the hub's thread decodes and writes: the default 5 ms switch interval would add
+    # up to 5 ms to a forwarded answer whenever the hub is busy.
+    sys.setswitchinterval(SWITCH_INTERVAL)
+    thread = ProxyThread(engine, on_exit=hub.stop)
+    try:
+        address = thread.start()
+    except OSError as exc:
+        print(
+            f"mbmon: cannot listen on {endpoint(listen_host, listen_port)}: {exc.strerror or exc}",
+            file=sys.stderr,
+        )
+        hub.run(until_idle=True)
+        hub.close()
+        return EXIT_BAD_INPUT
+    mode = (
+        "shared upstream connection"
+        if args.share_upstream
+        else "one upstream connection per client"
+    )
+    print(
+        f"mbmon proxy: listening on {endpoint(*address)} -> upstream {upstream} "
+        f"({mode}, timeout {args.timeout:g} s, guard {guard.describe()})",
+        file=sys.stderr,
+        flush=True,
+    )
+
+    signals = [0]
+
+    def _stop(signum: int, frame: object) -> None:
+        signals[0] += 1
+        thread.stop()  # the engine's last events reach the hub, then it stops the hub
+        if signals[0] > 1:
+            hub.stop()  # asked twice: do not wait for the engine
+
+    old = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        try:
+            hub.run()
+        finally:
+            thread.stop()
+            thread.join(5.0)
+            hub.close()
+        engine.stats.not_observed = observer.skipped
+        print("mbmon proxy: " + engine.stats.summary().replace("\n", "\n  "), file=sys.stderr)
+    finally:  # a late Ctrl-C must not cut the logs' close or the summary short
+        for s, handler in old.items():
+            signal.signal(s, handler)
+    if any(name != "stdout" or why != "broken pipe" for name, why in hub.failures):
+        return EXIT_BAD_INPUT
+    return EXIT_OK
+
+
+def _profile_sources(annotator: Any) -> list[tuple[str, str]]:
+    from mbmon.commands.common import profile_sources as sources
+
+    result: list[tuple[str, str]] = sources(annotator)
+    return result

@@ -1,0 +1,1089 @@
+"""The proxy engine: an asyncio Modbus/TCP forwarder that answers like a gateway.
+
+Forward first, observe second (DESIGN rule 9). Each client connection is an
+:class:`asyncio.Protocol`; its bytes are framed by the sans-I/O
+:class:`~mbmon.protocol.mbap.MbapDecoder` (so the proxy knows where each request
+ends, its transaction id, unit and what it writes), checked by the
+:class:`~mbmon.proxy.guard.Guard` and written to the upstream as soon as a read
+completes them. Upstream answers are framed the same way, matched to their
+request by transaction id and written to their client at once. Only then does a
+copy go to the observer (:class:`Observer`, which hands chunks and events to
+the hub's thread-safe queue): nothing the hub, the pipeline or a listener does
+can delay or change the traffic.
+
+What the hub sees, per client connection, is one stream
+``client endpoint -> upstream endpoint`` carrying exactly the bytes the client
+sent (C2S) and exactly the bytes the client received (S2C), including the
+exception responses the proxy made itself, plus events: CONNECT/DISCONNECT
+(``how`` fin/rst, ``by`` client/proxy, ``reason``), NOTICE (upstream lost and
+back, answers dropped, clients dropped) and GUARD (refused writes and clients).
+
+Gateway rules:
+
+* upstream refused or unreachable: every request is answered with exception
+  0x0A (gateway path unavailable); the upstream is tried again on the next
+  request after a backoff (``backoff_min`` doubling up to ``backoff_max``);
+* no answer within ``timeout``: exception 0x0B (gateway target device failed to
+  respond); an answer that comes later is dropped and logged, never delivered;
+  an upstream connection that holds half an answer at that moment is reset;
+* upstream closed or reset with requests in flight: those are answered 0x0B;
+* the client connection stays open through all of this.
+
+Clients: a client whose bytes are not Modbus/TCP (protocol id != 0, a length
+outside 2..254) is dropped, that client only; a client whose request stays
+incomplete for ``timeout`` (slowloris) or that does not read its responses
+for ``timeout`` (its send buffer full) is dropped; a client that half-closes
+gets the answers to its requests in flight first.
+
+Modes: one upstream connection per client, transaction ids untouched
+(default, byte-transparent), or ``share_upstream``: every client over one
+upstream connection with transaction ids remapped (responses get the client's
+own id back).
+
+Threads: the engine runs on one asyncio loop (:class:`ProxyThread` gives it its
+own thread); the observer's ``put`` is the hub's thread-safe queue, consumed
+by ``hub.run`` in another thread. If the hub falls behind by more than
+``max_backlog`` items, chunks are forwarded but not observed (counted, and
+reported by a NOTICE when observation resumes), so memory stays bounded.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import threading
+import time
+from collections import OrderedDict, deque
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+from mbmon.model import Chunk, Direction, Event, EventKind, Frame, Stream, Transport
+from mbmon.protocol.mbap import MbapDecoder, encode_adu
+from mbmon.protocol.pdu import encode_exception
+from mbmon.proxy.guard import ClientFilter, Guard
+
+__all__ = [
+    "GATEWAY_PATH_UNAVAILABLE",
+    "GATEWAY_TARGET_FAILED",
+    "BacklogMeter",
+    "Observer",
+    "ProxyConfig",
+    "ProxyEngine",
+    "ProxyStats",
+    "ProxyThread",
+    "endpoint",
+]
+
+GATEWAY_PATH_UNAVAILABLE = 0x0A
+GATEWAY_TARGET_FAILED = 0x0B
+
+#: How far (chunks and events) the hub may fall behind before chunks are forwarded
+#: without a copy: bounds the queue's memory (about 250 bytes an item).
+MAX_BACKLOG = 50_000
+
+#: How many answered-with-0x0B (or orphaned) upstream transaction ids are remembered,
+#: so that their late answers are recognised and dropped.
+LATE_MEMORY = 4096
+
+#: The kernel send buffer of a client socket (the kernel doubles it): Modbus answers
+#: are at most 260 bytes, so this holds hundreds; a client that leaves more unread
+#: than this and the loop's 64 KiB is not reading, and is dropped after ``timeout``.
+CLIENT_SNDBUF = 64 * 1024
+
+_C2S = Direction.C2S
+_S2C = Direction.S2C
+
+
+def endpoint(host: str, port: int) -> str:
+    """``HOST:PORT``, IPv6 as ``[ADDR]:PORT`` (the model's endpoint text)."""
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+
+@dataclass
+class ProxyConfig:
+    """Where to listen, where to forward, and the rules (see the module text)."""
+
+    upstream_host: str
+    upstream_port: int
+    listen_host: str = "127.0.0.1"
+    listen_port: int = 1502
+    timeout: float = 3.0
+    share_upstream: bool = False
+    guard: Guard = field(default_factory=Guard)
+    clients: ClientFilter = field(default_factory=ClientFilter)
+    backoff_min: float = 0.05
+    backoff_max: float = 1.0
+    max_backlog: int = MAX_BACKLOG
+
+    @property
+    def upstream(self) -> str:
+        return endpoint(self.upstream_host, self.upstream_port)
+
+
+@dataclass
+class ProxyStats:
+    """Counters of a run, for the summary on exit (written by the engine's thread)."""
+
+    clients: int = 0
+    clients_refused: int = 0
+    clients_dropped: int = 0
+    requests: int = 0
+    responses: int = 0
+    exceptions_0a: int = 0
+    exceptions_0b: int = 0
+    guard_refusals: int = 0
+    late_dropped: int = 0
+    unmatched_dropped: int = 0
+    upstream_connects: int = 0
+    upstream_failures: int = 0
+    bytes_from_clients: int = 0
+    bytes_to_clients: int = 0
+    not_observed: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    def summary(self) -> str:
+        """The one-paragraph summary printed on exit."""
+        made = self.exceptions_0a + self.exceptions_0b + self.guard_refusals
+        lines = [
+            f"clients {self.clients} (refused {self.clients_refused}, "
+            f"dropped {self.clients_dropped})",
+            f"requests {self.requests}, responses {self.responses}",
+            f"exceptions made by the proxy {made} (0x0A {self.exceptions_0a}, "
+            f"0x0B {self.exceptions_0b}, guard {self.guard_refusals})",
+            f"guard refusals {self.guard_refusals}, late answers dropped {self.late_dropped}, "
+            f"unmatched answers dropped {self.unmatched_dropped}",
+            f"upstream connections {self.upstream_connects} "
+            f"(failed attempts {self.upstream_failures})",
+            f"bytes client->server {self.bytes_from_clients}, "
+            f"server->client {self.bytes_to_clients}",
+        ]
+        if self.not_observed:
+            lines.append(f"chunks forwarded but not observed (monitor behind) {self.not_observed}")
+        return "\n".join(lines)
+
+
+class BacklogMeter:
+    """A hub listener that counts what the hub has taken, so the observer knows its backlog."""
+
+    name = "backlog meter"
+
+    def __init__(self) -> None:
+        self.seen = 0
+
+    def on_chunk(self, chunk: Chunk) -> None:
+        self.seen += 1
+
+    def on_event(self, event: Event) -> None:
+        self.seen += 1
+
+
+class Observer:
+    """The engine's way to the hub: ``put`` (thread-safe), ``new_stream``, the clock.
+
+    Chunks are skipped (and counted) while the hub is more than ``max_backlog``
+    items behind; events always go through (they are few).
+
+    Once :meth:`bind` gives it the loop's ``call_soon`` and a ``submit``
+    (``hub.submit``), items wait in a batch that is handed over once per loop
+    iteration, after that iteration's forwarding: one queue operation and one
+    wake-up of the hub's thread per batch instead of per chunk.
+    """
+
+    def __init__(
+        self,
+        put: Callable[[Chunk | Event], None],
+        new_stream: Callable[[Transport, str, str], Stream],
+        *,
+        meter: BacklogMeter | None = None,
+        max_backlog: int = MAX_BACKLOG,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        self._put = put
+        self.new_stream = new_stream
+        self.clock = clock
+        self._meter = meter
+        self._max_backlog = max_backlog
+        self.sent = 0
+        self.skipped = 0
+        self._skipping = 0
+        self._batch: list[Chunk | Event] = []
+        self._call_soon: Callable[[Callable[[], None]], Any] | None = None
+        self._submit: Callable[[Callable[[], list[Chunk | Event]]], None] | None = None
+
+    def bind(
+        self,
+        call_soon: Callable[[Callable[[], None]], Any],
+        submit: Callable[[Callable[[], list[Chunk | Event]]], None],
+    ) -> None:
+        """Batch items per loop iteration (``loop.call_soon``) and hand them over with
+        ``submit`` (in the loop's thread only)."""
+        self._call_soon = call_soon
+        self._submit = submit
+
+    def flush(self) -> None:
+        """Hand the waiting batch over now."""
+        batch = self._batch
+        if batch and self._submit is not None:
+            self._batch = []
+            self._submit(lambda: batch)
+
+    def _emit(self, item: Chunk | Event) -> None:
+        call_soon = self._call_soon
+        if call_soon is None:
+            self._put(item)
+            return
+        batch = self._batch
+        batch.append(item)
+        if len(batch) == 1:
+            call_soon(self.flush)
+
+    def chunk(self, stream: Stream, direction: Direction, data: bytes, ts: float) -> None:
+        meter = self._meter
+        if meter is not None and self.sent - meter.seen > self._max_backlog:
+            self.skipped += 1
+            self._skipping += 1
+            return
+        if self._skipping:
+            n, self._skipping = self._skipping, 0
+            self.event(
+                None,
+                EventKind.NOTICE,
+                {"message": f"{n} chunks were forwarded but not observed: the monitor fell behind"},
+                ts,
+            )
+        self.sent += 1
+        self._emit(Chunk(ts, stream, direction, data))
+
+    def event(
+        self, stream: Stream | None, kind: EventKind, info: dict[str, Any], ts: float | None = None
+    ) -> None:
+        self.sent += 1
+        self._emit(Event(self.clock() if ts is None else ts, stream, kind, info))
+
+
+class _Pending:
+    """One request in flight upstream."""
+
+    __slots__ = ("client", "deadline", "done", "fc", "link", "raw", "tid", "unit", "utid")
+
+    def __init__(self, client: _Client, tid: int, utid: int, unit: int, fc: int, raw: bytes):
+        self.client = client
+        self.tid = tid  # the client's transaction id
+        self.utid = utid  # the id on the upstream connection (== tid unless shared)
+        self.unit = unit
+        self.fc = fc
+        self.raw = raw  # the ADU as sent upstream
+        self.link: _Link | None = None
+        self.deadline: float | None = None  # loop time of its 0x0B, once armed
+        self.done = False  # answered, expired or forgotten: the deadline queue skips it
+
+
+class _Upstream(asyncio.Protocol):
+    """The socket side of a :class:`_Link`."""
+
+    def __init__(self, link: _Link) -> None:
+        self.link = link
+        self.transport: asyncio.Transport | None = None
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = transport  # type: ignore[assignment]
+
+    def data_received(self, data: bytes) -> None:
+        self.link.data_received(self, data)
+
+    def eof_received(self) -> bool:
+        return False  # close: a Modbus server that half-closes is gone
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.link.connection_lost(self, exc)
+
+
+class _Link:
+    """One upstream connection (a client's own, or the shared one): connects and
+    reconnects with backoff, keeps the requests in flight and their timers."""
+
+    def __init__(self, engine: ProxyEngine, owner: _Client | None) -> None:
+        self.engine = engine
+        self.owner = owner  # the client of a per-client link; None when shared
+        self.remap = owner is None
+        self.state = "down"  # down | connecting | up | closed
+        self.proto: _Upstream | None = None
+        self.pending: dict[int, list[_Pending]] = {}
+        self.queued: list[_Pending] = []  # waiting for the connection
+        self.late: OrderedDict[int, str] = OrderedDict()  # utid -> why it is not expected
+        self.next_attempt = 0.0
+        self.backoff = engine.config.backoff_min
+        self.failing = False
+        self.decoder: MbapDecoder | None = None
+        self.received = 0
+        self.consumed = 0
+        self.next_tid = 0
+        self.last_error = ""
+        self.resetting = False  # the proxy itself is aborting the connection
+
+    # -------------------------------------------------------------- connecting
+
+    def connect(self) -> None:
+        """Start a connection attempt (the loop's task does the waiting)."""
+        if self.state in ("connecting", "up", "closed"):
+            return
+        self.state = "connecting"
+        self.engine.loop.create_task(self._connect())
+
+    async def _connect(self) -> None:
+        engine = self.engine
+        cfg = engine.config
+        loop = engine.loop
+        try:
+            _transport, proto = await asyncio.wait_for(
+                loop.create_connection(
+                    lambda: _Upstream(self), cfg.upstream_host, cfg.upstream_port
+                ),
+                timeout=cfg.timeout,
+            )
+        except (TimeoutError, OSError) as exc:
+            self._failed(_why(exc))
+            return
+        if self.state == "closed":
+            if proto.transport is not None:
+                proto.transport.close()
+            return
+        self.proto = proto  # type: ignore[assignment]
+        self.state = "up"
+        self.decoder = MbapDecoder(self._stream(), _S2C)
+        self.received = self.consumed = 0
+        engine.stats.upstream_connects += 1
+        if self.failing:
+            self.failing = False
+            self._notice(f"upstream {cfg.upstream} is back", {"upstream": cfg.upstream})
+        self.backoff = cfg.backoff_min
+        queued, self.queued = self.queued, []
+        out = []
+        for entry in queued:
+            if entry.client.closed:
+                self._forget(entry)
+                continue
+            self._track(entry)
+            out.append(entry.raw)
+        if out:
+            self.proto.transport.write(b"".join(out))  # type: ignore[union-attr]
+
+    def _stream(self) -> Stream:
+        owner = self.owner
+        if owner is not None and owner.stream is not None:
+            return owner.stream
+        return Stream(-1, Transport.TCP, "proxy", self.engine.config.upstream)
+
+    def _failed(self, why: str) -> None:
+        engine = self.engine
+        cfg = engine.config
+        if self.state == "closed":
+            return
+        self.state = "down"
+        engine.stats.upstream_failures += 1
+        self.next_attempt = engine.loop.time() + self.backoff
+        wait = self.backoff
+        self.backoff = min(self.backoff * 2, cfg.backoff_max)
+        if not self.failing or why != self.last_error:
+            self._notice(
+                f"upstream {cfg.upstream} unavailable ({why}): answering 0x0A, "
+                f"next try in {wait:.2f} s",
+                {"upstream": cfg.upstream, "reason": why},
+            )
+        self.failing = True
+        self.last_error = why
+        queued, self.queued = self.queued, []
+        for entry in queued:
+            self._cancel_timer(entry)
+            engine.answer_exception(entry, GATEWAY_PATH_UNAVAILABLE)
+
+    def _notice(self, message: str, info: dict[str, Any]) -> None:
+        owner = self.owner
+        stream = owner.stream if owner is not None else None
+        self.engine.observer.event(stream, EventKind.NOTICE, {"message": message, **info})
+
+    # -------------------------------------------------------------- requests
+
+    def submit(self, entry: _Pending) -> bytes | None:
+        """Take a request: the bytes to write upstream now, or ``None`` (queued
+        for the connection, or answered 0x0A already)."""
+        state = self.state
+        if state == "up":
+            self._track(entry)
+            return entry.raw
+        if state == "down" and self.engine.loop.time() >= self.next_attempt:
+            self.connect()
+            state = self.state
+        if state == "connecting":
+            self.queued.append(entry)
+            self._start_timer(entry)
+            return None
+        self.engine.answer_exception(entry, GATEWAY_PATH_UNAVAILABLE)
+        return None
+
+    def assign_tid(self, tid: int) -> int:
+        """The upstream transaction id for a client's ``tid`` (remapped when shared)."""
+        if not self.remap:
+            return tid
+        pending, late = self.pending, self.late
+        for _ in range(0x10000):
+            utid = self.next_tid
+            self.next_tid = (utid + 1) & 0xFFFF
+            if utid not in pending and utid not in late:
+                return utid
+        return self.next_tid  # 65536 in flight: cannot happen with sane clients
+
+    def _track(self, entry: _Pending) -> None:
+        lst = self.pending.get(entry.utid)
+        if lst is None:
+            self.pending[entry.utid] = [entry]
+        else:
+            lst.append(entry)
+        if entry.deadline is None:
+            self._start_timer(entry)
+        entry.client.outstanding.add(entry)
+
+    def _start_timer(self, entry: _Pending) -> None:
+        entry.client.outstanding.add(entry)
+        entry.link = self
+        self.engine.arm(entry)
+
+    @staticmethod
+    def _cancel_timer(entry: _Pending) -> None:
+        entry.done = True
+
+    def _remove(self, entry: _Pending) -> bool:
+        lst = self.pending.get(entry.utid)
+        if lst is None or entry not in lst:
+            return False
+        lst.remove(entry)
+        if not lst:
+            del self.pending[entry.utid]
+        return True
+
+    def _forget(self, entry: _Pending, why: str | None = None) -> None:
+        """Stop waiting for ``entry`` (its client left); a later answer is dropped."""
+        self._cancel_timer(entry)
+        if self._remove(entry) and why:
+            self._remember_late(entry.utid, why)
+        elif entry in self.queued:
+            self.queued.remove(entry)
+
+    def _remember_late(self, utid: int, why: str) -> None:
+        late = self.late
+        late[utid] = why
+        late.move_to_end(utid)
+        while len(late) > LATE_MEMORY:
+            late.popitem(last=False)
+
+    def _expire(self, entry: _Pending) -> None:
+        """No answer in time: 0x0B to the client; a half-received answer resets the link."""
+        entry.done = True
+        engine = self.engine
+        if entry in self.queued:  # still connecting after the whole timeout
+            self.queued.remove(entry)
+            engine.answer_exception(entry, GATEWAY_PATH_UNAVAILABLE)
+            return
+        if not self._remove(entry):
+            return
+        self._remember_late(entry.utid, "answered 0x0B already")
+        if not entry.client.closed:
+            entry.client.notice(
+                f"no answer from upstream within {engine.config.timeout:g} s to tid "
+                f"{entry.tid}: answered 0x0B",
+                {"tid": entry.tid, "fc": entry.fc, "unit": entry.unit},
+            )
+        engine.answer_exception(entry, GATEWAY_TARGET_FAILED)
+        if self.state == "up" and self.received > self.consumed:
+            self.reset(
+                f"upstream sent an incomplete answer ({self.received - self.consumed} bytes) "
+                "and nothing more"
+            )
+
+    # -------------------------------------------------------------- answers
+
+    def data_received(self, proto: _Upstream, data: bytes) -> None:
+        if proto is not self.proto or self.decoder is None:
+            return
+        engine = self.engine
+        ts = time.time()
+        self.received += len(data)
+        items = self.decoder.feed(data, ts)
+        if not items:
+            return
+        outs: dict[_Client, list[bytes]] = {}
+        pending = self.pending
+        for item in items:
+            if type(item) is not Frame:
+                self.consumed += len(item.raw)
+                self.reset(f"upstream sent bytes that are not Modbus/TCP ({item.reason})")
+                break
+            raw = item.raw
+            self.consumed += len(raw)
+            utid = item.tid
+            lst = pending.get(utid)  # type: ignore[arg-type]
+            if not lst:
+                self._unexpected(item)
+                continue
+            entry = lst.pop(0)
+            if not lst:
+                del pending[utid]  # type: ignore[arg-type]
+            entry.done = True
+            client = entry.client
+            client.outstanding.discard(entry)
+            if client.closed:
+                continue
+            if self.remap:
+                tid = entry.tid
+                raw = bytes((tid >> 8, tid & 0xFF)) + raw[2:]
+            out = outs.get(client)
+            if out is None:
+                outs[client] = [raw]
+            else:
+                out.append(raw)
+        engine.stats.responses += sum(len(v) for v in outs.values())
+        for client, parts in outs.items():
+            client.send(parts[0] if len(parts) == 1 else b"".join(parts), ts)
+
+    def _unexpected(self, frame: Frame) -> None:
+        engine = self.engine
+        utid = frame.tid
+        why = self.late.pop(utid, None)  # type: ignore[arg-type]
+        if why is not None:
+            engine.stats.late_dropped += 1
+            message = f"late answer from upstream (tid {utid}) dropped: {why}"
+        else:
+            engine.stats.unmatched_dropped += 1
+            message = f"answer from upstream with unknown tid {utid} dropped"
+        self._notice(message, {"tid": utid, "raw": frame.raw.hex(" ").upper()})
+
+    def connection_lost(self, proto: _Upstream, exc: Exception | None) -> None:
+        if proto is not self.proto:
+            return
+        self.proto = None
+        self.decoder = None
+        if self.state == "closed":
+            return
+        self.state = "down"
+        self.next_attempt = 0.0  # a lost connection is tried again at once
+        how = "rst" if exc is not None or self.resetting else "fin"
+        by = "proxy" if self.resetting else "upstream"
+        self.resetting = False
+        in_flight = [e for lst in self.pending.values() for e in lst]
+        self.pending = {}
+        if self.owner is None or not self.owner.closed:
+            who = "the proxy reset" if by == "proxy" else "closed"
+            self._notice(
+                f"upstream {self.engine.config.upstream} {who} the connection "
+                f"({how.upper()}{': ' + _why(exc) if exc else ''})"
+                + (f"; {len(in_flight)} requests in flight answered 0x0B" if in_flight else ""),
+                {"upstream": self.engine.config.upstream, "how": how, "by": by},
+            )
+        for entry in in_flight:
+            self._cancel_timer(entry)
+            self._remember_late(entry.utid, "the upstream connection was lost")
+            self.engine.answer_exception(entry, GATEWAY_TARGET_FAILED)
+
+    def reset(self, why: str) -> None:
+        """Abort the connection (it is out of step); requests in flight get 0x0B."""
+        self._notice(f"{why}: upstream connection reset", {"upstream": self.engine.config.upstream})
+        proto = self.proto
+        if proto is not None and proto.transport is not None:
+            self.resetting = True
+            proto.transport.abort()
+
+    def write(self, data: bytes) -> None:
+        proto = self.proto
+        if proto is not None and proto.transport is not None:
+            proto.transport.write(data)
+
+    def close(self) -> None:
+        """The owner is gone: no reconnects, and the connection closes."""
+        self.state = "closed"
+        for lst in self.pending.values():
+            for entry in lst:
+                self._cancel_timer(entry)
+        for entry in self.queued:
+            self._cancel_timer(entry)
+        self.pending = {}
+        self.queued = []
+        proto = self.proto
+        if proto is not None and proto.transport is not None:
+            proto.transport.close()
+
+
+class _Client(asyncio.Protocol):
+    """One client connection: frames its requests, guards, forwards, answers."""
+
+    def __init__(self, engine: ProxyEngine) -> None:
+        self.engine = engine
+        self.transport: asyncio.Transport | None = None
+        self.stream: Stream | None = None
+        self.decoder: MbapDecoder | None = None
+        self.link: _Link | None = None
+        self.outstanding: set[_Pending] = set()
+        self.closed = False
+        self.half_closed = False
+        self.received = 0
+        self.consumed = 0
+        self.partial_since: float | None = None
+        self.paused_since: float | None = None
+        self.drop_reason: str | None = None
+        self.peer = ""
+
+    # -------------------------------------------------------------- asyncio hooks
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        engine = self.engine
+        self.transport = transport  # type: ignore[assignment]
+        peer = transport.get_extra_info("peername") or ("?", 0)
+        host, port = str(peer[0]), int(peer[1])
+        self.peer = endpoint(host, port)
+        if not engine.config.clients.allows(host):
+            engine.stats.clients_refused += 1
+            self.closed = True
+            engine.observer.event(
+                None,
+                EventKind.GUARD,
+                {
+                    "message": f"refused client {self.peer}: not in --allow-from",
+                    "rule": "allow-from",
+                    "fc": None,
+                    "unit": None,
+                    "address": None,
+                    "count": None,
+                    "client": self.peer,
+                },
+            )
+            transport.abort()
+            return
+        sock = transport.get_extra_info("socket")
+        if sock is not None:
+            try:  # bounded kernel buffering: a client that stops reading is seen soon
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, CLIENT_SNDBUF)
+            except OSError:
+                pass
+        engine.stats.clients += 1
+        engine.clients.add(self)
+        self.stream = engine.observer.new_stream(Transport.TCP, self.peer, engine.config.upstream)
+        self.decoder = MbapDecoder(self.stream, _C2S)
+        engine.observer.event(self.stream, EventKind.CONNECT, {})
+        if engine.shared is not None:
+            self.link = engine.shared
+            if self.link.state == "down" and engine.loop.time() >= self.link.next_attempt:
+                self.link.connect()
+        else:
+            self.link = _Link(engine, self)
+            self.link.connect()
+
+    def data_received(self, data: bytes) -> None:
+        if self.closed or self.decoder is None:
+            return
+        engine = self.engine
+        ts = time.time()
+        engine.stats.bytes_from_clients += len(data)
+        self.received += len(data)
+        items = self.decoder.feed(data, ts)
+        frames: list[Frame] = []
+        bad: str | None = None
+        for item in items:
+            if type(item) is Frame:
+                frames.append(item)
+                self.consumed += len(item.raw)
+            else:
+                bad = item.reason  # type: ignore[union-attr]
+                break
+        if bad is None and not self.decoder.synced:
+            for noise in self.decoder.flush(ts):
+                bad = noise.reason
+                break
+            bad = bad or "not Modbus/TCP"
+        if frames:
+            self._requests(frames, ts)
+        if bad is not None:
+            self.drop(f"client sent bytes that are not Modbus/TCP ({bad})")
+            return
+        if self.received > self.consumed:
+            if self.partial_since is None:
+                self.partial_since = engine.loop.time()
+        else:
+            self.partial_since = None
+
+    def _requests(self, frames: list[Frame], ts: float) -> None:
+        engine = self.engine
+        stream = self.stream
+        assert stream is not None
+        observer = engine.observer
+        raw = frames[0].raw if len(frames) == 1 else b"".join(f.raw for f in frames)
+        observer.chunk(stream, _C2S, raw, ts)
+        engine.stats.requests += len(frames)
+        guard = engine.config.guard
+        link = self.link
+        assert link is not None
+        out: list[bytes] = []
+        for frame in frames:
+            pdu = frame.pdu
+            tid = frame.tid or 0
+            if guard.active:
+                verdict = guard.check(frame.unit, pdu)
+                if verdict is not None:
+                    self._refuse(frame, verdict.message, verdict.info, ts)
+                    continue
+            utid = link.assign_tid(tid)
+            fraw = frame.raw
+            if utid != tid:
+                fraw = bytes((utid >> 8, utid & 0xFF)) + fraw[2:]
+            entry = _Pending(self, tid, utid, frame.unit, pdu.fc, fraw)
+            data = link.submit(entry)
+            if data is not None:
+                out.append(data)
+        if out:
+            link.write(out[0] if len(out) == 1 else b"".join(out))
+
+    def _refuse(self, frame: Frame, message: str, info: Any, ts: float) -> None:
+        engine = self.engine
+        code = engine.config.guard.exception_code
+        engine.stats.guard_refusals += 1
+        adu = encode_adu(frame.tid or 0, frame.unit, encode_exception(frame.pdu.fc, code))
+        self.send(adu, ts)
+        engine.observer.event(
+            self.stream,
+            EventKind.GUARD,
+            {"message": message, **info, "client": self.peer, "exception": code},
+            ts,
+        )
+
+    def eof_received(self) -> bool:
+        if self.outstanding:
+            self.half_closed = True
+            self.notice(
+                f"client half-closed with {len(self.outstanding)} requests in flight; "
+                "answering them first",
+                {},
+            )
+            return True
+        return False
+
+    def pause_writing(self) -> None:
+        self.paused_since = self.engine.loop.time()
+        if self.transport is not None:
+            self.transport.pause_reading()
+
+    def resume_writing(self) -> None:
+        self.paused_since = None
+        if self.transport is not None and not self.closed:
+            self.transport.resume_reading()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self.stream is None:  # refused at accept
+            return
+        engine = self.engine
+        was_closed = self.closed
+        self.closed = True
+        engine.clients.discard(self)
+        if was_closed and self.drop_reason is None:
+            return
+        link = self.link
+        left = len(self.outstanding)
+        if link is not None:
+            for entry in list(self.outstanding):
+                link._forget(entry, "its client left")
+            if link.owner is self:
+                link.close()
+        self.outstanding.clear()
+        if self.drop_reason is not None:
+            info: dict[str, Any] = {"how": "rst", "by": "proxy", "reason": self.drop_reason}
+        else:
+            info = {"how": "rst" if exc is not None else "fin", "by": "client"}
+            if exc is not None:
+                info["reason"] = _why(exc)
+        if left:
+            info["unanswered"] = left
+        engine.observer.event(self.stream, EventKind.DISCONNECT, info)
+
+    # -------------------------------------------------------------- helpers
+
+    def send(self, data: bytes, ts: float) -> None:
+        """Write ``data`` (whole ADUs) to the client, then give the hub a copy."""
+        transport = self.transport
+        if transport is None or self.closed:
+            return
+        transport.write(data)
+        engine = self.engine
+        engine.stats.bytes_to_clients += len(data)
+        assert self.stream is not None
+        engine.observer.chunk(self.stream, _S2C, data, ts)
+        if self.half_closed and not self.outstanding:
+            self.closed = True
+            self.drop_reason = None
+            transport.close()
+            self._finish_half_closed()
+
+    def _finish_half_closed(self) -> None:
+        engine = self.engine
+        engine.clients.discard(self)
+        link = self.link
+        if link is not None and link.owner is self:
+            link.close()
+        engine.observer.event(self.stream, EventKind.DISCONNECT, {"how": "fin", "by": "client"})
+
+    def notice(self, message: str, info: dict[str, Any]) -> None:
+        self.engine.observer.event(self.stream, EventKind.NOTICE, {"message": message, **info})
+
+    def drop(self, reason: str, count: bool = True) -> None:
+        """Disconnect this client (reset), with ``reason`` in the log."""
+        if self.closed:
+            return
+        if count:
+            self.engine.stats.clients_dropped += 1
+        self.drop_reason = reason
+        self.closed = True
+        self.notice(f"client {self.peer} dropped: {reason}", {"client": self.peer})
+        if self.transport is not None:
+            self.transport.abort()
+
+
+class ProxyEngine:
+    """The listening socket, the clients and the upstream links of one proxy run."""
+
+    def __init__(
+        self,
+        config: ProxyConfig,
+        observer: Observer,
+        submit: Callable[[Callable[[], list[Chunk | Event]]], None] | None = None,
+    ) -> None:
+        """``submit`` (``hub.submit``): hand observations over in batches, once per
+        loop iteration (:meth:`Observer.bind`); without it, item by item."""
+        self.config = config
+        self.observer = observer
+        self._submit = submit
+        self.stats = ProxyStats()
+        self.clients: set[_Client] = set()
+        self.shared: _Link | None = None
+        self.loop: asyncio.AbstractEventLoop = None  # type: ignore[assignment]
+        self.address: tuple[str, int] | None = None
+        self._server: asyncio.base_events.Server | None = None
+        self._stop: asyncio.Event | None = None
+        #: requests waiting for their answer, in deadline order (one timeout for all)
+        self._deadlines: deque[_Pending] = deque()
+        self._expiry: asyncio.TimerHandle | None = None
+
+    def arm(self, entry: _Pending) -> None:
+        """Start ``entry``'s timeout: one loop timer serves every request, since all
+        share one timeout and so expire in the order they were sent."""
+        loop = self.loop
+        entry.deadline = deadline = loop.time() + self.config.timeout
+        self._deadlines.append(entry)
+        if self._expiry is None:
+            self._expiry = loop.call_at(deadline, self._expire_due)
+
+    def _expire_due(self) -> None:
+        """Expire every request past its deadline; re-arm for the next one."""
+        self._expiry = None
+        dq = self._deadlines
+        now = self.loop.time()
+        while dq:
+            entry = dq[0]
+            if entry.done:
+                dq.popleft()
+                continue
+            if entry.deadline is not None and entry.deadline > now:
+                break
+            dq.popleft()
+            if entry.link is not None:
+                entry.link._expire(entry)
+            else:
+                entry.done = True
+        while dq and dq[0].done:
+            dq.popleft()
+        if dq and dq[0].deadline is not None:
+            self._expiry = self.loop.call_at(dq[0].deadline, self._expire_due)
+
+    def answer_exception(self, entry: _Pending, code: int) -> None:
+        """Answer ``entry``'s client with exception ``code`` (0x0A or 0x0B)."""
+        client = entry.client
+        client.outstanding.discard(entry)
+        if client.closed:
+            return
+        if code == GATEWAY_PATH_UNAVAILABLE:
+            self.stats.exceptions_0a += 1
+        else:
+            self.stats.exceptions_0b += 1
+        client.send(
+            encode_adu(entry.tid, entry.unit, encode_exception(entry.fc, code)), time.time()
+        )
+
+    async def start(self) -> tuple[str, int]:
+        """Bind the listening socket; the address actually bound (port 0 picks one)."""
+        self.loop = asyncio.get_running_loop()
+        self._stop = asyncio.Event()
+        if self._submit is not None:
+            self.observer.bind(self.loop.call_soon, self._submit)
+        self.loop.set_exception_handler(self._loop_error)
+        cfg = self.config
+        if cfg.share_upstream:
+            self.shared = _Link(self, None)
+        self._server = await self.loop.create_server(
+            lambda: _Client(self),
+            cfg.listen_host,
+            cfg.listen_port,
+            reuse_address=True,
+            family=socket.AF_INET6 if ":" in cfg.listen_host else socket.AF_INET,
+        )
+        sock = self._server.sockets[0]
+        name = sock.getsockname()
+        self.address = (str(name[0]), int(name[1]))
+        self.observer.event(
+            None,
+            EventKind.NOTICE,
+            {
+                "message": f"proxy listening on {endpoint(*self.address)}, "
+                f"upstream {cfg.upstream}"
+                + (" (shared connection)" if cfg.share_upstream else "")
+                + f", guard {cfg.guard.describe()}",
+            },
+        )
+        if self.shared is not None:
+            self.shared.connect()
+        self.loop.create_task(self._sweep())
+        return self.address
+
+    def _loop_error(self, loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
+        """An error inside a callback (a bug, never a peer's bytes): one notice, the
+        loop goes on, no traceback on the console."""
+        exc = context.get("exception")
+        what = context.get("message", "error")
+        if exc is not None:
+            what = f"{what}: {type(exc).__name__}: {exc}"
+        self.observer.event(None, EventKind.NOTICE, {"message": f"proxy internal error: {what}"})
+
+    async def serve(self) -> None:
+        """Run until :meth:`request_stop`; then close every connection."""
+        assert self._stop is not None
+        await self._stop.wait()
+        await self._shutdown()
+
+    def request_stop(self) -> None:
+        """End :meth:`serve` (call in the loop's thread)."""
+        if self._stop is not None:
+            self._stop.set()
+
+    async def _shutdown(self) -> None:
+        if self._server is not None:
+            self._server.close()
+        for client in list(self.clients):
+            client.drop("the proxy is stopping", count=False)
+        if self.shared is not None:
+            self.shared.close()
+        await asyncio.sleep(0)  # let the transports call connection_lost
+        if self._server is not None:
+            try:
+                await asyncio.wait_for(self._server.wait_closed(), 1.0)
+            except TimeoutError:
+                pass
+
+    async def _sweep(self) -> None:
+        """Drop clients stuck half-way through a request or not reading their answers."""
+        timeout = self.config.timeout
+        period = min(0.25, timeout / 4)
+        loop = self.loop
+        while True:
+            await asyncio.sleep(period)
+            now = loop.time()
+            for client in list(self.clients):
+                if client.closed:
+                    continue
+                since = client.partial_since
+                if since is not None and now - since > timeout:
+                    client.drop(
+                        f"request incomplete for more than {timeout:g} s "
+                        f"({client.received - client.consumed} bytes waiting)"
+                    )
+                    continue
+                since = client.paused_since
+                if since is not None and now - since > timeout:
+                    waiting = client.transport.get_write_buffer_size() if client.transport else 0
+                    client.drop(
+                        f"client has not read its responses for {timeout:g} s "
+                        f"({waiting} bytes waiting)"
+                    )
+
+
+class ProxyThread:
+    """Runs a :class:`ProxyEngine` on its own asyncio loop in its own thread.
+
+    :meth:`start` returns once the listening socket is bound (or raises the
+    ``OSError`` that prevented it); :meth:`stop` is safe from any thread and
+    from signal handlers; ``on_exit`` runs in the engine's thread when the loop
+    has ended (the command stops the hub there).
+    """
+
+    def __init__(self, engine: ProxyEngine, on_exit: Callable[[], None] | None = None) -> None:
+        self.engine = engine
+        self._on_exit = on_exit
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread = threading.Thread(target=self._main, name="mbmon-proxy", daemon=True)
+
+    def start(self) -> tuple[str, int]:
+        self._thread.start()
+        self._ready.wait()
+        if self._error is not None:
+            raise self._error
+        assert self.engine.address is not None
+        return self.engine.address
+
+    def _main(self) -> None:
+        loop = asyncio.new_event_loop()
+        self._loop = loop
+        try:
+            try:
+                loop.run_until_complete(self.engine.start())
+            except BaseException as exc:
+                self._error = exc
+                return
+            finally:
+                self._ready.set()
+            loop.run_until_complete(self.engine.serve())
+        finally:
+            try:
+                for task in asyncio.all_tasks(loop):
+                    task.cancel()
+                loop.run_until_complete(asyncio.sleep(0))
+                loop.close()
+            finally:
+                self.engine.observer.flush()
+                if self._on_exit is not None:
+                    self._on_exit()
+
+    def stop(self) -> None:
+        loop = self._loop
+        if loop is not None and not loop.is_closed():
+            try:
+                loop.call_soon_threadsafe(self.engine.request_stop)
+            except RuntimeError:  # closed in between
+                pass
+
+    def join(self, timeout: float | None = None) -> bool:
+        """Wait for the thread; whether it has ended."""
+        self._thread.join(timeout)
+        return not self._thread.is_alive()
+
+
+def _why(exc: BaseException | None) -> str:
+    """Short words for a connection error."""
+    if exc is None:
+        return ""
+    if isinstance(exc, TimeoutError):
+        return "connect timed out"
+    if isinstance(exc, ConnectionRefusedError):
+        return "connection refused"
+    if isinstance(exc, ConnectionResetError):
+        return "connection reset"
+    if isinstance(exc, OSError) and exc.strerror:
+        return exc.strerror
+    return str(exc) or type(exc).__name__
