@@ -9,4 +9,4 @@ order (the order of ``mbmon --help``); each is imported only to register.
 from __future__ import annotations
 
 #: Command modules under ``mbmon.commands``, in the order ``mbmon --help`` lists them.
-COMMANDS: list[str] = []
+COMMANDS: list[str] = ["sniff"]
