@@ -179,7 +179,9 @@ class LiveMonitor:
         used = 3 + (6 if len(parts) > 1 else 0) + 2
         room = max(3, height - used)
         shown = list(self.lines)[-room:]
-        body = Text("\n").join(shown) if shown else Text("waiting for traffic…", style="dim")
+        # one row per record: long lines end in "…" instead of wrapping off the screen
+        newline = Text("\n", no_wrap=True, overflow="ellipsis")
+        body = newline.join(shown) if shown else Text("waiting for traffic…", style="dim")
         parts.append(Panel(body, title="monitor", title_align="left", border_style="dim"))
         return Group(*parts)
 
@@ -234,7 +236,10 @@ class LiveMonitor:
             extra.append(fmt.format(value) if value is not None else "—", style="bold")
             extra.append("   ")
         cmd = self.command
-        last = Text("last command: ")
+        last = Text("last command")
+        if cmd is not None:
+            last.append(f" ({format_time(cmd.ts)})", style="dim")
+        last.append(": ")
         if cmd is None:
             last.append("—", style="dim")
         else:
@@ -244,7 +249,6 @@ class LiveMonitor:
             if cmd.duration is not None:
                 last.append(f" after {cmd.duration:.3f} s", style=_PHASE_STYLE.get(phase, "bold"))
             last.append("]", style=_PHASE_STYLE.get(phase, "bold"))
-            last.append(f"  {format_time(cmd.ts)}", style="dim")
         from rich.console import Group
 
         return Panel(Group(table, extra, last), title="robot", title_align="left")
