@@ -12,8 +12,8 @@ from rich.console import Console
 
 from mbmon.format import View, record_line
 from mbmon.hub import Hub
-from mbmon.model import Frame, Kind, Pdu, Record, RecordKind, Stream, Transport
 from mbmon.model import Direction as D
+from mbmon.model import Frame, Kind, Pdu, Record, RecordKind, Stream, Transport
 from mbmon.sinks.live import LiveMonitor
 
 
