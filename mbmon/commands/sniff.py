@@ -347,6 +347,11 @@ def run_sniff(args: argparse.Namespace) -> int:
             "t3.5 violations": health.t35_violations,
         }
 
+    if not args.quiet:  # before the live screen takes the terminal
+        what = f"filter: {capture.bpf}" if capture is not None else health.settings.text()
+        print(f"mbmon: sniffing {source_name} ({what}); Ctrl-C to stop", file=sys.stderr)
+        sys.stderr.flush()
+
     # ---- outputs
     budget = _Budget(args.count, stop) if args.count else None
     outputs: list[Any] = []
@@ -398,10 +403,6 @@ def run_sniff(args: argparse.Namespace) -> int:
             capture.start()
         for tap in taps:
             tap.start()
-        if not args.quiet:
-            what = f"filter: {capture.bpf}" if capture is not None else health.settings.text()
-            print(f"mbmon: sniffing {source_name} ({what}); Ctrl-C to stop", file=sys.stderr)
-            sys.stderr.flush()
         hub.run(stop_requested)
     finally:
         if capture is not None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import select
+import shutil
 import signal
 import socket
 import subprocess
@@ -271,3 +272,19 @@ def test_sniff_list_shows_loopback():
     )
     assert proc.returncode == 0
     assert any(line.split()[0] == "lo" for line in proc.stdout.splitlines())
+
+
+@pytest.mark.skipif(shutil.which("setpriv") is None, reason="setpriv (util-linux) is missing")
+def test_sniff_without_capture_rights_says_what_is_needed():
+    drop = "-net_raw,-net_admin"
+    setpriv = ["setpriv", f"--bounding-set={drop}", f"--inh-caps={drop}"]
+    proc = subprocess.run(
+        [*setpriv, sys.executable, "-m", "mbmon", "sniff", "lo"],
+        capture_output=True,
+        text=True,
+        env=_env(),
+        timeout=30,
+    )
+    assert proc.returncode == 1, proc.stderr
+    assert "needs root, or the capabilities CAP_NET_RAW and CAP_NET_ADMIN" in proc.stderr
+    assert "Traceback" not in proc.stderr
