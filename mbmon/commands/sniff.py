@@ -441,7 +441,6 @@ def _summary(
             f"  {capture.packets} packets captured; kernel: {k.packets} matched the filter, "
             f"{k.drops} dropped"
             + (" (capture INCOMPLETE)" if k.drops else "")
-            + (" (loopback: the kernel counts each packet twice)" if capture.loopback else "")
         )
         if dissector is not None:
             s = dissector.stats()

@@ -9,7 +9,8 @@ hands each batch of packets to the hub with ``hub.submit``, so the dissector
 other stage. Kernel drop counters (``PACKET_STATISTICS``) are read on demand.
 
 On the loopback interface the kernel shows every packet twice (outgoing and
-incoming); the outgoing copy is dropped, as libpcap does.
+incoming); the outgoing copy is not queued (``PACKET_IGNORE_OUTGOING``) or
+dropped by the reader on older kernels, as libpcap does.
 
 scapy is imported only when a capture is opened: ``import mbmon`` stays light.
 """
@@ -45,6 +46,7 @@ __all__ = [
 SOL_PACKET = 263
 PACKET_STATISTICS = 6
 PACKET_OUTGOING = 4
+PACKET_IGNORE_OUTGOING = 23  # Linux 4.20+: the kernel does not queue outgoing copies at all
 #: Linux ARPHRD_* hardware types -> pcap link types (what the dissector reads).
 _LINKTYPE = {
     1: 1,  # Ethernet
@@ -268,6 +270,11 @@ class PacketCapture:
         hatype = raw.getsockname()[3]
         self.linktype = _LINKTYPE.get(hatype, 1)
         self.loopback = hatype == 772
+        if self.loopback:
+            try:  # half the work, and the drop counter counts only packets that matter
+                raw.setsockopt(SOL_PACKET, PACKET_IGNORE_OUTGOING, 1)
+            except OSError:
+                pass  # an older kernel: the reader drops outgoing copies itself
         raw.setblocking(False)
         self.kernel_stats()  # the counters start from now
 
