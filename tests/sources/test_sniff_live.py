@@ -205,12 +205,15 @@ def test_sniff_loopback_exact_frames_sigint_finishes_log(modbus_server: int, tmp
     assert counts["/modbus/monitor"] >= 10
 
 
-def test_sniff_count_stops(modbus_server: int):
-    sniffer = Sniffer("-i", "lo", "--port", str(modbus_server), "--json", "-c", "4")
+def test_sniff_count_stops(modbus_server: int, tmp_path: Path):
+    log = tmp_path / "four.mcap"
+    args = ("-i", "lo", "--port", str(modbus_server), "--json", "-c", "4", "-w", str(log))
+    sniffer = Sniffer(*args)
     _client_session(modbus_server)
     out, err = sniffer.finish(sig=None, timeout=10)
     assert sniffer.proc.returncode == 0, err
     assert _frames(out) == _EXPECTED[:4]
+    assert _read_mcap(log)["/modbus/frames"] == 4  # the log stops at the same frame
 
 
 def test_sniff_sigterm_finishes_log(modbus_server: int, tmp_path: Path):
@@ -287,4 +290,17 @@ def test_sniff_without_capture_rights_says_what_is_needed():
     )
     assert proc.returncode == 1, proc.stderr
     assert "needs root, or the capabilities CAP_NET_RAW and CAP_NET_ADMIN" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_sniff_bad_filter_is_a_clear_error():
+    proc = subprocess.run(
+        [sys.executable, "-m", "mbmon", "sniff", "lo", "-f", "tcp port"],
+        capture_output=True,
+        text=True,
+        env=_env(),
+        timeout=30,
+    )
+    assert proc.returncode == 1
+    assert "bad capture filter 'tcp port'" in proc.stderr
     assert "Traceback" not in proc.stderr
