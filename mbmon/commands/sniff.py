@@ -45,9 +45,9 @@ def register(sub: Any) -> None:
     p = sub.add_parser(
         "sniff",
         help="capture live Modbus traffic: a network interface or an RS485 bus",
-        description="Watch live Modbus traffic passively and show every ADU as the robot's "
-        "Modbus Monitor does, with its meaning: Modbus/TCP on a network interface (span "
-        "port, tap, or this host), or Modbus RTU on a serial RS485 tap.",
+        description="Watch live Modbus traffic passively and show every ADU as the robot's\n"
+        "Modbus Monitor does, with its meaning: Modbus/TCP on a network interface (span\n"
+        "port, tap, or this host), or Modbus RTU on a serial RS485 tap (docs/sniffing.md).",
         epilog=_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
