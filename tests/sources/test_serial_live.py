@@ -228,8 +228,9 @@ def test_serial_sniffer_recovers_every_valid_frame_and_reports_noise(pty_pair: P
     assert "CRC failures" in err and "inter-frame gaps" in err
 
 
-def test_serial_port_lost_is_reported_and_picked_up_again(pty_pair: PtyPair):
-    sniffer = SerialSniffer("--serial", str(pty_pair.b), "--plain")
+def test_serial_port_lost_is_reported_and_picked_up_again(pty_pair: PtyPair, tmp_path: Path):
+    log = tmp_path / "bus.mcap"
+    sniffer = SerialSniffer("--serial", str(pty_pair.b), "--plain", "-w", str(log))
     _write(pty_pair.a, [(_adu(1, "03 0000 0001") + _adu(1, "03 02 002A"), 0.0, False)])
     sniffer.stdout_until(b"03 02 00 2A")
     pty_pair.stop()  # the USB adapter is unplugged
@@ -242,6 +243,19 @@ def test_serial_port_lost_is_reported_and_picked_up_again(pty_pair: PtyPair):
     assert sniffer.proc.returncode == 0, err
     assert f"serial port {pty_pair.b} lost" in out
     assert "lost 1 times" in err
+    # the log has the notices and the closing bus-health figures in /mbmon/events
+    from mcap.reader import make_reader
+
+    with open(log, "rb") as f:
+        events = [
+            json.loads(message.data)
+            for _schema, channel, message in make_reader(f).iter_messages()
+            if channel.topic == "/mbmon/events"
+        ]
+    text = json.dumps(events)
+    assert "lost" in text and "is back" in text
+    health = [e["info"] for e in events if e.get("event") == "stats" and "bus" in e["info"]]
+    assert health and health[-1]["frames"] == 4 and "t35_violations" in health[-1]
 
 
 def test_two_one_direction_taps_merge_into_one_bus(tmp_path: Path):
