@@ -191,7 +191,7 @@ class LiveMonitor:
         c = self.counts
         text = Text()
         text.append(self.title, style="bold")
-        text.append(f"   {self.rate:.1f} frames/s", style="bold cyan")
+        text.append(f"  {self.rate:.1f} frames/s", style="bold cyan")
         pieces = [
             ("frames", c["frames"], ""),
             ("requests", c["requests"], ""),
@@ -202,10 +202,10 @@ class LiveMonitor:
             ("open connections", c["open_connections"], ""),
         ]
         for label, value, style in pieces:
-            text.append(f"   {label} ")
+            text.append(f"  {label} ")
             text.append(str(value), style=style or "bold")
         for label, value in self.figures.items():
-            text.append(f"   {label} ")
+            text.append(f"  {label} ")
             bad = label.endswith("drops") and isinstance(value, int) and value > 0
             text.append(str(value), style="bold red" if bad else "bold")
         return text
