@@ -170,16 +170,8 @@ class FastLane:
         ts = record.ts
         whole = ts // 1
         usec = min((ts - whole) * 1e6 + 0.5, 999999)
-        values: tuple[Any, ...] = (
-            record.index,
-            _json_bytes(ts),
-            head[1],
-            frame.tid,
-            _last_second[2],
-            usec,
-            head[2],
-            frame.tid,
-        )
+        values: tuple[Any, ...] = (record.index, _json_bytes(ts), head[1], frame.tid,
+                                   _last_second[2], usec, head[2], frame.tid)
         latency = record.latency
         if latency is not None:
             values += (latency * 1000, _json_bytes(round(latency * 1000, 3)), record.request_index)
@@ -399,10 +391,7 @@ class FastLane:
                         if len(responses) >= _CACHE_SIZE:
                             responses.clear()
                         responses[(body, unit, id(req_pdu))] = (
-                            req_pdu,
-                            is_exception,
-                            first.malformed is not None,
-                            tpl,
+                            req_pdu, is_exception, first.malformed is not None, tpl
                         )
                 if head is None:  # the general encoder made it with this record's line
                     head = heads.get((sid, half.direction))
