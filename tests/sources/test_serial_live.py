@@ -167,6 +167,20 @@ def _write(path: Path, pieces: list[Piece], seed: int = 5) -> None:
         os.close(fd)
 
 
+_STARTED: list[subprocess.Popen[bytes]] = []
+
+
+@pytest.fixture(autouse=True)
+def _no_leftover_sniffers() -> Iterator[None]:
+    """A test that fails between starting a sniffer and stopping it leaves none running."""
+    yield
+    while _STARTED:
+        proc = _STARTED.pop()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
 class SerialSniffer:
     def __init__(self, *args: str) -> None:
         self.proc = subprocess.Popen(
@@ -176,6 +190,7 @@ class SerialSniffer:
             env=_env(),
             cwd=REPO,
         )
+        _STARTED.append(self.proc)
         self.out = b""
         self.err = b""
         self._until(self.proc.stderr, b"sniffing", 15)

@@ -84,6 +84,20 @@ def modbus_server() -> Iterator[int]:
         proc.wait()
 
 
+_STARTED: list[subprocess.Popen[bytes]] = []
+
+
+@pytest.fixture(autouse=True)
+def _no_leftover_sniffers() -> Iterator[None]:
+    """A test that fails between starting a sniffer and stopping it leaves none running."""
+    yield
+    while _STARTED:
+        proc = _STARTED.pop()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
 class Sniffer:
     """``python -m mbmon sniff ...`` as a subprocess, started and ready to capture."""
 
@@ -95,6 +109,7 @@ class Sniffer:
             env=_env(),
             cwd=REPO,
         )
+        _STARTED.append(self.proc)
         self.err = b""
         self.out = b""
         self._wait_ready(ready)
