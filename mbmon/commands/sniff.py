@@ -273,6 +273,9 @@ def run_sniff(args: argparse.Namespace) -> int:
         from mbmon.sources.serial import BusHealth, SerialSettings, SerialTap, TimeMerge
 
         settings = SerialSettings(baud or 115200, args.parity, args.stopbits, args.bytesize)
+        # a reader thread stamps a read when it holds the GIL again: the default 5 ms
+        # switch interval would blur read times (and the gap figures) by up to 5 ms
+        sys.setswitchinterval(0.001)
         stream = hub.new_stream(Transport.RTU, source_name, source_name)
         bus = Direction.BUS
 
