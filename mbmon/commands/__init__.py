@@ -12,6 +12,7 @@ from __future__ import annotations
 COMMANDS: list[str] = [
     "read",
     "decode",
+    "sniff",
     "proxy",
     "sim",
 ]

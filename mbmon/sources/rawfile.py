@@ -37,5 +37,5 @@ def read_rtu_raw(path: str | Path, chunk_size: int = 4096) -> Iterator[Chunk]:
 
 def _chunks(f: BinaryIO, stream: Stream, chunk_size: int) -> Iterator[Chunk]:
     with f:
-        while data := f.read(chunk_size):
+        while data := f.read1(chunk_size):  # a pipe or a pty: what is there, as it comes
             yield Chunk(0.0, stream, Direction.BUS, data)

@@ -182,7 +182,7 @@ def test_no_modbus_names_the_busiest_ports(tmp_path: Path) -> None:
     res = run("read", str(cap))
     assert res.returncode == 0 and res.stdout == ""
     assert "no Modbus found on port 502" in res.stderr
-    # TODO(merge dissect): assert "tcp/1502" in res.stderr and "--port 1502" in res.stderr
+    assert "tcp/1502" in res.stderr and "--port 1502" in res.stderr
     assert len(run("read", str(cap), "--port", "1502").stdout.splitlines()) == 42
 
 

@@ -1,0 +1,207 @@
+"""Highest lossless rate of ``mbmon sniff`` on loopback, next to tcpdump on the same traffic.
+
+    sudo python bench/sniff_rate.py                       # 1k .. 40k ADU/s, 3 s each
+    sudo python bench/sniff_rate.py --rates 5000 10000 --seconds 5
+
+What this script owns: a bounded load generator and the figures. For each rate
+(ADUs per second, requests + responses) it starts, as child processes,
+``mbmon sniff lo --port P --json`` (stdout to /dev/null; its summary on stderr
+gives frames seen and kernel drops) and ``tcpdump -i lo -w F 'tcp port P'``
+(its summary gives packets captured and dropped by the kernel; the pcap is then
+read back with ``mbmon read`` to count the ADUs tcpdump kept). The generator
+is a raw Modbus/TCP server and one client on 127.0.0.1:P in this process: the
+client sends Read Holding Registers requests (one per TCP segment, TCP_NODELAY)
+paced per millisecond for ``--seconds``; the server answers each (15-byte
+responses, coalesced per read). ADUs expected = 2 x requests answered. A rate
+is lossless when sniff saw every ADU and the kernel dropped nothing. Needs root.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = Path(__file__).resolve().parent / "out"
+TARGET = 10_000  # ADU/s, issue 11
+
+REQUEST = bytes.fromhex("0000 0000 0006 01 03 0000 0003")
+RESPONSE = bytes.fromhex("0000 0000 0009 01 03 06 0001 0002 0003")
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    return env
+
+
+def _serve(listener: socket.socket, answered: list[int], stop: threading.Event) -> None:
+    conn, _ = listener.accept()
+    conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    buf = b""
+    with conn:
+        while not stop.is_set():
+            data = conn.recv(65536)
+            if not data:
+                return
+            buf += data
+            n = len(buf) // 12
+            if n:
+                out = []
+                for i in range(n):
+                    tid = buf[i * 12 : i * 12 + 2]
+                    out.append(tid + RESPONSE[2:])
+                buf = buf[n * 12 :]
+                conn.sendall(b"".join(out))
+                answered[0] += n
+
+
+def generate(port: int, rate: int, seconds: float) -> int:
+    """Send ``rate / 2`` requests per second for ``seconds``; return ADUs on the wire."""
+    listener = socket.socket()
+    listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    listener.bind(("127.0.0.1", port))
+    listener.listen()
+    answered = [0]
+    stop = threading.Event()
+    server = threading.Thread(target=_serve, args=(listener, answered, stop), daemon=True)
+    server.start()
+    client = socket.create_connection(("127.0.0.1", port))
+    client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+    def drain() -> None:
+        while True:
+            try:
+                if not client.recv(65536):
+                    return
+            except OSError:
+                return
+
+    reader = threading.Thread(target=drain, daemon=True)
+    reader.start()
+    per_second = rate / 2
+    sent = 0
+    t0 = time.perf_counter()
+    end = t0 + seconds
+    while True:
+        now = time.perf_counter()
+        if now >= end:
+            break
+        due = int((now - t0) * per_second)
+        while sent < due:
+            tid = (sent + 1) & 0xFFFF
+            client.send(tid.to_bytes(2) + REQUEST[2:])
+            sent += 1
+        time.sleep(0.0005)
+    time.sleep(0.3)
+    client.shutdown(socket.SHUT_WR)
+    reader.join(timeout=2)
+    client.close()
+    stop.set()
+    server.join(timeout=2)
+    listener.close()
+    return sent + answered[0]
+
+
+def _ready(proc: subprocess.Popen[bytes], needle: bytes, timeout: float = 15) -> bytes:
+    import select
+
+    assert proc.stderr is not None
+    got = b""
+    end = time.monotonic() + timeout
+    while needle not in got:
+        if time.monotonic() > end or proc.poll() is not None:
+            raise SystemExit(f"not ready: {got.decode(errors='replace')}")
+        ready, _, _ = select.select([proc.stderr], [], [], 0.1)
+        if ready:
+            got += os.read(proc.stderr.fileno(), 4096)
+    return got
+
+
+def one_rate(rate: int, seconds: float, port: int, tcpdump: bool) -> dict[str, object]:
+    OUT.mkdir(exist_ok=True)
+    pcap = OUT / f"sniff_rate_{rate}.pcap"
+    sniff = subprocess.Popen(
+        [sys.executable, "-m", "mbmon", "sniff", "lo", "--port", str(port), "--json"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        env=_env(),
+    )
+    head = _ready(sniff, b"sniffing")
+    dump = None
+    if tcpdump:
+        dump = subprocess.Popen(
+            ["tcpdump", "-i", "lo", "-n", "-w", str(pcap), f"tcp port {port}"],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+        )
+        _ready(dump, b"listening")
+    wire = generate(port, rate, seconds)
+    time.sleep(1.0)
+    sniff.send_signal(signal.SIGINT)
+    _, err = sniff.communicate(timeout=120)
+    text = (head + err).decode(errors="replace")
+    frames = int(m.group(1)) if (m := re.search(r"(\d+) frames", text)) else -1
+    drops = int(m.group(1)) if (m := re.search(r"(\d+) dropped", text)) else -1
+    row: dict[str, object] = {"rate": rate, "wire": wire, "sniff": frames, "sniff_drops": drops}
+    if dump is not None:
+        dump.send_signal(signal.SIGINT)
+        _, derr = dump.communicate(timeout=30)
+        dtext = derr.decode(errors="replace")
+        m = re.search(r"(\d+) packets dropped by kernel", dtext)
+        row["tcpdump_drops"] = int(m.group(1)) if m else -1
+        read = subprocess.run(
+            [sys.executable, "-m", "mbmon", "read", str(pcap), "--port", str(port), "--json"],
+            capture_output=True,
+            env=_env(),
+        )
+        kinds = [json.loads(line)["kind"] for line in read.stdout.splitlines() if line.strip()]
+        row["tcpdump"] = sum(1 for k in kinds if k in ("request", "response", "exception"))
+    return row
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rates", type=int, nargs="+", default=[1000, 2000, 5000, 10000, 20000, 40000])
+    ap.add_argument("--seconds", type=float, default=3.0)
+    ap.add_argument("--port", type=int, default=15020)
+    ap.add_argument("--no-tcpdump", action="store_true")
+    args = ap.parse_args()
+    if os.geteuid() != 0:
+        print("needs root (AF_PACKET capture)", file=sys.stderr)
+        return 1
+    best = 0
+    print(
+        f"{'target':>8} {'achieved':>9} {'on wire':>9} {'sniff':>9} {'drops':>6} "
+        f"{'tcpdump':>9} {'drops':>6}"
+    )
+    for rate in args.rates:
+        row = one_rate(rate, args.seconds, args.port, not args.no_tcpdump)
+        lossless = row["sniff"] == row["wire"] and row["sniff_drops"] == 0
+        achieved = int(int(row["wire"]) / args.seconds)  # type: ignore[call-overload]
+        if lossless:
+            best = max(best, achieved)
+        print(
+            f"{rate:>8} {achieved:>9} {row['wire']:>9} {row['sniff']:>9} {row['sniff_drops']:>6} "
+            f"{row.get('tcpdump', '-'):>9} {row.get('tcpdump_drops', '-'):>6}"
+            f"  {'lossless' if lossless else 'LOST'}",
+            flush=True,
+        )
+    print(
+        f"highest lossless rate: {best} ADU/s "
+        f"(target {TARGET}: {'met' if best >= TARGET else 'NOT met'})"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

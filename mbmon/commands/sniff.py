@@ -1,0 +1,468 @@
+"""``mbmon sniff``: passive live capture of Modbus/TCP on a network interface, or of
+Modbus RTU on one or two RS485 taps, through the one hub and pipeline.
+
+Wiring only. Network: a :class:`~mbmon.sources.sniff.PacketCapture` reader
+thread submits packet batches to the hub; the packet dissector (a hub ticker)
+runs in the hub's thread. Serial: one :class:`~mbmon.sources.serial.SerialTap`
+thread per port puts chunks of one bus stream (two taps are merged by
+timestamp in a :class:`~mbmon.sources.serial.TimeMerge` ticker) and
+:class:`~mbmon.sources.serial.BusHealth` watches the bus. The main thread runs
+``hub.run``; Ctrl-C and SIGTERM stop it, the hub finishes the pipeline and closes
+every listener (the MCAP log is complete), and a summary goes to stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+import time
+from functools import partial
+from typing import Any
+
+_EPILOG = """\
+examples:
+  mbmon sniff eth0                          Modbus/TCP on port 502 (live monitor on a terminal)
+  mbmon sniff -i eth0 --port 1502 -w cell.mcap   another server port, and an MCAP log
+  mbmon sniff eth0 --robot 192.168.0.10 --profile hrss   the robot's labels and HRSS meaning
+  mbmon sniff lo -f 'tcp port 5020' --port 5020 -c 10    a BPF filter, stop after 10 frames
+  mbmon sniff --list                        the interfaces there are
+  mbmon sniff --serial /dev/ttyUSB0 --baud 19200 --parity E   an RS485 bus (RTU)
+  mbmon sniff --serial /dev/ttyUSB0 --serial /dev/ttyUSB1    two one-direction taps
+
+needs root, or CAP_NET_RAW and CAP_NET_ADMIN on the Python binary (network);
+read access to the serial port (serial). Ctrl-C or SIGTERM ends the capture and
+finishes the logs; a summary (kernel drops, bus health) goes to stderr.
+exit status: 0 ok, 1 capture could not start or an output failed, 2 usage
+"""
+
+
+def register(sub: Any) -> None:
+    """Add the ``sniff`` subparser to ``sub``."""
+    from mbmon.commands.common import add_output_options, add_view_options
+    from mbmon.commands.common import port as _port
+    from mbmon.commands.common import positive as _positive
+
+    p = sub.add_parser(
+        "sniff",
+        help="capture live Modbus traffic: a network interface or an RS485 bus",
+        description="Watch live Modbus traffic passively and show every ADU as the robot's\n"
+        "Modbus Monitor does, with its meaning: Modbus/TCP on a network interface (span\n"
+        "port, tap, or this host), or Modbus RTU on a serial RS485 tap (docs/sniffing.md).",
+        epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("iface", nargs="?", metavar="IFACE", help="network interface (e.g. eth0, lo)")
+    src = p.add_argument_group("network")
+    src.add_argument("-i", "--interface", dest="interface", metavar="IFACE", help="as IFACE")
+    src.add_argument("--list", action="store_true", help="list the network interfaces and exit")
+    src.add_argument(
+        "-f",
+        "--filter",
+        metavar="BPF",
+        help="kernel capture filter (tcpdump syntax) instead of the default "
+        "'tcp port 502 or udp port 502' plus the --port/--rtu-port ports",
+    )
+    src.add_argument(
+        "--port",
+        action="append",
+        type=_port,
+        default=[],
+        metavar="N",
+        help="Modbus/TCP (and UDP) server port, besides 502 (repeatable)",
+    )
+    src.add_argument(
+        "--rtu-port",
+        action="append",
+        type=_port,
+        default=[],
+        metavar="N",
+        help="TCP/UDP port carrying RTU ADUs with CRC (repeatable)",
+    )
+    ser = p.add_argument_group("serial (RS485, Modbus RTU)")
+    ser.add_argument(
+        "--serial",
+        action="append",
+        default=[],
+        metavar="PORT",
+        help="serial port of a passive RS485 tap; give it twice for two one-direction "
+        "taps merged by timestamp",
+    )
+    ser.add_argument("--baud", type=int, default=None, metavar="N", help="baud rate (115200)")
+    ser.add_argument("--parity", choices=("N", "E", "O"), default="N", help="parity (N)")
+    ser.add_argument("--stopbits", type=int, choices=(1, 2), default=1, help="stop bits (1)")
+    ser.add_argument("--bytesize", type=int, choices=(5, 6, 7, 8), default=8, help="data bits (8)")
+    ser.add_argument(
+        "--merge-window",
+        type=_positive,
+        default=0.05,
+        metavar="S",
+        help="with two taps: hold reads S seconds to merge them in time order (0.05)",
+    )
+    run = p.add_argument_group("run")
+    run.add_argument(
+        "-c", "--count", type=int, default=None, metavar="N", help="stop after N Modbus frames"
+    )
+    run.add_argument(
+        "--timeout",
+        type=_positive,
+        default=1.0,
+        metavar="S",
+        help="report a request unanswered after S seconds (default 1.0)",
+    )
+    run.add_argument(
+        "--plain",
+        action="store_true",
+        help="one line per record instead of the live screen (the default when stdout "
+        "is not a terminal)",
+    )
+    add_view_options(p)
+    add_output_options(p)
+    p.set_defaults(func=run_sniff)
+
+
+# --------------------------------------------------------------------------- -c COUNT
+
+
+class _Budget:
+    """Counts frame records for ``-c``; the first listener, so it cuts each batch first."""
+
+    name = "count"
+
+    def __init__(self, count: int, stop: Any) -> None:
+        self.left = count
+        self._stop = stop
+        self.done = False
+        self._batch: list[Any] | None = None
+        self._cut: list[Any] = []
+
+    def on_records(self, records: list[Any]) -> None:
+        if self.done:
+            self._batch, self._cut = records, []
+            return
+        keep = len(records)
+        for i, record in enumerate(records):
+            if record.frame is not None:
+                self.left -= 1
+                if self.left <= 0:
+                    keep = i + 1
+                    self.done = True
+                    self._stop()
+                    break
+        self._batch, self._cut = records, records[:keep]
+
+    def allowed(self, records: list[Any]) -> list[Any]:
+        return self._cut if records is self._batch else ([] if self.done else records)
+
+
+class _Limited:
+    """An output behind the ``-c`` budget: it sees nothing after the N-th frame."""
+
+    def __init__(self, inner: Any, budget: _Budget) -> None:
+        self.inner = inner
+        self.budget = budget
+        self.name = getattr(inner, "name", None) or getattr(inner, "path", None)
+        self._records = getattr(inner, "on_records", None)
+        self._record = getattr(inner, "on_record", None)
+
+    def on_records(self, records: list[Any]) -> None:
+        records = self.budget.allowed(records)
+        if not records:
+            return
+        if self._records is not None:
+            self._records(records)
+        elif self._record is not None:
+            for record in records:
+                self._record(record)
+
+    def on_chunk(self, chunk: Any) -> None:
+        fn = getattr(self.inner, "on_chunk", None)
+        if fn is not None and not self.budget.done:
+            fn(chunk)
+
+    def on_event(self, event: Any) -> None:
+        fn = getattr(self.inner, "on_event", None)
+        if fn is not None and not self.budget.done:
+            fn(event)
+
+    def on_tick(self, now: float) -> None:
+        fn = getattr(self.inner, "on_tick", None)
+        if fn is not None:
+            fn(now)
+
+    def close(self) -> None:
+        fn = getattr(self.inner, "close", None)
+        if fn is not None:
+            fn()
+
+
+class _Figures:
+    """Feeds a command's own figures (kernel drops, bus health) to the live monitor."""
+
+    name = "figures"
+
+    def __init__(self, monitor: Any, source: Any) -> None:
+        self.monitor = monitor
+        self.source = source
+
+    def on_tick(self, now: float) -> None:
+        self.monitor.set_figures(self.source())
+
+
+# --------------------------------------------------------------------------- run
+
+
+def run_sniff(args: argparse.Namespace) -> int:
+    from mbmon.commands.common import EXIT_BAD_INPUT, EXIT_OK, UsageError, make_annotator
+    from mbmon.commands.common import profile_sources as _profile_sources
+    from mbmon.format import View
+    from mbmon.hub import Hub
+    from mbmon.pipeline import Pipeline, PipelineConfig
+    from mbmon.sinks.base import SinkContext, SinkError, open_sink
+
+    if args.list:
+        from mbmon.sources.sniff import list_interfaces
+
+        for name, desc in list_interfaces():
+            print(f"{name:16} {desc}")
+        return EXIT_OK
+    iface = args.interface or args.iface
+    if args.interface and args.iface and args.interface != args.iface:
+        raise UsageError("give the interface once (IFACE or -i IFACE)")
+    if iface and args.serial:
+        raise UsageError("sniff either a network interface or --serial ports, not both")
+    if not iface and not args.serial:
+        raise UsageError("sniff needs an interface (IFACE or -i IFACE), or --serial PORT")
+    if len(args.serial) > 2:
+        raise UsageError("at most two --serial taps (one per direction)")
+    if args.count is not None and args.count < 1:
+        raise UsageError("-c needs a count of at least 1")
+    if args.baud is not None and args.baud <= 0:
+        raise UsageError(f"bad baud rate {args.baud}")
+    if iface and (args.baud is not None):
+        raise UsageError("--baud is for --serial")
+
+    serial = bool(args.serial)
+    baud = (args.baud or 115200) if serial else None
+    view = View(robot=args.robot, robot_is_client=args.robot_client)
+    annotator = make_annotator(args.profile)
+    pipeline = Pipeline(annotator, PipelineConfig(timeout=args.timeout, baudrate=baud))
+    hub = Hub(pipeline)
+    stop_requested = threading.Event()
+
+    def stop() -> None:
+        stop_requested.set()
+        hub.stop()
+
+    source_name = "+".join(args.serial) if serial else str(iface)
+    ctx = SinkContext(
+        view=view,
+        command_line=["mbmon", *sys.argv[1:]],
+        source=source_name,
+        profiles=_profile_sources(annotator),
+        profile_specs=list(args.profile),
+        timeout=args.timeout,
+        baud=baud,
+    )
+
+    # ---- the source (opened before any output, so a failure leaves no files behind)
+    capture: Any = None
+    taps: list[Any] = []
+    health: Any = None
+    dissector: Any = None
+    if serial:
+        from mbmon.model import Chunk, Direction, Event, EventKind, Transport
+        from mbmon.sources.serial import BusHealth, SerialSettings, SerialTap, TimeMerge
+
+        settings = SerialSettings(baud or 115200, args.parity, args.stopbits, args.bytesize)
+        # a reader thread stamps a read when it holds the GIL again: the default 5 ms
+        # switch interval would blur read times (and the gap figures) by up to 5 ms
+        sys.setswitchinterval(0.001)
+        stream = hub.new_stream(Transport.RTU, source_name, source_name)
+        bus = Direction.BUS
+
+        def notice(ts: float, message: str) -> None:
+            hub.put(Event(ts, stream, EventKind.NOTICE, {"message": message}))
+
+        if len(args.serial) == 1:
+
+            def deliver(ts: float, data: bytes) -> None:
+                hub.put(Chunk(ts, stream, bus, data))
+
+        else:
+            merge = TimeMerge(args.merge_window)
+            hub.add_ticker(merge)
+
+            def deliver(ts: float, data: bytes) -> None:
+                chunk = Chunk(ts, stream, bus, data)
+                hub.submit(lambda: merge.add(chunk))
+
+        for port in args.serial:
+            tap = SerialTap(port, settings, deliver, notice)
+            try:
+                tap.open()
+            except OSError as exc:
+                for t in taps:
+                    t.stop()
+                print(
+                    f"mbmon: cannot open serial port {port}: {exc.strerror or exc}",
+                    file=sys.stderr,
+                )
+                return EXIT_BAD_INPUT
+            taps.append(tap)
+        health = BusHealth(stream, settings, hub.put)
+    else:
+        from mbmon.sources.pcapfile import CaptureConfig
+        from mbmon.sources.sniff import (
+            CaptureSetupError,
+            PacketCapture,
+            capture_filter,
+            dissect_batch,
+            open_dissector,
+        )
+
+        config = CaptureConfig(
+            tcp_ports=frozenset({502, *args.port}), rtu_ports=frozenset(args.rtu_port)
+        )
+        bpf = args.filter or capture_filter(config)
+        dissector = open_dissector(config, hub.new_stream, bus_name=str(iface))
+        hub.add_ticker(dissector)
+
+        def deliver_batch(batch: list[tuple[float, int, bytes]]) -> None:
+            hub.submit(partial(dissect_batch, dissector, batch))
+
+        def capture_failed(message: str) -> None:
+            from mbmon.model import Event, EventKind
+
+            hub.put(Event(time.time(), None, EventKind.NOTICE, {"message": message}))
+            stop()
+
+        capture = PacketCapture(str(iface), bpf, deliver_batch, on_error=capture_failed)
+        try:
+            capture.open()
+        except CaptureSetupError as exc:
+            print(f"mbmon: {exc}", file=sys.stderr)
+            return EXIT_BAD_INPUT
+
+    def figures() -> dict[str, Any]:
+        if capture is not None:
+            return {"kernel drops": capture.kernel_stats().drops}
+        return {
+            "CRC failures": health.crc_errors,
+            "t3.5 violations": health.t35_violations,
+        }
+
+    if not args.quiet:  # before the live screen takes the terminal
+        what = f"filter: {capture.bpf}" if capture is not None else health.settings.text()
+        print(f"mbmon: sniffing {source_name} ({what}); Ctrl-C to stop", file=sys.stderr)
+        sys.stderr.flush()
+
+    # ---- outputs
+    budget = _Budget(args.count, stop) if args.count else None
+    outputs: list[Any] = []
+    monitor: Any = None
+    try:
+        if not args.quiet:
+            if args.json or args.plain or not sys.stdout.isatty():
+                from mbmon.sinks.console import ConsoleListener
+
+                outputs.append(ConsoleListener(sys.stdout, view, as_json=args.json, live=True))
+            else:
+                from mbmon.sinks.live import LiveMonitor
+
+                hrss = any("hrss" in spec for spec in args.profile)
+                monitor = LiveMonitor(view, title=f"mbmon sniff {source_name}", state_panel=hrss)
+                outputs.append(monitor)
+        for target in args.write:
+            outputs.append(open_sink(target, ctx))
+    except SinkError as exc:
+        for out in outputs:
+            out.close()
+        for tap in taps:
+            tap.stop()
+        if capture is not None:
+            capture.stop()
+        print(f"mbmon: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    if budget is not None:
+        hub.add_listener(budget)
+        outputs = [_Limited(out, budget) for out in outputs]
+    for out in outputs:
+        hub.add_listener(out)
+    if health is not None:
+        hub.add_listener(health)
+    if monitor is not None:
+        hub.add_listener(_Figures(monitor, figures))
+
+    # ---- run
+    started = time.time()
+    old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def on_signal(signum: int, frame: object) -> None:
+        stop()
+
+    for sig in old:
+        signal.signal(sig, on_signal)
+    try:
+        if capture is not None:
+            capture.start()
+        for tap in taps:
+            tap.start()
+        hub.run(stop_requested)
+    finally:
+        if capture is not None:
+            capture.stop()
+        for tap in taps:
+            tap.stop()
+        if health is not None and not (budget is not None and budget.done):
+            hub.feed(health.stats_event(time.time()))
+        hub.close()
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+    if not args.quiet:
+        _summary(args, hub, capture, taps, health, dissector, time.time() - started, source_name)
+    if any(why != "broken pipe" for _name, why in hub.failures):
+        return EXIT_BAD_INPUT
+    return EXIT_OK
+
+
+def _summary(
+    args: argparse.Namespace,
+    hub: Any,
+    capture: Any,
+    taps: list[Any],
+    health: Any,
+    dissector: Any,
+    elapsed: float,
+    source: str,
+) -> None:
+    """The closing summary on stderr (not with ``-q``)."""
+    c = hub.pipeline.counts
+    lines = [f"mbmon: sniffed {source} for {elapsed:.1f} s"]
+    if capture is not None:
+        k = capture.kernel_stats()
+        lines.append(
+            f"  {capture.packets} packets captured; kernel: {k.packets} matched the filter, "
+            f"{k.drops} dropped"
+            + (" (capture INCOMPLETE)" if k.drops else "")
+        )
+        if dissector is not None:
+            s = dissector.stats()
+            lines.append(
+                f"  {s.get('modbus_packets', 0)} Modbus packets, {s.get('streams', 0)} streams, "
+                f"{s.get('gaps', 0)} TCP gaps"
+            )
+    for tap in taps:
+        lines.append(
+            f"  {tap.port}: {tap.reads} reads, {tap.bytes} bytes"
+            + (f", lost {tap.losses} times" if tap.losses else "")
+        )
+    lines.append(
+        f"  {c['frames']} frames, {c['exceptions']} exceptions, {c['timeouts']} timeouts, "
+        f"{c['noise_bytes']} noise bytes, {c['malformed']} malformed"
+    )
+    if health is not None:
+        lines.extend("  " + line for line in health.summary())
+    print("\n".join(lines), file=sys.stderr)

@@ -1,0 +1,254 @@
+"""The live monitor: a rich screen like the robot's Modbus Monitor, as a hub listener.
+
+:class:`LiveMonitor` keeps the last :data:`LINES` monitor lines (made by
+:func:`mbmon.format.record_line`, notes included), counts and rates, and with an
+HRSS profile the robot state (A1..A6, X..C, speed, motion state) and the last
+reconstructed command with its outcome. It draws a header with the figures, the
+state panel when there is state, and a pane with as many of the newest lines as
+the terminal has room for. Any command can use it (``sniff``, later ``proxy``,
+``demo``, ``replay --speed``); a command adds its own figures (kernel drops,
+bus health) with :meth:`LiveMonitor.set_figure`.
+
+Every text from the wire (monitor lines, notes, command texts, endpoint names)
+becomes a :class:`rich.text.Text`, never markup, so untrusted bytes cannot
+style or break the screen. The screen is redrawn from the hub's thread in
+``on_tick`` (no refresh thread touches the state), and rich's ``Live`` does not
+take over stdout or stderr of anyone else (``redirect_stdout=False``).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Mapping
+from typing import Any
+
+from mbmon.format import View, format_time, record_line
+from mbmon.model import EventKind, Record, RecordKind
+
+__all__ = ["LINES", "LiveMonitor"]
+
+#: Monitor lines kept for the scrolling pane.
+LINES = 200
+#: Seconds over which frames/s is computed.
+RATE_WINDOW = 2.0
+
+_STATE_ROWS: tuple[tuple[tuple[str, str], ...], ...] = (
+    (("A1", "a1"), ("A2", "a2"), ("A3", "a3"), ("A4", "a4"), ("A5", "a5"), ("A6", "a6")),
+    (("X", "x"), ("Y", "y"), ("Z", "z"), ("A", "a"), ("B", "b"), ("C", "c")),
+)
+_STYLE = {
+    RecordKind.REQUEST: "",
+    RecordKind.RESPONSE: "green",
+    RecordKind.EXCEPTION: "bold red",
+    RecordKind.NOISE: "yellow",
+    RecordKind.EVENT: "cyan",
+    RecordKind.COMMAND: "magenta",
+}
+_PHASE_STYLE = {"success": "green", "fail": "bold red", "warning": "yellow"}
+
+
+class LiveMonitor:
+    """A hub listener that draws the live screen (see the module text)."""
+
+    name = "live monitor"
+
+    def __init__(
+        self,
+        view: View,
+        console: Any = None,
+        *,
+        title: str = "mbmon",
+        lines: int = LINES,
+        state_panel: bool = False,
+        start: bool = True,
+        clock: Any = time.time,
+    ) -> None:
+        from rich.console import Console
+
+        self.view = view
+        self.console = console if console is not None else Console()
+        self.title = title
+        self.lines: deque[Any] = deque(maxlen=lines)
+        self.state_panel = state_panel
+        self._clock = clock
+        self.counts: dict[str, int] = {
+            "frames": 0,
+            "requests": 0,
+            "responses": 0,
+            "exceptions": 0,
+            "timeouts": 0,
+            "noise_bytes": 0,
+            "open_connections": 0,
+        }
+        self.figures: dict[str, Any] = {}
+        self.state: dict[str, float] = {}
+        self.command: Any = None
+        self.rate = 0.0
+        self._samples: deque[tuple[float, int]] = deque()
+        self._live: Any = None
+        if start:
+            from rich.live import Live
+
+            self._live = Live(
+                self.render(),
+                console=self.console,
+                auto_refresh=False,
+                transient=False,
+                redirect_stdout=False,
+                redirect_stderr=False,
+            )
+            self._live.start()
+
+    # ------------------------------------------------------------------ hooks
+
+    def on_records(self, records: list[Record]) -> None:
+        from rich.text import Text
+
+        counts = self.counts
+        view = self.view
+        for record in records:
+            kind = record.kind
+            if record.frame is not None:
+                counts["frames"] += 1
+                if kind is RecordKind.REQUEST:
+                    counts["requests"] += 1
+                elif kind is RecordKind.RESPONSE:
+                    counts["responses"] += 1
+                else:
+                    counts["exceptions"] += 1
+            elif kind is RecordKind.NOISE and record.noise is not None:
+                counts["noise_bytes"] += len(record.noise.raw)
+            elif kind is RecordKind.EVENT and record.event is not None:
+                ek = record.event.kind
+                if ek is EventKind.TIMEOUT:
+                    counts["timeouts"] += 1
+                elif ek is EventKind.CONNECT:
+                    counts["open_connections"] += 1
+                elif ek is EventKind.DISCONNECT:
+                    counts["open_connections"] = max(0, counts["open_connections"] - 1)
+            elif kind is RecordKind.COMMAND and record.command is not None:
+                self.command = record.command
+            if record.state:
+                self.state.update(record.state)
+            self.lines.append(Text(record_line(record, view), style=_STYLE.get(kind, "")))
+
+    def on_tick(self, now: float) -> None:
+        self._update_rate(now)
+        self.refresh()
+
+    def close(self) -> None:
+        if self._live is not None:
+            self.refresh()
+            self._live.stop()
+            self._live = None
+
+    # ------------------------------------------------------------------ for commands
+
+    def set_figure(self, name: str, value: Any) -> None:
+        """A figure of the command's own shown in the header (e.g. ``kernel drops``)."""
+        self.figures[name] = value
+
+    def set_figures(self, figures: Mapping[str, Any]) -> None:
+        self.figures.update(figures)
+
+    def refresh(self) -> None:
+        if self._live is not None:
+            self._live.update(self.render(), refresh=True)
+
+    # ------------------------------------------------------------------ drawing
+
+    def _update_rate(self, now: float) -> None:
+        samples = self._samples
+        samples.append((now, self.counts["frames"]))
+        while len(samples) > 2 and now - samples[0][0] > RATE_WINDOW:
+            samples.popleft()
+        t0, n0 = samples[0]
+        self.rate = (self.counts["frames"] - n0) / (now - t0) if now > t0 else 0.0
+
+    def render(self) -> Any:
+        """The whole screen as one renderable (also what tests print to a recording console)."""
+        from rich.console import Group
+        from rich.panel import Panel
+        from rich.text import Text
+
+        parts: list[Any] = [self._header()]
+        if self.state_panel or self.state or self.command is not None:
+            parts.append(self._state())
+        height = self.console.size.height
+        used = 3 + (6 if len(parts) > 1 else 0) + 2
+        room = max(3, height - used)
+        shown = list(self.lines)[-room:]
+        # one row per record: long lines end in "…" instead of wrapping off the screen
+        newline = Text("\n", no_wrap=True, overflow="ellipsis")
+        body = newline.join(shown) if shown else Text("waiting for traffic…", style="dim")
+        parts.append(Panel(body, title="monitor", title_align="left", border_style="dim"))
+        return Group(*parts)
+
+    def _header(self) -> Any:
+        from rich.text import Text
+
+        c = self.counts
+        text = Text()
+        text.append(self.title, style="bold")
+        text.append(f"  {self.rate:.1f} frames/s", style="bold cyan")
+        pieces = [
+            ("frames", c["frames"], ""),
+            ("requests", c["requests"], ""),
+            ("responses", c["responses"], ""),
+            ("exceptions", c["exceptions"], "red" if c["exceptions"] else ""),
+            ("timeouts", c["timeouts"], "red" if c["timeouts"] else ""),
+            ("noise bytes", c["noise_bytes"], "yellow" if c["noise_bytes"] else ""),
+            ("open connections", c["open_connections"], ""),
+        ]
+        for label, value, style in pieces:
+            text.append(f"  {label} ")
+            text.append(str(value), style=style or "bold")
+        for label, value in self.figures.items():
+            text.append(f"  {label} ")
+            bad = label.endswith("drops") and isinstance(value, int) and value > 0
+            text.append(str(value), style="bold red" if bad else "bold")
+        return text
+
+    def _state(self) -> Any:
+        from rich.panel import Panel
+        from rich.table import Table
+        from rich.text import Text
+
+        state = self.state
+        table = Table.grid(padding=(0, 2))
+        for _ in range(6):
+            table.add_column(justify="right")
+        for row in _STATE_ROWS:
+            cells = []
+            for label, key in row:
+                value = state.get(key)
+                cells.append(Text(f"{label} {value:9.3f}" if value is not None else f"{label}   —"))
+            table.add_row(*cells)
+        extra = Text()
+        for label, key, fmt in (
+            ("speed", "speed_pct", "{:.0f} %"),
+            ("motion state", "motion_state", "{:.0f}"),
+            ("TCP speed", "tcp_speed", "{:.1f}"),
+        ):
+            value = state.get(key)
+            extra.append(f"{label} ")
+            extra.append(fmt.format(value) if value is not None else "—", style="bold")
+            extra.append("   ")
+        cmd = self.command
+        last = Text("last command")
+        if cmd is not None:
+            last.append(f" ({format_time(cmd.ts)})", style="dim")
+        last.append(": ")
+        if cmd is None:
+            last.append("—", style="dim")
+        else:
+            phase = cmd.phase.value
+            last.append(str(cmd.text))
+            last.append(f"  [{phase}", style=_PHASE_STYLE.get(phase, "bold"))
+            if cmd.duration is not None:
+                last.append(f" after {cmd.duration:.3f} s", style=_PHASE_STYLE.get(phase, "bold"))
+            last.append("]", style=_PHASE_STYLE.get(phase, "bold"))
+        from rich.console import Group
+
+        return Panel(Group(table, extra, last), title="robot", title_align="left")
