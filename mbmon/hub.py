@@ -37,7 +37,7 @@ import queue
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import IO, Any, Protocol
 
@@ -75,6 +75,15 @@ class _Slot:
     listener: Any
     name: str
     hooks: dict[str, Callable[..., Any] | None] = field(default_factory=dict)
+
+
+class _Collector:
+    """Keeps the records of a run in a list (:meth:`Hub.iter_records`)."""
+
+    name = "records"
+
+    def __init__(self, into: list[Record]) -> None:
+        self.on_records = into.extend
 
 
 class _Stop:
@@ -224,6 +233,27 @@ class Hub:
                     break  # every listener is gone (stdout closed, nothing recorded)
         self.now = now
         self.finish()
+
+    def iter_records(self, items: Iterable[Item]) -> Iterator[Record]:
+        """Feed ``items`` (then finish) and yield every record as it is made, in order,
+        after the listeners had it: for a caller that consumes records itself
+        (``replay --redecode`` filters and paces them)."""
+        made: list[Record] = []
+        collector = _Collector(made)
+        self.add_listener(collector)
+        try:
+            for item in items:
+                self.feed(item)
+                if made:
+                    yield from made
+                    made.clear()
+            self.finish()
+            yield from made
+            made.clear()
+        finally:
+            if collector in self.listeners:
+                self._slots = [s for s in self._slots if s.listener is not collector]
+                self._index_hooks()
 
     def tick(self, now: float | None = None) -> None:
         """Move the run's time to ``now`` (default: the clock): stages, pipeline, listeners."""

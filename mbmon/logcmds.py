@@ -299,6 +299,7 @@ def _redecoded(
     log: Any, args: argparse.Namespace, fmt: Any
 ) -> Iterator[tuple[dict[str, Any], str, float]]:
     from mbmon.format import View, record_to_json
+    from mbmon.hub import Hub
     from mbmon.io.replay import raw_items, recorded_annotator, recorded_options
     from mbmon.pipeline import Pipeline, PipelineConfig
 
@@ -309,9 +310,10 @@ def _redecoded(
         view = View(robot=opts.robot, robot_is_client=opts.robot_is_client, time_format=fmt)
     annotator = recorded_annotator(log, opts)
     pipeline = Pipeline(annotator, PipelineConfig(timeout=opts.timeout, baudrate=opts.baud))
-    for record in pipeline.run(raw_items(log)):
-        obj = record_to_json(record, view)
-        yield obj, obj["line"], record.ts
+    with Hub(pipeline) as hub:  # the one loop every command runs, as `read` does
+        for record in hub.iter_records(raw_items(log)):
+            obj = record_to_json(record, view)
+            yield obj, obj["line"], record.ts
 
 
 # --------------------------------------------------------------------------- info
@@ -618,23 +620,22 @@ def run_export(args: argparse.Namespace) -> int:
             timeout=opts.timeout,
             baud=opts.baud,
         )
+        bar = _progress(log)
         try:
             if suffix == ".mcap":
                 _export_mcap(log, target, RecordFilter(since=flt.since, until=flt.until))
             elif suffix == ".pcap":
                 _export_pcap(log, target, ctx, flt, keep_segments=args.keep_segments)
             else:
-                with open_sink(target, ctx) as sink:
-                    from mbmon.io.replay import logged_records
+                from mbmon.io.replay import logged_records
+                from mbmon.sinks.jsonl import TextFileSink
 
+                with open_sink(target, ctx) as sink:
+                    assert isinstance(sink, TextFileSink)  # .txt .jsonl .csv
                     for rec in logged_records(log):
                         obj, line = _retimed(rec.obj, rec.text, rec.time, fmt)
-                        if not flt.matches(obj, line, rec.time):
-                            continue
-                        if suffix == ".txt":
-                            sink.write_line(line)  # type: ignore[attr-defined]
-                        elif obj is not None:
-                            sink.write_obj(obj)  # type: ignore[attr-defined]
+                        if flt.matches(obj, line, rec.time):
+                            sink.write_logged(obj, line)
         except SinkError as exc:
             _err(str(exc))
             return EXIT_BAD_INPUT
@@ -642,8 +643,11 @@ def run_export(args: argparse.Namespace) -> int:
             _err(f"{target}: cannot write: {exc.strerror or exc}")
             return EXIT_BAD_INPUT
         except LogError as exc:
+            bar.close()  # before the message: the bar shares stderr
             _err(f"{exc} (the output holds everything before the damage)")
             return EXIT_BAD_INPUT
+        finally:
+            bar.close()
         _note_status(log)
     return EXIT_OK
 

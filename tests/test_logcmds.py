@@ -408,8 +408,8 @@ def test_captures_and_foreign_files_get_one_clear_line(tmp_path: Path) -> None:
 
 
 def test_progress_on_a_terminal_never_takes_stdout(tmp_path: Path) -> None:
-    """Item 21: on a big log, info and replay show a progress bar on stderr when it is a
-    terminal (a real pty here) and stdout (a file) still gets every line."""
+    """Item 21: on a big log, info, replay and export show a progress bar on stderr when
+    it is a terminal (a real pty here) and stdout (a file) still gets every line."""
     import pty
     import random
 
@@ -440,12 +440,13 @@ def test_progress_on_a_terminal_never_takes_stdout(tmp_path: Path) -> None:
     assert log.stat().st_size > 5 << 20
     expected = mbmon("replay", log).stdout
     assert expected.count("\n") > 10
-    for cmd in (["replay"], ["info"]):
+    exported = tmp_path / "exported.txt"
+    for cmd in (["replay"], ["info"], ["export", "-o", str(exported)]):
         master, slave = pty.openpty()
         out = tmp_path / "out.txt"
         with open(out, "w") as stdout:
-            proc = subprocess.Popen([*MBMON, cmd[0], str(log)], stdout=stdout, stderr=slave,
-                                    env={**ENV, "COLUMNS": "100"})  # fmt: skip
+            proc = subprocess.Popen([*MBMON, cmd[0], str(log), *cmd[1:]], stdout=stdout,
+                                    stderr=slave, env={**ENV, "COLUMNS": "100"})  # fmt: skip
             os.close(slave)
             seen = b""
             while True:
@@ -463,8 +464,10 @@ def test_progress_on_a_terminal_never_takes_stdout(tmp_path: Path) -> None:
         text = out.read_text()
         if cmd == ["replay"]:
             assert text == expected
-        else:
+        elif cmd == ["info"]:
             assert "finished log" in text and "reading" not in text
+        else:
+            assert text == "" and exported.read_text() == expected
 
 
 # --------------------------------------------------------------------------- signals

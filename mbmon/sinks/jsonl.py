@@ -58,6 +58,16 @@ class TextFileSink(SinkBase):
             except OSError as exc:
                 raise self._named(exc) from exc
 
+    def write_obj(self, obj: Mapping[str, Any]) -> None:
+        """One record's ``read --json`` object, in this file's format."""
+        raise NotImplementedError
+
+    def write_logged(self, obj: Mapping[str, Any] | None, line: str) -> None:
+        """A record as a log stored it (``export``): its JSON object, when it has one,
+        and its monitor line; line-oriented formats override this."""
+        if obj is not None:
+            self.write_obj(obj)
+
     def close(self) -> None:
         if not self._closed:
             self._closed = True

@@ -6,6 +6,9 @@ label, function code + data in hex, then the notes.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 from mbmon.format import record_line
 from mbmon.model import Record
 from mbmon.sinks.jsonl import TextFileSink
@@ -16,6 +19,9 @@ class TextSink(TextFileSink):
 
     def on_record(self, record: Record) -> None:
         self.write_line(record_line(record, self.view))
+
+    def write_logged(self, obj: Mapping[str, Any] | None, line: str) -> None:
+        self.write_line(line)
 
     def write_line(self, line: str) -> None:
         """Write one already-made monitor line (used by ``mbmon export``)."""
