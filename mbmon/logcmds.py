@@ -15,12 +15,9 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
 
+from mbmon.commands.common import EXIT_BAD_INPUT, EXIT_OK, EXIT_USAGE
 from mbmon.filters import add_filter_options
 from mbmon.timefmt import add_time_option
-
-EXIT_OK = 0
-EXIT_BAD_INPUT = 1
-EXIT_USAGE = 2
 
 _REPLAY_EPILOG = """\
 examples:
