@@ -112,6 +112,26 @@ def add_view_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_port_options(group: Any) -> None:
+    """``--port`` and ``--rtu-port``: which TCP/UDP ports carry Modbus (``read``, ``sniff``)."""
+    group.add_argument(
+        "--port",
+        action="append",
+        type=port,
+        default=[],
+        metavar="N",
+        help="Modbus/TCP (and Modbus/UDP) server port, besides 502 (repeatable)",
+    )
+    group.add_argument(
+        "--rtu-port",
+        action="append",
+        type=port,
+        default=[],
+        metavar="N",
+        help="TCP/UDP port carrying RTU ADUs with CRC, as some gateways do (repeatable)",
+    )
+
+
 def add_output_options(parser: argparse.ArgumentParser) -> None:
     """``--json``, ``-w FILE``, ``-q``: where records go (every observing command)."""
     group = parser.add_argument_group("output")

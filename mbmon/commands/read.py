@@ -17,11 +17,11 @@ from mbmon.commands.common import (
     EXIT_OK,
     UsageError,
     add_output_options,
+    add_port_options,
     add_view_options,
     check_outputs,
     err,
     make_annotator,
-    port,
     positive,
     positive_int,
     profile_sources,
@@ -68,22 +68,7 @@ def register(sub: Any) -> None:
         "file", nargs="?", metavar="FILE", help="pcap or pcapng file (gzip too; - for stdin)"
     )
     src = read.add_argument_group("input")
-    src.add_argument(
-        "--port",
-        action="append",
-        type=port,
-        default=[],
-        metavar="N",
-        help="Modbus/TCP (and Modbus/UDP) server port, besides 502 (repeatable)",
-    )
-    src.add_argument(
-        "--rtu-port",
-        action="append",
-        type=port,
-        default=[],
-        metavar="N",
-        help="TCP/UDP port carrying RTU ADUs with CRC, as some gateways do (repeatable)",
-    )
+    add_port_options(src)
     src.add_argument(
         "--rtu-raw",
         metavar="FILE",

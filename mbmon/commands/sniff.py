@@ -40,8 +40,7 @@ exit status: 0 ok, 1 capture could not start or an output failed, 2 usage
 
 def register(sub: Any) -> None:
     """Add the ``sniff`` subparser to ``sub``."""
-    from mbmon.commands.common import add_output_options, add_view_options
-    from mbmon.commands.common import port as _port
+    from mbmon.commands.common import add_output_options, add_port_options, add_view_options
     from mbmon.commands.common import positive as _positive
 
     p = sub.add_parser(
@@ -64,22 +63,7 @@ def register(sub: Any) -> None:
         help="kernel capture filter (tcpdump syntax) instead of the default "
         "'tcp port 502 or udp port 502' plus the --port/--rtu-port ports",
     )
-    src.add_argument(
-        "--port",
-        action="append",
-        type=_port,
-        default=[],
-        metavar="N",
-        help="Modbus/TCP (and UDP) server port, besides 502 (repeatable)",
-    )
-    src.add_argument(
-        "--rtu-port",
-        action="append",
-        type=_port,
-        default=[],
-        metavar="N",
-        help="TCP/UDP port carrying RTU ADUs with CRC (repeatable)",
-    )
+    add_port_options(src)
     ser = p.add_argument_group("serial (RS485, Modbus RTU)")
     ser.add_argument(
         "--serial",
