@@ -577,25 +577,20 @@ def run_info(args: argparse.Namespace) -> int:
 
 def run_export(args: argparse.Namespace) -> int:
     """``mbmon export``: the log converted by the suffix of ``-o``."""
+    from mbmon.commands.common import check_outputs
     from mbmon.filters import FilterError, RecordFilter
     from mbmon.format import View
     from mbmon.io.mcap.reader import LogError
     from mbmon.io.replay import recorded_options
-    from mbmon.sinks.base import SINKS, SinkContext, SinkError, open_sink
+    from mbmon.sinks.base import SinkContext, SinkError, open_sink
 
     target = Path(args.output)
     suffix = target.suffix.lower()
-    if suffix not in SINKS:
-        _err(f"error: {target}: unknown output format {suffix or '(no suffix)'!r}; use one "
-             f"of {', '.join(sorted(SINKS))}")  # fmt: skip
-        return EXIT_USAGE
+    # the one check of read -w too: a known format, and never the input (device, inode)
+    check_outputs([str(target)], [args.log])
     log, status = _open(args.log, "export")
     if log is None:
         return status
-    if target.exists() and target.resolve() == log.path.resolve():
-        log.close()
-        _err("error: the output would overwrite the log itself")
-        return EXIT_USAGE
     with log:
         try:
             fmt, flt = _log_times(args, log)

@@ -12,25 +12,10 @@ from collections import Counter
 from typing import Any
 
 from mbmon.model import EventKind, Record, RecordKind
+from mbmon.timefmt import human_span
 
 _REQUEST, _RESPONSE, _EXCEPTION = RecordKind.REQUEST, RecordKind.RESPONSE, RecordKind.EXCEPTION
 _NOISE, _EVENT, _COMMAND = RecordKind.NOISE, RecordKind.EVENT, RecordKind.COMMAND
-
-
-def span_text(seconds: float) -> str:
-    """A duration in human units: ``850 ms``, ``12.5 s``, ``3 min 04.2 s``, ``2 h 03 min``."""
-    if seconds < 1:
-        return f"{seconds * 1000:.0f} ms"
-    if seconds < 60:
-        return f"{seconds:.1f} s"
-    minutes, secs = divmod(seconds, 60)
-    if minutes < 60:
-        return f"{int(minutes)} min {secs:04.1f} s"
-    hours, minutes = divmod(int(minutes), 60)
-    if hours < 48:
-        return f"{hours} h {minutes:02d} min"
-    days, hours = divmod(hours, 24)
-    return f"{days} d {hours:02d} h"
 
 
 class Summary:
@@ -130,7 +115,7 @@ class Summary:
             done = ", ".join(f"{n} {phase}" for phase, n in sorted(self.commands.items()))
             parts.append(f"robot commands: {done}")
         if timed and self.first is not None and self.last is not None:
-            parts.append(f"time span: {span_text(self.last - self.first)}")
+            parts.append(f"time span: {human_span(self.last - self.first)}")
         for key, value in self.extra.items():
             parts.append(f"{key}: {value}")
         return "\n".join(parts)
