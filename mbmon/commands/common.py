@@ -155,6 +155,16 @@ def add_output_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_live_options(group: Any) -> None:
+    """``--plain``: the choice between the live screen and plain lines (live commands)."""
+    group.add_argument(
+        "--plain",
+        action="store_true",
+        help="one line per record instead of the live screen (the default when stdout "
+        "is not a terminal)",
+    )
+
+
 # --------------------------------------------------------------------------- shared steps
 
 
@@ -267,3 +277,29 @@ class Progress:
 def err(message: str) -> None:
     """One line on stderr, prefixed like every mbmon message."""
     print(f"mbmon: {message}", file=sys.stderr, flush=True)
+
+
+def wants_state_panel(profile_specs: Iterable[str]) -> bool:
+    """Whether the live monitor shows the HRSS state panel: an ``hrss`` profile is in use."""
+    return any("hrss" in spec for spec in profile_specs)
+
+
+def open_console(args: argparse.Namespace, view: Any, *, title: str) -> tuple[Any, Any]:
+    """The one place a live command decides what goes to the terminal.
+
+    Returns ``(listener, monitor)``: nothing with ``-q``; plain lines
+    (:class:`~mbmon.sinks.console.ConsoleListener`) with ``--json``, ``--plain`` or
+    when stdout is not a terminal; otherwise the rich live monitor, which is then
+    both the listener and the monitor (for figures a command feeds it).
+    """
+    if args.quiet:
+        return None, None
+    if args.json or getattr(args, "plain", False) or not sys.stdout.isatty():
+        from mbmon.sinks.console import ConsoleListener
+
+        return ConsoleListener(sys.stdout, view, as_json=args.json, live=True), None
+    from mbmon.sinks.live import LiveMonitor
+
+    profiles = getattr(args, "profile", []) or []
+    monitor = LiveMonitor(view, title=title, state_panel=wants_state_panel(profiles))
+    return monitor, monitor

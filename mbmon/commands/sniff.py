@@ -40,7 +40,12 @@ exit status: 0 ok, 1 capture could not start or an output failed, 2 usage
 
 def register(sub: Any) -> None:
     """Add the ``sniff`` subparser to ``sub``."""
-    from mbmon.commands.common import add_output_options, add_port_options, add_view_options
+    from mbmon.commands.common import (
+        add_live_options,
+        add_output_options,
+        add_port_options,
+        add_view_options,
+    )
     from mbmon.commands.common import positive as _positive
 
     p = sub.add_parser(
@@ -95,12 +100,7 @@ def register(sub: Any) -> None:
         metavar="S",
         help="report a request unanswered after S seconds (default 1.0)",
     )
-    run.add_argument(
-        "--plain",
-        action="store_true",
-        help="one line per record instead of the live screen (the default when stdout "
-        "is not a terminal)",
-    )
+    add_live_options(run)
     add_view_options(p)
     add_output_options(p)
     p.set_defaults(func=run_sniff)
@@ -198,7 +198,13 @@ class _Figures:
 
 
 def run_sniff(args: argparse.Namespace) -> int:
-    from mbmon.commands.common import EXIT_BAD_INPUT, EXIT_OK, UsageError, make_annotator
+    from mbmon.commands.common import (
+        EXIT_BAD_INPUT,
+        EXIT_OK,
+        UsageError,
+        make_annotator,
+        open_console,
+    )
     from mbmon.commands.common import profile_sources as _profile_sources
     from mbmon.format import View
     from mbmon.hub import Hub
@@ -347,17 +353,9 @@ def run_sniff(args: argparse.Namespace) -> int:
     outputs: list[Any] = []
     monitor: Any = None
     try:
-        if not args.quiet:
-            if args.json or args.plain or not sys.stdout.isatty():
-                from mbmon.sinks.console import ConsoleListener
-
-                outputs.append(ConsoleListener(sys.stdout, view, as_json=args.json, live=True))
-            else:
-                from mbmon.sinks.live import LiveMonitor
-
-                hrss = any("hrss" in spec for spec in args.profile)
-                monitor = LiveMonitor(view, title=f"mbmon sniff {source_name}", state_panel=hrss)
-                outputs.append(monitor)
+        console, monitor = open_console(args, view, title=f"mbmon sniff {source_name}")
+        if console is not None:
+            outputs.append(console)
         for target in args.write:
             outputs.append(open_sink(target, ctx))
     except SinkError as exc:
