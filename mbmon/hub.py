@@ -49,6 +49,7 @@ Producer = Callable[[], Iterable[Item]]
 
 #: Hooks of a listener, looked up once when it is added.
 _HOOKS = ("on_chunk", "on_event", "on_records", "on_record", "on_tick", "close")
+_INDEXED = ("on_chunk", "on_event", "on_tick")
 
 #: How often listeners' ``on_tick`` runs on a live stream (text flushed within 0.5 s).
 LISTENER_TICK = 0.25
@@ -112,7 +113,11 @@ class Hub:
     ) -> None:
         self.pipeline = pipeline if pipeline is not None else Pipeline()
         self._slots: list[_Slot] = []
-        self._by_hook: dict[str, list[tuple[_Slot, Callable[..., Any]]]] = {h: [] for h in _HOOKS}
+        # per-hook call lists for the hooks called one by one; records go through
+        # _record_hooks, which keeps each listener's batch-or-single choice
+        self._by_hook: dict[str, list[tuple[_Slot, Callable[..., Any]]]] = {
+            h: [] for h in _INDEXED
+        }
         self._record_hooks: list[tuple[_Slot, Any, Any]] = []
         self._stderr = stderr
         self._clock = clock
@@ -168,9 +173,10 @@ class Hub:
             return sid
 
     def _index_hooks(self) -> None:
-        by_hook: dict[str, list[tuple[_Slot, Callable[..., Any]]]] = {h: [] for h in _HOOKS}
+        by_hook: dict[str, list[tuple[_Slot, Callable[..., Any]]]] = {h: [] for h in _INDEXED}
         for slot in self._slots:
-            for hook, fn in slot.hooks.items():
+            for hook in _INDEXED:
+                fn = slot.hooks[hook]
                 if fn is not None:
                     by_hook[hook].append((slot, fn))
         self._by_hook = by_hook
