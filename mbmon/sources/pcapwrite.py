@@ -541,7 +541,8 @@ class ChunkWriter:
     CONNECT event writes the three-way handshake, each chunk one segment (cut in
     pieces of at most 32 KiB), a GAP skips its bytes (the peer then acknowledges
     them, so a re-read reports the same gap), a DISCONNECT writes FIN-FIN-ACK or a
-    RST from the side that sent it. UDP chunks become datagrams; RTU bus chunks
+    RST from the side that sent it (an idle expiry, where the dissector merely
+    stopped watching a quiet flow, writes nothing). UDP chunks become datagrams; RTU bus chunks
     become link type 147 records. Other events are not packets and are skipped.
     Stream endpoints that are not ``IP:PORT`` get made-up addresses derived from
     the stream id.
@@ -733,6 +734,8 @@ class ChunkWriter:
                 conv.server_next = (conv.server_next + size) & 0xFFFFFFFF
             return [conv.ack(not from_client)]  # the peer had them: the gap shows
         if event.kind is EventKind.DISCONNECT:
+            if event.info.get("how") == "idle":
+                return []  # the dissector gave up on a quiet flow: nothing crossed the wire
             by_client = event.info.get("by") != "server"
             if event.info.get("how") == "rst":
                 return [conv.reset(by_client)]

@@ -154,3 +154,16 @@ def test_adu_segments_cover_every_byte_in_order(tmp_path: Path) -> None:
     c2s_segments = [c.data for c in again if c.direction is Direction.C2S]
     assert c2s_segments[:2] == [req, req]  # each ADU whole, at its last byte's time
     assert req in c2s_segments[2:]
+
+
+def test_idle_expiry_writes_no_packets(tmp_path: Path) -> None:
+    """The dissector giving up on a quiet connection is not a close on the wire:
+    the written capture must not show a FIN exchange that never happened."""
+    idle = Event(400.0, TCP, EventKind.DISCONNECT, {"how": "idle", "reason": "no packet for 300 s"})
+    with_idle = tmp_path / "idle.pcap"
+    without = tmp_path / "plain.pcap"
+    for path, items in ((with_idle, [*SCRIPT[:2], idle]), (without, SCRIPT[:2])):
+        with ChunkWriter(path) as writer:
+            for item in items:
+                writer.write(item)
+    assert with_idle.read_bytes() == without.read_bytes()
