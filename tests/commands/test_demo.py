@@ -287,3 +287,30 @@ def test_keep_running_serves_sim_and_proxy_until_ctrl_c(tmp_path: Path) -> None:
     assert len(streams) == 2
     guard = [e for e in topics["/mbmon/events"] if e.get("event") == "guard"]
     assert [g["info"]["address"] for g in guard] == [0, 2]
+
+
+def test_ctrl_c_during_the_demo_closes_the_log(tmp_path: Path) -> None:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mbmon", "demo", "--plain", "-w", "cut.mcap"],
+        cwd=tmp_path,
+        env=ENV,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:  # wait until the PTP is on its way
+            if "R201..R226 written" in line:
+                break
+        proc.send_signal(signal.SIGINT)
+        _, stderr = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 130, stderr
+    assert "demo interrupted" in stderr and "Traceback" not in stderr
+    topics = read_log(tmp_path / "cut.mcap")  # a finished file: the mcap reader takes it
+    assert any(f["address"] == 201 for f in topics["/modbus/frames"])
+    assert not any(f["fc"] == 5 for f in topics["/modbus/frames"])  # it stopped before the end
