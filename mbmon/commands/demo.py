@@ -339,10 +339,11 @@ def run(args: argparse.Namespace) -> int:
 
     sim = SimServer(host="127.0.0.1", port=0, unit=1)
     try:
-        sim_host, sim_port = sim.start()  # type: ignore[misc]
+        sim.start()
     except OSError as exc:
         err(f"cannot start the simulated robot: {exc}")
         return EXIT_BAD_INPUT
+    sim_host, sim_port = sim.host, sim.port
     robot = endpoint(sim_host, sim_port)
     guard = Guard.from_options(False, [], [GUARD_SPEC])
     config = ProxyConfig(
