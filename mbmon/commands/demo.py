@@ -378,6 +378,7 @@ def run(args: argparse.Namespace) -> int:
     console, monitor = open_console(args, view, title="mbmon demo")
     if console is not None:
         hub.add_listener(console)
+    # --foxglove: the lead adds the live Foxglove listener here (commands.common.open_foxglove)
     engine, thread, observer = attach_engine(hub, config, meter)
     try:
         proxy_host, proxy_port = thread.start()
