@@ -220,6 +220,7 @@ class DemoClient:
         self.refused: int | None = None
         self.ptp_status: int | None = None
         self.requests = 0
+        self.finished: float | None = None  # time.monotonic() when the client was done
         self.error: str | None = None
         self._client: Any = None
         self._part = ""
@@ -288,6 +289,7 @@ class DemoClient:
             self.error = f"{type(exc).__name__}: {exc}"
         finally:
             client.close()
+            self.finished = time.monotonic()
 
 
 #: The narration, one NOTICE per part (short: a live screen row is about 100 characters).
@@ -444,7 +446,7 @@ def run(args: argparse.Namespace) -> int:
     finally:  # a late Ctrl-C must not cut the log's close short
         for s, handler in old.items():
             signal.signal(s, handler)
-    elapsed = time.monotonic() - started
+    elapsed = (client.finished or time.monotonic()) - started  # not the --keep-running time
     failed_outputs = [f"{name}: {why}" for name, why in hub.failures if name != "stdout"]
     if failed_outputs:
         for line in failed_outputs:
