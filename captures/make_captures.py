@@ -1,8 +1,12 @@
 """Regenerate the project's own captures from real traffic on this machine.
 
-    sudo python captures/make_captures.py            # both captures
-    sudo python captures/make_captures.py --only tcp # hrss_ptp.pcap only
-    sudo python captures/make_captures.py --only rtu # hrss_rtu.pcap + hrss_rtu.bin only
+    sudo python captures/make_captures.py                 # every capture
+    sudo python captures/make_captures.py --only tcp      # hrss_ptp.pcap only
+    sudo python captures/make_captures.py --only rtu      # hrss_rtu.pcap + hrss_rtu.bin only
+    sudo python captures/make_captures.py --only demo --only fail   # (repeatable)
+
+``--only``: tcp, rtu (the scripted server below), demo, functions, exceptions,
+fail, sim-rtu (mbmon's own simulator, ``mbmon.sim``; see "captures of sim").
 
 What this script owns:
 
@@ -18,9 +22,15 @@ What this script owns:
   two ``socat`` pty pairs that forwards every byte both ways and writes each
   read, timestamped, as one link-type-147 record and into a raw bus dump.
 
-Content is deterministic (polls are counted, not timed); timestamps, TCP ports
-and sequence numbers differ from run to run. Needs root (port 502, tcpdump),
-tcpdump, socat and pymodbus >= 3.16.
+and, for the captures of ``sim``: ``mbmon.sim`` on 127.0.0.1:502 (or on a pty
+for RTU) with raw-socket sessions (function codes, exceptions, a failing
+command), the demo's client through ``mbmon proxy -w demo.pcap``, and the
+§5.4.5.2 program over RTU.
+
+Content of hrss_* is deterministic (polls are counted, not timed); the sim's
+motions are timed, so the number of IR524 polls in demo.pcap and sim_rtu.*
+varies by one or two. Timestamps, TCP ports and sequence numbers differ from
+run to run. Needs root (port 502, tcpdump), tcpdump, socat and pymodbus >= 3.16.
 """
 
 from __future__ import annotations
@@ -33,6 +43,7 @@ import re
 import select
 import shutil
 import signal
+import socket
 import struct
 import subprocess
 import sys
@@ -423,12 +434,263 @@ async def capture_rtu(pcap: Path, raw: Path) -> list[str]:
     return log
 
 
+# --------------------------------------------------------------------------- captures of `sim`
+#
+# These record mbmon's own simulator (mbmon.sim, the same server `mbmon sim` and
+# `mbmon demo` run) on 127.0.0.1:502. Requests are written as raw PDUs on a
+# plain socket (transaction ids 1..N), so the bytes are exactly the ones listed
+# here and in captures/README.md; the answers are checked as the session runs.
+
+#: (what, unit, request PDU, the answer the sim must give) of the function-code session.
+FUNCTIONS: list[tuple[str, int, str, str | None]] = [
+    ("FC01 read coils 0..7 (SI1..SI8)", 1, "01 00 00 00 08", "01 01 00"),
+    ("FC02 read discrete inputs 300..307 (DI[1..8])", 1, "02 01 2C 00 08", "02 01 05"),
+    ("FC03 read R100 (set speed)", 1, "03 00 64 00 01", "03 02 00 64"),
+    ("FC04 read IR100 (speed %)", 1, "04 00 64 00 01", "04 02 00 64"),
+    ("FC05 write coil 300 (DO[1]) ON", 1, "05 01 2C FF 00", "05 01 2C FF 00"),
+    ("FC06 write R100 = 90", 1, "06 00 64 00 5A", "06 00 64 00 5A"),
+    ("FC0F write coils 300..304 (DO[1..5]) = 1 1 0 0 1", 1, "0F 01 2C 00 05 01 13",
+     "0F 01 2C 00 05"),
+    ("FC10 write R0..R1 (SRR) = 1, 2", 1, "10 00 00 00 02 04 00 01 00 02", "10 00 00 00 02"),
+    ("FC01 read coils 300..304 back", 1, "01 01 2C 00 05", "01 01 13"),
+    ("FC03 read R0..R1 back", 1, "03 00 00 00 02", "03 04 00 01 00 02"),
+    ("FC04 read IR100 after the write", 1, "04 00 64 00 01", "04 02 00 5A"),
+    # not in the manual's Table 10: exception 01 Illegal Function
+    ("FC07 read exception status", 1, "07", "87 01"),
+    ("FC08 diagnostics, return query data", 1, "08 00 00 12 34", "88 01"),
+    ("FC0B get comm event counter", 1, "0B", "8B 01"),
+    ("FC0C get comm event log", 1, "0C", "8C 01"),
+    ("FC11 report server id", 1, "11", "91 01"),
+    ("FC15 write file record", 1, "15 09 06 00 01 00 00 00 01 00 00", "95 01"),
+    ("FC16 mask write R100", 1, "16 00 64 FF 00 00 00", "96 01"),
+    ("FC17 read/write R100", 1, "17 00 64 00 01 00 64 00 01 02 00 5A", "97 01"),
+    ("FC18 read FIFO queue", 1, "18 00 64", "98 01"),
+    ("FC2B/0E read device identification", 1, "2B 0E 01 00", "AB 01"),
+]
+
+#: The exception session: each kind of refusal the sim gives, a good read after each.
+EXCEPTIONS: list[tuple[str, int, str, str | None]] = [
+    ("FC2B not served: exception 01", 1, "2B 0E 01 00", "AB 01"),
+    ("FC04 IR300..IR411 crosses the gap 312..399: exception 02", 1, "04 01 2C 00 70", "84 02"),
+    ("FC04 IR300..IR311 (A1..A6) is fine", 1, "04 01 2C 00 0C", None),
+    ("FC01 coils 256..263 (between SI256 and DO[1]): exception 02", 1, "01 01 00 00 08", "81 02"),
+    ("FC06 R50 (not in the map): exception 02", 1, "06 00 32 00 01", "86 02"),
+    ("FC10 R1950..R1951 (after PR[50]): exception 02", 1, "10 07 9E 00 02 04 00 00 00 00",
+     "90 02"),
+    ("FC06 R100 = 0 (speed 1..100): exception 03", 1, "06 00 64 00 00", "86 03"),
+    ("FC10 R100 = 101: exception 03", 1, "10 00 64 00 01 02 00 65", "90 03"),
+    ("FC06 R200 = 2 (0..1): exception 03", 1, "06 00 C8 00 02", "86 03"),
+    ("FC04 IR100 for unit 2 (the sim is unit 1): exception 0B", 2, "04 00 64 00 01", "84 0B"),
+    ("FC04 IR100 for unit 1 still answers", 1, "04 00 64 00 01", "04 02 00 64"),
+]
+
+
+def _words(values: Sequence[int]) -> str:
+    return " ".join(f"{v & 0xFFFF:04X}" for v in values)
+
+
+def _execute(params: Sequence[int]) -> list[str]:
+    """R200 = 0, parameters from R201 (FC10), R200 = 1: the handshake of §5.3.3.5."""
+    n = len(params)
+    return ["06 00 C8 00 00", f"10 00 C9 00 {n:02X} {2 * n:02X} {_words(params)}",
+            "06 00 C8 00 01"]
+
+
+#: PTP {A1 90} of Table 46 at Vel=250 % (R215 = 250, outside 1..200).
+PTP_250 = [0, 0, 24464, 1] + [0] * 10 + [250, 100, 1, 2] + [0] * 8
+
+#: The failing-command session: (what, PDU, answer) with ``None`` for an answer not fixed here.
+FAIL: list[tuple[str, int, str, str | None]] = [
+    *[(f"PTP Vel=250%: {w}", 1, pdu, None) for w, pdu in zip(
+        ("R200 = 0", "R201..R226", "R200 = 1"), _execute(PTP_250), strict=True)],
+    ("IR200..IR201: status 2 (fail), command 0 (PTP)", 1, "04 00 C8 00 02", "04 04 00 02 00 00"),
+    ("IR524: the robot did not move (1 Idle)", 1, "04 02 0C 00 01", "04 02 00 01"),
+    *[(f"Get PR[0]: {w}", 1, pdu, None) for w, pdu in zip(
+        ("R200 = 0", "R201..R202", "R200 = 1"), _execute([200, 0]), strict=True)],
+    ("IR200..IR201: status 2 (PR 0 outside 1..4000), command 200", 1, "04 00 C8 00 02",
+     "04 04 00 02 00 C8"),
+    ("R200 = 1 again without R200 = 0: nothing executes", 1, "06 00 C8 00 01", "06 00 C8 00 01"),
+    *[(f"Set Current TOOL[3]: {w}", 1, pdu, None) for w, pdu in zip(
+        ("R200 = 0", "R201..R202", "R200 = 1"), _execute([103, 3]), strict=True)],
+    ("IR200..IR201: status 1 (success), command 103", 1, "04 00 C8 00 02", "04 04 00 01 00 67"),
+    ("R200 = 0", 1, "06 00 C8 00 00", "06 00 C8 00 00"),
+]
+
+
+class RawClient:
+    """A Modbus/TCP client on a plain socket: exactly the PDUs given, tids 1, 2, 3 ..."""
+
+    def __init__(self, host: str, port: int) -> None:
+        self.sock = socket.create_connection((host, port), timeout=5)
+        self.tid = 0
+
+    def ask(self, unit: int, pdu_hex: str) -> str:
+        self.tid += 1
+        pdu = bytes.fromhex(pdu_hex)
+        self.sock.sendall(struct.pack(">HHHB", self.tid, 0, len(pdu) + 1, unit) + pdu)
+        head = self._read(7)
+        tid, proto, length, got_unit = struct.unpack(">HHHB", head)
+        if (tid, proto, got_unit) != (self.tid, 0, unit):
+            raise RuntimeError(f"answer to tid {self.tid}: header {head.hex(' ')}")
+        return self._read(length - 1).hex(" ").upper()
+
+    def _read(self, n: int) -> bytes:
+        data = b""
+        while len(data) < n:
+            more = self.sock.recv(n - len(data))
+            if not more:
+                raise RuntimeError("the server closed the connection")
+            data += more
+        return data
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def run_raw(session: Sequence[tuple[str, int, str, str | None]], port: int) -> list[str]:
+    """Send every request of ``session``, one at a time; check the fixed answers."""
+    client = RawClient(TCP_HOST, port)
+    log: list[str] = []
+    try:
+        for what, unit, pdu, want in session:
+            got = client.ask(unit, pdu)
+            if want is not None and got != want:
+                raise RuntimeError(f"{what}: answer {got}, expected {want}")
+            log.append(f"{what}: {pdu} -> {got}")
+    finally:
+        client.close()
+    return log
+
+
+@contextlib.contextmanager
+def tcpdump_lo(out: Path, port: int) -> Any:
+    """Record Modbus/TCP on ``lo`` port ``port`` into ``out`` while the block runs."""
+    tmp = out.with_suffix(".tmp")
+    dump = subprocess.Popen(
+        ["tcpdump", "-i", "lo", "--immediate-mode", "-w", str(tmp), "-U", "-n",
+         f"tcp port {port}"],
+        stderr=subprocess.PIPE, text=True)
+    assert dump.stderr is not None
+    line = dump.stderr.readline()
+    if "listening on" not in line:
+        dump.kill()
+        raise RuntimeError(f"tcpdump did not start: {line.strip()}")
+    time.sleep(0.5)
+    try:
+        yield
+    finally:
+        time.sleep(1.0)  # FIN/ACK exchange reaches the capture
+        dump.send_signal(signal.SIGINT)
+        _, err = dump.communicate(timeout=10)
+        sys.stderr.write(err)
+    out.unlink(missing_ok=True)
+    out.write_bytes(tmp.read_bytes())  # tcpdump wrote tmp as its own user; keep ours
+    tmp.unlink()
+
+
+Session = Sequence[tuple[str, int, str, str | None]]
+
+
+def capture_sim_session(out: Path, session: Session) -> list[str]:
+    """``mbmon.sim`` on 127.0.0.1:502, tcpdump on ``lo``, one raw client session."""
+    from mbmon.sim.server import SimServer
+
+    with SimServer(host=TCP_HOST, port=TCP_PORT), tcpdump_lo(out, TCP_PORT):
+        return run_raw(session, TCP_PORT)
+
+
+def _mbmon(*args: str, **kw: Any) -> subprocess.Popen[str]:
+    env = {**os.environ, "PYTHONPATH": str(HERE.parent)}
+    return subprocess.Popen([sys.executable, "-m", "mbmon", *args], env=env, text=True, **kw)
+
+
+def capture_demo(out: Path) -> list[str]:
+    """The demo's traffic: ``mbmon.sim`` on 127.0.0.1:502, ``mbmon proxy`` on 1502 with the
+    demo's guard writing ``out`` (its pcap sink), and the demo's own client through it."""
+    import threading as _threading
+
+    from mbmon.commands.demo import GUARD_SPEC, DemoClient
+    from mbmon.sim.server import SimServer
+
+    out.unlink(missing_ok=True)
+    log: list[str] = []
+    with SimServer(host=TCP_HOST, port=TCP_PORT):
+        proxy = _mbmon("proxy", "--upstream", f"{TCP_HOST}:{TCP_PORT}", "--listen",
+                       f"{TCP_HOST}:1502", "--deny-write", GUARD_SPEC, "--profile", "hrss",
+                       "-q", "-w", str(out), stderr=subprocess.PIPE)
+        assert proxy.stderr is not None
+        line = proxy.stderr.readline()
+        if "listening on" not in line:
+            proxy.kill()
+            raise RuntimeError(f"mbmon proxy did not start: {line.strip()}")
+        try:
+            client = DemoClient(TCP_HOST, 1502, log.append, fast=True, stop=_threading.Event())
+            client.run()
+            if client.error is not None:
+                raise RuntimeError(f"demo client: {client.error}")
+            log.append(f"{client.requests} requests, SI1 write refused with {client.refused}")
+            time.sleep(0.3)
+        finally:
+            proxy.send_signal(signal.SIGINT)
+            _, err = proxy.communicate(timeout=20)
+    if proxy.returncode != 0:
+        raise RuntimeError(f"mbmon proxy failed: {err}")
+    return log
+
+
+def capture_sim_rtu(pcap: Path, raw: Path) -> list[str]:
+    """``mbmon.sim`` serving RTU on a pty, the §5.4.5.2 program on another, a recording relay."""
+    from pymodbus.client import ModbusSerialClient
+
+    from mbmon.sim.program import run_program
+    from mbmon.sim.server import SimServer
+
+    client_pair = socat_pair()
+    server_pair = socat_pair()
+    procs = [client_pair[0], server_pair[0]]
+    log: list[str] = []
+    try:
+        client_pty, tap_a = client_pair[1], client_pair[2]
+        tap_b, server_pty = server_pair[1], server_pair[2]
+        with BusTap(tap_a, tap_b) as tap:
+            with SimServer(serial=server_pty, baudrate=RTU_BAUD, unit=UNIT):
+                time.sleep(0.3)
+                client = ModbusSerialClient(client_pty, framer=FramerType.RTU,
+                                            baudrate=RTU_BAUD, timeout=2, retries=0)
+                if not client.connect():
+                    raise RuntimeError("serial client could not open its pty")
+                try:
+                    result = run_program(client=client, extras=False,
+                                         on_step=lambda st: log.append(st.line))
+                finally:
+                    client.close()
+                if result.joints[0] != 90:
+                    raise RuntimeError(f"A1 ended at {result.joints[0]}, not 90")
+                time.sleep(0.2)
+        records = tap.records
+    finally:
+        for p in procs:
+            p.terminate()
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                p.wait(timeout=5)
+    with pcap.open("wb") as f:
+        f.write(pcap_header(147))
+        for ts, data in records:
+            f.write(pcap_record(ts, data))
+    raw.write_bytes(b"".join(data for _, data in records))
+    return log
+
+
 # --------------------------------------------------------------------------- main
+
+
+ONLY = ("tcp", "rtu", "demo", "functions", "exceptions", "fail", "sim-rtu")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--only", choices=("tcp", "rtu"))
+    ap.add_argument("--only", choices=ONLY, action="append",
+                    help="make only these (repeatable; default: all)")
     ap.add_argument("--out", type=Path, default=HERE)
     args = ap.parse_args(argv)
     if os.geteuid() != 0:
@@ -439,13 +701,29 @@ def main(argv: Sequence[str] | None = None) -> int:
         if shutil.which(tool) is None:
             print(f"{tool} is not installed", file=sys.stderr)
             return 2
-    if args.only in (None, "tcp"):
+    wanted = set(args.only or ONLY)
+    if "tcp" in wanted:
         out = args.out / "hrss_ptp.pcap"
         log = asyncio.run(capture_tcp(out))
         print(f"{out}: {len(log)} transactions ({out.stat().st_size} bytes)")
-    if args.only in (None, "rtu"):
+    if "rtu" in wanted:
         pcap, raw = args.out / "hrss_rtu.pcap", args.out / "hrss_rtu.bin"
         log = asyncio.run(capture_rtu(pcap, raw))
+        print(f"{pcap}, {raw}: {len(log)} transactions ({raw.stat().st_size} bus bytes)")
+    for name, file, session in (("functions", "sim_functions.pcap", FUNCTIONS),
+                                ("exceptions", "sim_exceptions.pcap", EXCEPTIONS),
+                                ("fail", "sim_fail.pcap", FAIL)):
+        if name in wanted:
+            out = args.out / file
+            log = capture_sim_session(out, session)
+            print(f"{out}: {len(log)} transactions ({out.stat().st_size} bytes)")
+    if "demo" in wanted:
+        out = args.out / "demo.pcap"
+        log = capture_demo(out)
+        print(f"{out}: {log[-1]} ({out.stat().st_size} bytes)")
+    if "sim-rtu" in wanted:
+        pcap, raw = args.out / "sim_rtu.pcap", args.out / "sim_rtu.bin"
+        log = capture_sim_rtu(pcap, raw)
         print(f"{pcap}, {raw}: {len(log)} transactions ({raw.stat().st_size} bus bytes)")
     return 0
 

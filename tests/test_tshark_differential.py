@@ -57,6 +57,7 @@ USER0_AS_MBRTU = 'uat:user_dlts:"User 0 (DLT=147)","mbrtu","0","","0",""'
 # file name -> (extra tshark options, extra mbmon options)
 EXTRA_ARGS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "hrss_rtu.pcap": (("-o", USER0_AS_MBRTU), ()),
+    "sim_rtu.pcap": (("-o", USER0_AS_MBRTU), ()),
 }
 
 
@@ -275,7 +276,7 @@ def _files() -> list[Any]:
         params.append(pytest.param(None, id="real-captures",
                                    marks=pytest.mark.skip(reason=f"{REAL} absent (real "
                                                           "captures are not shipped)")))
-    params += [pytest.param(OWN / n, id=n) for n in ("hrss_ptp.pcap", "hrss_rtu.pcap")]
+    params += [pytest.param(p, id=p.name) for p in sorted(OWN.glob("*.pcap"))]
     return params
 
 

@@ -15,4 +15,5 @@ COMMANDS: list[str] = [
     "sniff",
     "proxy",
     "sim",
+    "demo",
 ]

@@ -172,14 +172,7 @@ def run(args: argparse.Namespace) -> int:
     from mbmon.format import View
     from mbmon.hub import Hub
     from mbmon.pipeline import Pipeline, PipelineConfig
-    from mbmon.proxy.engine import (
-        BacklogMeter,
-        Observer,
-        ProxyConfig,
-        ProxyEngine,
-        ProxyThread,
-        endpoint,
-    )
+    from mbmon.proxy.engine import BacklogMeter, ProxyConfig, endpoint
     from mbmon.proxy.guard import ClientFilter, Guard, GuardSpecError
     from mbmon.sinks.base import SinkContext, SinkError, open_sink
     from mbmon.sinks.console import ConsoleListener
@@ -236,13 +229,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"mbmon: {exc}", file=sys.stderr)
         hub.close()
         return EXIT_BAD_INPUT
-    observer = Observer(hub.put, hub.new_stream, meter=meter, max_backlog=config.max_backlog)
-    engine = ProxyEngine(config, observer, submit=hub.submit)
-    # The engine's thread must get the GIL back quickly when a packet arrives while
-    # the hub's thread decodes and writes: the default 5 ms switch interval would add
-    # up to 5 ms to a forwarded answer whenever the hub is busy.
-    sys.setswitchinterval(SWITCH_INTERVAL)
-    thread = ProxyThread(engine, on_exit=hub.stop)
+    engine, thread, observer = attach_engine(hub, config, meter)
     try:
         address = thread.start()
     except OSError as exc:
@@ -289,6 +276,28 @@ def run(args: argparse.Namespace) -> int:
     if any(name != "stdout" or why != "broken pipe" for name, why in hub.failures):
         return EXIT_BAD_INPUT
     return EXIT_OK
+
+
+def attach_engine(hub: Any, config: Any, meter: Any) -> tuple[Any, Any, Any]:
+    """A :class:`~mbmon.proxy.engine.ProxyEngine` for ``config`` wired to ``hub``: the
+    one way a command runs a proxy (``proxy``, ``demo``).
+
+    Its observations go to the hub's queue in batches (``meter``, a
+    :class:`~mbmon.proxy.engine.BacklogMeter` the caller has added to the hub,
+    bounds the backlog), and its :class:`~mbmon.proxy.engine.ProxyThread` stops the
+    hub when the engine's loop ends. Returns ``(engine, thread, observer)``;
+    ``thread.start()`` binds the listening socket.
+    """
+    from mbmon.proxy.engine import Observer, ProxyEngine, ProxyThread
+
+    observer = Observer(hub.put, hub.new_stream, meter=meter, max_backlog=config.max_backlog)
+    engine = ProxyEngine(config, observer, submit=hub.submit)
+    # The engine's thread must get the GIL back quickly when a packet arrives while
+    # the hub's thread decodes and writes: the default 5 ms switch interval would add
+    # up to 5 ms to a forwarded answer whenever the hub is busy.
+    sys.setswitchinterval(SWITCH_INTERVAL)
+    thread = ProxyThread(engine, on_exit=hub.stop)
+    return engine, thread, observer
 
 
 def _profile_sources(annotator: Any) -> list[tuple[str, str]]:
