@@ -284,13 +284,17 @@ def wants_state_panel(profile_specs: Iterable[str]) -> bool:
     return any("hrss" in spec for spec in profile_specs)
 
 
-def open_console(args: argparse.Namespace, view: Any, *, title: str) -> tuple[Any, Any]:
+def open_console(
+    args: argparse.Namespace, view: Any, *, title: str, annotator: Any = None
+) -> tuple[Any, Any]:
     """The one place a live command decides what goes to the terminal.
 
     Returns ``(listener, monitor)``: nothing with ``-q``; plain lines
     (:class:`~mbmon.sinks.console.ConsoleListener`) with ``--json``, ``--plain`` or
     when stdout is not a terminal; otherwise the rich live monitor, which is then
-    both the listener and the monitor (for figures a command feeds it).
+    both the listener and the monitor (for figures a command feeds it). With the
+    run's ``annotator``, the monitor's state panel shows the HRSS sessions' written
+    parameter registers (R200..R251).
     """
     if args.quiet:
         return None, None
@@ -301,7 +305,9 @@ def open_console(args: argparse.Namespace, view: Any, *, title: str) -> tuple[An
     from mbmon.sinks.live import LiveMonitor
 
     profiles = getattr(args, "profile", []) or []
-    monitor = LiveMonitor(view, title=title, state_panel=wants_state_panel(profiles))
+    monitor = LiveMonitor(
+        view, title=title, state_panel=wants_state_panel(profiles), annotator=annotator
+    )
     return monitor, monitor
 
 

@@ -369,7 +369,9 @@ def run_sniff(args: argparse.Namespace) -> int:
         feed = open_foxglove(args, ctx)  # first: it may exit before any file is opened
         if feed is not None:
             outputs.append(feed)
-        console, monitor = open_console(args, view, title=f"mbmon sniff {source_name}")
+        console, monitor = open_console(
+            args, view, title=f"mbmon sniff {source_name}", annotator=annotator
+        )
         if console is not None:
             outputs.append(console)
         for target in args.write:
