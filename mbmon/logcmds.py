@@ -261,7 +261,7 @@ def run_replay(args: argparse.Namespace) -> int:
         pacer = Pacer(args.speed) if args.speed else None
         try:
             feed = _ReplayFeed.open(args, log, flt.active)
-        except SinkError as exc:
+        except (SinkError, LogError) as exc:
             _err(str(exc))
             return EXIT_BAD_INPUT
         try:
@@ -360,7 +360,11 @@ class _ReplayFeed:
         if not redecode:
             from mbmon.io.mcap.reader import McapLog
 
-            self._log = McapLog(log.path)
+            try:
+                self._log = McapLog(log.path)
+            except Exception:
+                feed.close()
+                raise
             self._messages = self._log.messages(feed.topics)
 
     @classmethod

@@ -293,11 +293,13 @@ def hrss_log(tmp_path: Path, hrss_stream: list) -> Path:
     return path
 
 
-def test_replay_serves_the_stored_messages_paced(hrss_log: Path) -> None:
-    """``replay --foxglove 127.0.0.1:0 --speed``: a client gets the log's own messages."""
+@pytest.mark.parametrize("redecode", [False, True], ids=["stored", "redecode"])
+def test_replay_serves_the_logs_messages_paced(hrss_log: Path, redecode: bool) -> None:
+    """``replay --foxglove 127.0.0.1:0 --speed``: a client gets the log's own messages
+    (stored; or re-decoded by today's decoder, which made the log: the same bytes)."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "mbmon", "replay", str(hrss_log),
-         "--foxglove", "127.0.0.1:0", "--speed", "0.05"],
+         "--foxglove", "127.0.0.1:0", "--speed", "0.05", *(["--redecode"] if redecode else [])],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env(), cwd=REPO,
     )  # fmt: skip
     try:
