@@ -21,6 +21,7 @@ on. The server listens on loopback unless a host is named.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Iterable
 from typing import Any
 
@@ -47,6 +48,8 @@ __all__ = [
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8765
 INSTALL_HINT = "pip install 'mbmon[foxglove]'"
+#: seconds a closing feed leaves its clients to receive the last messages
+CLOSE_GRACE = 0.25
 
 
 class FeedUnavailable(SinkError):
@@ -161,10 +164,16 @@ class FoxgloveFeed:
             self.messages_sent += 1
 
     def close(self) -> None:
-        """Stop the server (clients see the connection close). Idempotent."""
+        """Stop the server (clients see the connection close). Idempotent.
+
+        With a subscriber, the SDK's sender gets :data:`CLOSE_GRACE` seconds
+        first to hand over the last messages of the run (there is no flush).
+        """
         if self._closed:
             return
         self._closed = True
+        if self.messages_sent and self.subscribed():
+            time.sleep(CLOSE_GRACE)
         for channel in self._channels.values():
             try:
                 channel.close()

@@ -446,3 +446,24 @@ def test_sniff_feeds_a_client_what_the_log_of_the_run_holds(tmp_path: Path) -> N
         validators[topic].validate(json.loads(payload))
     states = [json.loads(p) for t, _, p in got if t == "/hrss/state"]
     assert states and all("a1" in s for s in states[-1:])
+
+
+@pytest.mark.skipif(
+    not hasattr(os, "geteuid") or os.geteuid() != 0,
+    reason="live capture needs root (an AF_PACKET socket); CI runs as root",
+)
+def test_sniff_port_in_use_is_one_line_exit_1_and_no_log(tmp_path: Path) -> None:
+    log = tmp_path / "never.mcap"
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        port = held.getsockname()[1]
+        proc = subprocess.run(
+            [sys.executable, "-m", "mbmon", "sniff", "lo", "--port", "1",
+             "--foxglove", f"127.0.0.1:{port}", "-q", "-w", str(log)],
+            capture_output=True, text=True, env=_env(), cwd=REPO, timeout=60,
+        )  # fmt: skip
+    assert proc.returncode == 1
+    assert proc.stderr.startswith(f"mbmon: --foxglove 127.0.0.1:{port}: cannot listen:")
+    assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    assert not log.exists()
