@@ -15,7 +15,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
 
-from mbmon.commands.common import EXIT_BAD_INPUT, EXIT_OK, EXIT_USAGE
+from mbmon.commands.common import EXIT_BAD_INPUT, EXIT_OK, EXIT_USAGE, add_foxglove_option
 from mbmon.filters import add_filter_options
 from mbmon.timefmt import add_time_option
 
@@ -29,6 +29,7 @@ examples:
   mbmon replay cell.mcap --redecode           decode /modbus/raw again with today's decoder
                                               and the profiles stored in the log
   mbmon replay cell.mcap --speed 1            at the original pace (2 = twice as fast)
+  mbmon replay cell.mcap --speed 1 --foxglove also live in Foxglove (ws://127.0.0.1:8765)
 
 times: +5s / +1m30s / +250ms / 2.5 from the start of the log, 12:00:05.123456 (time of
 day on the log's first day), 2024-05-01 12:00:05 (ISO 8601, local time unless it says
@@ -101,6 +102,7 @@ def add_subcommands(sub: Any) -> None:
         metavar="X",
         help="pace the output like the original: 1 = real time, 10 = ten times faster",
     )
+    add_foxglove_option(out)
     replay.set_defaults(func=run_replay)
 
     info = sub.add_parser(
@@ -239,6 +241,7 @@ def run_replay(args: argparse.Namespace) -> int:
     """``mbmon replay``: stored lines (or --json objects, or a re-decode), filtered and paced."""
     from mbmon.filters import FilterError, Pacer
     from mbmon.io.mcap.reader import LogError
+    from mbmon.sinks.base import SinkError
     from mbmon.sinks.jsonl import dumps_line
 
     if (args.robot or args.robot_client) and not args.redecode:
@@ -257,15 +260,24 @@ def run_replay(args: argparse.Namespace) -> int:
             return EXIT_USAGE
         pacer = Pacer(args.speed) if args.speed else None
         try:
+            feed = _ReplayFeed.open(args, log, flt.active)
+        except (SinkError, LogError) as exc:
+            _err(str(exc))
+            return EXIT_BAD_INPUT
+        try:
             if args.redecode:
-                rows = _redecoded(log, args, fmt)
+                rows = _redecoded(log, args, fmt, feed)
             else:
-                rows = ((*_retimed(r.obj, r.text, r.time, fmt), r.time) for r in _stored(log))
-            for obj, line, ts in rows:
+                rows = (
+                    (*_retimed(r.obj, r.text, r.time, fmt), r.time, r) for r in _stored(log)
+                )
+            for obj, line, ts, made in rows:
                 if not flt.matches(obj, line, ts):
                     continue
                 if pacer is not None:
                     pacer.wait(ts)
+                if feed is not None:
+                    feed.serve(made)
                 if args.json:
                     if obj is None:
                         continue
@@ -274,6 +286,8 @@ def run_replay(args: argparse.Namespace) -> int:
                     out.write(line + "\n")
                 if pacer is not None:
                     out.flush()
+            if feed is not None:
+                feed.finish()
         except LogError as exc:
             out.flush()
             bar.close()  # before the message: the bar shares stderr
@@ -281,6 +295,8 @@ def run_replay(args: argparse.Namespace) -> int:
             return EXIT_BAD_INPUT
         finally:
             bar.close()
+            if feed is not None:
+                feed.close()
         out.flush()
         _note_status(log)
     return EXIT_OK
@@ -292,25 +308,148 @@ def _stored(log: Any) -> Iterator[Any]:
     return logged_records(log)
 
 
+def _replay_view(log: Any, args: argparse.Namespace, fmt: Any = None) -> Any:
+    """The view of a re-decode: ``--robot`` if given, else the recording's."""
+    from mbmon.format import View
+    from mbmon.io.replay import recorded_options
+
+    opts = recorded_options(log)
+    robot, is_client = (
+        (args.robot, args.robot_client) if args.robot else (opts.robot, opts.robot_is_client)
+    )
+    if fmt is None:
+        return View(robot=robot, robot_is_client=is_client)
+    return View(robot=robot, robot_is_client=is_client, time_format=fmt)
+
+
 def _redecoded(
-    log: Any, args: argparse.Namespace, fmt: Any
-) -> Iterator[tuple[dict[str, Any], str, float]]:
-    from mbmon.format import View, record_to_json
+    log: Any, args: argparse.Namespace, fmt: Any, feed: _ReplayFeed | None = None
+) -> Iterator[tuple[dict[str, Any], str, float, Any]]:
+    from mbmon.format import record_to_json
     from mbmon.hub import Hub
     from mbmon.io.replay import raw_items, recorded_annotator, recorded_options
     from mbmon.pipeline import Pipeline, PipelineConfig
 
     opts = recorded_options(log)
-    if args.robot:
-        view = View(robot=args.robot, robot_is_client=args.robot_client, time_format=fmt)
-    else:
-        view = View(robot=opts.robot, robot_is_client=opts.robot_is_client, time_format=fmt)
+    view = _replay_view(log, args, fmt)
     annotator = recorded_annotator(log, opts)
     pipeline = Pipeline(annotator, PipelineConfig(timeout=opts.timeout, baudrate=opts.baud))
     with Hub(pipeline) as hub:  # the one loop every command runs, as `read` does
+        if feed is not None:
+            hub.add_listener(feed.chunks)
         for record in hub.iter_records(raw_items(log)):
             obj = record_to_json(record, view)
-            yield obj, obj["line"], record.ts
+            yield obj, obj["line"], record.ts, record
+
+
+class _ReplayFeed:
+    """``replay --foxglove``: what replay prints, served live (paced by ``--speed``).
+
+    Stored lines: the log's own messages of each printed record, on every topic
+    (and, unfiltered, its raw chunks and the writer's stats), read alongside in
+    file order from a second reader of the log. ``--redecode``: the records as
+    a log of the re-decode would hold them (:class:`~mbmon.sinks.foxglove.FoxgloveFeed`).
+    """
+
+    def __init__(self, feed: Any, log: Any, redecode: bool, everything: bool) -> None:
+        self.feed = feed
+        self.everything = everything
+        self._log: Any = None
+        self._messages: Iterator[Any] | None = None
+        self._held: tuple[int | None, Any] | None = None
+        if not redecode:
+            from mbmon.io.mcap.reader import McapLog
+
+            try:
+                self._log = McapLog(log.path)
+            except Exception:
+                feed.close()
+                raise
+            self._messages = self._log.messages(feed.topics)
+
+    @classmethod
+    def open(cls, args: argparse.Namespace, log: Any, filtered: bool) -> _ReplayFeed | None:
+        from mbmon.commands.common import open_foxglove
+        from mbmon.io.mcap.layout import METADATA_NAME, TOPIC_STATE
+        from mbmon.io.replay import recorded_options
+        from mbmon.sinks.base import SinkContext
+
+        if getattr(args, "foxglove", None) is None:
+            return None
+        opts = recorded_options(log)
+        profiles = log.profiles()
+        ctx = SinkContext(
+            view=_replay_view(log, args),
+            source=log.metadata.get(METADATA_NAME, {}).get("source", str(log.path)),
+            profiles=profiles,
+            profile_specs=opts.profile_specs if (profiles or TOPIC_STATE in log.topics) else [],
+        )
+        feed = open_foxglove(args, ctx)
+        return cls(feed, log, args.redecode, not filtered)
+
+    @property
+    def chunks(self) -> Any:
+        """A hub listener that serves raw chunks (unfiltered re-decodes only)."""
+        feed, everything = self.feed, self.everything
+
+        class _Chunks:
+            name = "foxglove"
+
+            def on_chunk(self, chunk: Any) -> None:
+                if everything:
+                    feed.on_chunk(chunk)
+
+        return _Chunks()
+
+    def serve(self, made: Any) -> None:
+        """Serve one printed row: a re-decoded record, or a stored record's messages."""
+        if self._messages is None:
+            self.feed.on_records([made])
+            return
+        self._serve_upto(made.index)
+
+    def finish(self) -> None:
+        """Unfiltered: what the log holds after the last record (raw chunks, stats)."""
+        if self._messages is not None and self.everything:
+            self._serve_upto(None)
+
+    def _serve_upto(self, index: int | None) -> None:
+        """Serve the stored messages of record ``index`` (skip those of earlier records)."""
+        assert self._messages is not None
+        while True:
+            if self._held is None:
+                msg = next(self._messages, None)
+                if msg is None:
+                    return
+                self._held = (_record_index(msg), msg)
+            of, msg = self._held
+            if index is not None and of is not None and of > index:
+                return
+            self._held = None
+            if of == index if of is not None else self.everything:
+                self.feed.publish(msg.topic, msg.log_time, msg.raw)
+
+    def close(self) -> None:
+        try:
+            self.feed.close()
+        finally:
+            if self._log is not None:
+                self._log.close()
+
+
+def _record_index(msg: Any) -> int | None:
+    """Which record a stored message belongs to (``None``: raw chunks, the writer's stats)."""
+    from mbmon.io.mcap.layout import TOPIC_MONITOR
+    from mbmon.io.mcap.reader import LogError
+
+    try:
+        data = msg.json()
+    except LogError:
+        return None
+    if not isinstance(data, dict):
+        return None
+    index = data.get("line") if msg.topic == TOPIC_MONITOR else data.get("index")
+    return index if isinstance(index, int) and not isinstance(index, bool) else None
 
 
 # --------------------------------------------------------------------------- info

@@ -284,13 +284,17 @@ def wants_state_panel(profile_specs: Iterable[str]) -> bool:
     return any("hrss" in spec for spec in profile_specs)
 
 
-def open_console(args: argparse.Namespace, view: Any, *, title: str) -> tuple[Any, Any]:
+def open_console(
+    args: argparse.Namespace, view: Any, *, title: str, annotator: Any = None
+) -> tuple[Any, Any]:
     """The one place a live command decides what goes to the terminal.
 
     Returns ``(listener, monitor)``: nothing with ``-q``; plain lines
     (:class:`~mbmon.sinks.console.ConsoleListener`) with ``--json``, ``--plain`` or
     when stdout is not a terminal; otherwise the rich live monitor, which is then
-    both the listener and the monitor (for figures a command feeds it).
+    both the listener and the monitor (for figures a command feeds it). With the
+    run's ``annotator``, the monitor's state panel shows the HRSS sessions' written
+    parameter registers (R200..R251).
     """
     if args.quiet:
         return None, None
@@ -301,5 +305,88 @@ def open_console(args: argparse.Namespace, view: Any, *, title: str) -> tuple[An
     from mbmon.sinks.live import LiveMonitor
 
     profiles = getattr(args, "profile", []) or []
-    monitor = LiveMonitor(view, title=title, state_panel=wants_state_panel(profiles))
+    monitor = LiveMonitor(
+        view, title=title, state_panel=wants_state_panel(profiles), annotator=annotator
+    )
     return monitor, monitor
+
+
+# --------------------------------------------------------------------------- Foxglove live
+
+#: ``--foxglove`` without a value: Foxglove's default port, on loopback
+FOXGLOVE_DEFAULT = ("127.0.0.1", 8765)
+
+
+def foxglove_address(text: str) -> tuple[str, int]:
+    """An argparse type: ``[HOST:]PORT`` (``[IPv6]:PORT`` too) -> ``(host, port)``.
+
+    A bare PORT listens on 127.0.0.1; port 0 picks a free port.
+    """
+    value = text.strip()
+    host, port_text = FOXGLOVE_DEFAULT[0], value
+    if value.startswith("["):
+        close = value.find("]")
+        if close < 0 or value[close + 1 : close + 2] != ":":
+            raise argparse.ArgumentTypeError(f"not [HOST:]PORT: {text!r} (use [ADDR]:PORT)")
+        host, port_text = value[1:close], value[close + 2 :]
+    elif ":" in value:
+        host, _, port_text = value.rpartition(":")
+    try:
+        number = int(port_text, 10)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"not [HOST:]PORT: {text!r} (an interface goes before --foxglove)"
+        ) from None
+    if not 0 <= number < 65536 or not host or any(c.isspace() for c in host):
+        raise argparse.ArgumentTypeError(f"not [HOST:]PORT: {text!r} (port 0..65535)")
+    return host, number
+
+
+def add_foxglove_option(group: Any) -> None:
+    """``--foxglove [HOST:]PORT``: serve the run live to Foxglove (any observing command)."""
+    group.add_argument(
+        "--foxglove",
+        nargs="?",
+        const=FOXGLOVE_DEFAULT,
+        default=None,
+        type=foxglove_address,
+        metavar="[HOST:]PORT",
+        help="serve the log's topics live over Foxglove's WebSocket protocol "
+        "(default 127.0.0.1:8765; PORT alone listens on 127.0.0.1, 0 picks a free port; "
+        "name a host such as 0.0.0.0 to open it to the network). Needs "
+        "pip install 'mbmon[foxglove]'",
+    )
+
+
+def open_foxglove(args: argparse.Namespace, ctx: Any) -> Any:
+    """Start the live Foxglove feed that ``--foxglove`` asks for (``None`` without it).
+
+    ``ctx`` is the run's :class:`~mbmon.sinks.base.SinkContext` (view, source,
+    profiles: the feed serves the topics a log of the run would have). Says on
+    stderr where it listens and how to connect. Attach the result to the hub as
+    a listener (before the console, like the logs) and let ``hub.close()`` close it.
+
+    A port that cannot be bound raises :class:`~mbmon.sinks.base.SinkError`
+    (report it as any output that cannot open: one line, exit 1). Without the
+    ``foxglove-sdk`` package it says so in one line and exits with status 2:
+    call it before opening any file, so nothing is left half written.
+    """
+    address = getattr(args, "foxglove", None)
+    if address is None:
+        return None
+    from mbmon.sinks.foxglove import FeedUnavailable, FoxgloveFeed
+
+    host, number = address
+    try:
+        feed = FoxgloveFeed(ctx, host, number)
+    except FeedUnavailable as exc:
+        err(str(exc))
+        raise SystemExit(EXIT_USAGE) from None
+    where = "" if host in ("127.0.0.1", "::1", "localhost") else (
+        " (reachable from the network: anyone who can connect sees the traffic)"
+    )
+    err(
+        f"Foxglove live feed on {feed.url}{where}; in Foxglove: Open connection → "
+        f"Foxglove WebSocket → {feed.url}"
+    )
+    return feed

@@ -30,6 +30,7 @@ examples:
   mbmon sniff --list                        the interfaces there are
   mbmon sniff --serial /dev/ttyUSB0 --baud 19200 --parity E   an RS485 bus (RTU)
   mbmon sniff --serial /dev/ttyUSB0 --serial /dev/ttyUSB1    two one-direction taps
+  mbmon sniff eth0 --profile hrss --foxglove   live in Foxglove at ws://127.0.0.1:8765
 
 needs root, or CAP_NET_RAW and CAP_NET_ADMIN on the Python binary (network);
 read access to the serial port (serial). Ctrl-C or SIGTERM ends the capture and
@@ -41,6 +42,7 @@ exit status: 0 ok, 1 capture could not start or an output failed, 2 usage
 def register(sub: Any) -> None:
     """Add the ``sniff`` subparser to ``sub``."""
     from mbmon.commands.common import (
+        add_foxglove_option,
         add_live_options,
         add_output_options,
         add_port_options,
@@ -101,6 +103,7 @@ def register(sub: Any) -> None:
         help="report a request unanswered after S seconds (default 1.0)",
     )
     add_live_options(run)
+    add_foxglove_option(run)
     add_view_options(p)
     add_output_options(p)
     p.set_defaults(func=run_sniff)
@@ -204,6 +207,7 @@ def run_sniff(args: argparse.Namespace) -> int:
         UsageError,
         make_annotator,
         open_console,
+        open_foxglove,
     )
     from mbmon.commands.common import profile_sources as _profile_sources
     from mbmon.format import View
@@ -352,21 +356,33 @@ def run_sniff(args: argparse.Namespace) -> int:
     budget = _Budget(args.count, stop) if args.count else None
     outputs: list[Any] = []
     monitor: Any = None
-    try:
-        console, monitor = open_console(args, view, title=f"mbmon sniff {source_name}")
-        if console is not None:
-            outputs.append(console)
-        for target in args.write:
-            outputs.append(open_sink(target, ctx))
-    except SinkError as exc:
+
+    def abandon() -> None:
         for out in outputs:
             out.close()
         for tap in taps:
             tap.stop()
         if capture is not None:
             capture.stop()
+
+    try:
+        feed = open_foxglove(args, ctx)  # first: it may exit before any file is opened
+        if feed is not None:
+            outputs.append(feed)
+        console, monitor = open_console(
+            args, view, title=f"mbmon sniff {source_name}", annotator=annotator
+        )
+        if console is not None:
+            outputs.append(console)
+        for target in args.write:
+            outputs.append(open_sink(target, ctx))
+    except SinkError as exc:
+        abandon()
         print(f"mbmon: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except SystemExit:
+        abandon()
+        raise
     if budget is not None:
         hub.add_listener(budget)
         outputs = [_Limited(out, budget) for out in outputs]

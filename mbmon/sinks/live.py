@@ -2,10 +2,13 @@
 
 :class:`LiveMonitor` keeps the last :data:`LINES` monitor lines (made by
 :func:`mbmon.format.record_line`, notes included), counts and rates, and with an
-HRSS profile the robot state (A1..A6, X..C, speed, motion state) and the last
-reconstructed command with its outcome. It draws a header with the figures, the
-state panel when there is state, and a pane with as many of the newest lines as
-the terminal has room for. Any command can use it (``sniff``, later ``proxy``,
+HRSS profile the robot state (A1..A6, X..C, speed, motion state), the last
+reconstructed command with its outcome, and the register image of the command
+parameters R200..R251 as the client wrote them, each named as the HRSS command
+spec names it for the command in R201 (:func:`parameter_rows`; the image is the
+annotator's HRSS session's, read in the hub's thread). It draws a header with
+the figures, the state panel when there is state, and a pane with as many of
+the newest lines as the terminal has room for. Any command can use it (``sniff``, later ``proxy``,
 ``demo``, ``replay --speed``); a command adds its own figures (kernel drops,
 bus health) with :meth:`LiveMonitor.set_figure`.
 
@@ -26,7 +29,7 @@ from typing import Any
 from mbmon.format import View, format_time, record_line
 from mbmon.model import EventKind, Record, RecordKind
 
-__all__ = ["LINES", "LiveMonitor"]
+__all__ = ["LINES", "LiveMonitor", "parameter_rows"]
 
 #: Monitor lines kept for the scrolling pane.
 LINES = 200
@@ -63,6 +66,7 @@ class LiveMonitor:
         state_panel: bool = False,
         start: bool = True,
         clock: Any = time.time,
+        annotator: Any = None,
     ) -> None:
         from rich.console import Console
 
@@ -84,6 +88,9 @@ class LiveMonitor:
         self.figures: dict[str, Any] = {}
         self.state: dict[str, float] = {}
         self.command: Any = None
+        #: the annotator's HRSS sessions by (server, unit): the written register image
+        self._sessions: Any = getattr(annotator, "sessions", None)
+        self._robot: tuple[str, int] | None = None  # the session of the last command/state
         self.rate = 0.0
         self._samples: deque[tuple[float, int]] = deque()
         self._live: Any = None
@@ -128,9 +135,12 @@ class LiveMonitor:
                 elif ek is EventKind.DISCONNECT:
                     counts["open_connections"] = max(0, counts["open_connections"] - 1)
             elif kind is RecordKind.COMMAND and record.command is not None:
-                self.command = record.command
+                self.command = cmd = record.command
+                self._robot = (cmd.stream.server, cmd.unit)
             if record.state:
                 self.state.update(record.state)
+                if record.frame is not None:
+                    self._robot = (record.frame.stream.server, record.frame.unit)
             self.lines.append(Text(record_line(record, view), style=_STYLE.get(kind, "")))
 
     def on_tick(self, now: float) -> None:
@@ -173,10 +183,15 @@ class LiveMonitor:
         from rich.text import Text
 
         parts: list[Any] = [self._header()]
+        used = 3 + 2
         if self.state_panel or self.state or self.command is not None:
             parts.append(self._state())
+            used += 6
+            rows = parameter_rows(*self._written())
+            if rows:
+                parts.append(self._parameters(rows))
+                used += 2 + -(-len(rows) // _PARAM_COLUMNS)
         height = self.console.size.height
-        used = 3 + (6 if len(parts) > 1 else 0) + 2
         room = max(3, height - used)
         shown = list(self.lines)[-room:]
         # one row per record: long lines end in "…" instead of wrapping off the screen
@@ -252,3 +267,108 @@ class LiveMonitor:
         from rich.console import Group
 
         return Panel(Group(table, extra, last), title="robot", title_align="left")
+
+    def _written(self) -> tuple[Mapping[int, int], frozenset[int]]:
+        """The holding image and unconfirmed registers of the robot shown (empty without)."""
+        if self._sessions is None:
+            return {}, frozenset()
+        sessions = self._sessions()
+        session = sessions.get(self._robot) if self._robot is not None else None
+        if session is None and len(sessions) == 1:
+            session = next(iter(sessions.values()))
+        if session is None:
+            return {}, frozenset()
+        return session.holding, session.unconfirmed
+
+    def _parameters(self, rows: list[tuple[str, str, str, bool]]) -> Any:
+        from rich.panel import Panel
+        from rich.table import Table
+        from rich.text import Text
+
+        table = Table.grid(padding=(0, 3))
+        for _ in range(_PARAM_COLUMNS):
+            table.add_column()
+        cells = []
+        for regs, name, value, confirmed in rows:
+            cell = Text(f"{regs} ", style="dim")
+            if name:
+                cell.append(f"{name} ", style="bold")
+            cell.append(value, style="" if confirmed else "yellow")
+            if not confirmed:
+                cell.append(" ?", style="yellow")
+            cells.append(cell)
+        for i in range(0, len(cells), _PARAM_COLUMNS):
+            row = cells[i : i + _PARAM_COLUMNS]
+            table.add_row(*row, *([Text("")] * (_PARAM_COLUMNS - len(row))))
+        return Panel(
+            table,
+            title="command registers R200..R251 as written (? = write not answered yet)",
+            title_align="left",
+            border_style="dim",
+        )
+
+
+#: parameter cells per row of the parameters panel
+_PARAM_COLUMNS = 4
+
+
+def parameter_rows(
+    holding: Mapping[int, int], unconfirmed: frozenset[int] = frozenset()
+) -> list[tuple[str, str, str, bool]]:
+    """The written command registers R200..R251 as ``(registers, name, value, confirmed)``.
+
+    Names and values come from the HRSS command spec (``hrss_commands.toml``):
+    the execute and command registers by their protocol keys, R202..R251 by
+    the fields of the layout the command in R201 (and its select register)
+    picks, one row per field (``R203..R204 A1 90 deg``); written registers no
+    field names show their unsigned word. ``holding`` is a session's holding
+    image (unsigned words); ``unconfirmed`` those whose write is unanswered.
+    """
+    from mbmon.semantics.hrss.render import decode_command, format_scaled
+    from mbmon.semantics.hrss.spec import load_spec
+    from mbmon.semantics.words import s16
+
+    spec = load_spec()
+    execute, command = spec.reg("execute_reg"), spec.reg("command_reg")
+    first, last = min(execute, command), spec.reg("param_last")
+    written = {a: v for a, v in holding.items() if first <= a <= last}
+    if not written:
+        return []
+    rows: list[tuple[str, str, str, bool]] = []
+    shown: set[int] = set()
+    names = {v: k.removesuffix("_reg") for k, v in spec.protocol.items() if k in (
+        "execute_reg", "command_reg")}  # fmt: skip
+
+    if execute in written:
+        value = s16(written[execute])
+        rows.append((f"R{execute}", names[execute], spec.label("execute", value),
+                     execute not in unconfirmed))  # fmt: skip
+        shown.add(execute)
+    decoded = decode_command(written, spec)
+    if command in written:
+        text = f"{decoded.name} ({decoded.code})" if decoded.code is not None else decoded.name
+        rows.append((f"R{command}", names[command], text, command not in unconfirmed))
+        shown.add(command)
+    fields = []
+    cmd = spec.commands.get(decoded.code) if decoded.code is not None else None
+    if cmd is not None and cmd.params.select is not None:
+        fields.append(cmd.params.select)
+    if decoded.layout is not None:
+        fields.extend(decoded.layout.fields)
+    for f in fields:
+        raw = f.raw(written.get)
+        if raw is None or f.reg in shown:
+            continue
+        if f.enum is not None:
+            text = spec.label(f.enum, raw)
+        elif f.scale != 1 and f.decimals and abs(f.scale - 10.0**-f.decimals) < 1e-12:
+            text = format_scaled(raw, f.decimals)
+        else:
+            text = f"{f.value(raw):g}"
+        if f.unit and "|" not in f.unit:
+            text += f" {f.unit}" if f.unit != "%" else "%"
+        rows.append((f.where(), f.label or f.name, text, not (set(f.regs) & unconfirmed)))
+        shown.update(f.regs)
+    for address in sorted(set(written) - shown):
+        rows.append((f"R{address}", "", str(written[address]), address not in unconfirmed))
+    return rows
