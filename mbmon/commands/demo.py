@@ -76,6 +76,8 @@ examples:
   mbmon demo --keep-running       afterwards, leave the sim and the proxy up for your own
                                   client (their addresses are printed); Ctrl-C ends it
   mbmon demo --fast               no pauses between steps (tests, CI)
+  mbmon demo --foxglove --keep-running   watch it live in Foxglove (ws://127.0.0.1:8765;
+                                  needs pip install 'mbmon[foxglove]')
 
 afterwards:
   mbmon replay {DEFAULT_LOG}                     the run again, line by line
@@ -94,7 +96,7 @@ See docs/demo.md."""
 
 def register(sub: Any) -> None:
     """Add the ``demo`` subparser to ``sub``."""
-    from mbmon.commands.common import add_live_options
+    from mbmon.commands.common import add_foxglove_option, add_live_options
 
     p = sub.add_parser(
         "demo",
@@ -124,8 +126,7 @@ def register(sub: Any) -> None:
         action="store_true",
         help="no pauses between the steps (for tests and CI; too fast to follow by eye)",
     )
-    # --foxglove (watch the run live in Foxglove) is added here by the lead with
-    # commands.common.add_foxglove_option(p); run() then opens it with open_foxglove.
+    add_foxglove_option(p)
     p.set_defaults(func=run, quiet=False, json=False, profile=["hrss"])
 
 
@@ -325,6 +326,7 @@ def run(args: argparse.Namespace) -> int:
         err,
         make_annotator,
         open_console,
+        open_foxglove,
         profile_sources,
     )
     from mbmon.commands.proxy import attach_engine
@@ -370,17 +372,25 @@ def run(args: argparse.Namespace) -> int:
         profile_specs=list(args.profile),
         timeout=pipe_timeout,
     )
+    feed = None
     try:
+        feed = open_foxglove(args, ctx)  # before any file: a missing SDK leaves nothing behind
         hub.add_listener(open_sink(str(log_path), ctx))  # the log first: all is logged
     except SinkError as exc:
         err(str(exc))
+        if feed is not None:
+            feed.close()
         hub.close()
         sim.stop()
         return EXIT_BAD_INPUT
-    console, monitor = open_console(args, view, title="mbmon demo")
+    except SystemExit:
+        sim.stop()
+        raise
+    if feed is not None:
+        hub.add_listener(feed)
+    console, monitor = open_console(args, view, title="mbmon demo", annotator=annotator)
     if console is not None:
         hub.add_listener(console)
-    # --foxglove: the lead adds the live Foxglove listener here (commands.common.open_foxglove)
     engine, thread, observer = attach_engine(hub, config, meter)
     try:
         proxy_host, proxy_port = thread.start()

@@ -467,3 +467,49 @@ def test_sniff_port_in_use_is_one_line_exit_1_and_no_log(tmp_path: Path) -> None
     assert proc.stderr.startswith(f"mbmon: --foxglove 127.0.0.1:{port}: cannot listen:")
     assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
     assert not log.exists()
+
+
+def test_demo_feeds_a_client_what_its_log_holds(tmp_path: Path) -> None:
+    """``demo --keep-running --foxglove 127.0.0.1:0``: a client that subscribes while
+    the demo keeps sim and proxy up sees a user's own read through the proxy, live,
+    as the same messages the demo's MCAP log holds for it."""
+    from pymodbus.client import ModbusTcpClient
+
+    log = tmp_path / "d.mcap"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mbmon", "demo", "--fast", "--plain", "--keep-running",
+         "--foxglove", "127.0.0.1:0", "-w", str(log)],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=_env(), cwd=tmp_path,
+    )  # fmt: skip
+    try:
+        url, err = _url_from(proc)
+        assert url.startswith("ws://127.0.0.1:")
+        client = Client(url)
+        client.read_advertised({"/modbus/monitor", "/hrss/state"})
+        client.subscribe(["/modbus/monitor"])
+        time.sleep(1.0)  # the subscription reaches the server before the read
+        import select
+
+        end = time.monotonic() + 60
+        while not (m := re.search(rb"proxy 127\.0\.0\.1:(\d+) -> robot", err)):
+            assert time.monotonic() < end and proc.poll() is None, err.decode()
+            if select.select([proc.stderr], [], [], 1.0)[0]:
+                err += os.read(proc.stderr.fileno(), 4096)  # type: ignore[union-attr]
+        with ModbusTcpClient("127.0.0.1", port=int(m.group(1)), timeout=5, retries=0) as user:
+            assert not user.read_input_registers(100, count=1, device_id=1).isError()
+        end = time.monotonic() + 10
+        while not any(b"04 02 00 5A" in p for _t, _lt, p in client.messages()):
+            assert time.monotonic() < end, "the user's read never reached the client"
+            time.sleep(0.05)
+        got = client.messages()
+        proc.send_signal(2)
+        proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0
+    lines = [json.loads(p)["message"] for _t, _lt, p in got]
+    assert any("Send to client" in ln and "04 02 00 5A" in ln for ln in lines)  # R100 = 90
+    logged = _log_messages(log, {"/modbus/monitor"})
+    assert got and all(m in logged for m in got)
