@@ -77,7 +77,12 @@ def _split_endpoint(text: str, what: str, default_host: str | None = None) -> tu
 
 def register(sub: Any) -> None:
     """Add the ``proxy`` subparser to ``sub``."""
-    from mbmon.commands.common import add_output_options, add_view_options
+    from mbmon.commands.common import (
+        add_live_options,
+        add_output_options,
+        add_view_options,
+        positive_int,
+    )
     from mbmon.commands.common import positive as _positive
 
     p = sub.add_parser(
@@ -94,9 +99,9 @@ def register(sub: Any) -> None:
     net = p.add_argument_group("network")
     net.add_argument(
         "--upstream",
-        required=True,
         metavar="HOST:PORT",
-        help="the Modbus/TCP server to forward to (the robot), e.g. 192.168.0.10:502",
+        help="the Modbus/TCP server to forward to (the robot), e.g. 192.168.0.10:502 "
+        "(or --upstream-serial)",
     )
     net.add_argument(
         "--listen",
@@ -120,6 +125,25 @@ def register(sub: Any) -> None:
         "servers that accept few connections); default: one upstream connection per "
         "client, transaction ids untouched",
     )
+    ser = p.add_argument_group("serial (RS485, Modbus RTU; docs/proxy.md)")
+    ser.add_argument(
+        "--upstream-serial",
+        metavar="PORT",
+        help="the upstream is an RTU slave on this serial port (TCP->RTU, or RTU<->RTU "
+        "with --listen-serial): one request at a time on the bus, clients served in turn",
+    )
+    ser.add_argument(
+        "--listen-serial",
+        metavar="PORT",
+        help="the client is an RTU master on this serial port; the proxy answers as its "
+        "slave (RTU->TCP, or RTU<->RTU with --upstream-serial); it gets silence, not "
+        "0x0A/0x0B, when the upstream cannot answer",
+    )
+    ser.add_argument(
+        "--baud", type=positive_int, default=115200, metavar="N", help="baud rate (115200)"
+    )
+    ser.add_argument("--parity", choices=("N", "E", "O"), default="N", help="parity (N)")
+    ser.add_argument("--stopbits", type=int, choices=(1, 2), default=1, help="stop bits (1)")
     guard = p.add_argument_group("guard")
     guard.add_argument(
         "--read-only",
@@ -156,19 +180,23 @@ def register(sub: Any) -> None:
         metavar="CIDR",
         help="accept clients only from these networks (repeatable; default: any)",
     )
+    add_live_options(p.add_argument_group("screen"))
     add_view_options(p)
     add_output_options(p)
-    p.add_argument(
-        "--plain",
-        action="store_true",
-        help="plain monitor lines (the console output of the proxy is always plain lines)",
-    )
     p.set_defaults(func=run, robot="upstream")
 
 
 def run(args: argparse.Namespace) -> int:
     """Start the engine, run the hub until Ctrl-C/SIGTERM, print the summary."""
-    from mbmon.commands.common import EXIT_BAD_INPUT, EXIT_OK, UsageError, make_annotator
+    from mbmon.commands.common import (
+        EXIT_BAD_INPUT,
+        EXIT_OK,
+        Figures,
+        UsageError,
+        make_annotator,
+        open_console,
+        profile_sources,
+    )
     from mbmon.format import View
     from mbmon.hub import Hub
     from mbmon.pipeline import Pipeline, PipelineConfig
@@ -182,9 +210,20 @@ def run(args: argparse.Namespace) -> int:
     )
     from mbmon.proxy.guard import ClientFilter, Guard, GuardSpecError
     from mbmon.sinks.base import SinkContext, SinkError, open_sink
-    from mbmon.sinks.console import ConsoleListener
 
-    up_host, up_port = _split_endpoint(args.upstream, "--upstream")
+    if (args.upstream is None) == (args.upstream_serial is None):
+        raise UsageError("give the upstream once: --upstream HOST:PORT or --upstream-serial PORT")
+    if args.listen is not None and args.listen_serial is not None:
+        raise UsageError("listen either on --listen ADDR:PORT or on --listen-serial PORT")
+    if args.allow_from and args.listen_serial is not None:
+        raise UsageError("--allow-from is for TCP clients, not --listen-serial")
+    if args.upstream is not None:
+        up_host, up_port = _split_endpoint(args.upstream, "--upstream")
+        upstream = endpoint(up_host, up_port)
+    else:
+        up_host, up_port = "", 0
+        upstream = args.upstream_serial
+    serial = args.upstream_serial is not None or args.listen_serial is not None
     if args.listen is None:
         listen_host, listen_port = DEFAULT_LISTEN
     else:
@@ -196,7 +235,6 @@ def run(args: argparse.Namespace) -> int:
         clients = ClientFilter(args.allow_from)
     except GuardSpecError as exc:
         raise UsageError(str(exc)) from None
-    upstream = endpoint(up_host, up_port)
     robot = None if args.robot in ("none", "") else args.robot
     if robot == "upstream":
         robot = upstream
@@ -205,31 +243,42 @@ def run(args: argparse.Namespace) -> int:
     # the proxy answers 0x0B at --timeout itself: the pipeline waits a little
     # longer, so that answer pairs with its request instead of racing it
     pipe_timeout = args.timeout + 1.0
-    pipeline = Pipeline(annotator, PipelineConfig(timeout=pipe_timeout))
+    baud = args.baud if serial else None
+    pipeline = Pipeline(annotator, PipelineConfig(timeout=pipe_timeout, baudrate=baud))
     config = ProxyConfig(
         upstream_host=up_host,
         upstream_port=up_port,
         listen_host=listen_host,
         listen_port=listen_port,
         timeout=args.timeout,
-        share_upstream=args.share_upstream,
+        share_upstream=args.share_upstream or args.upstream_serial is not None,
+        upstream_name=args.upstream_serial,
         guard=guard,
         clients=clients,
     )
     ctx = SinkContext(
         view=view,
         command_line=["mbmon", *sys.argv[1:]],
-        source=f"proxy {endpoint(listen_host, listen_port)} -> {upstream}",
-        profiles=_profile_sources(annotator),
+        source=f"proxy {args.listen_serial or endpoint(listen_host, listen_port)} -> {upstream}",
+        profiles=profile_sources(annotator),
         profile_specs=list(args.profile),
         timeout=pipe_timeout,
+        baud=baud,
     )
+    factories: dict[str, Any] = {}
+    if serial:
+        from mbmon.proxy.serial import rtu_front, rtu_upstream
+        from mbmon.sources.serial import SerialSettings
+
+        settings = SerialSettings(args.baud, args.parity, args.stopbits)
+        if args.upstream_serial is not None:
+            factories["upstream"] = rtu_upstream(args.upstream_serial, settings)
+        if args.listen_serial is not None:
+            factories["front"] = rtu_front(args.listen_serial, settings)
     hub = Hub(pipeline)
     meter = BacklogMeter()
     hub.add_listener(meter)
     try:
-        if not args.quiet:
-            hub.add_listener(ConsoleListener(sys.stdout, view, as_json=args.json, live=True))
         for target in args.write:
             hub.add_listener(open_sink(target, ctx))
     except SinkError as exc:
@@ -237,7 +286,7 @@ def run(args: argparse.Namespace) -> int:
         hub.close()
         return EXIT_BAD_INPUT
     observer = Observer(hub.put, hub.new_stream, meter=meter, max_backlog=config.max_backlog)
-    engine = ProxyEngine(config, observer, submit=hub.submit)
+    engine = ProxyEngine(config, observer, submit=hub.submit, **factories)
     # The engine's thread must get the GIL back quickly when a packet arrives while
     # the hub's thread decodes and writes: the default 5 ms switch interval would add
     # up to 5 ms to a forwarded answer whenever the hub is busy.
@@ -246,24 +295,39 @@ def run(args: argparse.Namespace) -> int:
     try:
         address = thread.start()
     except OSError as exc:
-        print(
-            f"mbmon: cannot listen on {endpoint(listen_host, listen_port)}: {exc.strerror or exc}",
-            file=sys.stderr,
-        )
+        where = f"cannot listen on {endpoint(listen_host, listen_port)}: "
+        if serial:
+            from mbmon.proxy.serial import SerialOpenError
+
+            if isinstance(exc, SerialOpenError):
+                where = ""
+        print(f"mbmon: {where}{exc.strerror or exc}", file=sys.stderr)
         hub.run(until_idle=True)
         hub.close()
         return EXIT_BAD_INPUT
-    mode = (
-        "shared upstream connection"
-        if args.share_upstream
-        else "one upstream connection per client"
-    )
+    if args.upstream_serial is not None:
+        mode = f"RTU slave bus {settings.text()}, one request at a time"
+    elif args.share_upstream:
+        mode = "shared upstream connection"
+    else:
+        mode = "one upstream connection per client"
+    if args.listen_serial is not None:
+        where = f"{args.listen_serial} (RTU master side, {settings.text()})"
+    else:
+        where = endpoint(*address)
     print(
-        f"mbmon proxy: listening on {endpoint(*address)} -> upstream {upstream} "
+        f"mbmon proxy: listening on {where} -> upstream {upstream} "
         f"({mode}, timeout {args.timeout:g} s, guard {guard.describe()})",
         file=sys.stderr,
         flush=True,
     )
+    # the screen last: the logs are open, and the start-up line is on the terminal
+    # before the live monitor takes it
+    console, monitor = open_console(args, view, title=f"mbmon proxy -> {upstream}")
+    if console is not None:
+        hub.add_listener(console)
+    if monitor is not None:
+        hub.add_listener(Figures(monitor, engine.figures))
 
     signals = [0]
 
@@ -290,9 +354,3 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_BAD_INPUT
     return EXIT_OK
 
-
-def _profile_sources(annotator: Any) -> list[tuple[str, str]]:
-    from mbmon.commands.common import profile_sources as sources
-
-    result: list[tuple[str, str]] = sources(annotator)
-    return result
