@@ -383,7 +383,12 @@ class RtuLink:
         if job is None:
             return
         self.current = job
-        self.late = None
+        if self.late is not None:
+            # the bytes of an answer given up on are no part of the next one; an answer
+            # later still cannot be told from the next one's (RTU has no transaction
+            # id): --timeout must be longer than the slowest slave's answer
+            self.decoder.reset(time.time())
+            self.late = None
         self.line.write(job.adu, self._sent)
 
     def _sent(self, adu: bytes, ts: float) -> None:
