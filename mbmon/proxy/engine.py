@@ -82,6 +82,9 @@ GATEWAY_TARGET_FAILED = 0x0B
 #: without a copy: bounds the queue's memory (about 250 bytes an item).
 MAX_BACKLOG = 50_000
 
+#: Seconds observations wait to go to the hub together (:attr:`ProxyConfig.handover`).
+HANDOVER = 0.002
+
 #: How many answered-with-0x0B (or orphaned) upstream transaction ids are remembered,
 #: so that their late answers are recognised and dropped.
 LATE_MEMORY = 4096
@@ -115,6 +118,11 @@ class ProxyConfig:
     backoff_min: float = 0.05
     backoff_max: float = 1.0
     max_backlog: int = MAX_BACKLOG
+    #: how long observations wait to be handed to the hub in one batch (0: once per
+    #: loop iteration). 2 ms: the hub's thread wakes (and takes the GIL from the
+    #: forwarding) a few hundred times a second instead of twice per request, which
+    #: at one client cuts the hub's CPU per request by half or more (docs/performance.md)
+    handover: float = HANDOVER
     #: the upstream's name when it is not a TCP server (an RTU bus: its serial port)
     upstream_name: str | None = None
 
@@ -195,10 +203,11 @@ class Observer:
     Chunks are skipped (and counted) while the hub is more than ``max_backlog``
     items behind; events always go through (they are few).
 
-    Once :meth:`bind` gives it the loop's ``call_soon`` and a ``submit``
-    (``hub.submit``), items wait in a batch that is handed over once per loop
-    iteration, after that iteration's forwarding: one queue operation and one
-    wake-up of the hub's thread per batch instead of per chunk.
+    Once :meth:`bind` gives it a scheduler (the loop's ``call_soon``, or a
+    ``call_later`` of :attr:`ProxyConfig.handover`) and a ``submit``
+    (``hub.submit``), items wait in a batch that is handed over after the
+    forwarding that made them: one queue operation and one wake-up of the hub's
+    thread per batch instead of per chunk.
     """
 
     def __init__(
@@ -227,8 +236,9 @@ class Observer:
         call_soon: Callable[[Callable[[], None]], Any],
         submit: Callable[[Callable[[], list[Chunk | Event]]], None],
     ) -> None:
-        """Batch items per loop iteration (``loop.call_soon``) and hand them over with
-        ``submit`` (in the loop's thread only)."""
+        """Batch items until ``call_soon(flush)`` runs (``loop.call_soon``: this loop
+        iteration; a ``call_later``: after a delay) and hand them over with ``submit``
+        (in the loop's thread only)."""
         self._call_soon = call_soon
         self._submit = submit
 
@@ -974,7 +984,12 @@ class ProxyEngine:
         self.loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
         if self._submit is not None:
-            self.observer.bind(self.loop.call_soon, self._submit)
+            loop = self.loop
+            delay = self.config.handover
+            if delay > 0:
+                self.observer.bind(lambda fn: loop.call_later(delay, fn), self._submit)
+            else:
+                self.observer.bind(loop.call_soon, self._submit)
         self.loop.set_exception_handler(self._loop_error)
         cfg = self.config
         if self._upstream_factory is not None:
