@@ -923,13 +923,16 @@ class ProxyEngine:
     def figures(self) -> dict[str, Any]:
         """The proxy's own figures for the live monitor's header (read from any thread)."""
         stats = self.stats
-        return {
+        figures: dict[str, Any] = {
             "clients": len(self.clients),
             "upstream": self.upstream_state,
             "guard refusals": stats.guard_refusals,
             "0x0A answers": stats.exceptions_0a,
             "0x0B answers": stats.exceptions_0b,
         }
+        if self.front is not None:  # an RTU master gets silence instead of 0x0A/0x0B
+            figures["left silent"] = stats.unanswered
+        return figures
 
     def arm(self, entry: _Pending) -> None:
         """Start ``entry``'s timeout: one loop timer serves every request, since all
