@@ -1,6 +1,7 @@
-"""``mbmon proxy``: an active Modbus/TCP proxy between a client (PLC) and a server
-(the robot) that forwards every byte, answers like a gateway when the robot does
-not, can refuse writes, and shows and logs what passes through the one hub.
+"""``mbmon proxy``: an active Modbus proxy between a client (PLC) and a server (the
+robot) that forwards every request and answer, answers like a gateway when the
+robot does not, can refuse writes, and shows and logs what passes through the one
+hub. Either side may be an RS485 port (Modbus RTU): :mod:`mbmon.proxy.serial`.
 
 Wiring only. The :class:`~mbmon.proxy.engine.ProxyEngine` runs on its own asyncio
 loop in a thread (:class:`~mbmon.proxy.engine.ProxyThread`) and hands copies of
@@ -29,11 +30,17 @@ examples:
       refuse every write except R200..R251 (exception 01), audit refusals in the log
   mbmon proxy --upstream robot:502 --share-upstream --allow-from 10.0.0.0/24
       many clients over one robot connection; only clients of 10.0.0.0/24
+  mbmon proxy --upstream-serial /dev/ttyUSB0 --baud 19200 --parity E
+      Modbus/TCP clients reach an RTU slave on RS485 (one request at a time)
+  mbmon proxy --listen-serial /dev/ttyUSB0 --upstream-serial /dev/ttyUSB1 -w rs485.mcap
+      in the middle of an RS485 link (master on USB0, slave on USB1)
 
 listening: 127.0.0.1:1502 by default. Other interfaces and port 502 are used only
 when --listen names them explicitly (e.g. --listen 0.0.0.0:502).
 gateway rules: upstream down -> exception 0x0A; no answer in --timeout -> 0x0B;
-the client stays connected; late answers are dropped and logged (docs/proxy.md).
+the client stays connected; late answers are dropped and logged; an RTU master
+(--listen-serial) gets silence instead, as from an RTU slave (docs/proxy.md).
+screen: the live monitor on a terminal; --plain, --json or a pipe: one line per record.
 write specs: hr:100  hr:200-251  coil:0-7  unit:2  unit:2,hr:100-110 ; --deny-write
 always wins; with --read-only or any --allow-write only allowed writes pass.
 exit status: 0 ok, 1 cannot listen or an output failed, 2 usage
