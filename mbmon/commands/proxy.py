@@ -312,6 +312,17 @@ def run(args: argparse.Namespace) -> int:
         hub.run(until_idle=True)
         hub.close()
         return EXIT_BAD_INPUT
+    # Ctrl-C and SIGTERM stop the engine from now on: before the start-up line, which
+    # is what a supervisor (or a test) waits for before it may signal
+    signals = [0]
+
+    def _stop(signum: int, frame: object) -> None:
+        signals[0] += 1
+        thread.stop()  # the engine's last events reach the hub, then it stops the hub
+        if signals[0] > 1:
+            hub.stop()  # asked twice: do not wait for the engine
+
+    old = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)}
     if args.upstream_serial is not None:
         mode = f"RTU slave bus {settings.text()}, one request at a time"
     elif args.share_upstream:
@@ -336,15 +347,6 @@ def run(args: argparse.Namespace) -> int:
     if monitor is not None:
         hub.add_listener(Figures(monitor, engine.figures))
 
-    signals = [0]
-
-    def _stop(signum: int, frame: object) -> None:
-        signals[0] += 1
-        thread.stop()  # the engine's last events reach the hub, then it stops the hub
-        if signals[0] > 1:
-            hub.stop()  # asked twice: do not wait for the engine
-
-    old = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         try:
             hub.run()
