@@ -320,9 +320,10 @@ def _rss_kib(pid: int) -> int:
 
 
 def soak(args: argparse.Namespace) -> None:
-    """8 clients through ``mbmon proxy -w x.mcap`` for ``--soak`` seconds; RSS samples."""
+    """8 clients through ``mbmon proxy -w x.mcap`` (or ``--soak-target``) for ``--soak``
+    seconds; RSS samples."""
     with tempfile.TemporaryDirectory() as tmp, upstream() as up:
-        with target("mbmon -w mcap", up, Path(tmp), None) as (port, pid):
+        with target(args.soak_target, up, Path(tmp), None) as (port, pid):
             assert pid is not None
             ctx = mp.get_context("fork")
             queue = ctx.Queue()
@@ -343,8 +344,11 @@ def soak(args: argparse.Namespace) -> None:
     first = statistics.mean(s[1] for s in samples[1:4]) if len(samples) > 4 else samples[0][1]
     last = statistics.mean(s[1] for s in samples[-3:])
     growth = (last - first) / 1024
-    print(f"{total} requests in {args.soak:g} s ({total / args.soak:.0f} req/s); "
-          f"RSS {first / 1024:.1f} -> {last / 1024:.1f} MiB ({growth:+.1f} MiB)")  # fmt: skip
+    load = os.getloadavg()
+    rate = total / args.soak
+    print(f"{args.soak_target}: {total} requests in {args.soak:g} s ({rate:.0f} req/s); "
+          f"RSS {first / 1024:.1f} -> {last / 1024:.1f} MiB ({growth:+.1f} MiB); "
+          f"load {load[0]:.1f} {load[1]:.1f} {load[2]:.1f}")  # fmt: skip
 
 
 def main() -> None:
@@ -353,6 +357,12 @@ def main() -> None:
     parser.add_argument("--clients", type=int, nargs="+", default=[1, 8])
     parser.add_argument("--modbus-proxy", metavar="DIR", help="directory holding modbus_proxy.py")
     parser.add_argument("--soak", type=float, metavar="S", help="memory soak of S seconds instead")
+    parser.add_argument(
+        "--soak-target",
+        choices=("mbmon", "mbmon -w mcap"),
+        default="mbmon -w mcap",
+        help="what the soak runs (default: mbmon -w mcap)",
+    )
     args = parser.parse_args()
     if args.soak:
         soak(args)

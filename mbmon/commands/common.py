@@ -284,6 +284,23 @@ def wants_state_panel(profile_specs: Iterable[str]) -> bool:
     return any("hrss" in spec for spec in profile_specs)
 
 
+class Figures:
+    """A hub listener that feeds a command's own figures (kernel drops, bus health,
+    proxy clients and refusals) to the live monitor on every tick.
+
+    ``source()`` returns the figures (name -> value); it runs in the hub's thread.
+    """
+
+    name = "figures"
+
+    def __init__(self, monitor: Any, source: Any) -> None:
+        self.monitor = monitor
+        self.source = source
+
+    def on_tick(self, now: float) -> None:
+        self.monitor.set_figures(self.source())
+
+
 def open_console(
     args: argparse.Namespace, view: Any, *, title: str, annotator: Any = None
 ) -> tuple[Any, Any]:

@@ -1,6 +1,7 @@
-"""``mbmon proxy``: an active Modbus/TCP proxy between a client (PLC) and a server
-(the robot) that forwards every byte, answers like a gateway when the robot does
-not, can refuse writes, and shows and logs what passes through the one hub.
+"""``mbmon proxy``: an active Modbus proxy between a client (PLC) and a server (the
+robot) that forwards every request and answer, answers like a gateway when the
+robot does not, can refuse writes, and shows and logs what passes through the one
+hub. Either side may be an RS485 port (Modbus RTU): :mod:`mbmon.proxy.serial`.
 
 Wiring only. The :class:`~mbmon.proxy.engine.ProxyEngine` runs on its own asyncio
 loop in a thread (:class:`~mbmon.proxy.engine.ProxyThread`) and hands copies of
@@ -29,11 +30,17 @@ examples:
       refuse every write except R200..R251 (exception 01), audit refusals in the log
   mbmon proxy --upstream robot:502 --share-upstream --allow-from 10.0.0.0/24
       many clients over one robot connection; only clients of 10.0.0.0/24
+  mbmon proxy --upstream-serial /dev/ttyUSB0 --baud 19200 --parity E
+      Modbus/TCP clients reach an RTU slave on RS485 (one request at a time)
+  mbmon proxy --listen-serial /dev/ttyUSB0 --upstream-serial /dev/ttyUSB1 -w rs485.mcap
+      in the middle of an RS485 link (master on USB0, slave on USB1)
 
 listening: 127.0.0.1:1502 by default. Other interfaces and port 502 are used only
 when --listen names them explicitly (e.g. --listen 0.0.0.0:502).
 gateway rules: upstream down -> exception 0x0A; no answer in --timeout -> 0x0B;
-the client stays connected; late answers are dropped and logged (docs/proxy.md).
+the client stays connected; late answers are dropped and logged; an RTU master
+(--listen-serial) gets silence instead, as from an RTU slave (docs/proxy.md).
+screen: the live monitor on a terminal; --plain, --json or a pipe: one line per record.
 write specs: hr:100  hr:200-251  coil:0-7  unit:2  unit:2,hr:100-110 ; --deny-write
 always wins; with --read-only or any --allow-write only allowed writes pass.
 exit status: 0 ok, 1 cannot listen or an output failed, 2 usage
@@ -77,7 +84,13 @@ def _split_endpoint(text: str, what: str, default_host: str | None = None) -> tu
 
 def register(sub: Any) -> None:
     """Add the ``proxy`` subparser to ``sub``."""
-    from mbmon.commands.common import add_output_options, add_view_options
+    from mbmon.commands.common import (
+        add_foxglove_option,
+        add_live_options,
+        add_output_options,
+        add_view_options,
+        positive_int,
+    )
     from mbmon.commands.common import positive as _positive
 
     p = sub.add_parser(
@@ -94,9 +107,9 @@ def register(sub: Any) -> None:
     net = p.add_argument_group("network")
     net.add_argument(
         "--upstream",
-        required=True,
         metavar="HOST:PORT",
-        help="the Modbus/TCP server to forward to (the robot), e.g. 192.168.0.10:502",
+        help="the Modbus/TCP server to forward to (the robot), e.g. 192.168.0.10:502 "
+        "(or --upstream-serial)",
     )
     net.add_argument(
         "--listen",
@@ -120,6 +133,25 @@ def register(sub: Any) -> None:
         "servers that accept few connections); default: one upstream connection per "
         "client, transaction ids untouched",
     )
+    ser = p.add_argument_group("serial (RS485, Modbus RTU; docs/proxy.md)")
+    ser.add_argument(
+        "--upstream-serial",
+        metavar="PORT",
+        help="the upstream is an RTU slave on this serial port (TCP->RTU, or RTU<->RTU "
+        "with --listen-serial): one request at a time on the bus, clients served in turn",
+    )
+    ser.add_argument(
+        "--listen-serial",
+        metavar="PORT",
+        help="the client is an RTU master on this serial port; the proxy answers as its "
+        "slave (RTU->TCP, or RTU<->RTU with --upstream-serial); it gets silence, not "
+        "0x0A/0x0B, when the upstream cannot answer",
+    )
+    ser.add_argument(
+        "--baud", type=positive_int, default=115200, metavar="N", help="baud rate (115200)"
+    )
+    ser.add_argument("--parity", choices=("N", "E", "O"), default="N", help="parity (N)")
+    ser.add_argument("--stopbits", type=int, choices=(1, 2), default=1, help="stop bits (1)")
     guard = p.add_argument_group("guard")
     guard.add_argument(
         "--read-only",
@@ -156,28 +188,46 @@ def register(sub: Any) -> None:
         metavar="CIDR",
         help="accept clients only from these networks (repeatable; default: any)",
     )
+    screen = p.add_argument_group("screen")
+    add_live_options(screen)
+    add_foxglove_option(screen)
     add_view_options(p)
     add_output_options(p)
-    p.add_argument(
-        "--plain",
-        action="store_true",
-        help="plain monitor lines (the console output of the proxy is always plain lines)",
-    )
     p.set_defaults(func=run, robot="upstream")
 
 
 def run(args: argparse.Namespace) -> int:
     """Start the engine, run the hub until Ctrl-C/SIGTERM, print the summary."""
-    from mbmon.commands.common import EXIT_BAD_INPUT, EXIT_OK, UsageError, make_annotator
+    from mbmon.commands.common import (
+        EXIT_BAD_INPUT,
+        EXIT_OK,
+        Figures,
+        UsageError,
+        make_annotator,
+        open_console,
+        open_foxglove,
+        profile_sources,
+    )
     from mbmon.format import View
     from mbmon.hub import Hub
     from mbmon.pipeline import Pipeline, PipelineConfig
     from mbmon.proxy.engine import BacklogMeter, ProxyConfig, endpoint
     from mbmon.proxy.guard import ClientFilter, Guard, GuardSpecError
     from mbmon.sinks.base import SinkContext, SinkError, open_sink
-    from mbmon.sinks.console import ConsoleListener
 
-    up_host, up_port = _split_endpoint(args.upstream, "--upstream")
+    if (args.upstream is None) == (args.upstream_serial is None):
+        raise UsageError("give the upstream once: --upstream HOST:PORT or --upstream-serial PORT")
+    if args.listen is not None and args.listen_serial is not None:
+        raise UsageError("listen either on --listen ADDR:PORT or on --listen-serial PORT")
+    if args.allow_from and args.listen_serial is not None:
+        raise UsageError("--allow-from is for TCP clients, not --listen-serial")
+    if args.upstream is not None:
+        up_host, up_port = _split_endpoint(args.upstream, "--upstream")
+        upstream = endpoint(up_host, up_port)
+    else:
+        up_host, up_port = "", 0
+        upstream = args.upstream_serial
+    serial = args.upstream_serial is not None or args.listen_serial is not None
     if args.listen is None:
         listen_host, listen_port = DEFAULT_LISTEN
     else:
@@ -189,7 +239,6 @@ def run(args: argparse.Namespace) -> int:
         clients = ClientFilter(args.allow_from)
     except GuardSpecError as exc:
         raise UsageError(str(exc)) from None
-    upstream = endpoint(up_host, up_port)
     robot = None if args.robot in ("none", "") else args.robot
     if robot == "upstream":
         robot = upstream
@@ -198,60 +247,67 @@ def run(args: argparse.Namespace) -> int:
     # the proxy answers 0x0B at --timeout itself: the pipeline waits a little
     # longer, so that answer pairs with its request instead of racing it
     pipe_timeout = args.timeout + 1.0
-    pipeline = Pipeline(annotator, PipelineConfig(timeout=pipe_timeout))
+    baud = args.baud if serial else None
+    pipeline = Pipeline(annotator, PipelineConfig(timeout=pipe_timeout, baudrate=baud))
     config = ProxyConfig(
         upstream_host=up_host,
         upstream_port=up_port,
         listen_host=listen_host,
         listen_port=listen_port,
         timeout=args.timeout,
-        share_upstream=args.share_upstream,
+        share_upstream=args.share_upstream or args.upstream_serial is not None,
+        upstream_name=args.upstream_serial,
         guard=guard,
         clients=clients,
     )
     ctx = SinkContext(
         view=view,
         command_line=["mbmon", *sys.argv[1:]],
-        source=f"proxy {endpoint(listen_host, listen_port)} -> {upstream}",
-        profiles=_profile_sources(annotator),
+        source=f"proxy {args.listen_serial or endpoint(listen_host, listen_port)} -> {upstream}",
+        profiles=profile_sources(annotator),
         profile_specs=list(args.profile),
         timeout=pipe_timeout,
+        baud=baud,
     )
+    factories: dict[str, Any] = {}
+    if serial:
+        from mbmon.proxy.serial import rtu_front, rtu_upstream
+        from mbmon.sources.serial import SerialSettings
+
+        settings = SerialSettings(args.baud, args.parity, args.stopbits)
+        if args.upstream_serial is not None:
+            factories["upstream"] = rtu_upstream(args.upstream_serial, settings)
+        if args.listen_serial is not None:
+            factories["front"] = rtu_front(args.listen_serial, settings)
     hub = Hub(pipeline)
     meter = BacklogMeter()
     hub.add_listener(meter)
     try:
-        if not args.quiet:
-            hub.add_listener(ConsoleListener(sys.stdout, view, as_json=args.json, live=True))
+        feed = open_foxglove(args, ctx)  # before any file: a missing SDK leaves nothing behind
+        if feed is not None:
+            hub.add_listener(feed)
         for target in args.write:
             hub.add_listener(open_sink(target, ctx))
     except SinkError as exc:
         print(f"mbmon: {exc}", file=sys.stderr)
         hub.close()
         return EXIT_BAD_INPUT
-    engine, thread, observer = attach_engine(hub, config, meter)
+    engine, thread, observer = attach_engine(hub, config, meter, **factories)
     try:
         address = thread.start()
     except OSError as exc:
-        print(
-            f"mbmon: cannot listen on {endpoint(listen_host, listen_port)}: {exc.strerror or exc}",
-            file=sys.stderr,
-        )
+        where = f"cannot listen on {endpoint(listen_host, listen_port)}: "
+        if serial:
+            from mbmon.proxy.serial import SerialOpenError
+
+            if isinstance(exc, SerialOpenError):
+                where = ""
+        print(f"mbmon: {where}{exc.strerror or exc}", file=sys.stderr)
         hub.run(until_idle=True)
         hub.close()
         return EXIT_BAD_INPUT
-    mode = (
-        "shared upstream connection"
-        if args.share_upstream
-        else "one upstream connection per client"
-    )
-    print(
-        f"mbmon proxy: listening on {endpoint(*address)} -> upstream {upstream} "
-        f"({mode}, timeout {args.timeout:g} s, guard {guard.describe()})",
-        file=sys.stderr,
-        flush=True,
-    )
-
+    # Ctrl-C and SIGTERM stop the engine from now on: before the start-up line, which
+    # is what a supervisor (or a test) waits for before it may signal
     signals = [0]
 
     def _stop(signum: int, frame: object) -> None:
@@ -261,6 +317,32 @@ def run(args: argparse.Namespace) -> int:
             hub.stop()  # asked twice: do not wait for the engine
 
     old = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    if args.upstream_serial is not None:
+        mode = f"RTU slave bus {settings.text()}, one request at a time"
+    elif args.share_upstream:
+        mode = "shared upstream connection"
+    else:
+        mode = "one upstream connection per client"
+    if args.listen_serial is not None:
+        where = f"{args.listen_serial} (RTU master side, {settings.text()})"
+    else:
+        where = endpoint(*address)
+    print(
+        f"mbmon proxy: listening on {where} -> upstream {upstream} "
+        f"({mode}, timeout {args.timeout:g} s, guard {guard.describe()})",
+        file=sys.stderr,
+        flush=True,
+    )
+    # the screen last: the logs are open, and the start-up line is on the terminal
+    # before the live monitor takes it
+    console, monitor = open_console(
+        args, view, title=f"mbmon proxy -> {upstream}", annotator=annotator
+    )
+    if console is not None:
+        hub.add_listener(console)
+    if monitor is not None:
+        hub.add_listener(Figures(monitor, engine.figures))
+
     try:
         try:
             hub.run()
@@ -278,7 +360,9 @@ def run(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def attach_engine(hub: Any, config: Any, meter: Any) -> tuple[Any, Any, Any]:
+def attach_engine(
+    hub: Any, config: Any, meter: Any, **factories: Any
+) -> tuple[Any, Any, Any]:
     """A :class:`~mbmon.proxy.engine.ProxyEngine` for ``config`` wired to ``hub``: the
     one way a command runs a proxy (``proxy``, ``demo``).
 
@@ -286,12 +370,13 @@ def attach_engine(hub: Any, config: Any, meter: Any) -> tuple[Any, Any, Any]:
     :class:`~mbmon.proxy.engine.BacklogMeter` the caller has added to the hub,
     bounds the backlog), and its :class:`~mbmon.proxy.engine.ProxyThread` stops the
     hub when the engine's loop ends. Returns ``(engine, thread, observer)``;
-    ``thread.start()`` binds the listening socket.
+    ``thread.start()`` binds the listening socket. ``factories`` (``upstream=``,
+    ``front=``) plug in the serial variants (:mod:`mbmon.proxy.serial`).
     """
     from mbmon.proxy.engine import Observer, ProxyEngine, ProxyThread
 
     observer = Observer(hub.put, hub.new_stream, meter=meter, max_backlog=config.max_backlog)
-    engine = ProxyEngine(config, observer, submit=hub.submit)
+    engine = ProxyEngine(config, observer, submit=hub.submit, **factories)
     # The engine's thread must get the GIL back quickly when a packet arrives while
     # the hub's thread decodes and writes: the default 5 ms switch interval would add
     # up to 5 ms to a forwarded answer whenever the hub is busy.
@@ -299,9 +384,3 @@ def attach_engine(hub: Any, config: Any, meter: Any) -> tuple[Any, Any, Any]:
     thread = ProxyThread(engine, on_exit=hub.stop)
     return engine, thread, observer
 
-
-def _profile_sources(annotator: Any) -> list[tuple[str, str]]:
-    from mbmon.commands.common import profile_sources as sources
-
-    result: list[tuple[str, str]] = sources(annotator)
-    return result

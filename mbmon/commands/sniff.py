@@ -184,19 +184,6 @@ class _Limited:
             fn()
 
 
-class _Figures:
-    """Feeds a command's own figures (kernel drops, bus health) to the live monitor."""
-
-    name = "figures"
-
-    def __init__(self, monitor: Any, source: Any) -> None:
-        self.monitor = monitor
-        self.source = source
-
-    def on_tick(self, now: float) -> None:
-        self.monitor.set_figures(self.source())
-
-
 # --------------------------------------------------------------------------- run
 
 
@@ -204,6 +191,7 @@ def run_sniff(args: argparse.Namespace) -> int:
     from mbmon.commands.common import (
         EXIT_BAD_INPUT,
         EXIT_OK,
+        Figures,
         UsageError,
         make_annotator,
         open_console,
@@ -391,7 +379,7 @@ def run_sniff(args: argparse.Namespace) -> int:
     if health is not None:
         hub.add_listener(health)
     if monitor is not None:
-        hub.add_listener(_Figures(monitor, figures))
+        hub.add_listener(Figures(monitor, figures))
 
     # ---- run
     started = time.time()

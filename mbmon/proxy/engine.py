@@ -82,6 +82,9 @@ GATEWAY_TARGET_FAILED = 0x0B
 #: without a copy: bounds the queue's memory (about 250 bytes an item).
 MAX_BACKLOG = 50_000
 
+#: Seconds observations wait to go to the hub together (:attr:`ProxyConfig.handover`).
+HANDOVER = 0.002
+
 #: How many answered-with-0x0B (or orphaned) upstream transaction ids are remembered,
 #: so that their late answers are recognised and dropped.
 LATE_MEMORY = 4096
@@ -115,9 +118,18 @@ class ProxyConfig:
     backoff_min: float = 0.05
     backoff_max: float = 1.0
     max_backlog: int = MAX_BACKLOG
+    #: how long observations wait to be handed to the hub in one batch (0: once per
+    #: loop iteration). 2 ms: the hub's thread wakes (and takes the GIL from the
+    #: forwarding) a few hundred times a second instead of twice per request, which
+    #: at one client cuts the hub's CPU per request by half or more (docs/performance.md)
+    handover: float = HANDOVER
+    #: the upstream's name when it is not a TCP server (an RTU bus: its serial port)
+    upstream_name: str | None = None
 
     @property
     def upstream(self) -> str:
+        if self.upstream_name is not None:
+            return self.upstream_name
         return endpoint(self.upstream_host, self.upstream_port)
 
 
@@ -134,6 +146,7 @@ class ProxyStats:
     exceptions_0b: int = 0
     guard_refusals: int = 0
     late_dropped: int = 0
+    unanswered: int = 0  # RTU master requests left silent (gateway 0x0A/0x0B)
     unmatched_dropped: int = 0
     upstream_connects: int = 0
     upstream_failures: int = 0
@@ -160,6 +173,10 @@ class ProxyStats:
             f"bytes client->server {self.bytes_from_clients}, "
             f"server->client {self.bytes_to_clients}",
         ]
+        if self.unanswered:
+            lines.append(
+                f"RTU master requests left unanswered (silence for 0x0A/0x0B) {self.unanswered}"
+            )
         if self.not_observed:
             lines.append(f"chunks forwarded but not observed (monitor behind) {self.not_observed}")
         return "\n".join(lines)
@@ -186,10 +203,11 @@ class Observer:
     Chunks are skipped (and counted) while the hub is more than ``max_backlog``
     items behind; events always go through (they are few).
 
-    Once :meth:`bind` gives it the loop's ``call_soon`` and a ``submit``
-    (``hub.submit``), items wait in a batch that is handed over once per loop
-    iteration, after that iteration's forwarding: one queue operation and one
-    wake-up of the hub's thread per batch instead of per chunk.
+    Once :meth:`bind` gives it a scheduler (the loop's ``call_soon``, or a
+    ``call_later`` of :attr:`ProxyConfig.handover`) and a ``submit``
+    (``hub.submit``), items wait in a batch that is handed over after the
+    forwarding that made them: one queue operation and one wake-up of the hub's
+    thread per batch instead of per chunk.
     """
 
     def __init__(
@@ -218,8 +236,9 @@ class Observer:
         call_soon: Callable[[Callable[[], None]], Any],
         submit: Callable[[Callable[[], list[Chunk | Event]]], None],
     ) -> None:
-        """Batch items per loop iteration (``loop.call_soon``) and hand them over with
-        ``submit`` (in the loop's thread only)."""
+        """Batch items until ``call_soon(flush)`` runs (``loop.call_soon``: this loop
+        iteration; a ``call_later``: after a delay) and hand them over with ``submit``
+        (in the loop's thread only)."""
         self._call_soon = call_soon
         self._submit = submit
 
@@ -356,6 +375,7 @@ class _Link:
         self.decoder = MbapDecoder(self._stream(), _S2C)
         self.received = self.consumed = 0
         engine.stats.upstream_connects += 1
+        engine.upstream_state = "up"
         if self.failing:
             self.failing = False
             self._notice(f"upstream {cfg.upstream} is back", {"upstream": cfg.upstream})
@@ -384,6 +404,7 @@ class _Link:
             return
         self.state = "down"
         engine.stats.upstream_failures += 1
+        engine.upstream_state = f"unavailable ({why})"
         self.next_attempt = engine.loop.time() + self.backoff
         wait = self.backoff
         self.backoff = min(self.backoff * 2, cfg.backoff_max)
@@ -571,6 +592,8 @@ class _Link:
         self.next_attempt = 0.0  # a lost connection is tried again at once
         how = "rst" if exc is not None or self.resetting else "fin"
         by = "proxy" if self.resetting else "upstream"
+        if by == "upstream":
+            self.engine.upstream_state = f"lost ({how.upper()})"
         self.resetting = False
         in_flight = [e for lst in self.pending.values() for e in lst]
         self.pending = {}
@@ -617,6 +640,11 @@ class _Link:
 
 class _Client(asyncio.Protocol):
     """One client connection: frames its requests, guards, forwards, answers."""
+
+    #: A client the gateway's own 0x0A/0x0B are not sent to (an RTU master, that gets
+    #: silence as from an RTU slave): :meth:`ProxyEngine.answer_exception` calls
+    #: :meth:`unanswered` instead.
+    silent = False
 
     def __init__(self, engine: ProxyEngine) -> None:
         self.engine = engine
@@ -716,18 +744,22 @@ class _Client(asyncio.Protocol):
         engine = self.engine
         stream = self.stream
         assert stream is not None
-        observer = engine.observer
         raw = frames[0].raw if len(frames) == 1 else b"".join(f.raw for f in frames)
-        observer.chunk(stream, _C2S, raw, ts)
+        engine.observer.chunk(stream, _C2S, raw, ts)
         engine.stats.requests += len(frames)
-        guard = engine.config.guard
+        self.forward(frames, ts)
+
+    def forward(self, frames: list[Frame], ts: float, guarded: bool = False) -> None:
+        """Guard (unless ``guarded`` already), then send ``frames`` (requests framed as
+        Modbus/TCP, already observed and counted) upstream or queue them."""
+        guard = self.engine.config.guard
         link = self.link
         assert link is not None
         out: list[bytes] = []
         for frame in frames:
             pdu = frame.pdu
             tid = frame.tid or 0
-            if guard.active:
+            if guard.active and not guarded:
                 verdict = guard.check(frame.unit, pdu)
                 if verdict is not None:
                     self._refuse(frame, verdict.message, verdict.info, ts)
@@ -833,6 +865,9 @@ class _Client(asyncio.Protocol):
     def notice(self, message: str, info: dict[str, Any]) -> None:
         self.engine.observer.event(self.stream, EventKind.NOTICE, {"message": message, **info})
 
+    def unanswered(self, entry: _Pending, code: int) -> None:
+        """A silent client's request the gateway cannot answer (``code`` 0x0A/0x0B)."""
+
     def drop(self, reason: str, count: bool = True) -> None:
         """Disconnect this client (reset), with ``reason`` in the log."""
         if self.closed:
@@ -854,15 +889,27 @@ class ProxyEngine:
         config: ProxyConfig,
         observer: Observer,
         submit: Callable[[Callable[[], list[Chunk | Event]]], None] | None = None,
+        *,
+        upstream: Callable[[ProxyEngine], Any] | None = None,
+        front: Callable[[ProxyEngine], Any] | None = None,
     ) -> None:
         """``submit`` (``hub.submit``): hand observations over in batches, once per
-        loop iteration (:meth:`Observer.bind`); without it, item by item."""
+        loop iteration (:meth:`Observer.bind`); without it, item by item.
+
+        ``upstream(engine)`` makes the one link every client shares instead of a TCP
+        upstream (an RTU bus: :mod:`mbmon.proxy.serial`); ``front(engine)`` makes the
+        one client instead of a listening socket (an RTU master's serial port). Both
+        run in the loop's thread at :meth:`start`, and may raise ``OSError``.
+        """
         self.config = config
         self.observer = observer
         self._submit = submit
+        self._upstream_factory = upstream
+        self._front_factory = front
+        self.front: Any = None
         self.stats = ProxyStats()
         self.clients: set[_Client] = set()
-        self.shared: _Link | None = None
+        self.shared: Any = None  # the shared _Link, or the upstream factory's link
         self.loop: asyncio.AbstractEventLoop = None  # type: ignore[assignment]
         self.address: tuple[str, int] | None = None
         self._server: asyncio.base_events.Server | None = None
@@ -870,6 +917,22 @@ class ProxyEngine:
         #: requests waiting for their answer, in deadline order (one timeout for all)
         self._deadlines: deque[_Pending] = deque()
         self._expiry: asyncio.TimerHandle | None = None
+        #: the upstream as last seen (for the live monitor): up, unavailable (why), ...
+        self.upstream_state = "not connected yet"
+
+    def figures(self) -> dict[str, Any]:
+        """The proxy's own figures for the live monitor's header (read from any thread)."""
+        stats = self.stats
+        figures: dict[str, Any] = {
+            "clients": len(self.clients),
+            "upstream": self.upstream_state,
+            "guard refusals": stats.guard_refusals,
+            "0x0A answers": stats.exceptions_0a,
+            "0x0B answers": stats.exceptions_0b,
+        }
+        if self.front is not None:  # an RTU master gets silence instead of 0x0A/0x0B
+            figures["left silent"] = stats.unanswered
+        return figures
 
     def arm(self, entry: _Pending) -> None:
         """Start ``entry``'s timeout: one loop timer serves every request, since all
@@ -908,6 +971,9 @@ class ProxyEngine:
         client.outstanding.discard(entry)
         if client.closed:
             return
+        if client.silent:
+            client.unanswered(entry, code)
+            return
         if code == GATEWAY_PATH_UNAVAILABLE:
             self.stats.exceptions_0a += 1
         else:
@@ -921,28 +987,48 @@ class ProxyEngine:
         self.loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
         if self._submit is not None:
-            self.observer.bind(self.loop.call_soon, self._submit)
+            loop = self.loop
+            delay = self.config.handover
+            if delay > 0:
+                self.observer.bind(lambda fn: loop.call_later(delay, fn), self._submit)
+            else:
+                self.observer.bind(loop.call_soon, self._submit)
         self.loop.set_exception_handler(self._loop_error)
         cfg = self.config
-        if cfg.share_upstream:
-            self.shared = _Link(self, None)
-        self._server = await self.loop.create_server(
-            lambda: _Client(self),
-            cfg.listen_host,
-            cfg.listen_port,
-            reuse_address=True,
-            family=socket.AF_INET6 if ":" in cfg.listen_host else socket.AF_INET,
-        )
-        sock = self._server.sockets[0]
-        name = sock.getsockname()
-        self.address = (str(name[0]), int(name[1]))
+        if self._upstream_factory is not None:
+            self.shared = self._upstream_factory(self)
+            upstream_text = f"{cfg.upstream} (RTU bus)"
+        else:
+            upstream_text = cfg.upstream + (" (shared connection)" if cfg.share_upstream else "")
+            if cfg.share_upstream:
+                self.shared = _Link(self, None)
+        if self._front_factory is not None:
+            try:
+                self.front = self._front_factory(self)
+            except BaseException:
+                if self.shared is not None:
+                    self.shared.close()
+                raise
+            self.address = (str(self.front.name), 0)
+            where = str(self.front.name)
+        else:
+            self._server = await self.loop.create_server(
+                lambda: _Client(self),
+                cfg.listen_host,
+                cfg.listen_port,
+                reuse_address=True,
+                family=socket.AF_INET6 if ":" in cfg.listen_host else socket.AF_INET,
+            )
+            sock = self._server.sockets[0]
+            name = sock.getsockname()
+            self.address = (str(name[0]), int(name[1]))
+            where = endpoint(*self.address)
         self.observer.event(
             None,
             EventKind.NOTICE,
             {
-                "message": f"proxy listening on {endpoint(*self.address)}, "
-                f"upstream {cfg.upstream}"
-                + (" (shared connection)" if cfg.share_upstream else "")
+                "message": f"proxy listening on {where}, "
+                f"upstream {upstream_text}"
                 + f", guard {cfg.guard.describe()}",
             },
         )

@@ -42,7 +42,7 @@ from typing import Any
 from mbmon.model import Chunk, Direction, Event, EventKind, Record, RecordKind, Stream
 from mbmon.protocol.rtu import t35
 
-__all__ = ["GAP_BUCKETS", "BusHealth", "SerialSettings", "SerialTap", "TimeMerge"]
+__all__ = ["GAP_BUCKETS", "BusHealth", "SerialSettings", "SerialTap", "TimeMerge", "open_port"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -61,6 +61,31 @@ class SerialSettings:
         """Seconds per character on the wire (start + data + parity + stop bits)."""
         bits = 1 + self.bytesize + (0 if self.parity == "N" else 1) + self.stopbits
         return bits / self.baudrate
+
+
+def open_port(port: str, settings: SerialSettings) -> Any:
+    """A pyserial port opened with ``settings``, non-blocking (``timeout=0``); raises
+    ``OSError`` with the system's reason (or the bad setting) when it cannot be."""
+    import serial
+
+    s = settings
+    try:
+        return serial.Serial(
+            port,
+            baudrate=s.baudrate,
+            parity=s.parity,
+            stopbits=s.stopbits,
+            bytesize=s.bytesize,
+            timeout=0,
+            exclusive=False,
+        )
+    except serial.SerialException as exc:
+        inner = exc.__context__ if isinstance(exc.__context__, OSError) else None
+        if inner is not None:
+            raise inner from None
+        raise OSError(str(exc)) from None
+    except ValueError as exc:
+        raise OSError(f"bad serial settings: {exc}") from None
 
 
 class SerialTap:
@@ -100,26 +125,7 @@ class SerialTap:
         self._serial = self._open()
 
     def _open(self) -> Any:
-        import serial
-
-        s = self.settings
-        try:
-            return serial.Serial(
-                self.port,
-                baudrate=s.baudrate,
-                parity=s.parity,
-                stopbits=s.stopbits,
-                bytesize=s.bytesize,
-                timeout=0,
-                exclusive=False,
-            )
-        except serial.SerialException as exc:
-            inner = exc.__context__ if isinstance(exc.__context__, OSError) else None
-            if inner is not None:
-                raise inner from None
-            raise OSError(str(exc)) from None
-        except ValueError as exc:
-            raise OSError(f"bad serial settings: {exc}") from None
+        return open_port(self.port, self.settings)
 
     def start(self) -> None:
         self._thread = threading.Thread(target=self._run, name=f"serial {self.port}", daemon=True)

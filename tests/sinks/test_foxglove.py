@@ -513,3 +513,50 @@ def test_demo_feeds_a_client_what_its_log_holds(tmp_path: Path) -> None:
     assert any("Send to client" in ln and "04 02 00 5A" in ln for ln in lines)  # R100 = 90
     logged = _log_messages(log, {"/modbus/monitor"})
     assert got and all(m in logged for m in got)
+
+
+def test_proxy_feeds_a_client_what_its_log_holds(tmp_path: Path) -> None:
+    """``proxy --foxglove 127.0.0.1:0 -w LOG`` in front of the sim: a subscribed client
+    receives exactly the monitor lines and HRSS state the proxy's log holds."""
+    import select
+
+    from mbmon.sim import SimServer, run_program
+
+    sim = SimServer(port=0)
+    host, port = sim.start()  # type: ignore[misc]
+    log = tmp_path / "proxy.mcap"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mbmon", "proxy", "--upstream", f"{host}:{port}",
+         "--listen", "127.0.0.1:0", "--profile", "hrss", "--foxglove", "127.0.0.1:0",
+         "-q", "-w", str(log)],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=_env(), cwd=REPO,
+    )  # fmt: skip
+    try:
+        url, err = _url_from(proc)
+        end = time.monotonic() + 30
+        while not (m := re.search(rb"listening on 127\.0\.0\.1:(\d+) ->", err)):
+            assert time.monotonic() < end and proc.poll() is None, err.decode()
+            if select.select([proc.stderr], [], [], 1.0)[0]:
+                err += os.read(proc.stderr.fileno(), 4096)  # type: ignore[union-attr]
+        wanted = ["/modbus/monitor", "/hrss/state"]
+        client = Client(url)
+        client.read_advertised(set(wanted))
+        client.subscribe(wanted)
+        time.sleep(1.0)  # the subscription reaches the server before the traffic starts
+        run_program("127.0.0.1", int(m.group(1)), extras=False)
+        time.sleep(1.0)
+        proc.send_signal(2)
+        proc.communicate(timeout=30)
+        client.closed.wait(10)
+        got = client.messages()
+    finally:
+        sim.stop()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0
+    expected = _log_messages(log, set(wanted))
+    assert len(expected) > 20
+    # the log may hold the proxy's start-up notice, sent before the client subscribed
+    assert got == expected[len(expected) - len(got) :]
+    assert any(t == "/hrss/state" for t, _, _ in got)
