@@ -74,7 +74,8 @@ def compare(request: Pdu, recorded: Pdu | None, live: Pdu | None) -> list[str]:
     """How the live answer differs from the recorded one (empty: identical).
 
     Read answers are compared address by address (``holding register 300:
-    recorded 42, live 7``); exceptions by code; an answer against an exception
+    recorded 42, live 7``; bits past the requested count are padding, not
+    values); exceptions by code; an answer against an exception
     or no answer in words; anything else by its bytes.
     """
     if recorded is None and live is None:
@@ -110,7 +111,7 @@ def compare(request: Pdu, recorded: Pdu | None, live: Pdu | None) -> list[str]:
             more = f"; ... {len(diffs) - MAX_LISTED} more" if len(diffs) > MAX_LISTED else ""
             verb = "s differ" if len(diffs) != 1 else " differs"
             out.append(f"{len(diffs)} {name}{verb}: {shown}{more}")
-        return out or [f"recorded {_hex(recorded.raw)}, live {_hex(live.raw)}"]
+        return out  # the same values: only padding bits past the count differ
     return [f"recorded {_hex(recorded.raw)}, live {_hex(live.raw)}"]
 
 
