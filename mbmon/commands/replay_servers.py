@@ -166,12 +166,12 @@ def run(
 
     try:
         _check(args)
-        if args.serve is not None:
+        if args.serve is not None:  # proxy's --listen rule: loopback by default, port 0 ok
             host, port = _split_endpoint(args.serve, "--listen", default_host="127.0.0.1")
         else:
             host, port = _split_endpoint(args.to, "--to")
     except UsageError as exc:
-        err(f"error: {exc}")
+        err(f"error: {str(exc).replace('--listen', '--serve', 1)}")
         return EXIT_USAGE
     log, status = open_log(args.log, "replay")
     if log is None:
@@ -234,7 +234,7 @@ def _serve(args: argparse.Namespace, log: Any, keep: Any, host: str, port: int) 
         err(f"error: cannot listen on {host}:{port}: {exc.strerror or exc}")
         return EXIT_BAD_INPUT
     misses = image.miss_report()
-    total = sum(m.times for m in image.misses.values())
+    total = image.missed
     err(f"replay: {server.connections} client connection(s), {image.answered} requests "
         f"answered from the log, {total} not (exception {image.miss_exception:02X})")  # fmt: skip
     if misses:

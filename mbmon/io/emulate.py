@@ -58,6 +58,9 @@ TABLE_NAMES = {
     "input_register": "input registers",
 }
 _EXC_ILLEGAL_VALUE = 0x03
+#: kinds of missed request listed one by one; beyond, they are only counted (a client
+#: sweeping the address space must not grow the list without bound)
+MAX_MISS_KINDS = 4096
 
 Key = tuple[int, int, int | None, int | None, int | bytes | None, int | None]
 
@@ -122,6 +125,8 @@ class RegisterImage:
     #: request keys the recorded server refused every time, with its exception code
     refused: dict[Key, int] = field(default_factory=dict)
     misses: dict[Key, Miss] = field(default_factory=dict)
+    #: missed requests of kinds past :data:`MAX_MISS_KINDS`
+    misses_unlisted: int = 0
     learned: int = 0
     answered: int = 0
     _accepted: set[Key] = field(default_factory=set)
@@ -235,6 +240,9 @@ class RegisterImage:
         self, key: Key, unit: int, request: Pdu, table: str | None, unknown: Iterable[int]
     ) -> bytes:
         miss = self.misses.get(key)
+        if miss is None and len(self.misses) >= MAX_MISS_KINDS:
+            self.misses_unlisted += 1
+            return encode_exception(request.fc, self.miss_exception)
         if miss is None:
             miss = Miss(unit, request.fc, request.address, request.count, table)
             self.misses[key] = miss
@@ -247,7 +255,15 @@ class RegisterImage:
         order = sorted(
             self.misses.values(), key=lambda m: (m.unit, m.fc, m.address or -1, m.count or 0)
         )
-        return [m.describe() for m in order]
+        lines = [m.describe() for m in order]
+        if self.misses_unlisted:
+            lines.append(f"{self.misses_unlisted} more requests of other kinds")
+        return lines
+
+    @property
+    def missed(self) -> int:
+        """How many requests were answered with the miss exception."""
+        return sum(m.times for m in self.misses.values()) + self.misses_unlisted
 
     # ------------------------------------------------------------------ writes
 

@@ -11,6 +11,8 @@ from typing import Any
 
 import pytest
 import simlog
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from mbmon.io.emulate import EmulatorServer, RegisterImage, ranges
 from mbmon.io.exchanges import Exchange, recorded_exchanges
@@ -161,6 +163,34 @@ def test_malformed_request_is_illegal_value() -> None:
     image = RegisterImage.from_exchanges([ex("0300640001", "03020001")])
     assert ask(image, "0300640000") == "8303"  # count 0
     assert image.misses == {}
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    pdu=st.binary(min_size=1, max_size=40),
+    fc=st.sampled_from([1, 2, 3, 4, 5, 6, 15, 16, 22, 23, 8, 17, 0x2B, 0x41, 0x81]),
+    unit=st.integers(0, 255),
+)
+def test_any_request_gets_an_answer_never_a_traceback(pdu: bytes, fc: int, unit: int) -> None:
+    image = RegisterImage.from_exchanges(
+        [ex("0300000010", "0320" + "0001" * 16), ex("0100000010", "0102ffff")]
+    )
+    request = decode_pdu(bytes([fc]) + pdu, response=False)
+    answer = image.answer(unit, request)
+    assert answer and answer[0] & 0x7F == fc & 0x7F
+    assert len(answer) <= 253
+
+
+def test_miss_list_is_bounded(monkeypatch: pytest.MonkeyPatch) -> None:
+    import mbmon.io.emulate as emulate
+
+    monkeypatch.setattr(emulate, "MAX_MISS_KINDS", 3)
+    image = RegisterImage()
+    for address in range(10):
+        assert ask(image, f"03{address:04x}0001") == "8302"
+    assert ask(image, "0300000001") == "8302"
+    assert len(image.misses) == 3 and image.missed == 11
+    assert image.miss_report()[-1] == "7 more requests of other kinds"
 
 
 def test_ranges() -> None:
@@ -367,7 +397,8 @@ def test_rtu_log_gives_the_exchanges_of_the_same_session_over_tcp(tmp_path: Path
         (["--serve", "--to", "127.0.0.1:1"], "exclude each other"),
         (["--serve", "127.0.0.1:0", "--speed", "2"], "--speed applies to --to"),
         (["--serve", "127.0.0.1:0", "--json"], "--json does not apply to --serve"),
-        (["--serve", "nohost"], "--listen"),
+        (["--serve", "nohost"], "--serve 'nohost': not a port number"),
+        (["--serve", "127.0.0.1:70000"], "port out of range 0..65535"),
         (["--miss-exception", "3"], "--miss-exception needs --serve or --to"),
         (["--state", "last"], "--state needs --serve or --to"),
     ],
