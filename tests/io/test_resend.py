@@ -291,3 +291,21 @@ def test_filters_select_the_requests(sim_logs: dict[str, Path]) -> None:
         )
     assert done.returncode == 0, done.stderr
     assert "re-sent 3 recorded requests" in done.stdout
+
+
+@pytest.mark.parametrize("module", ["mbmon.io.exchanges", "mbmon.io.emulate", "mbmon.io.resend"])
+def test_replay_server_modules_import_neither_the_cli_nor_pymodbus(module: str) -> None:
+    """Dependencies point down: the io modules never pull in the command line, and the
+    emulator is mbmon's own server (pymodbus serves only the simulator)."""
+    import subprocess
+    import sys
+
+    code = (
+        f"import sys, {module}; "
+        "bad = [m for m in ('mbmon.cli', 'mbmon.commands', 'mbmon.logcmds', 'pymodbus', "
+        "'scapy', 'serial') if m in sys.modules]; print(','.join(bad))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, env=simlog.ENV
+    )
+    assert out.stdout.strip() == "", f"{module} imports {out.stdout.strip()}"
