@@ -27,6 +27,7 @@ from mbmon.commands.common import (
     EXIT_USAGE,
     UsageError,
     err,
+    install_signal_handlers,
     positive,
 )
 
@@ -257,6 +258,7 @@ def _resend(args: argparse.Namespace, log: Any, keep: Any, host: str, port: int)
     except LiveError as exc:
         err(f"error: {exc}")
         return EXIT_BAD_INPUT
+    install_signal_handlers()  # SIGTERM ends it like Ctrl-C: the summary still prints
     if args.writes:
         err(f"warning: --writes: the recorded writes are sent to {target}")
     report = ResendReport()
@@ -277,7 +279,7 @@ def _resend(args: argparse.Namespace, log: Any, keep: Any, host: str, port: int)
     except LiveError as exc:
         err(f"error: {exc}")
         status = EXIT_BAD_INPUT
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, SystemExit):  # Ctrl-C, or SIGTERM (install_signal_handlers)
         status = EXIT_INTERRUPTED
     finally:
         client.close()

@@ -293,6 +293,29 @@ def test_filters_select_the_requests(sim_logs: dict[str, Path]) -> None:
     assert "re-sent 3 recorded requests" in done.stdout
 
 
+def test_sigterm_ends_a_paced_resend_with_the_summary(sim_logs: dict[str, Path]) -> None:
+    import signal
+    import subprocess
+    import sys
+
+    from mbmon.sim.server import SimServer
+
+    answered = threading.Event()
+    with SimServer(on_packet=lambda sending, _data: sending and answered.set()) as sim:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "mbmon", "replay", str(sim_logs["reads"]),
+             "--to", f"127.0.0.1:{sim.port}", "--speed", "0.0001"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=simlog.ENV,
+        )  # fmt: skip
+        assert answered.wait(60), "the first request never came"
+        time.sleep(0.5)  # its answer read; the second request is hours away
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130, err
+    assert "re-sent 1 recorded requests" in out
+    assert "Traceback" not in err
+
+
 @pytest.mark.parametrize("module", ["mbmon.io.exchanges", "mbmon.io.emulate", "mbmon.io.resend"])
 def test_replay_server_modules_import_neither_the_cli_nor_pymodbus(module: str) -> None:
     """Dependencies point down: the io modules never pull in the command line, and the
