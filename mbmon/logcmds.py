@@ -15,7 +15,14 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
 
-from mbmon.commands.common import EXIT_BAD_INPUT, EXIT_OK, EXIT_USAGE, add_foxglove_option
+from mbmon.commands import replay_servers
+from mbmon.commands.common import (
+    EXIT_BAD_INPUT,
+    EXIT_OK,
+    EXIT_USAGE,
+    UsageError,
+    add_foxglove_option,
+)
 from mbmon.filters import add_filter_options
 from mbmon.timefmt import add_time_option
 
@@ -70,7 +77,7 @@ def add_subcommands(sub: Any) -> None:
         description="Print the monitor lines of an MCAP log written with -w FILE.mcap, "
         "exactly as they were shown live, or the read --json objects; optionally "
         "filtered, re-decoded from the raw bytes, or paced like the original.",
-        epilog=_REPLAY_EPILOG,
+        epilog=_REPLAY_EPILOG + "\n" + replay_servers.EPILOG,
         formatter_class=fmt,
     )
     replay.add_argument("log", metavar="LOG.mcap", help="an MCAP log written by mbmon")
@@ -103,6 +110,7 @@ def add_subcommands(sub: Any) -> None:
         help="pace the output like the original: 1 = real time, 10 = ten times faster",
     )
     add_foxglove_option(out)
+    replay_servers.add_options(replay)
     replay.set_defaults(func=run_replay)
 
     info = sub.add_parser(
@@ -244,6 +252,13 @@ def run_replay(args: argparse.Namespace) -> int:
     from mbmon.sinks.base import SinkError
     from mbmon.sinks.jsonl import dumps_line
 
+    if replay_servers.wanted(args):  # against servers: emulate (--serve) or re-send (--to)
+        return replay_servers.run(args, _open, _log_times)
+    try:
+        replay_servers.check_without_mode(args)
+    except UsageError as exc:
+        _err(f"error: {exc}")
+        return EXIT_USAGE
     if (args.robot or args.robot_client) and not args.redecode:
         _err("error: --robot relabels lines only with --redecode (stored lines are as recorded)")
         return EXIT_USAGE
