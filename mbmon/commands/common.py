@@ -84,6 +84,60 @@ def endpoint(text: str) -> str:
     return value
 
 
+def split_host_port(
+    text: str, *, default_host: str | None = None, lowest: int = 1
+) -> tuple[str, int]:
+    """The one parser of socket addresses given on the command line: ``HOST:PORT``,
+    ``[IPv6]:PORT``, or a bare ``PORT`` when ``default_host`` is given (listen
+    addresses: loopback). ``lowest`` is 0 where port 0 (any free port) makes sense.
+    Raises ``ValueError`` with the reason."""
+    value = text.strip()
+    host: str
+    if value.startswith("["):
+        host, sep, port_text = value[1:].partition("]:")
+        if not sep:
+            raise ValueError("use [ADDR]:PORT for IPv6")
+    elif ":" in value:
+        host, _, port_text = value.rpartition(":")
+    elif default_host is not None:
+        host, port_text = default_host, value
+    else:
+        raise ValueError("use HOST:PORT")
+    if not host:
+        if default_host is None:
+            raise ValueError("the host is missing")
+        host = default_host
+    if any(c.isspace() for c in host):
+        raise ValueError("not a host name")
+    try:
+        number = int(port_text, 10)
+    except ValueError:
+        raise ValueError("not a port number") from None
+    if not lowest <= number <= 65535:
+        raise ValueError(f"port out of range {lowest}..65535")
+    return host, number
+
+
+def parse_address(
+    text: str, what: str, *, default_host: str | None = None, lowest: int = 1
+) -> tuple[str, int]:
+    """:func:`split_host_port` for an option checked after parsing: a bad address is
+    a :class:`UsageError` naming the option (``--upstream 'x': use HOST:PORT``)."""
+    try:
+        return split_host_port(text, default_host=default_host, lowest=lowest)
+    except ValueError as exc:
+        raise UsageError(f"{what} {text.strip()!r}: {exc}") from None
+
+
+def listen_address(text: str) -> tuple[str, int]:
+    """An argparse type for where a server of mbmon listens: ``[HOST:]PORT``, a bare
+    PORT on 127.0.0.1, port 0 for a free one."""
+    try:
+        return split_host_port(text, default_host="127.0.0.1", lowest=0)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"{text!r}: {exc}") from None
+
+
 # --------------------------------------------------------------------------- option groups
 
 
@@ -339,24 +393,12 @@ def foxglove_address(text: str) -> tuple[str, int]:
 
     A bare PORT listens on 127.0.0.1; port 0 picks a free port.
     """
-    value = text.strip()
-    host, port_text = FOXGLOVE_DEFAULT[0], value
-    if value.startswith("["):
-        close = value.find("]")
-        if close < 0 or value[close + 1 : close + 2] != ":":
-            raise argparse.ArgumentTypeError(f"not [HOST:]PORT: {text!r} (use [ADDR]:PORT)")
-        host, port_text = value[1:close], value[close + 2 :]
-    elif ":" in value:
-        host, _, port_text = value.rpartition(":")
     try:
-        number = int(port_text, 10)
-    except ValueError:
+        return split_host_port(text, default_host=FOXGLOVE_DEFAULT[0], lowest=0)
+    except ValueError as exc:
         raise argparse.ArgumentTypeError(
-            f"not [HOST:]PORT: {text!r} (an interface goes before --foxglove)"
+            f"not [HOST:]PORT: {text!r} ({exc}; an interface goes before --foxglove)"
         ) from None
-    if not 0 <= number < 65536 or not host or any(c.isspace() for c in host):
-        raise argparse.ArgumentTypeError(f"not [HOST:]PORT: {text!r} (port 0..65535)")
-    return host, number
 
 
 def add_foxglove_option(group: Any) -> None:

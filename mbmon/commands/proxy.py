@@ -52,36 +52,6 @@ DEFAULT_LISTEN = ("127.0.0.1", 1502)
 SWITCH_INTERVAL = 0.0002
 
 
-def _split_endpoint(text: str, what: str, default_host: str | None = None) -> tuple[str, int]:
-    """``HOST:PORT`` or ``[V6]:PORT`` (or ``PORT`` when ``default_host`` is given)."""
-    from mbmon.commands.common import UsageError
-
-    text = text.strip()
-    host: str | None
-    if text.startswith("["):
-        host, sep, port_text = text[1:].partition("]:")
-        if not sep:
-            raise UsageError(f"{what} {text!r}: use [ADDR]:PORT for IPv6")
-    elif ":" in text:
-        host, _, port_text = text.rpartition(":")
-    elif default_host is not None:
-        host, port_text = default_host, text
-    else:
-        raise UsageError(f"{what} {text!r}: use HOST:PORT")
-    if not host:
-        if default_host is None:
-            raise UsageError(f"{what} {text!r}: the host is missing")
-        host = default_host
-    try:
-        port = int(port_text, 10)
-    except ValueError:
-        raise UsageError(f"{what} {text!r}: not a port number") from None
-    lowest = 0 if what == "--listen" else 1
-    if not lowest <= port <= 65535:
-        raise UsageError(f"{what} {text!r}: port out of range {lowest}..65535")
-    return host, port
-
-
 def register(sub: Any) -> None:
     """Add the ``proxy`` subparser to ``sub``."""
     from mbmon.commands.common import (
@@ -206,6 +176,7 @@ def run(args: argparse.Namespace) -> int:
         make_annotator,
         open_console,
         open_foxglove,
+        parse_address,
         profile_sources,
     )
     from mbmon.format import View
@@ -222,7 +193,7 @@ def run(args: argparse.Namespace) -> int:
     if args.allow_from and args.listen_serial is not None:
         raise UsageError("--allow-from is for TCP clients, not --listen-serial")
     if args.upstream is not None:
-        up_host, up_port = _split_endpoint(args.upstream, "--upstream")
+        up_host, up_port = parse_address(args.upstream, "--upstream")
         upstream = endpoint(up_host, up_port)
     else:
         up_host, up_port = "", 0
@@ -231,7 +202,9 @@ def run(args: argparse.Namespace) -> int:
     if args.listen is None:
         listen_host, listen_port = DEFAULT_LISTEN
     else:
-        listen_host, listen_port = _split_endpoint(args.listen, "--listen", "127.0.0.1")
+        listen_host, listen_port = parse_address(
+            args.listen, "--listen", default_host="127.0.0.1", lowest=0
+        )
     try:
         guard = Guard.from_options(
             args.read_only, args.allow_write, args.deny_write, args.guard_exception

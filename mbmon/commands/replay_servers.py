@@ -162,17 +162,17 @@ def run(
 ) -> int:
     """``replay --serve`` or ``--to``; ``open_log``/``log_times`` are replay's own
     (the log opened with its error messages, the time format and filters)."""
-    from mbmon.commands.proxy import _split_endpoint
+    from mbmon.commands.common import parse_address
     from mbmon.filters import FilterError
 
     try:
         _check(args)
         if args.serve is not None:  # proxy's --listen rule: loopback by default, port 0 ok
-            host, port = _split_endpoint(args.serve, "--listen", default_host="127.0.0.1")
+            host, port = parse_address(args.serve, "--serve", default_host="127.0.0.1", lowest=0)
         else:
-            host, port = _split_endpoint(args.to, "--to")
+            host, port = parse_address(args.to, "--to")
     except UsageError as exc:
-        err(f"error: {str(exc).replace('--listen', '--serve', 1)}")
+        err(f"error: {exc}")
         return EXIT_USAGE
     log, status = open_log(args.log, "replay")
     if log is None:

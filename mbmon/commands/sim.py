@@ -42,20 +42,6 @@ exit status: 0 stopped by Ctrl-C or SIGTERM, 1 cannot listen or open the port, 2
 """
 
 
-def _listen(text: str) -> tuple[str, int]:
-    host, sep, port_text = text.rpartition(":")
-    if not sep:
-        host, port_text = "127.0.0.1", text
-    host = host.strip("[]") or "127.0.0.1"
-    try:
-        port = int(port_text, 10)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected HOST:PORT, got {text!r}") from None
-    if not 0 <= port < 65536:
-        raise argparse.ArgumentTypeError(f"port out of range 0..65535: {port}")
-    return host, port
-
-
 def _unit(text: str) -> int:
     try:
         value = int(text, 0)
@@ -78,6 +64,8 @@ def _baud(text: str) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     """Add the ``sim`` subparser."""
+    from mbmon.commands.common import listen_address
+
     p = sub.add_parser(
         "sim",
         help="serve a simulated HRSS robot (a test partner, not a robot simulator)",
@@ -88,8 +76,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument(
         "--listen",
         metavar="HOST:PORT",
-        type=_listen,
-        default=_listen(DEFAULT_LISTEN),
+        type=listen_address,
+        default=listen_address(DEFAULT_LISTEN),
         help=f"Modbus/TCP address to listen on (default {DEFAULT_LISTEN}; port 0 picks a free one)",
     )
     p.add_argument("--unit", type=_unit, default=1, help="unit id the robot answers (default 1)")
