@@ -11,7 +11,7 @@ import argparse
 import os
 import signal
 import sys
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -28,15 +28,30 @@ class UsageError(Exception):
 # --------------------------------------------------------------------------- value types
 
 
-def port(text: str) -> int:
-    """An argparse type: a TCP/UDP port 1..65535."""
-    try:
-        value = int(text, 0)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
-    if not 0 < value < 65536:
-        raise argparse.ArgumentTypeError(f"port out of range 1..65535: {value}")
-    return value
+def whole_number(what: str, lowest: int, highest: int, noun: str = "") -> Callable[[str], int]:
+    """An argparse type for a whole number ``lowest..highest`` (decimal or ``0x``):
+    the one home of integer option checks. Errors say "not a {noun or what}" and
+    "{what} out of range"."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text, 0)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a {noun or what}: {text!r}") from None
+        if not lowest <= value <= highest:
+            raise argparse.ArgumentTypeError(f"{what} out of range {lowest}..{highest}: {value}")
+        return value
+
+    parse.__name__ = what  # argparse names the type in some messages
+    return parse
+
+
+#: A TCP/UDP port 1..65535.
+port = whole_number("port", 1, 65535, "port number")
+#: A Modbus unit id of a server (1..247).
+unit_id = whole_number("unit id", 1, 247)
+#: A Modbus exception code mbmon answers with.
+exception_code = whole_number("exception code", 1, 255)
 
 
 def positive(text: str) -> float:

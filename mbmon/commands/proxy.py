@@ -59,6 +59,7 @@ def register(sub: Any) -> None:
         add_live_options,
         add_output_options,
         add_view_options,
+        exception_code,
         positive_int,
     )
     from mbmon.commands.common import positive as _positive
@@ -146,7 +147,7 @@ def register(sub: Any) -> None:
     )
     guard.add_argument(
         "--guard-exception",
-        type=lambda s: int(s, 0),
+        type=exception_code,
         default=0x01,
         metavar="N",
         help="exception code a refused write is answered with (default 1, Illegal Function)",

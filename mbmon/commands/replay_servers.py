@@ -27,6 +27,7 @@ from mbmon.commands.common import (
     EXIT_USAGE,
     UsageError,
     err,
+    exception_code,
     install_signal_handlers,
     positive,
 )
@@ -51,16 +52,6 @@ cannot be read or the server cannot be reached, 2 usage.
 """
 
 
-def _exception_code(text: str) -> int:
-    try:
-        value = int(text, 0)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an exception code: {text!r}") from None
-    if not 1 <= value <= 255:
-        raise argparse.ArgumentTypeError(f"exception code out of range 1..255: {value}")
-    return value
-
-
 def add_options(parser: argparse.ArgumentParser) -> None:
     """The ``against servers`` option group of ``replay``."""
     group = parser.add_argument_group(
@@ -78,7 +69,7 @@ def add_options(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument(
         "--miss-exception",
-        type=_exception_code,
+        type=exception_code,
         metavar="N",
         help="with --serve: the exception code for requests the log cannot answer (default 2, "
         "Illegal Data Address)",

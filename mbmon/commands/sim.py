@@ -42,29 +42,9 @@ exit status: 0 stopped by Ctrl-C or SIGTERM, 1 cannot listen or open the port, 2
 """
 
 
-def _unit(text: str) -> int:
-    try:
-        value = int(text, 0)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a unit id: {text!r}") from None
-    if not 1 <= value <= 247:
-        raise argparse.ArgumentTypeError(f"unit id out of range 1..247: {value}")
-    return value
-
-
-def _baud(text: str) -> int:
-    try:
-        value = int(text, 10)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a baud rate: {text!r}") from None
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"baud rate must be > 0: {value}")
-    return value
-
-
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     """Add the ``sim`` subparser."""
-    from mbmon.commands.common import listen_address
+    from mbmon.commands.common import listen_address, positive_int, unit_id
 
     p = sub.add_parser(
         "sim",
@@ -80,9 +60,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         default=listen_address(DEFAULT_LISTEN),
         help=f"Modbus/TCP address to listen on (default {DEFAULT_LISTEN}; port 0 picks a free one)",
     )
-    p.add_argument("--unit", type=_unit, default=1, help="unit id the robot answers (default 1)")
+    p.add_argument("--unit", type=unit_id, default=1, help="unit id the robot answers (default 1)")
     p.add_argument("--serial", metavar="PORT", help="serve Modbus RTU on this serial port instead")
-    p.add_argument("--baud", type=_baud, default=19200, help="RTU baud rate (default 19200)")
+    p.add_argument("--baud", type=positive_int, default=19200, help="RTU baud rate (default 19200)")
     p.add_argument("--parity", choices=("N", "E", "O"), default="N", help="RTU parity (default N)")
     p.add_argument(
         "--stopbits", type=int, choices=(1, 2), default=1, help="RTU stop bits (default 1)"
