@@ -38,7 +38,11 @@ instead of waiting for 256 bytes, and a reading that would need bytes from
 after the silence no longer blocks the next reading; but when no reading
 fits the bytes before the silence and one needs more, the decoder still
 waits, because USB adapters deliver bytes in bunches and the "silence" may be
-their latency. Timing is a hint only.
+their latency. Timing is a hint only. That holds for a scanned reading too
+(issue 11): bytes of unpredictable length with no CRC match yet become noise
+at a silence only when a frame of predictable length with a valid CRC starts
+after them, before the silence or right at its end (so the next bytes
+decide); otherwise they may be a frame split by the adapter and wait.
 
 Time moves on with :meth:`RtuDecoder.tick` too: t3.5 after the last byte (with
 ``baudrate``) the bytes held are settled as at a silence seen by the next
@@ -72,7 +76,7 @@ _PEEK = 16
 
 # Modes of one decoding pass.
 _STREAM = 0  # more bytes will come: wait whenever a decision needs them
-_SILENCE = 1  # a silence follows: settle scans and noise, wait only for predicted lengths
+_SILENCE = 1  # a silence follows: settle noise, wait for predicted lengths and open scans
 _FINAL = 2  # end of stream: decide everything with the bytes present
 
 # Outcomes of the decision at one offset (lengths > 0 accept a frame).
@@ -134,6 +138,7 @@ class RtuDecoder(StreamDecoder):
         "_allow_req",
         "_allow_resp",
         "_char",
+        "_mark",
         "_pending",
         "_settled",
         "_silence",
@@ -164,6 +169,7 @@ class RtuDecoder(StreamDecoder):
             self._char = None
             self._t35 = 0.0
         self._pending: tuple[int, int] | None = None
+        self._mark = 0  # bytes of _buf that came before the latest silence
         self.stats: dict[str, int] = {
             "frames": 0,
             "noise_bytes": 0,
@@ -183,6 +189,7 @@ class RtuDecoder(StreamDecoder):
                 if self._buf:
                     pos = self._decode(self._buf, self._last_ts, out, len(self._buf), _SILENCE)
                     del self._buf[:pos]
+                    self._mark = len(self._buf)
                 run = self._take_noise()
                 if run is not None:
                     out.append(run)
@@ -195,6 +202,8 @@ class RtuDecoder(StreamDecoder):
             buf = data  # fast path: decode straight from the chunk, no copy
         pos = self._decode(buf, ts, out, old, _STREAM)
         self._keep(buf, pos, old, ts)
+        if self._mark:
+            self._mark = max(0, self._mark - pos)
         return out
 
     def flush(self, ts: float) -> list[Frame | Noise]:
@@ -208,6 +217,7 @@ class RtuDecoder(StreamDecoder):
         """Drop the buffer and the pending request (e.g. after a gap); report dropped bytes."""
         self.stats["noise_bytes"] += len(self._buf)
         out = self._discard(ts)
+        self._mark = 0
         self._pending = None
         self._last_ts = None
         return out
@@ -230,6 +240,7 @@ class RtuDecoder(StreamDecoder):
             if self._buf:
                 pos = self._decode(self._buf, last, out, len(self._buf), _SILENCE)
                 del self._buf[:pos]
+                self._mark = len(self._buf)
             run = self._take_noise()
             if run is not None:
                 out.append(run)
@@ -259,6 +270,7 @@ class RtuDecoder(StreamDecoder):
         if self._buf:
             self._decode(self._buf, ts, out, len(self._buf), _FINAL)
             self._buf = bytearray()
+        self._mark = 0
         run = self._take_noise()
         if run is not None:
             out.append(run)
@@ -392,8 +404,14 @@ class RtuDecoder(StreamDecoder):
                 if not crossed:
                     return found, unpredictable[0], ""
                 return _SKIP, False, _CROSSED
-            if avail < MAX_ADU and mode == _STREAM:
-                return _WAIT, False, ""
+            if avail < MAX_ADU and mode != _FINAL:
+                # No CRC match yet: the frame may go on in bytes still to come,
+                # also after a silence (USB adapters bunch bytes). Before a
+                # silence it is noise only when a frame of its own starts
+                # after it and no later than the silence.
+                mark = n if mode == _SILENCE else self._mark
+                if pos >= mark or self._frame_within(buf, pos + 1, mark, n, mode) != 1:
+                    return _WAIT, False, ""
         if crc_failed:
             return _SKIP, False, _BAD_CRC
         if incomplete:
@@ -425,6 +443,18 @@ class RtuDecoder(StreamDecoder):
                 return -1
             if second:
                 return 1
+        return 0
+
+    def _frame_within(
+        self, buf: bytes | bytearray, start: int, mark: int, n: int, mode: int
+    ) -> int:
+        """Whether a frame of predictable length with a valid CRC starts in
+        ``buf[start:mark + 1]`` (at the silence ``mark`` at the latest): 1 yes,
+        0 no, -1 the one at ``mark`` cannot be told yet."""
+        for j in range(start, min(mark, n - 1) + 1):
+            found = self._standalone(buf, j, n, mode if j == mark else _SILENCE)
+            if found:
+                return 1 if found > 0 else -1
         return 0
 
     def _standalone(self, buf: bytes | bytearray, k: int, n: int, mode: int) -> int:
