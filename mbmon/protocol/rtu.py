@@ -55,12 +55,17 @@ Pure: no I/O, no clocks; time is the ``ts`` given with each chunk or tick.
 
 from __future__ import annotations
 
-from mbmon.model import Direction, Frame, Noise, Stream
+from mbmon.model import Direction, Frame, Noise, Stream, fast_constructor
 from mbmon.protocol.crc import CRC_TABLE, add_crc
+from mbmon.protocol.crc import crc_ok_at as _crc_ok
 from mbmon.protocol.pdu import NEED_MORE, decode_pdu, pdu_length
 from mbmon.protocol.stream import StreamDecoder
 
 __all__ = ["MAX_ADU", "NOISE_CAP", "RtuDecoder", "encode_rtu", "t35"]
+
+_C2S = Direction.C2S  # module constants: an enum class attribute costs more per frame
+_S2C = Direction.S2C
+_new_frame = fast_constructor(Frame)  # one per ADU: about twice as fast as Frame(...)
 
 MAX_ADU = 256
 """Largest RTU ADU: unit id + 253-byte PDU + CRC (spec limit); also the scan limit."""
@@ -82,6 +87,7 @@ _FINAL = 2  # end of stream: decide everything with the bytes present
 # Outcomes of the decision at one offset (lengths > 0 accept a frame).
 _WAIT = -1
 _SKIP = 0
+_WAITING = (_WAIT, False, "")  # the decision "wait for more bytes", made once
 
 
 def t35(baudrate: int) -> float:
@@ -96,15 +102,6 @@ def encode_rtu(unit: int, pdu: bytes) -> bytes:
     if not 0 <= unit <= 0xFF:
         raise ValueError(f"unit id {unit} does not fit in a byte")
     return add_crc(bytes((unit,)) + bytes(pdu))
-
-
-def _crc_ok(buf: bytes | bytearray, start: int, end: int) -> bool:
-    """True when ``buf[start:end]`` ends with the CRC of the bytes before it."""
-    crc = 0xFFFF
-    table = CRC_TABLE
-    for i in range(start, end - 2):
-        crc = (crc >> 8) ^ table[(crc ^ buf[i]) & 0xFF]
-    return buf[end - 2] == (crc & 0xFF) and buf[end - 1] == (crc >> 8)
 
 
 def _scan(buf: bytes | bytearray, start: int, limit: int) -> int:
@@ -308,30 +305,35 @@ class RtuDecoder(StreamDecoder):
         n = len(buf)
         pos = 0
         stream = self.stream
-        stats = self.stats
+        decide = self._decide
+        append = out.append
+        copy = type(buf) is not bytes  # a slice of bytes is bytes already
+        frames = 0
         while pos < n:
-            length, is_resp, reason = self._decide(buf, pos, n, mode)
+            length, is_resp, reason = decide(buf, pos, n, mode)
             if length > 0:
                 if self._noise:
-                    out.append(self._flush_noise_run())
+                    append(self._flush_noise_run())
                 end = pos + length
-                raw = bytes(buf[pos:end])
+                raw = bytes(buf[pos:end]) if copy else buf[pos:end]
                 unit = raw[0]
                 pdu = decode_pdu(raw[1:-2], is_resp)
                 if is_resp:
                     self._pending = None
-                    direction = Direction.S2C
+                    direction = _S2C
                 else:
                     self._pending = (unit, raw[1]) if unit != 0 else None
-                    direction = Direction.C2S
-                out.append(Frame(ts, stream, direction, unit, None, pdu, raw, True))
-                stats["frames"] += 1
+                    direction = _C2S
+                append(_new_frame(ts, stream, direction, unit, None, pdu, raw, True))
+                frames += 1
                 pos = end
             elif length == _WAIT:
                 break
             else:
                 self._add_noise(buf[pos], reason, self._buf_ts if pos < old else ts, out)
                 pos += 1
+        if frames:
+            self.stats["frames"] += frames
         return pos
 
     def _decide(self, buf: bytes | bytearray, pos: int, n: int, mode: int) -> tuple[int, bool, str]:
@@ -363,22 +365,23 @@ class RtuDecoder(StreamDecoder):
         if not readings or fc == 0 or fc == 0x80:
             return _SKIP, False, f"no valid frame (function code 0x{fc:02X})"
 
-        peek: bytes | bytearray | None = None
+        peek = buf[pos + 1 : pos + 1 + _PEEK]
         incomplete = False
         crc_failed = False
-        unpredictable: list[bool] = []
+        unpredictable: list[bool] | None = None
         for is_resp in readings:
-            if peek is None:
-                peek = buf[pos + 1 : pos + 1 + _PEEK]
             plen = pdu_length(peek, is_resp)
             if plen == NEED_MORE and avail - 1 > _PEEK:
                 plen = pdu_length(buf[pos + 1 : pos + MAX_ADU], is_resp)
             if plen is None:
-                unpredictable.append(is_resp)
+                if unpredictable is None:
+                    unpredictable = [is_resp]
+                else:
+                    unpredictable.append(is_resp)
                 continue
             if plen == NEED_MORE:
                 if mode == _STREAM:
-                    return _WAIT, False, ""
+                    return _WAITING
                 incomplete = True
                 continue
             total = plen + 3
@@ -386,7 +389,7 @@ class RtuDecoder(StreamDecoder):
                 continue
             if total > avail:
                 if mode == _STREAM:
-                    return _WAIT, False, ""
+                    return _WAITING
                 incomplete = True
                 continue
             if _crc_ok(buf, pos, pos + total):
