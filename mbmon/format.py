@@ -373,9 +373,7 @@ def record_line(record: Record, view: View, notes: tuple[str, ...] | None = None
     if kind is RecordKind.COMMAND and record.command is not None:
         cmd = record.command
         dur = (
-            f" after {cmd.duration:.3f} s"
-            if cmd.duration is not None and cmd.stream.timed
-            else ""
+            f" after {cmd.duration:.3f} s" if cmd.duration is not None and cmd.stream.timed else ""
         )
         return f"{when}  >> [{cmd.phase.value}{dur}] unit {cmd.unit}: {cmd.text}"
     return f"{when}  ?"
@@ -636,13 +634,62 @@ def frame_json_bytes(
     )
 
 
+#: The PDU-dependent JSON keys of a frame record between "tid" and "line", and
+#: after "notes", in record_to_json's order; their texts (``,"key":``) are checked
+#: once against a full encoding before :func:`_parts_from_json` may use them.
+_TO_LINE_KEYS = ("unit", "fc", "kind", "exception_code", "address", "count", "values", "pdu")
+_KEY_TEXT = {
+    k: b',"%b":' % k.encode()
+    for k in (*_TO_LINE_KEYS, "line", "crc_ok", "latency_ms", "malformed", "request_index")
+}
+_keys_checked: list[bool] = []  # [True] once a full encoding confirmed _KEY_TEXT
+
+
+def _parts_from_json(obj: dict[str, Any], pdu: Pdu, req_pdu: Pdu | None) -> tuple[Any, ...]:
+    """A frame record's fixed JSON parts (see ``_JSON_PARTS``) from its
+    :func:`record_to_json` object, each value encoded on its own: what the
+    full encoding cut at the per-record values gives, without encoding the
+    whole object twice and cutting it (a PDU whose values change every poll
+    is seen once; its parts are made here)."""
+    j = _json_bytes
+    k = _KEY_TEXT
+    to_line = b"".join([b"%b%b" % (k[key], j(obj[key])) for key in _TO_LINE_KEYS]) + k["line"]
+    note_json = j(obj["notes"][0])
+    return (
+        pdu,
+        req_pdu,
+        to_line,
+        obj["pdu"].encode(),
+        note_json,
+        note_json[1:-1],
+        k["crc_ok"] + j(obj["crc_ok"]) + k["latency_ms"],
+        k["malformed"] + j(obj["malformed"]) + k["request_index"],
+        b"}",
+    )
+
+
 def _cache_json_parts(record: Record, view: View) -> bytes:
     """``record``'s JSON line, encoded in full; its fixed parts are cut out of it and
-    cached when they give it back (a note that held the sentinel would not)."""
+    cached when they give it back (a note that held the sentinel would not).
+
+    Once the stream direction's head is cached and the key texts are confirmed,
+    a PDU without ``fields`` takes :func:`_parts_from_json` instead: the same
+    parts from the record's JSON object, value by value (``tests/test_format.py``
+    compares every line with the full encoding)."""
     frame = record.frame
     assert frame is not None
+    stream, pdu = frame.stream, frame.pdu
+    req_pdu = record.request.pdu if record.request is not None else None
     obj = record_to_json(record, view)
+    head = view._json_heads.get((stream.id, frame.direction))
+    if _keys_checked and head is not None and head[0] is stream and "fields" not in obj:
+        parts = _parts_from_json(obj, pdu, req_pdu)
+        if len(_JSON_PARTS) >= _CACHE_SIZE:
+            _JSON_PARTS.clear()
+        _JSON_PARTS[(id(pdu), id(req_pdu), record.kind, frame.unit, frame.crc_ok)] = parts
+        return _json_from_parts(record, frame, head, parts, view.time_format)
     full = _json_bytes(obj)
+    original = dict(obj)
     for key in _PER_RECORD:
         obj[key] = _SENTINEL
     pieces = _json_bytes(obj).split(_json_bytes(_SENTINEL))
@@ -651,8 +698,6 @@ def _cache_json_parts(record: Record, view: View) -> bytes:
     _, _, head_text, to_line, notes_key, to_latency, to_index, end = pieces
     if notes_key != b',"notes":':
         return full
-    stream, pdu = frame.stream, frame.pdu
-    req_pdu = record.request.pdu if record.request is not None else None
     note_json = _json_bytes(generic_note(pdu, req_pdu))
     label_escaped = _json_bytes(view.label(stream, frame.direction))[1:-1]
     head = (stream, head_text, label_escaped)
@@ -669,6 +714,9 @@ def _cache_json_parts(record: Record, view: View) -> bytes:
     )
     if _json_from_parts(record, frame, head, parts, view.time_format) != full:
         return full
+    if not _keys_checked and "fields" not in original:
+        if _parts_from_json(original, pdu, req_pdu) == parts:
+            _keys_checked.append(True)
     heads = view._json_heads
     if len(heads) > 65536:
         heads.clear()
