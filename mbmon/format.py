@@ -427,8 +427,11 @@ except ImportError:  # pragma: no cover - orjson is a dependency; keep working w
 _PLAIN: dict[Any, str] = {m: str(m.value) for e in (RecordKind, Transport) for m in e}
 
 
-def record_to_json(record: Record, view: View) -> dict[str, Any]:
-    """The stable JSON object of ``read --json`` (keys documented in docs/json.md)."""
+def record_to_json(record: Record, view: View, *, line: bool = True) -> dict[str, Any]:
+    """The stable JSON object of ``read --json`` (keys documented in docs/json.md).
+
+    ``line=False`` leaves a frame record's "line" ``None``, for callers that lay
+    the line out themselves (:func:`_cache_json_parts`)."""
     frame: Frame | None = record.frame
     if frame is not None:  # the hot path: one dict literal, keys in documented order
         pdu = frame.pdu
@@ -463,7 +466,7 @@ def record_to_json(record: Record, view: View) -> dict[str, Any]:
             "count": count,
             "values": list(values) if values is not None else None,
             "pdu": monitor_hex(pdu.raw),
-            "line": record_line(record, view, notes),
+            "line": record_line(record, view, notes) if line else None,
             "notes": list(notes),
             "crc_ok": frame.crc_ok,
             "latency_ms": round(latency * 1000, 3) if latency is not None else None,
@@ -680,14 +683,14 @@ def _cache_json_parts(record: Record, view: View) -> bytes:
     assert frame is not None
     stream, pdu = frame.stream, frame.pdu
     req_pdu = record.request.pdu if record.request is not None else None
-    obj = record_to_json(record, view)
     head = view._json_heads.get((stream.id, frame.direction))
-    if _keys_checked and head is not None and head[0] is stream and "fields" not in obj:
-        parts = _parts_from_json(obj, pdu, req_pdu)
+    if _keys_checked and head is not None and head[0] is stream and not pdu.fields:
+        parts = _parts_from_json(record_to_json(record, view, line=False), pdu, req_pdu)
         if len(_JSON_PARTS) >= _CACHE_SIZE:
             _JSON_PARTS.clear()
         _JSON_PARTS[(id(pdu), id(req_pdu), record.kind, frame.unit, frame.crc_ok)] = parts
         return _json_from_parts(record, frame, head, parts, view.time_format)
+    obj = record_to_json(record, view)
     full = _json_bytes(obj)
     original = dict(obj)
     for key in _PER_RECORD:
