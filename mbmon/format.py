@@ -63,15 +63,21 @@ _S2C = Direction.S2C
 _HEX_CACHE: dict[bytes, str] = {}
 _NOTE_CACHE: dict[tuple[bytes, Kind, bytes | None], str] = {}
 _CACHE_SIZE = 8192
+#: characters (or bytes) each text cache may hold before it is emptied: caches are
+#: bounded in bytes, not only in entries (register answers make long texts)
+_CACHE_CHARS = 1 << 20
+_held = {"hex": 0, "note": 0, "json": 0}
 
 
 def monitor_hex(raw: bytes) -> str:
     """PDU bytes as the robot's Modbus Monitor shows them: ``02 01 2C 00 05``."""
     text = _HEX_CACHE.get(raw)
     if text is None:
-        if len(_HEX_CACHE) >= _CACHE_SIZE:
+        if len(_HEX_CACHE) >= _CACHE_SIZE or _held["hex"] > _CACHE_CHARS:
             _HEX_CACHE.clear()
+            _held["hex"] = 0
         text = _HEX_CACHE[raw] = raw.hex(" ").upper()
+        _held["hex"] += len(text)
     return text
 
 
@@ -213,9 +219,11 @@ def generic_note(pdu: Pdu, request: Pdu | None = None) -> str:
     key = (pdu.raw, pdu.kind, request.raw if request is not None else None)
     text = _NOTE_CACHE.get(key)
     if text is None:
-        if len(_NOTE_CACHE) >= _CACHE_SIZE:
+        if len(_NOTE_CACHE) >= _CACHE_SIZE or _held["note"] > _CACHE_CHARS:
             _NOTE_CACHE.clear()
+            _held["note"] = 0
         text = _NOTE_CACHE[key] = _generic_note(pdu, request)
+        _held["note"] += len(text)
     return text
 
 
@@ -686,9 +694,7 @@ def _cache_json_parts(record: Record, view: View) -> bytes:
     head = view._json_heads.get((stream.id, frame.direction))
     if _keys_checked and head is not None and head[0] is stream and not pdu.fields:
         parts = _parts_from_json(record_to_json(record, view, line=False), pdu, req_pdu)
-        if len(_JSON_PARTS) >= _CACHE_SIZE:
-            _JSON_PARTS.clear()
-        _JSON_PARTS[(id(pdu), id(req_pdu), record.kind, frame.unit, frame.crc_ok)] = parts
+        _keep_parts(parts, record.kind, frame)
         return _json_from_parts(record, frame, head, parts, view.time_format)
     obj = record_to_json(record, view)
     full = _json_bytes(obj)
@@ -724,7 +730,14 @@ def _cache_json_parts(record: Record, view: View) -> bytes:
     if len(heads) > 65536:
         heads.clear()
     heads[(stream.id, frame.direction)] = head
-    if len(_JSON_PARTS) >= _CACHE_SIZE:
-        _JSON_PARTS.clear()
-    _JSON_PARTS[(id(pdu), id(req_pdu), record.kind, frame.unit, frame.crc_ok)] = parts
+    _keep_parts(parts, record.kind, frame)
     return full
+
+
+def _keep_parts(parts: tuple[Any, ...], kind: RecordKind, frame: Frame) -> None:
+    """Cache a frame record's fixed JSON parts (bounded in entries and in bytes)."""
+    if len(_JSON_PARTS) >= _CACHE_SIZE or _held["json"] > _CACHE_CHARS:
+        _JSON_PARTS.clear()
+        _held["json"] = 0
+    _JSON_PARTS[(id(parts[0]), id(parts[1]), kind, frame.unit, frame.crc_ok)] = parts
+    _held["json"] += len(parts[2]) + len(parts[3]) + 2 * len(parts[4]) + len(parts[8])

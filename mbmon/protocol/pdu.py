@@ -722,18 +722,22 @@ def decode_pdu(
         if hit is not None:
             return hit
         pdu = _decode(d, response, None)
-        if len(_CACHE) >= _CACHE_SIZE:
+        if len(_CACHE) >= _CACHE_SIZE or _held[0] > _CACHE_BYTES:
             _CACHE.clear()
+            _held[0] = 0
         _CACHE[key] = pdu
+        _held[0] += len(d)
         return pdu
     paired_key = (d, response, id(request))
     paired = _PAIRED_CACHE.get(paired_key)
     if paired is not None and paired[0] is request:
         return paired[1]
     pdu = _decode(d, response, request)
-    if len(_PAIRED_CACHE) >= _CACHE_SIZE:
+    if len(_PAIRED_CACHE) >= _CACHE_SIZE or _held[1] > _CACHE_BYTES:
         _PAIRED_CACHE.clear()
+        _held[1] = 0
     _PAIRED_CACHE[paired_key] = (request, pdu)
+    _held[1] += len(d)
     return pdu
 
 
@@ -741,6 +745,11 @@ def decode_pdu(
 #: and a Pdu is immutable, so a repeat is a dict hit; the cache is emptied when full.
 _CACHE: dict[tuple[bytes, bool], Pdu] = {}
 _CACHE_SIZE: Final = 8192
+#: PDU bytes each cache may hold before it is emptied: caches are bounded in bytes,
+#: not only in entries (a decoded Pdu, values included, takes about 20x its bytes,
+#: so each cache stays within a few MB whatever the PDUs' sizes).
+_CACHE_BYTES: Final = 1 << 18
+_held = [0, 0]  # PDU bytes in _CACHE, in _PAIRED_CACHE
 #: The same for PDUs decoded with their request, by (bytes, response, id(request)):
 #: requests come from ``_CACHE`` too, so a polled read's answer is decoded once
 #: (and is the same object each time, which lets ``mbmon.format`` cache by it).
