@@ -204,9 +204,9 @@ def _values_text(values: tuple[int, ...] | None, bits: bool) -> str:
     if not values:
         return ""
     if bits:
-        shown = "".join("1" if v else "0" for v in values[:64])
+        shown = "".join(["1" if v else "0" for v in values[:64]])
         return shown + ("…" if len(values) > 64 else "")
-    text = ", ".join(str(v) for v in values[:_MAX_VALUES_SHOWN])
+    text = ", ".join(map(str, values[:_MAX_VALUES_SHOWN]))
     return text + (f", … ({len(values)} values)" if len(values) > _MAX_VALUES_SHOWN else "")
 
 
