@@ -303,8 +303,12 @@ def measure(name: str, cmd: list[str], count: str | None) -> Run:
 
 
 def mbmon_cmd() -> list[str]:
-    exe = shutil.which("mbmon")
-    return [exe] if exe else [sys.executable, "-m", "mbmon"]
+    """``python -m mbmon`` of this tree (never an ``mbmon`` script installed from another)."""
+    repo = str(Path(__file__).resolve().parents[1])
+    path = os.environ.get("PYTHONPATH", "")
+    if path.split(os.pathsep)[0] != repo:
+        os.environ["PYTHONPATH"] = repo + (os.pathsep + path if path else "")
+    return [sys.executable, "-m", "mbmon"]
 
 
 def show(run: Run, n: int) -> None:

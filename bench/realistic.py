@@ -307,6 +307,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--modes", default="json,text,mixed,profile,mcap",
                     help="which comparisons (json,text,mixed,profile,mcap)")
     ap.add_argument("--flat", action="store_true", help="also 5x the ADUs: peak RSS flat?")
+    ap.add_argument("--skip-tshark", action="store_true", help="mbmon only (RSS, callgrind)")
     ap.add_argument("--callgrind", type=int, metavar="N",
                     help="instructions per ADU on an N-ADU file (valgrind), per mode")
     args = ap.parse_args(argv)
@@ -326,7 +327,7 @@ def main(argv: list[str] | None = None) -> int:
         figures[key] = run
         return run
 
-    have_tshark = shutil.which("tshark") is not None
+    have_tshark = shutil.which("tshark") is not None and not args.skip_tshark
     if have_tshark:
         timed("tshark", "tshark -T fields (aligned)", tshark(poll), "tshark")
     if "json" in modes:

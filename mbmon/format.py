@@ -63,15 +63,21 @@ _S2C = Direction.S2C
 _HEX_CACHE: dict[bytes, str] = {}
 _NOTE_CACHE: dict[tuple[bytes, Kind, bytes | None], str] = {}
 _CACHE_SIZE = 8192
+#: characters (or bytes) each text cache may hold before it is emptied: caches are
+#: bounded in bytes, not only in entries (register answers make long texts)
+_CACHE_CHARS = 1 << 20
+_held = {"hex": 0, "note": 0, "json": 0}
 
 
 def monitor_hex(raw: bytes) -> str:
     """PDU bytes as the robot's Modbus Monitor shows them: ``02 01 2C 00 05``."""
     text = _HEX_CACHE.get(raw)
     if text is None:
-        if len(_HEX_CACHE) >= _CACHE_SIZE:
+        if len(_HEX_CACHE) >= _CACHE_SIZE or _held["hex"] > _CACHE_CHARS:
             _HEX_CACHE.clear()
+            _held["hex"] = 0
         text = _HEX_CACHE[raw] = raw.hex(" ").upper()
+        _held["hex"] += len(text)
     return text
 
 
@@ -198,9 +204,9 @@ def _values_text(values: tuple[int, ...] | None, bits: bool) -> str:
     if not values:
         return ""
     if bits:
-        shown = "".join("1" if v else "0" for v in values[:64])
+        shown = "".join(["1" if v else "0" for v in values[:64]])
         return shown + ("…" if len(values) > 64 else "")
-    text = ", ".join(str(v) for v in values[:_MAX_VALUES_SHOWN])
+    text = ", ".join(map(str, values[:_MAX_VALUES_SHOWN]))
     return text + (f", … ({len(values)} values)" if len(values) > _MAX_VALUES_SHOWN else "")
 
 
@@ -213,9 +219,11 @@ def generic_note(pdu: Pdu, request: Pdu | None = None) -> str:
     key = (pdu.raw, pdu.kind, request.raw if request is not None else None)
     text = _NOTE_CACHE.get(key)
     if text is None:
-        if len(_NOTE_CACHE) >= _CACHE_SIZE:
+        if len(_NOTE_CACHE) >= _CACHE_SIZE or _held["note"] > _CACHE_CHARS:
             _NOTE_CACHE.clear()
+            _held["note"] = 0
         text = _NOTE_CACHE[key] = _generic_note(pdu, request)
+        _held["note"] += len(text)
     return text
 
 
@@ -373,9 +381,7 @@ def record_line(record: Record, view: View, notes: tuple[str, ...] | None = None
     if kind is RecordKind.COMMAND and record.command is not None:
         cmd = record.command
         dur = (
-            f" after {cmd.duration:.3f} s"
-            if cmd.duration is not None and cmd.stream.timed
-            else ""
+            f" after {cmd.duration:.3f} s" if cmd.duration is not None and cmd.stream.timed else ""
         )
         return f"{when}  >> [{cmd.phase.value}{dur}] unit {cmd.unit}: {cmd.text}"
     return f"{when}  ?"
@@ -429,8 +435,11 @@ except ImportError:  # pragma: no cover - orjson is a dependency; keep working w
 _PLAIN: dict[Any, str] = {m: str(m.value) for e in (RecordKind, Transport) for m in e}
 
 
-def record_to_json(record: Record, view: View) -> dict[str, Any]:
-    """The stable JSON object of ``read --json`` (keys documented in docs/json.md)."""
+def record_to_json(record: Record, view: View, *, line: bool = True) -> dict[str, Any]:
+    """The stable JSON object of ``read --json`` (keys documented in docs/json.md).
+
+    ``line=False`` leaves a frame record's "line" ``None``, for callers that lay
+    the line out themselves (:func:`_cache_json_parts`)."""
     frame: Frame | None = record.frame
     if frame is not None:  # the hot path: one dict literal, keys in documented order
         pdu = frame.pdu
@@ -465,7 +474,7 @@ def record_to_json(record: Record, view: View) -> dict[str, Any]:
             "count": count,
             "values": list(values) if values is not None else None,
             "pdu": monitor_hex(pdu.raw),
-            "line": record_line(record, view, notes),
+            "line": record_line(record, view, notes) if line else None,
             "notes": list(notes),
             "crc_ok": frame.crc_ok,
             "latency_ms": round(latency * 1000, 3) if latency is not None else None,
@@ -636,13 +645,60 @@ def frame_json_bytes(
     )
 
 
+#: The PDU-dependent JSON keys of a frame record between "tid" and "line", and
+#: after "notes", in record_to_json's order; their texts (``,"key":``) are checked
+#: once against a full encoding before :func:`_parts_from_json` may use them.
+_TO_LINE_KEYS = ("unit", "fc", "kind", "exception_code", "address", "count", "values", "pdu")
+_KEY_TEXT = {
+    k: b',"%b":' % k.encode()
+    for k in (*_TO_LINE_KEYS, "line", "crc_ok", "latency_ms", "malformed", "request_index")
+}
+_keys_checked: list[bool] = []  # [True] once a full encoding confirmed _KEY_TEXT
+
+
+def _parts_from_json(obj: dict[str, Any], pdu: Pdu, req_pdu: Pdu | None) -> tuple[Any, ...]:
+    """A frame record's fixed JSON parts (see ``_JSON_PARTS``) from its
+    :func:`record_to_json` object, each value encoded on its own: what the
+    full encoding cut at the per-record values gives, without encoding the
+    whole object twice and cutting it (a PDU whose values change every poll
+    is seen once; its parts are made here)."""
+    j = _json_bytes
+    k = _KEY_TEXT
+    to_line = b"".join([b"%b%b" % (k[key], j(obj[key])) for key in _TO_LINE_KEYS]) + k["line"]
+    note_json = j(obj["notes"][0])
+    return (
+        pdu,
+        req_pdu,
+        to_line,
+        obj["pdu"].encode(),
+        note_json,
+        note_json[1:-1],
+        k["crc_ok"] + j(obj["crc_ok"]) + k["latency_ms"],
+        k["malformed"] + j(obj["malformed"]) + k["request_index"],
+        b"}",
+    )
+
+
 def _cache_json_parts(record: Record, view: View) -> bytes:
     """``record``'s JSON line, encoded in full; its fixed parts are cut out of it and
-    cached when they give it back (a note that held the sentinel would not)."""
+    cached when they give it back (a note that held the sentinel would not).
+
+    Once the stream direction's head is cached and the key texts are confirmed,
+    a PDU without ``fields`` takes :func:`_parts_from_json` instead: the same
+    parts from the record's JSON object, value by value (``tests/test_format.py``
+    compares every line with the full encoding)."""
     frame = record.frame
     assert frame is not None
+    stream, pdu = frame.stream, frame.pdu
+    req_pdu = record.request.pdu if record.request is not None else None
+    head = view._json_heads.get((stream.id, frame.direction))
+    if _keys_checked and head is not None and head[0] is stream and not pdu.fields:
+        parts = _parts_from_json(record_to_json(record, view, line=False), pdu, req_pdu)
+        _keep_parts(parts, record.kind, frame)
+        return _json_from_parts(record, frame, head, parts, view.time_format)
     obj = record_to_json(record, view)
     full = _json_bytes(obj)
+    original = dict(obj)
     for key in _PER_RECORD:
         obj[key] = _SENTINEL
     pieces = _json_bytes(obj).split(_json_bytes(_SENTINEL))
@@ -651,8 +707,6 @@ def _cache_json_parts(record: Record, view: View) -> bytes:
     _, _, head_text, to_line, notes_key, to_latency, to_index, end = pieces
     if notes_key != b',"notes":':
         return full
-    stream, pdu = frame.stream, frame.pdu
-    req_pdu = record.request.pdu if record.request is not None else None
     note_json = _json_bytes(generic_note(pdu, req_pdu))
     label_escaped = _json_bytes(view.label(stream, frame.direction))[1:-1]
     head = (stream, head_text, label_escaped)
@@ -669,11 +723,21 @@ def _cache_json_parts(record: Record, view: View) -> bytes:
     )
     if _json_from_parts(record, frame, head, parts, view.time_format) != full:
         return full
+    if not _keys_checked and "fields" not in original:
+        if _parts_from_json(original, pdu, req_pdu) == parts:
+            _keys_checked.append(True)
     heads = view._json_heads
     if len(heads) > 65536:
         heads.clear()
     heads[(stream.id, frame.direction)] = head
-    if len(_JSON_PARTS) >= _CACHE_SIZE:
-        _JSON_PARTS.clear()
-    _JSON_PARTS[(id(pdu), id(req_pdu), record.kind, frame.unit, frame.crc_ok)] = parts
+    _keep_parts(parts, record.kind, frame)
     return full
+
+
+def _keep_parts(parts: tuple[Any, ...], kind: RecordKind, frame: Frame) -> None:
+    """Cache a frame record's fixed JSON parts (bounded in entries and in bytes)."""
+    if len(_JSON_PARTS) >= _CACHE_SIZE or _held["json"] > _CACHE_CHARS:
+        _JSON_PARTS.clear()
+        _held["json"] = 0
+    _JSON_PARTS[(id(parts[0]), id(parts[1]), kind, frame.unit, frame.crc_ok)] = parts
+    _held["json"] += len(parts[2]) + len(parts[3]) + 2 * len(parts[4]) + len(parts[8])

@@ -346,3 +346,26 @@ def test_untimed_streams_show_record_numbers_and_no_latency() -> None:
         assert obj == json.loads(json_line(record_to_json(record, View())))
     timed = record_line(_pair(0.0, BUS)[1], View())
     assert "(12.5 ms)" in timed  # the same records on a timed bus: latency shown
+
+
+def test_json_bytes_is_the_full_encoding_on_a_realistic_capture(tmp_path: Path) -> None:
+    """A cell's capture as bench/realistic.py builds it (connections captured
+    mid-stream, register values that change every poll, writes, exceptions):
+    nearly every answer is a PDU never seen before, so its fixed JSON parts are
+    made value by value (format._parts_from_json), not cut from a full encoding."""
+    import random
+    import sys
+
+    sys.path.insert(0, str(REPO / "bench"))
+    try:
+        import realistic
+    finally:
+        sys.path.remove(str(REPO / "bench"))
+    path = tmp_path / "cell.pcap"
+    adus = realistic.polling_adus(random.Random(5), 5, 1500)
+    realistic.build(path, adus, 5, 2, "mixed", seed=5)
+    records = _records_of(path)
+    assert sum(r.kind is RecordKind.RESPONSE for r in records) > 1400
+    for view in _views(records):
+        for record in records:
+            assert record_json_bytes(record, view) == _slow(record, view)

@@ -88,7 +88,7 @@ from itertools import chain
 from types import MappingProxyType
 from typing import Any, Final
 
-from mbmon.model import EMPTY, Kind, Pdu
+from mbmon.model import EMPTY, Kind, Pdu, fast_constructor
 from mbmon.protocol.functions import FUNCTIONS, NEED_MORE, LengthRule
 
 __all__ = [
@@ -222,7 +222,7 @@ _BITS: Final[tuple[tuple[int, ...], ...]] = tuple(
 
 
 def _bits(data: bytes) -> tuple[int, ...]:
-    return tuple(chain.from_iterable(_BITS[b] for b in data))
+    return tuple(chain.from_iterable(map(_BITS.__getitem__, data)))
 
 
 def _words(data: bytes) -> tuple[int, ...]:
@@ -294,8 +294,19 @@ def _paired(request: Pdu | None, fc: int) -> Pdu | None:
 
 
 def _read_req(o: _Out, request: Pdu | None) -> None:
+    d = o.d
+    if len(d) == 5:  # the usual case, decided without the helpers (same result)
+        address = (d[1] << 8) | d[2]
+        count = (d[3] << 8) | d[4]
+        o.address = address
+        o.count = count
+        if not 1 <= count <= (2000 if o.fc in (0x01, 0x02) else 125):
+            o.limit("count", count, 2000 if o.fc in (0x01, 0x02) else 125)
+        if address + count > 0x10000:
+            o.span(address, count)
+        return
     o.fixed(5)
-    o.address, o.count = _u16(o.d, 1), _u16(o.d, 3)
+    o.address, o.count = _u16(d, 1), _u16(d, 3)
     o.limit("count", o.count, 2000 if o.fc in (0x01, 0x02) else 125)
     o.span(o.address, o.count)
 
@@ -319,7 +330,15 @@ def _bits_resp(o: _Out, request: Pdu | None) -> None:
 
 
 def _regs_resp(o: _Out, request: Pdu | None) -> None:
-    if not o.need(2):
+    d = o.d
+    if len(d) < 2:
+        o.need(2)
+        return
+    bc = d[1]
+    if request is None and bc and not bc & 1 and len(d) == bc + 2:
+        # the usual unpaired answer, decided without the helpers (same result)
+        o.byte_count = bc
+        o.values = struct.unpack_from(f">{bc >> 1}H", d, 2)
         return
     data = o.counted(1)
     bc = o.byte_count or 0
@@ -703,18 +722,22 @@ def decode_pdu(
         if hit is not None:
             return hit
         pdu = _decode(d, response, None)
-        if len(_CACHE) >= _CACHE_SIZE:
+        if len(_CACHE) >= _CACHE_SIZE or _held[0] > _CACHE_BYTES:
             _CACHE.clear()
+            _held[0] = 0
         _CACHE[key] = pdu
+        _held[0] += len(d)
         return pdu
     paired_key = (d, response, id(request))
     paired = _PAIRED_CACHE.get(paired_key)
     if paired is not None and paired[0] is request:
         return paired[1]
     pdu = _decode(d, response, request)
-    if len(_PAIRED_CACHE) >= _CACHE_SIZE:
+    if len(_PAIRED_CACHE) >= _CACHE_SIZE or _held[1] > _CACHE_BYTES:
         _PAIRED_CACHE.clear()
+        _held[1] = 0
     _PAIRED_CACHE[paired_key] = (request, pdu)
+    _held[1] += len(d)
     return pdu
 
 
@@ -722,6 +745,11 @@ def decode_pdu(
 #: and a Pdu is immutable, so a repeat is a dict hit; the cache is emptied when full.
 _CACHE: dict[tuple[bytes, bool], Pdu] = {}
 _CACHE_SIZE: Final = 8192
+#: PDU bytes each cache may hold before it is emptied: caches are bounded in bytes,
+#: not only in entries (a decoded Pdu, values included, takes about 20x its bytes,
+#: so each cache stays within a few MB whatever the PDUs' sizes).
+_CACHE_BYTES: Final = 1 << 18
+_held = [0, 0]  # PDU bytes in _CACHE, in _PAIRED_CACHE
 #: The same for PDUs decoded with their request, by (bytes, response, id(request)):
 #: requests come from ``_CACHE`` too, so a polled read's answer is decoded once
 #: (and is the same object each time, which lets ``mbmon.format`` cache by it).
@@ -763,7 +791,7 @@ def _decode(d: bytes, response: bool, request: Pdu | None) -> Pdu:
             fields=_fields({"data": d[1:]}),
             malformed=f"exception bit set in request function code 0x{code:02X}",
         )
-    kind = Kind.RESPONSE if response else Kind.REQUEST
+    kind = _RESPONSE if response else _REQUEST
     decoders = _DECODERS.get(fc)
     if decoders is None:
         return Pdu(
@@ -778,17 +806,25 @@ def _decode(d: bytes, response: bool, request: Pdu | None) -> Pdu:
         decoders[1 if response else 0](o, request)
     except Exception as err:  # a decoder bug must not stop the pipeline
         o.bad.append(f"internal decoder error: {type(err).__name__}")
-    return Pdu(
-        raw=d,
-        fc=fc,
-        kind=kind,
-        address=o.address,
-        count=o.count,
-        byte_count=o.byte_count,
-        values=o.values,
-        fields=_fields(o.fields),
-        malformed="; ".join(o.bad) or None,
+    f = o.fields
+    bad = o.bad
+    return _new_pdu(
+        d,
+        fc,
+        kind,
+        None,
+        o.address,
+        o.count,
+        o.byte_count,
+        o.values,
+        MappingProxyType(f) if f else EMPTY,
+        "; ".join(bad) if bad else None,
     )
+
+
+_RESPONSE: Final = Kind.RESPONSE  # module constants: an enum class attribute costs more
+_REQUEST: Final = Kind.REQUEST
+_new_pdu = fast_constructor(Pdu)  # per decoded PDU (cache misses): Pdu(...) by its slots
 
 
 def with_malformed(pdu: Pdu, reason: str) -> Pdu:

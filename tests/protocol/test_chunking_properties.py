@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from itertools import pairwise
 
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from mbmon.model import Direction, Frame, Noise, Stream, Transport
@@ -23,7 +23,7 @@ from mbmon.protocol.pdu import (
     encode_write_multiple_response,
     encode_write_single,
 )
-from mbmon.protocol.rtu import RtuDecoder, encode_rtu
+from mbmon.protocol.rtu import RtuDecoder, encode_rtu, t35
 
 TCP = Stream(0, Transport.TCP, "10.0.0.2:50000", "10.0.0.1:502")
 BUS = Stream(1, Transport.RTU, "/dev/ttyUSB0", "/dev/ttyUSB0")
@@ -237,3 +237,128 @@ def test_rtu_mutated_streams(
     split = run(RtuDecoder(BUS), chunked(bad, cuts))
     assert accounted(split) == len(bad)
     assert frame_keys(split) == frame_keys(whole)
+
+
+# ---------------------------------------------------------------- RTU in bursts (issue 11)
+#
+# Any chunking of a valid bus stream recovers every valid frame, also when the
+# chunks come in bursts with silences between them. USB serial adapters
+# deliver bytes in bunches: a pause between two bursts can exceed t3.5 in the
+# middle of a frame. A frame of predictable length always waited for its rest;
+# a frame whose length is not predictable from its first bytes (user-defined
+# codes, 0x2B responses, 0x08 sub-function 0x00) used to be settled as noise
+# at the silence, and was lost.
+
+BURST_BUS = Stream(3, Transport.RTU, "/dev/ttyUSB0", "/dev/ttyUSB0")
+BAUD = 9600
+CHAR = 11.0 / BAUD
+
+BURST_SETTINGS = settings(
+    max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow]
+)
+
+
+@st.composite
+def unpredictable(draw: st.DrawFn) -> tuple[bytes, bytes]:
+    """An exchange of which at least one PDU has no predictable length."""
+    kind = draw(st.sampled_from(["user", "mei", "echo"]))
+    if kind == "user":  # user-defined function code: both sides scanned
+        fc = draw(st.sampled_from([0x41, 0x42, 0x64, 0x6E]))
+        req = bytes([fc]) + draw(st.binary(max_size=24))
+        resp = bytes([fc]) + draw(st.binary(max_size=60))
+    elif kind == "mei":  # Read Device Identification: the response is scanned
+        req = bytes([0x2B, 0x0E, 0x01, 0x00])
+        text = draw(st.binary(max_size=40))
+        resp = bytes([0x2B, 0x0E, 0x01, 0x01, 0x00, 0x00, 0x01, 0x00, len(text)]) + text
+    else:  # 0x08 Return Query Data: echoes any number of bytes
+        req = resp = bytes([0x08, 0x00, 0x00]) + draw(st.binary(max_size=30))
+    return req, resp
+
+
+@st.composite
+def bus_frames(draw: st.DrawFn) -> list[tuple[Direction, bytes]]:
+    """Requests each followed by their response, predictable and not, distinct units."""
+    out: list[tuple[Direction, bytes]] = []
+    n = draw(st.integers(1, 8))
+    for _ in range(n):
+        req, resp = draw(st.one_of(exchanges(), unpredictable()))
+        unit = draw(st.integers(1, 247))
+        out.append((Direction.C2S, encode_rtu(unit, req)))
+        out.append((Direction.S2C, encode_rtu(unit, resp)))
+    return out
+
+
+def decode_bursts(
+    data: bytes, cuts: list[int], gaps: list[float], ticks: bool
+) -> list[Frame | Noise]:
+    """Feed ``data`` cut at ``cuts``; before chunk i the line was silent ``gaps[i]`` s.
+
+    With ``ticks`` the decoder is also ticked inside each silence (after t3.5),
+    as the hub does while nothing arrives.
+    """
+    dec = RtuDecoder(BURST_BUS, baudrate=BAUD, silence=60.0)
+    out: list[Frame | Noise] = []
+    now = 0.0
+    for i, chunk in enumerate(chunked(data, cuts)):
+        gap = gaps[i % len(gaps)] if gaps else 0.0
+        if ticks and gap > t35(BAUD):
+            out += dec.tick(now + t35(BAUD) + 0.0001)
+        now += gap + len(chunk) * CHAR  # ts: when the chunk's last byte arrived
+        out += dec.feed(chunk, now)
+    out += dec.flush(now + 1.0)
+    return out
+
+
+def raws(items: list[Frame | Noise]) -> list[tuple[Direction, bytes]]:
+    return [(x.direction, x.raw) for x in items if isinstance(x, Frame)]
+
+
+@BURST_SETTINGS
+@given(
+    bus_frames(),
+    st.lists(st.integers(0, 10_000), max_size=10),
+    st.lists(st.sampled_from([0.0, 0.002, 0.01, 0.05, 0.3]), max_size=6),
+    st.booleans(),
+)
+def test_rtu_bursts_recover_every_valid_frame(
+    frames: list[tuple[Direction, bytes]], cuts: list[int], gaps: list[float], ticks: bool
+) -> None:
+    data = b"".join(raw for _, raw in frames)
+    plain = RtuDecoder(BURST_BUS)
+    whole = plain.feed(data, 0.0) + plain.flush(0.0)
+    # a CRC that matches by chance inside a scanned frame splits it even in one
+    # piece: such streams are no test of chunking
+    assume(raws(whole) == frames)
+    out = decode_bursts(data, cuts, gaps, ticks)
+    assert raws(out) == frames
+    assert sum(len(x.raw) for x in out) == len(data)  # nothing lost, nothing twice
+
+
+@BURST_SETTINGS
+@given(bus_frames(), st.lists(st.integers(0, 10_000), max_size=10))
+def test_rtu_untimed_any_chunking_recovers_unpredictable_frames(
+    frames: list[tuple[Direction, bytes]], cuts: list[int]
+) -> None:
+    data = b"".join(raw for _, raw in frames)
+    plain = RtuDecoder(BURST_BUS)
+    whole = plain.feed(data, 0.0) + plain.flush(0.0)
+    assume(raws(whole) == frames)
+    dec = RtuDecoder(BURST_BUS)
+    out: list[Frame | Noise] = []
+    for i, chunk in enumerate(chunked(data, cuts)):
+        out += dec.feed(chunk, float(i))
+    out += dec.flush(99.0)
+    assert raws(out) == frames
+
+
+def test_user_defined_frame_split_by_a_usb_pause() -> None:
+    # the byte table of the bug: 0x41 frame, 7 bytes, then 40 ms of adapter latency
+    user = encode_rtu(7, bytes([0x41, 1, 2, 3, 4, 5, 6, 7, 8, 9]))
+    req = encode_rtu(1, bytes([3, 0, 0, 0, 2]))
+    dec = RtuDecoder(BURST_BUS, baudrate=BAUD)
+    out = dec.feed(user[:7], 1.0)
+    out += dec.tick(1.0 + t35(BAUD) + 0.001)
+    out += dec.feed(user[7:], 1.04)
+    out += dec.feed(req, 1.2)
+    assert raws(out) == [(Direction.C2S, user), (Direction.C2S, req)]
+    assert [x for x in out if isinstance(x, Noise)] == []

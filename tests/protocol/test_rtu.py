@@ -283,16 +283,29 @@ def test_silence_settles_leftover_noise() -> None:
     assert plain.feed(req, 2.0) == []
     assert [type(x) for x in plain.flush(3.0)] == [Noise, Frame]
     # With the baud rate, a second of silence ends the junk: the request is
-    # decoded at once. The last junk byte could still be the unit id of a
-    # frame delivered late, so it becomes noise only with the next bytes.
+    # decoded at once. The junk could still be the start of a frame of
+    # unpredictable length delivered late (USB adapters bunch bytes), so it
+    # becomes noise only with the next bytes, when a frame of its own starts
+    # right after the silence (issue 11).
     timed = RtuDecoder(BUS, baudrate=9600)
     assert timed.feed(junk, 1.0) == []
     out = timed.feed(req, 2.0)
-    assert [type(x) for x in out] == [Noise, Noise, Frame]
-    assert out[0].raw + out[1].raw == junk
+    assert [type(x) for x in out] == [Noise, Frame]
+    assert out[0].raw == junk
     assert out[0].ts == 1.0
-    assert out[2].raw == req
+    assert out[1].raw == req
     assert timed.stats["timing_gaps"] == 1
+
+
+def test_silence_settles_junk_before_a_frame_it_cannot_swallow() -> None:
+    # junk of unknown code, then a whole request, then a silence: the request
+    # frames on its own before the silence, so the junk is noise at once
+    junk = h("11 41 41")
+    req = PAIRS["03"][0]
+    timed = RtuDecoder(BUS, baudrate=9600)
+    assert timed.feed(junk + req, 1.0) == []  # no timing decision yet
+    out = timed.tick(1.5)
+    assert [(type(x), x.raw) for x in out] == [(Noise, junk), (Frame, req)]
 
 
 def test_silence_never_splits_a_frame_whose_length_is_known() -> None:
