@@ -362,18 +362,12 @@ class RtuDecoder(StreamDecoder):
                         raw = bytes(buf[pos:end]) if copy else buf[pos:end]
                         if is_resp:
                             pending = None
-                            append(
-                                new_frame(
-                                    ts, stream, _S2C, unit, None, decode(raw[1:-2], True), raw, True
-                                )
-                            )
+                            direction = _S2C
                         else:
                             pending = (unit, fc) if unit != 0 else None
-                            append(
-                                new_frame(
-                                    ts, stream, _C2S, unit, None, decode(raw[1:-2], False), raw, True
-                                )
-                            )
+                            direction = _C2S
+                        pdu = decode(raw[1:-2], is_resp)
+                        append(new_frame(ts, stream, direction, unit, None, pdu, raw, True))
                         frames += 1
                         pos = end
                         continue

@@ -10,6 +10,7 @@ both must be the same for any bus traffic, chunking, direction and timing.
 from __future__ import annotations
 
 import random
+from itertools import pairwise
 
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -59,7 +60,7 @@ def decode(data: bytes, cuts: list[int], direction: Direction, baud: int | None)
     out: list[Frame | Noise] = []
     points = sorted({0, len(data), *(c % (len(data) + 1) for c in cuts)})
     ts = 0.0
-    for i, (a, b) in enumerate(zip(points, points[1:], strict=False)):
+    for i, (a, b) in enumerate(pairwise(points)):
         ts += 0.0001 if i % 3 else 0.01
         out += d.feed(data[a:b], ts)
         if i % 5 == 4:
