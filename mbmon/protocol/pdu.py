@@ -6,7 +6,9 @@ monitor window (no unit id, MBAP header or CRC). This module owns:
 * :func:`decode_pdu` -- bytes -> :class:`mbmon.model.Pdu`; never raises for any
   input; spec violations become ``Pdu.malformed`` (``"; "``-joined reasons)
   while everything that can still be read is decoded.
-* :func:`pdu_length` -- how long a PDU is from its first bytes (RTU framing).
+* :func:`pdu_length` -- how long a PDU is from its first bytes (RTU framing);
+  :func:`simple_length_rules` -- its function-free rules, for a framer that
+  inlines the common case.
 * name tables for the formatter, :func:`table_of` for annotators, and small
   encoders for tests, the simulator and benchmarks.
 
