@@ -6,7 +6,9 @@ monitor window (no unit id, MBAP header or CRC). This module owns:
 * :func:`decode_pdu` -- bytes -> :class:`mbmon.model.Pdu`; never raises for any
   input; spec violations become ``Pdu.malformed`` (``"; "``-joined reasons)
   while everything that can still be read is decoded.
-* :func:`pdu_length` -- how long a PDU is from its first bytes (RTU framing).
+* :func:`pdu_length` -- how long a PDU is from its first bytes (RTU framing);
+  :func:`simple_length_rules` -- its function-free rules, for a framer that
+  inlines the common case.
 * name tables for the formatter, :func:`table_of` for annotators, and small
   encoders for tests, the simulator and benchmarks.
 
@@ -106,6 +108,7 @@ __all__ = [
     "encode_write_multiple_response",
     "encode_write_single",
     "pdu_length",
+    "simple_length_rules",
     "table_of",
     "with_malformed",
 ]
@@ -212,6 +215,24 @@ def pdu_length(data: bytes | bytearray | memoryview, response: bool) -> int | No
         index, base = spec
         return NEED_MORE if n <= index else base + data[index]
     return spec(data)  # type: ignore[operator]
+
+
+def simple_length_rules(response: bool) -> dict[int, int | tuple[int, int]]:
+    """The rules :func:`pdu_length` applies without a function, for a framer that
+    inlines the common case: function code -> fixed PDU length (int) or
+    ``(i, base)`` (length ``base + data[i]``, :data:`NEED_MORE` while ``data[i]``
+    is missing). Responses include the exception codes 0x81..0xFF (2 bytes).
+    Codes absent here go through :func:`pdu_length` (a function rule, or no
+    predictable length). Same answers as :func:`pdu_length` by construction: it
+    reads the same tables (tested)."""
+    rules: dict[int, int | tuple[int, int]] = {
+        code: rule
+        for code, rule in (_RESP_LEN if response else _REQ_LEN).items()
+        if type(rule) is int or type(rule) is tuple
+    }
+    if response:
+        rules.update(dict.fromkeys(range(0x81, 0x100), 2))
+    return rules
 
 
 # --------------------------------------------------------------------------- decoding
@@ -717,41 +738,49 @@ def decode_pdu(
     """
     d = data if type(data) is bytes else bytes(data)
     if request is None:
-        key = (d, response)
-        hit = _CACHE.get(key)
+        if response:
+            cache = _RESPONSES
+            which = 1
+        else:
+            cache = _REQUESTS
+            which = 0
+        hit = cache.get(d)
         if hit is not None:
             return hit
         pdu = _decode(d, response, None)
-        if len(_CACHE) >= _CACHE_SIZE or _held[0] > _CACHE_BYTES:
-            _CACHE.clear()
-            _held[0] = 0
-        _CACHE[key] = pdu
-        _held[0] += len(d)
+        held = _held[which]
+        if held > _CACHE_BYTES or len(cache) >= _CACHE_SIZE:
+            cache.clear()
+            held = 0
+        cache[d] = pdu
+        _held[which] = held + len(d)
         return pdu
     paired_key = (d, response, id(request))
     paired = _PAIRED_CACHE.get(paired_key)
     if paired is not None and paired[0] is request:
         return paired[1]
     pdu = _decode(d, response, request)
-    if len(_PAIRED_CACHE) >= _CACHE_SIZE or _held[1] > _CACHE_BYTES:
+    if len(_PAIRED_CACHE) >= _CACHE_SIZE or _held[2] > _CACHE_BYTES:
         _PAIRED_CACHE.clear()
-        _held[1] = 0
+        _held[2] = 0
     _PAIRED_CACHE[paired_key] = (request, pdu)
-    _held[1] += len(d)
+    _held[2] += len(d)
     return pdu
 
 
-#: Decoded PDUs by (bytes, response). Polling repeats the same PDUs over and over
-#: and a Pdu is immutable, so a repeat is a dict hit; the cache is emptied when full.
-_CACHE: dict[tuple[bytes, bool], Pdu] = {}
+#: Decoded PDUs by bytes, requests and responses apart (keyed by the bytes alone: no
+#: key tuple to build and hash per PDU). Polling repeats the same PDUs over and over
+#: and a Pdu is immutable, so a repeat is a dict hit; a cache is emptied when full.
+_REQUESTS: dict[bytes, Pdu] = {}
+_RESPONSES: dict[bytes, Pdu] = {}
 _CACHE_SIZE: Final = 8192
 #: PDU bytes each cache may hold before it is emptied: caches are bounded in bytes,
 #: not only in entries (a decoded Pdu, values included, takes about 20x its bytes,
 #: so each cache stays within a few MB whatever the PDUs' sizes).
 _CACHE_BYTES: Final = 1 << 18
-_held = [0, 0]  # PDU bytes in _CACHE, in _PAIRED_CACHE
+_held = [0, 0, 0]  # PDU bytes in _REQUESTS, _RESPONSES (index: response), _PAIRED_CACHE
 #: The same for PDUs decoded with their request, by (bytes, response, id(request)):
-#: requests come from ``_CACHE`` too, so a polled read's answer is decoded once
+#: requests come from ``_REQUESTS`` too, so a polled read's answer is decoded once
 #: (and is the same object each time, which lets ``mbmon.format`` cache by it).
 #: The request is kept with the PDU so that an id is never taken for a later object's.
 _PAIRED_CACHE: dict[tuple[bytes, bool, int], tuple[Pdu, Pdu]] = {}
@@ -791,6 +820,89 @@ def _decode(d: bytes, response: bool, request: Pdu | None) -> Pdu:
             fields=_fields({"data": d[1:]}),
             malformed=f"exception bit set in request function code 0x{code:02X}",
         )
+    if request is None and 0 < fc <= 0x10:
+        pdu = _well_formed(d, fc, response)
+        if pdu is not None:
+            return pdu
+    return _decode_general(d, fc, response, request)
+
+
+def _well_formed(d: bytes, fc: int, response: bool) -> Pdu | None:
+    """The frequent PDUs (01-06, 0F, 10) when they break no rule, decided without
+    the collector and the helper calls; ``None`` for anything else (other codes,
+    any reason to report), which :func:`_decode_general` decides. Where it answers
+    it gives the very same Pdu as the field decoders (``tests/protocol/
+    test_pdu_props.py`` compares the two on any bytes): they own the rules, this
+    only skips the bookkeeping for PDUs with nothing to report.
+    """
+    n = len(d)
+    if response:
+        if fc <= 0x04:
+            if n < 3:
+                return None
+            bc = d[1]
+            if n != bc + 2:
+                return None
+            if fc >= 0x03:
+                if bc & 1:
+                    return None
+                values = struct.unpack_from(f">{bc >> 1}H", d, 2)
+            else:
+                values = _bits(d[2:])
+            return _new_pdu(d, fc, _RESPONSE, None, None, None, bc, values, EMPTY, None)
+        kind = _RESPONSE
+    else:
+        kind = _REQUEST
+        if fc <= 0x04:
+            if n != 5:
+                return None
+            address = (d[1] << 8) | d[2]
+            count = (d[3] << 8) | d[4]
+            if not 1 <= count <= (2000 if fc <= 0x02 else 125) or address + count > 0x10000:
+                return None
+            return _new_pdu(d, fc, _REQUEST, None, address, count, None, None, EMPTY, None)
+        if fc >= 0x0F and n != 5:  # 0F / 10 request with its data
+            if n < 6:
+                return None
+            bc = d[5]
+            count = (d[3] << 8) | d[4]
+            address = (d[1] << 8) | d[2]
+            if n - 6 != bc or count < 1 or address + count > 0x10000:
+                return None
+            if fc == 0x0F:
+                if count > 1968 or bc != (count + 7) >> 3:
+                    return None
+                values = _bits(d[6:])[:count]
+            else:
+                if count > 123 or bc != 2 * count:
+                    return None
+                values = struct.unpack_from(f">{count}H", d, 6)
+            return _new_pdu(d, fc, _REQUEST, None, address, count, bc, values, EMPTY, None)
+    if n != 5:
+        return None
+    address = (d[1] << 8) | d[2]
+    value = (d[3] << 8) | d[4]
+    if fc == 0x05:
+        if value == 0xFF00:
+            return _new_pdu(d, 5, kind, None, address, 1, None, _ON, EMPTY, None)
+        if value == 0:
+            return _new_pdu(d, 5, kind, None, address, 1, None, _OFF, EMPTY, None)
+        return None
+    if fc == 0x06:
+        return _new_pdu(d, 6, kind, None, address, 1, None, (value,), EMPTY, None)
+    if fc >= 0x0F and response:  # 0F / 10 response: address, count
+        if not 1 <= value <= (1968 if fc == 0x0F else 123) or address + value > 0x10000:
+            return None
+        return _new_pdu(d, fc, kind, None, address, value, None, None, EMPTY, None)
+    return None
+
+
+_ON: Final = (1,)
+_OFF: Final = (0,)
+
+
+def _decode_general(d: bytes, fc: int, response: bool, request: Pdu | None) -> Pdu:
+    """:func:`_decode` of a PDU with a function code, by the field decoders."""
     kind = _RESPONSE if response else _REQUEST
     decoders = _DECODERS.get(fc)
     if decoders is None:
