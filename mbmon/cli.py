@@ -2,7 +2,7 @@
 
 Every command is a module of :mod:`mbmon.commands` (``register`` adds its
 parser, ``run`` wires sources, hub and listeners); the log commands are in
-:mod:`mbmon.logcmds`. Exit codes are defined once, in
+:mod:`mbmon.commands.logs`. Exit codes are defined once, in
 :mod:`mbmon.commands.common`.
 """
 
@@ -41,9 +41,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS[:2]:  # read, decode
         importlib.import_module(f"mbmon.commands.{name}").register(sub)
-    from mbmon import logcmds
+    from mbmon.commands import logs
 
-    logcmds.add_subcommands(sub)
+    logs.add_subcommands(sub)
     for name in COMMANDS[2:]:
         importlib.import_module(f"mbmon.commands.{name}").register(sub)
     return parser

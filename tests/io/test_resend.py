@@ -325,7 +325,7 @@ def test_replay_server_modules_import_neither_the_cli_nor_pymodbus(module: str) 
 
     code = (
         f"import sys, {module}; "
-        "bad = [m for m in ('mbmon.cli', 'mbmon.commands', 'mbmon.logcmds', 'pymodbus', "
+        "bad = [m for m in ('mbmon.cli', 'mbmon.commands', 'pymodbus', "
         "'scapy', 'serial') if m in sys.modules]; print(','.join(bad))"
     )
     out = subprocess.run(

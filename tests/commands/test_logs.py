@@ -26,7 +26,7 @@ from mcap.reader import make_reader
 from mbmon.io.mcap.reader import McapLog
 from mbmon.sources.pcapwrite import PcapWriter, TcpConversation
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 OWN = REPO / "captures"
 REAL = REPO / ".." / "shared" / "captures" / "real"
 MBMON = [sys.executable, "-m", "mbmon.cli"]
