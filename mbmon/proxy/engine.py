@@ -89,6 +89,14 @@ HANDOVER = 0.002
 #: so that their late answers are recognised and dropped.
 LATE_MEMORY = 4096
 
+#: How many bytes one read of a socket takes at most. The engine reads into one
+#: buffer of its own (:class:`_Reader`): asyncio's plain protocols get a new
+#: 256 KiB ``bytes`` per read, which glibc serves above its mmap threshold, so
+#: every 12-byte request cost an mmap, page faults, an mremap and a munmap (a TLB
+#: shootdown across the process's threads): half the engine's CPU per request
+#: (docs/performance.md). A Modbus/TCP ADU is at most 260 bytes.
+READ_BUFFER = 64 * 1024
+
 #: The kernel send buffer of a client socket (the kernel doubles it): Modbus answers
 #: are at most 260 bytes, so this holds hundreds; a client that leaves more unread
 #: than this and the loop's 64 KiB is not reading, and is dropped after ``timeout``.
@@ -300,11 +308,31 @@ class _Pending:
         self.done = False  # answered, expired or forgotten: the deadline queue skips it
 
 
-class _Upstream(asyncio.Protocol):
+class _Reader(asyncio.BufferedProtocol):
+    """A socket protocol that reads into the engine's one read buffer and hands
+    ``data_received`` a ``bytes`` copy of exactly what was read (see
+    :data:`READ_BUFFER`). The buffer is shared by every connection of the loop:
+    asyncio fills it and calls :meth:`buffer_updated` in one step, in the loop's
+    thread, so it is free again before the next read."""
+
+    engine: ProxyEngine
+
+    def get_buffer(self, sizehint: int) -> memoryview:
+        return self.engine.read_buffer
+
+    def buffer_updated(self, nbytes: int) -> None:
+        self.data_received(bytes(self.engine.read_buffer[:nbytes]))
+
+    def data_received(self, data: bytes) -> None:
+        raise NotImplementedError
+
+
+class _Upstream(_Reader):
     """The socket side of a :class:`_Link`."""
 
     def __init__(self, link: _Link) -> None:
         self.link = link
+        self.engine = link.engine
         self.transport: asyncio.Transport | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
@@ -638,7 +666,7 @@ class _Link:
             proto.transport.close()
 
 
-class _Client(asyncio.Protocol):
+class _Client(_Reader):
     """One client connection: frames its requests, guards, forwards, answers."""
 
     #: A client the gateway's own 0x0A/0x0B are not sent to (an RTU master, that gets
@@ -919,6 +947,8 @@ class ProxyEngine:
         self._expiry: asyncio.TimerHandle | None = None
         #: the upstream as last seen (for the live monitor): up, unavailable (why), ...
         self.upstream_state = "not connected yet"
+        #: every socket of the loop reads into this, one read at a time (:class:`_Reader`)
+        self.read_buffer = memoryview(bytearray(READ_BUFFER))
 
     def figures(self) -> dict[str, Any]:
         """The proxy's own figures for the live monitor's header (read from any thread)."""
