@@ -58,7 +58,16 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from typing import Any
 
-from mbmon.model import Chunk, Direction, Event, EventKind, Frame, Stream, Transport
+from mbmon.model import (
+    Chunk,
+    Direction,
+    Event,
+    EventKind,
+    Frame,
+    Stream,
+    Transport,
+    fast_constructor,
+)
 from mbmon.protocol.mbap import MbapDecoder, encode_adu
 from mbmon.protocol.pdu import encode_exception
 from mbmon.proxy.guard import ClientFilter, Guard
@@ -104,6 +113,7 @@ CLIENT_SNDBUF = 64 * 1024
 
 _C2S = Direction.C2S
 _S2C = Direction.S2C
+_new_chunk = fast_constructor(Chunk)  # two per request: about twice as fast as Chunk(...)
 
 
 def endpoint(host: str, port: int) -> str:
@@ -282,7 +292,7 @@ class Observer:
                 ts,
             )
         self.sent += 1
-        self._emit(Chunk(ts, stream, direction, data))
+        self._emit(_new_chunk(ts, stream, direction, data))
 
     def event(
         self, stream: Stream | None, kind: EventKind, info: dict[str, Any], ts: float | None = None
@@ -593,8 +603,9 @@ class _Link:
                 outs[client] = [raw]
             else:
                 out.append(raw)
-        engine.stats.responses += sum(len(v) for v in outs.values())
+        stats = engine.stats
         for client, parts in outs.items():
+            stats.responses += len(parts)
             client.send(parts[0] if len(parts) == 1 else b"".join(parts), ts)
 
     def _unexpected(self, frame: Frame) -> None:
