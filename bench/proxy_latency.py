@@ -13,6 +13,9 @@ request in flight each). Targets:
 * ``direct``          clients talk to the upstream itself (the anchor);
 * ``bare``            a bare asyncio byte forwarder (one upstream connection per
                       client, bytes forwarded as they arrive, nothing else);
+* ``bare buffered``   (``--bare-buffered``) the same forwarder reading into a buffer of
+                      its own (``asyncio.BufferedProtocol``), as mbmon's engine does:
+                      informational, the targets are against ``bare``;
 * ``mbmon``           ``mbmon proxy --quiet``;
 * ``mbmon -w mcap``   ``mbmon proxy --quiet -w x.mcap``;
 * ``modbus-proxy``    the PyPI ``modbus-proxy`` package, when importable (install
@@ -115,6 +118,21 @@ async def main():
 asyncio.run(main())
 """
 
+#: The same forwarder reading into a buffer of its own (asyncio.BufferedProtocol), as
+#: mbmon's engine does; plain asyncio protocols get a new 256 KiB bytes object per read
+#: (mmap + mremap + munmap with glibc's default threshold). Informational (--bare-buffered):
+#: the issue's anchor is the plain forwarder above.
+BARE_BUFFERED = BARE.replace(
+    "class Up(asyncio.Protocol):",
+    "BUF = memoryview(bytearray(65536))\n"
+    "class Reader(asyncio.BufferedProtocol):\n"
+    "    def get_buffer(self, hint):\n"
+    "        return BUF\n"
+    "    def buffer_updated(self, n):\n"
+    "        self.data_received(bytes(BUF[:n]))\n"
+    "class Up(Reader):",
+).replace("class Client(asyncio.Protocol):", "class Client(Reader):")
+
 REQUEST = struct.pack(">HHHBBHH", 0, 0, 6, 1, 3, 0, 10)
 
 
@@ -169,6 +187,8 @@ def target(name: str, up: int, tmp: Path, mp_path: str | None) -> Iterator[tuple
         return
     if name == "bare":
         proc, port = _spawn_printing_port([sys.executable, "-c", BARE, str(up)])
+    elif name == "bare buffered":
+        proc, port = _spawn_printing_port([sys.executable, "-c", BARE_BUFFERED, str(up)])
     elif name.startswith("mbmon"):
         args = [sys.executable, "-m", "mbmon", "proxy", "--upstream", f"127.0.0.1:{up}",
                 "--listen", "127.0.0.1:0", "--quiet"]  # fmt: skip
@@ -280,6 +300,8 @@ def _has_modbus_proxy(path: str | None) -> bool:
 
 def bench(args: argparse.Namespace) -> None:
     names = ["direct", "bare", "mbmon", "mbmon -w mcap"]
+    if args.bare_buffered:
+        names.insert(2, "bare buffered")
     if _has_modbus_proxy(args.modbus_proxy):
         names.append("modbus-proxy")
     else:
@@ -356,6 +378,11 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=3.0, help="per run (default 3)")
     parser.add_argument("--clients", type=int, nargs="+", default=[1, 8])
     parser.add_argument("--modbus-proxy", metavar="DIR", help="directory holding modbus_proxy.py")
+    parser.add_argument(
+        "--bare-buffered",
+        action="store_true",
+        help="also run the bare forwarder reading into its own buffer (informational)",
+    )
     parser.add_argument("--soak", type=float, metavar="S", help="memory soak of S seconds instead")
     parser.add_argument(
         "--soak-target",

@@ -58,7 +58,16 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from typing import Any
 
-from mbmon.model import Chunk, Direction, Event, EventKind, Frame, Stream, Transport
+from mbmon.model import (
+    Chunk,
+    Direction,
+    Event,
+    EventKind,
+    Frame,
+    Stream,
+    Transport,
+    fast_constructor,
+)
 from mbmon.protocol.mbap import MbapDecoder, encode_adu
 from mbmon.protocol.pdu import encode_exception
 from mbmon.proxy.guard import ClientFilter, Guard
@@ -89,6 +98,14 @@ HANDOVER = 0.002
 #: so that their late answers are recognised and dropped.
 LATE_MEMORY = 4096
 
+#: How many bytes one read of a socket takes at most. The engine reads into one
+#: buffer of its own (:class:`_Reader`): asyncio's plain protocols get a new
+#: 256 KiB ``bytes`` per read, which glibc serves above its mmap threshold, so
+#: every 12-byte request cost an mmap, page faults, an mremap and a munmap (a TLB
+#: shootdown across the process's threads): half the engine's CPU per request
+#: (docs/performance.md). A Modbus/TCP ADU is at most 260 bytes.
+READ_BUFFER = 64 * 1024
+
 #: The kernel send buffer of a client socket (the kernel doubles it): Modbus answers
 #: are at most 260 bytes, so this holds hundreds; a client that leaves more unread
 #: than this and the loop's 64 KiB is not reading, and is dropped after ``timeout``.
@@ -96,6 +113,7 @@ CLIENT_SNDBUF = 64 * 1024
 
 _C2S = Direction.C2S
 _S2C = Direction.S2C
+_new_chunk = fast_constructor(Chunk)  # two per request: about twice as fast as Chunk(...)
 
 
 def endpoint(host: str, port: int) -> str:
@@ -274,7 +292,7 @@ class Observer:
                 ts,
             )
         self.sent += 1
-        self._emit(Chunk(ts, stream, direction, data))
+        self._emit(_new_chunk(ts, stream, direction, data))
 
     def event(
         self, stream: Stream | None, kind: EventKind, info: dict[str, Any], ts: float | None = None
@@ -300,11 +318,31 @@ class _Pending:
         self.done = False  # answered, expired or forgotten: the deadline queue skips it
 
 
-class _Upstream(asyncio.Protocol):
+class _Reader(asyncio.BufferedProtocol):
+    """A socket protocol that reads into the engine's one read buffer and hands
+    ``data_received`` a ``bytes`` copy of exactly what was read (see
+    :data:`READ_BUFFER`). The buffer is shared by every connection of the loop:
+    asyncio fills it and calls :meth:`buffer_updated` in one step, in the loop's
+    thread, so it is free again before the next read."""
+
+    engine: ProxyEngine
+
+    def get_buffer(self, sizehint: int) -> memoryview:
+        return self.engine.read_buffer
+
+    def buffer_updated(self, nbytes: int) -> None:
+        self.data_received(bytes(self.engine.read_buffer[:nbytes]))
+
+    def data_received(self, data: bytes) -> None:
+        raise NotImplementedError
+
+
+class _Upstream(_Reader):
     """The socket side of a :class:`_Link`."""
 
     def __init__(self, link: _Link) -> None:
         self.link = link
+        self.engine = link.engine
         self.transport: asyncio.Transport | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
@@ -565,8 +603,9 @@ class _Link:
                 outs[client] = [raw]
             else:
                 out.append(raw)
-        engine.stats.responses += sum(len(v) for v in outs.values())
+        stats = engine.stats
         for client, parts in outs.items():
+            stats.responses += len(parts)
             client.send(parts[0] if len(parts) == 1 else b"".join(parts), ts)
 
     def _unexpected(self, frame: Frame) -> None:
@@ -638,7 +677,7 @@ class _Link:
             proto.transport.close()
 
 
-class _Client(asyncio.Protocol):
+class _Client(_Reader):
     """One client connection: frames its requests, guards, forwards, answers."""
 
     #: A client the gateway's own 0x0A/0x0B are not sent to (an RTU master, that gets
@@ -919,6 +958,8 @@ class ProxyEngine:
         self._expiry: asyncio.TimerHandle | None = None
         #: the upstream as last seen (for the live monitor): up, unavailable (why), ...
         self.upstream_state = "not connected yet"
+        #: every socket of the loop reads into this, one read at a time (:class:`_Reader`)
+        self.read_buffer = memoryview(bytearray(READ_BUFFER))
 
     def figures(self) -> dict[str, Any]:
         """The proxy's own figures for the live monitor's header (read from any thread)."""
