@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from socat_ptys import pty_pair
 
 from mbmon.protocol.rtu import encode_rtu
 
@@ -60,35 +61,6 @@ async def main():
     await asyncio.Event().wait()
 asyncio.run(main())
 """
-
-
-@contextmanager
-def pty_pair() -> Iterator[tuple[str, str]]:
-    """Two ends of a socat pty pair: what is written to one is read on the other."""
-    proc = subprocess.Popen(
-        ["socat", "-d", "-d", "pty,raw,echo=0", "pty,raw,echo=0"],
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    assert proc.stderr is not None
-    ptys: list[str] = []
-    deadline = time.monotonic() + 10
-    while len(ptys) < 2 and time.monotonic() < deadline:
-        line = proc.stderr.readline()
-        if not line:
-            break
-        m = re.search(r"PTY is (\S+)", line)
-        if m:
-            ptys.append(m.group(1))
-    if len(ptys) < 2:
-        proc.kill()
-        pytest.fail("socat did not open a pty pair")
-    threading.Thread(target=proc.stderr.read, daemon=True).start()
-    try:
-        yield ptys[0], ptys[1]
-    finally:
-        proc.terminate()
-        proc.wait(timeout=5)
 
 
 @contextmanager

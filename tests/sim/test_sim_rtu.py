@@ -8,14 +8,12 @@ on the line must frame with mbmon's own RTU decoder (CRC checked).
 
 from __future__ import annotations
 
-import re
 import shutil
-import subprocess
-import threading
 import time
 from collections.abc import Iterator
 
 import pytest
+from socat_ptys import pty_pair as socat_pty_pair
 
 from mbmon.model import Chunk, Direction, RecordKind, Stream, Transport
 from mbmon.pipeline import Pipeline
@@ -29,30 +27,8 @@ BAUD = 115200
 
 @pytest.fixture
 def pty_pair() -> Iterator[tuple[str, str]]:
-    proc = subprocess.Popen(
-        ["socat", "-d", "-d", "pty,raw,echo=0", "pty,raw,echo=0"],
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    assert proc.stderr is not None
-    ptys: list[str] = []
-    deadline = time.monotonic() + 10
-    while len(ptys) < 2 and time.monotonic() < deadline:
-        line = proc.stderr.readline()
-        if not line:
-            break
-        m = re.search(r"PTY is (\S+)", line)
-        if m:
-            ptys.append(m.group(1))
-    if len(ptys) < 2:
-        proc.kill()
-        pytest.fail("socat did not open a pty pair")
-    threading.Thread(target=proc.stderr.read, daemon=True).start()
-    try:
-        yield ptys[0], ptys[1]
-    finally:
-        proc.terminate()
-        proc.wait(timeout=5)
+    with socat_pty_pair() as ends:
+        yield ends
 
 
 def test_the_program_over_rtu_reaches_a1_90(pty_pair: tuple[str, str]) -> None:
