@@ -42,11 +42,19 @@ _UNPACK: list[Callable[[Buffer, int], tuple[int, ...]]] = []
 
 
 def _build_words() -> None:
+    """Fill both tables whole before the first lookup can see them.
+
+    Built into locals and published by one slice assignment each, ``_UNPACK``
+    first: ``crc_ok_at`` tests ``_WORDS``, so a thread racing a first use sees
+    either empty tables (and builds them too, harmlessly) or complete ones.
+    """
     table = CRC_TABLE
+    words = []
     for i in range(65536):
         t = table[i & 0xFF]
-        _WORDS.append((t >> 8) ^ table[((i >> 8) ^ t) & 0xFF])
-    _UNPACK.extend(struct.Struct(f"<{k}H").unpack_from for k in range(129))
+        words.append((t >> 8) ^ table[((i >> 8) ^ t) & 0xFF])
+    _UNPACK[:] = [struct.Struct(f"<{k}H").unpack_from for k in range(129)]
+    _WORDS[:] = words
 
 
 def crc_ok_at(buf: Buffer, start: int, end: int) -> bool:

@@ -101,3 +101,37 @@ def test_single_bit_error_detected(data: bytes, bit: int, pick: st.DataObject) -
     i = pick.draw(st.integers(0, len(adu) - 1))
     adu[i] ^= 1 << bit
     assert not check_crc(adu)
+
+
+def test_crc_ok_at_first_use_from_many_threads_at_once() -> None:
+    """The two-bytes-per-step tables are built on first use. The proxy decodes
+    on more than one thread (the RTU link and the hub), so a first use racing
+    another first use must see whole tables, never half-built ones (CI saw
+    ``IndexError`` in ``crc_ok_at`` from exactly that)."""
+    import importlib
+    import threading
+
+    import mbmon.protocol.crc as crc_module
+
+    frame = bytes.fromhex("01030000000AC5CD")
+    for _round in range(5):
+        fresh = importlib.reload(crc_module)
+        start = threading.Barrier(8)
+        errors: list[BaseException] = []
+        answers: list[bool] = []
+
+        def check(fresh: object = fresh, start: threading.Barrier = start) -> None:
+            start.wait()
+            try:
+                answers.append(fresh.crc_ok_at(frame, 0, len(frame)))  # type: ignore[attr-defined]
+            except BaseException as exc:  # noqa: BLE001 - the test reports it
+                errors.append(exc)
+
+        threads = [threading.Thread(target=check) for _ in range(8)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        assert errors == []
+        assert answers == [True] * 8
+    importlib.reload(crc_module)
