@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import importlib
 import re
+import threading
 from pathlib import Path
+from typing import Any
 
 import pytest
 from hypothesis import given, settings
@@ -103,35 +106,38 @@ def test_single_bit_error_detected(data: bytes, bit: int, pick: st.DataObject) -
     assert not check_crc(adu)
 
 
+def _first_uses_at_once(module: Any, frame: bytes, threads: int) -> list[object]:
+    """``crc_ok_at(frame)`` from ``threads`` threads released together: each answer,
+    or the exception a thread got instead."""
+    start = threading.Barrier(threads)
+    results: list[object] = []
+
+    def check() -> None:
+        start.wait()
+        try:
+            results.append(module.crc_ok_at(frame, 0, len(frame)))
+        except Exception as exc:  # the test reports it
+            results.append(exc)
+
+    workers = [threading.Thread(target=check) for _ in range(threads)]
+    for t in workers:
+        t.start()
+    for t in workers:
+        t.join()
+    return results
+
+
 def test_crc_ok_at_first_use_from_many_threads_at_once() -> None:
     """The two-bytes-per-step tables are built on first use. The proxy decodes
     on more than one thread (the RTU link and the hub), so a first use racing
     another first use must see whole tables, never half-built ones (CI saw
     ``IndexError`` in ``crc_ok_at`` from exactly that)."""
-    import importlib
-    import threading
-
     import mbmon.protocol.crc as crc_module
 
     frame = bytes.fromhex("01030000000AC5CD")
-    for _round in range(5):
-        fresh = importlib.reload(crc_module)
-        start = threading.Barrier(8)
-        errors: list[BaseException] = []
-        answers: list[bool] = []
-
-        def check(fresh: object = fresh, start: threading.Barrier = start) -> None:
-            start.wait()
-            try:
-                answers.append(fresh.crc_ok_at(frame, 0, len(frame)))  # type: ignore[attr-defined]
-            except BaseException as exc:  # noqa: BLE001 - the test reports it
-                errors.append(exc)
-
-        threads = [threading.Thread(target=check) for _ in range(8)]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
-        assert errors == []
-        assert answers == [True] * 8
-    importlib.reload(crc_module)
+    try:
+        for _round in range(5):
+            fresh = importlib.reload(crc_module)  # tables empty again
+            assert _first_uses_at_once(fresh, frame, 8) == [True] * 8
+    finally:
+        importlib.reload(crc_module)
