@@ -236,7 +236,12 @@ class PacketCapture:
             except OSError:
                 pass  # an older kernel: the reader drops outgoing copies itself
         raw.setblocking(False)
-        self.kernel_stats()  # the counters start from now
+        # The counters start from now: scapy opens the socket with a receive buffer of
+        # 0 while it compiles and attaches the filter, so traffic in those milliseconds
+        # is counted as drops that are not the capture's (read once, then forgotten).
+        self.kernel_stats()
+        with self._stats_lock:
+            self._kernel = KernelStats()
 
     def start(self) -> None:
         """Start the reader thread (after :meth:`open`)."""

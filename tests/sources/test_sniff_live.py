@@ -319,3 +319,36 @@ def test_sniff_bad_filter_is_a_clear_error():
     assert proc.returncode == 1
     assert "bad capture filter 'tcp port'" in proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+def test_drops_while_the_socket_is_set_up_are_not_the_captures():
+    """scapy opens its socket with a receive buffer of 0 while it compiles and attaches
+    the filter, so busy loopback traffic in those milliseconds is counted as kernel
+    drops before the capture has begun. Those are not packets the capture lost: the
+    summary's "dropped" (and "capture INCOMPLETE") start when the capture does."""
+    import threading
+
+    from mbmon.sources.sniff import PacketCapture
+
+    stop = threading.Event()
+
+    def flood() -> None:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            target = ("127.0.0.1", _free_port())
+            while not stop.is_set():
+                for _ in range(100):
+                    s.sendto(b"x" * 200, target)
+
+    flooder = threading.Thread(target=flood, daemon=True)
+    flooder.start()
+    capture = PacketCapture("lo", f"udp port {_free_port()}", lambda batch: None)
+    try:
+        capture.open()
+    finally:
+        stop.set()
+        flooder.join()
+    try:
+        stats = capture.kernel_stats()
+    finally:
+        capture.stop()
+    assert stats.drops == 0, stats
