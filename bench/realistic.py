@@ -281,6 +281,9 @@ def callgrind(path: Path, extra: list[str], adus: int) -> float | None:
         return None
 
     def count(args: list[str]) -> int:
+        for arg in args:  # a log written by the run before must not be in the way
+            if arg.startswith(str(OUT / "callgrind-log")):
+                Path(arg).unlink(missing_ok=True)
         out = OUT / "callgrind.out"
         subprocess.run(
             ["valgrind", "--tool=callgrind", f"--callgrind-out-file={out}",
@@ -311,7 +314,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--callgrind", type=int, metavar="N",
                     help="instructions per ADU on an N-ADU file (valgrind), per mode")
     args = ap.parse_args(argv)
+    if not 3 <= args.conns <= 200 or not 0 <= args.handshakes <= args.conns:
+        ap.error("--conns takes 3..200 and --handshakes 0..--conns")
+    if args.adus <= 0 or args.adus % 2:
+        ap.error("--adus must be a positive even number (request + response pairs)")
     modes = set(args.modes.split(","))
+    unknown = modes - {"json", "text", "mixed", "profile", "mcap"}
+    if unknown:
+        ap.error(f"unknown --modes: {', '.join(sorted(unknown))}")
     load = os.getloadavg()
     print(f"machine: {os.cpu_count()} CPUs, load average {load[0]:.2f} {load[1]:.2f}"
           f" {load[2]:.2f}; python {sys.version.split()[0]}")  # fmt: skip
@@ -390,11 +400,32 @@ def main(argv: list[str] | None = None) -> int:
         ratio = figures["flat"].rss_mb / figures["json"].rss_mb
         print(f"  RSS at 5x the ADUs / at 1x: {ratio:.2f} (target within 1.10)")
     if args.callgrind:
-        small = capture("polling", args.callgrind, args.conns, args.handshakes, "aligned")
-        for label, extra in (("--json", ["--json"]), ("text", [])):
-            per = callgrind(small, extra, args.callgrind)
+        k = args.callgrind
+        small = capture("polling", k, args.conns, args.handshakes, "aligned")
+        small_hrss = capture("hrss", k, 1, 0, "aligned")
+        log = OUT / "callgrind-log"
+        per_mode: dict[str, float] = {}
+        for label, path, extra in (
+            ("read --json", small, ["--json"]),
+            ("read (text)", small, []),
+            ("read (text, hrss file)", small_hrss, []),
+            ("read --profile hrss (text)", small_hrss, ["--profile", "hrss"]),
+            ("read -q -w x.jsonl", small, ["-q", "-w", str(log.with_suffix(".jsonl"))]),
+            ("read -q -w x.mcap", small, ["-q", "-w", str(log.with_suffix(".mcap"))]),
+        ):
+            per = callgrind(path, extra, k)
             if per is not None:
-                print(f"  callgrind instructions per ADU, read {label}: {per:,.0f}")
+                per_mode[label] = per
+                print(f"  callgrind instructions per ADU, {label}: {per:,.0f}")
+        plain, hrss = per_mode.get("read (text, hrss file)"), per_mode.get(
+            "read --profile hrss (text)")
+        if plain and hrss:
+            print(f"  callgrind --profile hrss / plain: {hrss / plain:.2f}x (target <= "
+                  f"{TARGETS['profile']}x)")
+        jsonl, mcap = per_mode.get("read -q -w x.jsonl"), per_mode.get("read -q -w x.mcap")
+        if jsonl and mcap:
+            print(f"  callgrind -w x.mcap / -w x.jsonl: {mcap / jsonl:.2f}x (target <= "
+                  f"{TARGETS['mcap']}x)")
     return 0
 
 if __name__ == "__main__":
