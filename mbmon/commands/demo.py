@@ -502,6 +502,7 @@ def _closing(log: Path, client: DemoClient, elapsed: float, *, quiet: bool) -> N
         f"  mbmon replay {name}                 the run again, as it was shown",
         f"  mbmon replay {name} --grep Guard    the refused write in the audit",
         f"  mbmon info {name}                   what the log holds",
+        f"  mbmon replay {name} --serve         the recorded robot on 127.0.0.1:1502, for a client",
         f"  Foxglove: open {name} in https://app.foxglove.dev (or Foxglove desktop):",
         "    Log panel on /modbus/monitor, Plot on /hrss/state.a1, Raw Messages on /hrss/commands",
     ]

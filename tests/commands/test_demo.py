@@ -78,6 +78,7 @@ def test_demo_runs_under_30_seconds_and_says_what_next(
     text = out.stdout
     assert "mbmon replay run.mcap" in text
     assert "mbmon info run.mcap" in text
+    assert "mbmon replay run.mcap --serve" in text
     assert "Foxglove" in text
     # the closing summary states the outcomes
     assert re.search(r"PTP \{A1 90\}: status 1, A1 = 90°", text)
@@ -196,6 +197,38 @@ def test_demo_log_reads_back_with_mbmon(
     replay = mbmon("replay", str(log), "--grep", "Guard")
     assert replay.returncode == 0
     assert "refused 0x05 write coil 0 on unit 1" in replay.stdout
+
+
+def test_the_demo_log_serves_the_recorded_robot_to_the_same_program(
+    demo_run: tuple[subprocess.CompletedProcess[str], float, Path],
+) -> None:
+    """``replay --serve`` of the demo's log stands in for the sim: the §5.4.5.2 program
+    (with LIN, Set/Get PR, JOG) runs to the end against it, reading what the demo read."""
+    from mbmon.sim.program import run_program
+
+    _, _, log = demo_run
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mbmon", "replay", str(log), "--serve", "127.0.0.1:0"],
+        env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert proc.stderr is not None
+        first = proc.stderr.readline()
+        m = re.search(r"on 127\.0\.0\.1:(\d+) as the recorded server", first)
+        assert m, first
+        result = run_program("127.0.0.1", int(m.group(1)), poll=0.01, timeout=5.0)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    assert result.joints == (90, 0, 0, 0, 0, 0)
+    assert result.statuses == {"LIN": 1, "Set PR": 1, "Get PR": 1, "JOG": 1}
+    assert result.pr2[:4] == (2, 2, 24464, 1)
+    assert result.jog_moved > 1.0 and result.jog_after_stop == 0  # A1 as the demo read it
+    assert ", 0 not (exception 02)" in err
 
 
 def test_an_earlier_demo_log_is_overwritten_anything_else_is_not(
