@@ -305,7 +305,7 @@ _GUARD = (
 )
 _PARTS = {
     "LIN": "demo LIN {X -300, Y 300, Z 400, A 180, B 0, C 90} Vel=1000mm/s: R200 = 0, "
-    "R201.., R200 = 1, IR200, IR524",
+    "R201.., R200 = 1, IR200, IR524, X..C in IR400..IR411",
     "Set PR": "demo Set PR: $PR[2] = {X 90, Y 0, Z 0, A 0, B 0, C 0} (command 100), IR200",
     "Get PR": "demo Get PR[2] (command 200): the robot returns PR[2] in IR202..IR215",
     "JOG": "demo JOG A1 +: moves while R200 stays 1; R200 = 0 stops it",
@@ -493,8 +493,9 @@ def _closing(log: Path, client: DemoClient, elapsed: float, *, quiet: bool) -> N
         "",
         f"mbmon demo: done in {elapsed:.1f} s, {client.requests} requests through the proxy",
         f"  PTP {{A1 90}}: status {client.ptp_status}, A1 = {result.joints[0]:g}°; "
-        f"LIN status {status.get('LIN')}, Set PR {status.get('Set PR')}, "
-        f"Get PR {status.get('Get PR')} (1 = success); JOG moved A1 {result.jog_moved:.1f}°",
+        f"LIN status {status.get('LIN')}, X Y Z = {' '.join(f'{v:g}' for v in result.pose[:3])}",
+        f"  Set PR {status.get('Set PR')}, Get PR {status.get('Get PR')} (1 = success); "
+        f"JOG moved A1 {result.jog_moved:.1f}°",
         f"  the write of SI1 Start was refused by the guard (exception {client.refused:02X})",
         f"  log: {name}",
         "",

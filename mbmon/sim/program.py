@@ -15,7 +15,8 @@ are the manual's Examples 4, 7, 8 and 5 (Tables 47, 50, 52, 48), each with the
 R200 reset first and the IR200 status read after the execute:
 
 * LIN {X -300, Y 300, Z 400, A 180, B 0, C 90} Vel=1000mm/s Acc=100% TOOL[3] BASE[7]
-  (Table 47 as Table 19 reads it: R201 = 1, R202 = 1), polled until Idle;
+  (Table 47 as Table 19 reads it: R201 = 1, R202 = 1), polled until Idle, then
+  the Cartesian position IR400..IR411 read back (where the LIN ended);
 * $PR[2] = {X 90, Y 0, Z 0, A 0, B 0, C 0} (Set PR), then Get PR[2] with IR202..IR215;
 * JOG A1 + for ``jog_seconds`` while R200 stays 1, then R200 = 0 stops it.
 """
@@ -68,6 +69,7 @@ class ProgramResult:
     speed_before: int | None = None  # $C[1]: IR100 before the write
     di: tuple[int, ...] = ()  # $C[2..9]: DI[1]..DI[8]
     joints: tuple[float, ...] = ()  # A1..A6 (degrees) read after the PTP
+    pose: tuple[float, ...] = ()  # X..C (mm, degrees) read after the LIN
     statuses: dict[str, int] = field(default_factory=dict)  # IR200 after each extra command
     pr2: tuple[int, ...] = ()  # IR202..IR215 after Get PR[2]
     jog_moved: float = 0.0  # degrees A1 moved while R200 stayed 1
@@ -266,6 +268,8 @@ def _extras(
     r.execute(_lin_params(), "LIN {X -300, Y 300, Z 400, A 180, B 0, C 90} Vel=1000mm/s")
     r.status("LIN")
     r.wait_idle(poll, timeout)
+    pose = r.read_input(400, 12, "MBC_READ_INPUT(1,400,READ_DATA,'W',12)", "IR400..IR411 X..C")
+    result.pose = tuple(join_i32(pose[i], pose[i + 1]) / 1000 for i in range(0, 12, 2))
 
     r.part = "Set PR"
     r.execute(_set_pr_params(), "$PR[2] = {X 90, Y 0, Z 0, A 0, B 0, C 0}")

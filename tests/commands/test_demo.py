@@ -82,7 +82,8 @@ def test_demo_runs_under_30_seconds_and_says_what_next(
     assert "Foxglove" in text
     # the closing summary states the outcomes
     assert re.search(r"PTP \{A1 90\}: status 1, A1 = 90°", text)
-    assert "LIN status 1, Set PR 1, Get PR 1" in text
+    assert "LIN status 1, X Y Z = -300 300 400" in text
+    assert "Set PR 1, Get PR 1 (1 = success)" in text
     assert "refused by the guard (exception 01)" in text
 
 
@@ -157,6 +158,9 @@ def test_demo_log_holds_commands_their_outcomes_and_the_state(
     a1 = [s["a1"] for s in topics["/hrss/state"] if "a1" in s]
     assert 90.0 in a1  # the PTP's target, read after the motion
     assert max(a1) > 90.0  # JOG A1 + moved on from there
+    pose = [(s["x"], s["y"], s["z"], s["a"], s["b"], s["c"]) for s in topics["/hrss/state"]
+            if "x" in s]  # fmt: skip
+    assert pose[-1] == (-300, 300, 400, 180, 0, 90)  # where the LIN (Example 4) ended
     # the live monitor's lines (foxglove.Log) carry the robot's labels: the sim is the robot
     lines = [m["message"] for m in topics["/modbus/monitor"]]
     assert any("Receive from client" in line for line in lines)

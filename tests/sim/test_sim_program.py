@@ -41,6 +41,7 @@ def test_the_5452_program_reaches_a1_90_and_the_analyzer_reconstructs_it() -> No
     assert result.speed_before == 100
     assert result.di == (1, 0, 1, 0, 0, 0, 0, 0)
     assert result.joints == (90, 0, 0, 0, 0, 0)
+    assert result.pose == (-300, 300, 400, 180, 0, 90)  # read back after the LIN
     assert result.statuses == {"LIN": 1, "Set PR": 1, "Get PR": 1, "JOG": 1}
     assert result.pr2[:4] == (2, 2, 24464, 1)  # Table 52: PR[2], Cartesian, X = 90
     assert result.jog_moved > 1.0  # 10 deg/s x 90 % for 0.4 s
