@@ -224,20 +224,20 @@ class DemoClient:
         self.finished: float | None = None  # time.monotonic() when the client was done
         self.error: str | None = None
         self._client: Any = None
-        self._part = ""
 
     def pause(self, seconds: float) -> None:
         if self.stop.wait(0 if self.fast else seconds):
             raise _Stopped
 
+    def on_part(self, part: str) -> None:
+        """Before a part's first request: narrate it, give the eye time to read it."""
+        text = _PARTS.get(part)
+        if text is not None:
+            self.say(text)
+            self.pause(PART_PAUSE)
+
     def on_step(self, step: Any) -> None:
-        """After each answered request: narrate a new part, pace the step."""
-        if step.part != self._part:
-            self._part = step.part
-            text = _PARTS.get(step.part)
-            if text is not None:
-                self.say(text)
-                self.pause(PART_PAUSE)
+        """After each answered request: pace the step."""
         self.requests += 1
         polling = step.function == 4 and step.address == 524 and step.result == (2,)
         self.pause(0 if polling else STEP_PAUSE)
@@ -269,10 +269,15 @@ class DemoClient:
                 self.error = f"cannot connect to the proxy at {self.host}:{self.port}"
                 return
             self.say(_INTRO)
-            self._part = "5.4.5.2"
             self.pause(PART_PAUSE)
             self.result = run_program(
-                self.host, self.port, client=client, on_step=self.on_step, poll=0.1, timeout=20.0
+                self.host,
+                self.port,
+                client=client,
+                on_step=self.on_step,
+                on_part=self.on_part,
+                poll=0.1,
+                timeout=20.0,
             )
             self.say(_GUARD)
             self.pause(PART_PAUSE)

@@ -183,6 +183,19 @@ def test_demo_log_audits_the_refused_write(
         "demo §5.4.5.2", "demo", "demo LIN", "demo Set PR", "demo Get PR[2] (command 200)",
         "demo JOG A1 +", "demo guard",
     ]  # fmt: skip
+    # each part is told before its first request: in time, the next request is its R200 = 0
+    frames = read_log(log)["/modbus/frames"]
+    requests = sorted(
+        (f["time"], f["fc"], f["address"], (f.get("values") or [None])[:1])
+        for f in frames
+        if f["kind"] == "request"
+    )
+    parts = ("demo LIN", "demo Set PR", "demo Get PR", "demo JOG")
+    for e in events:
+        message = (e.get("info") or {}).get("message", "")
+        if e.get("event") == "notice" and message.startswith(parts):
+            after = [r for r in requests if r[0] > e["time"]]
+            assert after and after[0][1:] == (16, 200, [0]), (message, after[:1])
     kinds = [e.get("event") for e in events]
     assert kinds.count("connect") == 1 and kinds.count("disconnect") == 1
     # the client closed its connection itself before the proxy stopped
