@@ -255,6 +255,8 @@ def test_demo_capture_is_the_demo_s_traffic() -> None:
     a1 = [a["values"][:2] for q, a in session
           if (q["fc"], q["address"], q["count"]) == (4, 300, 12)]
     assert a1 == [[24464, 1]]  # A1 = 90° after the PTP
+    pose = [a["values"] for q, a in session if (q["fc"], q["address"], q["count"]) == (4, 400, 12)]
+    assert pose == [[27680, 65531, 37856, 4, 6784, 6, 48928, 2, 0, 0, 24464, 1]]  # after the LIN
     done = [text for phase, text in commands(path) if phase == "success"]
     assert [t.split(" ")[0] for t in done] == ["PTP", "LIN", "$PR[2]", "Get", "JOG"]
     assert {r["dst"] for r, _ in session} == {"127.0.0.1:502"}

@@ -224,20 +224,20 @@ class DemoClient:
         self.finished: float | None = None  # time.monotonic() when the client was done
         self.error: str | None = None
         self._client: Any = None
-        self._part = ""
 
     def pause(self, seconds: float) -> None:
         if self.stop.wait(0 if self.fast else seconds):
             raise _Stopped
 
+    def on_part(self, part: str) -> None:
+        """Before a part's first request: narrate it, give the eye time to read it."""
+        text = _PARTS.get(part)
+        if text is not None:
+            self.say(text)
+            self.pause(PART_PAUSE)
+
     def on_step(self, step: Any) -> None:
-        """After each answered request: narrate a new part, pace the step."""
-        if step.part != self._part:
-            self._part = step.part
-            text = _PARTS.get(step.part)
-            if text is not None:
-                self.say(text)
-                self.pause(PART_PAUSE)
+        """After each answered request: pace the step."""
         self.requests += 1
         polling = step.function == 4 and step.address == 524 and step.result == (2,)
         self.pause(0 if polling else STEP_PAUSE)
@@ -269,10 +269,15 @@ class DemoClient:
                 self.error = f"cannot connect to the proxy at {self.host}:{self.port}"
                 return
             self.say(_INTRO)
-            self._part = "5.4.5.2"
             self.pause(PART_PAUSE)
             self.result = run_program(
-                self.host, self.port, client=client, on_step=self.on_step, poll=0.1, timeout=20.0
+                self.host,
+                self.port,
+                client=client,
+                on_step=self.on_step,
+                on_part=self.on_part,
+                poll=0.1,
+                timeout=20.0,
             )
             self.say(_GUARD)
             self.pause(PART_PAUSE)
@@ -305,7 +310,7 @@ _GUARD = (
 )
 _PARTS = {
     "LIN": "demo LIN {X -300, Y 300, Z 400, A 180, B 0, C 90} Vel=1000mm/s: R200 = 0, "
-    "R201.., R200 = 1, IR200, IR524",
+    "R201.., R200 = 1, IR200, IR524, X..C in IR400..IR411",
     "Set PR": "demo Set PR: $PR[2] = {X 90, Y 0, Z 0, A 0, B 0, C 0} (command 100), IR200",
     "Get PR": "demo Get PR[2] (command 200): the robot returns PR[2] in IR202..IR215",
     "JOG": "demo JOG A1 +: moves while R200 stays 1; R200 = 0 stops it",
@@ -493,8 +498,9 @@ def _closing(log: Path, client: DemoClient, elapsed: float, *, quiet: bool) -> N
         "",
         f"mbmon demo: done in {elapsed:.1f} s, {client.requests} requests through the proxy",
         f"  PTP {{A1 90}}: status {client.ptp_status}, A1 = {result.joints[0]:g}°; "
-        f"LIN status {status.get('LIN')}, Set PR {status.get('Set PR')}, "
-        f"Get PR {status.get('Get PR')} (1 = success); JOG moved A1 {result.jog_moved:.1f}°",
+        f"LIN status {status.get('LIN')}, X Y Z = {' '.join(f'{v:g}' for v in result.pose[:3])}",
+        f"  Set PR {status.get('Set PR')}, Get PR {status.get('Get PR')} (1 = success); "
+        f"JOG moved A1 {result.jog_moved:.1f}°",
         f"  the write of SI1 Start was refused by the guard (exception {client.refused:02X})",
         f"  log: {name}",
         "",
@@ -502,6 +508,7 @@ def _closing(log: Path, client: DemoClient, elapsed: float, *, quiet: bool) -> N
         f"  mbmon replay {name}                 the run again, as it was shown",
         f"  mbmon replay {name} --grep Guard    the refused write in the audit",
         f"  mbmon info {name}                   what the log holds",
+        f"  mbmon replay {name} --serve         the recorded robot on 127.0.0.1:1502, for a client",
         f"  Foxglove: open {name} in https://app.foxglove.dev (or Foxglove desktop):",
         "    Log panel on /modbus/monitor, Plot on /hrss/state.a1, Raw Messages on /hrss/commands",
     ]

@@ -43,9 +43,11 @@ against servers (debugging without the robot):
   mbmon replay cell.mcap --to 127.0.0.1:1502  re-send the recorded reads, diff the answers
   mbmon replay cell.mcap --to robot:502 --speed 1   at the original pace
 
---serve answers from the registers and coils the log shows (each address's first
-value by default, --state last for the last), takes writes, answers what the log
-cannot with exception 02 (--miss-exception N) and lists those requests at the end.
+--serve answers from the registers and coils the log shows: a read the log holds
+gets the recorded answers in the recorded order (so a PLC polling IR524 sees the
+motion run and end as recorded; --state first/last for a fixed image), takes
+writes, answers what the log cannot with exception 02 (--miss-exception N) and
+lists those requests at the end.
 --to sends reads only: --writes also sends the recorded writes, which CAN MOVE A
 ROBOT. Exit status of --to: 0 every answer as recorded, 3 some differ, 1 the log
 cannot be read or the server cannot be reached, 2 usage.
@@ -76,9 +78,11 @@ def add_options(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument(
         "--state",
-        choices=("first", "last"),
-        help="with --serve: each address holds the first value the log shows (default: the "
-        "server as the recording found it) or the last (as the recording left it)",
+        choices=("follow", "first", "last"),
+        help="with --serve: follow (default): a read the log holds gets the recorded answers "
+        "in their order, one per repetition (IR524 Running ... then Idle, as recorded), other "
+        "requests the first values the log shows; first: every address holds its first value "
+        "(the server as the recording found it); last: its last (as the recording left it)",
     )
     group.add_argument(
         "--to",
@@ -192,7 +196,7 @@ def _serve(args: argparse.Namespace, log: Any, keep: Any, host: str, port: int) 
         image = RegisterImage.from_exchanges(
             recorded_exchanges(log, keep),
             miss_exception=args.miss_exception if args.miss_exception is not None else 2,
-            state=args.state or "first",
+            state=args.state or "follow",
         )
     except LogError as exc:
         err(str(exc))

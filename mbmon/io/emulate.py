@@ -22,12 +22,17 @@ answered with an exception, or never answered, changes nothing):
 - every other function code (07 08 0B 0C 11 14 15 18 2B, user codes): the
   exact response to the exact request bytes.
 
-How a request is answered: a request whose key (unit, function, address,
-count) the recorded server only ever refused gets that recorded exception; a
-read whose every address is known gets the values; a write whose every
-address is known is applied and answered as the spec says; any other request
-is a miss, answered with ``miss_exception`` (02 Illegal Data Address by
-default) and counted in :attr:`RegisterImage.misses`.
+How a request is answered: with ``state="follow"``, a read (01 02 03 04)
+whose exact bytes the log holds gets the recorded answers to that request in
+the recorded order, one per repetition, and the last one once they run out
+(values the new client wrote itself stay what it wrote); so a client that
+repeats the recorded session, polling IR524 until the robot is Idle, sees it
+Running and then Idle as the recording did. A request whose key (unit,
+function, address, count) the recorded server only ever refused gets that
+recorded exception; a read whose every address is known gets the values; a
+write whose every address is known is applied and answered as the spec says;
+any other request is a miss, answered with ``miss_exception`` (02 Illegal
+Data Address by default) and counted in :attr:`RegisterImage.misses`.
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import threading
+from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
@@ -48,7 +54,7 @@ from mbmon.protocol.pdu import (
     table_of,
 )
 
-__all__ = ["TABLE_NAMES", "EmulatorServer", "Miss", "RegisterImage", "ranges"]
+__all__ = ["STATES", "TABLE_NAMES", "EmulatorServer", "Miss", "RegisterImage", "ranges"]
 
 #: table -> the words a summary uses
 TABLE_NAMES = {
@@ -58,6 +64,10 @@ TABLE_NAMES = {
     "input_register": "input registers",
 }
 _EXC_ILLEGAL_VALUE = 0x03
+#: the reads whose recorded answers ``state="follow"`` gives again in the recorded order
+_READS = frozenset({0x01, 0x02, 0x03, 0x04})
+#: the values of :attr:`RegisterImage.state`
+STATES = ("follow", "first", "last")
 #: kinds of missed request listed one by one; beyond, they are only counted (a client
 #: sweeping the address space must not grow the list without bound)
 MAX_MISS_KINDS = 4096
@@ -117,7 +127,9 @@ class RegisterImage:
 
     miss_exception: int = 0x02
     #: ``"first"``: each address holds the first value the log shows for it (the server
-    #: as the recording found it); ``"last"``: the last one (as the recording left it)
+    #: as the recording found it); ``"last"``: the last one (as the recording left it);
+    #: ``"follow"``: as ``"first"``, and a repeated recorded read gets the recorded
+    #: answers in their order (the server as the recording went; module docstring)
     state: str = "first"
     tables: dict[tuple[int, str], dict[int, int]] = field(default_factory=dict)
     #: (unit, request PDU) -> response PDU, for the codes that address no table
@@ -129,7 +141,11 @@ class RegisterImage:
     misses_unlisted: int = 0
     learned: int = 0
     answered: int = 0
+    #: ``state="follow"``: (unit, read request PDU) -> its recorded answers not yet given
+    script: dict[tuple[int, bytes], deque[Pdu]] = field(default_factory=dict)
     _accepted: set[Key] = field(default_factory=set)
+    #: ``state="follow"``: addresses the new client wrote, per (unit, table)
+    _written: dict[tuple[int, str], set[int]] = field(default_factory=dict)
 
     # ------------------------------------------------------------------ building
 
@@ -138,8 +154,8 @@ class RegisterImage:
         cls, exchanges: Iterable[Exchange], miss_exception: int = 0x02, state: str = "first"
     ) -> RegisterImage:
         """The image built from every exchange of a log, in order."""
-        if state not in ("first", "last"):
-            raise ValueError(f"state must be 'first' or 'last', not {state!r}")
+        if state not in STATES:
+            raise ValueError(f"state must be one of {', '.join(STATES)}, not {state!r}")
         image = cls(miss_exception, state)
         for ex in exchanges:
             image.learn(ex)
@@ -152,6 +168,8 @@ class RegisterImage:
             return
         request = ex.request
         key = _key(ex.unit, request)
+        if self.state == "follow" and request.fc in _READS and not request.malformed:
+            self.script.setdefault((ex.unit, request.raw), deque()).append(response)
         if response.kind is Kind.EXCEPTION:
             if key not in self._accepted and response.exception_code is not None:
                 self.refused[key] = response.exception_code
@@ -171,7 +189,7 @@ class RegisterImage:
             if fc in (0x01, 0x02) and request.count is not None:
                 values = values[: request.count]  # bits past the count are padding
             table = self._table(ex.unit, table_of(fc) or "")
-            keep = self.state == "first"
+            keep = self.state != "last"
             for i, v in enumerate(values):
                 if not keep or request.address + i not in table:
                     table[request.address + i] = v
@@ -194,6 +212,10 @@ class RegisterImage:
         """The response PDU for ``request`` to ``unit``; writes change the image."""
         key = _key(unit, request)
         fc = request.fc
+        if self.state == "follow" and fc in _READS:
+            queue = self.script.get((unit, request.raw))
+            if queue:
+                return self._follow(unit, request, queue)
         if key in self.refused:
             self.answered += 1
             return encode_exception(fc, self.refused[key])
@@ -225,6 +247,8 @@ class RegisterImage:
         if unknown:
             return self._miss(key, unit, request, table, unknown)
         self._apply_write(unit, request, learning=False)
+        if self.state == "follow":
+            self._mark_written(unit, request)
         self.answered += 1
         if fc in (0x05, 0x06, 0x16):
             return request.raw  # the spec's echo
@@ -235,6 +259,44 @@ class RegisterImage:
         read_table = self.tables.get((unit, table), {})
         values = [read_table[a] for a in range(request.address, request.address + request.count)]
         return encode_read_response(fc, values, request.count)
+
+    def _follow(self, unit: int, request: Pdu, queue: deque[Pdu]) -> bytes:
+        """The next recorded answer to a repeated read (the last one stays); the image
+        takes its values, except where the new client wrote (there its values win)."""
+        recorded = queue.popleft() if len(queue) > 1 else queue[0]
+        self.answered += 1
+        fc, address, count = request.fc, request.address, request.count
+        name = table_of(fc)
+        if recorded.kind is Kind.EXCEPTION or recorded.values is None or name is None:
+            return recorded.raw
+        if address is None or count is None:
+            return recorded.raw
+        values = list(recorded.values[:count] if fc in (0x01, 0x02) else recorded.values)
+        if fc in (0x01, 0x02) and len(values) < count:
+            return recorded.raw  # a short answer: given as it was, teaches nothing
+        table = self._table(unit, name)
+        written = self._written.get((unit, name), set())
+        changed = False
+        for i, v in enumerate(values):
+            a = address + i
+            if a in written and a in table:
+                changed |= table[a] != v
+                values[i] = table[a]
+            else:
+                table[a] = v
+        return encode_read_response(fc, values, count) if changed else recorded.raw
+
+    def _mark_written(self, unit: int, request: Pdu) -> None:
+        """Remember the addresses a write of the new client set (``state="follow"``)."""
+        if request.fc == 0x16:
+            if request.address is not None:
+                self._written.setdefault((unit, "holding_register"), set()).add(request.address)
+            return
+        parts = self._write_parts(request)
+        if parts is None:
+            return
+        name, address, values = parts
+        self._written.setdefault((unit, name), set()).update(range(address, address + len(values)))
 
     def _miss(
         self, key: Key, unit: int, request: Pdu, table: str | None, unknown: Iterable[int]
@@ -303,7 +365,7 @@ class RegisterImage:
         "first"`` it never replaces a value already known. A write of the new client
         changes known addresses only (the caller has checked they are all known).
         """
-        keep = learning and self.state == "first"
+        keep = learning and self.state != "last"
         if request.fc == 0x16:
             a = request.address
             and_mask, or_mask = request.fields.get("and_mask"), request.fields.get("or_mask")

@@ -3,7 +3,9 @@
 What it owns: one HRSS client session as a list of Modbus requests, run step by
 step with a pymodbus client against any HRSS-like server (``mbmon sim``, a
 proxy in front of it, a real controller). Every request is reported to an
-``on_step`` callback as a :class:`Step` once it is answered.
+``on_step`` callback as a :class:`Step` once it is answered; each part after
+§5.4.5.2 (``LIN``, ``Set PR``, ...) is announced to ``on_part`` before its
+first request is sent.
 
 The §5.4.5.2 part follows the program line by line (lines 4-42): read B's
 speed (IR100), set it to 90 % (R100), read DI[1]..DI[8], write DO[1]..DO[5],
@@ -15,7 +17,8 @@ are the manual's Examples 4, 7, 8 and 5 (Tables 47, 50, 52, 48), each with the
 R200 reset first and the IR200 status read after the execute:
 
 * LIN {X -300, Y 300, Z 400, A 180, B 0, C 90} Vel=1000mm/s Acc=100% TOOL[3] BASE[7]
-  (Table 47 as Table 19 reads it: R201 = 1, R202 = 1), polled until Idle;
+  (Table 47 as Table 19 reads it: R201 = 1, R202 = 1), polled until Idle, then
+  the Cartesian position IR400..IR411 read back (where the LIN ended);
 * $PR[2] = {X 90, Y 0, Z 0, A 0, B 0, C 0} (Set PR), then Get PR[2] with IR202..IR215;
 * JOG A1 + for ``jog_seconds`` while R200 stays 1, then R200 = 0 stops it.
 """
@@ -68,6 +71,7 @@ class ProgramResult:
     speed_before: int | None = None  # $C[1]: IR100 before the write
     di: tuple[int, ...] = ()  # $C[2..9]: DI[1]..DI[8]
     joints: tuple[float, ...] = ()  # A1..A6 (degrees) read after the PTP
+    pose: tuple[float, ...] = ()  # X..C (mm, degrees) read after the LIN
     statuses: dict[str, int] = field(default_factory=dict)  # IR200 after each extra command
     pr2: tuple[int, ...] = ()  # IR202..IR215 after Get PR[2]
     jog_moved: float = 0.0  # degrees A1 moved while R200 stayed 1
@@ -112,6 +116,13 @@ class _Runner:
     ) -> None:
         self.client, self.unit, self.on_step, self.result = client, unit, on_step, result
         self.part = "5.4.5.2"
+        self.on_part: Callable[[str], None] | None = None
+
+    def begin(self, part: str) -> None:
+        """A new part of the program: named in the steps, told to ``on_part`` first."""
+        self.part = part
+        if self.on_part is not None:
+            self.on_part(part)
 
     def _done(
         self,
@@ -209,6 +220,7 @@ def run_program(
     unit: int = 1,
     client: Any = None,
     on_step: Callable[[Step], None] | None = None,
+    on_part: Callable[[str], None] | None = None,
     poll: float = 0.1,
     timeout: float = 30.0,
     jog_seconds: float = 0.5,
@@ -218,7 +230,8 @@ def run_program(
 
     Connects a pymodbus ``ModbusTcpClient`` to ``host:port`` unless ``client``
     (any connected pymodbus sync client, e.g. a ``ModbusSerialClient`` for RTU)
-    is given; a client made here is closed at the end. Raises
+    is given; a client made here is closed at the end. ``on_step(step)`` follows
+    each answered request, ``on_part(name)`` precedes each extra part. Raises
     :class:`ProgramError` when a request fails or a motion outlasts ``timeout``.
     """
     own = client is None
@@ -230,6 +243,7 @@ def run_program(
             raise ProgramError(f"cannot connect to {host}:{port}")
     result = ProgramResult()
     r = _Runner(client, unit, on_step, result)
+    r.on_part = on_part
     try:
         # lines 4-5: $C[1] = B's speed
         result.speed_before = r.read_input(
@@ -262,16 +276,18 @@ def run_program(
 def _extras(
     r: _Runner, result: ProgramResult, poll: float, timeout: float, jog_seconds: float
 ) -> None:
-    r.part = "LIN"
+    r.begin("LIN")
     r.execute(_lin_params(), "LIN {X -300, Y 300, Z 400, A 180, B 0, C 90} Vel=1000mm/s")
     r.status("LIN")
     r.wait_idle(poll, timeout)
+    pose = r.read_input(400, 12, "MBC_READ_INPUT(1,400,READ_DATA,'W',12)", "IR400..IR411 X..C")
+    result.pose = tuple(join_i32(pose[i], pose[i + 1]) / 1000 for i in range(0, 12, 2))
 
-    r.part = "Set PR"
+    r.begin("Set PR")
     r.execute(_set_pr_params(), "$PR[2] = {X 90, Y 0, Z 0, A 0, B 0, C 0}")
     r.status("Set PR")
 
-    r.part = "Get PR"
+    r.begin("Get PR")
     r.execute([200, 2], "Get PR[2]")
     got = r.read_input(
         200, 16, "MBC_READ_INPUT(1,200,READ_DATA,'W',16)", "IR200..IR215 status, action, PR[2]"
@@ -279,7 +295,7 @@ def _extras(
     result.statuses["Get PR"] = got[0]
     result.pr2 = got[2:]
 
-    r.part = "JOG"
+    r.begin("JOG")
     r.execute([3, 0, 1], "JOG A1 +")
     r.status("JOG")
     before = r.a1()

@@ -78,10 +78,12 @@ def test_demo_runs_under_30_seconds_and_says_what_next(
     text = out.stdout
     assert "mbmon replay run.mcap" in text
     assert "mbmon info run.mcap" in text
+    assert "mbmon replay run.mcap --serve" in text
     assert "Foxglove" in text
     # the closing summary states the outcomes
     assert re.search(r"PTP \{A1 90\}: status 1, A1 = 90°", text)
-    assert "LIN status 1, Set PR 1, Get PR 1" in text
+    assert "LIN status 1, X Y Z = -300 300 400" in text
+    assert "Set PR 1, Get PR 1 (1 = success)" in text
     assert "refused by the guard (exception 01)" in text
 
 
@@ -156,6 +158,9 @@ def test_demo_log_holds_commands_their_outcomes_and_the_state(
     a1 = [s["a1"] for s in topics["/hrss/state"] if "a1" in s]
     assert 90.0 in a1  # the PTP's target, read after the motion
     assert max(a1) > 90.0  # JOG A1 + moved on from there
+    pose = [(s["x"], s["y"], s["z"], s["a"], s["b"], s["c"]) for s in topics["/hrss/state"]
+            if "x" in s]  # fmt: skip
+    assert pose[-1] == (-300, 300, 400, 180, 0, 90)  # where the LIN (Example 4) ended
     # the live monitor's lines (foxglove.Log) carry the robot's labels: the sim is the robot
     lines = [m["message"] for m in topics["/modbus/monitor"]]
     assert any("Receive from client" in line for line in lines)
@@ -178,6 +183,19 @@ def test_demo_log_audits_the_refused_write(
         "demo §5.4.5.2", "demo", "demo LIN", "demo Set PR", "demo Get PR[2] (command 200)",
         "demo JOG A1 +", "demo guard",
     ]  # fmt: skip
+    # each part is told before its first request: in time, the next request is its R200 = 0
+    frames = read_log(log)["/modbus/frames"]
+    requests = sorted(
+        (f["time"], f["fc"], f["address"], (f.get("values") or [None])[:1])
+        for f in frames
+        if f["kind"] == "request"
+    )
+    parts = ("demo LIN", "demo Set PR", "demo Get PR", "demo JOG")
+    for e in events:
+        message = (e.get("info") or {}).get("message", "")
+        if e.get("event") == "notice" and message.startswith(parts):
+            after = [r for r in requests if r[0] > e["time"]]
+            assert after and after[0][1:] == (16, 200, [0]), (message, after[:1])
     kinds = [e.get("event") for e in events]
     assert kinds.count("connect") == 1 and kinds.count("disconnect") == 1
     # the client closed its connection itself before the proxy stopped
@@ -196,6 +214,38 @@ def test_demo_log_reads_back_with_mbmon(
     replay = mbmon("replay", str(log), "--grep", "Guard")
     assert replay.returncode == 0
     assert "refused 0x05 write coil 0 on unit 1" in replay.stdout
+
+
+def test_the_demo_log_serves_the_recorded_robot_to_the_same_program(
+    demo_run: tuple[subprocess.CompletedProcess[str], float, Path],
+) -> None:
+    """``replay --serve`` of the demo's log stands in for the sim: the §5.4.5.2 program
+    (with LIN, Set/Get PR, JOG) runs to the end against it, reading what the demo read."""
+    from mbmon.sim.program import run_program
+
+    _, _, log = demo_run
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mbmon", "replay", str(log), "--serve", "127.0.0.1:0"],
+        env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert proc.stderr is not None
+        first = proc.stderr.readline()
+        m = re.search(r"on 127\.0\.0\.1:(\d+) as the recorded server", first)
+        assert m, first
+        result = run_program("127.0.0.1", int(m.group(1)), poll=0.01, timeout=5.0)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    assert result.joints == (90, 0, 0, 0, 0, 0)
+    assert result.statuses == {"LIN": 1, "Set PR": 1, "Get PR": 1, "JOG": 1}
+    assert result.pr2[:4] == (2, 2, 24464, 1)
+    assert result.jog_moved > 1.0 and result.jog_after_stop == 0  # A1 as the demo read it
+    assert ", 0 not (exception 02)" in err
 
 
 def test_an_earlier_demo_log_is_overwritten_anything_else_is_not(

@@ -65,6 +65,15 @@ def writes_then_reads(c: Any) -> list[Any]:
     ]
 
 
+def program(c: Any) -> list[Any]:
+    """The manual's 5.4.5.2 program with LIN, Set/Get PR and JOG (``mbmon.sim.run_program``):
+    every request as (function, address, values, what came back), polls included."""
+    from mbmon.sim.program import run_program
+
+    result = run_program(client=c, unit=1, poll=0.05, timeout=10.0, jog_seconds=0.3)
+    return [(s.function, s.address, s.values, s.result) for s in result.steps]
+
+
 def client(port: int) -> Any:
     from pymodbus.client import ModbusTcpClient
 

@@ -64,6 +64,42 @@ def test_first_and_last_state() -> None:
         RegisterImage.from_exchanges(log, state="middle")
 
 
+def test_follow_gives_a_repeated_read_its_recorded_answers_in_order() -> None:
+    # IR524 polled: Running, Running, Idle; IR300..301 read once; a refusal in between
+    log = [
+        ex("04020c0001", "04020002"),
+        ex("04012c0002", "0404000a0000"),
+        ex("04020c0001", "04020002"),
+        ex("03079d0001", "8302"),
+        ex("04020c0001", "04020001"),
+        ex("03079d0001", "03020005"),
+    ]
+    image = RegisterImage.from_exchanges(log, state="follow")
+    assert [ask(image, "04020c0001") for _ in range(5)] == ["04020002"] * 2 + ["04020001"] * 3
+    assert ask(image, "03079d0001") == "8302"  # the recorded answers, refusals too
+    assert ask(image, "03079d0001") == "03020005"
+    assert ask(image, "03079d0001") == "03020005"
+    assert ask(image, "04012c0001") == "0402000a"  # not recorded as such: from the image
+    assert image.misses == {} and image.answered == 9
+    # the same log as a fixed image: IR524 stays Running for ever
+    first = RegisterImage.from_exchanges(log)
+    assert {ask(first, "04020c0001") for _ in range(5)} == {"04020002"}
+
+
+def test_follow_keeps_what_the_new_client_wrote() -> None:
+    log = [
+        ex("0300c80002", "030400000000"),  # R200..R201 = 0, 0
+        ex("1000c800020400010064", "1000c80002"),  # the recorded client wrote 1, 100
+        ex("0300c80002", "030400010064"),
+        ex("0300c80002", "030400010064"),
+    ]
+    image = RegisterImage.from_exchanges(log, state="follow")
+    assert ask(image, "0300c80002") == "030400000000"
+    assert ask(image, "0600c90007") == "0600c90007"  # this client writes R201 = 7
+    assert ask(image, "0300c80002") == "030400010007"  # R200 as recorded, R201 its own
+    assert ask(image, "0300c80001") == "03020001"  # the image moved on with the recording
+
+
 def test_recorded_writes_make_addresses_known() -> None:
     image = RegisterImage.from_exchanges(
         [
@@ -262,6 +298,31 @@ def test_serve_answers_every_recorded_request_pdu_identically(
             assert x.response is not None
             assert _send(s, tid, x.unit, x.request.raw) == x.response.raw, x
     assert image.misses == {}
+
+
+def test_serve_answers_the_5452_program_as_the_recorded_robot(tmp_path: Path) -> None:
+    """The recorded program again, against its own log: every answer as recorded,
+    IR524 Running then Idle included, so it ends at A1 = 90 as it did on the sim."""
+    from mbmon.sim.server import SimServer
+
+    log = tmp_path / "program.mcap"
+    with SimServer() as sim:
+        recorded = simlog.record(sim.port, log, simlog.program)
+    polls = [r for f, a, _v, r in recorded if (f, a) == (4, 524)]
+    assert polls.count((2,)) >= 2 and polls[-1] == (1,)  # the robot moved, in time
+    with simlog.served(log) as srv:
+        again = simlog.run_traffic(srv.port, simlog.program)
+        code, err = srv.stop()
+    assert again == recorded
+    assert code == 0, err
+    assert ", 0 not (exception 02)" in err
+    # a fixed image cannot: IR524 stays Running and the program gives up
+    from mbmon.sim.program import ProgramError, run_program
+
+    with simlog.served(log, "--state", "first") as srv:
+        with pytest.raises(ProgramError, match="still Running"):
+            run_program("127.0.0.1", srv.port, poll=0.01, timeout=0.5)
+        srv.stop()
 
 
 def test_serve_misses_get_exception_02_and_are_listed(

@@ -33,14 +33,22 @@ def test_the_5452_program_reaches_a1_90_and_the_analyzer_reconstructs_it() -> No
             packets.append((time.time(), sending, data))
 
     steps: list[Step] = []
+    told: list[tuple[str, int]] = []  # (part, steps answered when on_part came)
     with SimServer(on_packet=tap) as server:
-        result = run_program(server.host, server.port, on_step=steps.append, jog_seconds=0.4)
+        result = run_program(
+            server.host,
+            server.port,
+            on_step=steps.append,
+            on_part=lambda part: told.append((part, len(steps))),
+            jog_seconds=0.4,
+        )
         state = server.snapshot()
 
     # the program's own view ($C[1..9] and what it read back)
     assert result.speed_before == 100
     assert result.di == (1, 0, 1, 0, 0, 0, 0, 0)
     assert result.joints == (90, 0, 0, 0, 0, 0)
+    assert result.pose == (-300, 300, 400, 180, 0, 90)  # read back after the LIN
     assert result.statuses == {"LIN": 1, "Set PR": 1, "Get PR": 1, "JOG": 1}
     assert result.pr2[:4] == (2, 2, 24464, 1)  # Table 52: PR[2], Cartesian, X = 90
     assert result.jog_moved > 1.0  # 10 deg/s x 90 % for 0.4 s
@@ -67,6 +75,9 @@ def test_the_5452_program_reaches_a1_90_and_the_analyzer_reconstructs_it() -> No
     assert polls[0].result == (2,) and polls[-1].result == (1,)  # Running ... Idle
     assert [s.index for s in steps] == list(range(1, len(steps) + 1))
     assert {s.part for s in steps} == {"5.4.5.2", "LIN", "Set PR", "Get PR", "JOG"}
+    # on_part comes before each extra part's first request
+    first = {p: next(i for i, s in enumerate(steps) if s.part == p) for p, _ in told}
+    assert told == [(p, first[p]) for p in ("LIN", "Set PR", "Get PR", "JOG")]
 
     # mbmon's decoder on the server's traffic (one TCP connection: the program's)
     stream = Stream(0, Transport.TCP, "127.0.0.1:50000", f"127.0.0.1:{server.port}")

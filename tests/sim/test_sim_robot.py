@@ -234,6 +234,39 @@ def test_circ_passes_through_the_auxiliary_point_on_a_circle() -> None:
     assert r32(robot.read(IR, 400, 2, duration + 0.01)) == 600
 
 
+def test_ptp_cartesian_moves_the_pose_and_external_axes_at_speed_percent() -> None:
+    robot = SimRobot(cart_speed=1000.0)
+    # PTP {X 400, Y 300, Z 100, A 180, B 0, C 0, E1 50} Vel=10% Code=12 (Table 17, point type 1)
+    params = [0, 1, *cart((400, 300, 100, 180, 0, 0)), 10, 100, 0, 0, 1, *w32(50), 0, 0, 0, 0, 12]
+    assert len(params) == 26
+    assert run(robot, params, 0.0) == 1
+    # 500 mm at 1000 mm/s x 10 % = 100 mm/s: 5 s; E1 arrives with the pose
+    assert robot.read(IR, 101, 1, 2.5) == [12]  # IR101: the custom code of the running motion
+    assert r32(robot.read(IR, 520, 2, 2.5)) == pytest.approx(100)  # IR520 TCP speed
+    pose = robot.read(IR, 400, 12, 2.5)
+    assert [r32(pose, i) for i in (0, 2, 4)] == pytest.approx([400, 150, 300], abs=0.01)
+    assert robot.state()["ext"][0] == pytest.approx(25)
+    assert robot.read(IR, 524, 1, 4.99) == [MotionState.RUNNING]
+    assert robot.read(IR, 524, 1, 5.01) == [MotionState.IDLE]
+    assert robot.read(IR, 101, 1, 5.01) == [0] and robot.read(IR, 520, 2, 5.01) == [0, 0]
+    pose = robot.read(IR, 400, 12, 5.01)
+    assert [r32(pose, i) for i in range(0, 12, 2)] == [400, 300, 100, 180, 0, 0]
+    assert robot.state()["ext"] == (50, 0, 0)
+    assert tuple(robot.joints) == (0, 0, 0, 0, -90, 0)  # no kinematics: joints stay
+
+
+def test_circ_reports_its_code_in_ir101_and_its_speed_in_ir520() -> None:
+    robot = SimRobot()
+    aux = cart((500, 100, 500, 180, 0, 0))
+    end = cart((600, 0, 500, 180, 0, 0))
+    params = [2, *aux, *end, 50, 100, 0, 0, 0] + [0] * 6 + [u16(-7)]  # R237 code -7
+    assert len(params) == 37
+    assert run(robot, params, 0.0) == 1
+    assert robot.read(IR, 101, 1, 1.0) == [u16(-7)]
+    assert r32(robot.read(IR, 520, 2, 1.0)) == pytest.approx(50)
+    assert robot.read(IR, 524, 1, 1.0) == [MotionState.RUNNING]
+
+
 def test_jog_runs_while_r200_stays_1_and_stops_when_it_returns_to_0() -> None:
     robot = SimRobot()
     assert run(robot, [3, 0, 1], 0.0) == 1  # JOG A1 + (Example 5, Table 48)

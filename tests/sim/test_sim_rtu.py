@@ -85,3 +85,63 @@ def test_the_program_over_rtu_reaches_a1_90(pty_pair: tuple[str, str]) -> None:
     frames = [r.frame for r in records if r.frame is not None]
     assert frames and all(f.crc_ok for f in frames)
     assert {f.unit for f in frames} == {0, 3, 4}
+
+
+def test_mbmon_sim_serial_serves_rtu_until_ctrl_c(pty_pair: tuple[str, str]) -> None:
+    """``mbmon sim --serial PTY`` as a user runs it: the address line, a command by a
+    pymodbus RTU client on the other end, its console line, a clean stop."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from pymodbus import FramerType
+    from pymodbus.client import ModbusSerialClient
+
+    server_pty, client_pty = pty_pair
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mbmon", "sim", "--serial", server_pty, "--baud", str(BAUD),
+         "--unit", "2"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+    )  # fmt: skip
+    try:
+        assert proc.stdout is not None
+        first = proc.stdout.readline()
+        assert first == (
+            f"mbmon sim: HRSS robot, unit 2, Modbus RTU on {server_pty} ({BAUD} baud, 8N1)\n"
+        )
+        assert "not a robot simulator" in proc.stdout.readline()
+        client = ModbusSerialClient(
+            client_pty, framer=FramerType.RTU, baudrate=BAUD, timeout=1, retries=0
+        )
+        assert client.connect()
+        try:
+            # pymodbus's serial server may say it is ready a moment before it reads its
+            # port: ask until the line answers (a lost first request is not what is tested)
+            deadline = time.monotonic() + 10
+            while True:
+                try:
+                    rr = client.read_input_registers(100, count=1, device_id=2)
+                    if not rr.isError():
+                        break
+                except Exception:  # pymodbus raises ModbusIOException on no answer
+                    pass
+                assert time.monotonic() < deadline, "mbmon sim never answered on the pty"
+            assert rr.registers == [100]
+            assert not client.write_registers(201, [103, 4], device_id=2).isError()
+            assert not client.write_registers(200, [1], device_id=2).isError()  # Current TOOL[4]
+            assert client.read_input_registers(200, count=2, device_id=2).registers == [1, 103]
+        finally:
+            client.close()
+        line = proc.stdout.readline()
+        assert "execute" in line and "success: Set Current TOOL[4]" in line
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=15)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    assert out.endswith("mbmon sim: stopped\n") and "Traceback" not in err

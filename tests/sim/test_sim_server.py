@@ -184,6 +184,116 @@ def test_table_16_cases_cover_every_command(server: SimServer) -> None:
     assert ranged <= refused
 
 
+#: Every parameter of Tables 17-43 that has a range, written out from the manual (not
+#: from hrss_commands.toml): (case, R201, valid R202.., register, lowest, highest).
+#: Point types and Set PR's type pick the layout, so their valid base is one where
+#: every layout is valid (PR[1] exists, values 0.001 are fine as angles or mm).
+PR1 = [1] + [0] * 11  # R203 = PR[1] (or A1 / X = 0.001), R204..R214
+RANGES: list[tuple[str, int, list[int], int, int, int]] = [
+    ("PTP point type (Tables 17/18)", 0, motion(2, PR1, 50), 202, 0, 2),
+    *[(f"PTP joint {what} (Table 17)", 0, motion(0, JOINT90, 50, 100, 1, 2), reg, lo, hi)
+      for what, reg, lo, hi in (("speed %", 215, 1, 200), ("acc %", 216, 1, 100),
+                                ("TOOL", 217, 0, 15), ("BASE", 218, 0, 31),
+                                ("external axis", 219, 0, 1))],
+    *[(f"PTP $PR {what} (Table 18)", 0, motion(2, PR1, 50), reg, lo, hi)
+      for what, reg, lo, hi in (("PR", 203, 1, 4000), ("speed %", 215, 1, 200),
+                                ("acc %", 216, 1, 100), ("TOOL", 217, 0, 15),
+                                ("BASE", 218, 0, 31), ("external axis", 219, 0, 1))],
+    ("LIN point type (Tables 19/20)", 1, motion(2, PR1, 100), 202, 0, 2),
+    *[(f"LIN Cartesian {what} (Table 19)", 1, motion(1, CART, 100), reg, lo, hi)
+      for what, reg, lo, hi in (("speed mm/s", 215, 1, 6000), ("acc %", 216, 1, 100),
+                                ("TOOL", 217, 0, 15), ("BASE", 218, 0, 31),
+                                ("external axis", 219, 0, 1))],
+    *[(f"LIN $PR {what} (Table 20)", 1, motion(2, PR1, 100), reg, lo, hi)
+      for what, reg, lo, hi in (("PR", 203, 1, 4000), ("speed mm/s", 215, 1, 6000),
+                                ("acc %", 216, 1, 100), ("TOOL", 217, 0, 15),
+                                ("BASE", 218, 0, 31), ("external axis", 219, 0, 1))],
+    *[(f"CIRC {what} (Table 21)", 2, circ(100), reg, lo, hi)
+      for what, reg, lo, hi in (("speed mm/s", 226, 1, 6000), ("acc %", 227, 1, 100),
+                                ("TOOL", 228, 0, 15), ("BASE", 229, 0, 31),
+                                ("external axis", 230, 0, 1))],
+    ("JOG axis (Table 22)", 3, [0, 1], 202, 0, 14),
+    ("JOG direction (Table 22)", 3, [0, 1], 203, -1, 1),
+    ("GO HOME enable (Table 23)", 4, [1], 202, 0, 1),
+    ("T_STOP timer (Table 24)", 5, [1, 1], 202, 1, 20),
+    ("T_STOP state (Table 24)", 5, [1, 1], 203, 0, 1),
+    ("Set PR number (Table 26)", 100, [1, 1, *six(1, 2, 3, 4, 5, 6)], 202, 1, 4000),
+    ("Set PR point type (Table 26)", 100, [1, 1, *six(1, 2, 3, 4, 5, 6)], 203, 0, 2),
+    ("Set TOOL number (Table 27)", 101, [1, *six(0, 0, 100, 0, 0, 0)], 202, 0, 15),
+    ("Set BASE number (Table 28)", 102, [1, *six(0, 0, 100, 0, 0, 0)], 202, 1, 31),
+    ("Set Current TOOL (Table 29)", 103, [0], 202, 0, 15),
+    ("Set Current BASE (Table 30)", 104, [0], 202, 0, 31),
+    ("Get PR number (Table 32)", 200, [1], 202, 1, 4000),
+    ("Get TOOL number (Table 34)", 201, [0], 202, 0, 15),
+    ("Get BASE number (Table 36)", 202, [0], 202, 0, 31),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("name", "code", "params", "register", "lo", "hi"), RANGES, ids=[r[0] for r in RANGES]
+)
+def test_every_ranged_parameter_at_and_beyond_its_bounds(
+    client: ModbusTcpClient,
+    server: SimServer,
+    name: str,
+    code: int,
+    params: list[int],
+    register: int,
+    lo: int,
+    hi: int,
+) -> None:
+    """The manual's range of each parameter: its ends succeed (IR200 = 1), one step
+    beyond fails (IR200 = 2), and a motion that fails does not move the robot."""
+    server.call(lambda robot, now: robot.clear_fault())
+    for value, status in ((lo - 1, 2), (lo, 1), (hi, 1), (hi + 1, 2)):
+        command(client, 6, [])  # Motion Stop: nothing moves, nothing queued
+        for pr in (1, 4000):  # the $PR cases move to PR[1] and PR[4000]
+            assert command(client, 100, [pr, 1, *six(1, 0, 0, 0, 0, 0)])[0] == 1
+        body = list(params)
+        body[register - 202] = u16(value)
+        got = command(client, code, body)
+        assert got == [status, code], f"{name} = {value}: IR200, IR201 = {got}"
+        if status == 2 and code in (0, 1, 2, 3, 4):
+            rr = client.read_input_registers(524, count=1, device_id=UNIT)
+            assert rr.registers == [1], f"{name} = {value} failed but the robot moves"
+        write(client, 200, [0])  # JOG / GO HOME stop here
+
+
+def test_the_ranges_above_are_every_range_the_command_data_has(server: SimServer) -> None:
+    """Nothing in hrss_commands.toml has a range the manual-written table above misses,
+    and the two agree on every bound."""
+    from_manual = {(code, reg, lo, hi) for _n, code, _p, reg, lo, hi in RANGES}
+    from_data = set()
+    for code, cmd in server.robot.spec.commands.items():
+        fields = [f for lay in cmd.params.layouts for f in lay.fields]
+        if cmd.params.select is not None:
+            fields.append(cmd.params.select)
+        from_data |= {(code, f.reg, f.min, f.max) for f in fields if f.min is not None}
+    assert from_data == from_manual
+
+
+def test_more_than_8000_queued_motions_fail_other_commands_do_not() -> None:
+    """Table 15: with 8000 commands waiting, a motion command fails; IR102 counts them."""
+    from mbmon.sim.robot import SimRobot
+
+    robot = SimRobot()
+    H = "holding_registers"
+    assert robot.write(H, 201, [0, *motion(0, JOINT90, 1)], 0.0) is None
+    for i in range(8001):  # one runs, 8000 wait (the parameters stay in R201..)
+        robot.write(H, 200, [0], 0.0)
+        robot.write(H, 200, [1], 0.0)
+        assert robot.status == 1, i
+    assert robot.read("input_registers", 102, 1, 0.0) == [8000]
+    robot.write(H, 200, [0], 0.0)
+    robot.write(H, 200, [1], 0.0)
+    assert robot.status == 2
+    assert robot.read("input_registers", 102, 1, 0.0) == [8000]
+    robot.write(H, 200, [0], 0.0)
+    robot.write(H, 201, [103, 5], 0.0)
+    robot.write(H, 200, [1], 0.0)
+    assert robot.status == 1 and robot.current_tool == 5
+
+
 def test_get_returns_decode_with_the_analyzers_own_layouts(client: ModbusTcpClient) -> None:
     assert command(client, 101, [4, *six(1, 2, 3, 4, 5, 6)])[0] == 1
     assert command(client, 201, [4])[0] == 1
