@@ -382,7 +382,8 @@ def run(args: argparse.Namespace) -> int:
         feed = open_foxglove(args, ctx)  # before any file: a missing SDK leaves nothing behind
         hub.add_listener(open_sink(str(log_path), ctx))  # the log first: all is logged
     except SinkError as exc:
-        err(str(exc))
+        about_log = str(exc).startswith(f"{log_path}:")
+        err(f"{exc} (log elsewhere: mbmon demo -w DIR/{DEFAULT_LOG})" if about_log else str(exc))
         if feed is not None:
             feed.close()
         hub.close()

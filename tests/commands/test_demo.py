@@ -282,6 +282,18 @@ def test_demo_over_its_own_earlier_log(tmp_path: Path) -> None:
     assert len(read_log(log)["/mbmon/events"]) > 0 and log.stat().st_size > size // 2
 
 
+def test_a_log_that_cannot_be_written_says_where_else_to_write_it(tmp_path: Path) -> None:
+    """A folder the demo cannot write to (a read-only checkout, a missing folder) is
+    one line naming the file, its reason and the way out, exit 1, before anything runs."""
+    out = mbmon("demo", "--plain", "-w", str(tmp_path / "missing" / "x.mcap"))
+    assert out.returncode == 1
+    assert out.stdout == ""
+    assert out.stderr.strip() == (
+        f"mbmon: {tmp_path / 'missing' / 'x.mcap'}: cannot write: No such file or directory"
+        " (log elsewhere: mbmon demo -w DIR/mbmon-demo.mcap)"
+    )
+
+
 def test_help_teaches() -> None:
     out = mbmon("demo", "--help")
     assert out.returncode == 0
