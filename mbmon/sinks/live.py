@@ -221,7 +221,9 @@ class LiveMonitor:
             text.append(str(value), style=style or "bold")
         for label, value in self.figures.items():
             text.append(f"  {label} ")
-            bad = label.endswith("drops") and isinstance(value, int) and value > 0
+            bad = label == "warnings" or (
+                label.endswith("drops") and isinstance(value, int) and value > 0
+            )
             text.append(str(value), style="bold red" if bad else "bold")
         return text
 
