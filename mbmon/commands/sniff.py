@@ -27,14 +27,18 @@ examples:
   mbmon sniff -i eth0 --port 1502 -w cell.mcap   another server port, and an MCAP log
   mbmon sniff eth0 --robot 192.168.0.10 --profile hrss   the robot's labels and HRSS meaning
   mbmon sniff lo -f 'tcp port 5020' --port 5020 -c 10    a BPF filter, stop after 10 frames
+  mbmon sniff eth0 --fc 6,16 --address 200-251 -c 20     only writes to R200..R251, 20 of them
   mbmon sniff --list                        the interfaces there are
   mbmon sniff --serial /dev/ttyUSB0 --baud 19200 --parity E   an RS485 bus (RTU)
   mbmon sniff --serial /dev/ttyUSB0 --serial /dev/ttyUSB1    two one-direction taps
   mbmon sniff eth0 --profile hrss --foxglove   live in Foxglove at ws://127.0.0.1:8765
 
 needs root, or CAP_NET_RAW and CAP_NET_ADMIN on the Python binary (network);
-read access to the serial port (serial). Ctrl-C or SIGTERM ends the capture and
-finishes the logs; a summary (kernel drops, bus health) goes to stderr.
+read access to the serial port (serial). The filters (--unit, --fc, --address,
+--since, --until, --grep) choose what is shown and what -c counts; -w logs keep
+everything up to the end (or up to the N-th frame shown, with -c).
+Ctrl-C or SIGTERM ends the capture and finishes the logs; a summary (as `read`
+gives, plus kernel drops or bus health) goes to stderr (-q: none).
 exit status: 0 ok, 1 capture could not start or an output failed, 2 usage
 """
 
@@ -49,6 +53,8 @@ def register(sub: Any) -> None:
         add_view_options,
     )
     from mbmon.commands.common import positive as _positive
+    from mbmon.filters import add_filter_options
+    from mbmon.timefmt import add_time_option
 
     p = sub.add_parser(
         "sniff",
@@ -93,7 +99,12 @@ def register(sub: Any) -> None:
     )
     run = p.add_argument_group("run")
     run.add_argument(
-        "-c", "--count", type=int, default=None, metavar="N", help="stop after N Modbus frames"
+        "-c",
+        "--count",
+        type=int,
+        default=None,
+        metavar="N",
+        help="stop after N Modbus frames (those the filters let through)",
     )
     run.add_argument(
         "--timeout",
@@ -106,6 +117,8 @@ def register(sub: Any) -> None:
     add_foxglove_option(run)
     add_view_options(p)
     add_output_options(p)
+    add_time_option(p)
+    add_filter_options(p)
     p.set_defaults(func=run_sniff)
 
 
@@ -113,16 +126,36 @@ def register(sub: Any) -> None:
 
 
 class _Budget:
-    """Counts frame records for ``-c``; the first listener, so it cuts each batch first."""
+    """Counts frame records for ``-c``; the first listener, so it cuts each batch first.
+
+    With filters (``--fc``, ``--unit``, ...) only the frames they let through
+    count, as with tcpdump's ``-c`` behind its filter: ``sniff --fc 16 -c 5``
+    shows five writes. Everything up to the N-th counted frame reaches the
+    outputs behind it (:class:`_Limited`), nothing after it.
+    """
 
     name = "count"
 
-    def __init__(self, count: int, stop: Any) -> None:
+    def __init__(self, count: int, stop: Any, flt: Any = None, view: Any = None) -> None:
         self.left = count
         self._stop = stop
+        self._filter = flt if flt is not None and flt.active else None
+        self._view = view
         self.done = False
         self._batch: list[Any] | None = None
         self._cut: list[Any] = []
+
+    def _counts(self, record: Any) -> bool:
+        if record.frame is None:
+            return False
+        flt = self._filter
+        if flt is None:
+            return True
+        if flt.needs_line:
+            from mbmon.format import record_line
+
+            return bool(flt.matches_record(record, record_line(record, self._view)))
+        return bool(flt.matches_record(record))
 
     def on_records(self, records: list[Any]) -> None:
         if self.done:
@@ -130,7 +163,7 @@ class _Budget:
             return
         keep = len(records)
         for i, record in enumerate(records):
-            if record.frame is not None:
+            if self._counts(record):
                 self.left -= 1
                 if self.left <= 0:
                     keep = i + 1
@@ -198,10 +231,14 @@ def run_sniff(args: argparse.Namespace) -> int:
         open_foxglove,
     )
     from mbmon.commands.common import profile_sources as _profile_sources
+    from mbmon.filters import FilterError, build_filter
     from mbmon.format import View
     from mbmon.hub import Hub
     from mbmon.pipeline import Pipeline, PipelineConfig
     from mbmon.sinks.base import SinkContext, SinkError, open_sink
+    from mbmon.sinks.select import Selection
+    from mbmon.sinks.summary import Summary
+    from mbmon.timefmt import TimeFormat
 
     if args.list:
         from mbmon.sources.sniff import list_interfaces
@@ -227,7 +264,15 @@ def run_sniff(args: argparse.Namespace) -> int:
 
     serial = bool(args.serial)
     baud = (args.baud or 115200) if serial else None
-    view = View(robot=args.robot, robot_is_client=args.robot_client)
+    view = View(
+        robot=args.robot,
+        robot_is_client=args.robot_client,
+        time_format=TimeFormat(args.time_format),
+    )
+    try:
+        flt = build_filter(args, time_format=view.time_format, start_known=False)
+    except FilterError as exc:
+        raise UsageError(str(exc)) from None
     annotator = make_annotator(args.profile)
     pipeline = Pipeline(annotator, PipelineConfig(timeout=args.timeout, baudrate=baud))
     hub = Hub(pipeline)
@@ -330,10 +375,7 @@ def run_sniff(args: argparse.Namespace) -> int:
     def figures() -> dict[str, Any]:
         if capture is not None:
             return {"kernel drops": capture.kernel_stats().drops}
-        return {
-            "CRC failures": health.crc_errors,
-            "t3.5 violations": health.t35_violations,
-        }
+        return health.screen_figures()
 
     if not args.quiet:  # before the live screen takes the terminal
         what = f"filter: {capture.bpf}" if capture is not None else health.settings.text()
@@ -341,9 +383,10 @@ def run_sniff(args: argparse.Namespace) -> int:
         sys.stderr.flush()
 
     # ---- outputs
-    budget = _Budget(args.count, stop) if args.count else None
+    budget = _Budget(args.count, stop, flt, view) if args.count else None
     outputs: list[Any] = []
     monitor: Any = None
+    summary = None if args.quiet else Summary(view if args.robot else None)
 
     def abandon() -> None:
         for out in outputs:
@@ -360,10 +403,12 @@ def run_sniff(args: argparse.Namespace) -> int:
         console, monitor = open_console(
             args, view, title=f"mbmon sniff {source_name}", annotator=annotator
         )
-        if console is not None:
-            outputs.append(console)
+        if console is not None:  # the filters choose what is shown; logs keep everything
+            outputs.append(Selection([console], view, flt) if flt.active else console)
         for target in args.write:
             outputs.append(open_sink(target, ctx))
+        if summary is not None:
+            outputs.append(summary)
     except SinkError as exc:
         abandon()
         print(f"mbmon: {exc}", file=sys.stderr)
@@ -408,7 +453,9 @@ def run_sniff(args: argparse.Namespace) -> int:
             signal.signal(sig, handler)
 
     if not args.quiet:
-        _summary(args, hub, capture, taps, health, dissector, time.time() - started, source_name)
+        _summary(
+            args, summary, capture, taps, health, dissector, time.time() - started, source_name
+        )
     if any(why != "broken pipe" for _name, why in hub.failures):
         return EXIT_BAD_INPUT
     return EXIT_OK
@@ -416,7 +463,7 @@ def run_sniff(args: argparse.Namespace) -> int:
 
 def _summary(
     args: argparse.Namespace,
-    hub: Any,
+    summary: Any,
     capture: Any,
     taps: list[Any],
     health: Any,
@@ -424,8 +471,9 @@ def _summary(
     elapsed: float,
     source: str,
 ) -> None:
-    """The closing summary on stderr (not with ``-q``)."""
-    c = hub.pipeline.counts
+    """The closing summary on stderr (not with ``-q``): what the source saw (kernel
+    counters, dissector, serial reads, bus health) and the records' counts in the
+    words of ``read``'s summary (:class:`~mbmon.sinks.summary.Summary`)."""
     lines = [f"mbmon: sniffed {source} for {elapsed:.1f} s"]
     if capture is not None:
         k = capture.kernel_stats()
@@ -445,10 +493,9 @@ def _summary(
             f"  {tap.port}: {tap.reads} reads, {tap.bytes} bytes"
             + (f", lost {tap.losses} times" if tap.losses else "")
         )
-    lines.append(
-        f"  {c['frames']} frames, {c['exceptions']} exceptions, {c['timeouts']} timeouts, "
-        f"{c['noise_bytes']} noise bytes, {c['malformed']} malformed"
-    )
+    lines.extend("  " + line for line in summary.text().splitlines())
     if health is not None:
         lines.extend("  " + line for line in health.summary())
+    if args.robot and summary.streams and not summary.robot_seen:
+        lines.append(f"  warning: the robot {args.robot} (--robot) appears in no stream")
     print("\n".join(lines), file=sys.stderr)

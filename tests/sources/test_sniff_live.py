@@ -214,7 +214,8 @@ def test_sniff_loopback_exact_frames_sigint_finishes_log(modbus_server: int, tmp
     assert _frames(out) == _EXPECTED
     objs = [json.loads(line) for line in out.splitlines()]
     assert objs[0]["kind"] == "event" and "Connect 127.0.0.1:" in objs[0]["line"]
-    assert "0 dropped" in err and "10 frames" in err and "1 exceptions" in err
+    assert "0 dropped" in err
+    assert "10 frames (5 requests, 5 answered, 1 exceptions, 0 unanswered" in err  # as read
     counts = _read_mcap(log)
     assert counts["/modbus/frames"] == 10
     assert counts["/modbus/monitor"] >= 10
@@ -229,6 +230,24 @@ def test_sniff_count_stops(modbus_server: int, tmp_path: Path):
     assert sniffer.proc.returncode == 0, err
     assert _frames(out) == _EXPECTED[:4]
     assert _read_mcap(log)["/modbus/frames"] == 4  # the log stops at the same frame
+
+
+def test_sniff_filters_choose_what_is_shown_and_what_count_counts(
+    modbus_server: int, tmp_path: Path
+):
+    """``read``'s filters on a live capture: ``--fc 6,16 -c 2`` shows the two frames of
+    the Write Single Register exchange only and stops there; the log keeps every
+    record up to that point (the reads before it too), the summary counts them."""
+    log = tmp_path / "writes.mcap"
+    args = ("lo", "--port", str(modbus_server), "--json", "--fc", "6,16", "-c", "2")
+    sniffer = Sniffer(*args, "-w", str(log))
+    _client_session(modbus_server)
+    out, err = sniffer.finish(sig=None, timeout=10)
+    assert sniffer.proc.returncode == 0, err
+    objs = [json.loads(line) for line in out.splitlines()]
+    assert [(o["kind"], o["pdu"]) for o in objs] == _EXPECTED[2:4]  # no connect line either
+    assert _read_mcap(log)["/modbus/frames"] == 4
+    assert "4 frames (2 requests, 2 answered" in err
 
 
 def test_sniff_sigterm_finishes_log(modbus_server: int, tmp_path: Path):
@@ -264,7 +283,7 @@ def test_unanswered_request_reported_at_timeout_on_a_silent_line():
         silent.close()
     conn.close()  # held open until now: no FIN, no other traffic before the timeout
     client.close()
-    assert "1 timeouts" in err
+    assert "1 frames (1 requests, 0 answered, 0 exceptions, 1 unanswered" in err
 
 
 def test_sniff_unknown_interface_names_the_available_ones():
