@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import os
 import random
+import re
 import shutil
 import signal
 import subprocess
@@ -365,3 +366,72 @@ def test_bus_health_warnings_reach_the_screen_the_log_and_the_summary(
     assert any("likely a wrong baud rate" in w for w in warnings), err
     assert any("reads arrive in bursts" in w for w in warnings), err
     assert "inter-frame gaps" in err and "timing NOT meaningful" in err
+
+
+def _sniff_on_a_terminal(port: Path, writer: Path, extra: tuple[str, ...] = ()) -> str:
+    """``mbmon sniff --serial PORT`` with stdout on a pseudo-terminal while one exchange
+    crosses the bus: what the terminal showed (escapes and all)."""
+    import pty
+    import select
+
+    master, slave = pty.openpty()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mbmon", "sniff", "--serial", str(port), *extra],
+        stdout=slave,
+        stderr=subprocess.PIPE,
+        env={**_env(), "COLUMNS": "400", "LINES": "40", "TERM": "xterm"},
+        cwd=REPO,
+    )
+    _STARTED.append(proc)
+    os.close(slave)
+    shown = b""
+    try:
+        assert proc.stderr is not None
+        assert b"sniffing" in proc.stderr.readline()
+        _write(writer, [(_adu(1, "03 0000 0001") + _adu(1, "03 02 002A"), 0.0, False)])
+        end = time.monotonic() + 5
+        while b"03 02 00 2A" not in shown and time.monotonic() < end:
+            if select.select([master], [], [], 0.1)[0]:
+                shown += os.read(master, 65536)
+        time.sleep(0.6)  # a few more ticks: the header has the bus figures by then
+    finally:
+        proc.send_signal(signal.SIGINT)
+        end = time.monotonic() + 20
+        while time.monotonic() < end:  # read on while it exits: a full terminal blocks it
+            if not select.select([master], [], [], 0.2)[0]:
+                if proc.poll() is not None:
+                    break
+                continue
+            try:
+                part = os.read(master, 65536)
+            except OSError:
+                break
+            if not part:
+                break
+            shown += part
+        proc.wait(5)
+        os.close(master)
+    return shown.decode("utf-8", "replace")
+
+
+def test_a_terminal_gets_the_live_screen_with_bus_figures_and_a_pipe_plain_lines(
+    pty_pair: PtyPair,
+):
+    screen = _sniff_on_a_terminal(pty_pair.b, pty_pair.a)
+    assert "\x1b[" in screen and "╭" in screen and "monitor" in screen, screen[-2000:]
+    plain = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", screen)
+    assert "CRC failures 0" in plain and "t3.5 violations 0" in plain
+    assert "gaps " in plain and "noise bytes 0" in plain
+    assert "03 02 00 2A  | Read Holding Registers 0 = 42" in plain
+
+    lines = _sniff_on_a_terminal(pty_pair.b, pty_pair.a, ("--plain",))
+    assert "╭" not in lines and "CRC failures" not in lines
+    assert re.search(r"^\S.*03 02 00 2A  \| Read Holding Registers 0 = 42", lines, re.M)
+
+    # stdout a pipe, no --plain: plain lines too
+    sniffer = SerialSniffer("--serial", str(pty_pair.b))
+    _write(pty_pair.a, [(_adu(1, "03 0000 0001") + _adu(1, "03 02 002A"), 0.0, False)])
+    sniffer.stdout_until(b"03 02 00 2A  | Read Holding Registers 0 = 42")
+    out, err = sniffer.finish()
+    assert sniffer.proc.returncode == 0, err
+    assert "╭" not in out and "\x1b[" not in out
