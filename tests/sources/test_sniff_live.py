@@ -17,6 +17,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -371,3 +372,72 @@ def test_drops_while_the_socket_is_set_up_are_not_the_captures():
     finally:
         capture.stop()
     assert stats.drops == 0, stats
+
+
+def test_a_terminal_gets_the_live_screen_with_kernel_drops_and_the_robot_panel():
+    """``sniff lo --profile hrss`` with stdout on a real pseudo-terminal while the sim
+    robot runs the manual's program on 127.0.0.1: the live screen's header has the
+    kernel drop count, the robot panel the axes, the last command and the written
+    command registers (R200..R251) by their HRSS names."""
+    import pty
+    import re
+
+    from mbmon.sim import SimServer, run_program
+
+    master, slave = pty.openpty()
+    shown = b""
+    with SimServer() as sim:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "mbmon", "sniff", "lo", "--port", str(sim.port),
+             "--profile", "hrss"],
+            stdout=slave, stderr=subprocess.PIPE, cwd=REPO,
+            env={**_env(), "COLUMNS": "220", "LINES": "60", "TERM": "xterm"},
+        )  # fmt: skip
+        _STARTED.append(proc)
+        os.close(slave)
+
+        def drain(seconds: float) -> bytes:
+            """What the screen draws in the next ``seconds`` (it redraws every 0.25 s)."""
+            got = b""
+            end = time.monotonic() + seconds
+            while (left := end - time.monotonic()) > 0:
+                if select.select([master], [], [], left)[0]:
+                    try:
+                        part = os.read(master, 65536)
+                    except OSError:
+                        break
+                    if not part:
+                        break
+                    got += part
+            return got
+
+        assert proc.stderr is not None
+        assert b"sniffing" in proc.stderr.readline()
+        done = threading.Event()
+        runner = threading.Thread(
+            target=lambda: (run_program(sim.host, sim.port, extras=False), done.set()),
+            daemon=True,
+        )
+        runner.start()
+        while not done.is_set():
+            shown += drain(0.1)
+        runner.join()
+        shown += drain(0.8)  # a few ticks: the screen shows the end of the program
+        proc.send_signal(signal.SIGINT)
+        end = time.monotonic() + 20
+        while proc.poll() is None and time.monotonic() < end:
+            shown += drain(0.1)
+        shown += drain(0.2)
+        proc.wait(5)
+        os.close(master)
+    assert proc.returncode == 0
+    # the last screen drawn: what follows the last header
+    text = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", shown.decode("utf-8", "replace"))
+    last = text[text.rindex("mbmon sniff lo ") :]
+    assert "kernel drops 0" in last and "open connections" in last
+    assert re.search(r"A1 +90\.000", last)  # the program's PTP {A1 90}, read back from IR300
+    assert "speed " in last and "motion state " in last
+    assert re.search(r"last command \(.+\): PTP \{A1 90, .*\[(executing|success)", last)
+    assert "command registers R200..R251 as written" in last
+    assert "R200 execute Execute (1)" in last and "R201 command PTP (0)" in last
+    assert "R203..R204 A1 90 deg" in last and "R215 speed 50%" in last
