@@ -373,8 +373,11 @@ def run_sniff(args: argparse.Namespace) -> int:
             return EXIT_BAD_INPUT
 
     def figures() -> dict[str, Any]:
-        if capture is not None:
-            return {"kernel drops": capture.kernel_stats().drops}
+        if capture is not None:  # the dissector knows connections picked up mid-stream too
+            return {
+                "open connections": dissector.stats()["open_connections"],
+                "kernel drops": capture.kernel_stats().drops,
+            }
         return health.screen_figures()
 
     if not args.quiet:  # before the live screen takes the terminal
