@@ -215,6 +215,8 @@ def test_sniff_loopback_exact_frames_sigint_finishes_log(modbus_server: int, tmp
     assert _frames(out) == _EXPECTED
     objs = [json.loads(line) for line in out.splitlines()]
     assert objs[0]["kind"] == "event" and "Connect 127.0.0.1:" in objs[0]["line"]
+    port = modbus_server  # the default kernel filter: port 502 and the extra port
+    assert f"(filter: tcp port 502 or udp port 502 or tcp port {port} or udp port {port})" in err
     assert "0 dropped" in err
     assert "10 frames (5 requests, 5 answered, 1 exceptions, 0 unanswered" in err  # as read
     counts = _read_mcap(log)
