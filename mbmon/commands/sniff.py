@@ -226,6 +226,7 @@ def run_sniff(args: argparse.Namespace) -> int:
         EXIT_OK,
         Figures,
         UsageError,
+        check_outputs,
         make_annotator,
         open_console,
         open_foxglove,
@@ -261,6 +262,7 @@ def run_sniff(args: argparse.Namespace) -> int:
         raise UsageError(f"bad baud rate {args.baud}")
     if iface and (args.baud is not None):
         raise UsageError("--baud is for --serial")
+    check_outputs(args.write, args.serial)  # before the capture opens: no half start
 
     serial = bool(args.serial)
     baud = (args.baud or 115200) if serial else None

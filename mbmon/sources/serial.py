@@ -28,6 +28,7 @@ pyserial is imported only when a port is opened: ``import mbmon`` stays light.
 
 from __future__ import annotations
 
+import errno
 import heapq
 import os
 import select
@@ -83,6 +84,8 @@ def open_port(port: str, settings: SerialSettings) -> Any:
         inner = exc.__context__ if isinstance(exc.__context__, OSError) else None
         if inner is not None:
             raise inner from None
+        if "Inappropriate ioctl" in str(exc):  # termios refused it: a file, /dev/null...
+            raise OSError(errno.ENOTTY, "not a serial port (it takes no line settings)") from None
         raise OSError(str(exc)) from None
     except ValueError as exc:
         raise OSError(f"bad serial settings: {exc}") from None

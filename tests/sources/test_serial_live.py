@@ -308,17 +308,36 @@ def test_two_one_direction_taps_merge_into_one_bus(tmp_path: Path):
     assert "noise" not in kinds
 
 
-def test_serial_missing_port_is_a_clear_error(tmp_path: Path):
-    proc = subprocess.run(
-        [sys.executable, "-m", "mbmon", "sniff", "--serial", str(tmp_path / "ttyNONE")],
+def _sniff_fails(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "mbmon", "sniff", *args],
         capture_output=True,
         text=True,
         env=_env(),
         timeout=30,
     )
+
+
+def test_serial_missing_port_is_a_clear_error(tmp_path: Path):
+    proc = _sniff_fails("--serial", str(tmp_path / "ttyNONE"))
     assert proc.returncode == 1
     assert f"cannot open serial port {tmp_path / 'ttyNONE'}" in proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+def test_a_file_that_is_no_serial_port_says_so():
+    proc = _sniff_fails("--serial", "/dev/null")
+    assert proc.returncode == 1
+    assert proc.stderr == (
+        "mbmon: cannot open serial port /dev/null: not a serial port (it takes no line settings)\n"
+    )
+
+
+def test_an_unknown_output_format_is_refused_before_the_port_opens(pty_pair: PtyPair):
+    proc = _sniff_fails("--serial", str(pty_pair.b), "-w", "bus.foo")
+    assert proc.returncode == 2
+    assert "bus.foo: unknown output format '.foo'" in proc.stderr
+    assert "sniffing" not in proc.stderr and "Traceback" not in proc.stderr
 
 
 def test_bus_health_warnings_reach_the_screen_the_log_and_the_summary(
