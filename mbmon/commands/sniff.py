@@ -451,8 +451,11 @@ def run_sniff(args: argparse.Namespace) -> int:
             capture.stop()
         for tap in taps:
             tap.stop()
-        if health is not None and not (budget is not None and budget.done):
-            hub.feed(health.stats_event(time.time()))
+        if not (budget is not None and budget.done):  # the closing figures, in the logs too
+            if health is not None:
+                hub.feed(health.stats_event(time.time()))
+            if capture is not None:
+                hub.feed(_capture_stats(capture, time.time()))
         hub.close()
         for sig, handler in old.items():
             signal.signal(sig, handler)
@@ -464,6 +467,22 @@ def run_sniff(args: argparse.Namespace) -> int:
     if any(why != "broken pipe" for _name, why in hub.failures):
         return EXIT_BAD_INPUT
     return EXIT_OK
+
+
+def _capture_stats(capture: Any, ts: float) -> Any:
+    """A STATS event with the capture's kernel counters (``/mbmon/events`` in a log),
+    so a log says by itself whether the capture was complete."""
+    from mbmon.model import Event, EventKind
+
+    k = capture.kernel_stats()
+    info = {
+        "interface": capture.iface,
+        "packets": capture.packets,
+        "kernel_packets": k.packets,
+        "kernel_drops": k.drops,
+        "complete": k.drops == 0,
+    }
+    return Event(ts, None, EventKind.STATS, info)
 
 
 def _summary(

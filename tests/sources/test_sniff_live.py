@@ -222,6 +222,18 @@ def test_sniff_loopback_exact_frames_sigint_finishes_log(modbus_server: int, tmp
     counts = _read_mcap(log)
     assert counts["/modbus/frames"] == 10
     assert counts["/modbus/monitor"] >= 10
+    # the log says by itself whether the capture was complete: the kernel's counters
+    from mcap.reader import make_reader
+
+    with open(log, "rb") as f:
+        events = [
+            json.loads(message.data)
+            for _schema, channel, message in make_reader(f).iter_messages()
+            if channel.topic == "/mbmon/events"
+        ]
+    kernel = [e["info"] for e in events if "kernel_drops" in e.get("info", {})]
+    assert kernel and kernel[-1]["interface"] == "lo" and kernel[-1]["kernel_drops"] == 0
+    assert kernel[-1]["complete"] is True and kernel[-1]["packets"] >= 10
 
 
 def test_sniff_count_stops(modbus_server: int, tmp_path: Path):
