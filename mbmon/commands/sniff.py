@@ -1,7 +1,9 @@
 """``mbmon sniff``: passive live capture of Modbus/TCP on a network interface, or of
 Modbus RTU on one or two RS485 taps, through the one hub and pipeline.
 
-Wiring only. Network: a :class:`~mbmon.sources.sniff.PacketCapture` reader
+Wiring only; the options, filters (:class:`~mbmon.sinks.select.Selection` in
+front of what is shown), ``-c`` and summary (:class:`~mbmon.sinks.summary.Summary`)
+are ``read``'s. Network: a :class:`~mbmon.sources.sniff.PacketCapture` reader
 thread submits packet batches to the hub; the packet dissector (a hub ticker)
 runs in the hub's thread. Serial: one :class:`~mbmon.sources.serial.SerialTap`
 thread per port puts chunks of one bus stream (two taps are merged by
@@ -39,12 +41,14 @@ read access to the serial port (serial). The filters (--unit, --fc, --address,
 everything up to the end (or up to the N-th frame shown, with -c).
 Ctrl-C or SIGTERM ends the capture and finishes the logs; a summary (as `read`
 gives, plus kernel drops or bus health) goes to stderr (-q: none).
-exit status: 0 ok, 1 capture could not start or an output failed, 2 usage
 """
+_EXIT = "exit status: 0 ok, 1 capture could not start or an output failed, 2 usage\n"
 
 
 def register(sub: Any) -> None:
     """Add the ``sniff`` subparser to ``sub``."""
+    import textwrap
+
     from mbmon.commands.common import (
         add_foxglove_option,
         add_live_options,
@@ -53,7 +57,7 @@ def register(sub: Any) -> None:
         add_view_options,
     )
     from mbmon.commands.common import positive as _positive
-    from mbmon.filters import add_filter_options
+    from mbmon.filters import TIMES_HELP, add_filter_options
     from mbmon.timefmt import add_time_option
 
     p = sub.add_parser(
@@ -62,7 +66,7 @@ def register(sub: Any) -> None:
         description="Watch live Modbus traffic passively and show every ADU as the robot's\n"
         "Modbus Monitor does, with its meaning: Modbus/TCP on a network interface (span\n"
         "port, tap, or this host), or Modbus RTU on a serial RS485 tap (docs/sniffing.md).",
-        epilog=_EPILOG,
+        epilog=_EPILOG + textwrap.fill(TIMES_HELP, 80) + "\n" + _EXIT,  # --since: 'times'
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("iface", nargs="?", metavar="IFACE", help="network interface (e.g. eth0, lo)")
