@@ -1,7 +1,9 @@
 """``mbmon sniff``: passive live capture of Modbus/TCP on a network interface, or of
 Modbus RTU on one or two RS485 taps, through the one hub and pipeline.
 
-Wiring only. Network: a :class:`~mbmon.sources.sniff.PacketCapture` reader
+Wiring only; the options, filters (:class:`~mbmon.sinks.select.Selection` in
+front of what is shown), ``-c`` and summary (:class:`~mbmon.sinks.summary.Summary`)
+are ``read``'s. Network: a :class:`~mbmon.sources.sniff.PacketCapture` reader
 thread submits packet batches to the hub; the packet dissector (a hub ticker)
 runs in the hub's thread. Serial: one :class:`~mbmon.sources.serial.SerialTap`
 thread per port puts chunks of one bus stream (two taps are merged by
@@ -27,20 +29,26 @@ examples:
   mbmon sniff -i eth0 --port 1502 -w cell.mcap   another server port, and an MCAP log
   mbmon sniff eth0 --robot 192.168.0.10 --profile hrss   the robot's labels and HRSS meaning
   mbmon sniff lo -f 'tcp port 5020' --port 5020 -c 10    a BPF filter, stop after 10 frames
+  mbmon sniff eth0 --fc 6,16 --address 200-251 -c 20     only writes to R200..R251, 20 of them
   mbmon sniff --list                        the interfaces there are
   mbmon sniff --serial /dev/ttyUSB0 --baud 19200 --parity E   an RS485 bus (RTU)
   mbmon sniff --serial /dev/ttyUSB0 --serial /dev/ttyUSB1    two one-direction taps
   mbmon sniff eth0 --profile hrss --foxglove   live in Foxglove at ws://127.0.0.1:8765
 
 needs root, or CAP_NET_RAW and CAP_NET_ADMIN on the Python binary (network);
-read access to the serial port (serial). Ctrl-C or SIGTERM ends the capture and
-finishes the logs; a summary (kernel drops, bus health) goes to stderr.
-exit status: 0 ok, 1 capture could not start or an output failed, 2 usage
+read access to the serial port (serial). The filters (--unit, --fc, --address,
+--since, --until, --grep) choose what is shown and what -c counts; -w logs keep
+everything up to the end (or up to the N-th frame shown, with -c).
+Ctrl-C or SIGTERM ends the capture and finishes the logs; a summary (as `read`
+gives, plus kernel drops or bus health) goes to stderr (-q: none).
 """
+_EXIT = "exit status: 0 ok, 1 capture could not start or an output failed, 2 usage\n"
 
 
 def register(sub: Any) -> None:
     """Add the ``sniff`` subparser to ``sub``."""
+    import textwrap
+
     from mbmon.commands.common import (
         add_foxglove_option,
         add_live_options,
@@ -49,6 +57,8 @@ def register(sub: Any) -> None:
         add_view_options,
     )
     from mbmon.commands.common import positive as _positive
+    from mbmon.filters import TIMES_HELP, add_filter_options
+    from mbmon.timefmt import add_time_option
 
     p = sub.add_parser(
         "sniff",
@@ -56,7 +66,7 @@ def register(sub: Any) -> None:
         description="Watch live Modbus traffic passively and show every ADU as the robot's\n"
         "Modbus Monitor does, with its meaning: Modbus/TCP on a network interface (span\n"
         "port, tap, or this host), or Modbus RTU on a serial RS485 tap (docs/sniffing.md).",
-        epilog=_EPILOG,
+        epilog=_EPILOG + textwrap.fill(TIMES_HELP, 80) + "\n" + _EXIT,  # --since: 'times'
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("iface", nargs="?", metavar="IFACE", help="network interface (e.g. eth0, lo)")
@@ -93,7 +103,12 @@ def register(sub: Any) -> None:
     )
     run = p.add_argument_group("run")
     run.add_argument(
-        "-c", "--count", type=int, default=None, metavar="N", help="stop after N Modbus frames"
+        "-c",
+        "--count",
+        type=int,
+        default=None,
+        metavar="N",
+        help="stop after N Modbus frames (those the filters let through)",
     )
     run.add_argument(
         "--timeout",
@@ -106,6 +121,8 @@ def register(sub: Any) -> None:
     add_foxglove_option(run)
     add_view_options(p)
     add_output_options(p)
+    add_time_option(p)
+    add_filter_options(p)
     p.set_defaults(func=run_sniff)
 
 
@@ -113,16 +130,36 @@ def register(sub: Any) -> None:
 
 
 class _Budget:
-    """Counts frame records for ``-c``; the first listener, so it cuts each batch first."""
+    """Counts frame records for ``-c``; the first listener, so it cuts each batch first.
+
+    With filters (``--fc``, ``--unit``, ...) only the frames they let through
+    count, as with tcpdump's ``-c`` behind its filter: ``sniff --fc 16 -c 5``
+    shows five writes. Everything up to the N-th counted frame reaches the
+    outputs behind it (:class:`_Limited`), nothing after it.
+    """
 
     name = "count"
 
-    def __init__(self, count: int, stop: Any) -> None:
+    def __init__(self, count: int, stop: Any, flt: Any = None, view: Any = None) -> None:
         self.left = count
         self._stop = stop
+        self._filter = flt if flt is not None and flt.active else None
+        self._view = view
         self.done = False
         self._batch: list[Any] | None = None
         self._cut: list[Any] = []
+
+    def _counts(self, record: Any) -> bool:
+        if record.frame is None:
+            return False
+        flt = self._filter
+        if flt is None:
+            return True
+        if flt.needs_line:
+            from mbmon.format import record_line
+
+            return bool(flt.matches_record(record, record_line(record, self._view)))
+        return bool(flt.matches_record(record))
 
     def on_records(self, records: list[Any]) -> None:
         if self.done:
@@ -130,7 +167,7 @@ class _Budget:
             return
         keep = len(records)
         for i, record in enumerate(records):
-            if record.frame is not None:
+            if self._counts(record):
                 self.left -= 1
                 if self.left <= 0:
                     keep = i + 1
@@ -193,15 +230,20 @@ def run_sniff(args: argparse.Namespace) -> int:
         EXIT_OK,
         Figures,
         UsageError,
+        check_outputs,
         make_annotator,
         open_console,
         open_foxglove,
     )
     from mbmon.commands.common import profile_sources as _profile_sources
+    from mbmon.filters import FilterError, build_filter
     from mbmon.format import View
     from mbmon.hub import Hub
     from mbmon.pipeline import Pipeline, PipelineConfig
     from mbmon.sinks.base import SinkContext, SinkError, open_sink
+    from mbmon.sinks.select import Selection
+    from mbmon.sinks.summary import Summary
+    from mbmon.timefmt import TimeFormat
 
     if args.list:
         from mbmon.sources.sniff import list_interfaces
@@ -224,10 +266,19 @@ def run_sniff(args: argparse.Namespace) -> int:
         raise UsageError(f"bad baud rate {args.baud}")
     if iface and (args.baud is not None):
         raise UsageError("--baud is for --serial")
+    check_outputs(args.write, args.serial)  # before the capture opens: no half start
 
     serial = bool(args.serial)
     baud = (args.baud or 115200) if serial else None
-    view = View(robot=args.robot, robot_is_client=args.robot_client)
+    view = View(
+        robot=args.robot,
+        robot_is_client=args.robot_client,
+        time_format=TimeFormat(args.time_format),
+    )
+    try:
+        flt = build_filter(args, time_format=view.time_format, start_known=False)
+    except FilterError as exc:
+        raise UsageError(str(exc)) from None
     annotator = make_annotator(args.profile)
     pipeline = Pipeline(annotator, PipelineConfig(timeout=args.timeout, baudrate=baud))
     hub = Hub(pipeline)
@@ -328,12 +379,12 @@ def run_sniff(args: argparse.Namespace) -> int:
             return EXIT_BAD_INPUT
 
     def figures() -> dict[str, Any]:
-        if capture is not None:
-            return {"kernel drops": capture.kernel_stats().drops}
-        return {
-            "CRC failures": health.crc_errors,
-            "t3.5 violations": health.t35_violations,
-        }
+        if capture is not None:  # the dissector knows connections picked up mid-stream too
+            return {
+                "open connections": dissector.stats()["open_connections"],
+                "kernel drops": capture.kernel_stats().drops,
+            }
+        return health.screen_figures()
 
     if not args.quiet:  # before the live screen takes the terminal
         what = f"filter: {capture.bpf}" if capture is not None else health.settings.text()
@@ -341,9 +392,10 @@ def run_sniff(args: argparse.Namespace) -> int:
         sys.stderr.flush()
 
     # ---- outputs
-    budget = _Budget(args.count, stop) if args.count else None
+    budget = _Budget(args.count, stop, flt, view) if args.count else None
     outputs: list[Any] = []
     monitor: Any = None
+    summary = None if args.quiet else Summary(view if args.robot else None)
 
     def abandon() -> None:
         for out in outputs:
@@ -360,10 +412,12 @@ def run_sniff(args: argparse.Namespace) -> int:
         console, monitor = open_console(
             args, view, title=f"mbmon sniff {source_name}", annotator=annotator
         )
-        if console is not None:
-            outputs.append(console)
+        if console is not None:  # the filters choose what is shown; logs keep everything
+            outputs.append(Selection([console], view, flt) if flt.active else console)
         for target in args.write:
             outputs.append(open_sink(target, ctx))
+        if summary is not None:
+            outputs.append(summary)
     except SinkError as exc:
         abandon()
         print(f"mbmon: {exc}", file=sys.stderr)
@@ -401,22 +455,43 @@ def run_sniff(args: argparse.Namespace) -> int:
             capture.stop()
         for tap in taps:
             tap.stop()
-        if health is not None and not (budget is not None and budget.done):
-            hub.feed(health.stats_event(time.time()))
+        if not (budget is not None and budget.done):  # the closing figures, in the logs too
+            if health is not None:
+                hub.feed(health.stats_event(time.time()))
+            if capture is not None:
+                hub.feed(_capture_stats(capture, time.time()))
         hub.close()
         for sig, handler in old.items():
             signal.signal(sig, handler)
 
     if not args.quiet:
-        _summary(args, hub, capture, taps, health, dissector, time.time() - started, source_name)
+        _summary(
+            args, summary, capture, taps, health, dissector, time.time() - started, source_name
+        )
     if any(why != "broken pipe" for _name, why in hub.failures):
         return EXIT_BAD_INPUT
     return EXIT_OK
 
 
+def _capture_stats(capture: Any, ts: float) -> Any:
+    """A STATS event with the capture's kernel counters (``/mbmon/events`` in a log),
+    so a log says by itself whether the capture was complete."""
+    from mbmon.model import Event, EventKind
+
+    k = capture.kernel_stats()
+    info = {
+        "interface": capture.iface,
+        "packets": capture.packets,
+        "kernel_packets": k.packets,
+        "kernel_drops": k.drops,
+        "complete": k.drops == 0,
+    }
+    return Event(ts, None, EventKind.STATS, info)
+
+
 def _summary(
     args: argparse.Namespace,
-    hub: Any,
+    summary: Any,
     capture: Any,
     taps: list[Any],
     health: Any,
@@ -424,8 +499,9 @@ def _summary(
     elapsed: float,
     source: str,
 ) -> None:
-    """The closing summary on stderr (not with ``-q``)."""
-    c = hub.pipeline.counts
+    """The closing summary on stderr (not with ``-q``): what the source saw (kernel
+    counters, dissector, serial reads, bus health) and the records' counts in the
+    words of ``read``'s summary (:class:`~mbmon.sinks.summary.Summary`)."""
     lines = [f"mbmon: sniffed {source} for {elapsed:.1f} s"]
     if capture is not None:
         k = capture.kernel_stats()
@@ -445,10 +521,9 @@ def _summary(
             f"  {tap.port}: {tap.reads} reads, {tap.bytes} bytes"
             + (f", lost {tap.losses} times" if tap.losses else "")
         )
-    lines.append(
-        f"  {c['frames']} frames, {c['exceptions']} exceptions, {c['timeouts']} timeouts, "
-        f"{c['noise_bytes']} noise bytes, {c['malformed']} malformed"
-    )
+    lines.extend("  " + line for line in summary.text().splitlines())
     if health is not None:
         lines.extend("  " + line for line in health.summary())
+    if args.robot and summary.streams and not summary.robot_seen:
+        lines.append(f"  warning: the robot {args.robot} (--robot) appears in no stream")
     print("\n".join(lines), file=sys.stderr)

@@ -156,7 +156,12 @@ class LiveMonitor:
     # ------------------------------------------------------------------ for commands
 
     def set_figure(self, name: str, value: Any) -> None:
-        """A figure of the command's own shown in the header (e.g. ``kernel drops``)."""
+        """A figure of the command's own shown in the header (e.g. ``kernel drops``).
+
+        ``open connections`` replaces the monitor's own count (connects minus
+        disconnects seen), which misses connections opened before the capture
+        began: a source that knows its open connections (the packet dissector)
+        gives the true figure."""
         self.figures[name] = value
 
     def set_figures(self, figures: Mapping[str, Any]) -> None:
@@ -214,14 +219,18 @@ class LiveMonitor:
             ("exceptions", c["exceptions"], "red" if c["exceptions"] else ""),
             ("timeouts", c["timeouts"], "red" if c["timeouts"] else ""),
             ("noise bytes", c["noise_bytes"], "yellow" if c["noise_bytes"] else ""),
-            ("open connections", c["open_connections"], ""),
+            ("open connections", self.figures.get("open connections", c["open_connections"]), ""),
         ]
         for label, value, style in pieces:
             text.append(f"  {label} ")
             text.append(str(value), style=style or "bold")
         for label, value in self.figures.items():
+            if label == "open connections":
+                continue  # shown in its place above
             text.append(f"  {label} ")
-            bad = label.endswith("drops") and isinstance(value, int) and value > 0
+            bad = label == "warnings" or (
+                label.endswith("drops") and isinstance(value, int) and value > 0
+            )
             text.append(str(value), style="bold red" if bad else "bold")
         return text
 

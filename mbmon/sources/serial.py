@@ -28,6 +28,7 @@ pyserial is imported only when a port is opened: ``import mbmon`` stays light.
 
 from __future__ import annotations
 
+import errno
 import heapq
 import os
 import select
@@ -83,6 +84,8 @@ def open_port(port: str, settings: SerialSettings) -> Any:
         inner = exc.__context__ if isinstance(exc.__context__, OSError) else None
         if inner is not None:
             raise inner from None
+        if "Inappropriate ioctl" in str(exc):  # termios refused it: a file, /dev/null...
+            raise OSError(errno.ENOTTY, "not a serial port (it takes no line settings)") from None
         raise OSError(str(exc)) from None
     except ValueError as exc:
         raise OSError(f"bad serial settings: {exc}") from None
@@ -405,6 +408,33 @@ class BusHealth:
         labels.extend(f"lt_{bound * 1000:g}ms" for bound in GAP_BUCKETS)
         labels.append(f"ge_{GAP_BUCKETS[-1] * 1000:g}ms")
         return labels
+
+    def screen_figures(self) -> dict[str, Any]:
+        """The figures the live screen's header shows for the bus (``sniff`` hands
+        them to :meth:`~mbmon.sinks.live.LiveMonitor.set_figures` on every tick): CRC
+        failures, t3.5 violations, the gap histogram, the adapter's read rhythm and,
+        once a warning was given, what it was about (the notice itself scrolls away)."""
+        figures: dict[str, Any] = {
+            "CRC failures": self.crc_errors,
+            "t3.5 violations": self.t35_violations,
+        }
+        hist = " ".join(
+            f"{_gap_text(label)}:{count}"
+            for label, count in zip(self.gap_labels(), self.gaps, strict=True)
+            if count
+        )
+        figures["gaps"] = hist or "—"
+        median = self.delivery_interval()
+        if median is not None:
+            figures["reads every"] = f"{median * 1000:.1f} ms"
+        warnings = []
+        if self.warned_bursts:
+            warnings.append("adapter bursts: timing not meaningful")
+        if self.warned_noise:
+            warnings.append("mostly noise: wrong baud rate or parity?")
+        if warnings:
+            figures["warnings"] = "; ".join(warnings)
+        return figures
 
     def stats_event(self, ts: float) -> Event:
         return Event(ts, self.stream, EventKind.STATS, self.figures())

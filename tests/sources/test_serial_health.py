@@ -110,3 +110,53 @@ def test_time_merge_orders_reads_of_two_taps():
     kinds = [r.kind.value for r in got]
     assert kinds == ["request", "response"]
     assert got[1].latency is not None and abs(got[1].latency - 0.004) < 1e-9
+
+
+def _screen(health: BusHealth) -> str:
+    """The live screen's header with the bus figures ``sniff --serial`` hands it."""
+    from rich.console import Console
+
+    from mbmon.format import View
+    from mbmon.sinks.live import LiveMonitor
+
+    console = Console(record=True, width=300, height=20, color_system=None)
+    monitor = LiveMonitor(View(), console, start=False)
+    monitor.set_figures(health.screen_figures())
+    console.print(monitor.render())
+    return console.export_text()
+
+
+def test_live_screen_shows_the_bus_health_figures():
+    char = SETTINGS.char_time()
+    reads = []
+    t = 100.0
+    for i in range(30):
+        t += len(REQ) * char
+        reads.append((t, REQ))
+        t += 0.004 + len(RESP) * char
+        reads.append((t, RESP))
+        t += 0.0005 if i % 10 == 9 else 0.020
+    health, _ = _run(reads)
+    text = _screen(health)
+    assert "CRC failures 0" in text and "t3.5 violations 2" in text
+    assert "gaps <t3.5:2 <5ms:30 <50ms:27" in text
+    assert "reads every" in text and "warnings" not in text
+
+
+def test_live_screen_keeps_the_burst_and_wrong_baud_warnings_in_its_header():
+    traffic = (REQ + RESP) * 40
+    reads = []
+    t = 200.0
+    for pos in range(0, len(traffic), 29):
+        t += 0.016
+        reads.append((t, traffic[pos : pos + 29]))
+    bursty, _ = _run(reads)
+    text = _screen(bursty)
+    assert "reads every 16.0 ms" in text
+    assert "warnings adapter bursts: timing not meaningful" in text
+    assert "wrong baud" not in text
+
+    rng = random.Random(3)
+    noise = [(300.0 + i * 0.01, bytes(rng.randrange(256) for _ in range(16))) for i in range(40)]
+    wrong, _ = _run(noise)
+    assert "mostly noise: wrong baud rate or parity?" in _screen(wrong)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import os
 import random
+import re
 import shutil
 import signal
 import subprocess
@@ -101,26 +102,20 @@ _EXCHANGES: list[tuple[int, str, str | None]] = [
 ]
 
 
-#: Function codes whose frames have no predictable length (08 sub-function 0000 echoes
-#: any data): the RTU decoder finds them by scanning for a CRC, and today's decoder
-#: gives such a frame up as noise when a silence longer than t3.5 falls inside it
-#: (reported to the lead: ``RtuDecoder(baudrate=...)`` fed ``05 08 00 00`` then,
-#: 20 ms later, ``A5 37 DB 09``). The writer sends them in one write each.
-_UNPREDICTABLE = frozenset({0x08})
-
 Piece = tuple[bytes, float, bool]  # bytes, pause after, write whole
 
 
 def _traffic(seed: int = 11) -> tuple[list[Piece], list[str], int]:
     """The bus as a list of pieces, the expected frame PDUs in order (hex), and the
-    number of noise bytes injected (wrong-CRC frame included)."""
+    number of noise bytes injected (wrong-CRC frame included). Round 0 is back to
+    back; rounds 1 and 2 pause 0, 2 or 20 ms between exchanges, and round 1 also
+    inside two requests."""
     rng = random.Random(seed)
     pieces: list[Piece] = []
     expected: list[str] = []
     noise = 0
     for round_ in range(3):
         for i, (unit, req, resp) in enumerate(_EXCHANGES):
-            whole = bytes.fromhex(req.replace(" ", ""))[0] in _UNPREDICTABLE
             if round_ == 1 and i in (3, 9):
                 junk = bytes([0x00, 0xFF, 0x00, 0x00][: 2 + i % 3])
                 pieces.append((junk, 0.0, False))
@@ -135,11 +130,13 @@ def _traffic(seed: int = 11) -> tuple[list[Piece], list[str], int]:
             expected.append(req)
             if resp is not None:
                 expected.append(resp)
-            if whole:
-                pieces.extend((frame, 0.0, True) for frame in frames)
-            else:
-                pieces.append((b"".join(frames), 0.0, False))
-            pieces[-1] = (pieces[-1][0], gap, pieces[-1][2])
+            data = b"".join(frames)
+            if round_ == 1 and i in (0, 10):
+                # a 20 ms silence inside a request (03, and 08 whose length nothing
+                # predicts): silence is a hint only, the frame still comes out whole
+                pieces.append((data[:4], 0.02, False))
+                data = data[4:]
+            pieces.append((data, gap, False))
     return (
         pieces,
         [" ".join(f"{b:02X}" for b in bytes.fromhex(p.replace(" ", ""))) for p in expected],
@@ -311,14 +308,149 @@ def test_two_one_direction_taps_merge_into_one_bus(tmp_path: Path):
     assert "noise" not in kinds
 
 
-def test_serial_missing_port_is_a_clear_error(tmp_path: Path):
-    proc = subprocess.run(
-        [sys.executable, "-m", "mbmon", "sniff", "--serial", str(tmp_path / "ttyNONE")],
+def _sniff_fails(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "mbmon", "sniff", *args],
         capture_output=True,
         text=True,
         env=_env(),
         timeout=30,
     )
+
+
+def test_serial_missing_port_is_a_clear_error(tmp_path: Path):
+    proc = _sniff_fails("--serial", str(tmp_path / "ttyNONE"))
     assert proc.returncode == 1
     assert f"cannot open serial port {tmp_path / 'ttyNONE'}" in proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+def test_a_file_that_is_no_serial_port_says_so():
+    proc = _sniff_fails("--serial", "/dev/null")
+    assert proc.returncode == 1
+    assert proc.stderr == (
+        "mbmon: cannot open serial port /dev/null: not a serial port (it takes no line settings)\n"
+    )
+
+
+def test_an_unknown_output_format_is_refused_before_the_port_opens(pty_pair: PtyPair):
+    proc = _sniff_fails("--serial", str(pty_pair.b), "-w", "bus.foo")
+    assert proc.returncode == 2
+    assert "bus.foo: unknown output format '.foo'" in proc.stderr
+    assert "sniffing" not in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_bus_health_warnings_reach_the_screen_the_log_and_the_summary(
+    pty_pair: PtyPair, tmp_path: Path
+):
+    """What a listener at the wrong baud rate behind an FTDI adapter (16 ms latency
+    timer) gets: bytes that frame as nothing, read in bursts 16 ms apart. Both
+    warnings are printed as they are found, are NOTICE events in the log's
+    ``/mbmon/events`` next to the bus-health STATS (gap histogram included) and
+    are repeated in the summary; frames that follow are still found by CRC."""
+    log = tmp_path / "health.mcap"
+    sniffer = SerialSniffer("--serial", str(pty_pair.b), "--plain", "-w", str(log))
+    rng = random.Random(7)
+    junk = bytes(rng.randrange(256) for _ in range(29 * 24))
+    pieces: list[Piece] = [(junk[i : i + 29], 0.016, True) for i in range(0, len(junk), 29)]
+    exchange = _adu(1, "03 0000 0001") + _adu(1, "03 02 002A")
+    pieces += [(exchange, 0.016, True)] * 4
+    _write(pty_pair.a, pieces)
+    sniffer.stdout_until(b"likely a wrong baud rate", timeout=5)
+    sniffer.stdout_until(b"reads arrive in bursts", timeout=5)
+    sniffer.stdout_until(b"03 02 00 2A", timeout=5)
+    out, err = sniffer.finish()
+    assert sniffer.proc.returncode == 0, err
+    assert "(listening at 115200 8N1" in out and "latency_timer" in out
+
+    from mcap.reader import make_reader
+
+    with open(log, "rb") as f:
+        events = [
+            json.loads(message.data)
+            for _schema, channel, message in make_reader(f).iter_messages()
+            if channel.topic == "/mbmon/events"
+        ]
+    notices = [str(e["info"].get("message")) for e in events if e.get("event") == "notice"]
+    assert any("likely a wrong baud rate" in n for n in notices), notices
+    assert any("reads arrive in bursts" in n for n in notices), notices
+    health = [e["info"] for e in events if e.get("event") == "stats" and "bus" in e["info"]]
+    assert health, events
+    last = health[-1]
+    assert last["timing_useful"] is False and last["read_interval_ms"] >= 10
+    assert last["noise_bytes"] * 2 > last["bytes"] and last["frames"] >= 2
+    assert {"gap_lt_t35", "gap_lt_5ms", "gap_ge_1000ms", "gap_same_read"} <= set(last)
+
+    warnings = [line for line in err.splitlines() if "warning:" in line]
+    assert any("likely a wrong baud rate" in w for w in warnings), err
+    assert any("reads arrive in bursts" in w for w in warnings), err
+    assert "inter-frame gaps" in err and "timing NOT meaningful" in err
+
+
+def _sniff_on_a_terminal(port: Path, writer: Path, extra: tuple[str, ...] = ()) -> str:
+    """``mbmon sniff --serial PORT`` with stdout on a pseudo-terminal while one exchange
+    crosses the bus: what the terminal showed (escapes and all)."""
+    import pty
+    import select
+
+    master, slave = pty.openpty()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mbmon", "sniff", "--serial", str(port), *extra],
+        stdout=slave,
+        stderr=subprocess.PIPE,
+        env={**_env(), "COLUMNS": "400", "LINES": "40", "TERM": "xterm"},
+        cwd=REPO,
+    )
+    _STARTED.append(proc)
+    os.close(slave)
+    shown = b""
+    try:
+        assert proc.stderr is not None
+        assert b"sniffing" in proc.stderr.readline()
+        _write(writer, [(_adu(1, "03 0000 0001") + _adu(1, "03 02 002A"), 0.0, False)])
+        end = time.monotonic() + 5
+        while b"03 02 00 2A" not in shown and time.monotonic() < end:
+            if select.select([master], [], [], 0.1)[0]:
+                shown += os.read(master, 65536)
+        time.sleep(0.6)  # a few more ticks: the header has the bus figures by then
+    finally:
+        proc.send_signal(signal.SIGINT)
+        end = time.monotonic() + 20
+        while time.monotonic() < end:  # read on while it exits: a full terminal blocks it
+            if not select.select([master], [], [], 0.2)[0]:
+                if proc.poll() is not None:
+                    break
+                continue
+            try:
+                part = os.read(master, 65536)
+            except OSError:
+                break
+            if not part:
+                break
+            shown += part
+        proc.wait(5)
+        os.close(master)
+    return shown.decode("utf-8", "replace")
+
+
+def test_a_terminal_gets_the_live_screen_with_bus_figures_and_a_pipe_plain_lines(
+    pty_pair: PtyPair,
+):
+    screen = _sniff_on_a_terminal(pty_pair.b, pty_pair.a)
+    assert "\x1b[" in screen and "╭" in screen and "monitor" in screen, screen[-2000:]
+    plain = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", screen)
+    assert "CRC failures 0" in plain and "t3.5 violations 0" in plain
+    assert "gaps " in plain and "noise bytes 0" in plain
+    assert "03 02 00 2A  | Read Holding Registers 0 = 42" in plain
+
+    lines = _sniff_on_a_terminal(pty_pair.b, pty_pair.a, ("--plain",))
+    assert "╭" not in lines and "CRC failures" not in lines
+    assert re.search(r"^\S.*03 02 00 2A  \| Read Holding Registers 0 = 42", lines, re.M)
+
+    # stdout a pipe, no --plain: plain lines too
+    sniffer = SerialSniffer("--serial", str(pty_pair.b))
+    _write(pty_pair.a, [(_adu(1, "03 0000 0001") + _adu(1, "03 02 002A"), 0.0, False)])
+    sniffer.stdout_until(b"03 02 00 2A  | Read Holding Registers 0 = 42")
+    out, err = sniffer.finish()
+    assert sniffer.proc.returncode == 0, err
+    assert "╭" not in out and "\x1b[" not in out

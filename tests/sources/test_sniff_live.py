@@ -17,6 +17,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -214,10 +215,25 @@ def test_sniff_loopback_exact_frames_sigint_finishes_log(modbus_server: int, tmp
     assert _frames(out) == _EXPECTED
     objs = [json.loads(line) for line in out.splitlines()]
     assert objs[0]["kind"] == "event" and "Connect 127.0.0.1:" in objs[0]["line"]
-    assert "0 dropped" in err and "10 frames" in err and "1 exceptions" in err
+    port = modbus_server  # the default kernel filter: port 502 and the extra port
+    assert f"(filter: tcp port 502 or udp port 502 or tcp port {port} or udp port {port})" in err
+    assert "0 dropped" in err
+    assert "10 frames (5 requests, 5 answered, 1 exceptions, 0 unanswered" in err  # as read
     counts = _read_mcap(log)
     assert counts["/modbus/frames"] == 10
     assert counts["/modbus/monitor"] >= 10
+    # the log says by itself whether the capture was complete: the kernel's counters
+    from mcap.reader import make_reader
+
+    with open(log, "rb") as f:
+        events = [
+            json.loads(message.data)
+            for _schema, channel, message in make_reader(f).iter_messages()
+            if channel.topic == "/mbmon/events"
+        ]
+    kernel = [e["info"] for e in events if "kernel_drops" in e.get("info", {})]
+    assert kernel and kernel[-1]["interface"] == "lo" and kernel[-1]["kernel_drops"] == 0
+    assert kernel[-1]["complete"] is True and kernel[-1]["packets"] >= 10
 
 
 def test_sniff_count_stops(modbus_server: int, tmp_path: Path):
@@ -229,6 +245,24 @@ def test_sniff_count_stops(modbus_server: int, tmp_path: Path):
     assert sniffer.proc.returncode == 0, err
     assert _frames(out) == _EXPECTED[:4]
     assert _read_mcap(log)["/modbus/frames"] == 4  # the log stops at the same frame
+
+
+def test_sniff_filters_choose_what_is_shown_and_what_count_counts(
+    modbus_server: int, tmp_path: Path
+):
+    """``read``'s filters on a live capture: ``--fc 6,16 -c 2`` shows the two frames of
+    the Write Single Register exchange only and stops there; the log keeps every
+    record up to that point (the reads before it too), the summary counts them."""
+    log = tmp_path / "writes.mcap"
+    args = ("lo", "--port", str(modbus_server), "--json", "--fc", "6,16", "-c", "2")
+    sniffer = Sniffer(*args, "-w", str(log))
+    _client_session(modbus_server)
+    out, err = sniffer.finish(sig=None, timeout=10)
+    assert sniffer.proc.returncode == 0, err
+    objs = [json.loads(line) for line in out.splitlines()]
+    assert [(o["kind"], o["pdu"]) for o in objs] == _EXPECTED[2:4]  # no connect line either
+    assert _read_mcap(log)["/modbus/frames"] == 4
+    assert "4 frames (2 requests, 2 answered" in err
 
 
 def test_sniff_sigterm_finishes_log(modbus_server: int, tmp_path: Path):
@@ -264,7 +298,7 @@ def test_unanswered_request_reported_at_timeout_on_a_silent_line():
         silent.close()
     conn.close()  # held open until now: no FIN, no other traffic before the timeout
     client.close()
-    assert "1 timeouts" in err
+    assert "1 frames (1 requests, 0 answered, 0 exceptions, 1 unanswered" in err
 
 
 def test_sniff_unknown_interface_names_the_available_ones():
@@ -352,3 +386,77 @@ def test_drops_while_the_socket_is_set_up_are_not_the_captures():
     finally:
         capture.stop()
     assert stats.drops == 0, stats
+
+
+def test_a_terminal_gets_the_live_screen_with_kernel_drops_and_the_robot_panel():
+    """``sniff lo --profile hrss`` with stdout on a real pseudo-terminal while the sim
+    robot runs the manual's program on 127.0.0.1: the live screen's header has the
+    kernel drop count and the open connections (one opened before the capture began
+    counts too), the robot panel the axes, the last command and the written
+    command registers (R200..R251) by their HRSS names."""
+    import pty
+    import re
+
+    from mbmon.sim import SimServer, run_program
+
+    master, slave = pty.openpty()
+    shown = b""
+    with SimServer() as sim, socket.create_connection((sim.host, sim.port)) as early:
+        time.sleep(0.2)  # its handshake is over before the capture starts
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "mbmon", "sniff", "lo", "--port", str(sim.port),
+             "--profile", "hrss"],
+            stdout=slave, stderr=subprocess.PIPE, cwd=REPO,
+            env={**_env(), "COLUMNS": "220", "LINES": "60", "TERM": "xterm"},
+        )  # fmt: skip
+        _STARTED.append(proc)
+        os.close(slave)
+
+        def drain(seconds: float) -> bytes:
+            """What the screen draws in the next ``seconds`` (it redraws every 0.25 s)."""
+            got = b""
+            end = time.monotonic() + seconds
+            while (left := end - time.monotonic()) > 0:
+                if select.select([master], [], [], left)[0]:
+                    try:
+                        part = os.read(master, 65536)
+                    except OSError:
+                        break
+                    if not part:
+                        break
+                    got += part
+            return got
+
+        assert proc.stderr is not None
+        assert b"sniffing" in proc.stderr.readline()
+        early.sendall(bytes.fromhex("0001 0000 0006 01 04 020C 0001"))  # IR524, mid-stream
+        assert early.recv(64)[7:9] == b"\x04\x02"
+        done = threading.Event()
+        runner = threading.Thread(
+            target=lambda: (run_program(sim.host, sim.port, extras=False), done.set()),
+            daemon=True,
+        )
+        runner.start()
+        while not done.is_set():
+            shown += drain(0.1)
+        runner.join()
+        shown += drain(0.8)  # a few ticks: the screen shows the end of the program
+        proc.send_signal(signal.SIGINT)
+        end = time.monotonic() + 20
+        while proc.poll() is None and time.monotonic() < end:
+            shown += drain(0.1)
+        shown += drain(0.2)
+        proc.wait(5)
+        os.close(master)
+    assert proc.returncode == 0
+    # the last screen drawn: what follows the last header
+    text = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", shown.decode("utf-8", "replace"))
+    last = text[text.rindex("mbmon sniff lo ") :]
+    assert "kernel drops 0" in last
+    assert "open connections 1 " in last  # the early one; the program's has closed
+    assert re.search(r"A1 +90\.000", last)  # the program's PTP {A1 90}, read back from IR300
+    assert "speed " in last and "motion state " in last
+    assert re.search(r"last command \(.+\): PTP \{A1 90, .*\[(executing|success)", last)
+    assert "command registers R200..R251 as written" in last
+    assert "R200 execute Execute (1)" in last and "R201 command PTP (0)" in last
+    assert "R203..R204 A1 90 deg" in last and "R215 speed 50%" in last
