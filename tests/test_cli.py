@@ -126,6 +126,14 @@ def test_help_teaches() -> None:
     assert "examples:" in out and "--robot" in out and "--rtu-raw" in out
 
 
+@pytest.mark.parametrize("command", ["read", "sniff", "replay"])
+def test_help_that_points_to_times_has_them(command: str) -> None:
+    """--since/--until say "see 'times' below": every command with them has that section."""
+    out = run(command, "--help", check=True).stdout
+    assert "see 'times' below" in out
+    assert "\ntimes: +5s" in out
+
+
 @pytest.mark.parametrize(
     ("args", "expected"),
     [

@@ -7,6 +7,7 @@ import itertools
 import os
 import stat
 import sys
+import textwrap
 from collections.abc import Iterable
 from contextlib import ExitStack
 from pathlib import Path
@@ -26,7 +27,7 @@ from mbmon.commands.common import (
     positive_int,
     profile_sources,
 )
-from mbmon.filters import FilterError, add_filter_options, build_filter
+from mbmon.filters import TIMES_HELP, FilterError, add_filter_options, build_filter
 from mbmon.timefmt import TimeFormat, add_time_option
 
 EPILOG = """\
@@ -48,6 +49,7 @@ examples:
 output lines: TIME  LABEL  [uUNIT tTID]  FUNCTION-CODE + DATA (hex)  | meaning
 a summary goes to stderr at the end (-q: none)
 exit status: 0 ok, 1 bad or damaged input (everything before the damage is printed), 2 usage
+
 """
 
 #: The first bytes of an MCAP file (mbmon's logs).
@@ -61,7 +63,7 @@ def register(sub: Any) -> None:
         help="decode a capture file (pcap/pcapng) or a raw RTU bus dump",
         description="Decode every Modbus ADU in a capture file and print it as the robot's "
         "Modbus Monitor (manual Table 57) shows it, with its meaning.",
-        epilog=EPILOG,
+        epilog=EPILOG + textwrap.fill(TIMES_HELP, 80),  # --since/--until: 'times'
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     read.add_argument(
