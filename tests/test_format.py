@@ -369,3 +369,31 @@ def test_json_bytes_is_the_full_encoding_on_a_realistic_capture(tmp_path: Path) 
     for view in _views(records):
         for record in records:
             assert record_json_bytes(record, view) == _slow(record, view)
+
+
+def test_parts_are_made_on_a_pdus_second_sighting_not_its_first() -> None:
+    """An answer with values never seen before is encoded whole (making its parts
+    would cost more, and on a cell's capture it never comes again); the second
+    record with the same PDU makes the parts, the third uses them. Each line is the
+    full encoding all the same."""
+    from mbmon import format as fmt
+
+    fmt._JSON_PARTS.clear()
+    fmt._SEEN_ONCE.clear()
+    view = View()
+    first = _pair(1.0)
+    resp = first[1]
+    frame = resp.frame
+    assert frame is not None
+    other = Frame(0.5, TCP, Direction.S2C, 1, 7, decode_pdu(bytes.fromhex("03020008"), True), b"")
+    for record in (first[0], Record(9, 0.5, RecordKind.RESPONSE, TCP, frame=other)):
+        assert record_json_bytes(record, view) == _slow(record, view)  # the heads
+    key = (id(frame.pdu), id(first[0].frame.pdu), resp.kind, frame.unit, frame.crc_ok)  # type: ignore[union-attr]
+    for sighting in (1, 2, 3):
+        record = Record(
+            10 + sighting, 1.0 + sighting, RecordKind.RESPONSE, resp.stream, frame=frame,
+            request=resp.request, request_index=0, latency=0.001 * sighting,
+        )  # fmt: skip
+        assert record_json_bytes(record, view) == _slow(record, view)
+        assert (key in fmt._JSON_PARTS) is (sighting >= 2), sighting
+    assert len(fmt._SEEN_ONCE) <= fmt._SEEN_ONCE_SIZE
