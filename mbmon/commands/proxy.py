@@ -164,6 +164,11 @@ def register(sub: Any) -> None:
     add_foxglove_option(screen)
     add_view_options(p)
     add_output_options(p)
+    # the proxy's start-up line (its port) and its summary are what a supervisor and
+    # an audit need: -q silences the records only (docs/proxy.md)
+    p._option_string_actions["--quiet"].help = (
+        "print no records (the start-up line and the summary still go to stderr; use with -w)"
+    )
     p.set_defaults(func=run, robot="upstream")
 
 
