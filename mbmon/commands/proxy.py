@@ -271,7 +271,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"mbmon: {exc}", file=sys.stderr)
         hub.close()
         return EXIT_BAD_INPUT
-    engine, thread, observer = attach_engine(hub, config, meter, **factories)
+    # the TCP proxy forwards in a process of its own (its own GIL: observation never
+    # takes CPU time from forwarding); the serial variants are bound by the bus
+    engine, thread, observer = attach_engine(hub, config, meter, process=not serial, **factories)
     try:
         address = thread.start()
     except OSError as exc:
@@ -331,6 +333,14 @@ def run(args: argparse.Namespace) -> int:
             hub.close()
         engine.stats.not_observed = observer.skipped
         print("mbmon proxy: " + engine.stats.summary().replace("\n", "\n  "), file=sys.stderr)
+        if getattr(engine, "final", True) is False:
+            status = getattr(thread, "returncode", None)
+            print(
+                f"mbmon: the proxy's forwarding process ended unexpectedly (status {status}); "
+                "the counters above are the last it sent",
+                file=sys.stderr,
+            )
+            return EXIT_BAD_INPUT
     finally:  # a late Ctrl-C must not cut the logs' close or the summary short
         for s, handler in old.items():
             signal.signal(s, handler)
@@ -340,7 +350,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def attach_engine(
-    hub: Any, config: Any, meter: Any, **factories: Any
+    hub: Any, config: Any, meter: Any, *, process: bool = False, **factories: Any
 ) -> tuple[Any, Any, Any]:
     """A :class:`~mbmon.proxy.engine.ProxyEngine` for ``config`` wired to ``hub``: the
     one way a command runs a proxy (``proxy``, ``demo``).
@@ -351,7 +361,20 @@ def attach_engine(
     hub when the engine's loop ends. Returns ``(engine, thread, observer)``;
     ``thread.start()`` binds the listening socket. ``factories`` (``upstream=``,
     ``front=``) plug in the serial variants (:mod:`mbmon.proxy.serial`).
+
+    ``process``: the engine runs in a child process instead of a thread
+    (:class:`~mbmon.proxy.remote.ProxyProcess`, the same calls; no factories);
+    ``engine`` is then a :class:`~mbmon.proxy.remote.RemoteEngine` and ``observer``
+    the process (its ``skipped``).
     """
+    if process:
+        if factories:
+            raise ValueError("the serial variants run the engine in a thread")
+        from mbmon.proxy.remote import ProxyProcess
+
+        proc = ProxyProcess(config, hub, meter, on_exit=hub.stop)
+        return proc.engine, proc, proc
+
     from mbmon.proxy.engine import Observer, ProxyEngine, ProxyThread
 
     observer = Observer(hub.put, hub.new_stream, meter=meter, max_backlog=config.max_backlog)
