@@ -351,14 +351,23 @@ def bench(args: argparse.Namespace) -> None:
         names.append("modbus-proxy")
     else:
         print("modbus-proxy: not importable (pip install modbus-proxy, or --modbus-proxy DIR)")
-    results: dict[tuple[str, int], dict[str, float]] = {}
+    runs: dict[tuple[str, int], list[dict[str, float]]] = {}
     with tempfile.TemporaryDirectory() as tmp, upstream() as up:
-        for clients in args.clients:
-            for name in names:
-                with target(name, up, Path(tmp), args.modbus_proxy, trees) as (port, pid):
-                    results[(name, clients)] = measure(port, clients, args.seconds, pid)
+        for round_ in range(args.rounds):
+            for clients in args.clients:
+                # every other round the other way round: no target always runs first
+                for name in names if round_ % 2 == 0 else names[::-1]:
+                    with target(name, up, Path(tmp), args.modbus_proxy, trees) as (port, pid):
+                        runs.setdefault((name, clients), []).append(
+                            measure(port, clients, args.seconds, pid)
+                        )
+    # each figure is the median over the rounds (one round: the figure itself)
+    results = {
+        key: {k: statistics.median(r[k] for r in rs) for k in rs[0]} for key, rs in runs.items()
+    }
     load = os.getloadavg()
-    print(f"\nFC 03 x 10 registers, {args.seconds:g} s per run, {os.cpu_count()} CPUs, "
+    rounds = f", median of {args.rounds} alternated rounds" if args.rounds > 1 else ""
+    print(f"\nFC 03 x 10 registers, {args.seconds:g} s per run{rounds}, {os.cpu_count()} CPUs, "
           f"load {load[0]:.1f} {load[1]:.1f} {load[2]:.1f}")  # fmt: skip
     head = (f"{'target':<20} {'clients':>7} {'req/s':>8} {'p50 us':>8} {'p99 us':>8} "
             f"{'added p50':>9} {'x bare':>7} {'rps/bare':>8} {'rps/m-p':>8} "
@@ -448,6 +457,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=3.0, help="per run (default 3)")
     parser.add_argument("--clients", type=int, nargs="+", default=[1, 8])
+    parser.add_argument(
+        "--rounds",
+        type=int,
+        default=1,
+        help="run every target this many times, alternating the order; print medians",
+    )
     parser.add_argument("--modbus-proxy", metavar="DIR", help="directory holding modbus_proxy.py")
     parser.add_argument(
         "--bare-buffered",
