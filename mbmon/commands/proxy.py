@@ -14,6 +14,7 @@ and a summary goes to stderr.
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 from typing import Any
@@ -272,8 +273,10 @@ def run(args: argparse.Namespace) -> int:
         hub.close()
         return EXIT_BAD_INPUT
     # the TCP proxy forwards in a process of its own (its own GIL: observation never
-    # takes CPU time from forwarding); the serial variants are bound by the bus
-    engine, thread, observer = attach_engine(hub, config, meter, process=not serial, **factories)
+    # takes CPU time from forwarding); the serial variants are bound by the bus; the
+    # child's pipes need POSIX (pass_fds, the loop's readers on pipes)
+    process = not serial and os.name == "posix"
+    engine, thread, observer = attach_engine(hub, config, meter, process=process, **factories)
     try:
         address = thread.start()
     except OSError as exc:
