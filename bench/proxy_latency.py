@@ -23,8 +23,14 @@ request in flight each). Targets:
 
 Printed side by side: requests/s, p50 and p99 round-trip latency, the latency
 each forwarder adds over ``direct`` (p50), that added latency as a ratio of the
-bare forwarder's, and throughput as ratios of the bare forwarder's and
-modbus-proxy's. Issue 12's targets: added p50 at most 1.5x the bare
+bare forwarder's, throughput as ratios of the bare forwarder's and
+modbus-proxy's, and the forwarder's CPU per request (its process and child
+processes, user + system, over the middle of the run: the steadiest figure on
+a shared machine). ``--anchor DIR`` adds ``mbmon@anchor`` and
+``mbmon -w mcap@anchor``: mbmon from another source tree (``git archive main |
+tar -x -C DIR``), run next to this tree's in the same minutes.
+
+Issue 12's targets: added p50 at most 1.5x the bare
 forwarder's (with and without -w x.mcap); with 8 clients, throughput at least
 2.5x modbus-proxy's and at least 0.8x the bare forwarder's; memory flat over a
 10-minute soak. The figures are for the machine they ran on: compare ratios.
@@ -180,8 +186,13 @@ def upstream() -> Iterator[int]:
 
 
 @contextmanager
-def target(name: str, up: int, tmp: Path, mp_path: str | None) -> Iterator[tuple[int, int | None]]:
-    """Start the forwarder ``name`` in front of ``up``; yield (port, pid)."""
+def target(
+    name: str, up: int, tmp: Path, mp_path: str | None, trees: dict[str, str] | None = None
+) -> Iterator[tuple[int, int | None]]:
+    """Start the forwarder ``name`` in front of ``up``; yield (port, pid).
+
+    ``mbmon ... @LABEL`` runs mbmon from the source tree ``trees[LABEL]`` (an anchor:
+    another commit's code, alternated with this tree's in the same run)."""
     if name == "direct":
         yield up, None
         return
@@ -194,7 +205,10 @@ def target(name: str, up: int, tmp: Path, mp_path: str | None) -> Iterator[tuple
                 "--listen", "127.0.0.1:0", "--quiet"]  # fmt: skip
         if "mcap" in name:
             args += ["-w", str(tmp / f"bench-{time.monotonic_ns()}.mcap")]
-        proc = subprocess.Popen(args, stderr=subprocess.PIPE, text=True, env=ENV)
+        env = ENV
+        if "@" in name:
+            env = {**os.environ, "PYTHONPATH": (trees or {})[name.split("@", 1)[1]]}
+        proc = subprocess.Popen(args, stderr=subprocess.PIPE, text=True, env=env)
         assert proc.stderr is not None
         line = proc.stderr.readline()
         m = re.search(r"listening on 127\.0\.0\.1:(\d+)", line)
@@ -233,6 +247,20 @@ def target(name: str, up: int, tmp: Path, mp_path: str | None) -> Iterator[tuple
                 print(f"[{name}] " + summary.strip().replace("\n", f"\n[{name}] "))
 
 
+def _tree_cpu(pid: int) -> float:
+    """CPU seconds (user + system) used so far by ``pid`` and its child processes."""
+    tck = os.sysconf("SC_CLK_TCK")
+    total = 0.0
+    for p in _tree(pid):
+        try:
+            stat = Path(f"/proc/{p}/stat").read_text()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2 :].split()
+        total += (int(fields[11]) + int(fields[12])) / tck
+    return total
+
+
 def _client(port: int, seconds: float, start_at: float, queue: Any) -> None:
     """One client process: requests back to back for ``seconds``; latencies in µs."""
     s = socket.create_connection(("127.0.0.1", port))
@@ -266,7 +294,9 @@ def _client(port: int, seconds: float, start_at: float, queue: Any) -> None:
     queue.put(lat)
 
 
-def measure(port: int, clients: int, seconds: float) -> dict[str, float]:
+def measure(port: int, clients: int, seconds: float, pid: int | None = None) -> dict[str, float]:
+    """Run ``clients`` client processes for ``seconds``: req/s, p50, p99 and, with the
+    forwarder's ``pid``, its CPU (process and children) per request over the run's middle."""
     ctx = mp.get_context("fork")
     queue = ctx.Queue()
     start_at = time.time() + 0.5 + 0.05 * clients
@@ -275,6 +305,13 @@ def measure(port: int, clients: int, seconds: float) -> dict[str, float]:
     ]
     for p in procs:
         p.start()
+    cpu = float("nan")
+    if pid is not None:
+        margin = min(0.5, seconds / 5)
+        time.sleep(max(0.0, start_at + margin - time.time()))
+        c0, t0 = _tree_cpu(pid), time.time()
+        time.sleep(max(0.0, start_at + seconds - margin - time.time()))
+        cpu_s, window = _tree_cpu(pid) - c0, time.time() - t0
     lats: list[float] = []
     for _ in procs:
         lats.extend(queue.get(timeout=seconds + 60))
@@ -282,11 +319,14 @@ def measure(port: int, clients: int, seconds: float) -> dict[str, float]:
         p.join()
     lats.sort()
     n = len(lats)
+    if pid is not None and n:
+        cpu = cpu_s / (n / seconds * window) * 1e6
     return {
         "rps": n / seconds,
         "p50": lats[n // 2],
         "p99": lats[min(n - 1, int(n * 0.99))],
         "n": n,
+        "cpu": cpu,
     }
 
 
@@ -300,23 +340,38 @@ def _has_modbus_proxy(path: str | None) -> bool:
 
 def bench(args: argparse.Namespace) -> None:
     names = ["direct", "bare", "mbmon", "mbmon -w mcap"]
+    trees: dict[str, str] = {}
+    if args.anchor:
+        trees["anchor"] = args.anchor
+        names[2:2] = ["mbmon@anchor"]
+        names[4:4] = ["mbmon -w mcap@anchor"]
     if args.bare_buffered:
         names.insert(2, "bare buffered")
     if _has_modbus_proxy(args.modbus_proxy):
         names.append("modbus-proxy")
     else:
         print("modbus-proxy: not importable (pip install modbus-proxy, or --modbus-proxy DIR)")
-    results: dict[tuple[str, int], dict[str, float]] = {}
+    runs: dict[tuple[str, int], list[dict[str, float]]] = {}
     with tempfile.TemporaryDirectory() as tmp, upstream() as up:
-        for clients in args.clients:
-            for name in names:
-                with target(name, up, Path(tmp), args.modbus_proxy) as (port, _pid):
-                    results[(name, clients)] = measure(port, clients, args.seconds)
+        for round_ in range(args.rounds):
+            for clients in args.clients:
+                # every other round the other way round: no target always runs first
+                for name in names if round_ % 2 == 0 else names[::-1]:
+                    with target(name, up, Path(tmp), args.modbus_proxy, trees) as (port, pid):
+                        runs.setdefault((name, clients), []).append(
+                            measure(port, clients, args.seconds, pid)
+                        )
+    # each figure is the median over the rounds (one round: the figure itself)
+    results = {
+        key: {k: statistics.median(r[k] for r in rs) for k in rs[0]} for key, rs in runs.items()
+    }
     load = os.getloadavg()
-    print(f"\nFC 03 x 10 registers, {args.seconds:g} s per run, {os.cpu_count()} CPUs, "
+    rounds = f", median of {args.rounds} alternated rounds" if args.rounds > 1 else ""
+    print(f"\nFC 03 x 10 registers, {args.seconds:g} s per run{rounds}, {os.cpu_count()} CPUs, "
           f"load {load[0]:.1f} {load[1]:.1f} {load[2]:.1f}")  # fmt: skip
-    head = (f"{'target':<15} {'clients':>7} {'req/s':>8} {'p50 us':>8} {'p99 us':>8} "
-            f"{'added p50':>9} {'x bare':>7} {'rps/bare':>8} {'rps/m-p':>8}")  # fmt: skip
+    head = (f"{'target':<20} {'clients':>7} {'req/s':>8} {'p50 us':>8} {'p99 us':>8} "
+            f"{'added p50':>9} {'x bare':>7} {'rps/bare':>8} {'rps/m-p':>8} "
+            f"{'cpu us/req':>10}")  # fmt: skip
     print(head)
     print("-" * len(head))
     for clients in args.clients:
@@ -330,15 +385,40 @@ def bench(args: argparse.Namespace) -> None:
             x_bare = f"{added / bare_added:.2f}" if name != "direct" and bare_added > 0 else "-"
             rps_bare = f"{r['rps'] / bare['rps']:.2f}"
             rps_mp = f"{r['rps'] / mproxy['rps']:.2f}" if mproxy else "-"
-            print(f"{name:<15} {clients:>7} {r['rps']:>8.0f} {r['p50']:>8.0f} {r['p99']:>8.0f} "
-                  f"{added:>9.0f} {x_bare:>7} {rps_bare:>8} {rps_mp:>8}")  # fmt: skip
+            cpu = "-" if r["cpu"] != r["cpu"] else f"{r['cpu']:.0f}"
+            print(f"{name:<20} {clients:>7} {r['rps']:>8.0f} {r['p50']:>8.0f} {r['p99']:>8.0f} "
+                  f"{added:>9.0f} {x_bare:>7} {rps_bare:>8} {rps_mp:>8} {cpu:>10}")  # fmt: skip
 
 
 def _rss_kib(pid: int) -> int:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1])
-    return 0
+    """Resident memory of ``pid`` and its child processes (mbmon proxy forwards in one)."""
+    total = 0
+    for p in _tree(pid):
+        try:
+            lines = Path(f"/proc/{p}/status").read_text().splitlines()
+        except OSError:
+            continue
+        total += sum(int(line.split()[1]) for line in lines if line.startswith("VmRSS:"))
+    return total
+
+
+def _tree(pid: int) -> list[int]:
+    """``pid`` and its descendants."""
+    children: dict[int, list[int]] = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                stat = Path(f"/proc/{entry}/stat").read_text()
+            except OSError:
+                continue
+            ppid = int(stat[stat.rindex(")") + 2 :].split()[1])
+            children.setdefault(ppid, []).append(int(entry))
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        todo.extend(children.get(p, []))
+    return out
 
 
 def soak(args: argparse.Namespace) -> None:
@@ -377,11 +457,23 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=3.0, help="per run (default 3)")
     parser.add_argument("--clients", type=int, nargs="+", default=[1, 8])
+    parser.add_argument(
+        "--rounds",
+        type=int,
+        default=1,
+        help="run every target this many times, alternating the order; print medians",
+    )
     parser.add_argument("--modbus-proxy", metavar="DIR", help="directory holding modbus_proxy.py")
     parser.add_argument(
         "--bare-buffered",
         action="store_true",
         help="also run the bare forwarder reading into its own buffer (informational)",
+    )
+    parser.add_argument(
+        "--anchor",
+        metavar="DIR",
+        help="also run mbmon from this source tree (e.g. an export of main), next to "
+        "this tree's, in the same run: before/after in the same minutes",
     )
     parser.add_argument("--soak", type=float, metavar="S", help="memory soak of S seconds instead")
     parser.add_argument(

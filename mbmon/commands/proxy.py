@@ -14,6 +14,7 @@ and a summary goes to stderr.
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 from typing import Any
@@ -164,6 +165,11 @@ def register(sub: Any) -> None:
     add_foxglove_option(screen)
     add_view_options(p)
     add_output_options(p)
+    # the proxy's start-up line (its port) and its summary are what a supervisor and
+    # an audit need: -q silences the records only (docs/proxy.md)
+    p._option_string_actions["--quiet"].help = (
+        "print no records (the start-up line and the summary still go to stderr; use with -w)"
+    )
     p.set_defaults(func=run, robot="upstream")
 
 
@@ -266,7 +272,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"mbmon: {exc}", file=sys.stderr)
         hub.close()
         return EXIT_BAD_INPUT
-    engine, thread, observer = attach_engine(hub, config, meter, **factories)
+    # the TCP proxy forwards in a process of its own (its own GIL: observation never
+    # takes CPU time from forwarding); the serial variants are bound by the bus; the
+    # child's pipes need POSIX (pass_fds, the loop's readers on pipes)
+    process = not serial and os.name == "posix"
+    engine, thread, observer = attach_engine(hub, config, meter, process=process, **factories)
     try:
         address = thread.start()
     except OSError as exc:
@@ -326,6 +336,14 @@ def run(args: argparse.Namespace) -> int:
             hub.close()
         engine.stats.not_observed = observer.skipped
         print("mbmon proxy: " + engine.stats.summary().replace("\n", "\n  "), file=sys.stderr)
+        if getattr(engine, "final", True) is False:
+            status = getattr(thread, "returncode", None)
+            print(
+                f"mbmon: the proxy's forwarding process ended unexpectedly (status {status}); "
+                "the counters above are the last it sent",
+                file=sys.stderr,
+            )
+            return EXIT_BAD_INPUT
     finally:  # a late Ctrl-C must not cut the logs' close or the summary short
         for s, handler in old.items():
             signal.signal(s, handler)
@@ -335,7 +353,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def attach_engine(
-    hub: Any, config: Any, meter: Any, **factories: Any
+    hub: Any, config: Any, meter: Any, *, process: bool = False, **factories: Any
 ) -> tuple[Any, Any, Any]:
     """A :class:`~mbmon.proxy.engine.ProxyEngine` for ``config`` wired to ``hub``: the
     one way a command runs a proxy (``proxy``, ``demo``).
@@ -346,7 +364,20 @@ def attach_engine(
     hub when the engine's loop ends. Returns ``(engine, thread, observer)``;
     ``thread.start()`` binds the listening socket. ``factories`` (``upstream=``,
     ``front=``) plug in the serial variants (:mod:`mbmon.proxy.serial`).
+
+    ``process``: the engine runs in a child process instead of a thread
+    (:class:`~mbmon.proxy.remote.ProxyProcess`, the same calls; no factories);
+    ``engine`` is then a :class:`~mbmon.proxy.remote.RemoteEngine` and ``observer``
+    the process (its ``skipped``).
     """
+    if process:
+        if factories:
+            raise ValueError("the serial variants run the engine in a thread")
+        from mbmon.proxy.remote import ProxyProcess
+
+        proc = ProxyProcess(config, hub, meter, on_exit=hub.stop)
+        return proc.engine, proc, proc
+
     from mbmon.proxy.engine import Observer, ProxyEngine, ProxyThread
 
     observer = Observer(hub.put, hub.new_stream, meter=meter, max_backlog=config.max_backlog)

@@ -41,10 +41,12 @@ upstream connection with transaction ids remapped (responses get the client's
 own id back).
 
 Threads: the engine runs on one asyncio loop (:class:`ProxyThread` gives it its
-own thread); the observer's ``put`` is the hub's thread-safe queue, consumed
-by ``hub.run`` in another thread. If the hub falls behind by more than
-``max_backlog`` items, chunks are forwarded but not observed (counted, and
-reported by a NOTICE when observation resumes), so memory stays bounded.
+own thread; :class:`~mbmon.proxy.remote.ProxyProcess` its own process, as the
+TCP proxy runs it); the observer's ``put`` is the hub's thread-safe queue (or,
+from a child process, a pipe), consumed by ``hub.run`` in another thread. If
+the hub falls behind by more than ``max_backlog`` items, chunks are forwarded
+but not observed (counted, and reported by a NOTICE when observation resumes),
+so memory stays bounded.
 """
 
 from __future__ import annotations

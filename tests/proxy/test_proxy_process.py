@@ -1,0 +1,156 @@
+"""The TCP proxy forwards in a child process and observes in its parent
+(:mod:`mbmon.proxy.remote`): forwarding goes on while the observing process is
+stopped, a lost child ends the run with an error, the pipe between them keeps
+order and meaning, and a pipe nobody reads makes the child skip observation
+(counted, reported) instead of growing or blocking."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import time
+from pathlib import Path
+
+from mbmon.model import Chunk, Direction, EventKind, Stream, Transport
+from mbmon.proxy.engine import Observer
+from mbmon.proxy.remote import PipeOut, decode_records
+from tests.proxy.test_proxy_e2e import connect, expected_hr, fake, proxy, read_hr, rpc
+
+
+def _children(pid: int) -> list[int]:
+    out: list[int] = []
+    for task in os.listdir(f"/proc/{pid}/task"):
+        text = Path(f"/proc/{pid}/task/{task}/children").read_text()
+        out += [int(x) for x in text.split()]
+    return out
+
+
+def test_forwarding_goes_on_while_the_observing_process_is_stopped(tmp_path: Path) -> None:
+    with fake() as up, proxy(up.port, "--quiet", "-w", "seen.jsonl", tmp=tmp_path) as p:
+        sock = connect(p.port)
+        for tid in range(50):
+            assert rpc(sock, tid, read_hr(tid, 2)) == expected_hr(tid, 1, tid, 2)
+        os.kill(p.proc.pid, signal.SIGSTOP)  # the hub, the log, the console: frozen
+        try:
+            for tid in range(50, 550):  # answered all the same, by the child
+                assert rpc(sock, tid, read_hr(tid, 2)) == expected_hr(tid, 1, tid, 2)
+        finally:
+            os.kill(p.proc.pid, signal.SIGCONT)
+        sock.close()
+        _out, err = p.stop()
+    assert p.returncode == 0
+    assert "requests 550, responses 550" in err
+    assert "not observed" not in err
+    lines = (tmp_path / "seen.jsonl").read_text().replace(" ", "").splitlines()
+    assert sum('"kind":"request"' in line for line in lines) == 550  # observed later, all
+    assert sum('"kind":"response"' in line for line in lines) == 550
+
+
+def test_a_lost_forwarding_process_ends_the_run_with_an_error(tmp_path: Path) -> None:
+    with fake() as up, proxy(up.port, "--quiet", tmp=tmp_path) as p:
+        sock = connect(p.port)
+        assert rpc(sock, 1, read_hr(0, 1)) == expected_hr(1, 1, 0, 1)
+        time.sleep(0.5)  # its counters (sent ten times a second) have reached the parent
+        (child,) = _children(p.proc.pid)
+        os.kill(child, signal.SIGKILL)
+        p.proc.wait(20)  # ends by itself: the pipe's end stops the hub
+        _out, err = p.stop()
+        sock.close()
+    assert p.returncode == 1
+    assert "forwarding process ended unexpectedly" in err
+    assert "requests 1, responses 1" in err  # the last counters it sent
+
+
+def test_pipe_records_round_trip_in_order() -> None:
+    async def main() -> tuple[list, list]:
+        loop = asyncio.get_running_loop()
+        r, w = os.pipe()
+        out = PipeOut(w, loop, lambda: None)
+        a = Stream(7, Transport.TCP, "127.0.0.1:5000", "127.0.0.1:502")
+        out.send(("stream", 7, "tcp", a.client, a.server))
+        observer = Observer(lambda item: None, lambda *x: a, meter=out)  # type: ignore[arg-type]
+        observer.bind(loop.call_soon, out.submit)
+        observer.event(a, EventKind.CONNECT, {}, 1.0)
+        observer.chunk(a, Direction.C2S, b"\x00\x01\x00\x00\x00\x06\x01\x03\x00\x00\x00\x01", 2.0)
+        observer.chunk(a, Direction.S2C, b"\x00\x01\x00\x00\x00\x05\x01\x03\x02\x00\x2a", 3.5)
+        observer.event(None, EventKind.NOTICE, {"message": "hello", "tid": 1}, 4.0)
+        out.send(("stats", {"requests": 1}, {"clients": 1}, True))
+        await asyncio.sleep(0)
+        out.finish()
+        data = b""
+        while part := os.read(r, 65536):
+            data += part
+        os.close(r)
+        made: list[Stream] = []
+
+        def new_stream(transport: Transport, client: str, server: str) -> Stream:
+            made.append(Stream(100 + len(made), transport, client, server))
+            return made[-1]
+
+        items, others, used = decode_records(bytearray(data), {}, new_stream)
+        assert used == len(data)
+        return items, others
+
+    items, others = asyncio.run(main())
+    hub_stream = Stream(100, Transport.TCP, "127.0.0.1:5000", "127.0.0.1:502")
+    assert [type(i).__name__ for i in items] == ["Event", "Chunk", "Chunk", "Event"]
+    assert items[0].stream == hub_stream and items[0].kind is EventKind.CONNECT
+    request = bytes.fromhex("000100000006010300000001")
+    answer = bytes.fromhex("000100000005010302002A")
+    assert items[1] == Chunk(2.0, hub_stream, Direction.C2S, request)
+    assert items[2] == Chunk(3.5, hub_stream, Direction.S2C, answer)
+    assert items[3].stream is None and dict(items[3].info) == {"message": "hello", "tid": 1}
+    assert others == [("stats", {"requests": 1}, {"clients": 1}, True)]
+
+
+def test_an_unread_pipe_bounds_the_backlog_and_reports_what_was_skipped() -> None:
+    async def main() -> tuple[int, int, int, list]:
+        loop = asyncio.get_running_loop()
+        r, w = os.pipe()
+        out = PipeOut(w, loop, lambda: None)
+        stream = Stream(0, Transport.TCP, "c:1", "s:2")
+        out.send(("stream", 0, "tcp", "c:1", "s:2"))
+        observer = Observer(lambda item: None, lambda *x: stream, meter=out, max_backlog=1000)  # type: ignore[arg-type]
+        observer.bind(loop.call_soon, out.submit)
+        payload = bytes(200)
+        for i in range(20_000):  # nobody reads: the pipe fills, then the buffer
+            observer.chunk(stream, Direction.C2S, payload, float(i))
+            if i % 100 == 0:
+                await asyncio.sleep(0)
+        await asyncio.sleep(0)
+        skipped, buffered = observer.skipped, len(out.buf)
+        # the reader comes back: everything that was kept arrives, then the notice
+        data = bytearray()
+        os.set_blocking(r, False)
+
+        async def read_all() -> None:
+            while True:
+                try:
+                    part = os.read(r, 1 << 20)
+                except BlockingIOError:
+                    if not out.buf:
+                        return
+                    await asyncio.sleep(0.001)
+                    continue
+                data.extend(part)
+
+        await read_all()
+        observer.chunk(stream, Direction.C2S, payload, 99999.0)
+        await asyncio.sleep(0)
+        out.finish()
+        os.set_blocking(r, True)
+        while part := os.read(r, 1 << 20):
+            data.extend(part)
+        os.close(r)
+        items, _others, _used = decode_records(data, {}, lambda *x: stream)
+        return skipped, buffered, len(items), items[-2:]
+
+    skipped, buffered, n, last = asyncio.run(main())
+    assert skipped > 0
+    assert buffered <= 1100 * 216  # the child's buffer: about max_backlog items, no more
+    assert n == 20_000 - skipped + 2  # what was kept, the notice, the last chunk
+    assert last[0].kind is EventKind.NOTICE
+    assert f"{skipped} chunks were forwarded but not observed" in last[0].info["message"]
+    assert last[1].ts == 99999.0
+
