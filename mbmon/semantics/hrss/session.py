@@ -34,7 +34,7 @@ from mbmon.model import (
     Transaction,
     TxStatus,
 )
-from mbmon.semantics.hrss.render import Decoded, decode_command, decode_returns
+from mbmon.semantics.hrss.render import Decoded, decode_command_from, decode_returns
 from mbmon.semantics.hrss.spec import CommandSpec, load_spec
 from mbmon.semantics.words import s16
 
@@ -65,6 +65,11 @@ class _Write:
     new: dict[int, int]
     execute: _Exec | None = None
 
+
+#: a decoded command with the registers its decode read and the words they held
+_Remembered = tuple[tuple[int, ...], tuple[int | None, ...], Decoded]
+_DECODED_MAX = 128  # decoded commands a session remembers (see HrssSession._decode)
+_DECODED_PER_CODE = 8  # of them with the same R201 word (the newest)
 
 _MOVING = (2, 3, 4)  # IR524 Running, Hold, Delay
 _WRITE_FCS = frozenset({0x06, 0x10, 0x16, 0x17})  # what _request applies to the holding image
@@ -136,6 +141,10 @@ class HrssSession:
         self._queue_over = False
         self._state: dict[str, float] = {}
         self._plans: dict[tuple[int, int], _ReadPlan] = {}  # (address, count) of FC 04 reads
+        # decoded commands by the R201 word, each with the registers the decode read and
+        # their words: the same words decode the same (see _decode); bounded
+        self._decoded: dict[int | None, list[_Remembered]] = {}
+        self._decoded_count = 0
 
     # ------------------------------------------------------------------ public views
 
@@ -282,7 +291,7 @@ class HrssSession:
         if execute == 1:
             self._execute(w, before, ts, out)
         elif params and self._block_code is None:
-            dec = decode_command(self._holding, self._spec)
+            dec = self._decode()
             covered = dec.regs <= self._block
             if dec.code is not None and dec.layout is not None and covered and not dec.missing:
                 self._block_code = dec.code
@@ -306,7 +315,7 @@ class HrssSession:
             )
 
     def _execute(self, w: _Write, before: int | None, ts: float, out: _Out) -> None:
-        dec = decode_command(self._holding, self._spec)
+        dec = self._decode()
         old = self._active
         if old is not None and not old.done and not old.settled and old.looked and not old.warned:
             old.warned = True
@@ -340,6 +349,41 @@ class HrssSession:
                 kind="range",
                 code=dec.code,
             )
+
+    def _decode(self) -> Decoded:
+        """The command the holding image describes (:func:`decode_command`), remembered.
+
+        A decode depends only on the words it reads, so a result is reused when
+        every register it read holds the same word (or is still unseen) as then:
+        a command is decoded when its block is written and again when it is
+        executed, and a cell repeats the same few commands. At most
+        :data:`_DECODED_MAX` results are kept (a few kB each), :data:`_DECODED_PER_CODE`
+        of them per command number.
+        """
+        get = self._holding.get
+        code_word = get(self._cmd_reg)
+        remembered = self._decoded.get(code_word)
+        if remembered is not None:
+            for regs, words, decoded in remembered:
+                if tuple(map(get, regs)) == words:
+                    return decoded
+        seen: dict[int, int | None] = {}
+
+        def read(reg: int) -> int | None:
+            word = seen[reg] = get(reg)
+            return word
+
+        decoded = decode_command_from(read, self._spec)
+        if self._decoded_count >= _DECODED_MAX:
+            self._decoded.clear()
+            self._decoded_count = 0
+        entries = self._decoded.setdefault(code_word, [])
+        if len(entries) >= _DECODED_PER_CODE:  # a short scan on every decode of this code
+            del entries[0]
+        else:
+            self._decoded_count += 1
+        entries.append((tuple(seen), tuple(seen.values()), decoded))
+        return decoded
 
     def _confirm(self, key: tuple[Any, ...]) -> None:
         w = self._writes.pop(key, None)
