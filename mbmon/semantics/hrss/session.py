@@ -19,7 +19,7 @@ Every command layout, enum, range and state register comes from
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
@@ -71,6 +71,7 @@ class _Write:
 _Remembered = tuple[tuple[int, ...], tuple[int | None, ...], Decoded]
 _DECODED_MAX = 128  # decoded commands a session remembers (see HrssSession._decode)
 _DECODED_PER_CODE = 8  # of them with the same R201 word (the newest)
+_ANSWERS_MAX = 64  # FC 04 answers (of different shapes) kept before they go to the image
 
 _MOVING = (2, 3, 4)  # IR524 Running, Hold, Delay
 _WRITE_FCS = frozenset({0x06, 0x10, 0x16, 0x17})  # what _request applies to the holding image
@@ -83,6 +84,7 @@ def _notes_only(notes: list[str]) -> Annotation:
     """The annotation of a step the session has nothing to add to."""
     return _new_annotation(tuple(notes), (), None) if notes else _NOTHING
 
+
 _S16, _U16, _I32, _U32 = range(4)
 _WORD_TYPES = {"s16": _S16, "u16": _U16, "i32": _I32, "u32": _U32}
 #: (state key, offset of the first word, offset of the last word, word type, scale mode, factor);
@@ -90,10 +92,11 @@ _WORD_TYPES = {"s16": _S16, "u16": _U16, "i32": _I32, "u32": _U32}
 _StateField = tuple[str, int, int, int, int, float]
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True, slots=True, eq=False)  # each plan is its own: a cheap dict key
 class _ReadPlan:
     """Offsets, in one FC 04 read, of the input registers the session watches (None: absent)."""
 
+    addresses: range  # the registers the read carries
     status: int | None
     action: int | None
     returns: tuple[int, ...]  # addresses of IR202..IR251 in the read
@@ -136,7 +139,8 @@ class HrssSession:
             complete_timeout if complete_timeout is not None else p.protocol["complete_timeout"]
         )
         self._holding: dict[int, int] = {}
-        self._inputs: dict[int, int] = {}
+        self._inputs: dict[int, int] = {}  # read it through _input_image()
+        self._answers: dict[_ReadPlan, Sequence[int]] = {}  # not yet in _inputs, oldest first
         self._unconfirmed: set[int] = set()
         self._writes: dict[tuple[Any, ...], _Write] = {}  # unanswered, oldest first, bounded
         self._max_writes = max_writes
@@ -168,8 +172,8 @@ class HrssSession:
 
     @property
     def inputs(self) -> Mapping[int, int]:
-        """Input register image (address -> unsigned word) from FC 04 answers."""
-        return MappingProxyType(self._inputs)
+        """Input register image (address -> unsigned word) from FC 04 answers (a live view)."""
+        return _LiveImage(self._input_image)
 
     @property
     def unconfirmed(self) -> frozenset[int]:
@@ -465,12 +469,32 @@ class HrssSession:
                 self._holding[rq.address + i] = v
                 self._unconfirmed.discard(rq.address + i)
         elif rq.fc == 0x04:
-            address = rq.address
-            self._inputs.update(zip(range(address, address + len(values)), values, strict=True))
-            plan = self._plans.get((address, len(values)))
+            address, n = rq.address, len(values)
+            plan = self._plans.get((address, n))
             if plan is None:
-                plan = self._read_plan(address, len(values))
+                plan = self._read_plan(address, n)
+            answers = self._answers  # applied to the input image when it is read
+            if plan in answers:
+                del answers[plan]  # the newest answer of each shape goes last
+            answers[plan] = values
+            if len(answers) > _ANSWERS_MAX:
+                self._input_image()
             self._inputs_read(plan, values, resp.ts, out)
+
+    def _input_image(self) -> dict[int, int]:
+        """The input register image, with the answers not yet applied applied (oldest first).
+
+        FC 04 answers are kept per read shape, newest last, until the image is
+        read: a register ends up with the word of the newest answer that
+        carried it, as if every answer had been applied in turn.
+        """
+        answers = self._answers
+        if answers:
+            image = self._inputs
+            for plan, values in answers.items():
+                image.update(zip(plan.addresses, values, strict=True))
+            answers.clear()
+        return self._inputs
 
     def _read_plan(self, address: int, count: int) -> _ReadPlan:
         """Where the registers the session watches sit in a read of ``count`` from ``address``."""
@@ -491,6 +515,7 @@ class HrssSession:
                 mode, k = (1, 10**d) if d and abs(f.scale - 10.0**-d) < 1e-12 else (2, f.scale)
             state.append((key, regs[0] - address, regs[-1] - address, _WORD_TYPES[f.type], mode, k))
         plan = _ReadPlan(
+            addresses=range(address, end),
             status=offset(p.reg("status_reg")),
             action=offset(p.reg("action_reg")),
             returns=tuple(r for r in range(address, end) if r in self._returns),
@@ -506,8 +531,10 @@ class HrssSession:
     def _inputs_read(self, plan: _ReadPlan, values: Sequence[int], ts: float, out: _Out) -> None:
         p = self._spec
         if plan.status is not None:
-            action = None if plan.action is None else s16(values[plan.action])
-            self._status(s16(values[plan.status]), action, ts, out)
+            a = self._active
+            if a is not None and not a.done:  # else _status has nothing to do
+                action = None if plan.action is None else s16(values[plan.action])
+                self._status(s16(values[plan.status]), action, ts, out)
         if plan.returns:
             self._returns_read(plan.returns, ts, out)
         if plan.queue is not None:
@@ -554,7 +581,7 @@ class HrssSession:
         if g is None or ts < g.t0 or g.status == 2 or g.decoded.code is None:
             return
         g.return_seen.update(returned)
-        seen = {r: v for r, v in self._inputs.items() if r in g.return_seen}
+        seen = {r: v for r, v in self._input_image().items() if r in g.return_seen}
         dec = decode_returns(g.decoded.code, seen, self._spec)
         if dec is None or dec.layout is None or dec.missing:
             return
@@ -645,6 +672,27 @@ class HrssSession:
             kind="never_completed",
             code=a.decoded.code,
         )
+
+
+class _LiveImage(Mapping[int, int]):
+    """A read-only view of a register image that ``image()`` brings up to date when read."""
+
+    __slots__ = ("_image",)
+
+    def __init__(self, image: Callable[[], dict[int, int]]) -> None:
+        self._image = image
+
+    def __getitem__(self, address: int) -> int:
+        return self._image()[address]
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self._image())
+
+    def __len__(self) -> int:
+        return len(self._image())
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self._image()!r})"
 
 
 def _key(req: Frame) -> tuple[Any, ...]:
