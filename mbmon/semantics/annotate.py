@@ -19,7 +19,7 @@ annotation at once; with a profile, each field is one dict look-up.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Hashable, Mapping, Sequence
 from dataclasses import dataclass
 from decimal import Decimal
 from typing import Any
@@ -59,6 +59,7 @@ _TABLE = {code: PROFILE_TABLE[f.table] for code, f in FUNCTIONS.items() if f.tab
 _BITS = frozenset({"coils", "discrete_inputs"})
 _MAX_RUN_WORDS = 12  # values shown in a merged run / block note before "…"
 _MAX_RUN_BITS = 8  # bits shown as ON/OFF words; longer runs list the ON ones
+_MAX_READ_WORDS = 125  # most registers one read may ask for (Modbus spec): layouts made ahead
 _NO_UNIT_SPACE = frozenset({"°", "%", ""})
 
 
@@ -106,20 +107,29 @@ class Annotator:
         pdu = frame.pdu
         if status is _PENDING and pdu.kind is _REQUEST and pdu.fc in _READ_FCS:
             # the most common step of all (a poll asked for): its annotation is cached
-            key = (_READ_ANNOTATION, pdu.fc, pdu.address, pdu.count)
-            plain = profile.memo.get(key)
-            if plain is None:
-                table = _TABLE[pdu.fc]
-                found = _read_request_note(profile, table, pdu.address, pdu.count)
-                plain = _new_annotation(found, (), None) if found else _EMPTY
-                _remember(profile.memo, key, plain)
+            read = profile.memo.get(pdu.raw)
+            if read is None:
+                read = _read_of(profile, pdu)
             if session is None or not session.may_time_out_by(tx.ts):
-                return plain  # type: ignore[no-any-return]
-            return session.follow(tx, list(plain.notes))  # type: ignore[no-any-return]
+                return read.asked  # type: ignore[no-any-return]
+            return session.follow(tx, list(read.asked.notes))  # type: ignore[no-any-return]
         if status is _TIMEOUT:
             notes: list[str] = []
         elif status is _ANSWERED and pdu.kind is _RESPONSE and pdu.fc in _READ_FCS:
-            notes = self._read_notes(tx, pdu, frame, profile)  # the other half of polling
+            # the other half of polling: the answer, laid out as its request's bytes say
+            asked = tx.request
+            values = pdu.values
+            read = None
+            if asked is not None and asked.pdu.fc == pdu.fc and values is not None:
+                read = profile.memo.get(asked.pdu.raw)
+            if read is not None and read.layout is not None and len(values) == read.count:
+                layout = read.layout
+                selector = None
+                if layout.selects:
+                    selector = self._selector_reader(frame, profile, read.table)
+                notes = _layout_notes(layout, read.table, read.address, values, "read", selector)
+            else:
+                notes = self._read_notes(tx, pdu, frame, profile)
         else:
             notes = list(self._frame_notes(tx, frame, profile))
         if session is not None:
@@ -315,7 +325,7 @@ def _layout_notes(
     for item in layout.items:
         kind, a, b = item[0], item[1], item[2]
         if kind is _VALUE:  # one whole field that no selector re-reads: head fixed
-            notes.append(item[3] + _format_value(item[4], values[a:b]))
+            notes.append(item[3] + _format_value(item[4], values, a))
         elif kind is _RUN:
             notes.append(_run_note(item[3], values[a:b], item[4]))
         else:
@@ -351,6 +361,41 @@ def _layout(profile: Profile, table: str, start: int, n: int) -> _Layout:
     return layout  # type: ignore[no-any-return]
 
 
+@dataclass(frozen=True, slots=True)
+class _Read:
+    """What a read request's PDU bytes mean, kept in the profile's memo by those bytes.
+
+    ``asked``: the annotation of the step that asks; ``layout``: that of a register
+    answer with all ``count`` values asked for (``None`` for bits, or when the
+    request has no address or count).
+    """
+
+    asked: Annotation
+    table: str
+    address: int
+    count: int | None
+    layout: _Layout | None
+
+
+def _read_of(profile: Profile, pdu: Pdu) -> _Read:
+    """The :class:`_Read` of a read request (FC 01..04), remembered by its PDU bytes."""
+    table = _TABLE[pdu.fc]
+    address, count = pdu.address, pdu.count
+    found = _read_request_note(profile, table, address, count)
+    layout = None
+    if table not in _BITS and address is not None and count and count <= _MAX_READ_WORDS:
+        layout = _layout(profile, table, address, count)
+    read = _Read(
+        _new_annotation(found, (), None) if found else _EMPTY,
+        table,
+        address if address is not None else 0,
+        count,
+        layout,
+    )
+    _remember(profile.memo, pdu.raw, read)
+    return read
+
+
 def _selectable(ref: FieldRef) -> bool:
     """Whether ``ref`` is read the way a group selector (``PR[n].type``) says."""
     entry = ref.entry
@@ -361,11 +406,10 @@ def _selectable(ref: FieldRef) -> bool:
 # | (_FIELD, a, b, ref), where values[a:b] are the words the note shows.
 _VALUE, _RUN, _FIELD = "value", "run", "field"
 _LAYOUT, _READ_NOTE, _SPAN_NOTE = "layout", "read note", "span note"
-_READ_ANNOTATION = "read annotation"
 _MEMO_MAX = 1024  # layouts and notes per profile: at most ~125 small tuples each, ~15 MB worst
 
 
-def _remember(memo: dict[Any, Any], key: tuple[Any, ...], value: Any) -> None:
+def _remember(memo: dict[Any, Any], key: Hashable, value: Any) -> None:
     """Keep ``value`` for ``key`` in a profile's memo; the memo is emptied when full."""
     if len(memo) >= _MEMO_MAX:
         memo.clear()
@@ -516,7 +560,7 @@ def _raw_word(f: Field, w: int) -> str:
 
 def _value_text(f: Field, variant: Variant | None, words: Sequence[int]) -> str:
     """The value of field ``f`` (read as ``variant`` says, if any) in its complete ``words``."""
-    return _format_value(_value_format(f, variant), words)
+    return _format_value(_value_format(f, variant), words, 0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -566,18 +610,19 @@ def _value_format(f: Field, variant: Variant | None) -> _ValueFormat:
     )
 
 
-def _format_value(v: _ValueFormat, words: Sequence[int]) -> str:
+def _format_value(v: _ValueFormat, values: Sequence[int], i: int) -> str:
+    """The text of the value whose ``v.words`` words start at ``values[i]``."""
     t = v.type
     if t == "version":
-        return v.template.format(*(w & 0xFFFF for w in words))
+        return v.template.format(*(w & 0xFFFF for w in values[i : i + v.words]))
     if t == "u16":
-        raw = words[0] & 0xFFFF
+        raw = values[i] & 0xFFFF
     elif t == "s16":
-        raw = words[0] & 0xFFFF
+        raw = values[i] & 0xFFFF
         if raw & 0x8000:
             raw -= 0x10000
     else:
-        low, high = (words[1], words[0]) if v.high_low else (words[0], words[1])
+        low, high = (values[i + 1], values[i]) if v.high_low else (values[i], values[i + 1])
         u = ((high & 0xFFFF) << 16) | (low & 0xFFFF)
         if t == "f32":
             return f"{u32_to_f32(u) * v.scale:g}{v.suffix}"
