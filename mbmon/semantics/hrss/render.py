@@ -175,8 +175,15 @@ def _reader(image: Mapping[int, int]) -> Callable[[int], int | None]:
 
 def decode_command(holding: Mapping[int, int], spec: Spec | None = None) -> Decoded:
     """The command that holding registers R201..R251 describe (values as unsigned words)."""
-    spec = spec or load_spec()
-    read = _reader(holding)
+    return decode_command_from(_reader(holding), spec or load_spec())
+
+
+def decode_command_from(read: Callable[[int], int | None], spec: Spec) -> Decoded:
+    """:func:`decode_command` of the image ``read`` gives (``None``: a register never seen).
+
+    What it returns depends only on the words ``read`` gives for the registers it
+    asks for, so a caller may remember results by those words.
+    """
     raw_code = read(spec.reg("command_reg"))
     if raw_code is None:
         return Decoded(

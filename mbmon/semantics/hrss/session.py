@@ -19,7 +19,7 @@ Every command layout, enum, range and state register comes from
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
@@ -33,8 +33,9 @@ from mbmon.model import (
     Stream,
     Transaction,
     TxStatus,
+    fast_constructor,
 )
-from mbmon.semantics.hrss.render import Decoded, decode_command, decode_returns
+from mbmon.semantics.hrss.render import Decoded, decode_command_from, decode_returns
 from mbmon.semantics.hrss.spec import CommandSpec, load_spec
 from mbmon.semantics.words import s16
 
@@ -66,10 +67,23 @@ class _Write:
     execute: _Exec | None = None
 
 
+#: a decoded command with the registers its decode read and the words they held
+_Remembered = tuple[tuple[int, ...], tuple[int | None, ...], Decoded]
+_DECODED_MAX = 128  # decoded commands a session remembers (see HrssSession._decode)
+_DECODED_PER_CODE = 8  # of them with the same R201 word (the newest)
+_ANSWERS_MAX = 64  # FC 04 answers (of different shapes) kept before they go to the image
+
 _MOVING = (2, 3, 4)  # IR524 Running, Hold, Delay
 _WRITE_FCS = frozenset({0x06, 0x10, 0x16, 0x17})  # what _request applies to the holding image
 _PENDING, _ANSWERED = TxStatus.PENDING, TxStatus.ANSWERED
 _NOTHING = Annotation()
+_new_annotation = fast_constructor(Annotation)  # per step: twice as fast as the class
+
+
+def _notes_only(notes: list[str]) -> Annotation:
+    """The annotation of a step the session has nothing to add to."""
+    return _new_annotation(tuple(notes), (), None) if notes else _NOTHING
+
 
 _S16, _U16, _I32, _U32 = range(4)
 _WORD_TYPES = {"s16": _S16, "u16": _U16, "i32": _I32, "u32": _U32}
@@ -78,10 +92,11 @@ _WORD_TYPES = {"s16": _S16, "u16": _U16, "i32": _I32, "u32": _U32}
 _StateField = tuple[str, int, int, int, int, float]
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True, slots=True, eq=False)  # each plan is its own: a cheap dict key
 class _ReadPlan:
     """Offsets, in one FC 04 read, of the input registers the session watches (None: absent)."""
 
+    addresses: range  # the registers the read carries
     status: int | None
     action: int | None
     returns: tuple[int, ...]  # addresses of IR202..IR251 in the read
@@ -124,7 +139,8 @@ class HrssSession:
             complete_timeout if complete_timeout is not None else p.protocol["complete_timeout"]
         )
         self._holding: dict[int, int] = {}
-        self._inputs: dict[int, int] = {}
+        self._inputs: dict[int, int] = {}  # read it through _input_image()
+        self._answers: dict[_ReadPlan, Sequence[int]] = {}  # not yet in _inputs, oldest first
         self._unconfirmed: set[int] = set()
         self._writes: dict[tuple[Any, ...], _Write] = {}  # unanswered, oldest first, bounded
         self._max_writes = max_writes
@@ -136,6 +152,11 @@ class HrssSession:
         self._queue_over = False
         self._state: dict[str, float] = {}
         self._plans: dict[tuple[int, int], _ReadPlan] = {}  # (address, count) of FC 04 reads
+        self._out = _Out(self)  # what the step being followed produces (see follow)
+        # decoded commands by the R201 word, each with the registers the decode read and
+        # their words: the same words decode the same (see _decode); bounded
+        self._decoded: dict[int | None, list[_Remembered]] = {}
+        self._decoded_count = 0
 
     # ------------------------------------------------------------------ public views
 
@@ -151,8 +172,8 @@ class HrssSession:
 
     @property
     def inputs(self) -> Mapping[int, int]:
-        """Input register image (address -> unsigned word) from FC 04 answers."""
-        return MappingProxyType(self._inputs)
+        """Input register image (address -> unsigned word) from FC 04 answers (a live view)."""
+        return _LiveImage(self._input_image)
 
     @property
     def unconfirmed(self) -> frozenset[int]:
@@ -163,33 +184,57 @@ class HrssSession:
 
     def feed(self, tx: Transaction) -> Annotation:
         """Follow one pairing step: the notes, command steps and state change it causes."""
+        return self.follow(tx, [])
+
+    def follow(self, tx: Transaction, notes: list[str]) -> Annotation:
+        """:meth:`feed`, with the profile's ``notes`` on the same frame first.
+
+        The step's one annotation: ``notes`` (which the session's own notes are
+        added to), the command steps and the state when it changed; the shared
+        empty annotation when there is none of these.
+        """
         req = tx.request
         frame = req if req is not None else tx.response
         if frame is None or frame.unit != self.unit:
-            return _NOTHING
+            return _notes_only(notes)
         status = tx.status
         if status is _PENDING and req is not None and req.pdu.fc not in _WRITE_FCS:
             # a read asked for: it changes no image, only the clock can say something
-            a = self._active
-            if a is None or tx.ts - a.t0 <= self._timeout or not self._may_time_out(a):
-                return _NOTHING
-        out = _Out(self, tx.ts, frame.stream)
-        if status is _PENDING and req is not None:
-            if req.pdu.fc in _WRITE_FCS:  # reads change no image on request
-                self._request(req, out)
-        elif status is _ANSWERED and req is not None and tx.response is not None:
+            if not self.may_time_out_by(tx.ts):
+                return _notes_only(notes)
+        out = self._out
+        out.ts = ts = tx.ts
+        out.stream = frame.stream
+        out.notes = notes
+        out.commands = None
+        out.state_changed = False
+        if status is _ANSWERED and req is not None and tx.response is not None:
             if req.pdu.fc in _WRITE_FCS:
                 key = _key(req)
                 if key not in self._writes:
                     self._request(req, out)  # the request was never fed on its own
                 self._confirm(key)
             self._answer(req, tx.response, out)
+        elif status is _PENDING and req is not None:
+            if req.pdu.fc in _WRITE_FCS:  # reads change no image on request
+                self._request(req, out)
         elif tx.status is TxStatus.EXCEPTION and req is not None:
             self._rejected(req, tx.response, out)  # a write never fed as PENDING: nothing to undo
         elif tx.status is TxStatus.TIMEOUT and req is not None:
             self._writes.pop(_key(req), None)  # values stay, still unconfirmed
-        self._check_timeout(tx.ts, out)
+        a = self._active
+        if a is not None and ts - a.t0 > self._timeout:
+            self._check_timeout(ts, out)
         return out.annotation()
+
+    def may_time_out_by(self, ts: float) -> bool:
+        """Whether a step at ``ts`` that changes nothing (a read asked for) can say something.
+
+        Only the clock can then: the command in flight may have gone
+        ``complete_timeout`` without completing.
+        """
+        a = self._active
+        return a is not None and ts - a.t0 > self._timeout and self._may_time_out(a)
 
     def tick(self, now: float) -> list[CommandUpdate]:
         """Time ``now`` (capture time) passed with no transaction: the command steps it makes due.
@@ -201,9 +246,10 @@ class HrssSession:
         a = self._active
         if a is None:
             return []
-        out = _Out(self, now, a.stream)
+        out = _Out(self)
+        out.ts, out.stream = now, a.stream
         self._check_timeout(now, out)
-        return out.commands
+        return out.commands or []
 
     def next_deadline(self) -> float | None:
         """The earliest time at which :meth:`tick` reports something, or ``None``.
@@ -282,7 +328,7 @@ class HrssSession:
         if execute == 1:
             self._execute(w, before, ts, out)
         elif params and self._block_code is None:
-            dec = decode_command(self._holding, self._spec)
+            dec = self._decode()
             covered = dec.regs <= self._block
             if dec.code is not None and dec.layout is not None and covered and not dec.missing:
                 self._block_code = dec.code
@@ -306,7 +352,7 @@ class HrssSession:
             )
 
     def _execute(self, w: _Write, before: int | None, ts: float, out: _Out) -> None:
-        dec = decode_command(self._holding, self._spec)
+        dec = self._decode()
         old = self._active
         if old is not None and not old.done and not old.settled and old.looked and not old.warned:
             old.warned = True
@@ -340,6 +386,41 @@ class HrssSession:
                 kind="range",
                 code=dec.code,
             )
+
+    def _decode(self) -> Decoded:
+        """The command the holding image describes (:func:`decode_command`), remembered.
+
+        A decode depends only on the words it reads, so a result is reused when
+        every register it read holds the same word (or is still unseen) as then:
+        a command is decoded when its block is written and again when it is
+        executed, and a cell repeats the same few commands. At most
+        :data:`_DECODED_MAX` results are kept (a few kB each), :data:`_DECODED_PER_CODE`
+        of them per command number.
+        """
+        get = self._holding.get
+        code_word = get(self._cmd_reg)
+        remembered = self._decoded.get(code_word)
+        if remembered is not None:
+            for regs, words, decoded in remembered:
+                if tuple(map(get, regs)) == words:
+                    return decoded
+        seen: dict[int, int | None] = {}
+
+        def read(reg: int) -> int | None:
+            word = seen[reg] = get(reg)
+            return word
+
+        decoded = decode_command_from(read, self._spec)
+        if self._decoded_count >= _DECODED_MAX:
+            self._decoded.clear()
+            self._decoded_count = 0
+        entries = self._decoded.setdefault(code_word, [])
+        if len(entries) >= _DECODED_PER_CODE:  # a short scan on every decode of this code
+            del entries[0]
+        else:
+            self._decoded_count += 1
+        entries.append((tuple(seen), tuple(seen.values()), decoded))
+        return decoded
 
     def _confirm(self, key: tuple[Any, ...]) -> None:
         w = self._writes.pop(key, None)
@@ -388,12 +469,32 @@ class HrssSession:
                 self._holding[rq.address + i] = v
                 self._unconfirmed.discard(rq.address + i)
         elif rq.fc == 0x04:
-            address = rq.address
-            self._inputs.update(zip(range(address, address + len(values)), values, strict=True))
-            plan = self._plans.get((address, len(values)))
+            address, n = rq.address, len(values)
+            plan = self._plans.get((address, n))
             if plan is None:
-                plan = self._read_plan(address, len(values))
+                plan = self._read_plan(address, n)
+            answers = self._answers  # applied to the input image when it is read
+            if plan in answers:
+                del answers[plan]  # the newest answer of each shape goes last
+            answers[plan] = values
+            if len(answers) > _ANSWERS_MAX:
+                self._input_image()
             self._inputs_read(plan, values, resp.ts, out)
+
+    def _input_image(self) -> dict[int, int]:
+        """The input register image, with the answers not yet applied applied (oldest first).
+
+        FC 04 answers are kept per read shape, newest last, until the image is
+        read: a register ends up with the word of the newest answer that
+        carried it, as if every answer had been applied in turn.
+        """
+        answers = self._answers
+        if answers:
+            image = self._inputs
+            for plan, values in answers.items():
+                image.update(zip(plan.addresses, values, strict=True))
+            answers.clear()
+        return self._inputs
 
     def _read_plan(self, address: int, count: int) -> _ReadPlan:
         """Where the registers the session watches sit in a read of ``count`` from ``address``."""
@@ -414,6 +515,7 @@ class HrssSession:
                 mode, k = (1, 10**d) if d and abs(f.scale - 10.0**-d) < 1e-12 else (2, f.scale)
             state.append((key, regs[0] - address, regs[-1] - address, _WORD_TYPES[f.type], mode, k))
         plan = _ReadPlan(
+            addresses=range(address, end),
             status=offset(p.reg("status_reg")),
             action=offset(p.reg("action_reg")),
             returns=tuple(r for r in range(address, end) if r in self._returns),
@@ -429,8 +531,10 @@ class HrssSession:
     def _inputs_read(self, plan: _ReadPlan, values: Sequence[int], ts: float, out: _Out) -> None:
         p = self._spec
         if plan.status is not None:
-            action = None if plan.action is None else s16(values[plan.action])
-            self._status(s16(values[plan.status]), action, ts, out)
+            a = self._active
+            if a is not None and not a.done:  # else _status has nothing to do
+                action = None if plan.action is None else s16(values[plan.action])
+                self._status(s16(values[plan.status]), action, ts, out)
         if plan.returns:
             self._returns_read(plan.returns, ts, out)
         if plan.queue is not None:
@@ -477,7 +581,7 @@ class HrssSession:
         if g is None or ts < g.t0 or g.status == 2 or g.decoded.code is None:
             return
         g.return_seen.update(returned)
-        seen = {r: v for r, v in self._inputs.items() if r in g.return_seen}
+        seen = {r: v for r, v in self._input_image().items() if r in g.return_seen}
         dec = decode_returns(g.decoded.code, seen, self._spec)
         if dec is None or dec.layout is None or dec.missing:
             return
@@ -570,6 +674,27 @@ class HrssSession:
         )
 
 
+class _LiveImage(Mapping[int, int]):
+    """A read-only view of a register image that ``image()`` brings up to date when read."""
+
+    __slots__ = ("_image",)
+
+    def __init__(self, image: Callable[[], dict[int, int]]) -> None:
+        self._image = image
+
+    def __getitem__(self, address: int) -> int:
+        return self._image()[address]
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self._image())
+
+    def __len__(self) -> int:
+        return len(self._image())
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self._image()!r})"
+
+
 def _key(req: Frame) -> tuple[Any, ...]:
     return (req.ts, req.stream.id, req.tid, req.raw)
 
@@ -580,17 +705,22 @@ def _pop_oldest(writes: dict[tuple[Any, ...], _Write]) -> tuple[tuple[Any, ...],
 
 
 class _Out:
-    """What one feed (or tick) produces, gathered in order, stamped ``ts`` on ``stream``."""
+    """What one step (or tick) produces, gathered in order, stamped ``ts`` on ``stream``.
+
+    One per session, made ready for each step by :meth:`HrssSession.follow`:
+    ``notes`` is the list the step's notes go to, ``commands`` is ``None``
+    until a command step is made.
+    """
 
     __slots__ = ("commands", "notes", "session", "state_changed", "stream", "ts", "unit")
 
-    def __init__(self, session: HrssSession, ts: float, stream: Stream) -> None:
+    def __init__(self, session: HrssSession) -> None:
         self.session = session
-        self.ts = ts
-        self.stream = stream
         self.unit = session.unit
+        self.ts = 0.0
+        self.stream = session.stream
         self.notes: list[str] = []
-        self.commands: list[CommandUpdate] = []
+        self.commands: list[CommandUpdate] | None = None
         self.state_changed = False
 
     def note(self, text: str) -> None:
@@ -606,18 +736,20 @@ class _Out:
         duration: float | None = None,
         note: str | None = None,
     ) -> None:
-        self.commands.append(
-            CommandUpdate(
-                ts=self.ts,
-                stream=self.stream,
-                unit=self.unit,
-                phase=phase,
-                text=text,
-                code=code,
-                duration=duration,
-                params=MappingProxyType(dict(params)),
-            )
+        update = CommandUpdate(
+            ts=self.ts,
+            stream=self.stream,
+            unit=self.unit,
+            phase=phase,
+            text=text,
+            code=code,
+            duration=duration,
+            params=MappingProxyType(dict(params)),
         )
+        if self.commands is None:
+            self.commands = [update]
+        else:
+            self.commands.append(update)
         if note is not None:
             self.notes.append(note)
 
@@ -625,10 +757,11 @@ class _Out:
         self.command(Phase.WARNING, text, code, params={"warning": kind}, note=f"warning: {text}")
 
     def annotation(self) -> Annotation:
-        if not self.notes and not self.commands and not self.state_changed:
-            return _NOTHING
-        return Annotation(
-            notes=tuple(self.notes),
-            commands=tuple(self.commands),
-            state=self.session.state if self.state_changed else None,
-        )
+        notes, commands = self.notes, self.commands
+        if self.state_changed:
+            return _new_annotation(
+                tuple(notes), tuple(commands) if commands else (), self.session.state
+            )
+        if commands:
+            return _new_annotation(tuple(notes), tuple(commands), None)
+        return _new_annotation(tuple(notes), (), None) if notes else _NOTHING
