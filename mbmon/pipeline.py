@@ -19,12 +19,13 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Protocol
 
 from mbmon.model import (
     RTU_TRANSPORTS,
     Annotation,
     Chunk,
+    CommandUpdate,
     Direction,
     Event,
     EventKind,
@@ -347,6 +348,18 @@ class Pipeline:
         self.counts["events"] += 1
         return self._record(event.ts, RecordKind.EVENT, event.stream, event=event)
 
-    def _record(self, ts: float, kind: RecordKind, stream: Stream | None, **item: Any) -> Record:
+    def _record(
+        self,
+        ts: float,
+        kind: RecordKind,
+        stream: Stream | None,
+        *,
+        noise: Noise | None = None,
+        event: Event | None = None,
+        command: CommandUpdate | None = None,
+    ) -> Record:
         """A record for something other than a frame (noise, event, command)."""
-        return Record(index=self._next_index(), ts=ts, kind=kind, stream=stream, **item)
+        return _new_record(
+            self._next_index(), ts, kind, stream, None, None, None, None, noise, event, command,
+            (), None,
+        )  # fmt: skip
