@@ -578,6 +578,10 @@ class _ValueFormat:
     spec: str | None  # format spec of a scaled integer (".3f"); None: the integer as is
     suffix: str  # the unit as written after the number ("°", " mm", "")
     range: tuple[int, int] | None
+    #: a scale of exactly 10**-k with ``spec`` ".kf": (10**k, a %-template of sign,
+    #: whole part, k-digit fraction, unit), so the text is made from the integer's
+    #: digits (what ``format(raw * scale, spec)`` gives, cheaper)
+    decimal: tuple[int, str] | None = None
 
 
 def _value_format(f: Field, variant: Variant | None) -> _ValueFormat:
@@ -607,7 +611,21 @@ def _value_format(f: Field, variant: Variant | None) -> _ValueFormat:
         spec=spec,
         suffix="" if not unit else unit if unit in _NO_UNIT_SPACE else f" {unit}",
         range=f.range,
+        decimal=_decimal_point(scale, spec),
     )
+
+
+def _decimal_point(scale: float | None, spec: str | None) -> tuple[int, str] | None:
+    """``(10**k, template)`` when ``scale`` is exactly 10**-k (0.1, 0.01, 0.001, ...)
+    and ``spec`` is ".kf": then ``format(raw * scale, spec)`` is the integer ``raw``
+    with a decimal point k digits from its end (the float's error is far below half
+    a last digit)."""
+    if scale is None or spec is None:
+        return None
+    k = _decimals(scale)
+    if k < 1 or spec != f".{k}f" or repr(scale) != repr(10.0**-k):
+        return None
+    return 10**k, f"%s%d.%0{k}d%s"
 
 
 def _format_value(v: _ValueFormat, values: Sequence[int], i: int) -> str:
@@ -640,6 +658,10 @@ def _format_value(v: _ValueFormat, values: Sequence[int], i: int) -> str:
         text = f"0x{raw & 0xFFFFFFFF:0{4 * v.words}X}"
     elif v.spec is None:
         text = f"{raw}{v.suffix}"
+    elif v.decimal is not None:
+        divisor, template = v.decimal
+        whole, frac = divmod(-raw if raw < 0 else raw, divisor)
+        text = template % ("-" if raw < 0 else "", whole, frac, v.suffix)
     else:
         text = format(raw * v.scale, v.spec) + v.suffix
     rng = v.range

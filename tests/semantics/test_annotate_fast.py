@@ -171,3 +171,45 @@ def test_polling_answer_without_the_selector_reads_the_one_seen_before() -> None
         assert profile is not None
         assert fast.annotate(answered).notes == tuple(general._frame_notes(answered, resp, profile))
     assert fast.annotate(answered).notes[0] == "PR[1].A1 = 0.005°"
+
+
+@settings(max_examples=500, deadline=None)
+@given(
+    k=st.integers(1, 9),
+    raw=st.one_of(st.integers(-(2**31), 2**32 - 1), st.integers(-20, 20)),
+    kind=st.sampled_from(["u16", "s16", "u32", "i32"]),
+    unit=st.sampled_from(["", "°", "mm", "%"]),
+)
+def test_a_decimal_scale_gives_what_format_gives(k: int, raw: int, kind: str, unit: str) -> None:
+    """A scale of exactly 10**-k is shown from the integer's digits; the text is the
+    float formatting's (``format(raw * scale, ".kf")``) for every raw value a field
+    can hold, signs and zero included."""
+    from mbmon.semantics.annotate import _decimal_point, _format_value, _ValueFormat
+
+    scale = float(f"1e-{k}")  # as a profile's TOML gives it
+    words = 1 if kind in ("u16", "s16") else 2
+    bits = 16 * words
+    low, high = (-(2 ** (bits - 1)), 2 ** (bits - 1) - 1) if kind[0] in "si" else (0, 2**bits - 1)
+    raw = min(max(raw, low), high)
+    u = raw & (2**bits - 1)
+    values = [u] if words == 1 else [u >> 16, u & 0xFFFF]
+    suffix = f" {unit}" if unit == "mm" else unit
+    decimal = _decimal_point(scale, f".{k}f")
+    assert decimal is not None
+    fmt = _ValueFormat(
+        type=kind, words=words, high_low=True, template="", enum=None, enum_by_value=False,
+        hex=False, scale=scale, spec=f".{k}f", suffix=suffix, range=None, decimal=decimal,
+    )  # fmt: skip
+    assert _format_value(fmt, values, 0) == format(raw * scale, f".{k}f") + suffix
+    assert _format_value(dataclasses.replace(fmt, decimal=None), values, 0) == (
+        format(raw * scale, f".{k}f") + suffix
+    )
+
+
+def test_only_exact_powers_of_ten_take_the_digit_path() -> None:
+    from mbmon.semantics.annotate import _decimal_point
+
+    assert _decimal_point(0.001, ".3f") == (1000, "%s%d.%03d%s")
+    assert _decimal_point(0.1, ".1f") == (10, "%s%d.%01d%s")
+    for scale, spec in ((0.25, ".2f"), (0.005, ".3f"), (1.0, None), (10.0, None), (0.001, ".2f")):
+        assert _decimal_point(scale, spec) is None, scale
