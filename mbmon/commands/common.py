@@ -257,6 +257,26 @@ def make_annotator(specs: list[str]) -> Any:
         raise UsageError(str(exc)) from None
 
 
+def view_and_filter(args: argparse.Namespace) -> tuple[Any, Any]:
+    """The view (``--robot``, ``--robot-client``, ``-t``) and the display filter
+    (``--unit --fc --address --since --until --grep``) of a command that prints
+    records as they come (``read``, ``sniff``); a bad filter is a usage error."""
+    from mbmon.filters import FilterError, build_filter
+    from mbmon.format import View
+    from mbmon.timefmt import TimeFormat
+
+    view = View(
+        robot=args.robot,
+        robot_is_client=args.robot_client,
+        time_format=TimeFormat(args.time_format),
+    )
+    try:
+        flt = build_filter(args, time_format=view.time_format, start_known=False)
+    except FilterError as exc:
+        raise UsageError(str(exc)) from None
+    return view, flt
+
+
 def profile_sources(annotator: Any) -> list[tuple[str, str]]:
     """``(name, TOML text)`` of every profile the annotator loaded (for logs)."""
     if annotator is None:

@@ -26,9 +26,10 @@ from mbmon.commands.common import (
     positive,
     positive_int,
     profile_sources,
+    view_and_filter,
 )
-from mbmon.filters import TIMES_HELP, FilterError, add_filter_options, build_filter
-from mbmon.timefmt import TimeFormat, add_time_option
+from mbmon.filters import TIMES_HELP, add_filter_options
+from mbmon.timefmt import add_time_option
 
 EPILOG = """\
 examples:
@@ -123,7 +124,6 @@ def _looks_like_mcap(path: str) -> bool:
 
 def run(args: argparse.Namespace) -> int:
     """``mbmon read``: every record of the input to the console, the logs and the summary."""
-    from mbmon.format import View
     from mbmon.hub import Hub
     from mbmon.pipeline import Pipeline, PipelineConfig
     from mbmon.sinks.base import SinkContext, SinkError, open_sink
@@ -139,15 +139,7 @@ def run(args: argparse.Namespace) -> int:
     if path == "-":
         path = "/dev/stdin"  # a pipe: the readers never seek
     check_outputs(args.write, [path])
-    view = View(
-        robot=args.robot,
-        robot_is_client=args.robot_client,
-        time_format=TimeFormat(args.time_format),
-    )
-    try:
-        flt = build_filter(args, time_format=view.time_format, start_known=False)
-    except FilterError as exc:
-        raise UsageError(str(exc)) from None
+    view, flt = view_and_filter(args)
     annotator = make_annotator(args.profile)
     pipeline = Pipeline(annotator, PipelineConfig(timeout=args.timeout, baudrate=args.baud))
     from mbmon.commands.common import Progress

@@ -234,16 +234,14 @@ def run_sniff(args: argparse.Namespace) -> int:
         make_annotator,
         open_console,
         open_foxglove,
+        view_and_filter,
     )
     from mbmon.commands.common import profile_sources as _profile_sources
-    from mbmon.filters import FilterError, build_filter
-    from mbmon.format import View
     from mbmon.hub import Hub
     from mbmon.pipeline import Pipeline, PipelineConfig
     from mbmon.sinks.base import SinkContext, SinkError, open_sink
     from mbmon.sinks.select import Selection
     from mbmon.sinks.summary import Summary
-    from mbmon.timefmt import TimeFormat
 
     if args.list:
         from mbmon.sources.sniff import list_interfaces
@@ -270,15 +268,7 @@ def run_sniff(args: argparse.Namespace) -> int:
 
     serial = bool(args.serial)
     baud = (args.baud or 115200) if serial else None
-    view = View(
-        robot=args.robot,
-        robot_is_client=args.robot_client,
-        time_format=TimeFormat(args.time_format),
-    )
-    try:
-        flt = build_filter(args, time_format=view.time_format, start_known=False)
-    except FilterError as exc:
-        raise UsageError(str(exc)) from None
+    view, flt = view_and_filter(args)
     annotator = make_annotator(args.profile)
     pipeline = Pipeline(annotator, PipelineConfig(timeout=args.timeout, baudrate=baud))
     hub = Hub(pipeline)
