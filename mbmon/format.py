@@ -357,19 +357,14 @@ def record_line(record: Record, view: View, notes: tuple[str, ...] | None = None
     kind = record.kind
     if record.frame is not None:
         frame = record.frame
-        if notes is not None:
-            text = "; ".join(notes)
-        else:  # frame_notes joined, without making its tuple
-            request = record.request
-            text = generic_note(frame.pdu, request.pdu if request is not None else None)
-            if record.notes:
-                text = text + "; " + "; ".join(record.notes)
+        if notes is None:
+            notes = frame_notes(record)
         return _LINE % (
             when,
             view.label(frame.stream, frame.direction),
             _ids(frame),
             monitor_hex(frame.pdu.raw),
-            text + _latency_text(record, frame),
+            "; ".join(notes) + _latency_text(record, frame),
         )
     if kind is RecordKind.NOISE and record.noise is not None:
         noise = record.noise

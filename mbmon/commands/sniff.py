@@ -155,11 +155,9 @@ class _Budget:
         flt = self._filter
         if flt is None:
             return True
-        if flt.needs_line:
-            from mbmon.format import record_line
+        from mbmon.sinks.select import passes
 
-            return bool(flt.matches_record(record, record_line(record, self._view)))
-        return bool(flt.matches_record(record))
+        return passes(flt, record, self._view)
 
     def on_records(self, records: list[Any]) -> None:
         if self.done:

@@ -17,6 +17,13 @@ from mbmon.format import View, record_line
 from mbmon.model import Record
 
 
+def passes(flt: RecordFilter, record: Record, view: View) -> bool:
+    """Whether ``flt`` lets ``record`` through; its line is made only for ``--grep``."""
+    if flt.needs_line:
+        return flt.matches_record(record, record_line(record, view))
+    return flt.matches_record(record)
+
+
 class Selection:
     """Filters and counts records for the listeners behind it."""
 
@@ -41,10 +48,7 @@ class Selection:
         flt = self.filter
         if flt is not None:
             view = self.view
-            if flt.needs_line:
-                records = [r for r in records if flt.matches_record(r, record_line(r, view))]
-            else:
-                records = [r for r in records if flt.matches_record(r)]
+            records = [r for r in records if passes(flt, r, view)]
         left = self.left
         if left is not None:
             if left <= 0:
