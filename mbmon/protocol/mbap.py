@@ -154,6 +154,38 @@ class MbapDecoder(StreamDecoder):
         self._keep(buf, pos, old, ts)
         return out
 
+    def split_clean(self, data: bytes, ts: float) -> list[bytes] | None:
+        """The ADUs of ``data`` as bytes, without decoding their PDUs, when nothing
+        is buffered and ``data`` is whole clean ADUs (protocol id 0, length within
+        ``max_length``) ending exactly at its end; ``None`` otherwise, and the
+        decoder is untouched: :meth:`feed` then decides (it would give frames with
+        these very bytes). The proxy's fast path: it forwards ADUs, the hub decodes."""
+        if self._buf or self._noise or not self._synced:
+            return None
+        n = len(data)
+        if n >= 8 and data[2] == 0 and data[3] == 0:
+            end = 6 + ((data[4] << 8) | data[5])
+            if end == n:  # one ADU: by far the most common segment
+                if n <= 6 + self._max_length:
+                    self._last_ts = ts
+                    return [data]
+                return None
+        out: list[bytes] = []
+        pos = 0
+        max_end = 6 + self._max_length
+        while pos < n:
+            if n - pos < 8 or data[pos + 2] != 0 or data[pos + 3] != 0:
+                return None
+            length = (data[pos + 4] << 8) | data[pos + 5]
+            if length < 2 or length + 6 > max_end or pos + 6 + length > n:
+                return None
+            out.append(data[pos : pos + 6 + length])
+            pos += 6 + length
+        if not out:
+            return None
+        self._last_ts = ts
+        return out
+
     def flush(self, ts: float) -> list[Frame | Noise]:
         """End of stream: a resync candidate is judged with the bytes present, and
         the noise run with every undecided byte becomes one :class:`Noise`."""

@@ -66,12 +66,13 @@ from mbmon.model import (
     Event,
     EventKind,
     Frame,
+    Noise,
     Stream,
     Transport,
     fast_constructor,
 )
 from mbmon.protocol.mbap import MbapDecoder, encode_adu
-from mbmon.protocol.pdu import encode_exception
+from mbmon.protocol.pdu import decode_pdu, encode_exception
 from mbmon.proxy.guard import ClientFilter, Guard
 
 __all__ = [
@@ -572,26 +573,29 @@ class _Link:
         engine = self.engine
         ts = time.time()
         self.received += len(data)
-        items = self.decoder.feed(data, ts)
-        if not items:
-            return
+        bad: Noise | None = None
+        raws = self.decoder.split_clean(data, ts)
+        if raws is None:  # not whole clean ADUs: the decoder frames (or finds noise)
+            raws = []
+            for item in self.decoder.feed(data, ts):
+                if type(item) is not Frame:
+                    bad = item  # type: ignore[assignment]
+                    break
+                raws.append(item.raw)
+            if not raws and bad is None:
+                return
         outs: dict[_Client, list[bytes]] = {}
         pending = self.pending
-        for item in items:
-            if type(item) is not Frame:
-                self.consumed += len(item.raw)
-                self.reset(f"upstream sent bytes that are not Modbus/TCP ({item.reason})")
-                break
-            raw = item.raw
+        for raw in raws:
             self.consumed += len(raw)
-            utid = item.tid
-            lst = pending.get(utid)  # type: ignore[arg-type]
+            utid = (raw[0] << 8) | raw[1]
+            lst = pending.get(utid)
             if not lst:
-                self._unexpected(item)
+                self._unexpected(utid, raw)
                 continue
             entry = lst.pop(0)
             if not lst:
-                del pending[utid]  # type: ignore[arg-type]
+                del pending[utid]
             entry.done = True
             client = entry.client
             client.outstanding.discard(entry)
@@ -605,22 +609,24 @@ class _Link:
                 outs[client] = [raw]
             else:
                 out.append(raw)
+        if bad is not None:
+            self.consumed += len(bad.raw)
+            self.reset(f"upstream sent bytes that are not Modbus/TCP ({bad.reason})")
         stats = engine.stats
         for client, parts in outs.items():
             stats.responses += len(parts)
             client.send(parts[0] if len(parts) == 1 else b"".join(parts), ts)
 
-    def _unexpected(self, frame: Frame) -> None:
+    def _unexpected(self, utid: int, raw: bytes) -> None:
         engine = self.engine
-        utid = frame.tid
-        why = self.late.pop(utid, None)  # type: ignore[arg-type]
+        why = self.late.pop(utid, None)
         if why is not None:
             engine.stats.late_dropped += 1
             message = f"late answer from upstream (tid {utid}) dropped: {why}"
         else:
             engine.stats.unmatched_dropped += 1
             message = f"answer from upstream with unknown tid {utid} dropped"
-        self._notice(message, {"tid": utid, "raw": frame.raw.hex(" ").upper()})
+        self._notice(message, {"tid": utid, "raw": raw.hex(" ").upper()})
 
     def connection_lost(self, proto: _Upstream, exc: Exception | None) -> None:
         if proto is not self.proto:
@@ -755,12 +761,17 @@ class _Client(_Reader):
         ts = time.time()
         engine.stats.bytes_from_clients += len(data)
         self.received += len(data)
-        items = self.decoder.feed(data, ts)
-        frames: list[Frame] = []
+        raws = self.decoder.split_clean(data, ts)
+        if raws is not None:  # whole clean ADUs: no decoding on the forwarding path
+            self.consumed += len(data)
+            self.partial_since = None
+            self._requests(raws, ts)
+            return
+        raws = []
         bad: str | None = None
-        for item in items:
+        for item in self.decoder.feed(data, ts):
             if type(item) is Frame:
-                frames.append(item)
+                raws.append(item.raw)
                 self.consumed += len(item.raw)
             else:
                 bad = item.reason  # type: ignore[union-attr]
@@ -770,8 +781,8 @@ class _Client(_Reader):
                 bad = noise.reason
                 break
             bad = bad or "not Modbus/TCP"
-        if frames:
-            self._requests(frames, ts)
+        if raws:
+            self._requests(raws, ts)
         if bad is not None:
             self.drop(f"client sent bytes that are not Modbus/TCP ({bad})")
             return
@@ -781,46 +792,44 @@ class _Client(_Reader):
         else:
             self.partial_since = None
 
-    def _requests(self, frames: list[Frame], ts: float) -> None:
+    def _requests(self, raws: list[bytes], ts: float) -> None:
         engine = self.engine
         stream = self.stream
         assert stream is not None
-        raw = frames[0].raw if len(frames) == 1 else b"".join(f.raw for f in frames)
-        engine.observer.chunk(stream, _C2S, raw, ts)
-        engine.stats.requests += len(frames)
-        self.forward(frames, ts)
+        engine.observer.chunk(stream, _C2S, raws[0] if len(raws) == 1 else b"".join(raws), ts)
+        engine.stats.requests += len(raws)
+        self.forward(raws, ts)
 
-    def forward(self, frames: list[Frame], ts: float, guarded: bool = False) -> None:
-        """Guard (unless ``guarded`` already), then send ``frames`` (requests framed as
-        Modbus/TCP, already observed and counted) upstream or queue them."""
+    def forward(self, raws: list[bytes], ts: float, guarded: bool = False) -> None:
+        """Guard (unless ``guarded`` already), then send ``raws`` (whole Modbus/TCP
+        request ADUs, already observed and counted) upstream or queue them."""
         guard = self.engine.config.guard
+        check = guard.active and not guarded
         link = self.link
         assert link is not None
         out: list[bytes] = []
-        for frame in frames:
-            pdu = frame.pdu
-            tid = frame.tid or 0
-            if guard.active and not guarded:
-                verdict = guard.check(frame.unit, pdu)
+        for raw in raws:
+            if check:
+                verdict = guard.check(raw[6], decode_pdu(raw[7:], False))
                 if verdict is not None:
-                    self._refuse(frame, verdict.message, verdict.info, ts)
+                    self._refuse(raw, verdict.message, verdict.info, ts)
                     continue
-            utid = link.assign_tid(tid)
-            fraw = frame.raw
+            tid = (raw[0] << 8) | raw[1]
+            utid = link.assign_tid(tid) if link.remap else tid
             if utid != tid:
-                fraw = bytes((utid >> 8, utid & 0xFF)) + fraw[2:]
-            entry = _Pending(self, tid, utid, frame.unit, pdu.fc, fraw)
-            data = link.submit(entry)
+                raw = bytes((utid >> 8, utid & 0xFF)) + raw[2:]
+            data = link.submit(_Pending(self, tid, utid, raw[6], raw[7], raw))
             if data is not None:
                 out.append(data)
         if out:
             link.write(out[0] if len(out) == 1 else b"".join(out))
 
-    def _refuse(self, frame: Frame, message: str, info: Any, ts: float) -> None:
+    def _refuse(self, raw: bytes, message: str, info: Any, ts: float) -> None:
+        """Answer the request ADU ``raw`` with the guard's exception, and audit it."""
         engine = self.engine
         code = engine.config.guard.exception_code
         engine.stats.guard_refusals += 1
-        adu = encode_adu(frame.tid or 0, frame.unit, encode_exception(frame.pdu.fc, code))
+        adu = encode_adu((raw[0] << 8) | raw[1], raw[6], encode_exception(raw[7], code))
         self.send(adu, ts)
         engine.observer.event(
             self.stream,

@@ -598,19 +598,18 @@ class RtuFront(_Client):
             self._tid = tid = (self._tid + 1) & 0xFFFF
             raw = item.raw
             mbap = struct.pack(">HHHB", tid, 0, len(raw) - 2, raw[0]) + raw[1:-2]
-            frame = Frame(item.ts, item.stream, _C2S, raw[0], tid, item.pdu, mbap)
             if guard.active:
-                verdict = guard.check(frame.unit, frame.pdu)
+                verdict = guard.check(raw[0], item.pdu)
                 if verdict is not None:
                     self._refusing = True
                     try:
-                        self._refuse(frame, verdict.message, verdict.info, ts)
+                        self._refuse(mbap, verdict.message, verdict.info, ts)
                     finally:
                         self._refusing = False
                     continue
             if self.tcp is not None:
                 engine.observer.chunk(self.tcp, _C2S, mbap, ts)
-            self.forward([frame], ts, guarded=True)
+            self.forward([mbap], ts, guarded=True)
 
     # -------------------------------------------------------------- answers
 

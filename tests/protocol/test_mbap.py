@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from mbmon.model import Direction, Frame, Kind, Noise, Stream, Transport
 from mbmon.protocol.mbap import NOISE_CAP, MbapDecoder, encode_adu
@@ -294,3 +296,54 @@ def test_long_noise_run_is_split_at_the_cap() -> None:
     assert [type(x) for x in out] == [Noise, Noise, Frame]
     assert [len(x.raw) for x in out[:2]] == [NOISE_CAP, 1000]
     assert out[2].raw == RESP_03
+
+
+# --------------------------------------------------------------------------- split_clean
+
+_ADUS = st.builds(
+    lambda tid, unit, pdu: encode_adu(tid, unit, pdu),
+    st.integers(0, 0xFFFF),
+    st.integers(0, 0xFF),
+    st.binary(min_size=1, max_size=253),
+)
+
+
+def test_split_clean_byte_table() -> None:
+    dec = MbapDecoder(STREAM, Direction.C2S)
+    assert dec.split_clean(REQ_03, 1.0) == [REQ_03]
+    assert dec.split_clean(REQ_03 + REQ_10, 1.0) == [REQ_03, REQ_10]
+    assert dec.split_clean(REQ_03[:7], 1.0) is None  # partial: the decoder waits
+    assert dec.split_clean(REQ_03 + REQ_10[:3], 1.0) is None
+    assert dec.split_clean(h("00 01 00 01 00 06 11 03 00 6B 00 03"), 1.0) is None  # proto 1
+    long = encode_adu(1, 1, bytes([0x5A]) + bytes(253))  # length 255: malformed, not clean
+    assert dec.split_clean(long, 1.0) is None
+    assert dec.feed(REQ_03[:5], 1.0) == []  # something buffered: feed decides
+    assert dec.split_clean(REQ_10, 2.0) is None
+
+
+@given(st.lists(_ADUS, min_size=1, max_size=6))
+def test_split_clean_takes_every_run_of_whole_clean_adus(adus: list[bytes]) -> None:
+    dec = MbapDecoder(STREAM, Direction.S2C)
+    assert dec.split_clean(b"".join(adus), 1.0) == adus
+    assert dec.buffered == 0
+
+
+@given(
+    st.one_of(st.binary(max_size=80), st.lists(_ADUS, max_size=3).map(b"".join)),
+    st.binary(max_size=12),
+)
+def test_split_clean_agrees_with_feed(head: bytes, tail: bytes) -> None:
+    """Whatever split_clean takes, feed frames the same bytes as the same ADUs and
+    keeps nothing back; what it declines leaves the decoder as it was."""
+    data = head + tail
+    for direction in (Direction.C2S, Direction.S2C):
+        fast = MbapDecoder(STREAM, direction)
+        slow = MbapDecoder(STREAM, direction)
+        raws = fast.split_clean(data, 1.0)
+        items = slow.feed(data, 1.0)
+        if raws is not None:
+            assert [type(x) for x in items] == [Frame] * len(raws)
+            assert [x.raw for x in items] == raws
+            assert slow.buffered == 0
+        assert fast.buffered == 0
+        assert [key(f) for f in frames(fast.feed(data, 1.0))] == [key(f) for f in frames(items)]

@@ -191,7 +191,9 @@ def pymodbus_server(port: int | None = None) -> Iterator[int]:
 class Proxy:
     """``python -m mbmon proxy`` as a subprocess; ``stop()`` ends it like Ctrl-C."""
 
-    def __init__(self, upstream_port: int, *args: str, tmp: Path) -> None:
+    def __init__(
+        self, upstream_port: int, *args: str, tmp: Path, env: dict[str, str] | None = None
+    ) -> None:
         self.out_path = tmp / f"proxy-{upstream_port}-{time.monotonic_ns()}.out"
         self._out = self.out_path.open("w")
         self.proc = subprocess.Popen(
@@ -209,7 +211,7 @@ class Proxy:
             stdout=self._out,
             stderr=subprocess.PIPE,
             text=True,
-            env=ENV,
+            env=ENV if env is None else env,
             cwd=tmp,
         )
         assert self.proc.stderr is not None
@@ -239,8 +241,10 @@ class Proxy:
 
 
 @contextmanager
-def proxy(upstream_port: int, *args: str, tmp: Path) -> Iterator[Proxy]:
-    p = Proxy(upstream_port, *args, tmp=tmp)
+def proxy(
+    upstream_port: int, *args: str, tmp: Path, env: dict[str, str] | None = None
+) -> Iterator[Proxy]:
+    p = Proxy(upstream_port, *args, tmp=tmp, env=env)
     try:
         yield p
     finally:

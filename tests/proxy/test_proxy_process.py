@@ -12,10 +12,22 @@ import signal
 import time
 from pathlib import Path
 
+import pytest
+
 from mbmon.model import Chunk, Direction, EventKind, Stream, Transport
 from mbmon.proxy.engine import Observer
 from mbmon.proxy.remote import PipeOut, decode_records
-from tests.proxy.test_proxy_e2e import connect, expected_hr, fake, proxy, read_hr, rpc
+from tests.proxy.test_proxy_e2e import (
+    ENV,
+    adu,
+    connect,
+    expected_hr,
+    fake,
+    proxy,
+    read_adu,
+    read_hr,
+    rpc,
+)
 
 
 def _children(pid: int) -> list[int]:
@@ -45,6 +57,41 @@ def test_forwarding_goes_on_while_the_observing_process_is_stopped(tmp_path: Pat
     lines = (tmp_path / "seen.jsonl").read_text().replace(" ", "").splitlines()
     assert sum('"kind":"request"' in line for line in lines) == 550  # observed later, all
     assert sum('"kind":"response"' in line for line in lines) == 550
+
+
+@pytest.mark.parametrize("loop", ["uvloop", "asyncio"])
+def test_the_forwarding_process_runs_the_loop_asked_for(tmp_path: Path, loop: str) -> None:
+    """uvloop when installed (a dependency on POSIX), asyncio's loop when
+    MBMON_EVENT_LOOP=asyncio; either way one ADU per segment, several in one, and
+    one split in two (the fast path, the decoder, the buffer) come back whole."""
+    if loop == "uvloop":
+        pytest.importorskip("uvloop")
+    env = {**ENV, "MBMON_EVENT_LOOP": loop}
+    with (
+        fake() as up,
+        proxy(up.port, "--quiet", "-w", "seen.jsonl", tmp=tmp_path, env=env) as p,
+    ):
+        sock = connect(p.port)
+        for tid in range(20):
+            assert rpc(sock, tid, read_hr(tid, 3)) == expected_hr(tid, 1, tid, 3)
+        (child,) = _children(p.proc.pid)
+        maps = Path(f"/proc/{child}/maps").read_text()
+        assert ("uvloop" in maps) == (loop == "uvloop")
+        sock.sendall(b"".join(adu(tid, 1, read_hr(tid, 2)) for tid in (100, 101, 102)))
+        for tid in (100, 101, 102):
+            assert read_adu(sock) == expected_hr(tid, 1, tid, 2)
+        whole = adu(103, 1, read_hr(7, 4))
+        sock.sendall(whole[:9])
+        time.sleep(0.1)
+        sock.sendall(whole[9:])
+        assert read_adu(sock) == expected_hr(103, 1, 7, 4)
+        sock.close()
+        _out, err = p.stop()
+    assert p.returncode == 0
+    assert "requests 24, responses 24" in err
+    lines = (tmp_path / "seen.jsonl").read_text().replace(" ", "").splitlines()
+    assert sum('"kind":"request"' in line for line in lines) == 24
+    assert sum('"kind":"response"' in line for line in lines) == 24
 
 
 def test_a_lost_forwarding_process_ends_the_run_with_an_error(tmp_path: Path) -> None:
