@@ -208,7 +208,8 @@ def target(
         env = ENV
         if "@" in name:
             env = {**os.environ, "PYTHONPATH": (trees or {})[name.split("@", 1)[1]]}
-        proc = subprocess.Popen(args, stderr=subprocess.PIPE, text=True, env=env)
+        # cwd: not a source tree, whose mbmon ``-m`` would import before PYTHONPATH's
+        proc = subprocess.Popen(args, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp)
         assert proc.stderr is not None
         line = proc.stderr.readline()
         m = re.search(r"listening on 127\.0\.0\.1:(\d+)", line)

@@ -205,10 +205,16 @@ class Hub:
             self._dispatch(records)
 
     def run_items(self, items: Iterable[Item]) -> None:
-        """Feed every item of ``items`` (a file's), then finish the pipeline.
+        """Feed every item of ``items`` (a file's), then finish the pipeline."""
+        self.feed_items(items)
+        self.finish()
+
+    def feed_items(self, items: Iterable[Item]) -> None:
+        """Feed every item of ``items`` in the calling thread, stopping early once
+        :attr:`done` (every listener gone, or ``-c N`` reached).
 
         The per-item work of :meth:`feed`, inlined: this is the loop a 1M-ADU
-        capture goes through.
+        capture goes through, and every batch the proxy and the sniffer submit.
         """
         chunk_hooks = self._by_hook["on_chunk"]
         event_hooks = self._by_hook["on_event"]
@@ -238,7 +244,6 @@ class Hub:
                 if self.done:
                     break  # every listener is gone (stdout closed, nothing recorded)
         self.now = now
-        self.finish()
 
     def iter_records(self, items: Iterable[Item]) -> Iterator[Record]:
         """Feed ``items`` (then finish) and yield every record as it is made, in order,
@@ -370,8 +375,8 @@ class Hub:
         except Exception as exc:  # a source's own bug must not end the run
             self._notice(f"source failed: {type(exc).__name__}: {exc}")
             return
-        for it in produced or ():
-            self.feed(it)
+        if produced:
+            self.feed_items(produced)  # a batch: the proxy's, the sniffer's
 
     def _drain(self) -> None:
         while True:

@@ -142,9 +142,32 @@ class MbapDecoder(StreamDecoder):
 
     def feed(self, data: bytes, ts: float) -> list[Frame | Noise]:
         """Consume one chunk captured at ``ts``; return the frames and noise it completes."""
-        out: list[Frame | Noise] = []
         self._last_ts = ts
         old = len(self._buf)
+        if not old and self._synced and not self._noise:
+            # one whole clean ADU and nothing held: what _decode gives, without its loop
+            # (a proxy's segments, most live ones)
+            n = len(data)
+            if (
+                8 <= n <= 6 + self._max_length
+                and data[2] == 0
+                and data[3] == 0
+                and ((data[4] << 8) | data[5]) == n - 6
+            ):
+                raw = data if type(data) is bytes else bytes(data)
+                return [
+                    _new_frame(
+                        ts,
+                        self.stream,
+                        self.direction,
+                        raw[6],
+                        (raw[0] << 8) | raw[1],
+                        decode_pdu(raw[7:], self._response),
+                        raw,
+                        None,
+                    )
+                ]
+        out: list[Frame | Noise] = []
         if old:
             self._buf += data
             buf: bytes | bytearray = self._buf

@@ -281,11 +281,18 @@ class Observer:
             call_soon(self.flush)
 
     def chunk(self, stream: Stream, direction: Direction, data: bytes, ts: float) -> None:
+        if self._admit(ts):
+            self._emit(_new_chunk(ts, stream, direction, data))
+
+    def _admit(self, ts: float) -> bool:
+        """Whether a chunk at ``ts`` is observed (counted as sent): not while the hub
+        is more than ``max_backlog`` behind (skipped, counted); the first one after a
+        skip comes after a NOTICE that says how many were not observed."""
         meter = self._meter
         if meter is not None and self.sent - meter.seen > self._max_backlog:
             self.skipped += 1
             self._skipping += 1
-            return
+            return False
         if self._skipping:
             n, self._skipping = self._skipping, 0
             self.event(
@@ -295,7 +302,7 @@ class Observer:
                 ts,
             )
         self.sent += 1
-        self._emit(_new_chunk(ts, stream, direction, data))
+        return True
 
     def event(
         self, stream: Stream | None, kind: EventKind, info: dict[str, Any], ts: float | None = None
@@ -499,14 +506,18 @@ class _Link:
         return self.next_tid  # 65536 in flight: cannot happen with sane clients
 
     def _track(self, entry: _Pending) -> None:
-        lst = self.pending.get(entry.utid)
+        """``entry`` is written upstream now: wait for its answer (its timer runs
+        from when it was queued, or starts now)."""
+        pending = self.pending
+        lst = pending.get(entry.utid)
         if lst is None:
-            self.pending[entry.utid] = [entry]
+            pending[entry.utid] = [entry]
         else:
             lst.append(entry)
-        if entry.deadline is None:
-            self._start_timer(entry)
         entry.client.outstanding.add(entry)
+        if entry.deadline is None:
+            entry.link = self
+            self.engine.arm(entry)
 
     def _start_timer(self, entry: _Pending) -> None:
         entry.client.outstanding.add(entry)

@@ -8,9 +8,10 @@ alone added tens of microseconds to each round trip (docs/performance.md,
 child process, and its observations (the very chunks and events it hands to the
 hub in one process) come to the parent's hub through a pipe:
 
-* child: :class:`PipeOut` takes the engine's batches (``Observer.bind``'s
-  ``submit``), encodes them (chunks as a 16-byte header and their bytes, other
-  records pickled) into a buffer and writes it to the pipe without ever
+* child: :class:`PipeObserver` encodes each chunk and event as the engine makes
+  it into :class:`PipeOut`'s buffer (chunks as a 16-byte header and their bytes,
+  other records pickled; no objects in between), and the engine's handover
+  commits the batch: :class:`PipeOut` writes it to the pipe without ever
   blocking: a full pipe waits in the buffer, written when the loop sees the
   pipe writable. It is the :class:`~mbmon.proxy.engine.Observer`'s backlog
   meter: what is still in the buffer counts as not yet seen, so past
@@ -58,7 +59,14 @@ from typing import Any
 from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport, fast_constructor
 from mbmon.proxy.engine import Observer, ProxyConfig, ProxyEngine, ProxyStats
 
-__all__ = ["PipeOut", "ProxyProcess", "RemoteEngine", "child_main", "decode_records"]
+__all__ = [
+    "PipeObserver",
+    "PipeOut",
+    "ProxyProcess",
+    "RemoteEngine",
+    "child_main",
+    "decode_records",
+]
 
 #: chunk record: tag, stream id, timestamp, direction, length; then the bytes
 _CHUNK = struct.Struct("<cIdBH")
@@ -100,7 +108,6 @@ class PipeOut:
         except (ImportError, OSError):
             pass
         self.buf = bytearray()
-        self.appended = 0  # bytes ever put in buf
         self.written = 0  # bytes ever written to the pipe
         self.items = 0  # items ever put in buf
         self.seen = 0  # items ever written whole
@@ -108,38 +115,36 @@ class PipeOut:
         self._watching = False
         self.broken = False
 
-    def submit(self, producer: Callable[[], list[Chunk | Event]]) -> None:
-        """Take a batch of the engine's chunks and events (``Observer.bind``'s submit)."""
-        batch = producer()
+    def put_chunk(self, stream_id: int, direction: Direction, data: bytes, ts: float) -> None:
+        """Encode one chunk into the buffer (written at the next :meth:`commit`)."""
         buf = self.buf
-        before = len(buf)
-        pack = _CHUNK.pack
-        code = _DIRECTION_CODE
-        for item in batch:
+        buf += _CHUNK.pack(_C, stream_id, ts, _DIRECTION_CODE[direction], len(data))
+        buf += data
+        self.items += 1
+
+    def put_event(self, event: Event) -> None:
+        """Encode one event into the buffer (written at the next :meth:`commit`)."""
+        sid = -1 if event.stream is None else event.stream.id
+        self._object(("event", event.ts, sid, str(event.kind), dict(event.info)))
+        self.items += 1
+
+    def submit(self, producer: Callable[[], list[Chunk | Event]]) -> None:
+        """Take a batch of chunks and events (``Observer.bind``'s submit) and commit."""
+        for item in producer():
             if type(item) is Chunk:
-                data = item.data
-                buf += pack(_C, item.stream.id, item.ts, code[item.direction], len(data))
-                buf += data
+                self.put_chunk(item.stream.id, item.direction, item.data, item.ts)
             else:
-                self._object(
-                    (
-                        "event",
-                        item.ts,
-                        -1 if item.stream is None else item.stream.id,
-                        str(item.kind),
-                        dict(item.info),
-                    )
-                )
-        self.appended += len(buf) - before
-        self.items += len(batch)
-        self._marks.append((self.appended, self.items))
+                self.put_event(item)  # type: ignore[arg-type]
+        self.commit()
+
+    def commit(self) -> None:
+        """What the buffer holds is a batch: write what the pipe takes now."""
+        self._marks.append((self.written + len(self.buf), self.items))
         self.drain()
 
     def send(self, record: tuple[Any, ...]) -> None:
         """A record that is not an item (a stream, counters, ready, error): now."""
-        before = len(self.buf)
         self._object(record)
-        self.appended += len(self.buf) - before
         self.drain()
 
     def _object(self, record: tuple[Any, ...]) -> None:
@@ -190,6 +195,54 @@ class PipeOut:
                 pass
         self.buf.clear()
         os.close(self.fd)
+
+
+class PipeObserver(Observer):
+    """The child's observer: each chunk and event is encoded into the pipe's buffer
+    as it comes (no :class:`~mbmon.model.Chunk` object, no batch list: two a
+    request), and the engine's handover (a ``call_later`` of
+    :attr:`~mbmon.proxy.engine.ProxyConfig.handover`) commits what waits there to
+    the pipe. The backlog rule is :class:`~mbmon.proxy.engine.Observer`'s."""
+
+    def __init__(
+        self,
+        out: PipeOut,
+        new_stream: Callable[[Transport, str, str], Stream],
+        *,
+        max_backlog: int,
+    ) -> None:
+        super().__init__(
+            lambda item: out.submit(lambda: [item]),
+            new_stream,
+            meter=out,  # type: ignore[arg-type]
+            max_backlog=max_backlog,
+        )
+        self._out = out
+        self._due = False
+
+    def chunk(self, stream: Stream, direction: Direction, data: bytes, ts: float) -> None:
+        if self._admit(ts):
+            self._out.put_chunk(stream.id, direction, data, ts)
+            self._handover()
+
+    def _emit(self, item: Chunk | Event) -> None:  # events: chunks never come here
+        self._out.put_event(item)  # type: ignore[arg-type]
+        self._handover()
+
+    def _handover(self) -> None:
+        if self._due:
+            return
+        call_soon = self._call_soon
+        if call_soon is None:  # not bound to a loop yet: at once
+            self._out.commit()
+            return
+        self._due = True
+        call_soon(self.flush)
+
+    def flush(self) -> None:
+        """Commit what waits in the pipe's buffer (the engine's handover)."""
+        self._due = False
+        self._out.commit()
 
 
 def decode_records(
@@ -292,12 +345,9 @@ async def _child(config: ProxyConfig, data_fd: int, ctrl_fd: int) -> None:
         out.send(("stream", stream.id, str(transport), client, server))
         return stream
 
-    observer = Observer(
-        lambda item: out.submit(lambda: [item]),
-        new_stream,
-        meter=out,  # type: ignore[arg-type]
-        max_backlog=config.max_backlog,
-    )
+    observer = PipeObserver(out, new_stream, max_backlog=config.max_backlog)
+    # the engine binds the observer to its handover timer; its items are in the
+    # pipe's buffer already, and its flush commits them (submit: for other items)
     engine = ProxyEngine(config, observer, submit=out.submit)
     try:
         address = await engine.start()
@@ -450,12 +500,15 @@ class ProxyProcess:
         limit = self.config.max_backlog
         streams: dict[int, Stream] = {}
         buf = bytearray()
+        # one buffer for every read: os.read would make (mmap, then unmap) a new
+        # 1 MiB bytes object per read
+        space = memoryview(bytearray(PIPE_SIZE))
         try:
             while True:
-                data = os.read(fd, PIPE_SIZE)
-                if not data:
+                n = os.readv(fd, [space])
+                if not n:
                     break
-                buf += data
+                buf += space[:n]
                 items, others, used = decode_records(buf, streams, hub.new_stream)
                 del buf[:used]
                 for record in others:
