@@ -139,6 +139,10 @@ BARE_BUFFERED = BARE.replace(
     "class Up(Reader):",
 ).replace("class Client(asyncio.Protocol):", "class Client(Reader):")
 
+#: An anchor's best case: the same code on uvloop, as mbmon's forwarding process runs
+#: (``--uvloop-anchors``; asyncio.run takes the installed policy's loop).
+UVLOOP = "import uvloop; uvloop.install()\n"
+
 REQUEST = struct.pack(">HHHBBHH", 0, 0, 6, 1, 3, 0, 10)
 
 
@@ -200,6 +204,8 @@ def target(
         proc, port = _spawn_printing_port([sys.executable, "-c", BARE, str(up)])
     elif name == "bare buffered":
         proc, port = _spawn_printing_port([sys.executable, "-c", BARE_BUFFERED, str(up)])
+    elif name == "bare buffered uvloop":
+        proc, port = _spawn_printing_port([sys.executable, "-c", UVLOOP + BARE_BUFFERED, str(up)])
     elif name.startswith("mbmon"):
         args = [sys.executable, "-m", "mbmon", "proxy", "--upstream", f"127.0.0.1:{up}",
                 "--listen", "127.0.0.1:0", "--quiet"]  # fmt: skip
@@ -216,16 +222,19 @@ def target(
         if not m:
             raise RuntimeError(f"mbmon proxy did not start: {line}")
         port = int(m.group(1))
-    elif name == "modbus-proxy":
+    elif name.startswith("modbus-proxy"):
         port = _free_port()
         env = dict(os.environ)
         if mp_path:
             env["PYTHONPATH"] = mp_path
+        run = ["-m", "modbus_proxy"]
+        if name.endswith("uvloop"):  # its own main(), on uvloop
+            run = ["-c", UVLOOP + "import sys, modbus_proxy; sys.argv[0] = 'modbus-proxy'; "
+                   "modbus_proxy.main()"]  # fmt: skip
         proc = subprocess.Popen(
             [
                 sys.executable,
-                "-m",
-                "modbus_proxy",
+                *run,
                 "-b",
                 f"tcp://127.0.0.1:{port}",
                 "--modbus",
@@ -348,8 +357,12 @@ def bench(args: argparse.Namespace) -> None:
         names[4:4] = ["mbmon -w mcap@anchor"]
     if args.bare_buffered:
         names.insert(2, "bare buffered")
+    if args.uvloop_anchors:
+        names.insert(names.index("mbmon"), "bare buffered uvloop")
     if _has_modbus_proxy(args.modbus_proxy):
         names.append("modbus-proxy")
+        if args.uvloop_anchors:
+            names.append("modbus-proxy uvloop")
     else:
         print("modbus-proxy: not importable (pip install modbus-proxy, or --modbus-proxy DIR)")
     runs: dict[tuple[str, int], list[dict[str, float]]] = {}
@@ -469,6 +482,12 @@ def main() -> None:
         "--bare-buffered",
         action="store_true",
         help="also run the bare forwarder reading into its own buffer (informational)",
+    )
+    parser.add_argument(
+        "--uvloop-anchors",
+        action="store_true",
+        help="also run the buffered bare forwarder and modbus-proxy on uvloop (the "
+        "loop mbmon's forwarding process uses): the anchors' best case, informational",
     )
     parser.add_argument(
         "--anchor",
