@@ -134,6 +134,9 @@ class Hub:
         #: ``(listener name, message)`` of every listener detached after an error
         self.failures: list[tuple[str, str]] = []
         self.records = 0
+        #: chunks and events fed so far (read from other threads: a live source's
+        #: measure of how far behind the hub is, e.g. the proxy's observer)
+        self.seen = 0
         #: no more input is wanted: every listener is gone, or -c N was reached
         self.done = False
         for listener in listeners:
@@ -190,6 +193,7 @@ class Hub:
 
     def feed(self, item: Item) -> None:
         """Take one chunk or event now, in the calling thread."""
+        self.seen += 1
         if isinstance(item, Chunk):
             for slot, fn in self._by_hook["on_chunk"]:
                 self._call(slot, fn, item)
@@ -222,7 +226,9 @@ class Hub:
         dispatch = self._dispatch
         error = EventKind.ERROR
         now = self.now
+        n = 0
         for item in items:
+            n += 1
             if type(item) is Chunk:
                 if chunk_hooks:
                     for slot, fn in chunk_hooks:
@@ -244,6 +250,7 @@ class Hub:
                 if self.done:
                     break  # every listener is gone (stdout closed, nothing recorded)
         self.now = now
+        self.seen += n
 
     def iter_records(self, items: Iterable[Item]) -> Iterator[Record]:
         """Feed ``items`` (then finish) and yield every record as it is made, in order,

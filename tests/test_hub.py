@@ -217,6 +217,24 @@ def test_submit_runs_producers_in_the_hub_thread() -> None:
     assert len([r for r in got.records if r.frame is not None]) == 4
 
 
+def test_seen_counts_every_item_taken_singly_or_in_batches_and_the_run_goes_on() -> None:
+    """``Hub.seen`` is the live sources' backlog meter (the proxy's observer): every
+    chunk and event fed, one by one or in a submitted batch; a batch does not
+    finish the pipeline (a request of one batch is answered in the next)."""
+    got = Collect()
+    hub = Hub(Pipeline(), [got])
+    items = polling(hub, 3)
+    hub.feed(items[0])
+    assert hub.seen == 1
+    hub.submit(lambda: items[1:4])  # ends on a request: its answer comes next
+    hub.submit(lambda: items[4:])
+    hub.run(until_idle=True)
+    assert hub.seen == len(items) == 7
+    frames = [r for r in got.records if r.frame is not None]
+    assert len(frames) == 6
+    assert all(r.request is not None for r in frames if r.frame.direction is Direction.S2C)
+
+
 def test_console_lines_are_flushed_within_half_a_second_on_an_idle_stream() -> None:
     """Not live (blocks of 512 lines), yet a lone line shows up within 0.5 s."""
     r_fd, w_fd = os.pipe()

@@ -339,7 +339,7 @@ def run(args: argparse.Namespace) -> int:
     from mbmon.hub import Hub
     from mbmon.model import Event, EventKind
     from mbmon.pipeline import Pipeline, PipelineConfig
-    from mbmon.proxy.engine import BacklogMeter, ProxyConfig, endpoint
+    from mbmon.proxy.engine import ProxyConfig, endpoint
     from mbmon.proxy.guard import Guard
     from mbmon.sim.server import SimServer
     from mbmon.sinks.base import SinkContext, SinkError, open_sink
@@ -367,8 +367,6 @@ def run(args: argparse.Namespace) -> int:
     annotator = make_annotator(args.profile)
     pipe_timeout = PROXY_TIMEOUT + 1.0  # the proxy answers 0x0B itself at its timeout
     hub = Hub(Pipeline(annotator, PipelineConfig(timeout=pipe_timeout)))
-    meter = BacklogMeter()
-    hub.add_listener(meter)
     ctx = SinkContext(
         view=view,
         command_line=["mbmon", *sys.argv[1:]],
@@ -397,7 +395,7 @@ def run(args: argparse.Namespace) -> int:
     console, monitor = open_console(args, view, title="mbmon demo", annotator=annotator)
     if console is not None:
         hub.add_listener(console)
-    engine, thread, observer = attach_engine(hub, config, meter)
+    engine, thread, observer = attach_engine(hub, config)
     try:
         proxy_host, proxy_port = thread.start()
     except OSError as exc:

@@ -189,7 +189,7 @@ def run(args: argparse.Namespace) -> int:
     from mbmon.format import View
     from mbmon.hub import Hub
     from mbmon.pipeline import Pipeline, PipelineConfig
-    from mbmon.proxy.engine import BacklogMeter, ProxyConfig, endpoint
+    from mbmon.proxy.engine import ProxyConfig, endpoint
     from mbmon.proxy.guard import ClientFilter, Guard, GuardSpecError
     from mbmon.sinks.base import SinkContext, SinkError, open_sink
 
@@ -260,8 +260,6 @@ def run(args: argparse.Namespace) -> int:
         if args.listen_serial is not None:
             factories["front"] = rtu_front(args.listen_serial, settings)
     hub = Hub(pipeline)
-    meter = BacklogMeter()
-    hub.add_listener(meter)
     try:
         feed = open_foxglove(args, ctx)  # before any file: a missing SDK leaves nothing behind
         if feed is not None:
@@ -276,7 +274,7 @@ def run(args: argparse.Namespace) -> int:
     # takes CPU time from forwarding); the serial variants are bound by the bus; the
     # child's pipes need POSIX (pass_fds, the loop's readers on pipes)
     process = not serial and os.name == "posix"
-    engine, thread, observer = attach_engine(hub, config, meter, process=process, **factories)
+    engine, thread, observer = attach_engine(hub, config, process=process, **factories)
     try:
         address = thread.start()
     except OSError as exc:
@@ -353,15 +351,15 @@ def run(args: argparse.Namespace) -> int:
 
 
 def attach_engine(
-    hub: Any, config: Any, meter: Any, *, process: bool = False, **factories: Any
+    hub: Any, config: Any, *, process: bool = False, **factories: Any
 ) -> tuple[Any, Any, Any]:
     """A :class:`~mbmon.proxy.engine.ProxyEngine` for ``config`` wired to ``hub``: the
     one way a command runs a proxy (``proxy``, ``demo``).
 
-    Its observations go to the hub's queue in batches (``meter``, a
-    :class:`~mbmon.proxy.engine.BacklogMeter` the caller has added to the hub,
-    bounds the backlog), and its :class:`~mbmon.proxy.engine.ProxyThread` stops the
-    hub when the engine's loop ends. Returns ``(engine, thread, observer)``;
+    Its observations go to the hub's queue in batches (the hub's count of what it
+    has taken, :attr:`~mbmon.hub.Hub.seen`, bounds the backlog), and its
+    :class:`~mbmon.proxy.engine.ProxyThread` stops the hub when the engine's loop
+    ends. Returns ``(engine, thread, observer)``;
     ``thread.start()`` binds the listening socket. ``factories`` (``upstream=``,
     ``front=``) plug in the serial variants (:mod:`mbmon.proxy.serial`).
 
@@ -375,12 +373,12 @@ def attach_engine(
             raise ValueError("the serial variants run the engine in a thread")
         from mbmon.proxy.remote import ProxyProcess
 
-        proc = ProxyProcess(config, hub, meter, on_exit=hub.stop)
+        proc = ProxyProcess(config, hub, on_exit=hub.stop)
         return proc.engine, proc, proc
 
     from mbmon.proxy.engine import Observer, ProxyEngine, ProxyThread
 
-    observer = Observer(hub.put, hub.new_stream, meter=meter, max_backlog=config.max_backlog)
+    observer = Observer(hub.put, hub.new_stream, meter=hub, max_backlog=config.max_backlog)
     engine = ProxyEngine(config, observer, submit=hub.submit, **factories)
     # The engine's thread must get the GIL back quickly when a packet arrives while
     # the hub's thread decodes and writes: the default 5 ms switch interval would add

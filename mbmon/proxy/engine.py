@@ -58,7 +58,7 @@ import time
 from collections import OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields
-from typing import Any
+from typing import Any, Protocol
 
 from mbmon.model import (
     Chunk,
@@ -78,13 +78,13 @@ from mbmon.proxy.guard import ClientFilter, Guard
 __all__ = [
     "GATEWAY_PATH_UNAVAILABLE",
     "GATEWAY_TARGET_FAILED",
-    "BacklogMeter",
     "Observer",
     "ProxyConfig",
     "ProxyEngine",
     "ProxyStats",
     "ProxyThread",
     "endpoint",
+    "keepalive",
 ]
 
 GATEWAY_PATH_UNAVAILABLE = 0x0A
@@ -113,6 +113,15 @@ READ_BUFFER = 64 * 1024
 #: are at most 260 bytes, so this holds hundreds; a client that leaves more unread
 #: than this and the loop's 64 KiB is not reading, and is dropped after ``timeout``.
 CLIENT_SNDBUF = 64 * 1024
+
+#: TCP keepalive on every client and upstream socket: probes after this many idle
+#: seconds, every ``KEEPALIVE_INTERVAL`` s, ``KEEPALIVE_COUNT`` unanswered ones close
+#: the connection. A peer whose host vanished (power cut, cable pulled) without a
+#: FIN or RST is noticed within about a minute instead of never (an idle client)
+#: or at the next request's timeout (an idle upstream).
+KEEPALIVE_IDLE = 30
+KEEPALIVE_INTERVAL = 10
+KEEPALIVE_COUNT = 3
 
 _C2S = Direction.C2S
 _S2C = Direction.S2C
@@ -203,26 +212,19 @@ class ProxyStats:
         return "\n".join(lines)
 
 
-class BacklogMeter:
-    """A hub listener that counts what the hub has taken, so the observer knows its backlog."""
+class Meter(Protocol):
+    """What the observer reads to know its backlog: items taken so far."""
 
-    name = "backlog meter"
-
-    def __init__(self) -> None:
-        self.seen = 0
-
-    def on_chunk(self, chunk: Chunk) -> None:
-        self.seen += 1
-
-    def on_event(self, event: Event) -> None:
-        self.seen += 1
+    seen: int
 
 
 class Observer:
     """The engine's way to the hub: ``put`` (thread-safe), ``new_stream``, the clock.
 
     Chunks are skipped (and counted) while the hub is more than ``max_backlog``
-    items behind; events always go through (they are few).
+    items behind; events always go through (they are few). ``meter`` tells how
+    far behind: anything whose ``seen`` counts the items taken so far (the hub
+    itself, :attr:`mbmon.hub.Hub.seen`; in the forwarding process, the pipe).
 
     Once :meth:`bind` gives it a scheduler (the loop's ``call_soon``, or a
     ``call_later`` of :attr:`ProxyConfig.handover`) and a ``submit``
@@ -236,7 +238,7 @@ class Observer:
         put: Callable[[Chunk | Event], None],
         new_stream: Callable[[Transport, str, str], Stream],
         *,
-        meter: BacklogMeter | None = None,
+        meter: Meter | None = None,
         max_backlog: int = MAX_BACKLOG,
         clock: Callable[[], float] = time.time,
     ) -> None:
@@ -420,6 +422,10 @@ class _Link:
             return
         self.proto = proto  # type: ignore[assignment]
         self.state = "up"
+        if proto.transport is not None:
+            sock = proto.transport.get_extra_info("socket")
+            if sock is not None:
+                keepalive(sock)
         self.decoder = MbapDecoder(self._stream(), _S2C)
         self.received = self.consumed = 0
         engine.stats.upstream_connects += 1
@@ -752,6 +758,7 @@ class _Client(_Reader):
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, CLIENT_SNDBUF)
             except OSError:
                 pass
+            keepalive(sock)
         engine.stats.clients += 1
         engine.clients.add(self)
         self.stream = engine.observer.new_stream(Transport.TCP, self.peer, engine.config.upstream)
@@ -1221,6 +1228,26 @@ class ProxyThread:
         """Wait for the thread; whether it has ended."""
         self._thread.join(timeout)
         return not self._thread.is_alive()
+
+
+def keepalive(sock: Any) -> None:
+    """Turn TCP keepalive on for ``sock`` (see :data:`KEEPALIVE_IDLE`); where the
+    platform lacks the per-socket timings, its defaults apply."""
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+    except OSError:
+        return
+    for name, value in (
+        ("TCP_KEEPIDLE", KEEPALIVE_IDLE),
+        ("TCP_KEEPINTVL", KEEPALIVE_INTERVAL),
+        ("TCP_KEEPCNT", KEEPALIVE_COUNT),
+    ):
+        option = getattr(socket, name, None)
+        if option is not None:
+            try:
+                sock.setsockopt(socket.IPPROTO_TCP, option, value)
+            except OSError:
+                pass
 
 
 def _why(exc: BaseException | None) -> str:

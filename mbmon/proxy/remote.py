@@ -416,19 +416,17 @@ class ProxyProcess:
     """Runs a :class:`~mbmon.proxy.engine.ProxyEngine` in a child process; the same
     calls as :class:`~mbmon.proxy.engine.ProxyThread` (``start``, ``stop``,
     ``join``, ``engine``). ``hub`` gets the observations (``submit``,
-    ``new_stream``); ``meter`` (a :class:`~mbmon.proxy.engine.BacklogMeter` on the
-    hub) bounds its backlog; ``on_exit`` runs when the child's pipe has ended."""
+    ``new_stream``) and bounds their backlog (``hub.seen``: what it has taken);
+    ``on_exit`` runs when the child's pipe has ended."""
 
     def __init__(
         self,
         config: ProxyConfig,
         hub: Any,
-        meter: Any,
         on_exit: Callable[[], None] | None = None,
     ) -> None:
         self.config = config
         self.hub = hub
-        self.meter = meter
         self.engine = RemoteEngine()
         self._on_exit = on_exit
         self._proc: subprocess.Popen[bytes] | None = None
@@ -496,7 +494,7 @@ class ProxyProcess:
         """The reader thread: pipe -> chunks and events -> ``hub.submit``."""
         fd = self._data
         assert fd is not None
-        hub, meter = self.hub, self.meter
+        hub = self.hub
         limit = self.config.max_backlog
         streams: dict[int, Stream] = {}
         buf = bytearray()
@@ -518,7 +516,7 @@ class ProxyProcess:
                     hub.submit(lambda items=items: items)
                     # the hub is behind: read no more, so the pipe and then the
                     # child's buffer fill and the child skips (bounded memory)
-                    while self.submitted - meter.seen > limit and not self._stopping:
+                    while self.submitted - hub.seen > limit and not self._stopping:
                         time.sleep(0.005)
         except OSError:
             pass
