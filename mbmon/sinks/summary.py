@@ -75,6 +75,9 @@ class Summary:
                     self.events[event.kind.value] += 1
                     if event.kind is EventKind.TIMEOUT:
                         self.timeouts += 1
+                    elif event.kind is EventKind.STATS:
+                        continue  # the source's own counters, stamped when it stopped:
+                        # not traffic, so not part of the time span
             elif kind is _COMMAND:
                 command = record.command
                 if command is not None:
