@@ -44,6 +44,8 @@ the client stays connected; late answers are dropped and logged; an RTU master
 screen: the live monitor on a terminal; --plain, --json or a pipe: one line per record.
 write specs: hr:100  hr:200-251  coil:0-7  unit:2  unit:2,hr:100-110 ; --deny-write
 always wins; with --read-only or any --allow-write only allowed writes pass.
+forwarding: a TCP proxy forwards in a process of its own, on uvloop when installed
+(MBMON_EVENT_LOOP=asyncio: asyncio's own loop); TCP keepalive finds vanished peers.
 exit status: 0 ok, 1 cannot listen or an output failed, 2 usage
 """
 
