@@ -257,11 +257,12 @@ class Observer:
     def bind(
         self,
         call_soon: Callable[[Callable[[], None]], Any],
-        submit: Callable[[Callable[[], list[Chunk | Event]]], None],
+        submit: Callable[[Callable[[], list[Chunk | Event]]], None] | None = None,
     ) -> None:
         """Batch items until ``call_soon(flush)`` runs (``loop.call_soon``: this loop
         iteration; a ``call_later``: after a delay) and hand them over with ``submit``
-        (in the loop's thread only)."""
+        (in the loop's thread only); without ``submit``, items go one by one to
+        ``put`` (an observer that hands batches over itself needs only the timer)."""
         self._call_soon = call_soon
         self._submit = submit
 
@@ -274,7 +275,7 @@ class Observer:
 
     def _emit(self, item: Chunk | Event) -> None:
         call_soon = self._call_soon
-        if call_soon is None:
+        if call_soon is None or self._submit is None:
             self._put(item)
             return
         batch = self._batch
@@ -1056,13 +1057,12 @@ class ProxyEngine:
         """Bind the listening socket; the address actually bound (port 0 picks one)."""
         self.loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
-        if self._submit is not None:
-            loop = self.loop
-            delay = self.config.handover
-            if delay > 0:
-                self.observer.bind(lambda fn: loop.call_later(delay, fn), self._submit)
-            else:
-                self.observer.bind(loop.call_soon, self._submit)
+        loop = self.loop
+        delay = self.config.handover
+        if delay > 0:
+            self.observer.bind(lambda fn: loop.call_later(delay, fn), self._submit)
+        else:
+            self.observer.bind(loop.call_soon, self._submit)
         self.loop.set_exception_handler(self._loop_error)
         cfg = self.config
         if self._upstream_factory is not None:

@@ -128,15 +128,6 @@ class PipeOut:
         self._object(("event", event.ts, sid, str(event.kind), dict(event.info)))
         self.items += 1
 
-    def submit(self, producer: Callable[[], list[Chunk | Event]]) -> None:
-        """Take a batch of chunks and events (``Observer.bind``'s submit) and commit."""
-        for item in producer():
-            if type(item) is Chunk:
-                self.put_chunk(item.stream.id, item.direction, item.data, item.ts)
-            else:
-                self.put_event(item)  # type: ignore[arg-type]
-        self.commit()
-
     def commit(self) -> None:
         """What the buffer holds is a batch: write what the pipe takes now."""
         self._marks.append((self.written + len(self.buf), self.items))
@@ -212,7 +203,7 @@ class PipeObserver(Observer):
         max_backlog: int,
     ) -> None:
         super().__init__(
-            lambda item: out.submit(lambda: [item]),
+            self._emit,  # never called by the base: this observer emits everything itself
             new_stream,
             meter=out,  # type: ignore[arg-type]
             max_backlog=max_backlog,
@@ -346,9 +337,9 @@ async def _child(config: ProxyConfig, data_fd: int, ctrl_fd: int) -> None:
         return stream
 
     observer = PipeObserver(out, new_stream, max_backlog=config.max_backlog)
-    # the engine binds the observer to its handover timer; its items are in the
-    # pipe's buffer already, and its flush commits them (submit: for other items)
-    engine = ProxyEngine(config, observer, submit=out.submit)
+    # the engine binds the observer to its handover timer (its items are in the
+    # pipe's buffer already; each handover commits them): no submit of its own
+    engine = ProxyEngine(config, observer)
     try:
         address = await engine.start()
     except OSError as exc:

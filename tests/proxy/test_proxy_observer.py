@@ -57,6 +57,18 @@ def test_batches_are_handed_over_once_per_loop_iteration_in_order() -> None:
     assert len(submitted) == 1
 
 
+def test_bound_without_a_submit_items_go_to_put_one_by_one() -> None:
+    """The engine always binds its handover timer; an observer given no ``submit``
+    (no hub batches) still puts every item at once, and schedules nothing."""
+    got: list[Any] = []
+    soon: list[Any] = []
+    obs = Observer(got.append, new_stream, clock=lambda: 1.0)
+    obs.bind(soon.append)
+    obs.chunk(STREAM, Direction.C2S, b"a", 1.0)
+    obs.event(STREAM, EventKind.NOTICE, {"message": "x"})
+    assert [type(i).__name__ for i in got] == ["Chunk", "Event"] and soon == []
+
+
 def test_endpoint_text_and_summary() -> None:
     assert endpoint("10.0.0.1", 502) == "10.0.0.1:502"
     assert endpoint("::1", 1502) == "[::1]:1502"

@@ -15,7 +15,6 @@ from pathlib import Path
 import pytest
 
 from mbmon.model import Chunk, Direction, EventKind, Stream, Transport
-from mbmon.proxy.engine import Observer
 from mbmon.proxy.remote import PipeObserver, PipeOut, decode_records
 from tests.proxy.test_proxy_e2e import (
     ENV,
@@ -109,24 +108,15 @@ def test_a_lost_forwarding_process_ends_the_run_with_an_error(tmp_path: Path) ->
     assert "requests 1, responses 1" in err  # the last counters it sent
 
 
-def _observer(kind: str, out: PipeOut, stream: Stream, max_backlog: int = 50_000) -> Observer:
-    """The child's own observer, or the engine's generic one handing batches to
-    ``out.submit``: the pipe carries the same records either way."""
-    if kind == "pipe":
-        return PipeObserver(out, lambda *x: stream, max_backlog=max_backlog)
-    return Observer(lambda item: None, lambda *x: stream, meter=out, max_backlog=max_backlog)  # type: ignore[arg-type]
-
-
-@pytest.mark.parametrize("kind", ["pipe", "batches"])
-def test_pipe_records_round_trip_in_order(kind: str) -> None:
+def test_pipe_records_round_trip_in_order() -> None:
     async def main() -> tuple[list, list]:
         loop = asyncio.get_running_loop()
         r, w = os.pipe()
         out = PipeOut(w, loop, lambda: None)
         a = Stream(7, Transport.TCP, "127.0.0.1:5000", "127.0.0.1:502")
         out.send(("stream", 7, "tcp", a.client, a.server))
-        observer = _observer(kind, out, a)
-        observer.bind(loop.call_soon, out.submit)
+        observer = PipeObserver(out, lambda *x: a, max_backlog=50_000)
+        observer.bind(loop.call_soon)
         observer.event(a, EventKind.CONNECT, {}, 1.0)
         observer.chunk(a, Direction.C2S, b"\x00\x01\x00\x00\x00\x06\x01\x03\x00\x00\x00\x01", 2.0)
         observer.chunk(a, Direction.S2C, b"\x00\x01\x00\x00\x00\x05\x01\x03\x02\x00\x2a", 3.5)
@@ -160,16 +150,15 @@ def test_pipe_records_round_trip_in_order(kind: str) -> None:
     assert others == [("stats", {"requests": 1}, {"clients": 1}, True)]
 
 
-@pytest.mark.parametrize("kind", ["pipe", "batches"])
-def test_an_unread_pipe_bounds_the_backlog_and_reports_what_was_skipped(kind: str) -> None:
+def test_an_unread_pipe_bounds_the_backlog_and_reports_what_was_skipped() -> None:
     async def main() -> tuple[int, int, int, list]:
         loop = asyncio.get_running_loop()
         r, w = os.pipe()
         out = PipeOut(w, loop, lambda: None)
         stream = Stream(0, Transport.TCP, "c:1", "s:2")
         out.send(("stream", 0, "tcp", "c:1", "s:2"))
-        observer = _observer(kind, out, stream, max_backlog=1000)
-        observer.bind(loop.call_soon, out.submit)
+        observer = PipeObserver(out, lambda *x: stream, max_backlog=1000)
+        observer.bind(loop.call_soon)
         payload = bytes(200)
         for i in range(20_000):  # nobody reads: the pipe fills, then the buffer
             observer.chunk(stream, Direction.C2S, payload, float(i))
