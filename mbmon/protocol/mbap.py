@@ -146,7 +146,8 @@ class MbapDecoder(StreamDecoder):
         old = len(self._buf)
         if not old and self._synced and not self._noise:
             # one whole clean ADU and nothing held: what _decode gives, without its loop
-            # (a proxy's segments, most live ones)
+            # (a proxy's segments, most live ones). split_clean's one-ADU case, inlined:
+            # calling it here cost 0.3-0.4 us per ADU (a call, two lists)
             n = len(data)
             if (
                 8 <= n <= 6 + self._max_length
