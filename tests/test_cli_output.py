@@ -75,6 +75,33 @@ def test_live_batches_are_written_before_the_next_one_is_asked_for() -> None:
     assert raw.getvalue().count(b"\n") == 3
 
 
+def test_ctrl_c_inside_a_write_leaves_no_empty_or_repeated_line() -> None:
+    """A KeyboardInterrupt raised by a write (Ctrl-C while stdout blocks): the
+    lines of that write are not written again at close, and no empty line (which
+    breaks every JSON-lines reader) comes out."""
+    records = _records()[:3]
+
+    class Interrupted(io.StringIO):
+        calls = 0
+
+        def write(self, text: str) -> int:
+            self.calls += 1
+            if self.calls == 1:
+                raise KeyboardInterrupt
+            return super().write(text)
+
+    out = Interrupted()
+    console = ConsoleListener(out, View(), live=True)
+    try:
+        console.on_records(records[:2])
+    except KeyboardInterrupt:
+        pass
+    console.on_records(records[2:])
+    console.close()
+    lines = out.getvalue().split("\n")
+    assert lines == [record_line(records[2], View()), ""]
+
+
 def test_json_is_the_same_text_in_any_stdout_encoding() -> None:
     """UTF-8 stdout gets bytes made in UTF-8; another encoding gets the text."""
 

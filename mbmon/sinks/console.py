@@ -74,12 +74,15 @@ class ConsoleListener:
             self._target.flush()
 
     def _write(self) -> None:
+        """Write the waiting lines, each once: they leave the list before the write,
+        so a Ctrl-C inside it (``KeyboardInterrupt``) cannot leave them to be written
+        again by :meth:`close` (nor an empty line: the list once kept the
+        terminator it had been given for the join)."""
         lines = self._lines
         if lines:
-            lines.append(self._newline[:0])
-            text = self._newline.join(lines)
-            lines.clear()
-            self._target.write(text)
+            self._lines = []
+            lines.append(self._newline[:0])  # the last line's terminator, from the join
+            self._target.write(self._newline.join(lines))
         if self.live:
             self._target.flush()
 
