@@ -521,12 +521,13 @@ class _Link:
             pending[entry.utid] = [entry]
         else:
             lst.append(entry)
-        entry.client.outstanding.add(entry)
         if entry.deadline is None:
-            entry.link = self
-            self.engine.arm(entry)
+            self._start_timer(entry)
+        else:  # queued while connecting: its timer runs already
+            entry.client.outstanding.add(entry)
 
     def _start_timer(self, entry: _Pending) -> None:
+        """Count ``entry`` as its client's, on this link, and start its timeout."""
         entry.client.outstanding.add(entry)
         entry.link = self
         self.engine.arm(entry)
