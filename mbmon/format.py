@@ -10,6 +10,7 @@ spaces: no unit id, no MBAP header, no CRC (manual §5.5, Table 57).
 
 from __future__ import annotations
 
+from binascii import hexlify as _hexlify
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -541,6 +542,16 @@ _JSON_PARTS: dict[tuple[Any, ...], tuple[Any, ...]] = {}
 #: whole, and only a repeat pays it back. A reused id only makes parts early.
 _SEEN_ONCE: dict[tuple[Any, ...], None] = {}
 _SEEN_ONCE_SIZE = 16384
+#: Answers to reads whose values change every poll (a robot's position, a counter):
+#: per (id(request pdu), unit, crc_ok, fc, PDU length), the fixed parts around the
+#: values, from the first answer whose parts :func:`_cache_json_parts` checked
+#: against its full encoding: (request pdu, text from "unit" to "values":, the
+#: note's JSON up to its values, text from "crc_ok" to "latency_ms":, text from
+#: "malformed" to "request_index":, end of the object, values are bits). An answer
+#: then only encodes its values, its hex and its values' text (:func:`_fill_read`).
+_READ_TEMPLATES: dict[tuple[Any, ...], tuple[Any, ...]] = {}
+_READS = frozenset(fc for fc, spec in FUNCTIONS.items() if spec.read)
+_RESPONSE_KIND = RecordKind.RESPONSE
 
 
 def record_json_bytes(record: Record, view: View) -> bytes:
@@ -569,12 +580,85 @@ def record_json_bytes(record: Record, view: View) -> bytes:
     if parts is not None and parts[0] is pdu and parts[1] is req_pdu:
         if head is not None and head[0] is stream:
             return _json_from_parts(record, frame, head, parts, view.time_format)
-    elif head is not None and head[0] is stream and key not in _SEEN_ONCE:
-        if len(_SEEN_ONCE) >= _SEEN_ONCE_SIZE:
-            _SEEN_ONCE.clear()
-        _SEEN_ONCE[key] = None
-        return _json_bytes(record_to_json(record, view))
+    elif head is not None and head[0] is stream:
+        if req_pdu is not None and record.kind is _RESPONSE_KIND and pdu.fc in _READS:
+            template = _READ_TEMPLATES.get(
+                (id(req_pdu), frame.unit, frame.crc_ok, pdu.fc, len(pdu.raw))
+            )
+            if template is None or template[0] is not req_pdu:
+                return _cache_json_parts(record, view)  # makes the template
+            if template[1] is not None and not pdu.malformed and not pdu.fields:
+                parts = _fill_read(template, pdu)
+                if key in _SEEN_ONCE:  # the same values again (polling a still robot)
+                    _keep_parts(parts, record.kind, frame)
+                else:
+                    _seen(key)
+                return _json_from_parts(record, frame, head, parts, view.time_format)
+        if key not in _SEEN_ONCE:
+            _seen(key)
+            return _json_bytes(record_to_json(record, view))
     return _cache_json_parts(record, view)
+
+
+def _seen(key: tuple[Any, ...]) -> None:
+    """Remember a frame record's parts key as seen once (bounded)."""
+    if len(_SEEN_ONCE) >= _SEEN_ONCE_SIZE:
+        _SEEN_ONCE.clear()
+    _SEEN_ONCE[key] = None
+
+
+def _fill_read(template: tuple[Any, ...], pdu: Pdu) -> tuple[Any, ...]:
+    """The fixed JSON parts (as ``_JSON_PARTS`` holds them) of an answer to a read, from
+    its request's template and its own values: what :func:`_parts_from_json` gives,
+    without building and encoding the record's JSON object and generic note."""
+    req_pdu, to_values, note_head, to_latency, to_index, end, bits = template
+    values = pdu.values or ()
+    hex_text = _hexlify(pdu.raw, b" ").upper()
+    values_json = _json_bytes(values)  # a tuple encodes as the list record_to_json has
+    if bits or len(values) > _MAX_VALUES_SHOWN:
+        shown = _values_text(values, bits).encode()
+    else:  # registers in decimal: the JSON list's items, as _values_text joins them
+        shown = values_json[1:-1].replace(b",", b", ")
+    note = b'%b%b"' % (note_head, shown)
+    return (
+        pdu,
+        req_pdu,
+        b'%b%b,"pdu":"%b","line":' % (to_values, values_json, hex_text),
+        hex_text,
+        note,
+        note[1:-1],
+        to_latency,
+        to_index,
+        end,
+    )
+
+
+def _keep_read_template(parts: tuple[Any, ...], frame: Frame) -> None:
+    """Cut the template of answers to ``parts``' request out of one answer's checked
+    parts (see ``_READ_TEMPLATES``); an answer whose parts do not have the values
+    where the template expects them leaves none (its request's answers then take
+    the general path)."""
+    pdu, req_pdu, to_line, hex_text, note_json, _, to_latency, to_index, end = parts
+    spec = _function(pdu.fc)
+    bits = spec is not None and spec.bits
+    tail = b',"values":%b,"pdu":"%b","line":' % (_json_bytes(list(pdu.values or ())), hex_text)
+    shown = b'%b"' % _values_text(pdu.values, bits).encode()
+    template: tuple[Any, ...] = (req_pdu, None)
+    if to_line.endswith(tail) and note_json.endswith(shown):
+        template = (
+            req_pdu,
+            to_line[: len(to_line) - len(tail)] + b',"values":',
+            note_json[: len(note_json) - len(shown)],
+            to_latency,
+            to_index,
+            end,
+            bits,
+        )
+    if template[1] is not None and _fill_read(template, pdu) != parts:
+        template = (req_pdu, None)  # none for this request: not tried again
+    if len(_READ_TEMPLATES) >= _CACHE_SIZE:
+        _READ_TEMPLATES.clear()
+    _READ_TEMPLATES[(id(req_pdu), frame.unit, frame.crc_ok, pdu.fc, len(pdu.raw))] = template
 
 
 def _json_from_parts(
@@ -703,6 +787,7 @@ def _cache_json_parts(record: Record, view: View) -> bytes:
     if _keys_checked and head is not None and head[0] is stream and not pdu.fields:
         parts = _parts_from_json(record_to_json(record, view, line=False), pdu, req_pdu)
         _keep_parts(parts, record.kind, frame)
+        _maybe_read_template(record, parts, frame)
         return _json_from_parts(record, frame, head, parts, view.time_format)
     obj = record_to_json(record, view)
     full = _json_bytes(obj)
@@ -739,7 +824,21 @@ def _cache_json_parts(record: Record, view: View) -> bytes:
         heads.clear()
     heads[(stream.id, frame.direction)] = head
     _keep_parts(parts, record.kind, frame)
+    _maybe_read_template(record, parts, frame)
     return full
+
+
+def _maybe_read_template(record: Record, parts: tuple[Any, ...], frame: Frame) -> None:
+    """Make the read template of a well-formed answer to a read (its parts are checked)."""
+    pdu = frame.pdu
+    if (
+        parts[1] is not None
+        and record.kind is _RESPONSE_KIND
+        and pdu.fc in _READS
+        and not pdu.malformed
+        and not pdu.fields
+    ):
+        _keep_read_template(parts, frame)
 
 
 def _keep_parts(parts: tuple[Any, ...], kind: RecordKind, frame: Frame) -> None:

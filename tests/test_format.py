@@ -287,7 +287,13 @@ def _pair(ts: float, stream: Stream = TCP) -> list[Record]:
     return [
         Record(0, ts, RecordKind.REQUEST, stream, frame=req),
         Record(
-            1, ts, RecordKind.RESPONSE, stream, frame=resp, request=req, request_index=0,
+            1,
+            ts,
+            RecordKind.RESPONSE,
+            stream,
+            frame=resp,
+            request=req,
+            request_index=0,
             latency=0.0125,
         ),
         Record(2, ts, RecordKind.EVENT, stream, event=Event(ts, stream, EventKind.CONNECT)),
@@ -397,3 +403,80 @@ def test_parts_are_made_on_a_pdus_second_sighting_not_its_first() -> None:
         assert record_json_bytes(record, view) == _slow(record, view)
         assert (key in fmt._JSON_PARTS) is (sighting >= 2), sighting
     assert len(fmt._SEEN_ONCE) <= fmt._SEEN_ONCE_SIZE
+
+
+#: reads and answers whose values a hypothesis draws: registers (03, 04, 17; more
+#: than the 16 values a note shows), bits (01, 02; more than the 64 it shows)
+READS = [
+    ("03 00 00 00 0A", 3, 10, False),
+    ("04 01 00 00 14", 4, 20, False),
+    ("17 00 00 00 03 00 10 00 01 02 00 05", 0x17, 3, False),
+    ("01 00 00 00 05", 1, 5, True),
+    ("02 00 10 00 48", 2, 72, True),
+]
+
+
+def _answer(fc: int, count: int, bits: bool, values: list[int]) -> bytes:
+    if bits:
+        data = bytearray((count + 7) // 8)
+        for i, v in enumerate(values[:count]):
+            data[i >> 3] |= (v & 1) << (i & 7)
+        return bytes([fc, len(data)]) + bytes(data)
+    body = b"".join((v & 0xFFFF).to_bytes(2, "big") for v in values[:count])
+    return bytes([fc, len(body)]) + body
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    read=st.sampled_from(READS),
+    polls=st.lists(
+        st.lists(st.integers(0, 0xFFFF), min_size=72, max_size=72), min_size=2, max_size=6
+    ),
+    crc_ok=st.sampled_from([None, True, False]),
+    notes=st.lists(st.sampled_from(["", '"q"', "→ A1 = 90.000°"]), max_size=2),
+    robot=st.sampled_from([None, "10.0.0.2"]),
+)
+def test_answers_with_new_values_are_filled_from_the_read_template(
+    read: tuple[str, int, int, bool],
+    polls: list[list[int]],
+    crc_ok: bool | None,
+    notes: list[str],
+    robot: str | None,
+) -> None:
+    """A robot's position changes every poll, so its answers are PDUs never seen
+    before: after the first, their lines come from the request's template (no JSON
+    object, no note made per answer) and are the full encoding all the same, also
+    for a malformed answer of the template's length in between."""
+    import mbmon.format as fmt
+
+    view = View(robot=robot)
+    req_hex, fc, count, bits = read
+    req = Frame(1.0, TCP, Direction.C2S, 1, 7, decode_pdu(bytes.fromhex(req_hex), False), b"")
+    answers = [_answer(fc, count, bits, values) for values in polls]
+    bad = bytes([answers[0][0], answers[0][1] + 1]) + answers[0][2:]  # wrong byte count
+    calls = 0
+    real = fmt.record_to_json
+
+    def counting(*args: object, **kwargs: object) -> object:
+        nonlocal calls
+        calls += 1
+        return real(*args, **kwargs)  # type: ignore[arg-type]
+
+    for i, raw in enumerate([*answers[:1], bad, *answers[1:]]):
+        pdu = decode_pdu(raw, True, req.pdu)
+        frame = Frame(1.0 + i, TCP, Direction.S2C, 1, 7, pdu, b"", crc_ok)
+        record = Record(
+            i, 1.0 + i, RecordKind.RESPONSE, TCP, frame=frame, request=req, request_index=0,
+            latency=0.001 * i, notes=tuple(notes),
+        )  # fmt: skip
+        expected = _slow(record, view)
+        fmt.record_to_json = counting  # type: ignore[assignment]
+        try:
+            calls = 0
+            assert record_json_bytes(record, view) == expected
+        finally:
+            fmt.record_to_json = real
+        if i >= 2:
+            assert pdu.malformed is None
+            assert calls == 0, "a new answer to a templated read took the general path"
+    assert decode_pdu(bad, True, req.pdu).malformed
