@@ -581,13 +581,13 @@ def record_json_bytes(record: Record, view: View) -> bytes:
         if head is not None and head[0] is stream:
             return _json_from_parts(record, frame, head, parts, view.time_format)
     elif head is not None and head[0] is stream:
-        if req_pdu is not None and record.kind is _RESPONSE_KIND and pdu.fc in _READS:
+        if _has_read_template(record, pdu, req_pdu):
             template = _READ_TEMPLATES.get(
                 (id(req_pdu), frame.unit, frame.crc_ok, pdu.fc, len(pdu.raw))
             )
             if template is None or template[0] is not req_pdu:
                 return _cache_json_parts(record, view)  # makes the template
-            if template[1] is not None and not pdu.malformed and not pdu.fields:
+            if template[1] is not None:
                 parts = _fill_read(template, pdu)
                 if key in _SEEN_ONCE:  # the same values again (polling a still robot)
                     _keep_parts(parts, record.kind, frame)
@@ -598,6 +598,18 @@ def record_json_bytes(record: Record, view: View) -> bytes:
             _seen(key)
             return _json_bytes(record_to_json(record, view))
     return _cache_json_parts(record, view)
+
+
+def _has_read_template(record: Record, pdu: Pdu, req_pdu: Pdu | None) -> bool:
+    """Whether a frame record is an answer that its read's template makes: a
+    well-formed answer to a read, without fields (see ``_READ_TEMPLATES``)."""
+    return (
+        req_pdu is not None
+        and record.kind is _RESPONSE_KIND
+        and pdu.fc in _READS
+        and not pdu.malformed
+        and not pdu.fields
+    )
 
 
 def _seen(key: tuple[Any, ...]) -> None:
@@ -830,14 +842,7 @@ def _cache_json_parts(record: Record, view: View) -> bytes:
 
 def _maybe_read_template(record: Record, parts: tuple[Any, ...], frame: Frame) -> None:
     """Make the read template of a well-formed answer to a read (its parts are checked)."""
-    pdu = frame.pdu
-    if (
-        parts[1] is not None
-        and record.kind is _RESPONSE_KIND
-        and pdu.fc in _READS
-        and not pdu.malformed
-        and not pdu.fields
-    ):
+    if _has_read_template(record, frame.pdu, parts[1]):
         _keep_read_template(parts, frame)
 
 
