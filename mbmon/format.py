@@ -650,11 +650,13 @@ def _keep_read_template(parts: tuple[Any, ...], frame: Frame) -> None:
     parts (see ``_READ_TEMPLATES``); an answer whose parts do not have the values
     where the template expects them leaves none (its request's answers then take
     the general path)."""
-    pdu, req_pdu, to_line, hex_text, note_json, _, to_latency, to_index, end = parts
+    pdu, req_pdu, to_line, _, note_json, _, to_latency, to_index, end = parts
     spec = _function(pdu.fc)
     bits = spec is not None and spec.bits
-    tail = b',"values":%b,"pdu":"%b","line":' % (_json_bytes(list(pdu.values or ())), hex_text)
-    shown = b'%b"' % _values_text(pdu.values, bits).encode()
+    # this answer's own pieces, as _fill_read makes them: filled into a template
+    # with nothing around them, its text from "values" on and its note's values
+    mine = _fill_read((req_pdu, b',"values":', b"", to_latency, to_index, end, bits), pdu)
+    tail, shown = mine[2], mine[4]
     template: tuple[Any, ...] = (req_pdu, None)
     if to_line.endswith(tail) and note_json.endswith(shown):
         template = (
@@ -666,8 +668,8 @@ def _keep_read_template(parts: tuple[Any, ...], frame: Frame) -> None:
             end,
             bits,
         )
-    if template[1] is not None and _fill_read(template, pdu) != parts:
-        template = (req_pdu, None)  # none for this request: not tried again
+        if _fill_read(template, pdu) != parts:
+            template = (req_pdu, None)  # none for this request: not tried again
     if len(_READ_TEMPLATES) >= _CACHE_SIZE:
         _READ_TEMPLATES.clear()
     _READ_TEMPLATES[(id(req_pdu), frame.unit, frame.crc_ok, pdu.fc, len(pdu.raw))] = template
