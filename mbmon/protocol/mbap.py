@@ -210,6 +210,17 @@ class MbapDecoder(StreamDecoder):
         self._last_ts = ts
         return out
 
+    def feed_adus(self, data: bytes, ts: float) -> tuple[list[bytes], Noise | None]:
+        """:meth:`feed` for a forwarder: the bytes of the ADUs ``data`` completes, up to
+        the first noise, and that noise (``None`` if there is none); what the proxy
+        does with a read that :meth:`split_clean` declined (a split ADU, garbage)."""
+        raws: list[bytes] = []
+        for item in self.feed(data, ts):
+            if type(item) is not Frame:
+                return raws, item
+            raws.append(item.raw)
+        return raws, None
+
     def flush(self, ts: float) -> list[Frame | Noise]:
         """End of stream: a resync candidate is judged with the bytes present, and
         the noise run with every undecided byte becomes one :class:`Noise`."""

@@ -65,7 +65,6 @@ from mbmon.model import (
     Direction,
     Event,
     EventKind,
-    Frame,
     Noise,
     Stream,
     Transport,
@@ -595,12 +594,7 @@ class _Link:
         bad: Noise | None = None
         raws = self.decoder.split_clean(data, ts)
         if raws is None:  # not whole clean ADUs: the decoder frames (or finds noise)
-            raws = []
-            for item in self.decoder.feed(data, ts):
-                if type(item) is not Frame:
-                    bad = item  # type: ignore[assignment]
-                    break
-                raws.append(item.raw)
+            raws, bad = self.decoder.feed_adus(data, ts)
             if not raws and bad is None:
                 return
         outs: dict[_Client, list[bytes]] = {}
@@ -787,15 +781,9 @@ class _Client(_Reader):
             self.partial_since = None
             self._requests(raws, ts)
             return
-        raws = []
-        bad: str | None = None
-        for item in self.decoder.feed(data, ts):
-            if type(item) is Frame:
-                raws.append(item.raw)
-                self.consumed += len(item.raw)
-            else:
-                bad = item.reason  # type: ignore[union-attr]
-                break
+        raws, noise = self.decoder.feed_adus(data, ts)
+        self.consumed += sum(map(len, raws))
+        bad = None if noise is None else noise.reason
         if bad is None and not self.decoder.synced:
             for noise in self.decoder.flush(ts):
                 bad = noise.reason
@@ -1099,8 +1087,7 @@ class ProxyEngine:
             EventKind.NOTICE,
             {
                 "message": f"proxy listening on {where}, "
-                f"upstream {upstream_text}"
-                + f", guard {cfg.guard.describe()}",
+                f"upstream {upstream_text}" + f", guard {cfg.guard.describe()}",
             },
         )
         if self.shared is not None:

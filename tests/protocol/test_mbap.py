@@ -321,6 +321,19 @@ def test_split_clean_byte_table() -> None:
     assert dec.split_clean(REQ_10, 2.0) is None
 
 
+def test_feed_adus_byte_table() -> None:
+    """What the proxy does with a read split_clean declined: the ADUs' bytes up to
+    the first noise, and that noise."""
+    dec = MbapDecoder(STREAM, Direction.C2S)
+    assert dec.feed_adus(REQ_03[:7], 1.0) == ([], None)  # half an ADU: nothing yet
+    assert dec.feed_adus(REQ_03[7:] + REQ_10, 2.0) == ([REQ_03, REQ_10], None)
+    raws, noise = MbapDecoder(STREAM, Direction.C2S).feed_adus(REQ_03 + b"GET / HTTP/1.1\r\n", 3.0)
+    assert raws == [REQ_03] and noise is None  # garbage held back: feed decides later
+    dec = MbapDecoder(STREAM, Direction.C2S)
+    raws, noise = dec.feed_adus(h("00 01 00 01 00 06 11 03 00 6B 00 03") + REQ_03, 4.0)
+    assert isinstance(noise, Noise) and noise.raw and raws == []
+
+
 @given(st.lists(_ADUS, min_size=1, max_size=6))
 def test_split_clean_takes_every_run_of_whole_clean_adus(adus: list[bytes]) -> None:
     dec = MbapDecoder(STREAM, Direction.S2C)
