@@ -19,6 +19,11 @@ process per client, blocking sockets, one request in flight each). Targets:
                       informational, the targets are against ``bare``;
 * ``mbmon``           ``mbmon proxy --quiet``;
 * ``mbmon -w mcap``   ``mbmon proxy --quiet -w x.mcap``;
+* ``mbmon, observer stopped`` (``--observer-stopped``) ``mbmon proxy --quiet`` with its
+                      observing process stopped (``SIGSTOP``) and its backlog full, so
+                      the forwarding process forwards without a copy: the forwarding
+                      alone, on the cores the observer would use. Informational: it
+                      shows what observing costs, not a way to run mbmon;
 * ``modbus-proxy``    the PyPI ``modbus-proxy`` package, when importable (install
                       it, or give ``--modbus-proxy DIR`` with its module).
 
@@ -399,6 +404,25 @@ def catch_up(pid: int, limit: float = 30.0) -> float:
 #: catch-up time (s) that is only the observer's last hand-overs and log flush (every 0.5 s)
 LAG_OK = 0.8
 
+#: The informational row of mbmon's forwarding alone (``--observer-stopped``).
+OBSERVER_STOPPED = "mbmon, observer stopped"
+
+#: Requests that certainly fill a stopped observer's backlog: mbmon's forwarding
+#: process keeps up to 50,000 items (two a request) for its observer, plus what the
+#: 1 MiB pipe holds (about 36 bytes a chunk); past that it forwards without a copy.
+BACKLOG_FILL = 60_000
+
+
+def stop_observer(pid: int, port: int, clients: int) -> None:
+    """Stop mbmon's observing process ``pid`` (the parent; the forwarding runs in its
+    child) and run clients through ``port`` until its backlog is full: from then on
+    the forwarding process forwards without a copy, as it does whenever its observer
+    falls that far behind. The caller sends ``SIGCONT`` after the measured run."""
+    os.kill(pid, signal.SIGSTOP)
+    sent = 0
+    while sent < BACKLOG_FILL:
+        sent += int(measure(port, clients, 1.0)["n"])
+
 
 def warm_up(port: int, clients: int) -> None:
     """Run ``clients`` clients for a moment and let them close, before a measured run.
@@ -434,6 +458,8 @@ def bench(args: argparse.Namespace) -> None:
         names.insert(2, "bare buffered")
     if args.uvloop_anchors:
         names.insert(names.index("mbmon"), "bare buffered uvloop")
+    if args.observer_stopped:
+        names.insert(names.index("mbmon"), OBSERVER_STOPPED)
     if _has_modbus_proxy(args.modbus_proxy):
         names.append("modbus-proxy")
         if args.uvloop_anchors:
@@ -453,7 +479,14 @@ def bench(args: argparse.Namespace) -> None:
                     ):
                         if not args.cold:
                             warm_up(port, clients)
-                        run = measure(port, clients, args.seconds, pid)
+                        stopped = name == OBSERVER_STOPPED and pid is not None
+                        if stopped:
+                            stop_observer(pid, port, clients)
+                        try:
+                            run = measure(port, clients, args.seconds, pid)
+                        finally:
+                            if stopped:
+                                os.kill(pid, signal.SIGCONT)
                     run["observed"] = seen.get("observed", 1.0)
                     runs.setdefault((name, clients), []).append(run)
     # each figure is the median over the rounds (one round: the figure itself)
@@ -466,7 +499,8 @@ def bench(args: argparse.Namespace) -> None:
     print(f"\nFC 03 x 10 registers ({values}), {args.seconds:g} s per run{rounds}, "
           f"{os.cpu_count()} CPUs, "
           f"load {load[0]:.1f} {load[1]:.1f} {load[2]:.1f}")  # fmt: skip
-    head = (f"{'target':<20} {'clients':>7} {'req/s':>8} {'p50 us':>8} {'p99 us':>8} "
+    w = max(20, *(len(name) for name in names))
+    head = (f"{'target':<{w}} {'clients':>7} {'req/s':>8} {'p50 us':>8} {'p99 us':>8} "
             f"{'added p50':>9} {'x bare':>7} {'rps/bare':>8} {'rps/m-p':>8} "
             f"{'cpu us/req':>10} {'lag s':>6} {'obs %':>6}")  # fmt: skip
     print(head)
@@ -483,17 +517,29 @@ def bench(args: argparse.Namespace) -> None:
             rps_bare = f"{r['rps'] / bare['rps']:.2f}"
             rps_mp = f"{r['rps'] / mproxy['rps']:.2f}" if mproxy else "-"
             cpu = "-" if r["cpu"] != r["cpu"] else f"{r['cpu']:.0f}"
-            lag = f"{r['lag']:.1f}" + ("*" if r["lag"] > LAG_OK else " ")
-            seen = f"{100 * r['observed']:.0f}" + ("*" if r["observed"] < 1.0 else " ")
-            print(f"{name:<20} {clients:>7} {r['rps']:>8.0f} {r['p50']:>8.0f} {r['p99']:>8.0f} "
+            behind = name != OBSERVER_STOPPED  # that row's observer is stopped on purpose
+            lag = f"{r['lag']:.1f}" + ("*" if behind and r["lag"] > LAG_OK else " ")
+            seen = f"{100 * r['observed']:.0f}" + ("*" if behind and r["observed"] < 1 else " ")
+            print(f"{name:<{w}} {clients:>7} {r['rps']:>8.0f} {r['p50']:>8.0f} {r['p99']:>8.0f} "
                   f"{added:>9.0f} {x_bare:>7} {rps_bare:>8} {rps_mp:>8} {cpu:>10} "
                   f"{lag:>6} {seen:>6}")  # fmt: skip
-    if any(r["lag"] > LAG_OK or r["observed"] < 1.0 for r in results.values()):
+    if any(
+        r["lag"] > LAG_OK or r["observed"] < 1.0
+        for (name, _), r in results.items()
+        if name != OBSERVER_STOPPED
+    ):
         print(
             f"* busy for more than {LAG_OK} s after its clients stopped, or forwarded chunks "
             "its observer dropped (obs %: the share it observed): the observer ran behind "
             "the forwarding, so req/s is forwarding the observer did not sustain; measure "
             "longer (--seconds 60) and read req/s x obs % as the rate observed in full"
+        )
+    if OBSERVER_STOPPED in names:
+        print(
+            f"{OBSERVER_STOPPED}: mbmon's forwarding process alone (its observer stopped, "
+            "its backlog full, chunks forwarded without a copy; obs % counts the run's "
+            "whole life): what observing costs on these cores. Informational, not a way to "
+            "run mbmon"
         )
 
 
@@ -589,6 +635,13 @@ def main() -> None:
         metavar="DIR",
         help="also run mbmon from this source tree (e.g. an export of main), next to "
         "this tree's, in the same run: before/after in the same minutes",
+    )
+    parser.add_argument(
+        "--observer-stopped",
+        action="store_true",
+        help="also run mbmon with its observing process stopped (SIGSTOP) once its "
+        "backlog is full: the forwarding alone, without the observation's CPU "
+        "(informational: what observing costs)",
     )
     parser.add_argument(
         "--fixed-values",
