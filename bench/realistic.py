@@ -78,9 +78,9 @@ def _mbap(tid: int, unit: int, pdu: bytes) -> bytes:
     return struct.pack("!HHHB", tid, 0, len(pdu) + 1, unit) + pdu
 
 
-def polling_adus(rng: random.Random, conns: int, transactions: int) -> Iterator[
-    tuple[int, bytes, bytes]
-]:
+def polling_adus(
+    rng: random.Random, conns: int, transactions: int
+) -> Iterator[tuple[int, bytes, bytes]]:
     """``(connection, request ADU, response ADU)`` of cells' polling, values changing."""
     polls: list[list[tuple[int, int, int]]] = []
     for _ in range(conns):
@@ -307,12 +307,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--adus", type=int, default=1_000_000, help="ADUs per capture (even)")
     ap.add_argument("--conns", type=int, default=8, help="client connections (3..200)")
     ap.add_argument("--handshakes", type=int, default=2, help="of them opened in the capture")
-    ap.add_argument("--modes", default="json,text,mixed,profile,mcap",
-                    help="which comparisons (json,text,mixed,profile,mcap)")
+    ap.add_argument(
+        "--modes",
+        default="json,text,mixed,profile,mcap",
+        help="which comparisons (json,text,mixed,profile,mcap)",
+    )
     ap.add_argument("--flat", action="store_true", help="also 5x the ADUs: peak RSS flat?")
     ap.add_argument("--skip-tshark", action="store_true", help="mbmon only (RSS, callgrind)")
-    ap.add_argument("--callgrind", type=int, metavar="N",
-                    help="instructions per ADU on an N-ADU file (valgrind), per mode")
+    ap.add_argument(
+        "--callgrind",
+        type=int,
+        metavar="N",
+        help="instructions per ADU on an N-ADU file (valgrind), per mode",
+    )
     args = ap.parse_args(argv)
     if not 3 <= args.conns <= 200 or not 0 <= args.handshakes <= args.conns:
         ap.error("--conns takes 3..200 and --handshakes 0..--conns")
@@ -417,16 +424,23 @@ def main(argv: list[str] | None = None) -> int:
             if per is not None:
                 per_mode[label] = per
                 print(f"  callgrind instructions per ADU, {label}: {per:,.0f}")
-        plain, hrss = per_mode.get("read (text, hrss file)"), per_mode.get(
-            "read --profile hrss (text)")
+        plain, hrss = (
+            per_mode.get("read (text, hrss file)"),
+            per_mode.get("read --profile hrss (text)"),
+        )
         if plain and hrss:
-            print(f"  callgrind --profile hrss / plain: {hrss / plain:.2f}x (target <= "
-                  f"{TARGETS['profile']}x)")
+            print(
+                f"  callgrind --profile hrss / plain: {hrss / plain:.2f}x (target <= "
+                f"{TARGETS['profile']}x)"
+            )
         jsonl, mcap = per_mode.get("read -q -w x.jsonl"), per_mode.get("read -q -w x.mcap")
         if jsonl and mcap:
-            print(f"  callgrind -w x.mcap / -w x.jsonl: {mcap / jsonl:.2f}x (target <= "
-                  f"{TARGETS['mcap']}x)")
+            print(
+                f"  callgrind -w x.mcap / -w x.jsonl: {mcap / jsonl:.2f}x (target <= "
+                f"{TARGETS['mcap']}x)"
+            )
     return 0
+
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -126,27 +126,40 @@ class HrssRobot:
         """The register map (Tables 12-15); addresses outside it are invalid -> exception 02."""
         bits, regs = DataType.BITS, DataType.REGISTERS
         off = [False] * 256  # bit blocks take a list (pymodbus 3.16 counts count= twice)
-        coils = [SimData(0, values=off, datatype=bits),  # SI1..SI256
-                 SimData(300, values=off, datatype=bits)]  # DO[1..256]
+        coils = [
+            SimData(0, values=off, datatype=bits),  # SI1..SI256
+            SimData(300, values=off, datatype=bits),
+        ]  # DO[1..256]
         so = [False, False, False, True] + [False] * 252  # SO4 Ready
-        dinputs = [SimData(0, values=so, datatype=bits),  # SO1..SO256 (Table 45)
-                   SimData(300, values=off, datatype=bits)]  # DI[1..256]
-        holding = [SimData(0, count=32, values=0, datatype=regs),  # SRR
-                   SimData(HR_SPEED, values=100, datatype=regs),
-                   SimData(HR_ENABLE, count=52, values=0, datatype=regs),  # R200..R251
-                   SimData(300, count=40, values=0, datatype=regs)]  # timers
-        inputs = [SimData(0, count=32, values=0, datatype=regs),  # SRW
-                  SimData(IR_SPEED, count=3, values=0, datatype=regs),
-                  SimData(IR_STATUS, count=52, values=0, datatype=regs),
-                  SimData(IR_JOINTS, count=12, values=0, datatype=regs),
-                  SimData(400, count=12, values=0, datatype=regs),
-                  SimData(500, count=4, values=0, datatype=regs),
-                  SimData(520, count=5, values=0, datatype=regs)]
+        dinputs = [
+            SimData(0, values=so, datatype=bits),  # SO1..SO256 (Table 45)
+            SimData(300, values=off, datatype=bits),
+        ]  # DI[1..256]
+        holding = [
+            SimData(0, count=32, values=0, datatype=regs),  # SRR
+            SimData(HR_SPEED, values=100, datatype=regs),
+            SimData(HR_ENABLE, count=52, values=0, datatype=regs),  # R200..R251
+            SimData(300, count=40, values=0, datatype=regs),
+        ]  # timers
+        inputs = [
+            SimData(0, count=32, values=0, datatype=regs),  # SRW
+            SimData(IR_SPEED, count=3, values=0, datatype=regs),
+            SimData(IR_STATUS, count=52, values=0, datatype=regs),
+            SimData(IR_JOINTS, count=12, values=0, datatype=regs),
+            SimData(400, count=12, values=0, datatype=regs),
+            SimData(500, count=4, values=0, datatype=regs),
+            SimData(520, count=5, values=0, datatype=regs),
+        ]
         return SimDevice(UNIT, simdata=(coils, dinputs, holding, inputs), action=self.action)
 
     async def action(
-        self, fc: int, start: int, address: int, count: int,
-        registers: list[int], values: list[int] | list[bool] | None,
+        self,
+        fc: int,
+        start: int,
+        address: int,
+        count: int,
+        registers: list[int],
+        values: list[int] | list[bool] | None,
     ) -> ExcCodes | None:
         """React to one access: writes change the state, FC04 reads see it."""
         if fc in (6, 16) and values is not None:
@@ -187,8 +200,10 @@ class HrssRobot:
             self.joints = list(self.target)
             self.status, self.motion = 1, 1
             return
-        self.joints = [s + (t - s) * self.polls // (MOTION_POLLS + 1)
-                       for s, t in zip(self.start, self.target, strict=True)]
+        self.joints = [
+            s + (t - s) * self.polls // (MOTION_POLLS + 1)
+            for s, t in zip(self.start, self.target, strict=True)
+        ]
 
     def _publish(self, start: int, registers: list[int]) -> None:
         running = self.motion == 2
@@ -222,31 +237,43 @@ async def hrss_session(client: Any, log: list[str]) -> None:
         if got != want:
             raise RuntimeError(f"{what}: got {got}, expected {want}")
 
-    rr = check(await client.read_input_registers(IR_SPEED, count=1, device_id=UNIT),
-               "FC04 IR100 speed")
+    rr = check(
+        await client.read_input_registers(IR_SPEED, count=1, device_id=UNIT), "FC04 IR100 speed"
+    )
     expect(rr.registers, [100], "IR100")
     check(await client.write_register(HR_SPEED, 90, device_id=UNIT), "FC06 R100 = 90")
     rr = check(await client.read_discrete_inputs(0, count=8, device_id=UNIT), "FC02 SO1..SO8")
     expect([int(b) for b in rr.bits[:8]], [0, 0, 0, 1, 0, 0, 0, 0], "SO1..SO8")
     check(await client.write_coil(0, True, device_id=UNIT), "FC05 SI1 Start ON")
-    check(await client.write_coils(300, [True, True, False, False, True], device_id=UNIT),
-          "FC0F DO[1..5]")
+    check(
+        await client.write_coils(300, [True, True, False, False, True], device_id=UNIT),
+        "FC0F DO[1..5]",
+    )
     rr = check(await client.read_coils(0, count=8, device_id=UNIT), "FC01 SI1..SI8")
     expect([int(b) for b in rr.bits[:8]], [1, 0, 0, 0, 0, 0, 0, 0], "SI1..SI8")
     check(await client.write_registers(HR_ENABLE, [0], device_id=UNIT), "FC10 R200 = 0")
-    check(await client.write_registers(HR_PARAMS, ptp_parameters(), device_id=UNIT),
-          "FC10 R201..R226 PTP")
-    rr = check(await client.read_holding_registers(HR_ENABLE, count=2, device_id=UNIT),
-               "FC03 R200..R201")
+    check(
+        await client.write_registers(HR_PARAMS, ptp_parameters(), device_id=UNIT),
+        "FC10 R201..R226 PTP",
+    )
+    rr = check(
+        await client.read_holding_registers(HR_ENABLE, count=2, device_id=UNIT), "FC03 R200..R201"
+    )
     expect(rr.registers, [0, 0], "R200..R201")
     check(await client.write_register(HR_ENABLE, 1, device_id=UNIT), "FC06 R200 = 1")
     for _ in range(MOTION_POLLS + 3):
-        status = check(await client.read_input_registers(IR_STATUS, count=1, device_id=UNIT),
-                       "FC04 IR200 status").registers[0]
-        motion = check(await client.read_input_registers(IR_MOTION, count=1, device_id=UNIT),
-                       "FC04 IR524 motion").registers[0]
-        joints = check(await client.read_input_registers(IR_JOINTS, count=12, device_id=UNIT),
-                       "FC04 IR300..IR311 joints").registers
+        status = check(
+            await client.read_input_registers(IR_STATUS, count=1, device_id=UNIT),
+            "FC04 IR200 status",
+        ).registers[0]
+        motion = check(
+            await client.read_input_registers(IR_MOTION, count=1, device_id=UNIT),
+            "FC04 IR524 motion",
+        ).registers[0]
+        joints = check(
+            await client.read_input_registers(IR_JOINTS, count=12, device_id=UNIT),
+            "FC04 IR300..IR311 joints",
+        ).registers
         if status != 0 and motion == 1:
             break
         await asyncio.sleep(0.1)  # WAIT SEC 0.1 of the manual's polling loop
@@ -306,7 +333,9 @@ async def capture_tcp(out: Path) -> list[str]:
     tmp = out.with_suffix(".tmp")
     dump = subprocess.Popen(
         ["tcpdump", "-i", "lo", "-w", str(tmp), "-U", "-n", f"tcp port {TCP_PORT}"],
-        stderr=subprocess.PIPE, text=True)
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     assert dump.stderr is not None
     line = dump.stderr.readline()
     if "listening on" not in line:
@@ -337,8 +366,9 @@ async def capture_tcp(out: Path) -> list[str]:
 
 def socat_pair() -> tuple[subprocess.Popen[str], str, str]:
     """Start ``socat -d -d pty,raw,echo=0 pty,raw,echo=0`` and return it with its two pty paths."""
-    proc = subprocess.Popen(["socat", "-d", "-d", "pty,raw,echo=0", "pty,raw,echo=0"],
-                            stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        ["socat", "-d", "-d", "pty,raw,echo=0", "pty,raw,echo=0"], stderr=subprocess.PIPE, text=True
+    )
     assert proc.stderr is not None
     ptys: list[str] = []
     while len(ptys) < 2:
@@ -404,13 +434,15 @@ async def capture_rtu(pcap: Path, raw: Path) -> list[str]:
         client_pty, tap_a = client_pair[1], client_pair[2]
         tap_b, server_pty = server_pair[1], server_pair[2]
         robot = HrssRobot()
-        server = ModbusSerialServer(robot.device(), framer=FramerType.RTU, port=server_pty,
-                                    baudrate=RTU_BAUD)
+        server = ModbusSerialServer(
+            robot.device(), framer=FramerType.RTU, port=server_pty, baudrate=RTU_BAUD
+        )
         with BusTap(tap_a, tap_b) as tap:
             await server.serve_forever(background=True)
             await asyncio.sleep(0.5)
-            client = AsyncModbusSerialClient(client_pty, framer=FramerType.RTU,
-                                             baudrate=RTU_BAUD, retries=0)
+            client = AsyncModbusSerialClient(
+                client_pty, framer=FramerType.RTU, baudrate=RTU_BAUD, retries=0
+            )
             log: list[str] = []
             try:
                 if not await client.connect():
@@ -449,8 +481,12 @@ FUNCTIONS: list[tuple[str, int, str, str | None]] = [
     ("FC04 read IR100 (speed %)", 1, "04 00 64 00 01", "04 02 00 64"),
     ("FC05 write coil 300 (DO[1]) ON", 1, "05 01 2C FF 00", "05 01 2C FF 00"),
     ("FC06 write R100 = 90", 1, "06 00 64 00 5A", "06 00 64 00 5A"),
-    ("FC0F write coils 300..304 (DO[1..5]) = 1 1 0 0 1", 1, "0F 01 2C 00 05 01 13",
-     "0F 01 2C 00 05"),
+    (
+        "FC0F write coils 300..304 (DO[1..5]) = 1 1 0 0 1",
+        1,
+        "0F 01 2C 00 05 01 13",
+        "0F 01 2C 00 05",
+    ),
     ("FC10 write R0..R1 (SRR) = 1, 2", 1, "10 00 00 00 02 04 00 01 00 02", "10 00 00 00 02"),
     ("FC01 read coils 300..304 back", 1, "01 01 2C 00 05", "01 01 13"),
     ("FC03 read R0..R1 back", 1, "03 00 00 00 02", "03 04 00 01 00 02"),
@@ -475,8 +511,7 @@ EXCEPTIONS: list[tuple[str, int, str, str | None]] = [
     ("FC04 IR300..IR311 (A1..A6) is fine", 1, "04 01 2C 00 0C", None),
     ("FC01 coils 256..263 (between SI256 and DO[1]): exception 02", 1, "01 01 00 00 08", "81 02"),
     ("FC06 R50 (not in the map): exception 02", 1, "06 00 32 00 01", "86 02"),
-    ("FC10 R1950..R1951 (after PR[50]): exception 02", 1, "10 07 9E 00 02 04 00 00 00 00",
-     "90 02"),
+    ("FC10 R1950..R1951 (after PR[50]): exception 02", 1, "10 07 9E 00 02 04 00 00 00 00", "90 02"),
     ("FC06 R100 = 0 (speed 1..100): exception 03", 1, "06 00 64 00 00", "86 03"),
     ("FC10 R100 = 101: exception 03", 1, "10 00 64 00 01 02 00 65", "90 03"),
     ("FC06 R200 = 2 (0..1): exception 03", 1, "06 00 C8 00 02", "86 03"),
@@ -492,8 +527,7 @@ def _words(values: Sequence[int]) -> str:
 def _execute(params: Sequence[int]) -> list[str]:
     """R200 = 0, parameters from R201 (FC10), R200 = 1: the handshake of §5.3.3.5."""
     n = len(params)
-    return ["06 00 C8 00 00", f"10 00 C9 00 {n:02X} {2 * n:02X} {_words(params)}",
-            "06 00 C8 00 01"]
+    return ["06 00 C8 00 00", f"10 00 C9 00 {n:02X} {2 * n:02X} {_words(params)}", "06 00 C8 00 01"]
 
 
 #: PTP {A1 90} of Table 46 at Vel=250 % (R215 = 250, outside 1..200).
@@ -501,17 +535,27 @@ PTP_250 = [0, 0, 24464, 1] + [0] * 10 + [250, 100, 1, 2] + [0] * 8
 
 #: The failing-command session: (what, PDU, answer) with ``None`` for an answer not fixed here.
 FAIL: list[tuple[str, int, str, str | None]] = [
-    *[(f"PTP Vel=250%: {w}", 1, pdu, None) for w, pdu in zip(
-        ("R200 = 0", "R201..R226", "R200 = 1"), _execute(PTP_250), strict=True)],
+    *[
+        (f"PTP Vel=250%: {w}", 1, pdu, None)
+        for w, pdu in zip(("R200 = 0", "R201..R226", "R200 = 1"), _execute(PTP_250), strict=True)
+    ],
     ("IR200..IR201: status 2 (fail), command 0 (PTP)", 1, "04 00 C8 00 02", "04 04 00 02 00 00"),
     ("IR524: the robot did not move (1 Idle)", 1, "04 02 0C 00 01", "04 02 00 01"),
-    *[(f"Get PR[0]: {w}", 1, pdu, None) for w, pdu in zip(
-        ("R200 = 0", "R201..R202", "R200 = 1"), _execute([200, 0]), strict=True)],
-    ("IR200..IR201: status 2 (PR 0 outside 1..4000), command 200", 1, "04 00 C8 00 02",
-     "04 04 00 02 00 C8"),
+    *[
+        (f"Get PR[0]: {w}", 1, pdu, None)
+        for w, pdu in zip(("R200 = 0", "R201..R202", "R200 = 1"), _execute([200, 0]), strict=True)
+    ],
+    (
+        "IR200..IR201: status 2 (PR 0 outside 1..4000), command 200",
+        1,
+        "04 00 C8 00 02",
+        "04 04 00 02 00 C8",
+    ),
     ("R200 = 1 again without R200 = 0: nothing executes", 1, "06 00 C8 00 01", "06 00 C8 00 01"),
-    *[(f"Set Current TOOL[3]: {w}", 1, pdu, None) for w, pdu in zip(
-        ("R200 = 0", "R201..R202", "R200 = 1"), _execute([103, 3]), strict=True)],
+    *[
+        (f"Set Current TOOL[3]: {w}", 1, pdu, None)
+        for w, pdu in zip(("R200 = 0", "R201..R202", "R200 = 1"), _execute([103, 3]), strict=True)
+    ],
     ("IR200..IR201: status 1 (success), command 103", 1, "04 00 C8 00 02", "04 04 00 01 00 67"),
     ("R200 = 0", 1, "06 00 C8 00 00", "06 00 C8 00 00"),
 ]
@@ -567,9 +611,10 @@ def tcpdump_lo(out: Path, port: int) -> Any:
     """Record Modbus/TCP on ``lo`` port ``port`` into ``out`` while the block runs."""
     tmp = out.with_suffix(".tmp")
     dump = subprocess.Popen(
-        ["tcpdump", "-i", "lo", "--immediate-mode", "-w", str(tmp), "-U", "-n",
-         f"tcp port {port}"],
-        stderr=subprocess.PIPE, text=True)
+        ["tcpdump", "-i", "lo", "--immediate-mode", "-w", str(tmp), "-U", "-n", f"tcp port {port}"],
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     assert dump.stderr is not None
     line = dump.stderr.readline()
     if "listening on" not in line:
@@ -615,9 +660,21 @@ def capture_demo(out: Path) -> list[str]:
     out.unlink(missing_ok=True)
     log: list[str] = []
     with SimServer(host=TCP_HOST, port=TCP_PORT):
-        proxy = _mbmon("proxy", "--upstream", f"{TCP_HOST}:{TCP_PORT}", "--listen",
-                       f"{TCP_HOST}:1502", "--deny-write", GUARD_SPEC, "--profile", "hrss",
-                       "-q", "-w", str(out), stderr=subprocess.PIPE)
+        proxy = _mbmon(
+            "proxy",
+            "--upstream",
+            f"{TCP_HOST}:{TCP_PORT}",
+            "--listen",
+            f"{TCP_HOST}:1502",
+            "--deny-write",
+            GUARD_SPEC,
+            "--profile",
+            "hrss",
+            "-q",
+            "-w",
+            str(out),
+            stderr=subprocess.PIPE,
+        )
         assert proxy.stderr is not None
         line = proxy.stderr.readline()
         if "listening on" not in line:
@@ -655,13 +712,15 @@ def capture_sim_rtu(pcap: Path, raw: Path) -> list[str]:
         with BusTap(tap_a, tap_b) as tap:
             with SimServer(serial=server_pty, baudrate=RTU_BAUD, unit=UNIT):
                 time.sleep(0.3)
-                client = ModbusSerialClient(client_pty, framer=FramerType.RTU,
-                                            baudrate=RTU_BAUD, timeout=2, retries=0)
+                client = ModbusSerialClient(
+                    client_pty, framer=FramerType.RTU, baudrate=RTU_BAUD, timeout=2, retries=0
+                )
                 if not client.connect():
                     raise RuntimeError("serial client could not open its pty")
                 try:
-                    result = run_program(client=client, extras=False,
-                                         on_step=lambda st: log.append(st.line))
+                    result = run_program(
+                        client=client, extras=False, on_step=lambda st: log.append(st.line)
+                    )
                 finally:
                     client.close()
                 if result.joints[0] != 90:
@@ -689,13 +748,16 @@ ONLY = ("tcp", "rtu", "demo", "functions", "exceptions", "fail", "sim-rtu")
 
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--only", choices=ONLY, action="append",
-                    help="make only these (repeatable; default: all)")
+    ap.add_argument(
+        "--only", choices=ONLY, action="append", help="make only these (repeatable; default: all)"
+    )
     ap.add_argument("--out", type=Path, default=HERE)
     args = ap.parse_args(argv)
     if os.geteuid() != 0:
-        print("needs root (port 502 and tcpdump): sudo python captures/make_captures.py",
-              file=sys.stderr)
+        print(
+            "needs root (port 502 and tcpdump): sudo python captures/make_captures.py",
+            file=sys.stderr,
+        )
         return 2
     for tool in ("tcpdump", "socat"):
         if shutil.which(tool) is None:
@@ -710,9 +772,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         pcap, raw = args.out / "hrss_rtu.pcap", args.out / "hrss_rtu.bin"
         log = asyncio.run(capture_rtu(pcap, raw))
         print(f"{pcap}, {raw}: {len(log)} transactions ({raw.stat().st_size} bus bytes)")
-    for name, file, session in (("functions", "sim_functions.pcap", FUNCTIONS),
-                                ("exceptions", "sim_exceptions.pcap", EXCEPTIONS),
-                                ("fail", "sim_fail.pcap", FAIL)):
+    for name, file, session in (
+        ("functions", "sim_functions.pcap", FUNCTIONS),
+        ("exceptions", "sim_exceptions.pcap", EXCEPTIONS),
+        ("fail", "sim_fail.pcap", FAIL),
+    ):
         if name in wanted:
             out = args.out / file
             log = capture_sim_session(out, session)

@@ -115,9 +115,7 @@ class Hub:
         self._slots: list[_Slot] = []
         # per-hook call lists for the hooks called one by one; records go through
         # _record_hooks, which keeps each listener's batch-or-single choice
-        self._by_hook: dict[str, list[tuple[_Slot, Callable[..., Any]]]] = {
-            h: [] for h in _INDEXED
-        }
+        self._by_hook: dict[str, list[tuple[_Slot, Callable[..., Any]]]] = {h: [] for h in _INDEXED}
         self._record_hooks: list[tuple[_Slot, Any, Any]] = []
         self._stderr = stderr
         self._clock = clock

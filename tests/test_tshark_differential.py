@@ -93,8 +93,15 @@ TSHARK_DOES_NOT_FRAME: dict[str, list[Expected]] = {
     # the same frame numbers here)
     "tcp__zeek__fuzz-72.pcap": [
         Expected(
-            frame=7, src="192.168.66.235:2582", dst="166.161.16.230:502", tid=0, unit=1,
-            fc=0x22, kind="request", pdu="22 00 00 00 00", noise_before="00 00",
+            frame=7,
+            src="192.168.66.235:2582",
+            dst="166.161.16.230:502",
+            tid=0,
+            unit=1,
+            fc=0x22,
+            kind="request",
+            pdu="22 00 00 00 00",
+            noise_before="00 00",
             why=(
                 "Frame 6 is the 12-byte segment 00 00 00 00 00 04 01 21 00 00 00 00 whose "
                 "MBAP length 4 makes a 10-byte ADU (FC 0x21), leaving 2 bytes (00 00) in "
@@ -105,8 +112,15 @@ TSHARK_DOES_NOT_FRAME: dict[str, list[Expected]] = {
         ),
         *(
             Expected(
-                frame=frame, src="166.161.16.230:502", dst="192.168.66.235:2582", tid=0,
-                unit=1, fc=fc, kind="exception", pdu=f"{fc | 0x80:02X} 01", noise_before=None,
+                frame=frame,
+                src="166.161.16.230:502",
+                dst="192.168.66.235:2582",
+                tid=0,
+                unit=1,
+                fc=fc,
+                kind="exception",
+                pdu=f"{fc | 0x80:02X} 01",
+                noise_before=None,
                 time_frame=time_frame,
                 why=(
                     "Frame 1 is a fuzzed server segment with SYN+FIN+PSH+URG and 6 payload "
@@ -119,8 +133,12 @@ TSHARK_DOES_NOT_FRAME: dict[str, list[Expected]] = {
                     "frame's time (issue 8 item 6), not frame 22's."
                 ),
             )
-            for frame, fc, time_frame in ((19, 0x2F, None), (21, 0x33, None), (26, 0x3A, None),
-                                          (27, 0x3B, None))
+            for frame, fc, time_frame in (
+                (19, 0x2F, None),
+                (21, 0x33, None),
+                (26, 0x3A, None),
+                (27, 0x3B, None),
+            )
         ),
     ],
 }
@@ -176,8 +194,19 @@ def tshark_adus(path: Path) -> tuple[Adu, ...]:
     position, and a frame where the two lists differ in length fails loudly.
     """
     extra = EXTRA_ARGS.get(path.name, ((), ()))[0]
-    cmd = [TSHARK or "tshark", "-r", str(path), *extra, "-Y", "mbtcp or mbrtu", "-T", "json",
-           "--no-duplicate-keys", "-j", "frame ip ipv6 tcp udp mbtcp mbrtu modbus"]
+    cmd = [
+        TSHARK or "tshark",
+        "-r",
+        str(path),
+        *extra,
+        "-Y",
+        "mbtcp or mbrtu",
+        "-T",
+        "json",
+        "--no-duplicate-keys",
+        "-j",
+        "frame ip ipv6 tcp udp mbtcp mbrtu modbus",
+    ]
     out = subprocess.run(cmd, capture_output=True, check=True).stdout
     adus: list[Adu] = []
     for pkt in json.loads(out or b"[]"):
@@ -221,8 +250,9 @@ class MbmonRun:
 def mbmon_run(path: Path) -> MbmonRun:
     """``mbmon read FILE --json``, parsed."""
     extra = EXTRA_ARGS.get(path.name, ((), ()))[1]
-    p = subprocess.run([sys.executable, "-m", "mbmon", "read", str(path), "--json", *extra],
-                       capture_output=True)
+    p = subprocess.run(
+        [sys.executable, "-m", "mbmon", "read", str(path), "--json", *extra], capture_output=True
+    )
     records = []
     for line in p.stdout.splitlines():
         records.append(json.loads(line))
@@ -233,8 +263,19 @@ def mbmon_adus(path: Path) -> tuple[Adu, ...]:
     out = []
     for r in mbmon_run(path).records:
         if r["kind"] in ADU_KINDS:
-            out.append(Adu(r["src"], r["dst"], r["tid"], r["unit"], r["fc"],
-                           r["exception_code"], r["address"], r["count"], record=r["index"]))
+            out.append(
+                Adu(
+                    r["src"],
+                    r["dst"],
+                    r["tid"],
+                    r["unit"],
+                    r["fc"],
+                    r["exception_code"],
+                    r["address"],
+                    r["count"],
+                    record=r["index"],
+                )
+            )
     return tuple(out)
 
 
@@ -253,9 +294,11 @@ def match(ts: tuple[Adu, ...], mb: tuple[Adu, ...]) -> tuple[int, list[Adu], lis
     for t in ts:
         candidates = pool.get((t.src, t.dst, t.tid, t.unit, t.fc), [])
         for i, a in enumerate(candidates):
-            if (a.exc == t.exc
-                    and (t.address is None or a.address == t.address)
-                    and (t.count is None or a.count == t.count)):
+            if (
+                a.exc == t.exc
+                and (t.address is None or a.address == t.address)
+                and (t.count is None or a.count == t.count)
+            ):
                 del candidates[i]
                 matched += 1
                 break
@@ -273,9 +316,13 @@ def _files() -> list[Any]:
     if REAL.is_dir():
         params += [pytest.param(p, id=p.name) for p in sorted(REAL.glob("tcp__*"))]
     else:
-        params.append(pytest.param(None, id="real-captures",
-                                   marks=pytest.mark.skip(reason=f"{REAL} absent (real "
-                                                          "captures are not shipped)")))
+        params.append(
+            pytest.param(
+                None,
+                id="real-captures",
+                marks=pytest.mark.skip(reason=f"{REAL} absent (real captures are not shipped)"),
+            )
+        )
     params += [pytest.param(p, id=p.name) for p in sorted(OWN.glob("*.pcap"))]
     return params
 
@@ -299,7 +346,8 @@ def test_every_tshark_adu_is_found_by_mbmon(path: Path) -> None:
     unexplained = [t for t in missing if t.frame not in allowed]
     assert not unexplained, (
         f"{len(unexplained)} of {len(ts)} tshark ADUs in {path.name} have no mbmon match, "
-        "first ones:\n" + "\n".join(map(str, unexplained[:10])))
+        "first ones:\n" + "\n".join(map(str, unexplained[:10]))
+    )
     assert {t.frame for t in missing} == set(allowed), "a documented miss no longer happens"
 
 
@@ -311,28 +359,50 @@ def test_every_mbmon_adu_is_tshark_s_or_documented(path: Path) -> None:
     got = [records[a.record] for a in extra]
     assert len(got) == len(expected), (
         f"mbmon reports {len(got)} ADUs in {path.name} that tshark does not, "
-        f"{len(expected)} documented:\n" + "\n".join(r["line"] for r in got[:10]))
+        f"{len(expected)} documented:\n" + "\n".join(r["line"] for r in got[:10])
+    )
     for rec, exp in zip(got, expected, strict=True):
-        assert (rec["src"], rec["dst"], rec["tid"], rec["unit"], rec["fc"], rec["kind"],
-                rec["pdu"]) == (exp.src, exp.dst, exp.tid, exp.unit, exp.fc, exp.kind,
-                                exp.pdu), exp.why
+        assert (
+            rec["src"],
+            rec["dst"],
+            rec["tid"],
+            rec["unit"],
+            rec["fc"],
+            rec["kind"],
+            rec["pdu"],
+        ) == (exp.src, exp.dst, exp.tid, exp.unit, exp.fc, exp.kind, exp.pdu), exp.why
         # the ADU really is in that frame: same time, and its PDU bytes are in the payload
         _, payload = _frame(path, exp.frame)
         time, _ = _frame(path, exp.time_frame or exp.frame)
         assert abs(rec["time"] - time) < 1e-5, (rec["time"], time, exp.why)
         assert exp.pdu.replace(" ", "").lower() in payload, (payload, exp.why)
         if exp.noise_before is not None:
-            before = [r for r in records[: rec["index"]]
-                      if r["kind"] == "noise" and r["src"] == exp.src]
+            before = [
+                r for r in records[: rec["index"]] if r["kind"] == "noise" and r["src"] == exp.src
+            ]
             assert before and before[-1]["pdu"] == exp.noise_before, (before[-1:], exp.why)
 
 
 @cache
 def _frame(path: Path, number: int) -> tuple[float, str]:
     out = subprocess.run(
-        [TSHARK or "tshark", "-r", str(path), "-Y", f"frame.number=={number}", "-T", "fields",
-         "-e", "frame.time_epoch", "-e", "tcp.payload"],
-        capture_output=True, check=True, text=True).stdout.split("\t")
+        [
+            TSHARK or "tshark",
+            "-r",
+            str(path),
+            "-Y",
+            f"frame.number=={number}",
+            "-T",
+            "fields",
+            "-e",
+            "frame.time_epoch",
+            "-e",
+            "tcp.payload",
+        ],
+        capture_output=True,
+        check=True,
+        text=True,
+    ).stdout.split("\t")
     return float(out[0]), out[1].strip().replace(":", "")
 
 
@@ -350,9 +420,21 @@ def test_part1_stream_of_0x8804_lengths_is_noise_for_both() -> None:
     assert not [r for r in records if r["kind"] in ADU_KINDS]
     noise = sum(len(r["pdu"].split()) for r in records if r["kind"] == "noise")
     out = subprocess.run(
-        [TSHARK or "tshark", "-r", str(path), "-Y", "tcp.srcport==2585 and tcp.len>0 "
-         "and not tcp.analysis.retransmission", "-T", "fields", "-e", "tcp.len"],
-        capture_output=True, check=True, text=True).stdout
+        [
+            TSHARK or "tshark",
+            "-r",
+            str(path),
+            "-Y",
+            "tcp.srcport==2585 and tcp.len>0 and not tcp.analysis.retransmission",
+            "-T",
+            "fields",
+            "-e",
+            "tcp.len",
+        ],
+        capture_output=True,
+        check=True,
+        text=True,
+    ).stdout
     sent = sum(int(x) for x in out.split())
     assert sent == 926
     assert noise == sent

@@ -476,8 +476,10 @@ def open_foxglove(args: argparse.Namespace, ctx: Any) -> Any:
     except FeedUnavailable as exc:
         err(str(exc))
         raise SystemExit(EXIT_USAGE) from None
-    where = "" if host in ("127.0.0.1", "::1", "localhost") else (
-        " (reachable from the network: anyone who can connect sees the traffic)"
+    where = (
+        ""
+        if host in ("127.0.0.1", "::1", "localhost")
+        else (" (reachable from the network: anyone who can connect sees the traffic)")
     )
     err(
         f"Foxglove live feed on {feed.url}{where}; in Foxglove: Open connection → "

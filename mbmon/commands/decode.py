@@ -54,8 +54,7 @@ def _parse_hex(words: list[str]) -> bytes:
     for token in tokens:
         if len(token) % 2 and (len(token) > 1 or len(tokens) == 1):
             raise UsageError(
-                f"odd number of hex digits in {token!r}: bytes are two digits each "
-                "(e.g. 0A, not A)"
+                f"odd number of hex digits in {token!r}: bytes are two digits each (e.g. 0A, not A)"
             )
     joined = "".join(t.zfill(2) for t in tokens)
     try:

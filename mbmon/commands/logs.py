@@ -283,9 +283,7 @@ def run_replay(args: argparse.Namespace) -> int:
             if args.redecode:
                 rows = _redecoded(log, args, fmt, feed)
             else:
-                rows = (
-                    (*_retimed(r.obj, r.text, r.time, fmt), r.time, r) for r in _stored(log)
-                )
+                rows = ((*_retimed(r.obj, r.text, r.time, fmt), r.time, r) for r in _stored(log))
             for obj, line, ts, made in rows:
                 if not flt.matches(obj, line, ts):
                     continue

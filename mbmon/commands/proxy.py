@@ -169,7 +169,8 @@ def register(sub: Any) -> None:
     add_output_options(p)
     # the proxy's start-up line (its port) and its summary are what a supervisor and
     # an audit need: -q silences the records only (docs/proxy.md)
-    p._option_string_actions["--quiet"].help = (
+    quiet = p._option_string_actions["--quiet"]
+    quiet.help = (
         "print no records (the start-up line and the summary still go to stderr; use with -w)"
     )
     p.set_defaults(func=run, robot="upstream")
@@ -388,4 +389,3 @@ def attach_engine(
     sys.setswitchinterval(SWITCH_INTERVAL)
     thread = ProxyThread(engine, on_exit=hub.stop)
     return engine, thread, observer
-

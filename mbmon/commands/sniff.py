@@ -495,8 +495,7 @@ def _summary(
         k = capture.kernel_stats()
         lines.append(
             f"  {capture.packets} packets captured; kernel: {k.packets} matched the filter, "
-            f"{k.drops} dropped"
-            + (" (capture INCOMPLETE)" if k.drops else "")
+            f"{k.drops} dropped" + (" (capture INCOMPLETE)" if k.drops else "")
         )
         if dissector is not None:
             s = dissector.stats()

@@ -139,7 +139,6 @@ class MbapDecoder(StreamDecoder):
 
     # ------------------------------------------------------------------ public
 
-
     def feed(self, data: bytes, ts: float) -> list[Frame | Noise]:
         """Consume one chunk captured at ``ts``; return the frames and noise it completes."""
         self._last_ts = ts

@@ -679,4 +679,3 @@ def rtu_upstream(port: str, settings: SerialSettings) -> Callable[[ProxyEngine],
 def rtu_front(port: str, settings: SerialSettings) -> Callable[[ProxyEngine], RtuFront]:
     """The engine's ``front`` factory for an RTU master on ``port``."""
     return lambda engine: RtuFront(engine, port, settings)
-

@@ -628,9 +628,7 @@ class ChunkWriter:
                 )
             if self._other is None:
                 self.companion_path = Path(self._companion(linktype))
-                self._other = PcapWriter(
-                    self.companion_path, linktype, nanosecond=self._nanosecond
-                )
+                self._other = PcapWriter(self.companion_path, linktype, nanosecond=self._nanosecond)
             self._other.write(ts, frame)
             return
         self._pcap.write(ts, frame)

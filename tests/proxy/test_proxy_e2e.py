@@ -775,9 +775,19 @@ def test_help_teaches_the_defaults_rules_and_specs() -> None:
     )
     assert result.returncode == 0
     text = " ".join(result.stdout.split())
-    for words in ("default 127.0.0.1:1502, loopback only", "0x0A", "0x0B", "hr:200-251",
-                  "coil:0-7", "unit:2", "--deny-write always wins", "--share-upstream",
-                  "--upstream-serial", "--listen-serial", "the summary still go to stderr"):
+    for words in (
+        "default 127.0.0.1:1502, loopback only",
+        "0x0A",
+        "0x0B",
+        "hr:200-251",
+        "coil:0-7",
+        "unit:2",
+        "--deny-write always wins",
+        "--share-upstream",
+        "--upstream-serial",
+        "--listen-serial",
+        "the summary still go to stderr",
+    ):
         assert words in text, words  # fmt: skip
     assert "no summary" not in text  # the proxy always prints its summary (a supervisor's)
 

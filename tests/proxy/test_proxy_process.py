@@ -199,4 +199,3 @@ def test_an_unread_pipe_bounds_the_backlog_and_reports_what_was_skipped() -> Non
     assert last[0].kind is EventKind.NOTICE
     assert f"{skipped} chunks were forwarded but not observed" in last[0].info["message"]
     assert last[1].ts == 99999.0
-

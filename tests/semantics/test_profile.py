@@ -361,7 +361,6 @@ def test_binding_without_default() -> None:
     assert ProfileBinding.parse([]).empty and not b.empty
 
 
-
 def test_binding_from_loaded_profiles_reads_no_file(tmp_path: Path) -> None:
     """Specs bound to profiles parsed from text: the name after '=' is never looked up."""
     cell = loads_profile(USER, file="stored:cell")

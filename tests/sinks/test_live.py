@@ -149,9 +149,7 @@ def _written_block(records: list[Record]) -> tuple[int, tuple[int, ...]]:
 def test_state_panel_shows_the_written_parameter_registers_by_their_hrss_names() -> None:
     annotator, records, _ = _hrss_run()
     console = Console(record=True, width=200, height=60, color_system=None)
-    monitor = LiveMonitor(
-        View(), console, state_panel=True, start=False, annotator=annotator
-    )
+    monitor = LiveMonitor(View(), console, state_panel=True, start=False, annotator=annotator)
     monitor.on_records(records)
     text = _render(monitor, console)
 

@@ -215,7 +215,6 @@ def profile_bindings(specs: list[str], profiles: list[tuple[str, str]]) -> list[
     return out
 
 
-
 def log_time_ns(ts: float) -> int:
     """A capture time as a message's log time: ns, to the microsecond, within 0..2**64-1.
 
@@ -286,7 +285,6 @@ def _stream_fields(stream: Stream | None) -> dict[str, Any]:
     if not stream.timed:  # a raw RTU dump: its times are placeholders (replay --redecode)
         fields["timed"] = False
     return fields
-
 
 
 @dataclass(slots=True)
@@ -631,7 +629,6 @@ class LogLayout:
         counts[self._ch_frames] = counts.get(self._ch_frames, 0) + fast
         counts[self._ch_monitor] = counts.get(self._ch_monitor, 0) + fast
         return counts
-
 
     def _raw_event(self, event: Event) -> bytes:
         body = {
