@@ -50,7 +50,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from read_throughput import REPO, Run, capture, mbmon_cmd, measure, show
+from read_throughput import REPO, Run, capture, mbmon_cmd, measure, show, tshark_cmd
 
 STAGES = ("records", "framing", "pairing", "json", "text")
 
@@ -93,10 +93,19 @@ def floor(path: str, stage: int) -> int:
             src = "%d.%d.%d.%d:%d" % (*addrs[:4], sport)  # noqa: UP031
             dst = "%d.%d.%d.%d:%d" % (*addrs[4:], dport)  # noqa: UP031
             head = b',"stream":%d,"src":"%b","dst":"%b","transport":"tcp","tid":' % (
-                len(conns) // 2, src.encode(), dst.encode())
+                len(conns) // 2,
+                src.encode(),
+                dst.encode(),
+            )
             label = ("%s \xe2\x86\x92 %s" % (src, dst)).encode("latin-1")  # noqa: UP031
-            conns[key] = [(seq + (1 if hl & 2 else 0)) & 0xFFFFFFFF, b"", dport == 502,
-                          len(conns) // 2, head, label]
+            conns[key] = [
+                (seq + (1 if hl & 2 else 0)) & 0xFFFFFFFF,
+                b"",
+                dport == 502,
+                len(conns) // 2,
+                head,
+                label,
+            ]
             continue
         if st[0] != seq or hl & 7:  # handshake and FIN: only the sequence number kept
             st[0] = (seq + len(payload) + (1 if hl & 3 else 0)) & 0xFFFFFFFF
@@ -153,8 +162,17 @@ def floor(path: str, stage: int) -> int:
                 lines.append(
                     b'{"index":%d,"time":%b%b%d%b"%b","notes":["%b"],"crc_ok":null,'
                     b'"latency_ms":%b,"malformed":null,"request_index":%b}'
-                    % (index, dumps(ts), st[4], tid, to_line, line, note, latency_json,
-                       request_index)
+                    % (
+                        index,
+                        dumps(ts),
+                        st[4],
+                        tid,
+                        to_line,
+                        line,
+                        note,
+                        latency_json,
+                        request_index,
+                    )
                 )
             index += 1
             if len(lines) >= 512:
@@ -197,8 +215,11 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--adus", type=int, default=1_000_000, help="ADUs in the capture (even)")
     ap.add_argument("--skip-tshark", action="store_true", help="leave tshark out")
-    ap.add_argument("--realistic", action="store_true",
-                    help="issue 10's realistic polling capture (bench/realistic.py), 8 connections")
+    ap.add_argument(
+        "--realistic",
+        action="store_true",
+        help="issue 10's realistic polling capture (bench/realistic.py), 8 connections",
+    )
     ap.add_argument("--stage", type=int, choices=range(1, 6), help=argparse.SUPPRESS)
     ap.add_argument("--file", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -216,8 +237,10 @@ def main(argv: list[str] | None = None) -> int:
     else:
         path, stats = capture(n)
     load = os.getloadavg()
-    print(f"capture: {path.relative_to(REPO)} ({stats['bytes']:,} bytes, {n:,} ADUs); "
-          f"{os.cpu_count()} CPUs, load average {load[0]:.2f}; python {sys.version.split()[0]}")
+    print(
+        f"capture: {path.relative_to(REPO)} ({stats['bytes']:,} bytes, {n:,} ADUs); "
+        f"{os.cpu_count()} CPUs, load average {load[0]:.2f}; python {sys.version.split()[0]}"
+    )
     runs: list[Run] = []
     for number, name in enumerate(STAGES, 1):
         cmd = [sys.executable, __file__, "--stage", str(number), "--file", str(path)]
@@ -226,9 +249,7 @@ def main(argv: list[str] | None = None) -> int:
     runs.append(measure("mbmon read (text)", [*mbmon_cmd(), "read", str(path)], None))
     tshark = None
     if not args.skip_tshark:
-        cmd = ["tshark", "-r", str(path), "-Y", "modbus", "-T", "fields",
-               "-e", "mbtcp.trans_id", "-e", "modbus.func_code", "-e", "modbus.reference_num"]
-        tshark = measure("tshark -T fields", cmd, None)
+        tshark = measure("tshark -T fields", tshark_cmd(path), None)
         runs.append(tshark)
     print("results (stdout to /dev/null):")
     for run in runs:

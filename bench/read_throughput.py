@@ -99,8 +99,12 @@ def _templates(rng: random.Random) -> dict[int, list[tuple[bytes, bytes]]]:
             else:
                 n = rng.randrange(1, 60 if fc == 0x10 else 400)
                 vals = [rng.randrange(65536 if fc == 0x10 else 2) for _ in range(n)]
-                pairs.append((encode_write_multiple_request(fc, addr, vals),
-                              encode_write_multiple_response(fc, addr, n)))
+                pairs.append(
+                    (
+                        encode_write_multiple_request(fc, addr, vals),
+                        encode_write_multiple_response(fc, addr, n),
+                    )
+                )
         out[fc] = pairs
     return out
 
@@ -145,8 +149,9 @@ class _Writer:
             c.cseq = (c.cseq + n) & 0xFFFFFFFF
         else:
             c.sseq = (c.sseq + n) & 0xFFFFFFFF
-        ip = struct.pack("!BBHHHBBH4s4s", 0x45, 0, 40 + len(payload), self.ip_id, 0x4000, 64, 6, 0,
-                         src, dst)
+        ip = struct.pack(
+            "!BBHHHBBH4s4s", 0x45, 0, 40 + len(payload), self.ip_id, 0x4000, 64, 6, 0, src, dst
+        )
         tcp = struct.pack("!HHIIBBHHH", sp, dp, seq, ack, 0x50, flags, 65535, 0, 0)
         frame_len = 54 + len(payload)
         sec, usec = divmod(self.ts_us, 1_000_000)
@@ -165,8 +170,9 @@ class _Writer:
         self.buf.clear()
 
 
-def build_capture(adus: int, path: Path, split_anywhere: bool = False,
-                  seed: int = 2) -> dict[str, object]:
+def build_capture(
+    adus: int, path: Path, split_anywhere: bool = False, seed: int = 2
+) -> dict[str, object]:
     """Write a capture of exactly ``adus`` ADUs (``adus`` even) and return its statistics."""
     rng = random.Random(seed)
     templates = _templates(rng)
@@ -174,8 +180,16 @@ def build_capture(adus: int, path: Path, split_anywhere: bool = False,
     weights = list(FC_WEIGHTS.values())
     stats: Counter[str] = Counter()
     fc_count: Counter[str] = Counter()
-    conns = [_Conn(bytes((10, 0, 1, i + 2)), 40000 + i, rng.randrange(1 << 32),
-                   rng.randrange(1 << 32), unit=1 + i % 4) for i in range(N_CONN)]
+    conns = [
+        _Conn(
+            bytes((10, 0, 1, i + 2)),
+            40000 + i,
+            rng.randrange(1 << 32),
+            rng.randrange(1 << 32),
+            unit=1 + i % 4,
+        )
+        for i in range(N_CONN)
+    ]
     tmp = path.with_suffix(".tmp")
     with tmp.open("wb") as f:
         w = _Writer(f)
@@ -195,8 +209,10 @@ def build_capture(adus: int, path: Path, split_anywhere: bool = False,
             fc_count[f"{fc:02X}"] += 2
             tid = c.tid
             c.tid = (c.tid + 1) & 0xFFFF
-            return (struct.pack("!HHHB", tid, 0, len(req) + 1, c.unit) + req,
-                    struct.pack("!HHHB", tid, 0, len(resp) + 1, c.unit) + resp)
+            return (
+                struct.pack("!HHHB", tid, 0, len(req) + 1, c.unit) + req,
+                struct.pack("!HHHB", tid, 0, len(resp) + 1, c.unit) + resp,
+            )
 
         def send(c: _Conn, c2s: bool, data: bytes, split: bool) -> None:
             if split:
@@ -227,9 +243,14 @@ def build_capture(adus: int, path: Path, split_anywhere: bool = False,
             w.seg(c, True, b"", 0x10)
         w.close()
     tmp.replace(path)
-    return {"adus": 2 * transactions, "packets": w.packets, "connections": N_CONN,
-            "bytes": path.stat().st_size, **stats,
-            "function codes (ADUs)": dict(sorted(fc_count.items()))}
+    return {
+        "adus": 2 * transactions,
+        "packets": w.packets,
+        "connections": N_CONN,
+        "bytes": path.stat().st_size,
+        **stats,
+        "function codes (ADUs)": dict(sorted(fc_count.items())),
+    }
 
 
 def capture(adus: int, split_anywhere: bool = False) -> tuple[Path, dict[str, object]]:
@@ -265,6 +286,15 @@ class Run:
     rc: int
 
 
+def tshark_cmd(path: Path) -> list[str]:
+    """The anchor's command: tshark dissecting every Modbus/TCP ADU of ``path`` and
+    printing three fields of each (its cheapest complete pass over the file)."""
+    fields = ("mbtcp.trans_id", "modbus.func_code", "modbus.reference_num")
+    return ["tshark", "-r", str(path), "-Y", "modbus", "-T", "fields"] + [
+        arg for field in fields for arg in ("-e", field)
+    ]
+
+
 def measure(name: str, cmd: list[str], count: str | None) -> Run:
     """Run ``cmd`` as one child, stdout to /dev/null (``count=None``) or counted through a pipe.
 
@@ -298,8 +328,9 @@ def measure(name: str, cmd: list[str], count: str | None) -> Run:
     p.returncode = os.waitstatus_to_exitcode(status)
     if p.returncode != 0:
         sys.stderr.write(err.decode(errors="replace")[-2000:])
-    return Run(name, cmd, wall, ru.ru_maxrss / 1024, ru.ru_utime, ru.ru_stime, lines, adus,
-               p.returncode)
+    return Run(
+        name, cmd, wall, ru.ru_maxrss / 1024, ru.ru_utime, ru.ru_stime, lines, adus, p.returncode
+    )
 
 
 def mbmon_cmd() -> list[str]:
@@ -314,9 +345,11 @@ def mbmon_cmd() -> list[str]:
 def show(run: Run, n: int) -> None:
     rate = n / run.wall
     seen = f", {run.adus:,} ADUs in output" if run.adus else ""
-    print(f"  {run.name:<26} {run.wall:8.2f} s  {rate:>12,.0f} ADUs/s"
-          f"  peak RSS {run.rss_mb:7.1f} MB"
-          f"  (user {run.user:.1f} s, sys {run.sys:.1f} s, exit {run.rc}{seen})")
+    print(
+        f"  {run.name:<26} {run.wall:8.2f} s  {rate:>12,.0f} ADUs/s"
+        f"  peak RSS {run.rss_mb:7.1f} MB"
+        f"  (user {run.user:.1f} s, sys {run.sys:.1f} s, exit {run.rc}{seen})"
+    )
 
 
 def profile(adus: int, top: int = 25) -> None:
@@ -358,16 +391,30 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--adus", type=int, default=1_000_000, help="ADUs in the capture (even)")
     ap.add_argument("--skip-tshark", action="store_true", help="time mbmon only")
-    ap.add_argument("--flat", action="store_true",
-                    help="also run mbmon on a capture of N/4 ADUs and compare peak RSS")
-    ap.add_argument("--mcap", action="store_true",
-                    help="also time mbmon read -q -w x.mcap and -w x.jsonl")
-    ap.add_argument("--split-anywhere", action="store_true",
-                    help="cut split ADUs anywhere, also inside the MBAP header (tshark loses sync)")
-    ap.add_argument("--devnull", action="store_true",
-                    help="send stdout to /dev/null instead of counting it through a pipe")
-    ap.add_argument("--profile", type=int, metavar="N",
-                    help="only profile mbmon read --json on a capture of N ADUs")
+    ap.add_argument(
+        "--flat",
+        action="store_true",
+        help="also run mbmon on a capture of N/4 ADUs and compare peak RSS",
+    )
+    ap.add_argument(
+        "--mcap", action="store_true", help="also time mbmon read -q -w x.mcap and -w x.jsonl"
+    )
+    ap.add_argument(
+        "--split-anywhere",
+        action="store_true",
+        help="cut split ADUs anywhere, also inside the MBAP header (tshark loses sync)",
+    )
+    ap.add_argument(
+        "--devnull",
+        action="store_true",
+        help="send stdout to /dev/null instead of counting it through a pipe",
+    )
+    ap.add_argument(
+        "--profile",
+        type=int,
+        metavar="N",
+        help="only profile mbmon read --json on a capture of N ADUs",
+    )
     args = ap.parse_args(argv)
     if args.profile:
         profile(args.profile)
@@ -375,13 +422,17 @@ def main(argv: list[str] | None = None) -> int:
 
     n = args.adus
     path, stats = capture(n, args.split_anywhere)
-    print(f"capture: {path.relative_to(REPO)}"
-          f"  ({stats['bytes']:,} bytes, {stats['packets']:,} packets)")
+    print(
+        f"capture: {path.relative_to(REPO)}"
+        f"  ({stats['bytes']:,} bytes, {stats['packets']:,} packets)"
+    )
     print("  " + json.dumps({k: v for k, v in stats.items() if k not in ("bytes", "packets")}))
     load = os.getloadavg()
-    print(f"machine: {os.cpu_count()} CPUs,"
-          f" load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f};"
-          f" python {sys.version.split()[0]}")
+    print(
+        f"machine: {os.cpu_count()} CPUs,"
+        f" load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f};"
+        f" python {sys.version.split()[0]}"
+    )
     mode = None if args.devnull else "mbmon"
     runs: list[tuple[Run, int]] = []
     mb = measure("mbmon read --json", [*mbmon_cmd(), "read", str(path), "--json"], mode)
@@ -391,23 +442,25 @@ def main(argv: list[str] | None = None) -> int:
         if shutil.which("tshark") is None:
             print("tshark not installed: skipped")
         else:
-            cmd = ["tshark", "-r", str(path), "-Y", "modbus", "-T", "fields",
-                   "-e", "mbtcp.trans_id", "-e", "modbus.func_code", "-e", "modbus.reference_num"]
-            ts = measure("tshark -T fields", cmd, None if args.devnull else "tshark")
+            ts = measure("tshark -T fields", tshark_cmd(path), None if args.devnull else "tshark")
             runs.append((ts, n))
     small = None
     if args.flat:
         m = n // 4 - (n // 4) % 2
         spath, _ = capture(m, args.split_anywhere)
-        small = measure(f"mbmon read --json ({m:,})", [*mbmon_cmd(), "read", str(spath), "--json"],
-                        mode)
+        small = measure(
+            f"mbmon read --json ({m:,})", [*mbmon_cmd(), "read", str(spath), "--json"], mode
+        )
         runs.append((small, m))
     if args.mcap:
         for suffix in ("jsonl", "mcap"):
             target = OUT / f"bench.{suffix}"
             target.unlink(missing_ok=True)
-            r = measure(f"mbmon read -q -w x.{suffix}",
-                        [*mbmon_cmd(), "read", str(path), "-q", "-w", str(target)], None)
+            r = measure(
+                f"mbmon read -q -w x.{suffix}",
+                [*mbmon_cmd(), "read", str(path), "-q", "-w", str(target)],
+                None,
+            )
             runs.append((r, n))
             if target.exists():
                 print(f"  (x.{suffix}: {target.stat().st_size:,} bytes)")
@@ -429,18 +482,24 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  !! tshark reported {ts.adus:,} ADUs, the capture holds {n:,}")
     if ts is not None:
         ratio = ts.wall / mb.wall
-        print(f"  mbmon / tshark ADUs/s: {ratio:.2f}x (target >= {TARGET_RATIO:.0f}x)"
-              f" -> {'met' if ratio >= TARGET_RATIO else 'NOT met'}")
+        print(
+            f"  mbmon / tshark ADUs/s: {ratio:.2f}x (target >= {TARGET_RATIO:.0f}x)"
+            f" -> {'met' if ratio >= TARGET_RATIO else 'NOT met'}"
+        )
         cpu = (ts.user + ts.sys) / (mb.user + mb.sys)
         print(f"  same by CPU time (user+sys), less sensitive to other load: {cpu:.2f}x")
         ok &= ratio >= TARGET_RATIO
-    print(f"  mbmon peak RSS {mb.rss_mb:.1f} MB (target < {TARGET_RSS_MB:.0f} MB)"
-          f" -> {'met' if mb.rss_mb < TARGET_RSS_MB else 'NOT met'}")
+    print(
+        f"  mbmon peak RSS {mb.rss_mb:.1f} MB (target < {TARGET_RSS_MB:.0f} MB)"
+        f" -> {'met' if mb.rss_mb < TARGET_RSS_MB else 'NOT met'}"
+    )
     ok &= mb.rss_mb < TARGET_RSS_MB
     if small is not None:
         growth = mb.rss_mb - small.rss_mb
-        print(f"  RSS {small.rss_mb:.1f} MB at {n // 4:,} ADUs vs {mb.rss_mb:.1f} MB at {n:,}:"
-              f" {growth:+.1f} MB for 4x the ADUs")
+        print(
+            f"  RSS {small.rss_mb:.1f} MB at {n // 4:,} ADUs vs {mb.rss_mb:.1f} MB at {n:,}:"
+            f" {growth:+.1f} MB for 4x the ADUs"
+        )
     return 0 if ok else 1
 
 
