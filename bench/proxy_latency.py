@@ -66,6 +66,9 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
+sys.path.insert(0, str(ROOT))
+from mbmon.proxy.engine import MAX_BACKLOG  # noqa: E402
+from mbmon.proxy.remote import _CHUNK, PIPE_SIZE  # noqa: E402
 
 UPSTREAM = r"""
 import asyncio, random, struct, sys
@@ -408,9 +411,10 @@ LAG_OK = 0.8
 OBSERVER_STOPPED = "mbmon, observer stopped"
 
 #: Requests that certainly fill a stopped observer's backlog: mbmon's forwarding
-#: process keeps up to 50,000 items (two a request) for its observer, plus what the
-#: 1 MiB pipe holds (about 36 bytes a chunk); past that it forwards without a copy.
-BACKLOG_FILL = 60_000
+#: process keeps up to MAX_BACKLOG items (two a request) for its observer, behind what
+#: its pipe holds (PIPE_SIZE bytes, a 16-byte head and 12 bytes or more a chunk);
+#: past that it forwards without a copy. A quarter more, for certain.
+BACKLOG_FILL = (MAX_BACKLOG + PIPE_SIZE // (_CHUNK.size + len(REQUEST))) // 2 * 5 // 4
 
 
 def stop_observer(pid: int, port: int, clients: int) -> None:
@@ -517,9 +521,9 @@ def bench(args: argparse.Namespace) -> None:
             rps_bare = f"{r['rps'] / bare['rps']:.2f}"
             rps_mp = f"{r['rps'] / mproxy['rps']:.2f}" if mproxy else "-"
             cpu = "-" if r["cpu"] != r["cpu"] else f"{r['cpu']:.0f}"
-            behind = name != OBSERVER_STOPPED  # that row's observer is stopped on purpose
-            lag = f"{r['lag']:.1f}" + ("*" if behind and r["lag"] > LAG_OK else " ")
-            seen = f"{100 * r['observed']:.0f}" + ("*" if behind and r["observed"] < 1 else " ")
+            judged = name != OBSERVER_STOPPED  # that row's observer is stopped on purpose
+            lag = f"{r['lag']:.1f}" + ("*" if judged and r["lag"] > LAG_OK else " ")
+            seen = f"{100 * r['observed']:.0f}" + ("*" if judged and r["observed"] < 1 else " ")
             print(f"{name:<{w}} {clients:>7} {r['rps']:>8.0f} {r['p50']:>8.0f} {r['p99']:>8.0f} "
                   f"{added:>9.0f} {x_bare:>7} {rps_bare:>8} {rps_mp:>8} {cpu:>10} "
                   f"{lag:>6} {seen:>6}")  # fmt: skip
