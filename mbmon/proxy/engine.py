@@ -1087,7 +1087,7 @@ class ProxyEngine:
             EventKind.NOTICE,
             {
                 "message": f"proxy listening on {where}, "
-                f"upstream {upstream_text}" + f", guard {cfg.guard.describe()}",
+                f"upstream {upstream_text}, guard {cfg.guard.describe()}",
             },
         )
         if self.shared is not None:
