@@ -24,6 +24,10 @@ process per client, blocking sockets, one request in flight each). Targets:
                       the forwarding process forwards without a copy: the forwarding
                       alone, on the cores the observer would use. Informational: it
                       shows what observing costs, not a way to run mbmon;
+* ``floor: ...``      (``--floor-observers``) mbmon's forwarding process with the least
+                      observer any Python code could be in place of the hub, in three
+                      stages (``bench/proxy_floor.py``): a lower bound of what observing
+                      costs, so that the targets can be judged against it. Informational;
 * ``modbus-proxy``    the PyPI ``modbus-proxy`` package, when importable (install
                       it, or give ``--modbus-proxy DIR`` with its module).
 
@@ -238,10 +242,16 @@ def target(
         proc, port = _spawn_printing_port([sys.executable, "-c", BARE_BUFFERED, str(up)])
     elif name == "bare buffered uvloop":
         proc, port = _spawn_printing_port([sys.executable, "-c", UVLOOP + BARE_BUFFERED, str(up)])
-    elif name.startswith("mbmon"):
+    elif name.startswith(("mbmon", FLOOR)):
         args = [sys.executable, "-m", "mbmon", "proxy", "--upstream", f"127.0.0.1:{up}",
                 "--listen", "127.0.0.1:0", "--quiet"]  # fmt: skip
-        if "mcap" in name:
+        if name.startswith(FLOOR):
+            stage = FLOOR_STAGES[name]
+            args = [sys.executable, str(ROOT / "bench" / "proxy_floor.py"), stage,
+                    "--upstream", f"127.0.0.1:{up}"]  # fmt: skip
+            if stage == "log":
+                args += ["-w", str(tmp / f"floor-{time.monotonic_ns()}.jsonl")]
+        elif "mcap" in name:
             args += ["-w", str(tmp / f"bench-{time.monotonic_ns()}.mcap")]
         env = ENV
         if "@" in name:
@@ -282,8 +292,9 @@ def target(
     try:
         yield port, proc.pid
     finally:
-        _stop(proc, signal.SIGINT if name.startswith("mbmon") else signal.SIGTERM)
-        if name.startswith("mbmon") and proc.stderr is not None:
+        observing = name.startswith(("mbmon", FLOOR))
+        _stop(proc, signal.SIGINT if observing else signal.SIGTERM)
+        if observing and proc.stderr is not None:
             summary = proc.stderr.read()
             if os.environ.get("BENCH_VERBOSE"):
                 print(f"[{name}] " + summary.strip().replace("\n", f"\n[{name}] "))
@@ -410,6 +421,15 @@ LAG_OK = 0.8
 #: The informational row of mbmon's forwarding alone (``--observer-stopped``).
 OBSERVER_STOPPED = "mbmon, observer stopped"
 
+#: The informational rows of mbmon's forwarding with the least observer any Python
+#: code could be (``--floor-observers``; bench/proxy_floor.py), by the floor's stage.
+FLOOR = "floor:"
+FLOOR_STAGES = {
+    "floor: copies only": "copies",
+    "floor: + decode, pairing": "decode",
+    "floor: + a JSON line/ADU": "log",
+}
+
 #: Requests that certainly fill a stopped observer's backlog: mbmon's forwarding
 #: process keeps up to MAX_BACKLOG items (two a request) for its observer, behind what
 #: its pipe holds (PIPE_SIZE bytes, a 16-byte head and 12 bytes or more a chunk);
@@ -464,6 +484,9 @@ def bench(args: argparse.Namespace) -> None:
         names.insert(names.index("mbmon"), "bare buffered uvloop")
     if args.observer_stopped:
         names.insert(names.index("mbmon"), OBSERVER_STOPPED)
+    if args.floor_observers:
+        at = names.index("mbmon")
+        names[at:at] = list(FLOOR_STAGES)
     if _has_modbus_proxy(args.modbus_proxy):
         names.append("modbus-proxy")
         if args.uvloop_anchors:
@@ -537,6 +560,13 @@ def bench(args: argparse.Namespace) -> None:
             "its observer dropped (obs %: the share it observed): the observer ran behind "
             "the forwarding, so req/s is forwarding the observer did not sustain; measure "
             "longer (--seconds 60) and read req/s x obs % as the rate observed in full"
+        )
+    if args.floor_observers:
+        print(
+            "floor: mbmon's forwarding process with the least observer any Python code "
+            "could be in place of the hub (bench/proxy_floor.py): copies only; + MBAP "
+            "framing, decode_pdu and pairing; + one JSON line per ADU to a file. A lower "
+            "bound of what observing costs, informational"
         )
     if OBSERVER_STOPPED in names:
         print(
@@ -646,6 +676,13 @@ def main() -> None:
         help="also run mbmon with its observing process stopped (SIGSTOP) once its "
         "backlog is full: the forwarding alone, without the observation's CPU "
         "(informational: what observing costs)",
+    )
+    parser.add_argument(
+        "--floor-observers",
+        action="store_true",
+        help="also run mbmon's forwarding with the least observer any Python code could "
+        "be (bench/proxy_floor.py, three stages): how little observing can cost "
+        "(informational)",
     )
     parser.add_argument(
         "--fixed-values",
