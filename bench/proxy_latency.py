@@ -246,8 +246,8 @@ def target(
         args = [sys.executable, "-m", "mbmon", "proxy", "--upstream", f"127.0.0.1:{up}",
                 "--listen", "127.0.0.1:0", "--quiet"]  # fmt: skip
         if name.startswith(FLOOR):
-            stage = FLOOR_STAGES[name]
-            args = [sys.executable, str(ROOT / "bench" / "proxy_floor.py"), stage,
+            stage, *how = FLOOR_STAGES[name].split()
+            args = [sys.executable, str(ROOT / "bench" / "proxy_floor.py"), stage, *how,
                     "--upstream", f"127.0.0.1:{up}"]  # fmt: skip
             if stage == "log":
                 args += ["-w", str(tmp / f"floor-{time.monotonic_ns()}.jsonl")]
@@ -423,11 +423,13 @@ OBSERVER_STOPPED = "mbmon, observer stopped"
 
 #: The informational rows of mbmon's forwarding with the least observer any Python
 #: code could be (``--floor-observers``; bench/proxy_floor.py), by the floor's stage.
-FLOOR = "floor:"
+FLOOR = "floor"
 FLOOR_STAGES = {
     "floor: copies only": "copies",
     "floor: + decode, pairing": "decode",
     "floor: + a JSON line/ADU": "log",
+    "floor inline: + decode, pairing": "decode --inline",
+    "floor inline: + a JSON line/ADU": "log --inline",
 }
 
 #: Requests that certainly fill a stopped observer's backlog: mbmon's forwarding
@@ -565,8 +567,9 @@ def bench(args: argparse.Namespace) -> None:
         print(
             "floor: mbmon's forwarding process with the least observer any Python code "
             "could be in place of the hub (bench/proxy_floor.py): copies only; + MBAP "
-            "framing, decode_pdu and pairing; + one JSON line per ADU to a file. A lower "
-            "bound of what observing costs, informational"
+            "framing, decode_pdu and pairing; + one JSON line per ADU to a file. floor "
+            "inline: the same observer in the forwarding process's own loop (no copy). A "
+            "lower bound of what observing costs, informational"
         )
     if OBSERVER_STOPPED in names:
         print(

@@ -15,6 +15,7 @@ from pathlib import Path
 from types import ModuleType
 
 import orjson
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -106,9 +107,11 @@ def test_copies_stage_counts_chunks_and_decodes_nothing() -> None:
     assert (hub.seen, hub.adus, hub.pairs) == (len(items), 0, 0)
 
 
-def test_the_floor_observer_serves_on_mbmons_forwarding_process(tmp_path: Path) -> None:
-    """Run as the benchmark runs it: listening line, answers through mbmon's
-    forwarding child, the proxy's own summary and the floor's counts at Ctrl-C."""
+@pytest.mark.parametrize("where", [[], ["--inline"]], ids=["child", "inline"])
+def test_the_floor_observer_serves_on_mbmons_forwarding(tmp_path: Path, where: list[str]) -> None:
+    """Run as the benchmark runs it: listening line, answers through mbmon's engine
+    (in its forwarding child, or in this process's loop with ``--inline``), the
+    proxy's own summary and the floor's counts at Ctrl-C."""
     log = tmp_path / "floor.jsonl"
     with fake() as up:
         proc = subprocess.Popen(
@@ -116,6 +119,7 @@ def test_the_floor_observer_serves_on_mbmons_forwarding_process(tmp_path: Path) 
                 sys.executable,
                 str(FLOOR),
                 "log",
+                *where,
                 "--upstream",
                 f"127.0.0.1:{up.port}",
                 "-w",
