@@ -58,6 +58,8 @@ import threading
 from pathlib import Path
 from typing import Any, BinaryIO
 
+import orjson
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from mbmon.model import Chunk, Direction, Stream, Transport
 from mbmon.protocol.pdu import decode_pdu
@@ -98,7 +100,7 @@ class FloorHub:
         pending = self._pending
         log = self.stage > 2
         lines: list[bytes] = []
-        dumps = _dumps()
+        dumps = orjson.dumps
         c2s = Direction.C2S
         for item in items:
             if type(item) is not Chunk:
@@ -152,12 +154,6 @@ class FloorHub:
             self.log.write(b"\n".join(lines))
 
 
-def _dumps() -> Any:
-    import orjson
-
-    return orjson.dumps
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("stage", choices=STAGES, help="how much the floor observer does")
@@ -180,14 +176,14 @@ def main() -> None:
     if args.inline:
         stats = inline(config, hub)
     else:
-        stats = in_process_of_its_own(config, hub)
+        stats = through_the_pipe(config, hub)
     if log is not None:
         log.close()
     print(stats.summary(), file=sys.stderr)
     print(f"floor {args.stage}: ADUs framed {hub.adus}, pairs {hub.pairs}", file=sys.stderr)
 
 
-def in_process_of_its_own(config: ProxyConfig, hub: FloorHub) -> ProxyStats:
+def through_the_pipe(config: ProxyConfig, hub: FloorHub) -> ProxyStats:
     """Forward as ``mbmon proxy`` does, in a child process; observe its copies here."""
     ended = threading.Event()
     proc = ProxyProcess(config, hub, on_exit=ended.set)
