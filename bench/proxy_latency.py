@@ -24,10 +24,11 @@ process per client, blocking sockets, one request in flight each). Targets:
                       the forwarding process forwards without a copy: the forwarding
                       alone, on the cores the observer would use. Informational: it
                       shows what observing costs, not a way to run mbmon;
-* ``floor: ...``      (``--floor-observers``) mbmon's forwarding process with the least
-                      observer any Python code could be in place of the hub, in three
-                      stages (``bench/proxy_floor.py``): a lower bound of what observing
-                      costs, so that the targets can be judged against it. Informational;
+* ``floor ...``       (``--floor-observers``) mbmon's forwarding process with the least
+                      observer any Python code could be in place of the hub
+                      (``bench/proxy_floor.py``): its three stages through the pipe, the
+                      last two also ``inline`` in the forwarding loop. A lower bound of
+                      what observing costs, to judge the targets by. Informational;
 * ``modbus-proxy``    the PyPI ``modbus-proxy`` package, when importable (install
                       it, or give ``--modbus-proxy DIR`` with its module).
 
@@ -243,16 +244,17 @@ def target(
     elif name == "bare buffered uvloop":
         proc, port = _spawn_printing_port([sys.executable, "-c", UVLOOP + BARE_BUFFERED, str(up)])
     elif name.startswith(("mbmon", FLOOR)):
-        args = [sys.executable, "-m", "mbmon", "proxy", "--upstream", f"127.0.0.1:{up}",
-                "--listen", "127.0.0.1:0", "--quiet"]  # fmt: skip
         if name.startswith(FLOOR):
             stage, *how = FLOOR_STAGES[name].split()
             args = [sys.executable, str(ROOT / "bench" / "proxy_floor.py"), stage, *how,
                     "--upstream", f"127.0.0.1:{up}"]  # fmt: skip
             if stage == "log":
                 args += ["-w", str(tmp / f"floor-{time.monotonic_ns()}.jsonl")]
-        elif "mcap" in name:
-            args += ["-w", str(tmp / f"bench-{time.monotonic_ns()}.mcap")]
+        else:
+            args = [sys.executable, "-m", "mbmon", "proxy", "--upstream", f"127.0.0.1:{up}",
+                    "--listen", "127.0.0.1:0", "--quiet"]  # fmt: skip
+            if "mcap" in name:
+                args += ["-w", str(tmp / f"bench-{time.monotonic_ns()}.mcap")]
         env = ENV
         if "@" in name:
             env = {**os.environ, "PYTHONPATH": (trees or {})[name.split("@", 1)[1]]}
@@ -684,7 +686,8 @@ def main() -> None:
         "--floor-observers",
         action="store_true",
         help="also run mbmon's forwarding with the least observer any Python code could "
-        "be (bench/proxy_floor.py, three stages): how little observing can cost "
+        "be (bench/proxy_floor.py: three stages through the pipe, two inline): how little "
+        "observing can cost "
         "(informational)",
     )
     parser.add_argument(

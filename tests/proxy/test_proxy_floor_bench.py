@@ -102,7 +102,7 @@ def test_every_adu_is_framed_paired_and_logged_however_the_chunks_cut_them(
 def test_copies_stage_counts_chunks_and_decodes_nothing() -> None:
     hub = floor.FloorHub("copies")
     stream = hub.new_stream(Transport.TCP, "127.0.0.1:4000", "127.0.0.1:502")
-    items = [Chunk(1.0, stream, d, raw) for _, d, raw in _conversation(3) if _ == 0]
+    items = [Chunk(1.0, stream, d, raw) for conn, d, raw in _conversation(3) if conn == 0]
     hub.submit(lambda: items)
     assert (hub.seen, hub.adus, hub.pairs) == (len(items), 0, 0)
 
