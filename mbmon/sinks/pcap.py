@@ -7,9 +7,11 @@ gaps; UDP datagrams; RS485 bus bytes as link type 147). This module owns the
 file choice: a classic pcap holds one link type, so the first chunk decides the
 file's type; if the session also has the other kind of stream, those packets go
 to a companion file next to it: ``NAME.rtu.pcap`` (link type 147) or
-``NAME.tcp.pcap`` (Ethernet). It also says, on closing, how many packets had a
-capture time a pcap cannot hold (they are written at the previous packet's time),
-and names the file when writing fails (a full disk).
+``NAME.tcp.pcap`` (Ethernet). Every hub tick flushes the file, so a live
+``-w x.pcap`` has every packet on disk within a second. It also says, on
+closing, how many packets had a capture time a pcap cannot hold (they are
+written at the previous packet's time), and names the file when writing fails
+(a full disk).
 """
 
 from __future__ import annotations
@@ -79,6 +81,16 @@ class PcapSink(SinkBase):
         """Connect: a three-way handshake; disconnect: FIN/FIN/ACK or an RST; gap: a hole."""
         try:
             self._writer.write(event)
+        except OSError as exc:
+            raise self._named(exc) from exc
+
+    def on_tick(self, now: float) -> None:
+        """Time moves on (every quarter second on a live input, also while nothing
+        arrives): the packets written so far reach the file."""
+        if self._closed:
+            return
+        try:
+            self._writer.flush()
         except OSError as exc:
             raise self._named(exc) from exc
 

@@ -742,6 +742,13 @@ class ChunkWriter:
             return conv.close(by_client)
         return []
 
+    def flush(self) -> None:
+        """Hand what was written so far to the OS (a live ``-w x.pcap`` on each tick);
+        bytes an ADU framer holds wait for the rest of their ADU."""
+        for writer in (self._pcapng, self._pcap, self._other):
+            if writer is not None:
+                writer.flush()
+
     def close(self) -> None:
         """Write what the framers hold, then finish the file(s); a capture that got
         nothing is still a valid (empty) one."""
