@@ -144,9 +144,35 @@ def add_subcommands(sub: Any) -> None:
         help=".pcap: keep the original TCP segmentation (default: one ADU per segment, so "
         "that Wireshark dissects every ADU)",
     )
+    ports = export.add_mutually_exclusive_group()
+    ports.add_argument(
+        "--server-port",
+        type=_port,
+        default=502,
+        metavar="N",
+        help=".pcap: write the server port of every Modbus/TCP and Modbus/UDP stream as N "
+        "(default 502, which Wireshark decodes as Modbus with no option; a note names "
+        "each original port)",
+    )
+    ports.add_argument(
+        "--keep-port",
+        action="store_true",
+        help=".pcap: write the original server ports; a note gives the tshark option "
+        "(-d tcp.port==N,mbtcp) for a port other than 502",
+    )
     add_time_option(export)
     add_filter_options(export)
     export.set_defaults(func=run_export)
+
+
+def _port(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
+    if not 1 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"a port is 1..65535: {text}")
+    return value
 
 
 def _speed(text: str) -> float:
@@ -769,7 +795,14 @@ def run_export(args: argparse.Namespace) -> int:
             if suffix == ".mcap":
                 _export_mcap(log, target, RecordFilter(since=flt.since, until=flt.until))
             elif suffix == ".pcap":
-                _export_pcap(log, target, ctx, flt, keep_segments=args.keep_segments)
+                _export_pcap(
+                    log,
+                    target,
+                    ctx,
+                    flt,
+                    keep_segments=args.keep_segments,
+                    server_port=None if args.keep_port else args.server_port,
+                )
             else:
                 from mbmon.io.replay import logged_records
                 from mbmon.sinks.jsonl import TextFileSink
@@ -796,13 +829,17 @@ def run_export(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _export_pcap(log: Any, target: Path, ctx: Any, flt: Any, *, keep_segments: bool) -> None:
-    """The raw bytes as a pcap: one ADU per TCP segment unless ``keep_segments``."""
+def _export_pcap(
+    log: Any, target: Path, ctx: Any, flt: Any, *, keep_segments: bool, server_port: int | None
+) -> None:
+    """The raw bytes as a pcap: one ADU per TCP segment unless ``keep_segments``; Modbus
+    server ports written as ``server_port`` unless it is ``None`` (the sink's notes,
+    on stderr, name the original ports, or the tshark option a kept port needs)."""
     from mbmon.io.replay import raw_items
     from mbmon.model import Chunk
     from mbmon.sinks.pcap import PcapSink
 
-    with PcapSink(target, ctx, adu_segments=not keep_segments) as sink:
+    with PcapSink(target, ctx, adu_segments=not keep_segments, server_port=server_port) as sink:
         for item in raw_items(log):
             if flt.since is not None and item.ts < flt.since:
                 continue
