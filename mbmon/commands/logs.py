@@ -58,8 +58,13 @@ examples:
   mbmon export cell.mcap -o frames.csv      one row per frame (spreadsheets)
   mbmon export cell.mcap -o frames.jsonl    the read --json lines
   mbmon export cell.mcap -o monitor.txt     the monitor lines
-  mbmon export cell.mcap -o cell.pcap       Ethernet/IP/TCP packets Wireshark decodes
-                                            (RTU buses as link type 147)
+  mbmon export cell.mcap -o cell.pcap       Ethernet/IP/TCP packets Wireshark decodes with
+                                            no option: one ADU per segment, server port 502
+                                            (RTU buses: link type 147, one frame per record;
+                                            a note prints the tshark option)
+  mbmon export cell.mcap -o cell.pcap --keep-port
+                                            the original ports; a note prints the option
+                                            (tshark -d tcp.port==1502,mbtcp)
   mbmon export crashed.mcap -o fixed.mcap   rewrite an unfinished log as a finished one
 
 Filters (--unit, --fc, --address, --grep) apply to .csv, .jsonl and .txt; --since and
@@ -131,8 +136,9 @@ def add_subcommands(sub: Any) -> None:
         help="convert an MCAP log to .csv, .jsonl, .txt, .pcap (or a repaired .mcap)",
         description="Convert an MCAP log by the suffix of OUT: .csv (one row per frame), "
         ".jsonl (read --json lines), .txt (monitor lines), .pcap (Modbus/TCP re-wrapped in "
-        "Ethernet/IPv4/TCP with consistent sequence numbers, original endpoints and times; "
-        "RTU as link type 147), .mcap (every recovered message in a finished file).",
+        "Ethernet/IPv4/TCP with consistent sequence numbers, original endpoints and times, "
+        "the server port written as 502 so that Wireshark decodes it; RTU as link type 147), "
+        ".mcap (every recovered message in a finished file).",
         epilog=_EXPORT_EPILOG,
         formatter_class=fmt,
     )

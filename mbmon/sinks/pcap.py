@@ -26,6 +26,9 @@ from mbmon.sinks.base import SinkBase, SinkContext
 from mbmon.sources.pcapwrite import LINKTYPE_USER0, ChunkWriter
 from mbmon.timefmt import epoch_text
 
+#: the tshark option that makes Wireshark decode link type 147 (USER0) as Modbus RTU
+RTU_OPTION = 'uat:user_dlts:"User 0 (DLT=147)","mbrtu","0","","0",""'
+
 #: Wireshark's dissector and port table of each IP transport (for ``-d``, Decode As)
 _DECODE_AS: dict[Transport, tuple[str, str, str]] = {
     Transport.TCP: ("tcp", "mbtcp", "Modbus/TCP"),
@@ -125,6 +128,14 @@ class PcapSink(SinkBase):
                 f"{self.path}: Wireshark decodes Modbus only on port 502 (TCP/UDP) by itself; "
                 f"for {ports}: tshark -r {self.path} {options} (Wireshark: Analyze > "
                 "Decode As..., the port, as the dissector named after the comma)"
+            )
+        if writer.bus_records:
+            rtu_file = self.companion if writer.linktype != LINKTYPE_USER0 else None
+            name = rtu_file or self.path
+            out.append(
+                f"{name}: RS485 bus records have link type 147 (USER0); Wireshark decodes them "
+                f"as Modbus RTU with: tshark -r {name} -o '{RTU_OPTION}' (Wireshark: "
+                "Preferences > Protocols > DLT_USER, User 0 (DLT=147), payload protocol mbrtu)"
             )
         if writer.losses:
             lost = sum(n for _ts, _stream, _direction, n in writer.losses)

@@ -623,6 +623,8 @@ class ChunkWriter:
         #: bytes the capture lost, numbered over (adu_segments): (time, stream,
         #: direction value, bytes), in order
         self.losses: list[tuple[float, Stream, str, int]] = []
+        #: link type 147 records written (RTU bus bytes)
+        self.bus_records = 0
         # (stream id, direction) -> (stream, its MBAP decoder), with adu_segments
         self._framers: dict[tuple[int, Direction], tuple[Stream, Any]] = {}
         # the range of times the file holds: pcap has 32-bit seconds; pcapng 64-bit units
@@ -630,6 +632,12 @@ class ChunkWriter:
         self._last_ts = 0.0
         self.bad_times = 0
         self.first_bad_time: float | None = None
+
+    @property
+    def linktype(self) -> int | None:
+        """The link type of the classic pcap file (the first packet's), ``None`` before
+        the first packet or for pcapng (which holds both)."""
+        return self._pcap_link
 
     def _time(self, ts: float) -> float:
         """``ts``, or the previous packet's time when the file cannot hold it."""
@@ -643,6 +651,8 @@ class ChunkWriter:
 
     def _emit(self, ts: float, frame: bytes, linktype: int, stream_id: int) -> None:
         ts = self._time(ts)
+        if linktype == LINKTYPE_USER0:
+            self.bus_records += 1
         if self._pcapng is not None:
             if linktype == LINKTYPE_USER0:
                 iface = self._bus_ifaces.get(stream_id)

@@ -135,7 +135,7 @@ def test_keep_port_prints_the_option_tshark_needs(tmp_path: Path) -> None:
     log = log_of(capture, tmp_path, "--port", "1502")
     err = mbmon("export", log, "-o", out, "--keep-port").stderr
     assert tshark(out) == []  # the port kept: no Modbus without the option
-    match = re.search(r"tshark -r \S+ (-d .*?) \(", err)
+    match = re.search(r"tshark -r \S+ (.*?) \(Wireshark", err)
     assert match, err
     options = shlex.split(match.group(1))
     assert options == ["-d", "tcp.port==1502,mbtcp"]
@@ -262,7 +262,11 @@ def test_rtu_export_has_one_adu_per_record(tmp_path: Path) -> None:
     seen = mbmon_frames(capture)
     assert len(seen) == 16
     out = tmp_path / "r.pcap"
-    mbmon("export", log_of(capture, tmp_path), "-o", out)
-    rows = tshark(out, "-o", USER0_AS_MBRTU, display="mbrtu")
+    err = mbmon("export", log_of(capture, tmp_path), "-o", out).stderr
+    match = re.search(r"tshark -r \S+ (.*?) \(Wireshark", err)
+    assert match, err
+    options = shlex.split(match.group(1))  # the option the note prints, exactly
+    assert options == ["-o", USER0_AS_MBRTU]
+    rows = tshark(out, *options, display="mbrtu")
     assert adus_seen(rows) == 16
     assert len(rows) == 16  # one frame per record: nothing for tshark to reassemble
