@@ -126,6 +126,11 @@ def test_piped_read_killed_has_every_record_older_than_a_second(tmp_path: Path) 
         ts = time.time()
         for frame in conv.open():
             pcap.write(ts, frame)
+        pcap.flush()
+        end = time.monotonic() + 60  # mbmon opens its logs once the first packet came
+        while not all(base.with_suffix(s).exists() for s in FORMATS):
+            assert proc.poll() is None and time.monotonic() < end, "mbmon read did not start"
+            time.sleep(0.05)
         for tid in range(1, 41):
             pdu = _request_pdu(tid)
             mbap = tid.to_bytes(2, "big") + b"\0\0" + (len(pdu) + 1).to_bytes(2, "big") + b"\1"
