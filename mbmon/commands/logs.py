@@ -58,8 +58,13 @@ examples:
   mbmon export cell.mcap -o frames.csv      one row per frame (spreadsheets)
   mbmon export cell.mcap -o frames.jsonl    the read --json lines
   mbmon export cell.mcap -o monitor.txt     the monitor lines
-  mbmon export cell.mcap -o cell.pcap       Ethernet/IP/TCP packets Wireshark decodes
-                                            (RTU buses as link type 147)
+  mbmon export cell.mcap -o cell.pcap       Ethernet/IP/TCP packets Wireshark decodes with
+                                            no option: one ADU per segment, server port 502
+                                            (RTU buses: link type 147, one frame per record;
+                                            a note prints the tshark option)
+  mbmon export cell.mcap -o cell.pcap --keep-port
+                                            the original ports; a note prints the option
+                                            (tshark -d tcp.port==1502,mbtcp)
   mbmon export crashed.mcap -o fixed.mcap   rewrite an unfinished log as a finished one
 
 Filters (--unit, --fc, --address, --grep) apply to .csv, .jsonl and .txt; --since and
@@ -131,8 +136,9 @@ def add_subcommands(sub: Any) -> None:
         help="convert an MCAP log to .csv, .jsonl, .txt, .pcap (or a repaired .mcap)",
         description="Convert an MCAP log by the suffix of OUT: .csv (one row per frame), "
         ".jsonl (read --json lines), .txt (monitor lines), .pcap (Modbus/TCP re-wrapped in "
-        "Ethernet/IPv4/TCP with consistent sequence numbers, original endpoints and times; "
-        "RTU as link type 147), .mcap (every recovered message in a finished file).",
+        "Ethernet/IPv4/TCP with consistent sequence numbers, original endpoints and times, "
+        "the server port written as 502 so that Wireshark decodes it; RTU as link type 147), "
+        ".mcap (every recovered message in a finished file).",
         epilog=_EXPORT_EPILOG,
         formatter_class=fmt,
     )
@@ -144,9 +150,35 @@ def add_subcommands(sub: Any) -> None:
         help=".pcap: keep the original TCP segmentation (default: one ADU per segment, so "
         "that Wireshark dissects every ADU)",
     )
+    ports = export.add_mutually_exclusive_group()
+    ports.add_argument(
+        "--server-port",
+        type=_port,
+        default=502,
+        metavar="N",
+        help=".pcap: write the server port of every Modbus/TCP and Modbus/UDP stream as N "
+        "(default 502, which Wireshark decodes as Modbus with no option; a note names "
+        "each original port)",
+    )
+    ports.add_argument(
+        "--keep-port",
+        action="store_true",
+        help=".pcap: write the original server ports; a note gives the tshark option "
+        "(-d tcp.port==N,mbtcp) for a port other than 502",
+    )
     add_time_option(export)
     add_filter_options(export)
     export.set_defaults(func=run_export)
+
+
+def _port(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
+    if not 1 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"a port is 1..65535: {text}")
+    return value
 
 
 def _speed(text: str) -> float:
@@ -769,7 +801,14 @@ def run_export(args: argparse.Namespace) -> int:
             if suffix == ".mcap":
                 _export_mcap(log, target, RecordFilter(since=flt.since, until=flt.until))
             elif suffix == ".pcap":
-                _export_pcap(log, target, ctx, flt, keep_segments=args.keep_segments)
+                _export_pcap(
+                    log,
+                    target,
+                    ctx,
+                    flt,
+                    keep_segments=args.keep_segments,
+                    server_port=None if args.keep_port else args.server_port,
+                )
             else:
                 from mbmon.io.replay import logged_records
                 from mbmon.sinks.jsonl import TextFileSink
@@ -796,13 +835,17 @@ def run_export(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _export_pcap(log: Any, target: Path, ctx: Any, flt: Any, *, keep_segments: bool) -> None:
-    """The raw bytes as a pcap: one ADU per TCP segment unless ``keep_segments``."""
+def _export_pcap(
+    log: Any, target: Path, ctx: Any, flt: Any, *, keep_segments: bool, server_port: int | None
+) -> None:
+    """The raw bytes as a pcap: one ADU per TCP segment unless ``keep_segments``; Modbus
+    server ports written as ``server_port`` unless it is ``None`` (the sink's notes,
+    on stderr, name the original ports, or the tshark option a kept port needs)."""
     from mbmon.io.replay import raw_items
     from mbmon.model import Chunk
     from mbmon.sinks.pcap import PcapSink
 
-    with PcapSink(target, ctx, adu_segments=not keep_segments) as sink:
+    with PcapSink(target, ctx, adu_segments=not keep_segments, server_port=server_port) as sink:
         for item in raw_items(log):
             if flt.since is not None and item.ts < flt.since:
                 continue

@@ -210,7 +210,12 @@ def run(args: argparse.Namespace) -> int:
         if not args.quiet:
             hub.add_listener(summary)
         try:
-            hub.run_items(items)
+            if live:  # a pipe may stall: the hub ticks meanwhile, so logs reach the disk
+                from mbmon.sources.pipe import feed_pipe
+
+                feed_pipe(hub, items)
+            else:
+                hub.run_items(items)
         except KeyboardInterrupt:
             interrupted = True
     if not args.quiet:

@@ -16,6 +16,12 @@ It never slows the run: nothing is made while no client subscribes to a
 channel, and ``Channel.log`` only queues (the SDK drops the oldest messages of
 a slow client). If the SDK raises, the hub detaches the feed and the run goes
 on. The server listens on loopback unless a host is named.
+
+Every Foxglove client connects, whichever name of the protocol it offers: the
+SDK's server accepts only ``foxglove.sdk.v1``, so it listens on a loopback port
+of its own behind :class:`~mbmon.sinks.foxglove_front.SubprotocolFront`, which
+listens where the user asked and lets in clients that offer only
+``foxglove.websocket.v1`` (older Foxglove and Lichtblick releases) too.
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ from mbmon.io.mcap.layout import (
 )
 from mbmon.model import Chunk, Record
 from mbmon.sinks.base import SinkContext, SinkError
+from mbmon.sinks.foxglove_front import SubprotocolFront
 
 __all__ = [
     "DEFAULT_HOST",
@@ -101,14 +108,20 @@ class FoxgloveFeed:
         self.ctx = ctx
         self.host = host
         self._context = foxglove.Context()
-        try:
+        try:  # the SDK's own server, on a loopback port only the front door reaches
             self._server = foxglove.start_server(
-                name=server_name, host=host, port=port, context=self._context
+                name=server_name, host="127.0.0.1", port=0, context=self._context
             )
         except Exception as exc:  # the SDK raises RuntimeError("FoxgloveError: ...")
             text = str(exc).removeprefix("FoxgloveError: ")
             raise SinkError(f"--foxglove {_address(host, port)}: cannot listen: {text}") from None
-        self.port: int = int(self._server.port)
+        try:
+            self._front = SubprotocolFront(host, port, int(self._server.port))
+        except OSError as exc:
+            self._server.stop()
+            text = exc.strerror or str(exc)
+            raise SinkError(f"--foxglove {_address(host, port)}: cannot listen: {text}") from None
+        self.port: int = self._front.port
         if channel_topics is None:
             channel_topics = topics(bool(ctx.profiles or ctx.profile_specs))
         self._channels: dict[str, Any] = {}
@@ -180,6 +193,7 @@ class FoxgloveFeed:
             except Exception:
                 pass
         self._server.stop()
+        self._front.close()
 
     # ------------------------------------------------------------------ inside
 

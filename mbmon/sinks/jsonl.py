@@ -7,7 +7,9 @@ no text layer, no encode step); already-made objects (``mbmon export``) through
 does, so that all four agree byte for byte.
 
 Also owns :class:`TextFileSink`, the base of the line-oriented sinks (file
-opening, the at-least-once-a-second flush, and write errors that name the file:
+opening, the flush that puts every line on disk within a second — on each
+write once a second has passed, and on every hub tick, so a live input that
+stalls never holds lines back —, and write errors that name the file:
 ``x.jsonl: No space left on device``).
 """
 
@@ -50,13 +52,23 @@ class TextFileSink(SinkBase):
         return open(self.path, "w", encoding="utf-8", newline=newline, buffering=BUFFER_SIZE)
 
     def _tick(self) -> None:
-        now = time.monotonic()
-        if now - self._last_flush >= FLUSH_EVERY:
-            self._last_flush = now
-            try:
-                self._f.flush()
-            except OSError as exc:
-                raise self._named(exc) from exc
+        """After a write: flush when the last flush is a second old."""
+        if time.monotonic() - self._last_flush >= FLUSH_EVERY:
+            self._flush()
+
+    def _flush(self) -> None:
+        """Everything written so far to the OS (where a SIGKILL no longer loses it)."""
+        self._last_flush = time.monotonic()
+        try:
+            self._f.flush()
+        except OSError as exc:
+            raise self._named(exc) from exc
+
+    def on_tick(self, now: float) -> None:
+        """Time moves on (the hub ticks every quarter second on a live input, also while
+        nothing arrives): what was written reaches the file now."""
+        if not self._closed:
+            self._flush()
 
     def write_obj(self, obj: Mapping[str, Any]) -> None:
         """One record's ``read --json`` object, in this file's format."""

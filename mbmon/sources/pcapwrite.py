@@ -25,7 +25,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, BinaryIO, Self
 
-from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport
+from mbmon.model import Chunk, Direction, Event, EventKind, Frame, Stream, Transport
 
 LINKTYPE_NULL = 0  # BSD loopback: 4-byte address family in the writer's byte order
 LINKTYPE_ETHERNET = 1
@@ -48,6 +48,8 @@ ETHERTYPE_IPV6 = 0x86DD
 ETHERTYPE_VLAN = 0x8100
 ETHERTYPE_QINQ = 0x88A8
 
+MODBUS_PORT = 502  # the port Wireshark decodes as Modbus/TCP and Modbus/UDP
+
 _PCAP_MAGIC_US = 0xA1B2C3D4
 _PCAP_MAGIC_NS = 0xA1B23C4D
 
@@ -59,6 +61,11 @@ def parse_endpoint(endpoint: str) -> tuple[str, int]:
     else:
         host, _, port = endpoint.rpartition(":")
     return host, int(port)
+
+
+def join_endpoint(host: str, port: int) -> str:
+    """``IP:PORT``, or ``[IPv6]:PORT``: the inverse of :func:`parse_endpoint`."""
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
 
 
 def _packed(address: str) -> bytes:
@@ -551,7 +558,22 @@ class ChunkWriter:
     (framed by :class:`~mbmon.protocol.mbap.MbapDecoder`; bytes it cannot frame
     become segments of their own, in order), each at the time of the chunk that
     carried its last byte, so that Wireshark dissects every ADU even where the
-    original segmentation split an MBAP header. Every byte is written once.
+    original segmentation split an MBAP header. Every byte is written once. A
+    GAP (bytes the capture lost) is then no hole in the sequence numbers: with
+    one ADU per segment there is nothing to reassemble, and a hole would stop
+    Wireshark's reassembly for the rest of the connection; the segments are
+    numbered contiguously and the loss is listed in :attr:`losses`. RTU bus
+    streams are written one frame per link type 147 record (framed by
+    :class:`~mbmon.protocol.rtu.RtuDecoder` with ``baudrate`` and ``silence``, as
+    the pipeline frames them; each run of noise a record of its own), at the
+    frame's own time, so that a serial read holding a request and its answer
+    becomes two records Wireshark decodes.
+
+    ``server_port``: the server port of every Modbus/TCP and Modbus/UDP stream
+    is written as this port (502: what Wireshark decodes as Modbus with no
+    option); :attr:`ports_rewritten` maps each original port to it. Server
+    ports written as they were and that Wireshark does not decode as Modbus by
+    itself (not 502, or RTU carried over TCP/UDP) are in :attr:`ports_kept`.
 
     A pcap file has one link type, so with ``pcapng=False`` the first chunk fixes
     it (Ethernet, or 147 for a bus) and a chunk needing the other goes to the file
@@ -562,6 +584,7 @@ class ChunkWriter:
     """
 
     MAX_SEGMENT = 32768  # larger chunks are cut into several segments (IPv4 length limit)
+    NOISE_SEGMENT = 7  # unframable bytes (adu_segments): too short for an MBAP header
 
     def __init__(
         self,
@@ -571,6 +594,9 @@ class ChunkWriter:
         nanosecond: bool = True,
         adu_segments: bool = False,
         companion: Callable[[int], str | Path] | None = None,
+        server_port: int | None = None,
+        baudrate: int | None = None,
+        silence: float | None = None,
     ) -> None:
         self._out = out
         self._nanosecond = nanosecond
@@ -584,6 +610,21 @@ class ChunkWriter:
         self._bus_ifaces: dict[int, int] = {}
         self._tcp: dict[int, TcpConversation] = {}
         self._adu_segments = adu_segments
+        self._server_port = server_port
+        self._baudrate = baudrate
+        self._silence = silence
+        self._bus_framers: dict[int, Any] = {}  # stream id -> its RtuDecoder, with adu_segments
+        self._ends: dict[int, tuple[str, str]] = {}  # stream id -> endpoints as written
+        #: (transport, original server port) -> the port written instead
+        self.ports_rewritten: dict[tuple[Transport, int], int] = {}
+        #: (transport, server port) written as they were, that Wireshark does not
+        #: decode as Modbus with no option
+        self.ports_kept: set[tuple[Transport, int]] = set()
+        #: bytes the capture lost, numbered over (adu_segments): (time, stream,
+        #: direction value, bytes), in order
+        self.losses: list[tuple[float, Stream, str, int]] = []
+        #: link type 147 records written (RTU bus bytes)
+        self.bus_records = 0
         # (stream id, direction) -> (stream, its MBAP decoder), with adu_segments
         self._framers: dict[tuple[int, Direction], tuple[Stream, Any]] = {}
         # the range of times the file holds: pcap has 32-bit seconds; pcapng 64-bit units
@@ -591,6 +632,12 @@ class ChunkWriter:
         self._last_ts = 0.0
         self.bad_times = 0
         self.first_bad_time: float | None = None
+
+    @property
+    def linktype(self) -> int | None:
+        """The link type of the classic pcap file (the first packet's), ``None`` before
+        the first packet or for pcapng (which holds both)."""
+        return self._pcap_link
 
     def _time(self, ts: float) -> float:
         """``ts``, or the previous packet's time when the file cannot hold it."""
@@ -604,6 +651,8 @@ class ChunkWriter:
 
     def _emit(self, ts: float, frame: bytes, linktype: int, stream_id: int) -> None:
         ts = self._time(ts)
+        if linktype == LINKTYPE_USER0:
+            self.bus_records += 1
         if self._pcapng is not None:
             if linktype == LINKTYPE_USER0:
                 iface = self._bus_ifaces.get(stream_id)
@@ -633,8 +682,26 @@ class ChunkWriter:
             return
         self._pcap.write(ts, frame)
 
+    def _endpoints(self, stream: Stream) -> tuple[str, str]:
+        """The stream's endpoints as written: its own or made-up ones (see
+        :meth:`_stream_endpoints`), the server port rewritten to ``server_port``
+        for Modbus/TCP and Modbus/UDP."""
+        ends = self._ends.get(stream.id)
+        if ends is not None:
+            return ends
+        client, server = self._stream_endpoints(stream)
+        host, port = parse_endpoint(server)
+        mbap = stream.transport in (Transport.TCP, Transport.UDP)
+        if mbap and self._server_port is not None and port != self._server_port:
+            self.ports_rewritten[(stream.transport, port)] = self._server_port
+            server = join_endpoint(host, self._server_port)
+        elif not mbap or port != MODBUS_PORT:
+            self.ports_kept.add((stream.transport, port))
+        ends = self._ends[stream.id] = (client, server)
+        return ends
+
     @staticmethod
-    def _endpoints(stream: Stream) -> tuple[str, str]:
+    def _stream_endpoints(stream: Stream) -> tuple[str, str]:
         """The stream's endpoints, or made-up ones when they are not ``IP:PORT``."""
         try:
             for endpoint in (stream.client, stream.server):
@@ -668,15 +735,17 @@ class ChunkWriter:
         if isinstance(item, Event):
             if tcp:
                 if self._adu_segments:
-                    self._flush_adus(stream, item.ts)
-                for frame in self._event_frames(item, self._conversation(stream)):
+                    # a gap ends what its own direction holds; the other one goes on
+                    gap = item.kind is EventKind.GAP
+                    self._flush_adus(stream, item.ts, item.info.get("direction") if gap else None)
+                for frame in self._event_frames(item, stream, self._conversation(stream)):
                     self._emit(item.ts, frame, LINKTYPE_ETHERNET, stream.id)
             return
         from_client = item.direction is not Direction.S2C
         if tcp:
             if self._adu_segments and stream.transport is Transport.TCP:
-                for piece in self._adus(stream, item.direction, item.data, item.ts):
-                    self._segments(stream, from_client, piece, item.ts)
+                for piece, framed in self._adus(stream, item.direction, item.data, item.ts):
+                    self._adu_segment(stream, from_client, piece, framed, item.ts)
             else:
                 self._segments(stream, from_client, item.data, item.ts)
             return
@@ -689,7 +758,22 @@ class ChunkWriter:
                 frame = udp_frame(LINKTYPE_ETHERNET, sip, cip, sport, cport, item.data)
             self._emit(item.ts, frame, LINKTYPE_ETHERNET, stream.id)
             return
-        self._emit(item.ts, item.data, LINKTYPE_USER0, stream.id)  # a serial bus
+        if self._adu_segments:  # a serial bus: one frame (or noise run) per record
+            for frame in self._bus_framer(stream).feed(item.data, item.ts):
+                self._emit(frame.ts, frame.raw, LINKTYPE_USER0, stream.id)
+            return
+        self._emit(item.ts, item.data, LINKTYPE_USER0, stream.id)  # a serial bus, as read
+
+    def _bus_framer(self, stream: Stream) -> Any:
+        """The RTU decoder that frames the records of bus ``stream`` (adu_segments)."""
+        decoder = self._bus_framers.get(stream.id)
+        if decoder is None:
+            from mbmon.protocol.rtu import RtuDecoder
+
+            decoder = self._bus_framers[stream.id] = RtuDecoder(
+                stream, Direction.BUS, baudrate=self._baudrate, silence=self._silence
+            )
+        return decoder
 
     def _segments(self, stream: Stream, from_client: bool, data: bytes, ts: float) -> None:
         """``data`` as TCP segments of at most :attr:`MAX_SEGMENT` bytes."""
@@ -698,8 +782,26 @@ class ChunkWriter:
             frame = conv.send(from_client, data[start : start + self.MAX_SEGMENT])
             self._emit(ts, frame, LINKTYPE_ETHERNET, stream.id)
 
-    def _adus(self, stream: Stream, direction: Direction, data: bytes, ts: float) -> list[bytes]:
-        """The complete ADUs (and unframable runs) of one direction that ``data`` ends."""
+    def _adu_segment(
+        self, stream: Stream, from_client: bool, data: bytes, framed: bool, ts: float
+    ) -> None:
+        """One framed ADU as one segment; bytes the framer could not frame in segments
+        of at most :attr:`NOISE_SEGMENT` bytes. Wireshark takes a segment for Modbus/TCP
+        from 8 bytes on (an MBAP header with protocol id 0) and then waits for as many
+        bytes as its length field says: unframable bytes that happen to look like a
+        header (a response that lost its first byte) would swallow the ADUs after
+        them; shorter segments are never taken for Modbus and start no reassembly."""
+        if framed:
+            self._segments(stream, from_client, data, ts)
+            return
+        for start in range(0, len(data), self.NOISE_SEGMENT):
+            self._segments(stream, from_client, data[start : start + self.NOISE_SEGMENT], ts)
+
+    def _adus(
+        self, stream: Stream, direction: Direction, data: bytes, ts: float
+    ) -> list[tuple[bytes, bool]]:
+        """The complete ADUs (``(bytes, True)``) and unframable runs (``(bytes, False)``)
+        of one direction that ``data`` ends."""
         key = (stream.id, direction)
         entry = self._framers.get(key)
         if entry is None:
@@ -709,22 +811,30 @@ class ChunkWriter:
                 stream, Direction.S2C if direction is Direction.S2C else Direction.C2S
             )
             entry = self._framers[key] = (stream, decoder)
-        return [item.raw for item in entry[1].feed(data, ts)]
+        return [(item.raw, isinstance(item, Frame)) for item in entry[1].feed(data, ts)]
 
-    def _flush_adus(self, stream: Stream, ts: float) -> None:
-        """Write what the framers of ``stream`` hold (before a gap, connect or close)."""
+    def _flush_adus(self, stream: Stream, ts: float, only: object = None) -> None:
+        """Write what the framers of ``stream`` hold (before a connect or close; before
+        a gap, only the framer of the gap's direction, ``only``: its value)."""
         for direction in (Direction.C2S, Direction.S2C):
+            if only is not None and direction.value != only:
+                continue
             entry = self._framers.pop((stream.id, direction), None)
             if entry is not None:
                 for item in entry[1].flush(ts):
-                    self._segments(stream, direction is not Direction.S2C, item.raw, ts)
+                    from_client = direction is not Direction.S2C
+                    self._adu_segment(stream, from_client, item.raw, isinstance(item, Frame), ts)
 
-    @staticmethod
-    def _event_frames(event: Event, conv: TcpConversation) -> list[bytes]:
+    def _event_frames(self, event: Event, stream: Stream, conv: TcpConversation) -> list[bytes]:
         if event.kind is EventKind.CONNECT:
             return conv.open()
         if event.kind is EventKind.GAP:
             size = int(event.info.get("bytes", 0))
+            if self._adu_segments and stream.transport is Transport.TCP:
+                # one ADU per segment: numbered on, nothing for Wireshark to wait for
+                direction = str(event.info.get("direction", Direction.C2S.value))
+                self.losses.append((event.ts, stream, direction, size))
+                return []
             from_client = event.info.get("direction") == Direction.C2S.value
             if from_client:
                 conv.client_next = (conv.client_next + size) & 0xFFFFFFFF
@@ -742,12 +852,23 @@ class ChunkWriter:
             return conv.close(by_client)
         return []
 
+    def flush(self) -> None:
+        """Hand what was written so far to the OS (a live ``-w x.pcap`` on each tick);
+        bytes an ADU framer holds wait for the rest of their ADU."""
+        for writer in (self._pcapng, self._pcap, self._other):
+            if writer is not None:
+                writer.flush()
+
     def close(self) -> None:
         """Write what the framers hold, then finish the file(s); a capture that got
         nothing is still a valid (empty) one."""
         try:
             for stream, _ in list(self._framers.values()):
                 self._flush_adus(stream, self._last_ts)
+            for stream_id, decoder in list(self._bus_framers.items()):
+                del self._bus_framers[stream_id]
+                for frame in decoder.flush(self._last_ts):
+                    self._emit(frame.ts, frame.raw, LINKTYPE_USER0, stream_id)
         finally:
             if self._pcapng is not None:
                 self._pcapng.close()

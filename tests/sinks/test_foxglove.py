@@ -1,9 +1,11 @@
 """The live Foxglove feed: a real foxglove-sdk server and a real WebSocket client.
 
 The client speaks Foxglove's WebSocket protocol (foxglove-sdk 0.30 offers the
-subprotocol ``foxglove.sdk.v1``): it reads ``serverInfo`` and ``advertise``,
-subscribes, and decodes the binary message-data frames (opcode 0x01,
-subscription id u32 LE, log time u64 LE, payload). What it receives is checked
+subprotocol ``foxglove.sdk.v1``; older Foxglove and Lichtblick releases offer
+only ``foxglove.websocket.v1``, the same protocol, and connect too): it reads
+``serverInfo`` and ``advertise``, subscribes, and decodes the binary
+message-data frames (opcode 0x01, subscription id u32 LE, log time u64 LE,
+payload). What it receives is checked
 against the schemas in ``mbmon/schemas`` and against the MCAP log of the same
 records, byte for byte: the feed and the log are one mapping.
 """
@@ -41,6 +43,7 @@ from mbmon.sinks.base import SinkContext, SinkError, open_sink
 from mbmon.sinks.foxglove import FoxgloveFeed
 
 SUBPROTOCOL = "foxglove.sdk.v1"
+LEGACY = "foxglove.websocket.v1"
 _DATA = struct.Struct("<BIQ")  # opcode 0x01, subscription id, log time
 
 
@@ -48,8 +51,8 @@ class Client:
     """A Foxglove WebSocket client: advertised channels, subscriptions, received messages
     (``(topic, log_time, payload)``), read by a thread while the test feeds the server."""
 
-    def __init__(self, url: str) -> None:
-        self.ws = connect(url, subprotocols=[SUBPROTOCOL], open_timeout=10).__enter__()
+    def __init__(self, url: str, subprotocols: tuple[str, ...] = (SUBPROTOCOL,)) -> None:
+        self.ws = connect(url, subprotocols=list(subprotocols), open_timeout=10).__enter__()
         self.server_info: dict[str, Any] = {}
         self.channels: dict[str, dict[str, Any]] = {}  # topic -> advertised channel
         self.received: list[tuple[str, int, bytes]] = []
@@ -217,6 +220,58 @@ def test_only_subscribed_topics_are_made_and_sent(session_stream: list) -> None:
         feed.close()
     assert [t for t, _, _ in got] == ["/modbus/monitor"] * len(records)
     assert [json.loads(p)["line"] for _, _, p in got] == [r.index for r in records]
+
+
+@pytest.mark.parametrize(
+    ("offered", "agreed"),
+    [
+        ((LEGACY,), LEGACY),  # older Foxglove and Lichtblick releases
+        ((LEGACY, SUBPROTOCOL), SUBPROTOCOL),
+        ((SUBPROTOCOL,), SUBPROTOCOL),
+    ],
+)
+def test_clients_offering_either_subprotocol_get_the_same_messages(
+    session_stream: list, offered: tuple[str, ...], agreed: str
+) -> None:
+    """A client that offers only ``foxglove.websocket.v1`` (refused with HTTP 400 by the
+    SDK's server alone) connects, subscribes and receives what a current client does."""
+    feed = FoxgloveFeed(SinkContext(source="x.pcap"), "127.0.0.1", 0)
+    try:
+        clients = [Client(feed.url, offered), Client(feed.url)]
+        assert clients[0].ws.subprotocol == agreed
+        for client in clients:
+            client.read_advertised({"/modbus/monitor"})
+            assert client.server_info["name"] == "mbmon"
+            client.subscribe(["/modbus/monitor"])
+        records = [r for r in session_stream if isinstance(r, Record)]
+        end = time.monotonic() + 10
+        while not all(client.messages() for client in clients):  # both subscriptions in
+            assert time.monotonic() < end, "a subscription never reached the server"
+            feed.on_records(records[:1])
+            time.sleep(0.05)
+        time.sleep(0.2)
+        before = [len(client.messages()) for client in clients]
+        _feed_like_the_hub(feed, session_stream)
+        got = [
+            client.wait_for(n + len(records))[n:] for client, n in zip(clients, before, strict=True)
+        ]
+        for client in clients:
+            client.close()
+    finally:
+        feed.close()
+    assert len(got[0]) == len(records)
+    assert got[0] == got[1]
+
+
+def test_an_unknown_subprotocol_is_still_refused() -> None:
+    from websockets.exceptions import InvalidStatus
+
+    feed = FoxgloveFeed(SinkContext(), "127.0.0.1", 0)
+    try:
+        with pytest.raises(InvalidStatus, match="400"):
+            connect(feed.url, subprotocols=["foxglove.websocket.v2"], open_timeout=10)
+    finally:
+        feed.close()
 
 
 def test_port_in_use_is_a_sink_error() -> None:
