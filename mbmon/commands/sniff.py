@@ -232,6 +232,7 @@ def run_sniff(args: argparse.Namespace) -> int:
         make_annotator,
         open_console,
         open_foxglove,
+        run_live,
         view_and_filter,
     )
     from mbmon.commands.common import profile_sources as _profile_sources
@@ -437,7 +438,7 @@ def run_sniff(args: argparse.Namespace) -> int:
             capture.start()
         for tap in taps:
             tap.start()
-        hub.run(stop_requested)
+        run_live(monitor, partial(hub.run, stop_requested), stop, ctx=ctx, submit=hub.submit)
     finally:
         if capture is not None:
             capture.stop()
