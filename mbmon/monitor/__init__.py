@@ -74,6 +74,7 @@ def run_screen(
     submit: Callable[[Callable[[], Any]], None] | None = None,
     after: Callable[[], None] | None = None,
     ended_note: str = "input ended; q quits",
+    display_filter: str = "",
 ) -> None:
     """Run ``work`` (the command's hub loop) in a thread while the screen has the terminal.
 
@@ -83,9 +84,10 @@ def run_screen(
     demo finishes its log there). SIGINT and SIGTERM still reach the command's own
     handlers; the screen closes once the run has stopped. ``w`` writes through
     ``ctx`` (a :class:`~mbmon.sinks.base.SinkContext`); with ``submit`` (the hub's)
-    the write runs in the hub's thread while the hub runs. Returns after the screen
-    has closed and ``work`` has returned; what was printed meanwhile goes to stderr
-    then; an exception of ``work`` is raised again here.
+    the write runs in the hub's thread while the hub runs. ``display_filter`` is the
+    screen's first display filter (the command-line syntax; ``f`` changes it).
+    Returns after the screen has closed and ``work`` has returned; what was printed
+    meanwhile goes to stderr then; an exception of ``work`` is raised again here.
     """
     from mbmon.monitor.app import MonitorApp
 
@@ -131,7 +133,14 @@ def run_screen(
             raise result[0]
         return str(result[0])
 
-    app = MonitorApp(feed, worker=worker, stop=stop, save=save, ended_note=ended_note)
+    app = MonitorApp(
+        feed,
+        worker=worker,
+        stop=stop,
+        save=save,
+        ended_note=ended_note,
+        display_filter=display_filter,
+    )
     old: dict[int, Any] = {}
 
     def on_signal(signum: int, frame: Any) -> None:

@@ -574,8 +574,10 @@ class MonitorApp(App[None]):
         stop: Callable[[], None] | None = None,
         save: Callable[[str, list[Entry]], str] | None = None,
         ended_note: str = "input ended; q quits",
+        display_filter: str = "",
     ) -> None:
         super().__init__()
+        self._first_filter = display_filter
         self.feed = feed
         self.worker = worker
         self._stop = stop
@@ -638,6 +640,8 @@ class MonitorApp(App[None]):
         self.query_one("#registers-pane").border_title = "registers"
         self.query_one("#list", MonitorList).focus()
         self._layout()
+        if self._first_filter:
+            self.set_filter(self._first_filter)
         self.pull()
         self.set_interval(1 / REDRAWS, self.pull)
 
