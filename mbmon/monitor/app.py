@@ -161,11 +161,16 @@ class MonitorList(ScrollView, can_focus=True):
         if self.follow or old_seq is None:
             self.cursor = len(rows) - 1
             self.scroll_end(animate=False, immediate=True)
+            self.call_after_refresh(self._to_end)
         else:
             i = bisect.bisect_left(self._seqs, old_seq)
             self.cursor = min(i, len(rows) - 1)
             self.scroll_to(y=max(0, self.cursor - offset), animate=False, immediate=True)
         self.refresh()
+
+    def _to_end(self) -> None:
+        if self.follow:
+            self.scroll_end(animate=False, immediate=True)
 
     def index_of(self, seq: int) -> int | None:
         i = bisect.bisect_left(self._seqs, seq)
@@ -221,10 +226,11 @@ class MonitorList(ScrollView, can_focus=True):
         if index >= len(self.rows):
             return Strip.blank(width)
         entry = self.rows[index]
-        mark = "▶" if entry.seq in self.marks else " "
+        here = "›" if index == self.cursor else " "
+        mark = "●" if entry.seq in self.marks else " "
         style = _KIND_STYLE.get(entry.record.kind, Style())
         line = entry.line
-        segments = [Segment(mark, _MARK), Segment(" ")]
+        segments = [Segment(here), Segment(mark, _MARK)]
         q = self.query_text.lower()
         at = line.lower().find(q) if q else -1
         if at >= 0:
@@ -380,6 +386,13 @@ class Details(VerticalScroll, can_focus=True):
             return
         text, self.fields = entry_details(self.entry, self.snap, self.field)
         body.update(text)
+        # keep the selected field in sight: the line above it wraps to a few rows
+        width = max(1, self.size.width - 2)
+        top = -(-cell_len(text.plain.split("\n", 1)[0]) // width)
+        row = top + self.field
+        height = max(1, self.size.height)
+        if row < self.scroll_y or row >= self.scroll_y + height:
+            self.scroll_to(y=max(0, row - height // 2), animate=False, immediate=True)
 
     def action_field(self, by: int) -> None:
         if self.fields:
