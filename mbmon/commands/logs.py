@@ -386,7 +386,7 @@ def run_browse(args: argparse.Namespace) -> int:
 
         def work() -> None:
             try:
-                hub.run_items(_browse_items(log, raw_items))
+                hub.run_items(_browse_items(log, raw_items, lambda: hub.records))
             except LogError as exc:
                 failed.append(str(exc))
             hub.tick(hub.now)  # the run's end: the rate and the robot panel's registers
@@ -407,26 +407,33 @@ def run_browse(args: argparse.Namespace) -> int:
 
 
 #: Events a log holds only as records (not on /modbus/raw): ``--browse`` feeds them
-#: again, at their time, so its list has the lines ``replay`` prints.
+#: again, in their place, so its list has the lines ``replay`` prints.
 _RECORD_ONLY_EVENTS = ("notice", "guard")
 
 
-def _browse_items(log: Any, raw_items: Any) -> Iterator[Any]:
+def _browse_items(log: Any, raw_items: Any, made: Any) -> Iterator[Any]:
     """The log's raw chunks and source events, with its notices and guard decisions
-    (kept only as records) merged in at their times."""
-    import heapq
+    (kept only as records) fed again where the recording had them: before the raw
+    item that made the record of the same number (``made()``: records made so far)."""
+    from collections import deque
 
     from mbmon.io.replay import logged_records
     from mbmon.model import Event, EventKind
 
-    stored = [
-        Event(r.time, None, EventKind(r.obj["event"]), dict(r.obj.get("info") or {}))
+    stored = deque(
+        (int(r.obj.get("index") or 0),
+         Event(r.time, None, EventKind(r.obj["event"]), dict(r.obj.get("info") or {})))
         for r in logged_records(log)
         if r.obj is not None
         and r.obj.get("kind") == "event"
         and r.obj.get("event") in _RECORD_ONLY_EVENTS
-    ]
-    return heapq.merge(raw_items(log), stored, key=lambda item: item.ts)
+    )  # fmt: skip
+    for item in raw_items(log):
+        while stored and stored[0][0] <= made():
+            yield stored.popleft()[1]
+        yield item
+    for _index, event in stored:
+        yield event
 
 
 def _filter_text(args: argparse.Namespace) -> str:

@@ -186,7 +186,7 @@ class MonitorList(ScrollView, can_focus=True):
         index = max(0, min(index, len(self.rows) - 1))
         self.cursor = index
         self.follow = (index == len(self.rows) - 1) if follow is None else follow
-        height = max(1, self.size.height)
+        height = max(1, self.scrollable_content_region.height)  # a scrollbar takes a row
         top = int(self.scroll_y)
         if index < top:
             self.scroll_to(y=index, animate=False, immediate=True)
@@ -203,7 +203,8 @@ class MonitorList(ScrollView, can_focus=True):
         self.select(self.cursor + by, follow=False)
 
     def action_page(self, by: int) -> None:
-        self.select(self.cursor + by * max(1, self.size.height - 1), follow=False)
+        page = self.scrollable_content_region.height - 1
+        self.select(self.cursor + by * max(1, page), follow=False)
 
     def action_first(self) -> None:
         self.select(0, follow=False)
