@@ -33,18 +33,21 @@ from textual import events
 from textual.app import App, ComposeResult
 from textual.binding import Binding
 from textual.containers import Horizontal, Vertical, VerticalScroll
-from textual.geometry import Size
 from textual.screen import ModalScreen
-from textual.scroll_view import ScrollView
 from textual.strip import Strip
+from textual.widget import Widget
 from textual.widgets import Footer, Input, Static
 
 from mbmon.format import format_time, frame_details
 from mbmon.model import Kind, RecordKind
 from mbmon.monitor.feed import Cell, Entry, FeedView, MonitorFeed, header_items, register_name
 
-#: At most this many redraws a second.
+#: The screen looks at the feed this many times a second (and answers keys at once);
 REDRAWS = 10
+#: but redraws for new traffic at most this many times a second: a redraw moves every
+#: row of the list, and nobody reads faster (at 5,000 frames/s it keeps the screen
+#: under 10 % of a core: bench/monitor_load.py)
+DATA_REDRAWS = 4
 #: A register changed within this many seconds (of the traffic's time) is highlighted.
 CHANGED_FOR = 2.0
 #: The side column (robot panel, register image) shows by itself from this width on.
@@ -120,8 +123,13 @@ def parse_display_filter(text: str) -> Any:
 # --------------------------------------------------------------------------- the list
 
 
-class MonitorList(ScrollView, can_focus=True):
-    """The monitor lines, one row each, with the cursor, marks and sideways scrolling."""
+class MonitorList(Widget, can_focus=True):
+    """The monitor lines, one row each, with the cursor, marks and sideways scrolling.
+
+    It scrolls itself (``top``: the first row shown, ``x``: the first column) rather
+    than through textual's virtual size, whose every change lays the whole screen
+    out again: a new line then costs the redraw of this pane only. The border says
+    which lines are shown (``a-b of n``)."""
 
     BINDINGS: ClassVar[list[Any]] = [
         Binding("up", "move(-1)", "up", show=False),
@@ -142,35 +150,57 @@ class MonitorList(ScrollView, can_focus=True):
         self.follow = True
         self.marks: set[int] = set()  # seq numbers
         self.query_text = ""
+        self.top = 0  # the first row shown
+        self.x = 0  # the first column shown
         self._width = 0
+        self._measured = -1  # the lines up to this seq are measured
+
+    @property
+    def height_rows(self) -> int:
+        return max(1, self.content_size.height)
 
     # -- data
     def set_rows(self, rows: list[Entry]) -> None:
         """Show ``rows`` (ordered by seq), keeping the selected line where it was on screen."""
         old_seq = self.rows[self.cursor].seq if 0 <= self.cursor < len(self.rows) else None
-        offset = self.cursor - int(self.scroll_y)
+        offset = self.cursor - self.top
         self.rows = rows
-        self._seqs = [e.seq for e in rows]
+        self._seqs = seqs = [e.seq for e in rows]
         width = self._width
-        for e in rows[-2000:] if len(rows) > 2000 and width else rows:
-            n = cell_len(e.line)
+        # measure only the lines not measured yet (the width of the widest line seen);
+        # len() for speed: a monitor line's characters take one cell each
+        for e in rows[bisect.bisect_right(seqs, self._measured) :]:
+            n = len(e.line)
             if n > width:
                 width = n
+        if rows:
+            self._measured = max(self._measured, seqs[-1])
         self._width = width
-        self.virtual_size = Size(width + 2, len(rows))
         if self.follow or old_seq is None:
             self.cursor = len(rows) - 1
-            self.scroll_end(animate=False, immediate=True)
-            self.call_after_refresh(self._to_end)
+            self.top = max(0, len(rows) - self.height_rows)
         else:
-            i = bisect.bisect_left(self._seqs, old_seq)
+            i = bisect.bisect_left(seqs, old_seq)
             self.cursor = min(i, len(rows) - 1)
-            self.scroll_to(y=max(0, self.cursor - offset), animate=False, immediate=True)
+            self.top = self._clamp_top(self.cursor - offset)
+        self._changed()
+
+    def _clamp_top(self, top: int) -> int:
+        return max(0, min(top, len(self.rows) - self.height_rows))
+
+    def _changed(self) -> None:
+        n = len(self.rows)
+        where = f"{self.top + 1}-{min(n, self.top + self.height_rows)} of {n}" if n else ""
+        if self.x:
+            where += f", from column {self.x + 1}"
+        if where != self.border_subtitle:
+            self.border_subtitle = where
         self.refresh()
 
-    def _to_end(self) -> None:
+    def on_resize(self, event: events.Resize) -> None:
         if self.follow:
-            self.scroll_end(animate=False, immediate=True)
+            self.top = self._clamp_top(len(self.rows))
+        self._changed()
 
     def index_of(self, seq: int) -> int | None:
         i = bisect.bisect_left(self._seqs, seq)
@@ -186,45 +216,56 @@ class MonitorList(ScrollView, can_focus=True):
         index = max(0, min(index, len(self.rows) - 1))
         self.cursor = index
         self.follow = (index == len(self.rows) - 1) if follow is None else follow
-        height = max(1, self.scrollable_content_region.height)  # a scrollbar takes a row
-        top = int(self.scroll_y)
-        if index < top:
-            self.scroll_to(y=index, animate=False, immediate=True)
-        elif index >= top + height:
-            self.scroll_to(y=index - height + 1, animate=False, immediate=True)
-        self.refresh()
+        height = self.height_rows
+        if index < self.top:
+            self.top = index
+        elif index >= self.top + height:
+            self.top = index - height + 1
+        self.top = self._clamp_top(self.top)
+        self._changed()
         self.post_message(self.Moved())
 
     class Moved(events.Message):
         """The selected line changed."""
 
-    # -- keys
+    # -- keys and mouse
     def action_move(self, by: int) -> None:
         self.select(self.cursor + by, follow=False)
 
     def action_page(self, by: int) -> None:
-        page = self.scrollable_content_region.height - 1
-        self.select(self.cursor + by * max(1, page), follow=False)
+        self.select(self.cursor + by * max(1, self.height_rows - 1), follow=False)
 
     def action_first(self) -> None:
         self.select(0, follow=False)
 
     def action_last(self) -> None:
         self.select(len(self.rows) - 1, follow=True)
-        self.scroll_end(animate=False, immediate=True)
 
     def action_sideways(self, by: int) -> None:
-        self.scroll_to(x=max(0, self.scroll_x + by), animate=False, immediate=True)
+        room = max(0, self._width + 2 - self.content_size.width)
+        self.x = max(0, min(self.x + by, room))
+        self._changed()
+
+    def on_mouse_scroll_down(self, event: events.MouseScrollDown) -> None:
+        self.top = self._clamp_top(self.top + 3)
+        self.follow = False
+        self._changed()
+
+    def on_mouse_scroll_up(self, event: events.MouseScrollUp) -> None:
+        self.top = self._clamp_top(self.top - 3)
+        self.follow = False
+        self._changed()
 
     def on_click(self, event: events.Click) -> None:
-        self.select(int(self.scroll_y) + event.y, follow=False)
+        at = event.get_content_offset(self)
+        if at is not None:
+            self.select(self.top + at.y, follow=False)
 
     # -- drawing
     def render_line(self, y: int) -> Strip:
-        scroll_x, scroll_y = self.scroll_offset
-        index = scroll_y + y
-        width = self.size.width
-        if index >= len(self.rows):
+        index = self.top + y
+        width = self.content_size.width
+        if index >= len(self.rows) or y >= self.height_rows:
             return Strip.blank(width)
         entry = self.rows[index]
         here = "›" if index == self.cursor else " "
@@ -242,7 +283,10 @@ class MonitorList(ScrollView, can_focus=True):
             ]
         else:
             segments.append(Segment(line, style))
-        strip = Strip(segments).crop_extend(scroll_x, scroll_x + width, None)
+        strip = Strip(segments)
+        if self.x:
+            strip = Strip.join([strip.crop(0, 2), strip.crop(2 + self.x)])
+        strip = strip.crop_extend(0, width, None)
         if index == self.cursor:
             strip = strip.apply_style(_CURSOR if self.has_focus else Style(bgcolor="grey30"))
         return strip
@@ -356,7 +400,57 @@ def hex_with(raw: bytes, span: tuple[int, int] | None) -> Text:
     return text
 
 
-class Details(VerticalScroll, can_focus=True):
+class TextPane(Widget):
+    """A pane of text that scrolls by whole lines and never lays the screen out again
+    when its text changes (a redraw of its own region only: the cheap way to show
+    text that changes several times a second). PgUp/PgDn scroll it when focused."""
+
+    BINDINGS: ClassVar[list[Any]] = [
+        Binding("pageup", "scroll_lines(-1)", "PgUp", show=False),
+        Binding("pagedown", "scroll_lines(1)", "PgDn", show=False),
+    ]
+
+    def __init__(self, text: Text | None = None, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self._text = text if text is not None else Text()
+        self.top = 0  # the first line shown
+        self.total = 0  # lines of the text at the pane's width
+        self._wrapped: tuple[int, Any] | None = None  # (width, the text's lines at it)
+
+    def set_text(self, text: Text) -> None:
+        self._text = text
+        self._wrapped = None
+        self.refresh()
+
+    def render(self) -> Text:
+        width = max(1, self.content_size.width)
+        height = max(1, self.content_size.height)
+        if self._wrapped is None or self._wrapped[0] != width:
+            self._wrapped = (width, self._text.wrap(self.app.console, width, overflow="fold"))
+        lines = self._wrapped[1]
+        self.total = len(lines)
+        self.top = max(0, min(self.top, self.total - height))
+        shown = Text("\n").join(lines[self.top : self.top + height])
+        more = self.total > height
+        where = f"{self.top + 1}-{min(self.total, self.top + height)} of {self.total}"
+        subtitle = where if more else ""
+        if subtitle != self.border_subtitle:
+            self.border_subtitle = subtitle
+        return shown
+
+    def show_line(self, row: int) -> None:
+        """Scroll so that wrapped line ``row`` is in sight."""
+        height = max(1, self.content_size.height)
+        if row < self.top or row >= self.top + height:
+            self.top = max(0, row - height // 2)
+            self.refresh()
+
+    def action_scroll_lines(self, pages: int) -> None:
+        self.top = max(0, self.top + pages * max(1, self.content_size.height - 1))
+        self.refresh()
+
+
+class Details(TextPane, can_focus=True):
     """The details pane; ↑ ↓ pick the field whose bytes the raw hex highlights."""
 
     BINDINGS: ClassVar[list[Any]] = [
@@ -365,35 +459,29 @@ class Details(VerticalScroll, can_focus=True):
     ]
 
     def __init__(self, **kwargs: Any) -> None:
-        super().__init__(**kwargs)
+        super().__init__(Text("no line selected", style="dim"), **kwargs)
         self.entry: Entry | None = None
         self.field = 0
         self.fields = 0
         self.snap: FeedView | None = None
 
-    def compose(self) -> ComposeResult:
-        yield Static(Text("no line selected", style="dim"), id="details-text")
-
     def show(self, entry: Entry | None, snap: FeedView | None, *, same: bool = False) -> None:
         if not same:
             self.field = 0
+            self.top = 0
         self.entry, self.snap = entry, snap
         self._draw()
 
     def _draw(self) -> None:
-        body = self.query_one("#details-text", Static)
         if self.entry is None:
-            body.update(Text("no line selected", style="dim"))
+            self.set_text(Text("no line selected", style="dim"))
             return
         text, self.fields = entry_details(self.entry, self.snap, self.field)
-        body.update(text)
+        self.set_text(text)
         # keep the selected field in sight: the line above it wraps to a few rows
-        width = max(1, self.size.width - 2)
-        top = -(-cell_len(text.plain.split("\n", 1)[0]) // width)
-        row = top + self.field
-        height = max(1, self.size.height)
-        if row < self.scroll_y or row >= self.scroll_y + height:
-            self.scroll_to(y=max(0, row - height // 2), animate=False, immediate=True)
+        width = max(1, self.content_size.width)
+        first = -(-cell_len(text.plain.split("\n", 1)[0]) // width)
+        self.show_line(first + self.field)
 
     def action_field(self, by: int) -> None:
         if self.fields:
@@ -500,6 +588,19 @@ def _where(key: tuple[str, int, str, int], server: bool, unit: bool) -> str:
     return prefix + register_name(key)
 
 
+class Registers(TextPane, can_focus=True):
+    """The register image; ↑ ↓ PgUp PgDn scroll it when focused (tab)."""
+
+    BINDINGS: ClassVar[list[Any]] = [
+        Binding("up", "scroll_by(-1)", "up", show=False),
+        Binding("down", "scroll_by(1)", "down", show=False),
+    ]
+
+    def action_scroll_by(self, lines: int) -> None:
+        self.top = max(0, self.top + lines)
+        self.refresh()
+
+
 class HelpScreen(ModalScreen[None]):
     """``?``: the keys."""
 
@@ -547,7 +648,7 @@ class MonitorApp(App[None]):
     ENABLE_COMMAND_PALETTE = False
     CSS = """
     Screen { layout: vertical; }
-    #header { height: auto; max-height: 3; background: $boost; }
+    #header { height: 2; background: $boost; }
     #main { height: 1fr; }
     #left { width: 1fr; }
     MonitorList { height: 1fr; border: round $primary-darken-2; }
@@ -556,8 +657,9 @@ class MonitorApp(App[None]):
     Details:focus { border: round $accent; }
     #side { width: 46; display: none; }
     #side.shown { display: block; }
-    #robot { height: auto; max-height: 60%; border: round $primary-darken-2; }
-    #registers-pane { height: 1fr; border: round $primary-darken-2; }
+    #robot { height: 55%; border: round $primary-darken-2; }
+    #registers { height: 1fr; border: round $primary-darken-2; }
+    #registers:focus { border: round $accent; }
     #prompt { dock: bottom; display: none; }
     #prompt.shown { display: block; }
     """
@@ -611,6 +713,10 @@ class MonitorApp(App[None]):
         self.snapshot_values: dict[tuple[str, int, str, int], int] | None = None
         self.diff = False
         self.side_forced: bool | None = None
+        self._laid_out: tuple[Any, ...] = ()
+        self._drawn_at = 0.0
+        self._drawn_robot: Any = None
+        self._drawn_registers: Any = None
         self._asking = ""
         self.search_text = ""
         self.redraws = 0
@@ -635,23 +741,22 @@ class MonitorApp(App[None]):
     # ------------------------------------------------------------------ layout
 
     def compose(self) -> ComposeResult:
-        yield Static(id="header")
+        yield TextPane(id="header")
         with Horizontal(id="main"):
             with Vertical(id="left"):
                 yield MonitorList(id="list")
                 yield Details(id="details")
             with Vertical(id="side"):
-                yield Static(id="robot")
-                with VerticalScroll(id="registers-pane"):
-                    yield Static(id="registers")
+                yield TextPane(id="robot")
+                yield Registers(id="registers")
         yield Input(id="prompt")
         yield Footer()
 
     def on_mount(self) -> None:
         self.query_one("#list", MonitorList).border_title = "monitor"
         self.query_one("#details", Details).border_title = "details"
-        self.query_one("#robot", Static).border_title = "robot"
-        self.query_one("#registers-pane").border_title = "registers"
+        self.query_one("#robot", TextPane).border_title = "robot"
+        self.query_one("#registers", TextPane).border_title = "registers"
         self.query_one("#list", MonitorList).focus()
         self._layout()
         if self._first_filter:
@@ -668,15 +773,24 @@ class MonitorApp(App[None]):
         return self.size.width >= SIDE_FROM
 
     def _layout(self) -> None:
-        side = self.query_one("#side")
+        """Fold the panes for the terminal's size; styles are set only when they change
+        (a change lays the screen out again, which costs more than a redraw)."""
+        width, height = self.size
         shown = self._side_wanted()
+        wanted = (
+            shown,
+            46 if width >= SIDE_FROM else max(20, width // 2),
+            self.feed.profile or bool(self.snap.state),
+            9 if height < 30 else "40%",
+        )
+        if wanted == self._laid_out:
+            return
+        self._laid_out = wanted
+        side = self.query_one("#side")
         side.set_class(shown, "shown")
-        width = self.size.width
-        side.styles.width = 46 if width >= SIDE_FROM else max(20, width // 2)
-        robot = self.query_one("#robot")
-        robot.display = self.feed.profile or bool(self.snap.state)
-        details = self.query_one("#details", Details)
-        details.styles.height = 9 if self.size.height < 30 else "40%"
+        side.styles.width = wanted[1]
+        self.query_one("#robot").display = wanted[2]
+        self.query_one("#details", Details).styles.height = wanted[3]
 
     # ------------------------------------------------------------------ data
 
@@ -697,13 +811,25 @@ class MonitorApp(App[None]):
         version = self.feed.version
         if version == self._shown_version:
             return
+        now = time.monotonic()
+        if now - self._drawn_at < 1 / DATA_REDRAWS:
+            return  # the next look redraws
+        self._drawn_at = now
         self._shown_version = version
-        self.snap = self.feed.snapshot()
+        self._take_snapshot()
         self.redraws += 1
         self._draw_header()
         if not self.paused:
             self._show_rows()
         self._draw_side()
+
+    def _take_snapshot(self) -> None:
+        """A copy of the feed; the register image's copy is kept while it is unchanged."""
+        old = self.snap
+        snap = self.feed.snapshot(old.registers_version if old.registers is not None else -1)
+        if snap.registers is None:
+            snap.registers = old.registers
+        self.snap = snap
 
     def _rows(self) -> list[Entry]:
         entries = self._frozen if self._frozen is not None else self.snap.entries
@@ -740,7 +866,8 @@ class MonitorApp(App[None]):
             title += f" of {kept} (filter: {self.filter_text})"
         if lst.marks:
             title += f", {len(lst.marks)} marked"
-        lst.border_title = title
+        if title != lst.border_title:
+            lst.border_title = title
 
     def _draw_header(self) -> None:
         snap = self.snap
@@ -769,7 +896,7 @@ class MonitorApp(App[None]):
             text.append(" LIVE ", style="bold black on green")
         if self.snap.total > len(snap.entries):
             text.append(f"  kept: last {len(snap.entries)}", style="dim")
-        self.query_one("#header", Static).update(text)
+        self.query_one("#header", TextPane).set_text(text)
 
     def _draw_side(self) -> None:
         self._layout()
@@ -777,12 +904,19 @@ class MonitorApp(App[None]):
             return
         snap = self.snap
         if self.query_one("#robot").display:
-            self.query_one("#robot", Static).update(robot_text(snap))
+            robot = (tuple(snap.state.items()), snap.command, tuple(snap.parameters))
+            if robot != self._drawn_robot:
+                self._drawn_robot = robot
+                self.query_one("#robot", TextPane).set_text(robot_text(snap))
         last = snap.entries[-1].record.ts if snap.entries else time.time()
-        self.query_one("#registers", Static).update(
-            registers_text(snap.registers, self.snapshot_values, diff=self.diff, now=last)
-        )
-        pane = self.query_one("#registers-pane")
+        # redrawn when the image changed, when a highlight may have to go, or on s / d
+        key = (snap.registers_version, self.diff, id(self.snapshot_values), int(last))
+        if key != self._drawn_registers:
+            self._drawn_registers = key
+            self.query_one("#registers", TextPane).set_text(
+                registers_text(snap.registers or {}, self.snapshot_values, diff=self.diff, now=last)
+            )
+        pane = self.query_one("#registers", TextPane)
         pane.border_title = "registers: changed since snapshot" if self.diff else "registers"
 
     def on_monitor_list_moved(self, message: MonitorList.Moved) -> None:
@@ -875,8 +1009,8 @@ class MonitorApp(App[None]):
         self._set_list_title()
 
     def action_snapshot(self) -> None:
-        self.snap = self.feed.snapshot()
-        self.snapshot_values = {k: c.value for k, c in self.snap.registers.items()}
+        self._take_snapshot()
+        self.snapshot_values = {k: c.value for k, c in (self.snap.registers or {}).items()}
         self.notify(f"snapshot of {len(self.snapshot_values)} registers and coils; "
                     "d shows what changes", markup=False)  # fmt: skip
         self._draw_side()

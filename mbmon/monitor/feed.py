@@ -84,6 +84,8 @@ class RegisterImage:
     def __init__(self) -> None:
         self.cells: dict[tuple[str, int, str, int], Cell] = {}
         self._blocks: dict[tuple[str, int, str, int], tuple[int, ...]] = {}
+        #: grows whenever a value changes or a cell is added (the screen redraws then)
+        self.version = 0
 
     def take(self, record: Record) -> None:
         """Apply one record (a read's answer or a write's answer); others change nothing."""
@@ -111,6 +113,7 @@ class RegisterImage:
         if self._blocks.get(key) == values:
             return
         self._blocks[key] = values
+        self.version += 1
         ts = record.ts
         cells = self.cells
         for i, value in enumerate(values):
@@ -151,7 +154,8 @@ class FeedView:
     state: dict[str, float]
     command: Any
     parameters: list[tuple[str, str, str, bool]]
-    registers: dict[tuple[str, int, str, int], Cell]
+    registers: dict[tuple[str, int, str, int], Cell] | None
+    registers_version: int
     ended: bool
     version: int
     answers: dict[int, Entry] = field(default_factory=dict)
@@ -303,13 +307,23 @@ class MonitorFeed:
     # ------------------------------------------------------------------ for the screen
 
     @property
+    def total(self) -> int:
+        """Records taken so far (kept or not)."""
+        return self._seq
+
+    @property
     def version(self) -> int:
         """Grows whenever something shown may have changed (the screen redraws only then)."""
         return self._version
 
-    def snapshot(self) -> FeedView:
-        """A consistent copy of what the screen shows (taken under the lock, in any thread)."""
+    def snapshot(self, registers_seen: int = -1) -> FeedView:
+        """A consistent copy of what the screen shows (taken under the lock, in any thread).
+
+        The register image is copied only when it changed since version
+        ``registers_seen`` (``registers`` is then ``None``: the caller's copy holds)."""
         with self._lock:
+            image = self.registers
+            cells = image.copy() if image.version != registers_seen else None
             return FeedView(
                 entries=list(self._entries),
                 total=self._seq,
@@ -319,7 +333,8 @@ class MonitorFeed:
                 state=dict(self.state),
                 command=self.command,
                 parameters=list(self.parameters),
-                registers=self.registers.copy(),
+                registers=cells,
+                registers_version=image.version,
                 ended=self.ended,
                 version=self._version,
                 answers=dict(self._answers),

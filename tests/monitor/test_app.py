@@ -76,9 +76,9 @@ def test_panes_and_every_line_seen_whole(size: tuple[int, int]) -> None:
         line = lst.rows[widest].line
         seen["cut"] = len(line) + 2 > lst.size.width
         seen["whole"] = line in app.query_one("#details", Details).text()
-        before = lst.scroll_x
+        before = lst.x
         await pilot.press("right", "right")
-        seen["sideways"] = lst.scroll_x > before
+        seen["sideways"] = lst.x > before
         await pilot.press("r")  # the robot panel and register image, at any size
         await pilot.pause()
         seen["side_r"] = app.query_one("#side").display
