@@ -870,32 +870,36 @@ class MonitorApp(App[None]):
             lst.border_title = title
 
     def _draw_header(self) -> None:
+        """Title, the state (LIVE, PAUSED, ENDED, STOPPING: first, so that a narrow
+        screen shows it), rate, counts and the command's figures."""
         snap = self.snap
         text = Text()
         items = header_items(self.feed.title, snap)
-        for i, (label, value) in enumerate(items):
-            if i:
-                text.append("  ")
+        text.append(str(items[0][1]), style="bold")
+        text.append(" ")
+        if self.stopping:
+            text.append(" STOPPING… ", style="bold black on yellow")
+        elif snap.ended:
+            text.append(" ENDED ", style="bold black on cyan")
+        elif self.paused:
+            frozen = self._frozen[-1].seq if self._frozen else -1
+            text.append(f" PAUSED +{snap.total - 1 - frozen} new ", style="bold black on yellow")
+        else:
+            text.append(" LIVE ", style="bold black on green")
+        for label, value in items[1:]:
+            text.append("  ")
             if not label:
-                text.append(str(value), style="bold" if i == 0 else "bold cyan")
+                text.append(str(value), style="bold cyan")
                 continue
             text.append(f"{label} ")
             bad = (label in ("exceptions", "timeouts", "warnings") and value) or (
                 label.endswith("drops") and isinstance(value, int) and value > 0
             )
             text.append(str(value), style="bold red" if bad else "bold")
-        text.append("  ")
-        if self.stopping:
-            text.append(" STOPPING… ", style="bold black on yellow")
-        elif snap.ended:
-            text.append(f" ENDED: {self.ended_note} ", style="bold black on cyan")
-        elif self.paused:
-            frozen = self._frozen[-1].seq if self._frozen else -1
-            text.append(f" PAUSED +{snap.total - 1 - frozen} new ", style="bold black on yellow")
-        else:
-            text.append(" LIVE ", style="bold black on green")
-        if self.snap.total > len(snap.entries):
+        if snap.total > len(snap.entries):
             text.append(f"  kept: last {len(snap.entries)}", style="dim")
+        if snap.ended and not self.stopping:
+            text.append(f"  {self.ended_note}", style="cyan")
         self.query_one("#header", TextPane).set_text(text)
 
     def _draw_side(self) -> None:

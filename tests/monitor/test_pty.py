@@ -134,7 +134,7 @@ def test_demo_paused_5_s_loses_nothing(tmp_path: Path) -> None:
         still = term.text()
         assert " PAUSED " in still and list_rows(still) == frozen  # the view held
         term.press(" ")
-        term.wait_for(lambda s: " ENDED: demo done" in s, 90)
+        term.wait_for(lambda s: " ENDED " in s and "demo done" in s, 90)
         term.press("w")
         term.press(str(kept) + "\r", 1.0)
         term.wait_for(lambda s: "wrote " in s)
@@ -164,7 +164,7 @@ def test_replay_browse_search_filter_details_marks(demo_log: Path) -> None:
     lines = _mbmon("replay", str(demo_log))
     term = Terminal(["replay", "--browse", str(demo_log)], 160, 50)
     try:
-        term.wait_for(lambda s: " ENDED: " in s)
+        term.wait_for(lambda s: " ENDED " in s)
         term.pump(1.0)
         screen = term.text()
         assert f"monitor: {len(lines)} lines" in screen
