@@ -225,12 +225,12 @@ def add_output_options(parser: argparse.ArgumentParser) -> None:
 
 
 def add_live_options(group: Any) -> None:
-    """``--plain``: the choice between the live screen and plain lines (live commands)."""
+    """``--plain``: the choice between the monitor screen and plain lines (live commands)."""
     group.add_argument(
         "--plain",
         action="store_true",
-        help="one line per record instead of the live screen (the default when stdout "
-        "is not a terminal)",
+        help="one line per record instead of the interactive monitor (the default when "
+        "stdout or stdin is not a terminal)",
     )
 
 

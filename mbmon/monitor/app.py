@@ -59,8 +59,9 @@ mbmon monitor: keys
   space        pause / resume the view (capture, logs and counts go on)
   ↑ ↓ PgUp PgDn Home End   move in the list (End: follow the newest again)
   ← →          scroll long lines sideways (the details pane shows them whole)
-  tab          switch between the list and the details (↑ ↓ there pick a field:
-               its bytes are highlighted in the raw hex)
+  tab          move between the list, the details (↑ ↓ there pick a field: its
+               bytes are highlighted in the raw hex; PgUp PgDn scroll) and the
+               register image (↑ ↓ PgUp PgDn scroll it)
   /            search the lines (the same text as --grep, any case)
   n  N         next / previous match
   f            display filter, the command-line syntax:

@@ -89,7 +89,7 @@ def test_sniff_lo_list_is_what_read_prints(tmp_path: Path) -> None:
             time.sleep(0.5)  # the capture is open before the screen; let it settle
             _talk(sim.port)
             screen = term.wait_for(lambda s: "disconnected" in s or "Disconnect" in s)
-            term.press("q")
+            term.press("\x03")  # ctrl+c: the key, as a user presses it
             out = term.finish()
         finally:
             term.close()
