@@ -116,3 +116,18 @@ def test_figures_and_header_text() -> None:
     assert text.startswith("mbmon t  0.0 frames/s  frames 0")
     assert "open connections 2" in text and "kernel drops 3" in text
     assert text.count("open connections") == 1
+
+
+def test_the_default_keeps_ten_thousand_lines() -> None:
+    from mbmon.monitor.feed import KEEP
+
+    records = records_of(hrss_items(), [])
+    feed = MonitorFeed(View())
+    assert KEEP >= 10_000
+    fed = 0
+    while fed < KEEP + 2_000:
+        feed.on_records(records)
+        fed += len(records)
+    snap = feed.snapshot()
+    assert len(snap.entries) == KEEP and snap.total == fed
+    assert snap.entries[-1].seq == fed - 1

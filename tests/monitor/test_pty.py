@@ -214,3 +214,14 @@ def test_replay_browse_search_filter_details_marks(demo_log: Path) -> None:
     finally:
         term.close()
     assert term.proc.returncode == 0
+
+
+def test_replay_browse_needs_a_terminal(demo_log: Path) -> None:
+    for extra in ([], ["--json"]):
+        out = subprocess.run(
+            [sys.executable, "-m", "mbmon", "replay", "--browse", str(demo_log), *extra],
+            capture_output=True, text=True, timeout=60, cwd=REPO, stdin=subprocess.DEVNULL,
+            env={**os.environ, "PYTHONPATH": str(REPO)},
+        )  # fmt: skip
+        assert out.returncode == 2, out
+        assert out.stdout == "" and "--browse" in out.stderr and "Traceback" not in out.stderr
