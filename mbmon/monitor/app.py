@@ -8,10 +8,13 @@ answer, latency, notes, the raw bytes with the field under the cursor
 highlighted), and, when there is room or on ``r``, the robot panel and the
 register image. Keys are listed in :data:`HELP` (``?`` on the screen).
 
-The screen never drives the capture: it copies the feed at most
-:data:`REDRAWS` times a second, and only when something changed. Every text
-from the wire is a :class:`rich.text.Text` (never markup), so untrusted bytes
-cannot style the screen.
+The screen never drives the capture: it looks at the feed :data:`REDRAWS`
+times a second and copies and redraws it, when something changed, at most
+:data:`DATA_REDRAWS` times a second (keys are answered at once). The lines come
+made from the hub's thread; the details are made here from the kept records
+(format's text caches are dicts: two threads at worst compute a text twice).
+Every text from the wire is a :class:`rich.text.Text` (never markup), so
+untrusted bytes cannot style the screen.
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ from textual.strip import Strip
 from textual.widget import Widget
 from textual.widgets import Footer, Input, Static
 
-from mbmon.format import format_time, frame_details
+from mbmon.format import frame_details
 from mbmon.model import Kind, RecordKind
 from mbmon.monitor.feed import Cell, Entry, FeedView, MonitorFeed, header_items, register_name
 
@@ -52,6 +55,17 @@ DATA_REDRAWS = 4
 CHANGED_FOR = 2.0
 #: The side column (robot panel, register image) shows by itself from this width on.
 SIDE_FROM = 120
+
+
+def _time_text() -> Callable[[float], str]:
+    """Times of day for the side panes, from a time format of the screen's own: the
+    one format.format_time uses keeps a per-second cache the hub's thread writes."""
+    from mbmon.timefmt import TimeFormat
+
+    return TimeFormat(auto_date=False).text
+
+
+format_time = _time_text()
 
 HELP = """\
 mbmon monitor: keys
