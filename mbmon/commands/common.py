@@ -426,6 +426,23 @@ def _interactive() -> bool:
         return False
 
 
+def filter_text(args: argparse.Namespace) -> str:
+    """The command-line filters (``--unit --fc --address --since --until --grep``) as
+    the monitor's display filter, in the same syntax (``f`` on the screen edits it)."""
+    import shlex
+
+    parts: list[str] = []
+    for unit in getattr(args, "unit", None) or []:
+        parts += ["--unit", unit]
+    for fc in getattr(args, "fc", None) or []:
+        parts += ["--fc", fc]
+    for name in ("address", "since", "until", "grep"):
+        value = getattr(args, name, None)
+        if value:
+            parts += [f"--{name}", value]
+    return shlex.join(parts)
+
+
 def run_live(monitor: Any, work: Any, stop: Any, **screen: Any) -> None:
     """Run ``work`` (a live command's hub loop): here without a monitor, else in a thread
     of its own under the interactive screen (:func:`mbmon.monitor.run_screen`, which

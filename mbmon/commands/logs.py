@@ -332,6 +332,7 @@ def run_browse(args: argparse.Namespace) -> int:
     """``mbmon replay --browse``: the log in the interactive monitor, its raw bytes
     decoded again through the one flow (as ``--redecode``: the lines ``read`` prints),
     the command-line filters as the screen's first display filter."""
+    from mbmon.commands.common import filter_text
     from mbmon.filters import FilterError
     from mbmon.hub import Hub
     from mbmon.io.mcap.layout import METADATA_NAME, TOPIC_RAW
@@ -398,7 +399,7 @@ def run_browse(args: argparse.Namespace) -> int:
             hub.enough,
             ctx=ctx,
             ended_note="end of the log; q quits",
-            display_filter=_filter_text(args),
+            display_filter=filter_text(args),
         )
         for message in failed:
             _err(message)
@@ -434,22 +435,6 @@ def _browse_items(log: Any, raw_items: Any, made: Any) -> Iterator[Any]:
         yield item
     for _index, event in stored:
         yield event
-
-
-def _filter_text(args: argparse.Namespace) -> str:
-    """The command-line filters as the monitor's display filter text (same syntax)."""
-    import shlex
-
-    parts: list[str] = []
-    for unit in getattr(args, "unit", None) or []:
-        parts += ["--unit", unit]
-    for fc in getattr(args, "fc", None) or []:
-        parts += ["--fc", fc]
-    for name in ("address", "since", "until", "grep"):
-        value = getattr(args, name, None)
-        if value:
-            parts += [f"--{name}", value]
-    return shlex.join(parts)
 
 
 def _stored(log: Any) -> Iterator[Any]:
