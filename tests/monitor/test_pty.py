@@ -5,6 +5,7 @@ same traffic; a screen paused 5 s loses nothing from ``-w x.mcap``), and
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import socket
@@ -89,6 +90,10 @@ def test_sniff_lo_list_is_what_read_prints(tmp_path: Path) -> None:
             time.sleep(0.5)  # the capture is open before the screen; let it settle
             _talk(sim.port)
             screen = term.wait_for(lambda s: "disconnected" in s or "Disconnect" in s)
+            saved = tmp_path / "kept.jsonl"  # w while the capture runs: in the hub's thread
+            term.press("w")
+            term.press(f"{saved}\r", 1.0)
+            term.wait_for(lambda s: "wrote " in s)
             term.press("\x03")  # ctrl+c: the key, as a user presses it
             out = term.finish()
         finally:
@@ -97,6 +102,7 @@ def test_sniff_lo_list_is_what_read_prints(tmp_path: Path) -> None:
     assert "mbmon: sniffed lo for" in out  # the summary, after the screen
     shown = list_rows(screen)
     assert len(shown) >= 10, screen
+    assert [json.loads(x)["line"] for x in saved.read_text().splitlines()] == shown
     # exactly the lines of the run, as its log holds them (but the closing stats, which
     # come after the screen)
     logged = _mbmon("replay", str(log))
