@@ -25,11 +25,34 @@ MODULES = [
 def test_no_heavy_imports(module: str) -> None:
     code = (
         f"import sys, {module}; "
-        "bad = [m for m in ('scapy', 'serial', 'pymodbus') if m in sys.modules]; "
+        "bad = [m for m in ('scapy', 'serial', 'pymodbus', 'textual') if m in sys.modules]; "
         "print(','.join(bad))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "", f"{module} imports {out.stdout.strip()}"
+
+
+@pytest.mark.parametrize("module", ["mbmon.monitor", "mbmon.monitor.feed", "mbmon.commands.logs"])
+def test_the_monitor_imports_textual_only_when_a_screen_runs(module: str) -> None:
+    code = f"import sys, {module}; print('textual' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
+def test_mbmon_read_does_not_import_textual() -> None:
+    """``mbmon read`` (and every plain-line run) never loads the screen's toolkit."""
+    capture = Path(__file__).resolve().parents[1] / "captures" / "hrss_ptp.pcap"
+    if not capture.exists():
+        pytest.skip("captures/hrss_ptp.pcap absent")
+    code = (
+        "import sys, io, contextlib\n"
+        "from mbmon.cli import main\n"
+        "with contextlib.redirect_stdout(io.StringIO()):\n"
+        f"    status = main(['read', {str(capture)!r}])\n"
+        "print(status, 'textual' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["0", "False"], out.stdout + out.stderr
 
 
 IO_MODULES = [

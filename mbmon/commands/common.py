@@ -225,12 +225,12 @@ def add_output_options(parser: argparse.ArgumentParser) -> None:
 
 
 def add_live_options(group: Any) -> None:
-    """``--plain``: the choice between the live screen and plain lines (live commands)."""
+    """``--plain``: the choice between the monitor screen and plain lines (live commands)."""
     group.add_argument(
         "--plain",
         action="store_true",
-        help="one line per record instead of the live screen (the default when stdout "
-        "is not a terminal)",
+        help="one line per record instead of the interactive monitor (the default when "
+        "stdout or stdin is not a terminal)",
     )
 
 
@@ -397,24 +397,62 @@ def open_console(
 
     Returns ``(listener, monitor)``: nothing with ``-q``; plain lines
     (:class:`~mbmon.sinks.console.ConsoleListener`) with ``--json``, ``--plain`` or
-    when stdout is not a terminal; otherwise the rich live monitor, which is then
-    both the listener and the monitor (for figures a command feeds it). With the
-    run's ``annotator``, the monitor's state panel shows the HRSS sessions' written
-    parameter registers (R200..R251).
+    when stdout or stdin is not a terminal; otherwise the interactive monitor's feed
+    (:class:`~mbmon.monitor.feed.MonitorFeed`), which is then both the listener and
+    the monitor (for figures a command feeds it, and for :func:`run_live`). With the
+    run's ``annotator``, the robot panel shows the HRSS sessions' written parameter
+    registers (R200..R251).
     """
     if args.quiet:
         return None, None
-    if args.json or getattr(args, "plain", False) or not sys.stdout.isatty():
+    if args.json or getattr(args, "plain", False) or not _interactive():
         from mbmon.sinks.console import ConsoleListener
 
         return ConsoleListener(sys.stdout, view, as_json=args.json, live=True), None
-    from mbmon.sinks.live import LiveMonitor
+    from mbmon.monitor.feed import MonitorFeed
 
     profiles = getattr(args, "profile", []) or []
-    monitor = LiveMonitor(
-        view, title=title, state_panel=wants_state_panel(profiles), annotator=annotator
+    monitor = MonitorFeed(
+        view, title=title, profile=wants_state_panel(profiles), annotator=annotator
     )
     return monitor, monitor
+
+
+def _interactive() -> bool:
+    """Whether the screen can run: stdout is a terminal, and so is stdin (its keys)."""
+    try:
+        return sys.stdout.isatty() and sys.stdin is not None and sys.stdin.isatty()
+    except (AttributeError, ValueError):
+        return False
+
+
+def filter_text(args: argparse.Namespace) -> str:
+    """The command-line filters (``--unit --fc --address --since --until --grep``) as
+    the monitor's display filter, in the same syntax (``f`` on the screen edits it)."""
+    import shlex
+
+    parts: list[str] = []
+    for unit in getattr(args, "unit", None) or []:
+        parts += ["--unit", unit]
+    for fc in getattr(args, "fc", None) or []:
+        parts += ["--fc", fc]
+    for name in ("address", "since", "until", "grep"):
+        value = getattr(args, name, None)
+        if value:
+            parts += [f"--{name}", value]
+    return shlex.join(parts)
+
+
+def run_live(monitor: Any, work: Any, stop: Any, **screen: Any) -> None:
+    """Run ``work`` (a live command's hub loop): here without a monitor, else in a thread
+    of its own under the interactive screen (:func:`mbmon.monitor.run_screen`, which
+    takes ``screen``'s keywords), which ``stop`` ends as Ctrl-C would."""
+    if monitor is None:
+        work()
+        return
+    from mbmon.monitor import run_screen
+
+    run_screen(monitor, work, stop, **screen)
 
 
 # --------------------------------------------------------------------------- Foxglove live

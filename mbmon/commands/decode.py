@@ -68,7 +68,7 @@ def _parse_hex(words: list[str]) -> bytes:
 
 def run(args: argparse.Namespace) -> int:
     """``mbmon decode``: one frame typed by hand, its fields and meaning."""
-    from mbmon.format import View, generic_note, monitor_hex, record_to_json
+    from mbmon.format import View, frame_details, monitor_hex, record_to_json
     from mbmon.model import (
         Direction,
         Frame,
@@ -145,36 +145,6 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_OK
     print(monitor_hex(pdu.raw))
     framing = {"rtu": "RTU ADU", "tcp": "Modbus/TCP ADU", "pdu": "PDU"}[mode]
-    details = [f"framing: {framing}"]
-    if unit is not None:
-        details.append(f"unit: {unit}")
-    if tid is not None:
-        details.append(f"transaction id: {tid}")
-    if crc_ok is not None:
-        details.append(f"CRC: {crc_note}")
-    details.append(f"kind: {pdu.kind.value}")
-    details.append(f"meaning: {generic_note(pdu)}")
-    for name in ("address", "count", "byte_count", "exception_code"):
-        value = getattr(pdu, name)
-        if value is not None:
-            details.append(f"{name.replace('_', ' ')}: {value}")
-    if pdu.values is not None:
-        details.append("values: " + ", ".join(str(v) for v in pdu.values))
-    for name, value in pdu.fields.items():
-        details.append(f"{name.replace('_', ' ')}: {_shown(value)}")
-    if pdu.malformed:
-        details.append(f"malformed: {pdu.malformed}")
-    details.extend(f"note: {n}" for n in notes)
-    print("\n".join("  " + d for d in details))
+    details = frame_details(frame, notes, framing=framing, crc=crc_note)
+    print("\n".join("  " + text for text, _span in details))
     return EXIT_OK
-
-
-def _shown(value: Any) -> str:
-    """A field's value as the user typed bytes: hex for bytes, numbers comma-separated."""
-    if isinstance(value, bytes):
-        return value.hex(" ").upper()
-    if isinstance(value, (tuple, list)):
-        return ", ".join(_shown(v) for v in value)
-    if isinstance(value, dict):
-        return ", ".join(f"{k}: {_shown(v)}" for k, v in value.items())
-    return str(value)

@@ -333,6 +333,7 @@ def run(args: argparse.Namespace) -> int:
         open_console,
         open_foxglove,
         profile_sources,
+        run_live,
     )
     from mbmon.commands.proxy import attach_engine
     from mbmon.format import View
@@ -448,7 +449,15 @@ def run(args: argparse.Namespace) -> int:
     try:
         try:
             worker.start()
-            hub.run()
+            run_live(
+                monitor,
+                hub.run,
+                lambda: _stop(signal.SIGINT, None),
+                ctx=ctx,
+                submit=hub.submit,
+                after=hub.close,  # the log is finished as the demo ends; the screen stays
+                ended_note="demo done; q closes the screen, the summary follows",
+            )
         finally:
             stop.set()
             thread.stop()

@@ -37,6 +37,7 @@ examples:
                                               and the profiles stored in the log
   mbmon replay cell.mcap --speed 1            at the original pace (2 = twice as fast)
   mbmon replay cell.mcap --speed 1 --foxglove also live in Foxglove (ws://127.0.0.1:8765)
+  mbmon replay cell.mcap --browse             browse it in the interactive monitor
 
 times: +5s / +1m30s / +250ms / 2.5 from the start of the log, 12:00:05.123456 (time of
 day on the log's first day), 2024-05-01 12:00:05 (ISO 8601, local time unless it says
@@ -115,6 +116,12 @@ def add_subcommands(sub: Any) -> None:
         help="pace the output like the original: 1 = real time, 10 = ten times faster",
     )
     add_foxglove_option(out)
+    out.add_argument(
+        "--browse",
+        action="store_true",
+        help="browse the log in the interactive monitor (search, filter, details, marks); "
+        "its raw bytes decoded again as --redecode does",
+    )
     replay_servers.add_options(replay)
     replay.set_defaults(func=run_replay)
 
@@ -291,6 +298,8 @@ def run_replay(args: argparse.Namespace) -> int:
     except UsageError as exc:
         _err(f"error: {exc}")
         return EXIT_USAGE
+    if getattr(args, "browse", False):
+        return run_browse(args)
     if (args.robot or args.robot_client) and not args.redecode:
         _err("error: --robot relabels lines only with --redecode (stored lines are as recorded)")
         return EXIT_USAGE
@@ -345,6 +354,119 @@ def run_replay(args: argparse.Namespace) -> int:
         out.flush()
         _note_status(log)
     return EXIT_OK
+
+
+#: Records ``replay --browse`` keeps (the live monitor keeps the last 10,000).
+BROWSE_KEEP = 200_000
+
+
+def run_browse(args: argparse.Namespace) -> int:
+    """``mbmon replay --browse``: the log in the interactive monitor, its raw bytes
+    decoded again through the one flow (as ``--redecode``: the lines ``read`` prints),
+    the command-line filters as the screen's first display filter."""
+    from mbmon.commands.common import filter_text
+    from mbmon.filters import FilterError
+    from mbmon.hub import Hub
+    from mbmon.io.mcap.layout import METADATA_NAME, TOPIC_RAW
+    from mbmon.io.mcap.reader import LogError
+    from mbmon.io.replay import raw_items, recorded_annotator, recorded_options
+    from mbmon.monitor import run_screen
+    from mbmon.monitor.feed import MonitorFeed
+    from mbmon.pipeline import Pipeline, PipelineConfig
+    from mbmon.sinks.base import SinkContext
+
+    if args.json or args.speed or getattr(args, "foxglove", None) is not None:
+        _err("error: --browse shows the log on the screen: no --json, --speed or --foxglove")
+        return EXIT_USAGE
+    if not (sys.stdout.isatty() and sys.stdin.isatty()):
+        _err("error: --browse needs a terminal (stdin and stdout); without one, replay prints")
+        return EXIT_USAGE
+    log, status = _open(args.log, "replay")
+    if log is None:
+        return status
+    with log:
+        if TOPIC_RAW not in log.topics:
+            _err(f"error: {args.log} has no {TOPIC_RAW} (raw bytes) to browse; "
+                 "mbmon replay prints its stored lines")  # fmt: skip
+            return EXIT_BAD_INPUT
+        try:
+            fmt, _flt = _log_times(args, log)
+            opts = recorded_options(log)
+            annotator = recorded_annotator(log, opts)
+        except (FilterError, LogError) as exc:
+            _err(f"error: {exc}")
+            return EXIT_USAGE if isinstance(exc, FilterError) else EXIT_BAD_INPUT
+        view = _replay_view(log, args, fmt)
+        feed = MonitorFeed(
+            view,
+            title=f"mbmon replay {log.path.name}",
+            keep=BROWSE_KEEP,
+            annotator=annotator,
+            profile=any("hrss" in spec for spec in opts.profile_specs),
+        )
+        pipeline = Pipeline(annotator, PipelineConfig(timeout=opts.timeout, baudrate=opts.baud))
+        hub = Hub(pipeline, [feed])
+        ctx = SinkContext(
+            view=view,
+            command_line=["mbmon", *sys.argv[1:]],
+            source=log.metadata.get(METADATA_NAME, {}).get("source", str(log.path)),
+            profiles=log.profiles(),
+            profile_specs=opts.profile_specs,
+            timeout=opts.timeout,
+            baud=opts.baud,
+        )
+        failed: list[str] = []
+
+        def work() -> None:
+            try:
+                hub.run_items(_browse_items(log, raw_items, lambda: hub.records))
+            except LogError as exc:
+                failed.append(str(exc))
+            hub.tick(hub.now)  # the run's end: the rate and the robot panel's registers
+            hub.close()
+
+        run_screen(
+            feed,
+            work,
+            hub.enough,
+            ctx=ctx,
+            ended_note="end of the log; q quits",
+            display_filter=filter_text(args),
+        )
+        for message in failed:
+            _err(message)
+        _note_status(log)
+    return EXIT_BAD_INPUT if failed else EXIT_OK
+
+
+#: Events a log holds only as records (not on /modbus/raw): ``--browse`` feeds them
+#: again, in their place, so its list has the lines ``replay`` prints.
+_RECORD_ONLY_EVENTS = ("notice", "guard")
+
+
+def _browse_items(log: Any, raw_items: Any, made: Any) -> Iterator[Any]:
+    """The log's raw chunks and source events, with its notices and guard decisions
+    (kept only as records) fed again where the recording had them: before the raw
+    item that made the record of the same number (``made()``: records made so far)."""
+    from collections import deque
+
+    from mbmon.io.replay import logged_records
+    from mbmon.model import Event, EventKind
+
+    stored = deque(
+        (int(r.obj.get("index") or 0),
+         Event(r.time, None, EventKind(r.obj["event"]), dict(r.obj.get("info") or {})))
+        for r in logged_records(log)
+        if r.obj is not None
+        and r.obj.get("kind") == "event"
+        and r.obj.get("event") in _RECORD_ONLY_EVENTS
+    )  # fmt: skip
+    for item in raw_items(log):
+        while stored and stored[0][0] <= made():
+            yield stored.popleft()[1]
+        yield item
+    for _index, event in stored:
+        yield event
 
 
 def _stored(log: Any) -> Iterator[Any]:

@@ -188,6 +188,7 @@ def run(args: argparse.Namespace) -> int:
         open_foxglove,
         parse_address,
         profile_sources,
+        run_live,
     )
     from mbmon.format import View
     from mbmon.hub import Hub
@@ -330,7 +331,9 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         try:
-            hub.run()
+            run_live(
+                monitor, hub.run, lambda: _stop(signal.SIGINT, None), ctx=ctx, submit=hub.submit
+            )
         finally:
             thread.stop()
             thread.join(5.0)

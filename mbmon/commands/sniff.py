@@ -229,9 +229,11 @@ def run_sniff(args: argparse.Namespace) -> int:
         Figures,
         UsageError,
         check_outputs,
+        filter_text,
         make_annotator,
         open_console,
         open_foxglove,
+        run_live,
         view_and_filter,
     )
     from mbmon.commands.common import profile_sources as _profile_sources
@@ -401,7 +403,9 @@ def run_sniff(args: argparse.Namespace) -> int:
             args, view, title=f"mbmon sniff {source_name}", annotator=annotator
         )
         if console is not None:  # the filters choose what is shown; logs keep everything
-            outputs.append(Selection([console], view, flt) if flt.active else console)
+            # (the monitor keeps everything too and starts with them as its display filter)
+            shown = flt.active and monitor is None
+            outputs.append(Selection([console], view, flt) if shown else console)
         for target in args.write:
             outputs.append(open_sink(target, ctx))
         if summary is not None:
@@ -437,7 +441,14 @@ def run_sniff(args: argparse.Namespace) -> int:
             capture.start()
         for tap in taps:
             tap.start()
-        hub.run(stop_requested)
+        run_live(
+            monitor,
+            partial(hub.run, stop_requested),
+            stop,
+            ctx=ctx,
+            submit=hub.submit,
+            display_filter=filter_text(args),
+        )
     finally:
         if capture is not None:
             capture.stop()

@@ -411,7 +411,7 @@ class BusHealth:
 
     def screen_figures(self) -> dict[str, Any]:
         """The figures the live screen's header shows for the bus (``sniff`` hands
-        them to :meth:`~mbmon.sinks.live.LiveMonitor.set_figures` on every tick): CRC
+        them to :meth:`~mbmon.monitor.feed.MonitorFeed.set_figures` on every tick): CRC
         failures, t3.5 violations, the gap histogram, the adapter's read rhythm and,
         once a warning was given, what it was about (the notice itself scrolls away)."""
         figures: dict[str, Any] = {

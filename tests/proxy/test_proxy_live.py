@@ -1,8 +1,8 @@
-"""The proxy's screen: the rich live monitor shows proxied traffic and the proxy's own
+"""The proxy's screen: the interactive monitor shows proxied traffic and the proxy's own
 figures; ``--plain`` (or no terminal) gives plain monitor lines.
 
 Real parts: the HRSS simulator on 127.0.0.1 as the upstream, the proxy engine on
-its own thread, the hub and a LiveMonitor drawing on a recording rich Console;
+its own thread, the hub and the monitor's feed drawn by the textual screen headless;
 the command itself on a real pseudo-terminal for the screen choice.
 """
 
@@ -21,16 +21,15 @@ import threading
 import time
 from pathlib import Path
 
-from rich.console import Console
-
 from mbmon.commands.common import Figures
 from mbmon.format import View
 from mbmon.hub import Hub
+from mbmon.monitor.app import render_text
+from mbmon.monitor.feed import MonitorFeed
 from mbmon.pipeline import Pipeline, PipelineConfig
 from mbmon.proxy.engine import Observer, ProxyConfig, ProxyEngine, ProxyThread, endpoint
 from mbmon.proxy.guard import Guard
 from mbmon.sim.server import SimServer
-from mbmon.sinks.live import LiveMonitor
 
 ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -55,8 +54,7 @@ def test_live_monitor_renders_proxied_traffic_and_proxy_figures() -> None:
         host, port = sim.host, sim.port
         upstream = endpoint(host, port)
         view = View(robot=upstream)
-        console = Console(record=True, width=300, height=60, color_system=None)
-        monitor = LiveMonitor(view, console, title="mbmon proxy test", start=False)
+        monitor = MonitorFeed(view, title="mbmon proxy test")
         hub = Hub(Pipeline(None, PipelineConfig(timeout=4.0)))
         hub.add_listener(monitor)
         config = ProxyConfig(
@@ -86,8 +84,7 @@ def test_live_monitor_renders_proxied_traffic_and_proxy_figures() -> None:
             runner.join(5)
             hub.close()
         monitor.on_tick(time.time())
-        console.print(monitor.render())
-        text = console.export_text()
+        text = render_text(monitor, (300, 60))
     # both directions with the robot's (the upstream's) labels, and the guard's answer
     assert re.search(r"Receive from client  \[u1 t7\]  03 00 00 00 04 ", text), text
     assert re.search(r"Send to client  \[u1 t7\]  03 08( [0-9A-F]{2}){8} ", text), text
@@ -109,6 +106,7 @@ def _run_on_a_terminal(args: list[str], upstream: int) -> str:
     command = ["proxy", "--upstream", f"127.0.0.1:{upstream}", "--listen", "127.0.0.1:0"]
     proc = subprocess.Popen(
         [sys.executable, "-m", "mbmon", *command, *args],
+        stdin=slave,  # the screen reads its keys there
         stdout=slave,
         stderr=subprocess.PIPE,
         text=True,
@@ -134,15 +132,17 @@ def _run_on_a_terminal(args: list[str], upstream: int) -> str:
                 break
     finally:
         proc.send_signal(signal.SIGINT)
-        proc.wait(20)
+        deadline = time.monotonic() + 20  # read on while it closes: a full pty would block it
         try:
-            while select.select([master], [], [], 0.2)[0]:
-                part = os.read(master, 65536)
-                if not part:
-                    break
-                shown += part
+            while proc.poll() is None and time.monotonic() < deadline:
+                if select.select([master], [], [], 0.2)[0]:
+                    part = os.read(master, 65536)
+                    if not part:
+                        break
+                    shown += part
         except OSError:
             pass
+        proc.wait(5)
         os.close(master)
     return shown.decode("utf-8", "replace")
 

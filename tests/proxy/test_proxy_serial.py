@@ -437,20 +437,18 @@ def test_serial_usage_and_a_missing_port() -> None:
 def test_live_monitor_with_an_rtu_master_shows_its_bus_and_the_silences() -> None:
     """In process: the engine with an RTU front (upstream down), the hub and the live
     monitor on a recording console."""
-    from rich.console import Console
-
     from mbmon.commands.common import Figures
     from mbmon.format import View
     from mbmon.hub import Hub
+    from mbmon.monitor.app import render_text
+    from mbmon.monitor.feed import MonitorFeed
     from mbmon.pipeline import Pipeline, PipelineConfig
     from mbmon.proxy.engine import Observer, ProxyConfig, ProxyEngine, ProxyThread
     from mbmon.proxy.serial import rtu_front
-    from mbmon.sinks.live import LiveMonitor
     from mbmon.sources.serial import SerialSettings
 
     with pty_pair() as (master, master_side):
-        console = Console(record=True, width=250, height=40, color_system=None)
-        monitor = LiveMonitor(View(robot=master_side), console, start=False)
+        monitor = MonitorFeed(View(robot=master_side))
         hub = Hub(Pipeline(None, PipelineConfig(timeout=2.0, baudrate=BAUD)))
         hub.add_listener(monitor)
         config = ProxyConfig(upstream_host="127.0.0.1", upstream_port=free_port(), timeout=0.3)
@@ -477,8 +475,7 @@ def test_live_monitor_with_an_rtu_master_shows_its_bus_and_the_silences() -> Non
             runner.join(5)
             hub.close()
         monitor.on_tick(time.time())
-        console.print(monitor.render())
-        text = console.export_text()
+        text = render_text(monitor, (250, 40))
     assert figures["clients"] == 1 and figures["left silent"] == 1
     assert figures["upstream"].startswith("unavailable (connection refused)")
     assert "left silent 1" in text and "0x0A answers 0" in text

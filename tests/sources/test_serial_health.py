@@ -113,17 +113,13 @@ def test_time_merge_orders_reads_of_two_taps():
 
 
 def _screen(health: BusHealth) -> str:
-    """The live screen's header with the bus figures ``sniff --serial`` hands it."""
-    from rich.console import Console
-
+    """The monitor's header with the bus figures ``sniff --serial`` hands it."""
     from mbmon.format import View
-    from mbmon.sinks.live import LiveMonitor
+    from mbmon.monitor.feed import MonitorFeed
 
-    console = Console(record=True, width=300, height=20, color_system=None)
-    monitor = LiveMonitor(View(), console, start=False)
+    monitor = MonitorFeed(View())
     monitor.set_figures(health.screen_figures())
-    console.print(monitor.render())
-    return console.export_text()
+    return monitor.header_text()
 
 
 def test_live_screen_shows_the_bus_health_figures():

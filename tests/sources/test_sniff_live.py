@@ -389,24 +389,32 @@ def test_drops_while_the_socket_is_set_up_are_not_the_captures():
 
 
 def test_a_terminal_gets_the_live_screen_with_kernel_drops_and_the_robot_panel():
-    """``sniff lo --profile hrss`` with stdout on a real pseudo-terminal while the sim
-    robot runs the manual's program on 127.0.0.1: the live screen's header has the
-    kernel drop count and the open connections (one opened before the capture began
-    counts too), the robot panel the axes, the last command and the written
-    command registers (R200..R251) by their HRSS names."""
+    """``sniff lo --profile hrss`` on a real pseudo-terminal (read back through pyte, a
+    VT100 emulator) while the sim robot runs the manual's program on 127.0.0.1: the
+    monitor's header has the kernel drop count and the open connections (one opened
+    before the capture began counts too), the robot panel the axes, the last command
+    and the written command registers (R200..R251) by their HRSS names."""
+    import fcntl
     import pty
     import re
+    import struct
+    import termios
+
+    import pyte
 
     from mbmon.sim import SimServer, run_program
 
     master, slave = pty.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 60, 220, 0, 0))
+    screen = pyte.Screen(220, 60)
+    stream = pyte.ByteStream(screen)
     shown = b""
     with SimServer() as sim, socket.create_connection((sim.host, sim.port)) as early:
         time.sleep(0.2)  # its handshake is over before the capture starts
         proc = subprocess.Popen(
             [sys.executable, "-m", "mbmon", "sniff", "lo", "--port", str(sim.port),
              "--profile", "hrss"],
-            stdout=slave, stderr=subprocess.PIPE, cwd=REPO,
+            stdin=slave, stdout=slave, stderr=subprocess.PIPE, cwd=REPO,
             env={**_env(), "COLUMNS": "220", "LINES": "60", "TERM": "xterm"},
         )  # fmt: skip
         _STARTED.append(proc)
@@ -425,6 +433,7 @@ def test_a_terminal_gets_the_live_screen_with_kernel_drops_and_the_robot_panel()
                     if not part:
                         break
                     got += part
+                    stream.feed(part)
             return got
 
         assert proc.stderr is not None
@@ -440,7 +449,8 @@ def test_a_terminal_gets_the_live_screen_with_kernel_drops_and_the_robot_panel()
         while not done.is_set():
             shown += drain(0.1)
         runner.join()
-        shown += drain(0.8)  # a few ticks: the screen shows the end of the program
+        shown += drain(1.0)  # a few ticks: the screen shows the end of the program
+        last = "\n".join(screen.display)  # the screen as the terminal shows it
         proc.send_signal(signal.SIGINT)
         end = time.monotonic() + 20
         while proc.poll() is None and time.monotonic() < end:
@@ -449,14 +459,23 @@ def test_a_terminal_gets_the_live_screen_with_kernel_drops_and_the_robot_panel()
         proc.wait(5)
         os.close(master)
     assert proc.returncode == 0
-    # the last screen drawn: what follows the last header
-    text = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", shown.decode("utf-8", "replace"))
-    last = text[text.rindex("mbmon sniff lo ") :]
+    assert "mbmon sniff lo " in last
+    # the robot panel (the right-hand column) as one text, its lines joined
+    rows = last.splitlines()
+    top = next(i for i, r in enumerate(rows) if "╭─ robot" in r)
+    left = rows[top].index("╭─ robot")
+    panel = []
+    for row in rows[top + 1 :]:
+        cell = row[left + 1 : left + 45]
+        if cell.startswith("─"):
+            break
+        panel.append(cell.strip())
+    robot = " ".join(panel)
     assert "kernel drops 0" in last
     assert "open connections 1 " in last  # the early one; the program's has closed
     assert re.search(r"A1 +90\.000", last)  # the program's PTP {A1 90}, read back from IR300
     assert "speed " in last and "motion state " in last
-    assert re.search(r"last command \(.+\): PTP \{A1 90, .*\[(executing|success)", last)
-    assert "command registers R200..R251 as written" in last
-    assert "R200 execute Execute (1)" in last and "R201 command PTP (0)" in last
-    assert "R203..R204 A1 90 deg" in last and "R215 speed 50%" in last
+    assert re.search(r"last command \(.+\): PTP \{A1 90, .*\[(executing|success)", robot)
+    assert re.search(r"command registers R200\.\.R251 as\s+written", robot), robot
+    assert "R200 execute Execute (1)" in robot and "R201 command PTP (0)" in robot
+    assert "R203..R204 A1 90 deg" in robot and "R215 speed 50%" in robot

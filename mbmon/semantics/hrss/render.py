@@ -2,7 +2,8 @@
 
 Pure functions of a register image and the :class:`~mbmon.semantics.hrss.spec.Spec`:
 :func:`decode_command` (R201..R251), :func:`decode_returns` (IR202..IR251 of a
-Get command) and the text templates of ``hrss_commands.toml``.
+Get command), :func:`parameter_rows` (the written command registers named for the
+monitor's robot panel) and the text templates of ``hrss_commands.toml``.
 """
 
 from __future__ import annotations
@@ -221,3 +222,61 @@ def decode_returns(
     if cmd is None or cmd.returns is None:
         return None
     return _decode_form(cmd.returns, _reader(inputs), spec, cmd.name, code, "IR")
+
+
+def parameter_rows(
+    holding: Mapping[int, int], unconfirmed: frozenset[int] = frozenset()
+) -> list[tuple[str, str, str, bool]]:
+    """The written command registers R200..R251 as ``(registers, name, value, confirmed)``.
+
+    Names and values come from the HRSS command spec (``hrss_commands.toml``):
+    the execute and command registers by their protocol keys, R202..R251 by
+    the fields of the layout the command in R201 (and its select register)
+    picks, one row per field (``R203..R204 A1 90 deg``); written registers no
+    field names show their unsigned word. ``holding`` is a session's holding
+    image (unsigned words); ``unconfirmed`` those whose write is unanswered.
+    """
+    spec = load_spec()
+    execute, command = spec.reg("execute_reg"), spec.reg("command_reg")
+    first, last = min(execute, command), spec.reg("param_last")
+    written = {a: v for a, v in holding.items() if first <= a <= last}
+    if not written:
+        return []
+    rows: list[tuple[str, str, str, bool]] = []
+    shown: set[int] = set()
+    names = {v: k.removesuffix("_reg") for k, v in spec.protocol.items() if k in (
+        "execute_reg", "command_reg")}  # fmt: skip
+
+    if execute in written:
+        value = s16(written[execute])
+        rows.append((f"R{execute}", names[execute], spec.label("execute", value),
+                     execute not in unconfirmed))  # fmt: skip
+        shown.add(execute)
+    decoded = decode_command(written, spec)
+    if command in written:
+        text = f"{decoded.name} ({decoded.code})" if decoded.code is not None else decoded.name
+        rows.append((f"R{command}", names[command], text, command not in unconfirmed))
+        shown.add(command)
+    fields = []
+    cmd = spec.commands.get(decoded.code) if decoded.code is not None else None
+    if cmd is not None and cmd.params.select is not None:
+        fields.append(cmd.params.select)
+    if decoded.layout is not None:
+        fields.extend(decoded.layout.fields)
+    for f in fields:
+        raw = f.raw(written.get)
+        if raw is None or f.reg in shown:
+            continue
+        if f.enum is not None:
+            text = spec.label(f.enum, raw)
+        elif f.scale != 1 and f.decimals and abs(f.scale - 10.0**-f.decimals) < 1e-12:
+            text = format_scaled(raw, f.decimals)
+        else:
+            text = f"{f.value(raw):g}"
+        if f.unit and "|" not in f.unit:
+            text += f" {f.unit}" if f.unit != "%" else "%"
+        rows.append((f.where(), f.label or f.name, text, not (set(f.regs) & unconfirmed)))
+        shown.update(f.regs)
+    for address in sorted(set(written) - shown):
+        rows.append((f"R{address}", "", str(written[address]), address not in unconfirmed))
+    return rows
