@@ -199,6 +199,13 @@ def add_port_options(group: Any) -> None:
         metavar="N",
         help="TCP/UDP port carrying RTU ADUs with CRC, as some gateways do (repeatable)",
     )
+    group.add_argument(
+        "--no-detect",
+        action="store_true",
+        help="do not look for Modbus/TCP and RTU over TCP on other TCP ports (by default "
+        "a connection on any port whose bytes are Modbus, a request and its answer, "
+        "becomes a stream; docs/usage.md)",
+    )
 
 
 def add_output_options(parser: argparse.ArgumentParser) -> None:

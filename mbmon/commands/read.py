@@ -35,8 +35,10 @@ EPILOG = """\
 examples:
   mbmon read captures/hrss_ptp.pcap
       print every Modbus ADU as the robot's Modbus Monitor shows it
-  mbmon read plant.pcapng --port 1502 --json > frames.jsonl
-      Modbus/TCP on a non-standard port, one JSON object per line
+  mbmon read plant.pcapng --json > frames.jsonl
+      one JSON object per line; Modbus/TCP on other ports is found by its structure
+  mbmon read plant.pcapng --port 1502 --no-detect
+      only ports 502 and 1502 are Modbus
   mbmon read cell.pcap --robot 192.168.0.10 --profile hrss
       label lines from the robot's point of view and add HRSS meaning
   mbmon read bus.pcap --rtu-port 4001          RTU frames carried in TCP/UDP port 4001
@@ -167,7 +169,9 @@ def run(args: argparse.Namespace) -> int:
             err(f"{path} is an MCAP log, not a capture: try 'mbmon replay {args.file}'")
             return EXIT_BAD_INPUT
         config = CaptureConfig(
-            tcp_ports=frozenset({502, *args.port}), rtu_ports=frozenset(args.rtu_port)
+            tcp_ports=frozenset({502, *args.port}),
+            rtu_ports=frozenset(args.rtu_port),
+            detect=not args.no_detect,
         )
         try:
             items = read_capture(path, config, progress=progress, stats=capture_stats)
@@ -237,14 +241,38 @@ def _report(
         print(summary.text(timed=timed), file=sys.stderr, flush=True)
     except (OSError, ValueError):
         return
+    for line in detected_lines(capture_stats.get("detected") or []):
+        err(line)
     if summary.frames == 0 and not args.rtu_raw:
         busiest = capture_stats.get("busiest_ports") or []
         ports = ", ".join(f"{proto}/{p} ({n} packets)" for proto, p, n in busiest[:5])
         asked = ", ".join(str(p) for p in sorted({502, *args.port, *args.rtu_port}))
         hint = f"no Modbus found on port {asked}"
+        if not args.no_detect:
+            hint += " nor by its structure on any other TCP port"
         if ports:
             first = busiest[0][1]
             hint += f"; busiest ports: {ports}; try --port {first} (or --rtu-port {first})"
         err(hint)
     if args.robot and summary.streams and not summary.robot_seen:
         err(f"warning: the robot {args.robot} (--robot) appears in no stream of this capture")
+
+
+def detected_lines(found: list[tuple[str, int, str, int]]) -> list[str]:
+    """One line per port that port detection found (the dissector's
+    ``detected()``): the transport, the port, its servers and connections."""
+    ports: dict[tuple[str, int], list[tuple[str, int]]] = {}
+    for transport, number, server, streams in found:
+        ports.setdefault((transport, number), []).append((server, streams))
+    lines = []
+    for (transport, number), servers in ports.items():
+        what = "RTU over TCP" if transport == "rtu-over-tcp" else "Modbus/TCP"
+        names = ", ".join(server for server, _ in servers[:3])
+        if len(servers) > 3:
+            names += f" and {len(servers) - 3} more"
+        streams = sum(n for _, n in servers)
+        lines.append(
+            f"found {what} on port {number} by its structure: {streams} connection"
+            f"{'s' if streams != 1 else ''} to {names} (--no-detect turns this off)"
+        )
+    return lines
