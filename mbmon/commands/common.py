@@ -229,6 +229,21 @@ def add_output_options(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="print no records and no summary (use with -w)",
     )
+    group.add_argument(
+        "--rotate",
+        action="append",
+        default=[],
+        metavar="TIME|SIZE",
+        help="-w files rotate: a new file every TIME of capture time (1h, 30min, 1d; "
+        "aligned to whole periods) and/or once a file holds SIZE (100MB, 1GiB); each file "
+        "is finished on its own and named FILE_NNNNN_<start time>Z.SUFFIX",
+    )
+    group.add_argument(
+        "--keep",
+        type=positive_int,
+        metavar="N",
+        help="with --rotate: keep the newest N files of each -w ring, remove older ones",
+    )
 
 
 def add_live_options(group: Any) -> None:
@@ -321,6 +336,42 @@ def check_outputs(outputs: Iterable[str], inputs: Iterable[str]) -> None:
         for name, ist in in_stats:
             if (st.st_dev, st.st_ino) == (ist.st_dev, ist.st_ino):
                 raise UsageError(f"{out}: is the input {name}; refusing to overwrite it")
+
+
+def open_log(target: str, ctx: Any, args: argparse.Namespace) -> Any:
+    """The listener for one ``-w`` target: the format's sink, or with ``--rotate``
+    a ring of them (:class:`mbmon.analysis.rotate.RotatingSink`). Raises
+    :class:`~mbmon.sinks.base.SinkError` when it cannot be opened and
+    :class:`UsageError` for bad ``--rotate``/``--keep`` values."""
+    from mbmon.sinks.base import open_sink
+
+    rotation = check_rotation(args)
+    if rotation is None:
+        return open_sink(target, ctx)
+    from mbmon.analysis.rotate import RotatingSink
+
+    every, size = rotation
+    return RotatingSink(target, ctx, every=every, max_bytes=size, keep=args.keep)
+
+
+def check_rotation(args: argparse.Namespace) -> tuple[float | None, int | None] | None:
+    """``--rotate`` as ``(seconds, bytes)``, or ``None`` without it; bad values, and
+    ``--keep`` or ``--rotate`` without ``-w``/``--keep`` without ``--rotate``, are
+    usage errors. Call it before anything starts."""
+    rotate = getattr(args, "rotate", None) or []
+    keep = getattr(args, "keep", None)
+    if not rotate:
+        if keep is not None:
+            raise UsageError("--keep needs --rotate")
+        return None
+    if not getattr(args, "write", None):
+        raise UsageError("--rotate needs -w FILE")
+    from mbmon.analysis.rotate import RotationError, parse_rotate
+
+    try:
+        return parse_rotate(rotate)
+    except RotationError as exc:
+        raise UsageError(str(exc)) from None
 
 
 class Progress:

@@ -21,8 +21,10 @@ from mbmon.commands.common import (
     add_port_options,
     add_view_options,
     check_outputs,
+    check_rotation,
     err,
     make_annotator,
+    open_log,
     positive,
     positive_int,
     profile_sources,
@@ -128,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
     """``mbmon read``: every record of the input to the console, the logs and the summary."""
     from mbmon.hub import Hub
     from mbmon.pipeline import Pipeline, PipelineConfig
-    from mbmon.sinks.base import SinkContext, SinkError, open_sink
+    from mbmon.sinks.base import SinkContext, SinkError
     from mbmon.sinks.console import ConsoleListener
     from mbmon.sinks.select import Selection
     from mbmon.sinks.summary import Summary
@@ -141,6 +143,7 @@ def run(args: argparse.Namespace) -> int:
     if path == "-":
         path = "/dev/stdin"  # a pipe: the readers never seek
     check_outputs(args.write, [path])
+    check_rotation(args)
     view, flt = view_and_filter(args)
     annotator = make_annotator(args.profile)
     pipeline = Pipeline(annotator, PipelineConfig(timeout=args.timeout, baudrate=args.baud))
@@ -200,7 +203,7 @@ def run(args: argparse.Namespace) -> int:
         # logs first: a record printed on stdout has reached them when a signal stops the run
         for target in args.write:
             try:
-                sink = open_sink(target, ctx)
+                sink = open_log(target, ctx, args)
             except SinkError as exc:
                 err(str(exc))
                 return EXIT_BAD_INPUT

@@ -231,15 +231,17 @@ def run_sniff(args: argparse.Namespace) -> int:
         Figures,
         UsageError,
         check_outputs,
+        check_rotation,
         make_annotator,
         open_console,
         open_foxglove,
+        open_log,
         view_and_filter,
     )
     from mbmon.commands.common import profile_sources as _profile_sources
     from mbmon.hub import Hub
     from mbmon.pipeline import Pipeline, PipelineConfig
-    from mbmon.sinks.base import SinkContext, SinkError, open_sink
+    from mbmon.sinks.base import SinkContext, SinkError
     from mbmon.sinks.select import Selection
     from mbmon.sinks.summary import Summary
 
@@ -265,6 +267,7 @@ def run_sniff(args: argparse.Namespace) -> int:
     if iface and (args.baud is not None):
         raise UsageError("--baud is for --serial")
     check_outputs(args.write, args.serial)  # before the capture opens: no half start
+    check_rotation(args)
 
     serial = bool(args.serial)
     baud = (args.baud or 115200) if serial else None
@@ -409,7 +412,7 @@ def run_sniff(args: argparse.Namespace) -> int:
         if console is not None:  # the filters choose what is shown; logs keep everything
             outputs.append(Selection([console], view, flt) if flt.active else console)
         for target in args.write:
-            outputs.append(open_sink(target, ctx))
+            outputs.append(open_log(target, ctx, args))
         if summary is not None:
             outputs.append(summary)
     except SinkError as exc:
