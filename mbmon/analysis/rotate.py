@@ -95,7 +95,9 @@ class RotatingSink(SinkBase):
     """One ``-w`` target as a ring of finished files (see the module docstring).
 
     ``every``: seconds of capture time per file (aligned to whole periods since
-    the epoch); ``max_bytes``: a file is finished once it holds that much on
+    the epoch); without ``every`` and ``max_bytes`` a file ends only when
+    :meth:`end_file` is called (a trigger's window); ``max_bytes``: a file is
+    finished once it holds that much on
     disk (looked at every :data:`SIZE_CHECK_EVERY` items and on each tick, so
     a file may exceed it by what was written meanwhile); ``keep``: files kept
     at most. ``opener`` opens one file of the ring (default:
@@ -112,8 +114,6 @@ class RotatingSink(SinkBase):
         keep: int | None = None,
         opener: Callable[[Path], SinkBase] | None = None,
     ) -> None:
-        if every is None and max_bytes is None:
-            raise ValueError("a rotating sink needs a period or a size")
         self.path = Path(target)
         self.ctx = ctx
         self.every = every
@@ -167,6 +167,11 @@ class RotatingSink(SinkBase):
                 continue
             except OSError as exc:
                 raise OSError(exc.errno, exc.strerror, str(name)) from exc
+
+    def end_file(self) -> None:
+        """End the current file now (a trigger window closed): the next item
+        begins the next file of the ring."""
+        self._finish()
 
     def _finish(self) -> None:
         """Close the current file (finished and valid on its own)."""

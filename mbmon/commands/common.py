@@ -242,7 +242,28 @@ def add_output_options(parser: argparse.ArgumentParser) -> None:
         "--keep",
         type=positive_int,
         metavar="N",
-        help="with --rotate: keep the newest N files of each -w ring, remove older ones",
+        help="with --rotate or --trigger: keep the newest N files of each -w ring, remove "
+        "older ones",
+    )
+    group.add_argument(
+        "--trigger",
+        metavar="EXPR",
+        help="keep (log and show) only windows around the records EXPR matches, e.g. "
+        "'exception or timeout', 'fc 6 and address 200', 'R200 != 0', 'latency > 50ms'; "
+        "each window is a -w file of its own (the grammar of --where; docs/usage.md)",
+    )
+    group.add_argument(
+        "--before",
+        default="30s",
+        metavar="TIME",
+        help="with --trigger: keep TIME before each trigger (default 30s)",
+    )
+    group.add_argument(
+        "--after",
+        default="10s",
+        metavar="TIME",
+        help="with --trigger: keep TIME after each trigger (default 10s; a trigger within "
+        "a window extends it)",
     )
 
 
@@ -347,7 +368,9 @@ def open_log(target: str, ctx: Any, args: argparse.Namespace) -> Any:
 
     rotation = check_rotation(args)
     if rotation is None:
-        return open_sink(target, ctx)
+        if getattr(args, "trigger", None) is None:
+            return open_sink(target, ctx)
+        rotation = (None, None)  # each trigger window is a file of the ring
     from mbmon.analysis.rotate import RotatingSink
 
     every, size = rotation
@@ -361,8 +384,8 @@ def check_rotation(args: argparse.Namespace) -> tuple[float | None, int | None] 
     rotate = getattr(args, "rotate", None) or []
     keep = getattr(args, "keep", None)
     if not rotate:
-        if keep is not None:
-            raise UsageError("--keep needs --rotate")
+        if keep is not None and getattr(args, "trigger", None) is None:
+            raise UsageError("--keep needs --rotate or --trigger")
         return None
     if not getattr(args, "write", None):
         raise UsageError("--rotate needs -w FILE")
@@ -372,6 +395,42 @@ def check_rotation(args: argparse.Namespace) -> tuple[float | None, int | None] 
         return parse_rotate(rotate)
     except RotationError as exc:
         raise UsageError(str(exc)) from None
+
+
+def open_trigger(args: argparse.Namespace) -> Any:
+    """The :class:`~mbmon.analysis.trigger.TriggerGate` that ``--trigger`` asks for
+    (``None`` without it), telling each window on stderr; bad values are usage
+    errors. Add the logs and the screen to it, then it to the hub."""
+    text = getattr(args, "trigger", None)
+    if text is None:
+        for name in ("before", "after"):
+            if getattr(args, name, None) not in (None, "30s", "10s"):
+                raise UsageError(f"--{name} needs --trigger")
+        return None
+    from mbmon.analysis.trigger import TriggerGate
+    from mbmon.filters import FilterError, parse_expression
+    from mbmon.sinks.csvfile import utc_text
+    from mbmon.timefmt import TimeParseError, parse_duration
+
+    try:
+        expression = parse_expression(text)
+    except FilterError as exc:
+        raise UsageError(f"--trigger: {exc}") from None
+    spans = []
+    for name in ("before", "after"):
+        try:
+            spans.append(parse_duration(getattr(args, name)))
+        except TimeParseError as exc:
+            raise UsageError(f"--{name}: {exc}") from None
+
+    def told(number: int, window: Any) -> None:
+        err(
+            f"trigger window {number}: {utc_text(window.start)} .. {utc_text(window.end)} "
+            f"({window.triggers} trigger{'s' if window.triggers != 1 else ''}; first: "
+            f"{window.what})"
+        )
+
+    return TriggerGate(expression, spans[0], spans[1], on_window=told)
 
 
 class Progress:

@@ -205,6 +205,8 @@ def run(args: argparse.Namespace) -> int:
     if args.allow_from and args.listen_serial is not None:
         raise UsageError("--allow-from is for TCP clients, not --listen-serial")
     check_rotation(args)
+    if args.trigger is not None:
+        raise UsageError("--trigger works with read and sniff; the proxy logs everything")
     if args.upstream is not None:
         up_host, up_port = parse_address(args.upstream, "--upstream")
         upstream = endpoint(up_host, up_port)

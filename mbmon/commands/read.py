@@ -25,12 +25,13 @@ from mbmon.commands.common import (
     err,
     make_annotator,
     open_log,
+    open_trigger,
     positive,
     positive_int,
     profile_sources,
     view_and_filter,
 )
-from mbmon.filters import TIMES_HELP, add_filter_options
+from mbmon.filters import EXPRESSION_HELP, TIMES_HELP, add_filter_options
 from mbmon.timefmt import add_time_option
 
 EPILOG = """\
@@ -50,6 +51,8 @@ examples:
   mbmon read cell.pcap --fc 6,16 --address 200-251 -t r
       only writes touching R200..R251, times relative to the first record
   mbmon read cell.pcap -w cell.mcap            also record an MCAP log (Foxglove)
+  mbmon read week.pcap -w fault.mcap --trigger 'exception or timeout' --before 30s --after 10s
+      keep only 40 s around each fault: one MCAP file per window
 
 output lines: TIME  LABEL  [uUNIT tTID]  FUNCTION-CODE + DATA (hex)  | meaning
 a summary goes to stderr at the end (-q: none)
@@ -68,7 +71,7 @@ def register(sub: Any) -> None:
         help="decode a capture file (pcap/pcapng) or a raw RTU bus dump",
         description="Decode every Modbus ADU in a capture file and print it as the robot's "
         "Modbus Monitor (manual Table 57) shows it, with its meaning.",
-        epilog=EPILOG + textwrap.fill(TIMES_HELP, 80),  # --since/--until: 'times'
+        epilog=EPILOG + textwrap.fill(TIMES_HELP, 80) + "\n\n" + textwrap.fill(EXPRESSION_HELP, 80),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     read.add_argument(
@@ -195,6 +198,8 @@ def run(args: argparse.Namespace) -> int:
     )
     hub = Hub(pipeline)
     summary = Summary(view if args.robot else None)
+    gate = open_trigger(args)  # --trigger: the logs and the screen see only its windows
+    attach = hub.add_listener if gate is None else gate.add
     logs: list[Any] = []
     interrupted = False
     with ExitStack() as stack:
@@ -208,12 +213,14 @@ def run(args: argparse.Namespace) -> int:
                 err(str(exc))
                 return EXIT_BAD_INPUT
             logs.append(sink)
-            hub.add_listener(sink)
+            attach(sink)
         shown = (
             [] if args.quiet else [ConsoleListener(sys.stdout, view, as_json=args.json, live=live)]
         )
         if shown or args.count:
-            hub.add_listener(Selection(shown, view, flt, args.count, on_full=hub.enough))
+            attach(Selection(shown, view, flt, args.count, on_full=hub.enough))
+        if gate is not None:
+            hub.add_listener(gate)
         if not args.quiet:
             hub.add_listener(summary)
         try:
@@ -224,7 +231,7 @@ def run(args: argparse.Namespace) -> int:
         _report(summary, capture_stats, args, timed=not args.rtu_raw)
     if interrupted:
         for sink in logs:
-            if sink in hub.listeners:
+            if sink in hub.listeners or (gate is not None and gate in hub.listeners):
                 err(f"interrupted; {getattr(sink, 'path', 'the log')} was finished and is complete "
                     "up to here")  # fmt: skip
         return 130

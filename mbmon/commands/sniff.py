@@ -236,6 +236,7 @@ def run_sniff(args: argparse.Namespace) -> int:
         open_console,
         open_foxglove,
         open_log,
+        open_trigger,
         view_and_filter,
     )
     from mbmon.commands.common import profile_sources as _profile_sources
@@ -268,6 +269,7 @@ def run_sniff(args: argparse.Namespace) -> int:
         raise UsageError("--baud is for --serial")
     check_outputs(args.write, args.serial)  # before the capture opens: no half start
     check_rotation(args)
+    gate = open_trigger(args)  # --trigger: the logs and the screen see only its windows
 
     serial = bool(args.serial)
     baud = (args.baud or 115200) if serial else None
@@ -409,10 +411,14 @@ def run_sniff(args: argparse.Namespace) -> int:
         console, monitor = open_console(
             args, view, title=f"mbmon sniff {source_name}", annotator=annotator
         )
+        attach = outputs.append
+        if gate is not None:
+            outputs.append(gate)
+            attach = gate.add
         if console is not None:  # the filters choose what is shown; logs keep everything
-            outputs.append(Selection([console], view, flt) if flt.active else console)
+            attach(Selection([console], view, flt) if flt.active else console)
         for target in args.write:
-            outputs.append(open_log(target, ctx, args))
+            attach(open_log(target, ctx, args))
         if summary is not None:
             outputs.append(summary)
     except SinkError as exc:
