@@ -117,8 +117,28 @@ def test_no_import_cycles_in_mbmon() -> None:
 OPTIONAL = ("mbmon.analysis.detect", "pyarrow", "matplotlib", "duckdb")
 
 
+def test_the_report_imports_matplotlib_only_for_pictures() -> None:
+    """``mbmon report`` without -o/--png prints tables: no plotting library is loaded."""
+    code = (
+        "import sys; from mbmon.analysis.report import analyse, text_tables; "
+        "text_tables(analyse([])); print('matplotlib' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
 @pytest.mark.parametrize(
-    "module", ["mbmon", "mbmon.cli", "mbmon.sources.pcapfile", "mbmon.sources.dissect"]
+    "module",
+    [
+        "mbmon",
+        "mbmon.cli",
+        "mbmon.sources.pcapfile",
+        "mbmon.sources.dissect",
+        "mbmon.commands.report",
+        "mbmon.analysis.report",
+        "mbmon.analysis.trigger",
+        "mbmon.analysis.rotate",
+    ],
 )
 def test_optional_analysis_is_not_imported_unless_asked(module: str) -> None:
     code = f"import sys, {module}; print(','.join(m for m in {OPTIONAL!r} if m in sys.modules))"
