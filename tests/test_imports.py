@@ -138,6 +138,8 @@ def test_the_report_imports_matplotlib_only_for_pictures() -> None:
         "mbmon.analysis.report",
         "mbmon.analysis.trigger",
         "mbmon.analysis.rotate",
+        "mbmon.sinks.base",
+        "mbmon.sinks.parquet",
     ],
 )
 def test_optional_analysis_is_not_imported_unless_asked(module: str) -> None:

@@ -221,7 +221,7 @@ def add_output_options(parser: argparse.ArgumentParser) -> None:
         default=[],
         metavar="FILE",
         help="also write records to FILE; format by suffix: .mcap .jsonl .csv .txt .pcap "
-        "(repeatable)",
+        ".parquet (repeatable; .parquet needs pip install 'mbmon[parquet]')",
     )
     group.add_argument(
         "-q",

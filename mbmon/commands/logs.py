@@ -60,6 +60,7 @@ examples:
   mbmon export cell.mcap -o monitor.txt     the monitor lines
   mbmon export cell.mcap -o cell.pcap       Ethernet/IP/TCP packets Wireshark decodes
                                             (RTU buses as link type 147)
+  mbmon export cell.mcap -o cell.parquet    one row per record: DuckDB, Spark, Trino (docs/fleet.md)
   mbmon export crashed.mcap -o fixed.mcap   rewrite an unfinished log as a finished one
 
 Filters (--unit, --fc, --address, --grep) apply to .csv, .jsonl and .txt; --since and
@@ -772,10 +773,9 @@ def run_export(args: argparse.Namespace) -> int:
                 _export_pcap(log, target, ctx, flt, keep_segments=args.keep_segments)
             else:
                 from mbmon.io.replay import logged_records
-                from mbmon.sinks.jsonl import TextFileSink
 
                 with open_sink(target, ctx) as sink:
-                    assert isinstance(sink, TextFileSink)  # .txt .jsonl .csv
+                    assert hasattr(sink, "write_logged")  # .txt .jsonl .csv .parquet
                     for rec in logged_records(log):
                         obj, line = _retimed(rec.obj, rec.text, rec.time, fmt)
                         if flt.matches(obj, line, rec.time):
