@@ -141,7 +141,8 @@ class Figures:
     blocks: list[Block] = field(default_factory=list)
     latencies_ms: list[float] = field(default_factory=list)
     faults: list[tuple[float, str, str]] = field(default_factory=list)  # (time, kind, line)
-    commands: list[tuple[float, str, str]] = field(default_factory=list)  # (time, text, phase)
+    # (time written, command text, outcome: its last phase, with the duration when known)
+    commands: list[tuple[float, str, str]] = field(default_factory=list)
     buses: list[Bus] = field(default_factory=list)
     baud: int | None = None
 
@@ -163,7 +164,7 @@ def analyse(
     by_index: dict[int, Block] = {}  # request record index -> its block
     buses: dict[Any, Bus] = {}
     last_frame_end: dict[Any, float] = {}
-    commands: dict[Any, tuple[float, str, str]] = {}
+    commands: dict[Any, int] = {}  # (stream, unit) -> its latest command in fig.commands
     for obj in objs:
         fig.records += 1
         ts = obj.get("time")
@@ -208,9 +209,21 @@ def analyse(
                 block.timeouts += 1
             fig.faults.append((ts, "timeout", str(obj.get("line") or "")))
         elif kind == "command":
-            text = str(obj.get("text") or obj.get("line") or "")
-            phase = str(obj.get("phase") or "")
-            commands[(obj.get("stream"), text, obj.get("code"))] = (ts, text, phase)
+            command = obj.get("command")
+            if isinstance(command, Mapping):
+                text = str(command.get("text") or "")
+                phase = str(command.get("phase") or "")
+                duration = command.get("duration")
+                outcome = phase + (
+                    f" after {duration:.3f} s" if isinstance(duration, int | float) else ""
+                )
+                key = (obj.get("stream"), obj.get("unit"))
+                at = commands.get(key)
+                if at is None or phase == "written" or fig.commands[at][1] != text:
+                    commands[key] = len(fig.commands)
+                    fig.commands.append((ts, text, outcome))
+                else:
+                    fig.commands[at] = (fig.commands[at][0], text, outcome)
         transport = obj.get("transport")
         if isinstance(transport, str) and transport.startswith("rtu") and kind in (
             *FRAME_KINDS, "noise",
@@ -240,7 +253,6 @@ def analyse(
         blocks.values(), key=lambda b: (b.client, b.server, str(b.unit), str(b.fc), str(b.address))
     )
     fig.blocks = [b for b in fig.blocks if b.times or b.latencies_ms or b.exceptions]
-    fig.commands = sorted(commands.values(), key=lambda c: c[0] or 0.0)
     fig.buses = list(buses.values())
     return fig
 
@@ -417,8 +429,8 @@ def render_png(fig: Figures) -> list[tuple[str, str, bytes]]:
         save("faults", "Exceptions and timeouts on a timeline", figure)
     if fig.commands:
         counts: dict[str, int] = defaultdict(int)
-        for _, _, phase in fig.commands:
-            counts[phase] += 1
+        for _, _, outcome in fig.commands:
+            counts[outcome.split(" after ")[0]] += 1
         figure, ax = plt.subplots(figsize=(6, 2.5))
         ax.bar(list(counts), list(counts.values()), color="#4878a8")
         ax.set_ylabel("commands")

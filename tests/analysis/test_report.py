@@ -234,3 +234,18 @@ def test_without_matplotlib_the_message_names_the_pip_command(
     assert run.returncode == 1
     assert "pip install 'mbmon[report]'" in run.stderr and "Traceback" not in run.stderr
     assert not (tmp_path / "r.html").exists()
+
+
+def test_commands_and_outcomes_with_a_profile() -> None:
+    """The project's own capture of the HRSS program: one PTP command, its outcome."""
+    from mbmon.semantics.annotate import annotator_for
+
+    capture = REPO / "captures" / "hrss_ptp.pcap"
+    view = View()
+    pipeline = Pipeline(annotator_for(["hrss"]))
+    objs = [record_to_json(r, view) for r in pipeline.run(read_capture(capture))]
+    fig = analyse(objs, source=capture.name)
+    assert [(text.split()[0], outcome) for _, text, outcome in fig.commands] == [
+        ("PTP", "success after 0.405 s")
+    ]
+    assert "success after 0.405 s" in text_tables(fig)
