@@ -252,3 +252,64 @@ def test_the_display_filter_reads_the_same_grammar(capture: Path) -> None:
     assert bad.returncode == 2 and "--trigger:" in bad.stderr
     bad = mbmon("read", str(capture), "--before", "5s", "-q")
     assert bad.returncode == 2 and "--before needs --trigger" in bad.stderr
+
+
+@pytest.mark.skipif(
+    not hasattr(__import__("os"), "geteuid") or __import__("os").geteuid() != 0,
+    reason="live capture needs root (an AF_PACKET socket); CI runs as root",
+)
+def test_sniff_shows_only_the_window_around_a_live_trigger(tmp_path: Path) -> None:
+    """``sniff lo --trigger exception --before 1s --after 1s`` while the simulator
+    answers reads, one of them with an exception 2.5 s after the others: only that
+    exchange is shown and logged."""
+    import os
+    import select
+    import signal
+    import socket
+    import time
+
+    from mbmon.sim import SimServer
+
+    log = tmp_path / "live.jsonl"
+    with SimServer() as sim:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "mbmon", "sniff", "lo", "-f", f"tcp port {sim.port}",
+             "--port", str(sim.port), "--json", "--trigger", "exception",
+             "--before", "1s", "--after", "1s", "-w", str(log)],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=REPO,
+        )  # fmt: skip
+        try:
+            assert proc.stderr is not None and proc.stdout is not None
+            assert b"sniffing" in proc.stderr.readline()
+            with socket.create_connection((sim.host, sim.port)) as conn:
+                for tid, pdu, pause in (
+                    (1, "04012C0002", 2.5),
+                    (2, "03EA600001", 2.5),
+                    (3, "04012C0002", 0),
+                ):
+                    conn.sendall(encode_adu(tid, 1, bytes.fromhex(pdu)))
+                    assert conn.recv(64)
+                    time.sleep(pause)
+            out = b""
+            end = time.monotonic() + 20
+            while b'"83 02"' not in out and time.monotonic() < end:
+                if select.select([proc.stdout], [], [], 0.5)[0]:
+                    out += os.read(proc.stdout.fileno(), 65536)
+            time.sleep(1.5)  # the window closes with the next tick
+            proc.send_signal(signal.SIGINT)
+            rest, err = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    shown = [json.loads(line) for line in (out + rest).decode().splitlines()]
+    assert [(r["kind"], r["pdu"]) for r in shown] == [
+        ("request", "03 EA 60 00 01"),
+        ("exception", "83 02"),
+    ]
+    (window_file,) = tmp_path.glob("live_*.jsonl")
+    assert [json.loads(line)["pdu"] for line in window_file.read_text().splitlines()] == [
+        "03 EA 60 00 01",
+        "83 02",
+    ]
+    assert b"trigger window 1:" in err
