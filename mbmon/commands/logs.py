@@ -751,7 +751,11 @@ def run_export(args: argparse.Namespace) -> int:
             _err(f"error: {exc}")
             return EXIT_USAGE
         if suffix in (".pcap", ".mcap") and (
-            flt.units is not None or flt.fcs is not None or flt.address is not None or flt.grep
+            flt.units is not None
+            or flt.fcs is not None
+            or flt.address is not None
+            or flt.grep
+            or flt.where is not None
         ):
             _err(f"error: {suffix} export takes only --since/--until (it copies raw bytes)")
             return EXIT_USAGE

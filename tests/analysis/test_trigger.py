@@ -313,3 +313,21 @@ def test_sniff_shows_only_the_window_around_a_live_trigger(tmp_path: Path) -> No
         "83 02",
     ]
     assert b"trigger window 1:" in err
+
+
+def test_replay_and_export_read_the_same_grammar(capture: Path, tmp_path: Path) -> None:
+    log = tmp_path / "hour.mcap"
+    assert mbmon("read", str(capture), "-q", "-w", str(log)).returncode == 0
+    replay = mbmon("replay", str(log), "--json", "--where", "exception or timeout")
+    assert replay.returncode == 0, replay.stderr
+    assert [
+        json.loads(x).get("event") or json.loads(x)["kind"] for x in replay.stdout.splitlines()
+    ] == [
+        "exception",
+        "timeout",
+    ]
+    out = tmp_path / "writes.jsonl"
+    assert mbmon("export", str(log), "-o", str(out), "--where", "R200 != 0").returncode == 0
+    assert [json.loads(x)["pdu"] for x in out.read_text().splitlines()] == ["06 00 C8 00 01"] * 2
+    refused = mbmon("export", str(log), "-o", str(tmp_path / "x.pcap"), "--where", "timeout")
+    assert refused.returncode == 2 and "takes only --since/--until" in refused.stderr
