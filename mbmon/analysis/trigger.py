@@ -16,6 +16,11 @@ time, start, end and what matched (``read`` and ``sniff`` print it on stderr).
 
 Outside windows nothing reaches the listeners. The buffer is bounded by
 ``before`` seconds and by ``max_held`` items (the oldest go first).
+
+A listener behind the gate that raises takes the gate with it: the hub
+reports the failure and detaches the gate (the run's exit status says an
+output failed), as it would for that listener alone; the gate's ``close``
+still closes every listener behind it.
 """
 
 from __future__ import annotations

@@ -15,9 +15,15 @@ and skipped.
 
 Streams: TCP and UDP packets to or from a configured port are Modbus; the
 endpoint with the configured port is the server (both configured: the SYN
-receiver, else the lower port). Without ``new_stream`` stream ids count from 0
-in order of first appearance; with it (a hub's ``new_stream``), the caller
-allocates them, so several sources of one run never collide. A TCP connection
+receiver, else the lower port). With ``CaptureConfig.detect``, a TCP
+connection on any other port becomes a stream once its own bytes prove it
+Modbus (:mod:`mbmon.analysis.detect`: MBAP or RTU structure and an answered
+request); its held segments are then replayed through reassembly, the
+requester is the client, and later connections to that server endpoint are
+streams from their first packet (:meth:`Dissector.detected` lists them).
+Without ``new_stream`` stream ids count from 0 in order of first appearance;
+with it (a hub's ``new_stream``), the caller allocates them, so several
+sources of one run never collide. A TCP connection
 reopened on the same addresses (a SYN after the end, or with a new initial
 sequence number) is a new stream. UDP: one chunk per datagram. Link type 147
 (USER0): each record is bytes of one RTU bus, stream ``client = server =
