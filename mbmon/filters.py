@@ -8,12 +8,16 @@ sees: live :class:`~mbmon.model.Record` objects (``read``:
 values (:func:`parse_fcs`, :func:`parse_range`, times by
 :func:`mbmon.timefmt.parse_when`), the options themselves
 (:func:`add_filter_options`, :func:`build_filter`) and :class:`Pacer`, the
-``--speed`` schedule (one monotonic start, no drift).
+``--speed`` schedule (one monotonic start, no drift), and the one expression
+grammar (:func:`parse_expression`) that both the display filter (``--where``)
+and the capture triggers (``--trigger``, :mod:`mbmon.analysis.trigger`) read.
 """
 
 from __future__ import annotations
 
 import argparse
+import operator
+import re
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
@@ -24,12 +28,15 @@ from mbmon.timefmt import TimeFormat, TimeParseError
 from mbmon.timefmt import parse_when as _parse_time
 
 __all__ = [
+    "EXPRESSION_HELP",
+    "Expression",
     "FilterError",
     "Pacer",
     "RecordFilter",
     "add_filter_options",
     "build_filter",
     "iter_filtered",
+    "parse_expression",
     "parse_fcs",
     "parse_int",
     "parse_range",
@@ -125,6 +132,7 @@ class RecordFilter:
     since_text: str | None = None
     until_text: str | None = None
     time_format: TimeFormat | None = None
+    where: Expression | None = None
 
     @property
     def active(self) -> bool:
@@ -132,7 +140,7 @@ class RecordFilter:
             v is not None
             for v in (
                 self.units, self.fcs, self.address, self.since, self.until, self.grep,
-                self.since_text, self.until_text,
+                self.since_text, self.until_text, self.where,
             )
         )  # fmt: skip
 
@@ -168,6 +176,8 @@ class RecordFilter:
             return False
         if self.grep is not None and self.grep.lower() not in line.lower():
             return False
+        if self.where is not None and (obj is None or not self.where.matches(obj)):
+            return False
         if self.units is None and self.fcs is None and self.address is None:
             return True
         if obj is None:
@@ -190,6 +200,8 @@ class RecordFilter:
                 raise ValueError("--grep needs the record's line")
             if self.grep.lower() not in line.lower():
                 return False
+        if self.where is not None and not self.where.matches_record(record):
+            return False
         if self.units is None and self.fcs is None and self.address is None:
             return True
         frame = record.frame
@@ -244,6 +256,12 @@ def add_filter_options(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--since", metavar="TIME", help="from TIME on (see 'times' below)")
     group.add_argument("--until", metavar="TIME", help="up to TIME")
     group.add_argument("--grep", metavar="TEXT", help="only lines containing TEXT (any case)")
+    group.add_argument(
+        "--where",
+        metavar="EXPR",
+        help="only records EXPR matches, e.g. 'exception or latency > 50ms', "
+        "'fc 6 and address 200', 'R200 != 0' (the grammar of --trigger; docs/usage.md)",
+    )
 
 
 def build_filter(
@@ -282,7 +300,203 @@ def build_filter(
         flt.until_text = until or None
     if getattr(args, "grep", None):
         flt.grep = args.grep
+    if getattr(args, "where", None):
+        flt.where = parse_expression(args.where)
     return flt
+
+
+# --------------------------------------------------------------------------- expressions
+
+EXPRESSION_HELP = (
+    "expressions (--where, --trigger): tests joined by 'and', 'or', 'not' and "
+    "parentheses. Tests: exception [CODE], timeout, noise, crc, connect, disconnect, "
+    "gap, guard, request, response, fc N[,N], unit N[,N], address A[-B], latency OP "
+    "TIME (latency > 50ms), and a value a frame carries: R|IR|C|DI<address> OP N "
+    "(R200 != 0: holding register 200; IR input register, C coil, DI discrete "
+    "input). OP is one of == != < <= > >=."
+)
+
+_TOKEN = re.compile(r"\s*(==|!=|<=|>=|<|>|\(|\)|[^\s()<>=!]+)")
+_COMPARE: dict[str, Callable[[Any, Any], bool]] = {
+    "==": operator.eq, "!=": operator.ne, "<": operator.lt, "<=": operator.le,
+    ">": operator.gt, ">=": operator.ge,
+}  # fmt: skip
+_ITEM = re.compile(r"^(R|HR|IR|C|DI)(\d+)$", re.IGNORECASE)
+_TABLES = {"R": "holding_register", "HR": "holding_register", "IR": "input_register",
+           "C": "coil", "DI": "discrete_input"}  # fmt: skip
+_EVENTS = frozenset({"timeout", "connect", "disconnect", "gap", "guard"})
+_KINDS = frozenset({"request", "response", "noise"})
+
+# A test is a function of a record's ``read --json`` object.
+_Test = Callable[[Mapping[str, Any]], bool]
+
+
+class Expression:
+    """A parsed expression (:func:`parse_expression`): ``matches(obj)`` for a
+    logged record's ``read --json`` object, ``matches_record(record)`` for a
+    live record (through the same object: one meaning for both)."""
+
+    __slots__ = ("_test", "text")
+
+    def __init__(self, text: str, test: _Test) -> None:
+        self.text = text
+        self._test = test
+
+    def matches(self, obj: Mapping[str, Any]) -> bool:
+        """Whether a record's ``read --json`` object satisfies the expression."""
+        return self._test(obj)
+
+    def matches_record(self, record: Record) -> bool:
+        """Whether a live record satisfies the expression."""
+        global _AS_JSON
+        if _AS_JSON is None:
+            from mbmon.format import View, record_to_json
+
+            view = View()
+            _AS_JSON = lambda r: record_to_json(r, view, line=False)  # noqa: E731
+        return self._test(_AS_JSON(record))
+
+    def __repr__(self) -> str:
+        return f"Expression({self.text!r})"
+
+
+#: a record as its ``read --json`` object (made at first use: format is imported lazily)
+_AS_JSON: Callable[[Record], Mapping[str, Any]] | None = None
+
+
+def parse_expression(text: str) -> Expression:
+    """Parse the grammar of :data:`EXPRESSION_HELP` (the display filter's and the
+    triggers'); :class:`FilterError` names what is wrong and where."""
+    tokens = _TOKEN.findall(text)
+    if "".join(tokens) != re.sub(r"\s+", "", text):
+        raise FilterError(f"cannot read the expression {text!r}")
+    if not tokens:
+        raise FilterError("empty expression")
+    parser = _Parser(tokens, text)
+    test = parser.parse_or()
+    if parser.pos != len(tokens):
+        raise FilterError(f"unexpected {tokens[parser.pos]!r} in {text!r}")
+    return Expression(text, test)
+
+
+class _Parser:
+    """Recursive descent: or := and ('or' and)*; and := not ('and' not)*;
+    not := 'not' not | '(' or ')' | test."""
+
+    def __init__(self, tokens: list[str], text: str) -> None:
+        self.tokens = tokens
+        self.text = text
+        self.pos = 0
+
+    def peek(self) -> str | None:
+        return self.tokens[self.pos] if self.pos < len(self.tokens) else None
+
+    def take(self, what: str = "a test") -> str:
+        token = self.peek()
+        if token is None:
+            raise FilterError(f"{what} expected at the end of {self.text!r}")
+        self.pos += 1
+        return token
+
+    def parse_or(self) -> _Test:
+        parts = [self.parse_and()]
+        while (self.peek() or "").lower() == "or":
+            self.pos += 1
+            parts.append(self.parse_and())
+        return parts[0] if len(parts) == 1 else (lambda o: any(p(o) for p in parts))
+
+    def parse_and(self) -> _Test:
+        parts = [self.parse_not()]
+        while (self.peek() or "").lower() == "and":
+            self.pos += 1
+            parts.append(self.parse_not())
+        return parts[0] if len(parts) == 1 else (lambda o: all(p(o) for p in parts))
+
+    def parse_not(self) -> _Test:
+        token = self.take()
+        low = token.lower()
+        if low == "not":
+            inner = self.parse_not()
+            return lambda o: not inner(o)
+        if token == "(":
+            inner = self.parse_or()
+            if self.take("')'") != ")":
+                raise FilterError(f"')' expected in {self.text!r}")
+            return inner
+        return self.parse_test(token)
+
+    def number(self, what: str) -> int:
+        token = self.take(what)
+        try:
+            return int(token, 0)
+        except ValueError:
+            raise FilterError(f"{what} expected, not {token!r}, in {self.text!r}") from None
+
+    def compare(self) -> Callable[[Any, Any], bool]:
+        token = self.take("a comparison (== != < <= > >=)")
+        if token not in _COMPARE:
+            raise FilterError(f"a comparison expected, not {token!r}, in {self.text!r}")
+        return _COMPARE[token]
+
+    def parse_test(self, token: str) -> _Test:
+        low = token.lower()
+        if low == "exception":
+            nxt = self.peek()
+            if nxt is not None and re.fullmatch(r"\d+|0x[0-9a-fA-F]+", nxt):
+                code = self.number("an exception code")
+                return lambda o: o.get("kind") == "exception" and o.get("exception_code") == code
+            return lambda o: o.get("kind") == "exception"
+        if low in _EVENTS:
+            return lambda o: o.get("event") == low
+        if low in _KINDS:
+            return lambda o: o.get("kind") == low
+        if low == "crc":
+            return lambda o: o.get("kind") == "noise" and "CRC" in " ".join(o.get("notes") or ())
+        if low in ("fc", "unit"):
+            values = (parse_fcs if low == "fc" else lambda t: parse_units([t]))(
+                self.take(low + " values")
+            )
+            key = low
+            return lambda o: o.get(key) in values
+        if low == "address":
+            lo, hi = parse_range(self.take("an address or range"))
+            return lambda o: (
+                o.get("kind") in ("request", "response", "exception") and touches(o, lo, hi)
+            )
+        if low == "latency":
+            op = self.compare()
+            from mbmon.timefmt import TimeParseError, parse_duration
+
+            value = self.take("a time (50ms)")
+            try:
+                limit_ms = parse_duration(value) * 1000.0
+            except TimeParseError as exc:
+                raise FilterError(f"latency: {exc}") from None
+            return lambda o: o.get("latency_ms") is not None and op(o["latency_ms"], limit_ms)
+        item = _ITEM.match(token)
+        if item:
+            table = _TABLES[item.group(1).upper()]
+            at = int(item.group(2))
+            op = self.compare()
+            wanted = self.number("a number")
+            return lambda o: _carries(o, table, at, op, wanted)
+        raise FilterError(f"unknown test {token!r} in {self.text!r} (see --help: expressions)")
+
+
+def _carries(
+    obj: Mapping[str, Any], table: str, at: int, op: Callable[[Any, Any], bool], wanted: int
+) -> bool:
+    """Whether a frame's values include item ``at`` of ``table`` and it compares to
+    ``wanted`` (a read's answer, a write request or its echo)."""
+    from mbmon.protocol.pdu import table_of
+
+    values = obj.get("values")
+    address = obj.get("address")
+    fc = obj.get("fc")
+    if not values or not isinstance(address, int) or fc is None or table_of(fc) != table:
+        return False
+    index = at - address
+    return 0 <= index < len(values) and bool(op(values[index], wanted))
 
 
 # --------------------------------------------------------------------------- pacing

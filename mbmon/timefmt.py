@@ -224,6 +224,25 @@ _FLOAT = re.compile(r"-?(\d+(\.\d*)?|\.\d+)([eE][-+]?\d+)?|-?(nan|inf)", re.IGNO
 _CLOCK_RE = re.compile(r"\d{1,2}:\d{2}(:\d{2}(\.\d+)?)?")
 
 
+_DURATION = re.compile(r"^\s*((?:\d+(?:\.\d*)?|\.\d+)\s*(?:ms|min|s|m|h|d)?\s*)+$")
+_DURATION_PART = re.compile(r"(\d+(?:\.\d*)?|\.\d+)\s*(ms|min|s|m|h|d)?")
+
+
+def parse_duration(text: str) -> float:
+    """A length of time as seconds: ``30s``, ``250ms``, ``1m30s``, ``1h``, ``7d``
+    (a bare number is seconds; ``m`` and ``min`` are minutes), the units the
+    offsets of :func:`parse_when` use plus ``d``; :class:`TimeParseError` when
+    it is none or is 0."""
+    value = text.strip()
+    if not _DURATION.match(value):
+        raise TimeParseError(f"not a duration: {text!r} (e.g. 30s, 250ms, 1m30s, 1h, 7d)")
+    units = {**_UNIT, "d": 86400.0}
+    seconds = sum(float(n) * units[u] for n, u in _DURATION_PART.findall(value))
+    if not seconds > 0:
+        raise TimeParseError(f"a duration must be more than 0: {text!r}")
+    return seconds
+
+
 def parse_when(text: str, start: float | None, fmt: TimeFormat | None = None) -> float:
     """A ``--since``/``--until`` value as epoch seconds; accepts every form
     :class:`TimeFormat` prints.

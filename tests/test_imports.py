@@ -132,3 +132,51 @@ def test_no_import_cycles_in_mbmon() -> None:
 
     cycles = sorted({tuple(sorted((a, b))) for a in graph for b in graph[a] if a in reach(b)})
     assert cycles == []
+
+
+#: What the analysis features need only when asked: port detection's module (the
+#: dissector imports it only when detection is on), and the heavy libraries of
+#: the report and parquet outputs.
+OPTIONAL = ("mbmon.analysis.detect", "pyarrow", "matplotlib", "duckdb")
+
+
+def test_the_report_imports_matplotlib_only_for_pictures() -> None:
+    """``mbmon report`` without -o/--png prints tables: no plotting library is loaded."""
+    code = (
+        "import sys; from mbmon.analysis.report import analyse, text_tables; "
+        "text_tables(analyse([])); print('matplotlib' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
+@pytest.mark.parametrize(
+    "module",
+    [
+        "mbmon",
+        "mbmon.cli",
+        "mbmon.sources.pcapfile",
+        "mbmon.sources.dissect",
+        "mbmon.commands.report",
+        "mbmon.analysis.report",
+        "mbmon.analysis.trigger",
+        "mbmon.analysis.rotate",
+        "mbmon.sinks.base",
+        "mbmon.sinks.parquet",
+    ],
+)
+def test_optional_analysis_is_not_imported_unless_asked(module: str) -> None:
+    code = f"import sys, {module}; print(','.join(m for m in {OPTIONAL!r} if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "", f"{module} imports {out.stdout.strip()}"
+
+
+def test_a_dissector_without_detection_does_not_import_it() -> None:
+    code = (
+        "import sys; from mbmon.sources.dissect import CaptureConfig, Dissector; "
+        "Dissector(CaptureConfig()); a = 'mbmon.analysis.detect' in sys.modules; "
+        "Dissector(CaptureConfig(detect=True)); "
+        "print(a, 'mbmon.analysis.detect' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "True"]

@@ -16,4 +16,5 @@ COMMANDS: list[str] = [
     "proxy",
     "sim",
     "demo",
+    "report",
 ]

@@ -199,6 +199,13 @@ def add_port_options(group: Any) -> None:
         metavar="N",
         help="TCP/UDP port carrying RTU ADUs with CRC, as some gateways do (repeatable)",
     )
+    group.add_argument(
+        "--no-detect",
+        action="store_true",
+        help="do not look for Modbus/TCP and RTU over TCP on other TCP ports (by default "
+        "a connection on any port whose bytes are Modbus, a request and its answer, "
+        "becomes a stream; docs/usage.md)",
+    )
 
 
 def add_output_options(parser: argparse.ArgumentParser) -> None:
@@ -214,13 +221,49 @@ def add_output_options(parser: argparse.ArgumentParser) -> None:
         default=[],
         metavar="FILE",
         help="also write records to FILE; format by suffix: .mcap .jsonl .csv .txt .pcap "
-        "(repeatable)",
+        ".parquet (repeatable; .parquet needs pip install 'mbmon[parquet]')",
     )
     group.add_argument(
         "-q",
         "--quiet",
         action="store_true",
         help="print no records and no summary (use with -w)",
+    )
+    group.add_argument(
+        "--rotate",
+        action="append",
+        default=[],
+        metavar="TIME|SIZE",
+        help="-w files rotate: a new file every TIME of capture time (1h, 30min, 1d; "
+        "aligned to whole periods) and/or once a file holds SIZE (100MB, 1GiB); each file "
+        "is finished on its own and named FILE_NNNNN_<start time>Z.SUFFIX",
+    )
+    group.add_argument(
+        "--keep",
+        type=positive_int,
+        metavar="N",
+        help="with --rotate or --trigger: keep the newest N files of each -w ring, remove "
+        "older ones",
+    )
+    group.add_argument(
+        "--trigger",
+        metavar="EXPR",
+        help="keep (log and show) only windows around the records EXPR matches, e.g. "
+        "'exception or timeout', 'fc 6 and address 200', 'R200 != 0', 'latency > 50ms'; "
+        "each window is a -w file of its own (the grammar of --where; docs/usage.md)",
+    )
+    group.add_argument(
+        "--before",
+        default="30s",
+        metavar="TIME",
+        help="with --trigger: keep TIME before each trigger (default 30s)",
+    )
+    group.add_argument(
+        "--after",
+        default="10s",
+        metavar="TIME",
+        help="with --trigger: keep TIME after each trigger (default 10s; a trigger within "
+        "a window extends it)",
     )
 
 
@@ -314,6 +357,80 @@ def check_outputs(outputs: Iterable[str], inputs: Iterable[str]) -> None:
         for name, ist in in_stats:
             if (st.st_dev, st.st_ino) == (ist.st_dev, ist.st_ino):
                 raise UsageError(f"{out}: is the input {name}; refusing to overwrite it")
+
+
+def open_log(target: str, ctx: Any, args: argparse.Namespace) -> Any:
+    """The listener for one ``-w`` target: the format's sink, or with ``--rotate``
+    a ring of them (:class:`mbmon.analysis.rotate.RotatingSink`). Raises
+    :class:`~mbmon.sinks.base.SinkError` when it cannot be opened and
+    :class:`UsageError` for bad ``--rotate``/``--keep`` values."""
+    from mbmon.sinks.base import open_sink
+
+    rotation = check_rotation(args)
+    if rotation is None:
+        if getattr(args, "trigger", None) is None:
+            return open_sink(target, ctx)
+        rotation = (None, None)  # each trigger window is a file of the ring
+    from mbmon.analysis.rotate import RotatingSink
+
+    every, size = rotation
+    return RotatingSink(target, ctx, every=every, max_bytes=size, keep=args.keep)
+
+
+def check_rotation(args: argparse.Namespace) -> tuple[float | None, int | None] | None:
+    """``--rotate`` as ``(seconds, bytes)``, or ``None`` without it; bad values, and
+    ``--keep`` or ``--rotate`` without ``-w``/``--keep`` without ``--rotate``, are
+    usage errors. Call it before anything starts."""
+    rotate = getattr(args, "rotate", None) or []
+    keep = getattr(args, "keep", None)
+    if not rotate:
+        if keep is not None and getattr(args, "trigger", None) is None:
+            raise UsageError("--keep needs --rotate or --trigger")
+        return None
+    if not getattr(args, "write", None):
+        raise UsageError("--rotate needs -w FILE")
+    from mbmon.analysis.rotate import RotationError, parse_rotate
+
+    try:
+        return parse_rotate(rotate)
+    except RotationError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def open_trigger(args: argparse.Namespace) -> Any:
+    """The :class:`~mbmon.analysis.trigger.TriggerGate` that ``--trigger`` asks for
+    (``None`` without it), telling each window on stderr; bad values are usage
+    errors. Add the logs and the screen to it, then it to the hub."""
+    text = getattr(args, "trigger", None)
+    if text is None:
+        for name in ("before", "after"):
+            if getattr(args, name, None) not in (None, "30s", "10s"):
+                raise UsageError(f"--{name} needs --trigger")
+        return None
+    from mbmon.analysis.trigger import TriggerGate
+    from mbmon.filters import FilterError, parse_expression
+    from mbmon.sinks.csvfile import utc_text
+    from mbmon.timefmt import TimeParseError, parse_duration
+
+    try:
+        expression = parse_expression(text)
+    except FilterError as exc:
+        raise UsageError(f"--trigger: {exc}") from None
+    spans = []
+    for name in ("before", "after"):
+        try:
+            spans.append(parse_duration(getattr(args, name)))
+        except TimeParseError as exc:
+            raise UsageError(f"--{name}: {exc}") from None
+
+    def told(number: int, window: Any) -> None:
+        err(
+            f"trigger window {number}: {utc_text(window.start)} .. {utc_text(window.end)} "
+            f"({window.triggers} trigger{'s' if window.triggers != 1 else ''}; first: "
+            f"{window.what})"
+        )
+
+    return TriggerGate(expression, spans[0], spans[1], on_window=told)
 
 
 class Progress:

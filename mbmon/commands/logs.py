@@ -66,6 +66,7 @@ examples:
   mbmon export cell.mcap -o cell.pcap --keep-port
                                             the original ports; a note prints the option
                                             (tshark -d tcp.port==1502,mbtcp)
+  mbmon export cell.mcap -o cell.parquet    one row per record: DuckDB, Spark, Trino (docs/fleet.md)
   mbmon export crashed.mcap -o fixed.mcap   rewrite an unfinished log as a finished one
 
 Filters (--unit, --fc, --address, --grep) apply to .csv, .jsonl and .txt; --since and
@@ -904,7 +905,11 @@ def run_export(args: argparse.Namespace) -> int:
             _err(f"error: {exc}")
             return EXIT_USAGE
         if suffix in (".pcap", ".mcap") and (
-            flt.units is not None or flt.fcs is not None or flt.address is not None or flt.grep
+            flt.units is not None
+            or flt.fcs is not None
+            or flt.address is not None
+            or flt.grep
+            or flt.where is not None
         ):
             _err(f"error: {suffix} export takes only --since/--until (it copies raw bytes)")
             return EXIT_USAGE
@@ -933,10 +938,9 @@ def run_export(args: argparse.Namespace) -> int:
                 )
             else:
                 from mbmon.io.replay import logged_records
-                from mbmon.sinks.jsonl import TextFileSink
 
                 with open_sink(target, ctx) as sink:
-                    assert isinstance(sink, TextFileSink)  # .txt .jsonl .csv
+                    assert hasattr(sink, "write_logged")  # .txt .jsonl .csv .parquet
                     for rec in logged_records(log):
                         obj, line = _retimed(rec.obj, rec.text, rec.time, fmt)
                         if flt.matches(obj, line, rec.time):

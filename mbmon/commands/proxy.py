@@ -183,9 +183,11 @@ def run(args: argparse.Namespace) -> int:
         EXIT_OK,
         Figures,
         UsageError,
+        check_rotation,
         make_annotator,
         open_console,
         open_foxglove,
+        open_log,
         parse_address,
         profile_sources,
         run_live,
@@ -195,7 +197,7 @@ def run(args: argparse.Namespace) -> int:
     from mbmon.pipeline import Pipeline, PipelineConfig
     from mbmon.proxy.engine import ProxyConfig, endpoint
     from mbmon.proxy.guard import ClientFilter, Guard, GuardSpecError
-    from mbmon.sinks.base import SinkContext, SinkError, open_sink
+    from mbmon.sinks.base import SinkContext, SinkError
 
     if (args.upstream is None) == (args.upstream_serial is None):
         raise UsageError("give the upstream once: --upstream HOST:PORT or --upstream-serial PORT")
@@ -203,6 +205,9 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("listen either on --listen ADDR:PORT or on --listen-serial PORT")
     if args.allow_from and args.listen_serial is not None:
         raise UsageError("--allow-from is for TCP clients, not --listen-serial")
+    check_rotation(args)
+    if args.trigger is not None:
+        raise UsageError("--trigger works with read and sniff; the proxy logs everything")
     if args.upstream is not None:
         up_host, up_port = parse_address(args.upstream, "--upstream")
         upstream = endpoint(up_host, up_port)
@@ -269,7 +274,7 @@ def run(args: argparse.Namespace) -> int:
         if feed is not None:
             hub.add_listener(feed)
         for target in args.write:
-            hub.add_listener(open_sink(target, ctx))
+            hub.add_listener(open_log(target, ctx, args))
     except SinkError as exc:
         print(f"mbmon: {exc}", file=sys.stderr)
         hub.close()

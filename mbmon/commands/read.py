@@ -21,22 +21,27 @@ from mbmon.commands.common import (
     add_port_options,
     add_view_options,
     check_outputs,
+    check_rotation,
     err,
     make_annotator,
+    open_log,
+    open_trigger,
     positive,
     positive_int,
     profile_sources,
     view_and_filter,
 )
-from mbmon.filters import TIMES_HELP, add_filter_options
+from mbmon.filters import EXPRESSION_HELP, TIMES_HELP, add_filter_options
 from mbmon.timefmt import add_time_option
 
 EPILOG = """\
 examples:
   mbmon read captures/hrss_ptp.pcap
       print every Modbus ADU as the robot's Modbus Monitor shows it
-  mbmon read plant.pcapng --port 1502 --json > frames.jsonl
-      Modbus/TCP on a non-standard port, one JSON object per line
+  mbmon read plant.pcapng --json > frames.jsonl
+      one JSON object per line; Modbus/TCP on other ports is found by its structure
+  mbmon read plant.pcapng --port 1502 --no-detect
+      only ports 502 and 1502 are Modbus
   mbmon read cell.pcap --robot 192.168.0.10 --profile hrss
       label lines from the robot's point of view and add HRSS meaning
   mbmon read bus.pcap --rtu-port 4001          RTU frames carried in TCP/UDP port 4001
@@ -46,6 +51,8 @@ examples:
   mbmon read cell.pcap --fc 6,16 --address 200-251 -t r
       only writes touching R200..R251, times relative to the first record
   mbmon read cell.pcap -w cell.mcap            also record an MCAP log (Foxglove)
+  mbmon read week.pcap -w fault.mcap --trigger 'exception or timeout' --before 30s --after 10s
+      keep only 40 s around each fault: one MCAP file per window
 
 output lines: TIME  LABEL  [uUNIT tTID]  FUNCTION-CODE + DATA (hex)  | meaning
 a summary goes to stderr at the end (-q: none)
@@ -64,7 +71,7 @@ def register(sub: Any) -> None:
         help="decode a capture file (pcap/pcapng) or a raw RTU bus dump",
         description="Decode every Modbus ADU in a capture file and print it as the robot's "
         "Modbus Monitor (manual Table 57) shows it, with its meaning.",
-        epilog=EPILOG + textwrap.fill(TIMES_HELP, 80),  # --since/--until: 'times'
+        epilog=EPILOG + textwrap.fill(TIMES_HELP, 80) + "\n\n" + textwrap.fill(EXPRESSION_HELP, 80),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     read.add_argument(
@@ -126,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
     """``mbmon read``: every record of the input to the console, the logs and the summary."""
     from mbmon.hub import Hub
     from mbmon.pipeline import Pipeline, PipelineConfig
-    from mbmon.sinks.base import SinkContext, SinkError, open_sink
+    from mbmon.sinks.base import SinkContext, SinkError
     from mbmon.sinks.console import ConsoleListener
     from mbmon.sinks.select import Selection
     from mbmon.sinks.summary import Summary
@@ -139,6 +146,7 @@ def run(args: argparse.Namespace) -> int:
     if path == "-":
         path = "/dev/stdin"  # a pipe: the readers never seek
     check_outputs(args.write, [path])
+    check_rotation(args)
     view, flt = view_and_filter(args)
     annotator = make_annotator(args.profile)
     pipeline = Pipeline(annotator, PipelineConfig(timeout=args.timeout, baudrate=args.baud))
@@ -167,7 +175,9 @@ def run(args: argparse.Namespace) -> int:
             err(f"{path} is an MCAP log, not a capture: try 'mbmon replay {args.file}'")
             return EXIT_BAD_INPUT
         config = CaptureConfig(
-            tcp_ports=frozenset({502, *args.port}), rtu_ports=frozenset(args.rtu_port)
+            tcp_ports=frozenset({502, *args.port}),
+            rtu_ports=frozenset(args.rtu_port),
+            detect=not args.no_detect,
         )
         try:
             items = read_capture(path, config, progress=progress, stats=capture_stats)
@@ -188,6 +198,8 @@ def run(args: argparse.Namespace) -> int:
     )
     hub = Hub(pipeline)
     summary = Summary(view if args.robot else None)
+    gate = open_trigger(args)  # --trigger: the logs and the screen see only its windows
+    attach = hub.add_listener if gate is None else gate.add
     logs: list[Any] = []
     interrupted = False
     with ExitStack() as stack:
@@ -196,17 +208,19 @@ def run(args: argparse.Namespace) -> int:
         # logs first: a record printed on stdout has reached them when a signal stops the run
         for target in args.write:
             try:
-                sink = open_sink(target, ctx)
+                sink = open_log(target, ctx, args)
             except SinkError as exc:
                 err(str(exc))
                 return EXIT_BAD_INPUT
             logs.append(sink)
-            hub.add_listener(sink)
+            attach(sink)
         shown = (
             [] if args.quiet else [ConsoleListener(sys.stdout, view, as_json=args.json, live=live)]
         )
         if shown or args.count:
-            hub.add_listener(Selection(shown, view, flt, args.count, on_full=hub.enough))
+            attach(Selection(shown, view, flt, args.count, on_full=hub.enough))
+        if gate is not None:
+            hub.add_listener(gate)
         if not args.quiet:
             hub.add_listener(summary)
         try:
@@ -222,7 +236,7 @@ def run(args: argparse.Namespace) -> int:
         _report(summary, capture_stats, args, timed=not args.rtu_raw)
     if interrupted:
         for sink in logs:
-            if sink in hub.listeners:
+            if sink in hub.listeners or (gate is not None and gate in hub.listeners):
                 err(f"interrupted; {getattr(sink, 'path', 'the log')} was finished and is complete "
                     "up to here")  # fmt: skip
         return 130
@@ -242,14 +256,38 @@ def _report(
         print(summary.text(timed=timed), file=sys.stderr, flush=True)
     except (OSError, ValueError):
         return
+    for line in detected_lines(capture_stats.get("detected") or []):
+        err(line)
     if summary.frames == 0 and not args.rtu_raw:
         busiest = capture_stats.get("busiest_ports") or []
         ports = ", ".join(f"{proto}/{p} ({n} packets)" for proto, p, n in busiest[:5])
         asked = ", ".join(str(p) for p in sorted({502, *args.port, *args.rtu_port}))
         hint = f"no Modbus found on port {asked}"
+        if not args.no_detect:
+            hint += " nor by its structure on any other TCP port"
         if ports:
             first = busiest[0][1]
             hint += f"; busiest ports: {ports}; try --port {first} (or --rtu-port {first})"
         err(hint)
     if args.robot and summary.streams and not summary.robot_seen:
         err(f"warning: the robot {args.robot} (--robot) appears in no stream of this capture")
+
+
+def detected_lines(found: list[tuple[str, int, str, int]]) -> list[str]:
+    """One line per port that port detection found (the dissector's
+    ``detected()``): the transport, the port, its servers and connections."""
+    ports: dict[tuple[str, int], list[tuple[str, int]]] = {}
+    for transport, number, server, streams in found:
+        ports.setdefault((transport, number), []).append((server, streams))
+    lines = []
+    for (transport, number), servers in ports.items():
+        what = "RTU over TCP" if transport == "rtu-over-tcp" else "Modbus/TCP"
+        names = ", ".join(server for server, _ in servers[:3])
+        if len(servers) > 3:
+            names += f" and {len(servers) - 3} more"
+        streams = sum(n for _, n in servers)
+        lines.append(
+            f"found {what} on port {number} by its structure: {streams} connection"
+            f"{'s' if streams != 1 else ''} to {names} (--no-detect turns this off)"
+        )
+    return lines

@@ -25,8 +25,9 @@ from typing import Any
 
 _EPILOG = """\
 examples:
-  mbmon sniff eth0                          Modbus/TCP on port 502 (live monitor on a terminal)
-  mbmon sniff -i eth0 --port 1502 -w cell.mcap   another server port, and an MCAP log
+  mbmon sniff eth0                          Modbus/TCP on port 502, and on any TCP port where
+                                            the bytes are Modbus (live monitor on a terminal)
+  mbmon sniff -i eth0 --port 1502 -w cell.mcap   only ports 502 and 1502, and an MCAP log
   mbmon sniff eth0 --robot 192.168.0.10 --profile hrss   the robot's labels and HRSS meaning
   mbmon sniff lo -f 'tcp port 5020' --port 5020 -c 10    a BPF filter, stop after 10 frames
   mbmon sniff eth0 --fc 6,16 --address 200-251 -c 20     only writes to R200..R251, 20 of them
@@ -77,8 +78,9 @@ def register(sub: Any) -> None:
         "-f",
         "--filter",
         metavar="BPF",
-        help="kernel capture filter (tcpdump syntax) instead of the default "
-        "'tcp port 502 or udp port 502' plus the --port/--rtu-port ports",
+        help="kernel capture filter (tcpdump syntax) instead of the default: 'tcp or "
+        "udp port 502' while Modbus is looked for on every TCP port (no --port, "
+        "--rtu-port or --no-detect), else 'tcp port 502 or udp port 502' plus those ports",
     )
     add_port_options(src)
     ser = p.add_argument_group("serial (RS485, Modbus RTU)")
@@ -229,17 +231,20 @@ def run_sniff(args: argparse.Namespace) -> int:
         Figures,
         UsageError,
         check_outputs,
+        check_rotation,
         filter_text,
         make_annotator,
         open_console,
         open_foxglove,
+        open_log,
+        open_trigger,
         run_live,
         view_and_filter,
     )
     from mbmon.commands.common import profile_sources as _profile_sources
     from mbmon.hub import Hub
     from mbmon.pipeline import Pipeline, PipelineConfig
-    from mbmon.sinks.base import SinkContext, SinkError, open_sink
+    from mbmon.sinks.base import SinkContext, SinkError
     from mbmon.sinks.select import Selection
     from mbmon.sinks.summary import Summary
 
@@ -265,6 +270,8 @@ def run_sniff(args: argparse.Namespace) -> int:
     if iface and (args.baud is not None):
         raise UsageError("--baud is for --serial")
     check_outputs(args.write, args.serial)  # before the capture opens: no half start
+    check_rotation(args)
+    gate = open_trigger(args)  # --trigger: the logs and the screen see only its windows
 
     serial = bool(args.serial)
     baud = (args.baud or 115200) if serial else None
@@ -346,7 +353,11 @@ def run_sniff(args: argparse.Namespace) -> int:
         )
 
         config = CaptureConfig(
-            tcp_ports=frozenset({502, *args.port}), rtu_ports=frozenset(args.rtu_port)
+            tcp_ports=frozenset({502, *args.port}),
+            rtu_ports=frozenset(args.rtu_port),
+            # live, detection puts every TCP packet through Python: on by default
+            # only while no port is named (a named port keeps the kernel filter narrow)
+            detect=not (args.no_detect or args.port or args.rtu_port),
         )
         bpf = args.filter or capture_filter(config)
         dissector = open_dissector(config, hub.new_stream, bus_name=str(iface))
@@ -402,12 +413,16 @@ def run_sniff(args: argparse.Namespace) -> int:
         console, monitor = open_console(
             args, view, title=f"mbmon sniff {source_name}", annotator=annotator
         )
+        attach = outputs.append
+        if gate is not None:
+            outputs.append(gate)
+            attach = gate.add
         if console is not None:  # the filters choose what is shown; logs keep everything
             # (the monitor keeps everything too and starts with them as its display filter)
             shown = flt.active and monitor is None
-            outputs.append(Selection([console], view, flt) if shown else console)
+            attach(Selection([console], view, flt) if shown else console)
         for target in args.write:
-            outputs.append(open_sink(target, ctx))
+            attach(open_log(target, ctx, args))
         if summary is not None:
             outputs.append(summary)
     except SinkError as exc:
@@ -514,6 +529,9 @@ def _summary(
                 f"  {s.get('modbus_packets', 0)} Modbus packets, {s.get('streams', 0)} streams, "
                 f"{s.get('gaps', 0)} TCP gaps"
             )
+            from mbmon.commands.read import detected_lines
+
+            lines.extend("  " + line for line in detected_lines(dissector.detected()))
     for tap in taps:
         lines.append(
             f"  {tap.port}: {tap.reads} reads, {tap.bytes} bytes"

@@ -80,6 +80,7 @@ SINKS: dict[str, tuple[str, str]] = {
     ".csv": ("mbmon.sinks.csvfile", "CsvSink"),
     ".txt": ("mbmon.sinks.text", "TextSink"),
     ".pcap": ("mbmon.sinks.pcap", "PcapSink"),
+    ".parquet": ("mbmon.sinks.parquet", "ParquetSink"),  # needs the 'parquet' extra
 }
 
 

@@ -15,9 +15,15 @@ and skipped.
 
 Streams: TCP and UDP packets to or from a configured port are Modbus; the
 endpoint with the configured port is the server (both configured: the SYN
-receiver, else the lower port). Without ``new_stream`` stream ids count from 0
-in order of first appearance; with it (a hub's ``new_stream``), the caller
-allocates them, so several sources of one run never collide. A TCP connection
+receiver, else the lower port). With ``CaptureConfig.detect``, a TCP
+connection on any other port becomes a stream once its own bytes prove it
+Modbus (:mod:`mbmon.analysis.detect`: MBAP or RTU structure and an answered
+request); its held segments are then replayed through reassembly, the
+requester is the client, and later connections to that server endpoint are
+streams from their first packet (:meth:`Dissector.detected` lists them).
+Without ``new_stream`` stream ids count from 0 in order of first appearance;
+with it (a hub's ``new_stream``), the caller allocates them, so several
+sources of one run never collide. A TCP connection
 reopened on the same addresses (a SYN after the end, or with a new initial
 sequence number) is a new stream. UDP: one chunk per datagram. Link type 147
 (USER0): each record is bytes of one RTU bus, stream ``client = server =
@@ -57,10 +63,13 @@ import struct
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport
 from mbmon.sources.tcpflow import ACK, SYN, TcpConnection, TcpStats, make_chunk
+
+if TYPE_CHECKING:
+    from mbmon.analysis.detect import PortDetector, Promotion
 
 __all__ = ["CLOSED_LINGER", "MAX_CLOSED", "MAX_FLOWS", "MAX_PORTS", "CaptureConfig", "Dissector"]
 
@@ -91,10 +100,15 @@ class CaptureConfig:
     ``tcp_ports``: Modbus/TCP (MBAP) server ports, for TCP and UDP.
     ``rtu_ports``: RTU-over-TCP/UDP server ports; a port in both sets is RTU
     (the explicit choice wins over the default 502).
+    ``detect``: also find Modbus/TCP and RTU over TCP on any other TCP port by
+    the structure of the bytes (:mod:`mbmon.analysis.detect`); the one switch
+    of port detection (a compiled core that does not detect declines when it
+    is on).
     """
 
     tcp_ports: frozenset[int] = frozenset({502})
     rtu_ports: frozenset[int] = frozenset()
+    detect: bool = False
 
 
 def _address(raw: bytes, port: int) -> str:
@@ -142,6 +156,12 @@ class Dissector:
     ) -> None:
         self.rtu_ports = config.rtu_ports
         self.ports = config.tcp_ports | config.rtu_ports
+        #: port detection (``config.detect``): the detector, else ``None``
+        self.detector: PortDetector | None = None
+        if config.detect:
+            from mbmon.analysis.detect import PortDetector
+
+            self.detector = PortDetector()
         self.bus_name = bus_name
         self.new_stream = new_stream
         self.idle_timeout = _NEVER if idle_timeout is None else float(idle_timeout)
@@ -408,6 +428,15 @@ class Dissector:
                 self.good_ts = ts
                 ports = self.ports
                 if sport not in ports and dport not in ports:
+                    if self.detector is not None:
+                        ip_end = off + 14 + total
+                        doff = (hl >> 10) & 0x3C
+                        if 40 <= total and ip_end <= end and 20 <= doff <= total - 20:
+                            payload = buf[off + 34 + doff : ip_end]
+                            self._detect(
+                                ts, (addrs, sport, dport), seq, ack, hl & 0xFF, payload, out
+                            )
+                            return
                     self.non_modbus += 1
                     self._other_port(sport if sport < dport else dport)
                     return
@@ -558,6 +587,12 @@ class Dissector:
             self.good_ts = ts
             ports = self.ports
             if sport not in ports and dport not in ports:
+                doff = (hl >> 10) & 0x3C
+                if self.detector is not None and not short and 20 <= doff <= ip_end - l4:
+                    key = (buf[addr_at : addr_at + addr_len], sport, dport)
+                    payload = buf[l4 + doff : ip_end]
+                    self._detect(ts, key, seq, ack, hl & 0xFF, payload, out)
+                    return
                 self.non_modbus += 1
                 self._other_port(sport if sport < dport else dport)
                 return
@@ -681,8 +716,14 @@ class Dissector:
     def _new_tcp(
         self, key: tuple[bytes, int, int], flags: int, ts: float
     ) -> tuple[TcpConnection, bool]:
-        sender_is_client, server_port = self._roles(key, flags)
-        transport = Transport.RTU_OVER_TCP if server_port in self.rtu_ports else Transport.TCP
+        detected = None
+        if self.detector is not None and key[1] not in self.ports and key[2] not in self.ports:
+            detected = self.detector.role(key)
+        if detected is None:
+            sender_is_client, server_port = self._roles(key, flags)
+            transport = Transport.RTU_OVER_TCP if server_port in self.rtu_ports else Transport.TCP
+        else:
+            sender_is_client, transport = detected
         client, server = self._endpoints(key, sender_is_client)
         conn = TcpConnection(
             self._stream(transport, client, server),
@@ -701,6 +742,52 @@ class Dissector:
         self.tcp[key] = flow
         self.tcp[(addrs[half:] + addrs[:half], dport, sport)] = (conn, not sender_is_client)
         return flow
+
+    def _detect(
+        self, ts: float, key: Key, seq: int, ack: int, flags: int, payload: bytes, out: list[Any]
+    ) -> None:
+        """A TCP segment on no Modbus port while port detection is on: a stream's
+        when its connection (or its server endpoint) was found to be Modbus,
+        else the detector's to judge; a promotion replays what it held."""
+        detector = self.detector
+        assert detector is not None
+        flow = self.tcp.get(key)
+        if flow is None and not detector.serves(key):
+            verdict = detector.segment(ts, key, seq, ack, flags, payload)
+            if verdict is True:
+                self.non_modbus += 1  # held; counted as Modbus if it is promoted
+            elif verdict is False:
+                self.non_modbus += 1
+                self._other_port(key[1] if key[1] < key[2] else key[2])
+            else:
+                self._promote(verdict, out)
+            return
+        self.modbus_packets += 1
+        if flow is None or flags & SYN or flow[0].closed:
+            flow = self._tcp_flow(key, flow, ts, seq, flags, bool(payload), out)
+        flow[0].segment(ts, flow[1], seq, ack, flags, payload, out)
+
+    def _promote(self, promotion: Promotion, out: list[Any]) -> None:
+        """A connection proved Modbus: its held segments go through reassembly in
+        capture order, as if its port had been named from the start."""
+        self.non_modbus -= len(promotion.segments) - 1
+        self.modbus_packets += len(promotion.segments)
+        tcp = self.tcp
+        for ts, key, seq, ack, flags, payload in promotion.segments:
+            flow = tcp.get(key)
+            if flow is None or flags & SYN or flow[0].closed:
+                flow = self._tcp_flow(key, flow, ts, seq, flags, bool(payload), out)
+            flow[0].segment(ts, flow[1], seq, ack, flags, payload, out)
+
+    def detected(self) -> list[tuple[str, int, str, int]]:
+        """What port detection found (empty when it is off): ``(transport value,
+        port, server address, streams)`` per server endpoint, in order found."""
+        if self.detector is None:
+            return []
+        return [
+            (transport, port, _address(address, port), streams)
+            for transport, port, address, streams in self.detector.found()
+        ]
 
     def _new_udp(self, key: tuple[bytes, int, int], ts: float) -> tuple[Stream, Direction]:
         sender_is_client, server_port = self._roles(key, 0)

@@ -501,6 +501,7 @@ def _iterate(
             stats["packets"] = inp.count
             stats["bytes"] = inp.base + inp.pos
             stats["busiest_ports"] = dissector.busiest_ports()
+            stats["detected"] = dissector.detected()
 
 
 def _last_good(inp: _Input, dissector: Dissector) -> float:

@@ -97,8 +97,12 @@ def open_dissector(
 
 
 def capture_filter(config: CaptureConfig) -> str:
-    """The default kernel filter: TCP and UDP on every Modbus port of ``config``."""
+    """The default kernel filter: TCP and UDP on every Modbus port of ``config``;
+    with port detection on (``config.detect``), every TCP packet and UDP on those
+    ports (detection looks at TCP on any port)."""
     ports = sorted(config.tcp_ports | config.rtu_ports)
+    if config.detect:
+        return " or ".join(["tcp", *(f"udp port {port}" for port in ports)])
     return " or ".join(f"{proto} port {port}" for port in ports for proto in ("tcp", "udp"))
 
 

@@ -176,14 +176,18 @@ def test_count_stops_after_n_records(tmp_path: Path) -> None:
 
 
 def test_no_modbus_names_the_busiest_ports(tmp_path: Path) -> None:
-    """Item 13: a capture with Modbus on another port says where the traffic is."""
+    """Item 13: a capture with Modbus on another port says where the traffic is (with
+    port detection off; on, the port is found by the structure of its bytes)."""
     cap = tmp_path / "other.pcap"
     polling_pcap(cap, 20, server="10.0.0.2:1502")
-    res = run("read", str(cap))
+    res = run("read", str(cap), "--no-detect")
     assert res.returncode == 0 and res.stdout == ""
     assert "no Modbus found on port 502" in res.stderr
     assert "tcp/1502" in res.stderr and "--port 1502" in res.stderr
     assert len(run("read", str(cap), "--port", "1502").stdout.splitlines()) == 42
+    found = run("read", str(cap))
+    assert len(found.stdout.splitlines()) == 42
+    assert "found Modbus/TCP on port 1502 by its structure" in found.stderr
 
 
 def test_an_mcap_log_suggests_replay(tmp_path: Path) -> None:
