@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import hrss_items, records_of
+from monitor_records import hrss_items, records_of
 
 from mbmon.format import View
 from mbmon.model import RecordKind

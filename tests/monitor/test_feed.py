@@ -3,7 +3,7 @@ image, the paired answers, the HRSS panel's written registers; on real captures.
 
 from __future__ import annotations
 
-from conftest import hrss_items, records_of
+from monitor_records import hrss_items, records_of
 
 from mbmon.format import View, record_line
 from mbmon.hub import Hub

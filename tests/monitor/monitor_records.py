@@ -1,4 +1,7 @@
-"""Fixtures of the monitor's tests: real captures through the real pipeline."""
+"""Helpers of the monitor's tests: real captures through the real pipeline.
+
+A module of its own name: `conftest` is a name several test folders share.
+"""
 
 from __future__ import annotations
 
