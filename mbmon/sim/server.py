@@ -26,12 +26,14 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
 import threading
 import time
 from collections.abc import Callable
 from typing import Any
 
 from mbmon.sim.robot import SimEvent, SimRobot
+from mbmon.sources import DEFAULT_BAUD
 
 __all__ = ["SimServer"]
 
@@ -91,7 +93,7 @@ class SimServer:
         port: int = 0,
         unit: int = 1,
         serial: str | None = None,
-        baudrate: int = 19200,
+        baudrate: int = DEFAULT_BAUD,
         parity: str = "N",
         stopbits: int = 1,
         clock: Callable[[], float] = time.monotonic,
@@ -262,13 +264,50 @@ class SimServer:
                 **common,
             )
         self._server.sim = self
+        # pymodbus swallows the reason ("Could not start listen, please check address."):
+        # keep the system's error of the listening socket or serial port it opens
+        failures: list[OSError] = []
+        create = self._server.call_create
+
+        async def call_create() -> Any:
+            try:
+                return await create()
+            except OSError as exc:
+                if self.serial:
+                    failures.append(self._serial_reason())
+                elif exc.errno:  # asyncio's strerror is a sentence around the address
+                    failures.append(OSError(exc.errno, os.strerror(exc.errno)))
+                else:
+                    failures.append(exc)
+                raise
+
+        self._server.call_create = call_create
         try:
             await self._server.serve_forever(background=True)
         except RuntimeError as err:
+            if failures:
+                exc = failures[-1]
+                if exc.errno is None:
+                    raise OSError(exc.strerror or str(exc)) from None
+                raise OSError(exc.errno, exc.strerror or str(exc), self.address) from None
             raise OSError(f"cannot listen on {self.address}: {err}") from None
         if self.serial is None:
             sock = self._server.transport.sockets[0]
             self.host, self.port = sock.getsockname()[:2]
+
+    def _serial_reason(self) -> OSError:
+        """Why the serial port does not open, in the words of mbmon's own serial opener
+        (pyserial's exception hides the system's error)."""
+        from mbmon.sources.serial import SerialSettings, open_port
+
+        try:
+            port = open_port(
+                self.serial or "", SerialSettings(self.baudrate, self.parity, self.stopbits)
+            )
+        except OSError as exc:
+            return exc
+        port.close()  # it opens now: pymodbus's failure was passing
+        return OSError("the serial port could not be opened")
 
     async def _close(self) -> None:
         if self._server is not None:
