@@ -330,10 +330,9 @@ def run_sniff(args: argparse.Namespace) -> int:
             except OSError as exc:
                 for t in taps:
                     t.stop()
-                print(
-                    f"mbmon: cannot open serial port {port}: {exc.strerror or exc}",
-                    file=sys.stderr,
-                )
+                from mbmon.commands.common import serial_open_error
+
+                print(f"mbmon: {serial_open_error(port, exc)}", file=sys.stderr)
                 return EXIT_BAD_INPUT
             taps.append(tap)
         health = BusHealth(stream, settings, hub.put)
