@@ -12,8 +12,9 @@ pymodbus's PDUs, datastore and encoder and replaces those two parts:
   connection answers the queue in order, so 20 pipelined requests in one
   segment get 20 answers. Reading pauses while too many requests wait.
 - **RTU**: pymodbus's RTU framer, unchanged (a half-duplex bus carries one
-  request at a time); only a request it cannot decode is answered with its
-  own function code.
+  request at a time); a request it cannot decode, or whose function code it
+  does not know (CRC-valid bytes it would skip), is answered with its own
+  function code.
 
 Which requests are answered how (unit filter, Table 10, malformed requests) is
 :meth:`mbmon.sim.server.SimServer.admit`'s decision. Imported only when a sim
@@ -34,6 +35,7 @@ from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.transaction import TransactionManager
 
 from mbmon.model import Direction, Frame, Stream, Transport
+from mbmon.protocol.crc import check_crc
 from mbmon.protocol.mbap import MbapDecoder
 
 if TYPE_CHECKING:
@@ -105,7 +107,17 @@ class SimRequestHandler(ServerRequestHandler):
         return len(data)
 
     def _rtu_data(self, data: bytes, addr: tuple[Any, ...] | None) -> int:
-        """pymodbus's RTU path; a request it cannot decode answered with its own code."""
+        """pymodbus's RTU path; a request it cannot decode answered with its own code.
+
+        pymodbus cannot frame a function code it does not know (it skips the bytes
+        as garbage); what it holds is then a request when the CRC validates over
+        all of it (a bus master sends one request and waits): it is answered too.
+        """
+        if len(data) >= 4 and self._memo.inner.lookupPduClass(data) is None and check_crc(data):
+            answer = self.sim.admit(None, data[1], data[0], 0)
+            if answer is not None:
+                self.loop.create_task(self._answer(answer, addr))
+            return len(data)
         try:
             used = TransactionManager.callback_data(self, data, addr)
         except ModbusIOException as exc:

@@ -174,6 +174,10 @@ def test_read_file_record_over_rtu_is_answered_94_01_decodable_or_not() -> None:
                 (rtu("01 14 07 06 0001 0000 000A"), rtu("01 94 01")),
                 # two sub-requests: pymodbus cannot decode it, the sim still answers it
                 (rtu("01 14 0E 06 0001 0000 0001 06 0002 0000 0001"), rtu("01 94 01")),
+                # codes pymodbus does not know at all
+                (rtu("01 41"), rtu("01 C1 01")),
+                (rtu("01 64 01 02 03"), rtu("01 E4 01")),
+                (rtu("01 04 0064 0001"), rtu("01 04 02 0064")),
                 (rtu("01 04 0064 0001"), rtu("01 04 02 0064")),
             ]:
                 os.write(fd, request)
