@@ -114,20 +114,23 @@ class SimRequestHandler(ServerRequestHandler):
         all of it (a bus master sends one request and waits): it is answered too.
         """
         if len(data) >= 4 and self._memo.inner.lookupPduClass(data) is None and check_crc(data):
-            answer = self.sim.admit(None, data[1], data[0], 0)
-            if answer is not None:
-                self.loop.create_task(self._answer(answer, addr))
+            self._refuse_rtu(data[1], data[0], addr)
             return len(data)
         try:
             used = TransactionManager.callback_data(self, data, addr)
         except ModbusIOException as exc:
-            answer = self.sim.admit(None, self._memo.last_fc, exc.dev_id or 0, 0)
-            if answer is not None:
-                self.loop.create_task(self._answer(answer, addr))
+            self._refuse_rtu(self._memo.last_fc, exc.dev_id or 0, addr)
             return len(data)
         if self.last_pdu:
             self.loop.call_soon(self.handle_later)
         return used
+
+    def _refuse_rtu(self, fc: int, unit: int, addr: tuple[Any, ...] | None) -> None:
+        """Answer an RTU request pymodbus could not take, unless it is a broadcast
+        (unit 0: never answered) or for another device (:meth:`SimServer.admit`)."""
+        answer = self.sim.admit(None, fc, unit, 0)
+        if answer is not None and unit != 0:
+            self.loop.create_task(self._answer(answer, addr))
 
     # ------------------------------------------------------------------ answers out
 
