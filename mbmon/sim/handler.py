@@ -7,7 +7,9 @@ pymodbus's own request handler answers only the first ADU of a TCP segment
 it cannot decode with function code 0 (``80 01``); this handler keeps
 pymodbus's PDUs, datastore and encoder and replaces those two parts:
 
-- **TCP**: the stream is framed by mbmon's own :class:`~mbmon.protocol.mbap.MbapDecoder`
+- **TCP**: pymodbus silently drops a read longer than one ADU (a segment with
+  more than about 20 pipelined reads); here every read is taken whole and
+  framed by mbmon's own :class:`~mbmon.protocol.mbap.MbapDecoder`
   (any segmentation gives the same ADUs); each ADU is queued and one task per
   connection answers the queue in order, so 20 pipelined requests in one
   segment get 20 answers. Reading pauses while too many requests wait.
@@ -46,6 +48,9 @@ __all__ = ["MAX_PENDING", "SimSerialServer", "SimTcpServer"]
 MAX_PENDING = 256
 """Requests of one connection waiting for their answers before reading pauses."""
 
+READ_LIMIT = 1 << 24
+"""Largest single TCP read taken (asyncio reads at most 256 KiB at a time)."""
+
 
 class _FunctionCodeMemo:
     """pymodbus's PDU decoder, remembering the function code of the last PDU it was given
@@ -79,6 +84,10 @@ class SimRequestHandler(ServerRequestHandler):
         self._pending: deque[ModbusPDU] = deque()
         self._worker: asyncio.Task[None] | None = None
         self._paused = False
+        if tcp:
+            # pymodbus drops a whole read longer than one ADU (264 bytes) unseen: here
+            # every read is consumed at once and MbapDecoder bounds what it holds
+            self.max_buffer_size = READ_LIMIT
 
     # ------------------------------------------------------------------ bytes in
 

@@ -71,6 +71,17 @@ def test_twenty_pipelined_requests_in_one_segment_get_twenty_answers_in_order(
     assert all(a[6:9] == bytes([UNIT, 4, 2]) for a in answers)
 
 
+@pytest.mark.parametrize("count", [23, 100, 1000])
+def test_segments_longer_than_one_adu_limit_are_answered_whole(
+    server: SimServer, count: int
+) -> None:
+    # pymodbus drops a read longer than 264 bytes (23 reads of 12 bytes) unseen
+    with socket.create_connection((server.host, server.port)) as sock:
+        sock.sendall(b"".join(read_ir(tid, 100) for tid in range(count)))
+        answers = recv_adus(sock, count, timeout=60)
+    assert [struct.unpack(">H", a[:2])[0] for a in answers] == list(range(count))
+
+
 def test_a_write_then_a_read_in_one_segment_are_run_in_that_order(server: SimServer) -> None:
     write = encode_adu(1, UNIT, struct.pack(">BHH", 6, 100, 42))  # speed 42 %
     back = encode_adu(2, UNIT, struct.pack(">BHH", 6, 100, 100))
