@@ -206,3 +206,64 @@ def test_read_file_record_over_rtu_is_answered_94_01_decodable_or_not() -> None:
         finally:
             os.close(fd)
             server.stop()
+
+
+def test_a_hundred_clients_through_a_shared_upstream_proxy_get_every_answer() -> None:
+    """The proxy's --share-upstream writes many clients' requests to the sim in one
+    segment: every one is answered, none with a gateway exception."""
+    import asyncio
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    clients, each = 100, 50
+    seen = {False: 0, True: 0}
+
+    def tap(sending: bool, data: bytes) -> None:
+        seen[sending] += 1
+
+    async def client(port: int, cid: int, bad: list[bytes]) -> None:
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        for i in range(each):
+            tid = cid * each + i
+            writer.write(read_ir(tid, 100))
+            head = await reader.readexactly(6)
+            body = await reader.readexactly(struct.unpack(">H", head[4:6])[0])
+            if head[:2] != tid.to_bytes(2, "big") or body[1] & 0x80:
+                bad.append(head + body)
+        writer.close()
+
+    async def everyone(port: int) -> list[bytes]:
+        bad: list[bytes] = []
+        await asyncio.wait_for(
+            asyncio.gather(*(client(port, c, bad) for c in range(clients))), timeout=120
+        )
+        return bad
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        listen = probe.getsockname()[1]
+    root = Path(__file__).resolve().parents[2]
+    with SimServer(unit=UNIT, on_packet=tap) as sim:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "mbmon", "proxy", "--upstream", f"{sim.host}:{sim.port}",
+             "--listen", f"127.0.0.1:{listen}", "--share-upstream", "-q"],
+            cwd=root, env={**os.environ, "PYTHONPATH": str(root)},
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        try:
+            deadline = time.monotonic() + 30
+            while True:
+                try:
+                    socket.create_connection(("127.0.0.1", listen), timeout=1).close()
+                    break
+                except OSError:
+                    assert proc.poll() is None and time.monotonic() < deadline, "no proxy"
+                    time.sleep(0.1)
+            bad = asyncio.run(everyone(listen))
+        finally:
+            proc.terminate()
+            proc.communicate(timeout=30)
+    assert bad == []
+    assert seen == {False: clients * each, True: clients * each}
