@@ -28,7 +28,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from collections import deque
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 from pymodbus.exceptions import ModbusIOException
 from pymodbus.pdu import ExceptionResponse, ModbusPDU
@@ -40,8 +40,15 @@ from mbmon.model import Direction, Frame, Stream, Transport
 from mbmon.protocol.crc import check_crc
 from mbmon.protocol.mbap import MbapDecoder
 
-if TYPE_CHECKING:
-    from mbmon.sim.server import SimServer
+
+class SimServer(Protocol):
+    """What the handler needs of :class:`mbmon.sim.server.SimServer` (which imports
+    this module: no import back)."""
+
+    address: str
+
+    def admit(self, pdu: Any, fc: int, dev_id: int, tid: int) -> Any: ...
+
 
 __all__ = ["MAX_PENDING", "SimSerialServer", "SimTcpServer"]
 
