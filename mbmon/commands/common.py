@@ -371,6 +371,8 @@ def why_not(exc: OSError, port: int | None = None) -> str:
 
     reason = exc.strerror or str(exc) or type(exc).__name__
     code = exc.errno
+    if port is not None and code:  # asyncio words a bind error as a sentence around it
+        reason = os.strerror(code)
     if code == errnos.EADDRINUSE:
         return f"{reason} (another program listens there; pick another port)"
     if code in (errnos.EACCES, errnos.EPERM) and port is not None and 0 < port < 1024:

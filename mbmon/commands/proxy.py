@@ -286,13 +286,15 @@ def run(args: argparse.Namespace) -> int:
     try:
         address = thread.start()
     except OSError as exc:
-        where = f"cannot listen on {endpoint(listen_host, listen_port)}: "
+        from mbmon.commands.common import listen_error
+
+        text = listen_error(endpoint(listen_host, listen_port), exc, listen_port)
         if serial:
             from mbmon.proxy.serial import SerialOpenError
 
             if isinstance(exc, SerialOpenError):
-                where = ""
-        print(f"mbmon: {where}{exc.strerror or exc}", file=sys.stderr)
+                text = exc.strerror or str(exc)
+        print(f"mbmon: {text}", file=sys.stderr)
         hub.run(until_idle=True)
         hub.close()
         return EXIT_BAD_INPUT

@@ -54,15 +54,20 @@ def test_a_file_that_is_not_a_serial_port_is_named_as_such() -> None:
     assert "cannot open serial port /dev/null: not a serial port" in out.stderr
 
 
-def test_a_port_in_use_is_named_as_such() -> None:
+@pytest.mark.parametrize("command", ["sim", "proxy"])
+def test_a_port_in_use_is_named_as_such_by_sim_and_proxy_alike(command: str) -> None:
     import socket
 
     with socket.create_server(("127.0.0.1", 0)) as busy:
         port = busy.getsockname()[1]
-        out = mbmon("sim", "--listen", f"127.0.0.1:{port}")
+        extra = ["--upstream", "127.0.0.1:1"] if command == "proxy" else []
+        out = mbmon(command, *extra, "--listen", f"127.0.0.1:{port}")
     assert out.returncode == 1
     assert "Could not start listen" not in out.stderr and "Traceback" not in out.stderr
-    assert f"cannot listen on 127.0.0.1:{port}: Address already in use" in out.stderr
+    assert (
+        f"cannot listen on 127.0.0.1:{port}: Address already in use (another program listens"
+        in out.stderr
+    )
 
 
 def test_the_words_for_a_privileged_port_and_other_reasons() -> None:
