@@ -242,7 +242,9 @@ def _generic_note(pdu: Pdu, request: Pdu | None) -> str:
         address, count = request.address, request.count
     parts = [name]
     if fc == 8 and "sub_function" in pdu.fields:
-        parts.append(f"sub-function {pdu.fields['sub_function']}")
+        parts.append(_diagnostic_text(pdu.fields["sub_function"]))
+    elif fc == 0x2B and "mei_type" in pdu.fields:
+        parts = [_mei_text(pdu)]
     elif address is not None:
         parts.append(_range(address, count))
     elif count is not None:
@@ -252,6 +254,9 @@ def _generic_note(pdu: Pdu, request: Pdu | None) -> str:
         text += f" and=0x{pdu.fields['and_mask']:04X} or=0x{pdu.fields['or_mask']:04X}"
     if fc == 0x17 and pdu.kind is Kind.REQUEST and "write_address" in pdu.fields:
         text += f", write {_range(pdu.fields['write_address'], pdu.fields.get('write_count'))}"
+        written = _values_text(pdu.fields.get("write_values"), False)
+        if written:
+            text += f" = {written}"
     shown = _values_text(pdu.values, bits)
     if fc == 5 and pdu.values:
         shown = "ON" if pdu.values[0] else "OFF"
@@ -259,10 +264,46 @@ def _generic_note(pdu: Pdu, request: Pdu | None) -> str:
         text += f" = {shown}"
     if fc == 0x2B and "objects" in pdu.fields:
         objects = pdu.fields["objects"]
-        text += " " + ", ".join(f"{oid}={val!r}" for oid, val in objects)
+        text += ": " + ", ".join(f"{_mei_object(oid)}={val!r}" for oid, val in objects)
     if pdu.malformed:
         text += f" [malformed: {pdu.malformed}]"
     return text
+
+
+def _diagnostic_text(sub: int) -> str:
+    """``sub-function 4 Force Listen Only Mode``: a Diagnostics sub-function by number and name."""
+    from mbmon.protocol.pdu import DIAGNOSTIC_NAMES
+
+    name = DIAGNOSTIC_NAMES.get(sub)
+    return f"sub-function {sub} {name}" if name else f"sub-function {sub}"
+
+
+def _mei_text(pdu: Pdu) -> str:
+    """An MEI transport (0x2B) by its MEI type's name: ``Read Device Identification basic,
+    object 0 VendorName`` (request) or ``... basic, 3 objects`` (response)."""
+    from mbmon.protocol.pdu import MEI_TYPE_NAMES, READ_DEVICE_ID_NAMES
+
+    fields = pdu.fields
+    mei = fields["mei_type"]
+    name = MEI_TYPE_NAMES.get(mei)
+    if name is None:
+        return f"{function_name(pdu.fc)} MEI type 0x{mei:02X}"
+    text = name
+    code = fields.get("read_device_id_code")
+    if code is not None:
+        text += " " + READ_DEVICE_ID_NAMES.get(code, f"code {code}")
+    if pdu.kind is Kind.REQUEST and "object_id" in fields:
+        oid = fields["object_id"]
+        named = _mei_object(oid)
+        text += f", object {oid}" + (f" {named}" if named != str(oid) else "")
+    return text
+
+
+def _mei_object(oid: int) -> str:
+    """A device identification object's name (``VendorName``), or its number."""
+    from mbmon.protocol.pdu import MEI_OBJECT_NAMES
+
+    return MEI_OBJECT_NAMES.get(oid, str(oid))
 
 
 def frame_notes(record: Record) -> tuple[str, ...]:

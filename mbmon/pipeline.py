@@ -41,7 +41,7 @@ from mbmon.model import (
     fast_constructor,
 )
 from mbmon.protocol.mbap import MbapDecoder
-from mbmon.protocol.pairing import DEFAULT_MAX_TOTAL, Pairer
+from mbmon.protocol.pairing import DEFAULT_MAX_TOTAL, Pairer, expects_reply
 from mbmon.protocol.rtu import RtuDecoder
 
 
@@ -136,6 +136,12 @@ class Pipeline:
             counts = self.counts
             counts["chunks"] += 1
             counts["bytes"] += len(item.data)
+            if ts >= self._next_tick:
+                # requests whose answer was due before this chunk: reported first, at
+                # their due time (as the live loop's tick would have), so records stay
+                # in time order and an answer in this chunk after the timeout is late
+                self._next_tick = ts + self.config.tick_every
+                self._emit_transactions(self.pairer.tick(ts), out)
             stream = item.stream
             decoder = self._decoders.get((stream.id, item.direction))
             if decoder is None:
@@ -147,9 +153,6 @@ class Pipeline:
                 self._emit_decoded(decoder.flush(ts), out)
             elif decoder._buf or decoder._noise:
                 self._waiting[(stream.id, item.direction)] = decoder
-            if ts >= self._next_tick:
-                self._next_tick = ts + self.config.tick_every
-                self._emit_transactions(self.pairer.tick(ts), out)
             return out
         self._last_ts = max(self._last_ts, item.ts)
         stream = item.stream
@@ -316,7 +319,10 @@ class Pipeline:
             self._index = index + 1
             request_index = None
             if status is _PENDING:
-                if frame.tid is not None or frame.unit:  # an RTU broadcast is not held
+                # what the pairer holds: not an RTU broadcast, not Diagnostics 04
+                if (frame.tid is not None or frame.unit) and (
+                    frame.pdu.fc != 0x08 or expects_reply(frame)
+                ):
                     pending_index[id(frame)] = index
             elif request is not None:
                 request_index = pending_index.pop(id(request), None)

@@ -311,10 +311,13 @@ TIME_HELP = (
     "first frame, e = epoch seconds, u / ud = as a / ad in UTC. --since/--until accept "
     "what it prints."
 )
+_SINCE_UNTIL = " --since/--until accept what it prints."
 
 
-def add_time_option(parser: argparse.ArgumentParser | Any) -> None:
-    """Add ``-t {a,ad,r,e,u,ud}`` (dest ``time_format``, default ``a``) to a command."""
+def add_time_option(parser: argparse.ArgumentParser | Any, *, since_until: bool = True) -> None:
+    """Add ``-t {a,ad,r,e,u,ud}`` (dest ``time_format``, default ``a``) to a command;
+    ``since_until=False`` for a command without ``--since/--until`` (its help must
+    not name them)."""
     parser.add_argument(
         "-t",
         "--time-format",
@@ -322,7 +325,7 @@ def add_time_option(parser: argparse.ArgumentParser | Any) -> None:
         choices=TIME_MODES,
         default=DEFAULT_MODE,
         metavar="{" + ",".join(TIME_MODES) + "}",
-        help=TIME_HELP,
+        help=TIME_HELP if since_until else TIME_HELP.removesuffix(_SINCE_UNTIL),
     )
 
 

@@ -480,3 +480,29 @@ def test_answers_with_new_values_are_filled_from_the_read_template(
             assert pdu.malformed is None
             assert calls == 0, "a new answer to a templated read took the general path"
     assert decode_pdu(bad, True, req.pdu).malformed
+
+
+#: (PDU hex, response?, generic note): function codes shown by their sub-function's or
+#: MEI type's name, and 0x17 with the values it writes (as its JSON has them).
+NAMED_NOTES = [
+    ("17 0000 0002 0010 0002 04 000A 000B", False,
+     "Read/Write Multiple Registers 0..1, write 16..17 = 10, 11"),
+    ("17 04 0001 0002", True, "Read/Write Multiple Registers = 1, 2"),
+    ("08 0004 0000", False, "Diagnostics sub-function 4 Force Listen Only Mode = 0"),
+    ("08 0001 FF00", False, "Diagnostics sub-function 1 Restart Communications Option = 65280"),
+    ("08 000B 0000", False, "Diagnostics sub-function 11 Return Bus Message Count = 0"),
+    ("08 0063 0000", False, "Diagnostics sub-function 99 = 0"),  # reserved: no name
+    ("2B 0E 01 00", False, "Read Device Identification basic, object 0 VendorName"),
+    ("2B 0E 04 81", False, "Read Device Identification one object, object 129"),
+    ("2B 0E 01 01 00 00 02 00 05 484957494E 01 02 5831", True,
+     "Read Device Identification basic: VendorName='HIWIN', ProductCode='X1'"),
+    ("2B 0D 0102", False, "CANopen General Reference"),
+    ("2B 0C 0102", False, "Encapsulated Interface Transport MEI type 0x0C"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("hexpdu", "response", "note"), NAMED_NOTES)
+def test_notes_name_sub_functions_mei_types_and_show_what_0x17_writes(
+    hexpdu: str, response: bool, note: str
+) -> None:
+    assert generic_note(decode_pdu(bytes.fromhex(hexpdu), response)) == note

@@ -480,6 +480,42 @@ class Progress:
             self._bar = None
 
 
+def why_not(exc: OSError, port: int | None = None) -> str:
+    """The system's reason an endpoint cannot be opened, in words, with a hint where one
+    helps (``port``: the TCP port that was asked for). One home for the words of
+    :func:`listen_error` and :func:`serial_open_error`."""
+    import errno as errnos
+
+    reason = exc.strerror or str(exc) or type(exc).__name__
+    code = exc.errno
+    if port is not None and code:  # asyncio words a bind error as a sentence around it
+        reason = os.strerror(code)
+    if code == errnos.EADDRINUSE:
+        return f"{reason} (another program listens there; pick another port)"
+    if code in (errnos.EACCES, errnos.EPERM) and port is not None and 0 < port < 1024:
+        return (
+            f"{reason} (port {port} is privileged: ports below 1024 need root or "
+            "CAP_NET_BIND_SERVICE; use a port from 1024 up, e.g. 1502)"
+        )
+    if code == errnos.EADDRNOTAVAIL:
+        return f"{reason} (no interface of this machine has that address)"
+    if code == errnos.ENOENT and port is None:
+        return f"{reason} (no such device: is the adapter plugged in, the name right?)"
+    if code in (errnos.EACCES, errnos.EPERM) and port is None:
+        return f"{reason} (add yourself to the group that owns the device, e.g. dialout)"
+    return reason
+
+
+def listen_error(where: str, exc: OSError, port: int | None = None) -> str:
+    """The one message for a server that cannot listen on ``where`` (``HOST:PORT``)."""
+    return f"cannot listen on {where}: {why_not(exc, port)}"
+
+
+def serial_open_error(device: str, exc: OSError) -> str:
+    """The one message for a serial port that cannot be opened."""
+    return f"cannot open serial port {device}: {why_not(exc)}"
+
+
 def err(message: str) -> None:
     """One line on stderr, prefixed like every mbmon message."""
     print(f"mbmon: {message}", file=sys.stderr, flush=True)

@@ -85,11 +85,14 @@ def run(args: argparse.Namespace) -> int:
 
     data = _parse_hex(args.hex)
     mode = args.mode
+    guessed_bad_crc = False
     if mode is None:
         if len(data) >= 4 and check_crc(data):
             mode = "rtu"
         elif len(data) >= 8 and data[2:4] == b"\0\0" and int.from_bytes(data[4:6]) == len(data) - 6:
             mode = "tcp"
+        elif _rtu_with_bad_crc(data, args.response):
+            mode, guessed_bad_crc = "rtu", True
         else:
             mode = "pdu"
     unit: int | None = None
@@ -136,6 +139,8 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         obj = record_to_json(record, View())
         obj["framing"] = mode
+        if guessed_bad_crc:
+            obj["framing_note"] = "guessed: an RTU frame with a bad CRC"
         if mode == "pdu":
             obj["transport"] = "pdu"
             obj["unit"] = None
@@ -145,6 +150,29 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_OK
     print(monitor_hex(pdu.raw))
     framing = {"rtu": "RTU ADU", "tcp": "Modbus/TCP ADU", "pdu": "PDU"}[mode]
+    if guessed_bad_crc:
+        framing += (
+            " with a bad CRC (guessed: unit, function code and length make an RTU frame, "
+            "but the CRC does not match; --pdu reads the bytes as a bare PDU)"
+        )
     details = frame_details(frame, notes, framing=framing, crc=crc_note)
     print("\n".join("  " + text for text, _span in details))
     return EXIT_OK
+
+
+def _rtu_with_bad_crc(data: bytes, response: bool) -> bool:
+    """Whether bytes whose CRC fails still look like an RTU ADU rather than a PDU: a
+    unit id 0..247, a known function code whose PDU, read between the unit and the
+    last two bytes, is well formed and exactly that long, while the same bytes read
+    as a bare PDU are not well formed (``01 03 00 00 00 0A C5 CE``)."""
+    from mbmon.protocol.functions import FUNCTIONS
+    from mbmon.protocol.pdu import decode_pdu, pdu_length
+
+    if len(data) < 4 or data[0] > 247 or (data[1] & 0x7F) not in FUNCTIONS:
+        return False
+    body = data[1:-2]
+    as_response = response or bool(body[0] & 0x80)
+    if pdu_length(body, as_response) != len(body) or decode_pdu(body, as_response).malformed:
+        return False
+    return bool(decode_pdu(data, response or bool(data[0] & 0x80)).malformed)
+

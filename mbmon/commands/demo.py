@@ -508,7 +508,7 @@ def _closing(log: Path, client: DemoClient, elapsed: float, *, quiet: bool) -> N
         f"  PTP {{A1 90}}: status {client.ptp_status}, A1 = {result.joints[0]:g}°; "
         f"LIN status {status.get('LIN')}, X Y Z = {' '.join(f'{v:g}' for v in result.pose[:3])}",
         f"  Set PR {status.get('Set PR')}, Get PR {status.get('Get PR')} (1 = success); "
-        f"JOG moved A1 {result.jog_moved:.1f}°",
+        f"JOG moved A1 {result.jog_moved:.2f}° ({result.jog_from:g} → {result.jog_to:g}°)",
         f"  the write of SI1 Start was refused by the guard (exception {client.refused:02X})",
         f"  log: {name}",
         "",

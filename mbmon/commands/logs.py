@@ -111,6 +111,13 @@ def add_subcommands(sub: Any) -> None:
     )
     add_time_option(out)
     out.add_argument(
+        "-q",
+        "--quiet",
+        action="store_true",
+        help="print no lines: the log is still read whole (notes and the exit status say "
+        "whether it is damaged or unfinished); use with --foxglove, or to check a log",
+    )
+    out.add_argument(
         "--speed",
         type=_speed,
         metavar="X",
@@ -136,7 +143,7 @@ def add_subcommands(sub: Any) -> None:
     )
     info.add_argument("log", metavar="LOG.mcap", help="an MCAP log written by mbmon")
     info.add_argument("--json", action="store_true", help="print the summary as JSON")
-    add_time_option(info)
+    add_time_option(info, since_until=False)
     info.set_defaults(func=run_info)
 
     export = sub.add_parser(
@@ -293,6 +300,9 @@ def run_replay(args: argparse.Namespace) -> int:
     from mbmon.sinks.jsonl import dumps_line
 
     if replay_servers.wanted(args):  # against servers: emulate (--serve) or re-send (--to)
+        if args.quiet:
+            _err("error: -q silences the printed log; --serve and --to print only their report")
+            return EXIT_USAGE
         return replay_servers.run(args, _open, _log_times)
     try:
         replay_servers.check_without_mode(args)
@@ -333,6 +343,8 @@ def run_replay(args: argparse.Namespace) -> int:
                     pacer.wait(ts)
                 if feed is not None:
                     feed.serve(made)
+                if args.quiet:
+                    continue
                 if args.json:
                     if obj is None:
                         continue
@@ -913,6 +925,11 @@ def run_export(args: argparse.Namespace) -> int:
         ):
             _err(f"error: {suffix} export takes only --since/--until (it copies raw bytes)")
             return EXIT_USAGE
+        if not log.finished and _recovers_nothing(log):
+            # an output with no message in it would look like a repaired or converted
+            # log and hide that nothing came back: say so and write no file
+            _err(f"{log.path}: nothing to export, no file written: {log.status.describe()}")
+            return EXIT_BAD_INPUT
         opts = recorded_options(log)
         ctx = SinkContext(
             view=View(robot=opts.robot, robot_is_client=opts.robot_is_client, time_format=fmt),
@@ -959,6 +976,17 @@ def run_export(args: argparse.Namespace) -> int:
             bar.close()
         _note_status(log)
     return EXIT_OK
+
+
+def _recovers_nothing(log: Any) -> bool:
+    """Whether an unfinished log gives back no message at all (its first chunk is
+    missing or damaged); reads at most that chunk."""
+    from mbmon.io.mcap.reader import LogError
+
+    try:
+        return next(iter(log.messages()), None) is None
+    except LogError:
+        return True
 
 
 def _export_pcap(

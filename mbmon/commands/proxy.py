@@ -66,6 +66,7 @@ def register(sub: Any) -> None:
         positive_int,
     )
     from mbmon.commands.common import positive as _positive
+    from mbmon.sources import DEFAULT_BAUD
 
     p = sub.add_parser(
         "proxy",
@@ -122,7 +123,11 @@ def register(sub: Any) -> None:
         "0x0A/0x0B, when the upstream cannot answer",
     )
     ser.add_argument(
-        "--baud", type=positive_int, default=115200, metavar="N", help="baud rate (115200)"
+        "--baud",
+        type=positive_int,
+        default=DEFAULT_BAUD,
+        metavar="N",
+        help=f"baud rate ({DEFAULT_BAUD})",
     )
     ser.add_argument("--parity", choices=("N", "E", "O"), default="N", help="parity (N)")
     ser.add_argument("--stopbits", type=int, choices=(1, 2), default=1, help="stop bits (1)")
@@ -287,13 +292,15 @@ def run(args: argparse.Namespace) -> int:
     try:
         address = thread.start()
     except OSError as exc:
-        where = f"cannot listen on {endpoint(listen_host, listen_port)}: "
+        from mbmon.commands.common import listen_error
+
+        text = listen_error(endpoint(listen_host, listen_port), exc, listen_port)
         if serial:
             from mbmon.proxy.serial import SerialOpenError
 
             if isinstance(exc, SerialOpenError):
-                where = ""
-        print(f"mbmon: {where}{exc.strerror or exc}", file=sys.stderr)
+                text = exc.strerror or str(exc)
+        print(f"mbmon: {text}", file=sys.stderr)
         hub.run(until_idle=True)
         hub.close()
         return EXIT_BAD_INPUT

@@ -45,6 +45,7 @@ exit status: 0 stopped by Ctrl-C or SIGTERM, 1 cannot listen or open the port, 2
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     """Add the ``sim`` subparser."""
     from mbmon.commands.common import listen_address, positive_int, unit_id
+    from mbmon.sources import DEFAULT_BAUD
 
     p = sub.add_parser(
         "sim",
@@ -62,7 +63,12 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     )
     p.add_argument("--unit", type=unit_id, default=1, help="unit id the robot answers (default 1)")
     p.add_argument("--serial", metavar="PORT", help="serve Modbus RTU on this serial port instead")
-    p.add_argument("--baud", type=positive_int, default=19200, help="RTU baud rate (default 19200)")
+    p.add_argument(
+        "--baud",
+        type=positive_int,
+        default=DEFAULT_BAUD,
+        help=f"RTU baud rate (default {DEFAULT_BAUD}, as sniff and proxy)",
+    )
     p.add_argument("--parity", choices=("N", "E", "O"), default="N", help="RTU parity (default N)")
     p.add_argument(
         "--stopbits", type=int, choices=(1, 2), default=1, help="RTU stop bits (default 1)"
@@ -133,7 +139,13 @@ def run(args: argparse.Namespace) -> int:
     try:
         asyncio.run(main())
     except OSError as exc:
-        print(f"mbmon sim: {exc}", file=sys.stderr)
+        from mbmon.commands.common import listen_error, serial_open_error
+
+        if args.serial:
+            text = serial_open_error(args.serial, exc)
+        else:
+            text = listen_error(server.address, exc, port)
+        print(f"mbmon sim: {text}", file=sys.stderr)
         return 1
     print("mbmon sim: stopped", file=out, flush=True)
     return 0

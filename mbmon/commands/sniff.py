@@ -23,6 +23,8 @@ import time
 from functools import partial
 from typing import Any
 
+from mbmon.sources import DEFAULT_BAUD
+
 _EPILOG = """\
 examples:
   mbmon sniff eth0                          Modbus/TCP on port 502, and on any TCP port where
@@ -92,7 +94,9 @@ def register(sub: Any) -> None:
         help="serial port of a passive RS485 tap; give it twice for two one-direction "
         "taps merged by timestamp",
     )
-    ser.add_argument("--baud", type=int, default=None, metavar="N", help="baud rate (115200)")
+    ser.add_argument(
+        "--baud", type=int, default=None, metavar="N", help=f"baud rate ({DEFAULT_BAUD})"
+    )
     ser.add_argument("--parity", choices=("N", "E", "O"), default="N", help="parity (N)")
     ser.add_argument("--stopbits", type=int, choices=(1, 2), default=1, help="stop bits (1)")
     ser.add_argument("--bytesize", type=int, choices=(5, 6, 7, 8), default=8, help="data bits (8)")
@@ -274,7 +278,7 @@ def run_sniff(args: argparse.Namespace) -> int:
     gate = open_trigger(args)  # --trigger: the logs and the screen see only its windows
 
     serial = bool(args.serial)
-    baud = (args.baud or 115200) if serial else None
+    baud = (args.baud or DEFAULT_BAUD) if serial else None
     view, flt = view_and_filter(args)
     annotator = make_annotator(args.profile)
     pipeline = Pipeline(annotator, PipelineConfig(timeout=args.timeout, baudrate=baud))
@@ -305,7 +309,7 @@ def run_sniff(args: argparse.Namespace) -> int:
         from mbmon.model import Chunk, Direction, Event, EventKind, Transport
         from mbmon.sources.serial import BusHealth, SerialSettings, SerialTap, TimeMerge
 
-        settings = SerialSettings(baud or 115200, args.parity, args.stopbits, args.bytesize)
+        settings = SerialSettings(baud or DEFAULT_BAUD, args.parity, args.stopbits, args.bytesize)
         # a reader thread stamps a read when it holds the GIL again: the default 5 ms
         # switch interval would blur read times (and the gap figures) by up to 5 ms
         sys.setswitchinterval(0.001)
@@ -335,10 +339,9 @@ def run_sniff(args: argparse.Namespace) -> int:
             except OSError as exc:
                 for t in taps:
                     t.stop()
-                print(
-                    f"mbmon: cannot open serial port {port}: {exc.strerror or exc}",
-                    file=sys.stderr,
-                )
+                from mbmon.commands.common import serial_open_error
+
+                print(f"mbmon: {serial_open_error(port, exc)}", file=sys.stderr)
                 return EXIT_BAD_INPUT
             taps.append(tap)
         health = BusHealth(stream, settings, hub.put)

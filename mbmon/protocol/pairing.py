@@ -8,9 +8,13 @@ Every frame yields exactly one transaction step; timeouts add one more each:
   with the request as context (so 01/02 bit lists are trimmed to the requested
   count);
 * a response with nothing to match yields ``UNSOLICITED``;
-* a request that gets no answer yields ``TIMEOUT`` (``ts`` = when that was
-  decided) from :meth:`Pairer.tick`, :meth:`Pairer.flush`, or when a later
-  request makes the answer impossible (see below).
+* a request that gets no answer yields ``TIMEOUT`` from :meth:`Pairer.tick`,
+  :meth:`Pairer.flush`, or when a later request makes the answer impossible
+  (see below); its ``ts`` is when the answer was due (the request's time plus
+  ``timeout``), or the time it was decided if that came first (a later request,
+  the end of the input) -- never a later packet's time;
+* a request the spec says is never answered (Diagnostics 04, Force Listen Only
+  Mode, see :func:`expects_reply`) is never pending, like an RTU broadcast.
 
 Matching rules, one :class:`Pairer` for all streams (keyed by ``stream.id``):
 
@@ -44,9 +48,9 @@ from mbmon.model import (
 )
 from mbmon.protocol.functions import PAIR_ALWAYS as _PAIR_ALWAYS
 from mbmon.protocol.functions import PAIR_ON_COUNT as _PAIR_ON_COUNT
-from mbmon.protocol.pdu import decode_pdu
+from mbmon.protocol.pdu import NO_REPLY_DIAGNOSTICS, decode_pdu
 
-__all__ = ["DEFAULT_MAX_PENDING", "DEFAULT_MAX_TOTAL", "Pairer"]
+__all__ = ["DEFAULT_MAX_PENDING", "DEFAULT_MAX_TOTAL", "Pairer", "expects_reply"]
 
 DEFAULT_MAX_PENDING = 10_000
 """Largest number of outstanding requests remembered per stream."""
@@ -64,6 +68,16 @@ _PENDING, _ANSWERED, _EXC = TxStatus.PENDING, TxStatus.ANSWERED, TxStatus.EXCEPT
 _UNSOLICITED = TxStatus.UNSOLICITED
 _new_tx = fast_constructor(Transaction)
 _new_frame = fast_constructor(Frame)
+
+
+def expects_reply(req: Frame) -> bool:
+    """Whether a server answers the request ``req``: not an RTU broadcast (unit 0 on
+    an RTU transport) and not a Diagnostics sub-function the spec leaves unanswered
+    (04, Force Listen Only Mode). Pairing holds only these; the pipeline too."""
+    if req.unit == 0 and req.stream.transport in RTU_TRANSPORTS:
+        return False
+    pdu = req.pdu
+    return pdu.fc != 0x08 or pdu.fields.get("sub_function") not in NO_REPLY_DIAGNOSTICS
 
 
 class Pairer:
@@ -106,7 +120,8 @@ class Pairer:
     def tick(self, now: float) -> list[Transaction]:
         """Time out every request older than ``timeout`` at time ``now``."""
         out: list[Transaction] = []
-        limit = now - self.timeout
+        timeout = self.timeout
+        limit = now - timeout
         for sid in list(self._pending):
             pend = self._pending[sid]
             while pend:
@@ -116,7 +131,7 @@ class Pairer:
                     break
                 del pend[key]
                 self._total -= 1
-                out.append(Transaction(now, TxStatus.TIMEOUT, req, None))
+                out.append(Transaction(min(req.ts + timeout, now), TxStatus.TIMEOUT, req, None))
             if not pend:
                 del self._pending[sid]
         return out
@@ -127,9 +142,10 @@ class Pairer:
         return min(oldest) + self.timeout if oldest else None
 
     def flush(self, ts: float) -> list[Transaction]:
-        """End of input: every pending request times out at ``ts``."""
+        """End of input: every pending request times out, at ``ts`` at the latest."""
+        timeout = self.timeout
         out = [
-            Transaction(ts, TxStatus.TIMEOUT, req, None)
+            Transaction(min(req.ts + timeout, ts), TxStatus.TIMEOUT, req, None)
             for pend in self._pending.values()
             for req in pend.values()
         ]
@@ -146,11 +162,12 @@ class Pairer:
         if req.stream.transport in RTU_TRANSPORTS:
             if pend:
                 out.extend(
-                    Transaction(req.ts, TxStatus.TIMEOUT, old, None) for old in pend.values()
+                    Transaction(min(old.ts + self.timeout, req.ts), TxStatus.TIMEOUT, old, None)
+                    for old in pend.values()
                 )
                 self._total -= len(pend)
                 pend.clear()
-            if req.unit != 0:
+            if req.unit != 0 and (req.pdu.fc != 0x08 or expects_reply(req)):
                 if pend is None:
                     pend = self._pending[sid] = {}
                 pend[(0, 0)] = req
@@ -161,10 +178,13 @@ class Pairer:
                 pend = self._pending[sid] = {}
             old = pend.pop(key, None)
             if old is not None:
-                out.append(Transaction(req.ts, TxStatus.TIMEOUT, old, None))
+                out.append(
+                    Transaction(min(old.ts + self.timeout, req.ts), TxStatus.TIMEOUT, old, None)
+                )
                 self._total -= 1
-            pend[key] = req
-            self._total += 1
+            if req.pdu.fc != 0x08 or expects_reply(req):
+                pend[key] = req
+                self._total += 1
             while len(pend) > self.max_pending:
                 oldest = next(iter(pend))
                 out.append(Transaction(req.ts, TxStatus.TIMEOUT, pend.pop(oldest), None))

@@ -100,6 +100,8 @@ __all__ = [
     "MEI_OBJECT_NAMES",
     "MEI_TYPE_NAMES",
     "NEED_MORE",
+    "NO_REPLY_DIAGNOSTICS",
+    "READ_DEVICE_ID_NAMES",
     "decode_pdu",
     "encode_exception",
     "encode_read_request",
@@ -146,6 +148,18 @@ DIAGNOSTIC_NAMES: Final[dict[int, str]] = {
     0x12: "Return Bus Character Overrun Count",
     0x14: "Clear Overrun Counter and Flag",
     0x15: "Get/Clear Modbus Plus Statistics",
+}
+
+#: Diagnostics sub-functions a server never answers (spec 6.8: "No response is
+#: returned" to 04 Force Listen Only Mode): a request of one is not "No response".
+NO_REPLY_DIAGNOSTICS: Final = frozenset({0x04})
+
+#: Read Device ID codes of a Read Device Identification (MEI 0x0E) request.
+READ_DEVICE_ID_NAMES: Final[dict[int, str]] = {
+    0x01: "basic",
+    0x02: "regular",
+    0x03: "extended",
+    0x04: "one object",
 }
 
 MEI_TYPE_NAMES: Final[dict[int, str]] = {

@@ -74,7 +74,9 @@ class ProgramResult:
     pose: tuple[float, ...] = ()  # X..C (mm, degrees) read after the LIN
     statuses: dict[str, int] = field(default_factory=dict)  # IR200 after each extra command
     pr2: tuple[int, ...] = ()  # IR202..IR215 after Get PR[2]
-    jog_moved: float = 0.0  # degrees A1 moved while R200 stayed 1
+    jog_from: float = 0.0  # A1 (degrees) read just before the JOG's R200 = 1
+    jog_to: float = 0.0  # A1 read once the JOG had stopped (R200 = 0, IR524 not Running)
+    jog_moved: float = 0.0  # jog_to - jog_from: the whole JOG, start to standstill
     jog_after_stop: float = 0.0  # degrees A1 moved in the 0.3 s after R200 = 0
 
 
@@ -183,13 +185,18 @@ class _Runner:
         self._check(rr, line)
         self._done(15, line, text, address, bits, None, t)
 
-    def execute(self, params: Sequence[int], what: str) -> None:
-        """R200 = 0, parameters from R201, R200 = 1 (the handshake of §5.3.3.5)."""
+    def execute(
+        self, params: Sequence[int], what: str, before_start: Callable[[], Any] | None = None
+    ) -> None:
+        """R200 = 0, parameters from R201, R200 = 1 (the handshake of §5.3.3.5);
+        ``before_start`` runs just before R200 = 1 (nothing moves until then)."""
         n = len(params)
         self.write_holding(200, [0], "MBC_WRITE_HOLDING(1,200,WRITE_DATA,'W',1)", "R200 = 0")
         self.write_holding(
             201, params, f"MBC_WRITE_HOLDING(1,201,WRITE_DATA,'W',{n})", f"{what}: R201..R{200 + n}"
         )
+        if before_start is not None:
+            before_start()
         self.write_holding(200, [1], "MBC_WRITE_HOLDING(1,200,WRITE_DATA,'W',1)", "R200 = 1")
 
     def wait_idle(self, poll: float, timeout: float) -> None:
@@ -295,16 +302,18 @@ def _extras(
     result.statuses["Get PR"] = got[0]
     result.pr2 = got[2:]
 
+    # JOG moves from R200 = 1 until R200 returns to 0 (Table 22, Example 5): what it
+    # moved is measured from the pose before R200 = 1 to the pose once it stopped
     r.begin("JOG")
-    r.execute([3, 0, 1], "JOG A1 +")
+    start: list[float] = []
+    r.execute([3, 0, 1], "JOG A1 +", before_start=lambda: start.append(r.a1()))
     r.status("JOG")
-    before = r.a1()
     time.sleep(jog_seconds)
-    during = r.a1()
     r.write_holding(200, [0], "MBC_WRITE_HOLDING(1,200,WRITE_DATA,'W',1)", "R200 = 0 stops JOG")
     stopped = r.a1()
     time.sleep(0.3)
+    r.wait_idle(poll, timeout)
     later = r.a1()
-    r.read_input(524, 1, "MBC_READ_INPUT(1,524,READ_DATA,'W',1)", "IR524 motion state")
-    result.jog_moved = during - before
+    result.jog_from, result.jog_to = start[0], later
+    result.jog_moved = later - start[0]
     result.jog_after_stop = later - stopped

@@ -9,7 +9,10 @@ mirror the hook refreshes from the robot on every access, so the robot is the
 one state.
 
 Function codes: those of the manual's Table 10 (01, 02, 03, 04, 05, 06, 0F,
-10); any other is answered with exception 01. Unit ids: on TCP a request for
+10); any other is answered with exception 01 and its own function code (``94 01``
+for Read File Record), a Table 10 request whose lengths disagree with exception
+03. Every request of a TCP segment is answered, in order (pipelined requests:
+see :mod:`mbmon.sim.handler`). Unit ids: on TCP a request for
 another unit is answered with exception 0x0B (gateway target failed to
 respond); on RTU it is left unanswered, as another device on the bus would
 answer it; RTU broadcasts (unit 0) are executed and not answered.
@@ -23,12 +26,14 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
 import threading
 import time
 from collections.abc import Callable
 from typing import Any
 
 from mbmon.sim.robot import SimEvent, SimRobot
+from mbmon.sources import DEFAULT_BAUD
 
 __all__ = ["SimServer"]
 
@@ -46,16 +51,17 @@ _TABLE_OF_FC: dict[int, str] = {
 #: Table 10 of the manual: the function codes HRSS serves; any other is answered exception 01.
 FUNCTION_CODES = frozenset({1, 2, 3, 4, 5, 6, 15, 16})
 _EXC_ILLEGAL_FUNCTION = 1
+_EXC_ILLEGAL_DATA_VALUE = 3
 _EXC_GATEWAY_NO_RESPONSE = 0x0B
 
 
 class _Refusal:
     """Stands in for a request the robot refuses before pymodbus runs it: answered ``code``."""
 
-    def __init__(self, pdu: Any, code: int) -> None:
-        self.function_code = pdu.function_code
-        self.dev_id = pdu.dev_id
-        self.transaction_id = pdu.transaction_id
+    def __init__(self, function_code: int, dev_id: int, transaction_id: int, code: int) -> None:
+        self.function_code = function_code & 0x7F
+        self.dev_id = dev_id
+        self.transaction_id = transaction_id
         self.code = code
 
     async def datastore_update(self, _context: Any, _dev_id: int) -> Any:
@@ -87,7 +93,7 @@ class SimServer:
         port: int = 0,
         unit: int = 1,
         serial: str | None = None,
-        baudrate: int = 19200,
+        baudrate: int = DEFAULT_BAUD,
         parity: str = "N",
         stopbits: int = 1,
         clock: Callable[[], float] = time.monotonic,
@@ -193,28 +199,41 @@ class SimServer:
         else:
             registers[: len(src)] = src  # the block starts at address 0
 
-    def _trace_pdu(self, sending: bool, pdu: Any) -> Any:
-        """Requests in: filter units and function codes (Table 10), check bit reads.
+    def admit(self, pdu: Any, fc: int, dev_id: int, tid: int) -> Any:
+        """What answers one request: ``pdu`` itself (the robot runs it), a refusal
+        (answered with an exception code), or ``None`` (left unanswered).
 
-        Bit reads are checked against the map here, where their exact count is
-        known (pymodbus hands the ``action`` hook a count in 16-bit words).
+        ``pdu`` is pymodbus's decoded request, ``None`` when pymodbus could not
+        decode it; ``fc``, ``dev_id`` and ``tid`` come from the ADU. Units are
+        filtered first (TCP: another unit is answered 0x0B; RTU: left to the
+        device it is for; unit 0 is a broadcast), then function codes: one
+        outside Table 10 is answered exception 01 with its own code, whether or
+        not pymodbus knows it, and a Table 10 request that does not decode
+        (lengths that disagree) exception 03. Bit reads are checked against the
+        map here, where their exact count is known (pymodbus hands the
+        ``action`` hook a count in 16-bit words).
         """
+        if dev_id != self.unit:
+            if self.serial is None:
+                return _Refusal(fc, dev_id, tid, _EXC_GATEWAY_NO_RESPONSE)
+            if dev_id != 0:
+                return None  # RTU: a request for another device on the bus
+        if fc not in FUNCTION_CODES:
+            return _Refusal(fc, dev_id, tid, _EXC_ILLEGAL_FUNCTION)
+        if pdu is None:
+            return _Refusal(fc, dev_id, tid, _EXC_ILLEGAL_DATA_VALUE)
+        if fc in (1, 2):
+            with self.lock:
+                exc = self.robot.check(_TABLE_OF_FC[fc], pdu.address, pdu.count)
+            if exc is not None:
+                return _Refusal(fc, dev_id, tid, exc)
+        return pdu
+
+    def _trace_pdu(self, sending: bool, pdu: Any) -> Any:
+        """pymodbus's hook on every PDU: requests it decoded go through :meth:`admit`."""
         if sending:
             return pdu
-        if pdu.dev_id != self.unit:
-            if self.serial is None:
-                return _Refusal(pdu, _EXC_GATEWAY_NO_RESPONSE)
-            if pdu.dev_id != 0:
-                return None  # RTU: a request for another device on the bus
-        if pdu.function_code not in FUNCTION_CODES:
-            return _Refusal(pdu, _EXC_ILLEGAL_FUNCTION)
-        if pdu.function_code in (1, 2):
-            table = _TABLE_OF_FC[pdu.function_code]
-            with self.lock:
-                exc = self.robot.check(table, pdu.address, pdu.count)
-            if exc is not None:
-                return _Refusal(pdu, exc)
-        return pdu
+        return self.admit(pdu, pdu.function_code, pdu.dev_id, pdu.transaction_id)
 
     def _trace_packet(self, sending: bool, data: bytes) -> bytes:
         if self.on_packet is not None:
@@ -224,16 +243,17 @@ class SimServer:
 
     async def _open(self) -> None:
         from pymodbus import FramerType
-        from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+
+        from mbmon.sim.handler import SimSerialServer, SimTcpServer
 
         common: dict[str, Any] = {
             "trace_pdu": self._trace_pdu,
             "trace_packet": self._trace_packet,
         }
         if self.serial is None:
-            self._server = ModbusTcpServer(self._device(), address=(self.host, self.port), **common)
+            self._server = SimTcpServer(self._device(), address=(self.host, self.port), **common)
         else:
-            self._server = ModbusSerialServer(
+            self._server = SimSerialServer(
                 self._device(),
                 framer=FramerType.RTU,
                 port=self.serial,
@@ -243,13 +263,51 @@ class SimServer:
                 broadcast_enable=True,
                 **common,
             )
+        self._server.sim = self
+        # pymodbus swallows the reason ("Could not start listen, please check address."):
+        # keep the system's error of the listening socket or serial port it opens
+        failures: list[OSError] = []
+        create = self._server.call_create
+
+        async def call_create() -> Any:
+            try:
+                return await create()
+            except OSError as exc:
+                if self.serial:
+                    failures.append(self._serial_reason())
+                elif exc.errno:  # asyncio's strerror is a sentence around the address
+                    failures.append(OSError(exc.errno, os.strerror(exc.errno)))
+                else:
+                    failures.append(exc)
+                raise
+
+        self._server.call_create = call_create
         try:
             await self._server.serve_forever(background=True)
         except RuntimeError as err:
+            if failures:
+                exc = failures[-1]
+                if exc.errno is None:
+                    raise OSError(exc.strerror or str(exc)) from None
+                raise OSError(exc.errno, exc.strerror or str(exc), self.address) from None
             raise OSError(f"cannot listen on {self.address}: {err}") from None
         if self.serial is None:
             sock = self._server.transport.sockets[0]
             self.host, self.port = sock.getsockname()[:2]
+
+    def _serial_reason(self) -> OSError:
+        """Why the serial port does not open, in the words of mbmon's own serial opener
+        (pyserial's exception hides the system's error)."""
+        from mbmon.sources.serial import SerialSettings, open_port
+
+        try:
+            port = open_port(
+                self.serial or "", SerialSettings(self.baudrate, self.parity, self.stopbits)
+            )
+        except OSError as exc:
+            return exc
+        port.close()  # it opens now: pymodbus's failure was passing
+        return OSError("the serial port could not be opened")
 
     async def _close(self) -> None:
         if self._server is not None:

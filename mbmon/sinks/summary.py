@@ -11,11 +11,16 @@ from __future__ import annotations
 from collections import Counter
 from typing import Any
 
-from mbmon.model import EventKind, Record, RecordKind
+from mbmon.model import EventKind, Phase, Record, RecordKind
 from mbmon.timefmt import human_span
 
 _REQUEST, _RESPONSE, _EXCEPTION = RecordKind.REQUEST, RecordKind.RESPONSE, RecordKind.EXCEPTION
 _NOISE, _EVENT, _COMMAND = RecordKind.NOISE, RecordKind.EVENT, RecordKind.COMMAND
+_WRITTEN, _EXECUTING, _WARNING = Phase.WRITTEN, Phase.EXECUTING, Phase.WARNING
+_OUTCOMES = (Phase.SUCCESS, Phase.FAIL)
+
+#: How a command that has not ended is named in the summary, by its last phase.
+_OPEN_NAMES = {_WRITTEN: "written, not executed", _EXECUTING: "executing, no status"}
 
 
 class Summary:
@@ -36,7 +41,13 @@ class Summary:
         self.noise_records = 0
         self.noise_bytes = 0
         self.crc_errors = 0
+        #: robot commands by final outcome, each command once: "success", "fail",
+        #: "executing, no status" (executed, then another command or the end came
+        #: first) and "written, not executed"; warnings are counted apart
         self.commands: Counter[str] = Counter()
+        self.warnings = 0
+        #: the command not yet ended per (stream id, unit): its last phase
+        self._open: dict[tuple[int, int], Phase] = {}
         self.events: Counter[str] = Counter()
         self.max_stream = -1  # stream ids are allocated in order: the count is max + 1
         self.first: float | None = None
@@ -81,7 +92,7 @@ class Summary:
             elif kind is _COMMAND:
                 command = record.command
                 if command is not None:
-                    self.commands[command.phase.value] += 1
+                    self._command(command.stream.id, command.unit, command.phase)
             frame = record.frame
             if frame is not None and frame.pdu.malformed:
                 self.malformed += 1
@@ -96,6 +107,32 @@ class Summary:
                 self.first = ts
             if self.last is None or ts > self.last:
                 self.last = ts
+
+    def _command(self, sid: int, unit: int, phase: Phase) -> None:
+        """One step of a command's life (written, executing, success/fail, returned):
+        a command is counted once, when its outcome is known or another replaces it."""
+        key = (sid, unit)
+        if phase is _WARNING:
+            self.warnings += 1
+        elif phase in _OUTCOMES:
+            if self._open.pop(key, None) is not None:
+                self.commands[phase.value] += 1
+        elif phase is _EXECUTING:
+            if self._open.get(key) is _EXECUTING:
+                self.commands[_OPEN_NAMES[_EXECUTING]] += 1  # executed again before a status
+            self._open[key] = _EXECUTING
+        elif phase is _WRITTEN:
+            if self._open.get(key) is _EXECUTING:
+                self.commands[_OPEN_NAMES[_EXECUTING]] += 1
+            self._open[key] = _WRITTEN  # a block rewritten before execution: still one
+        # RETURNED: the values a Get command's success brought back, not a command
+
+    def command_counts(self) -> Counter[str]:
+        """Each robot command once, by its final outcome so far (see :attr:`commands`)."""
+        counts = Counter(self.commands)
+        for phase in self._open.values():
+            counts[_OPEN_NAMES[phase]] += 1
+        return counts
 
     @property
     def frames(self) -> int:
@@ -114,9 +151,15 @@ class Summary:
                 f"noise: {self.noise_bytes} bytes in {self.noise_records} runs "
                 f"({self.crc_errors} CRC errors); {self.malformed} malformed frames"
             )
-        if self.commands:
-            done = ", ".join(f"{n} {phase}" for phase, n in sorted(self.commands.items()))
-            parts.append(f"robot commands: {done}")
+        counts = self.command_counts()
+        if counts or self.warnings:
+            order = ["success", "fail", _OPEN_NAMES[_EXECUTING], _OPEN_NAMES[_WRITTEN]]
+            done = ", ".join(f"{counts[name]} {name}" for name in order if counts[name])
+            total = sum(counts.values())
+            line = f"robot commands: {total}" + (f" ({done})" if done else "")
+            if self.warnings:
+                line += f"; {self.warnings} warning{'s' if self.warnings != 1 else ''}"
+            parts.append(line)
         if timed and self.first is not None and self.last is not None:
             parts.append(f"time span: {human_span(self.last - self.first)}")
         for key, value in self.extra.items():

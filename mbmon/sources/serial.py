@@ -42,6 +42,7 @@ from typing import Any
 
 from mbmon.model import Chunk, Direction, Event, EventKind, Record, RecordKind, Stream
 from mbmon.protocol.rtu import t35
+from mbmon.sources import DEFAULT_BAUD
 
 __all__ = ["GAP_BUCKETS", "BusHealth", "SerialSettings", "SerialTap", "TimeMerge", "open_port"]
 
@@ -50,7 +51,7 @@ __all__ = ["GAP_BUCKETS", "BusHealth", "SerialSettings", "SerialTap", "TimeMerge
 class SerialSettings:
     """Line settings of a tapped RS485 bus."""
 
-    baudrate: int = 115200
+    baudrate: int = DEFAULT_BAUD
     parity: str = "N"  # N, E, O
     stopbits: int = 1
     bytesize: int = 8

@@ -54,3 +54,19 @@ def test_the_helps_hrss_example_is_a_real_command() -> None:
     hex_bytes = example.split("--profile hrss", 1)[1].split()
     out = decode("--profile", "hrss", *hex_bytes).stdout
     assert "note: R201 = JOG (3)" in out and "note: written: JOG A1 +" in out
+
+
+def test_bytes_with_a_bad_crc_that_frame_as_rtu_are_said_to_be_an_rtu_frame() -> None:
+    out = decode("01 03 00 00 00 0A C5 CE").stdout
+    assert "framing: RTU ADU with a bad CRC" in out
+    assert "CRC: BAD (the frame has C5 CE, expected C5 CD)" in out
+    assert "meaning: Read Holding Registers 0..9" in out
+    assert "Read Coils" not in out and "malformed" not in out
+    obj = json.loads(decode("--json", "01 03 00 00 00 0A C5 CE").stdout)
+    assert (obj["framing"], obj["crc_ok"], obj["unit"], obj["fc"]) == ("rtu", False, 1, 3)
+    assert "bad CRC" in obj["framing_note"]
+    # what is a well-formed PDU stays a PDU; --pdu still reads the bytes as one
+    assert "framing: PDU" in decode("02 01 2C 00 05").stdout
+    assert "framing: PDU" in decode("--pdu", "01 03 00 00 00 0A C5 CE").stdout
+    # an exception answer with a bad CRC too
+    assert "framing: RTU ADU with a bad CRC" in decode("11 83 02 00 00").stdout

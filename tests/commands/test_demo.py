@@ -376,3 +376,16 @@ def test_ctrl_c_during_the_demo_closes_the_log(tmp_path: Path) -> None:
     topics = read_log(tmp_path / "cut.mcap")  # a finished file: the mcap reader takes it
     assert any(f["address"] == 201 for f in topics["/modbus/frames"])
     assert not any(f["fc"] == 5 for f in topics["/modbus/frames"])  # it stopped before the end
+
+
+def test_the_closing_jog_line_measures_the_whole_jog_as_the_log_shows_it(
+    demo_run: tuple[subprocess.CompletedProcess[str], float, Path],
+) -> None:
+    out, _, log = demo_run
+    m = re.search(r"JOG moved A1 ([\d.]+)° \(([\d.]+) → ([\d.]+)°\)", out.stdout)
+    assert m, out.stdout
+    moved, start, end = map(float, m.groups())
+    assert start == 90  # where the PTP left A1, before R200 = 1
+    assert moved == pytest.approx(end - start, abs=0.01)
+    a1 = [s["a1"] for s in read_log(log)["/hrss/state"] if "a1" in s]
+    assert end == pytest.approx(a1[-1], abs=0.001) == pytest.approx(max(a1), abs=0.001)

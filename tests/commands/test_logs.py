@@ -622,3 +622,48 @@ def test_signal_statistics_count_what_the_chunks_hold(tmp_path: Path, long_captu
         assert (stats.message_start_time, stats.message_end_time) == (min(times), max(times))
         assert final is not None and final["records"] == read["/modbus/monitor"]
         assert final["chunks"] == read["/modbus/raw"] - 1  # and the connection's event
+
+
+# --------------------------------------------------------------------------- small things
+
+
+@pytest.mark.parametrize("keep", [8, 200], ids=["magic only", "header cut"])
+@pytest.mark.parametrize("suffix", [".mcap", ".csv", ".pcap"])
+def test_export_of_a_log_with_nothing_recoverable_writes_nothing(
+    tmp_path: Path, keep: int, suffix: str
+) -> None:
+    log = tmp_path / "h.mcap"
+    mbmon("read", OWN / "hrss_ptp.pcap", "-q", "-w", log)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(log.read_bytes()[:keep])
+    out = tmp_path / f"out{suffix}"
+    proc = mbmon("export", cut, "-o", out, check=False)
+    assert proc.returncode == 1
+    assert "nothing to export, no file written" in proc.stderr
+    assert "recovered 0 messages" in proc.stderr
+    assert not out.exists()
+
+
+def test_replay_q_prints_nothing_but_still_reads_and_reports_the_log(tmp_path: Path) -> None:
+    log = tmp_path / "h.mcap"
+    mbmon("read", OWN / "hrss_ptp.pcap", "-q", "-w", log)
+    assert mbmon("replay", log).stdout  # lines without -q
+    quiet = mbmon("replay", log, "-q")
+    assert quiet.stdout == "" and quiet.stderr == ""
+    assert mbmon("replay", log, "--json", "--quiet").stdout == ""
+    data = log.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: int.from_bytes(data[-28:-20], "little") - 5])
+    unfinished = mbmon("replay", cut, "-q")
+    assert unfinished.stdout == "" and "not finished" in unfinished.stderr
+    both = mbmon("replay", log, "-q", "--serve", "127.0.0.1:0", check=False)
+    assert both.returncode == 2 and "-q" in both.stderr
+
+
+def test_info_help_names_no_option_info_does_not_have() -> None:
+    text = " ".join(mbmon("info", "--help").stdout.split())
+    assert "--since" not in text and "--until" not in text
+    for command in ("replay", "export"):  # the commands that have them still say so
+        assert "--since/--until accept what it prints" in " ".join(
+            mbmon(command, "--help").stdout.split()
+        )

@@ -283,3 +283,28 @@ def test_ctrl_c_during_read_w_says_the_log_is_finished(tmp_path: Path) -> None:
     assert f"{log} was finished" in err and "Traceback" not in err
     with open(log, "rb") as f:
         assert sum(1 for _ in make_reader(f).iter_messages(topics=["/modbus/frames"])) == 400
+
+
+def test_no_response_is_printed_at_the_request_time_plus_the_timeout(tmp_path: Path) -> None:
+    # a request at t0 never answered, the next packet 15 s later, a Force Listen Only
+    # request (which the spec leaves unanswered) in between: one "No response" line,
+    # at t0 + 1 s (the default --timeout), before the later packet's line
+    path = tmp_path / "quiet.pcap"
+    conv = TcpConversation("10.0.0.10:50000", "10.0.0.2:502")
+    t0 = 1_700_000_000.0
+    with PcapWriter(path) as out:
+        for frame in conv.open():
+            out.write(t0 - 1, frame)
+        out.write(t0, conv.send(True, encode_adu(1, 1, encode_read_request(3, 0, 2))))
+        out.write(t0 + 0.5, conv.send(True, encode_adu(2, 1, bytes.fromhex("08 0004 0000"))))
+        out.write(t0 + 15, conv.send(True, encode_adu(3, 1, encode_read_request(3, 0, 2))))
+        out.write(t0 + 15.01, conv.send(False, encode_adu(3, 1, encode_read_response(3, [1, 2]))))
+    proc = run("read", str(path), "--json")
+    assert proc.returncode == 0, proc.stderr
+    records = [json.loads(line) for line in proc.stdout.splitlines()]
+    timeouts = [r for r in records if r.get("event") == "timeout"]
+    assert len(timeouts) == 1, timeouts
+    assert timeouts[0]["info"]["tid"] == 1
+    assert timeouts[0]["time"] == pytest.approx(t0 + 1.0, abs=1e-3)
+    times = [r["time"] for r in records]
+    assert times == sorted(times)

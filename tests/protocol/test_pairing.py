@@ -134,10 +134,11 @@ def test_timeout_via_tick_then_late_response_is_unsolicited() -> None:
     p.feed(q2)
     assert p.tick(10.9) == []
     [t] = p.tick(11.2)
-    assert (t.status, t.request, t.response, t.ts) == (TxStatus.TIMEOUT, q1, None, 11.2)
+    # stamped when the answer was due (10.0 + 1.0), not when the tick came
+    assert (t.status, t.request, t.response, t.ts) == (TxStatus.TIMEOUT, q1, None, 11.0)
     assert t.frame is None
     [t2] = p.tick(12.0)
-    assert t2.request is q2
+    assert (t2.request, t2.ts) == (q2, 11.6)
     assert p.tick(50.0) == []
     [late] = p.feed(resp(1, 12.5))
     assert late.status is TxStatus.UNSOLICITED
@@ -148,7 +149,7 @@ def test_flush_times_out_everything_pending() -> None:
     qs = [req(1, 1.0), req(2, 2.0), req(1, 3.0, stream=TCP2)]
     for q in qs:
         p.feed(q)
-    out = p.flush(5.0)
+    out = p.flush(5.0)  # before any answer was due: at the end of the input
     assert statuses(out) == [TxStatus.TIMEOUT] * 3
     assert {id(t.request) for t in out} == {id(q) for q in qs}
     assert all(t.ts == 5.0 for t in out)
@@ -300,3 +301,35 @@ def test_every_frame_yields_exactly_one_step() -> None:
     ended = [t.request for t in steps if t.status in (TxStatus.ANSWERED, TxStatus.TIMEOUT)]
     started = [f for f in frames if f.direction is Direction.C2S]
     assert sorted(id(x) for x in ended) == sorted(id(x) for x in started)
+
+
+def test_timeouts_are_stamped_when_due_not_when_a_later_packet_comes() -> None:
+    p = Pairer(timeout=1.0)
+    q = req(1, 10.0)
+    p.feed(q)
+    [t] = p.tick(25.0)  # the next packet came 15 s later
+    assert (t.request, t.ts) == (q, 11.0)
+    # end of input long after: at the due time too
+    p.feed(req(2, 30.0))
+    [f] = p.flush(99.0)
+    assert f.ts == 31.0
+    # a tid reused after the timeout: the old one was due at its own time
+    p.feed(req(3, 40.0))
+    out = p.feed(req(3, 45.0))
+    assert (out[0].status, out[0].ts) == (TxStatus.TIMEOUT, 41.0)
+
+
+def test_diagnostics_force_listen_only_is_never_pending() -> None:
+    from mbmon.protocol.pairing import expects_reply
+
+    listen_only = tcp(TCP, Direction.C2S, 7, 1, bytes.fromhex("08 0004 0000"), 1.0)
+    restart = tcp(TCP, Direction.C2S, 8, 1, bytes.fromhex("08 0001 0000"), 1.0)
+    [bus_listen_only] = rtu([(1, bytes.fromhex("08 0004 0000"))], 1.0)
+    assert not expects_reply(bus_listen_only)
+    assert not expects_reply(listen_only) and expects_reply(restart)
+    p = Pairer(timeout=1.0)
+    assert statuses(p.feed(listen_only)) == [TxStatus.PENDING]
+    assert p.pending_count == 0
+    assert p.tick(5.0) == [] and p.flush(9.0) == []
+    p.feed(restart)
+    assert p.pending_count == 1

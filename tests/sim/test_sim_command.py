@@ -44,7 +44,47 @@ def test_bad_options_are_usage_errors(args: list[str]) -> None:
 def test_a_missing_serial_port_is_a_clear_error() -> None:
     out = mbmon("sim", "--serial", "/nonexistent/ttyX")
     assert out.returncode == 1
-    assert "/nonexistent/ttyX" in out.stderr and "Traceback" not in out.stderr
+    assert "Traceback" not in out.stderr and "Could not start listen" not in out.stderr
+    assert "cannot open serial port /nonexistent/ttyX: No such file or directory" in out.stderr
+
+
+def test_a_file_that_is_not_a_serial_port_is_named_as_such() -> None:
+    out = mbmon("sim", "--serial", "/dev/null")
+    assert out.returncode == 1
+    assert "cannot open serial port /dev/null: not a serial port" in out.stderr
+
+
+@pytest.mark.parametrize("command", ["sim", "proxy"])
+def test_a_port_in_use_is_named_as_such_by_sim_and_proxy_alike(command: str) -> None:
+    import socket
+
+    with socket.create_server(("127.0.0.1", 0)) as busy:
+        port = busy.getsockname()[1]
+        extra = ["--upstream", "127.0.0.1:1"] if command == "proxy" else []
+        out = mbmon(command, *extra, "--listen", f"127.0.0.1:{port}")
+    assert out.returncode == 1
+    assert "Could not start listen" not in out.stderr and "Traceback" not in out.stderr
+    assert (
+        f"cannot listen on 127.0.0.1:{port}: Address already in use (another program listens"
+        in out.stderr
+    )
+
+
+def test_the_words_for_a_privileged_port_and_other_reasons() -> None:
+    import errno
+
+    from mbmon.commands.common import listen_error, serial_open_error
+
+    denied = PermissionError(errno.EACCES, "Permission denied")
+    text = listen_error("0.0.0.0:502", denied, 502)
+    assert text.startswith(
+        "cannot listen on 0.0.0.0:502: Permission denied (port 502 is privileged"
+    )
+    assert "1024" in text
+    assert listen_error("0.0.0.0:5020", denied, 5020) == (
+        "cannot listen on 0.0.0.0:5020: Permission denied"
+    )
+    assert "dialout" in serial_open_error("/dev/ttyUSB0", denied)
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
@@ -94,3 +134,20 @@ def test_importing_mbmon_sim_loads_no_pymodbus_serial_or_scapy() -> None:
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV)
     assert out.returncode == 0, out.stdout + out.stderr
+
+
+def test_sim_sniff_and_proxy_default_to_one_baud_rate() -> None:
+    from mbmon.cli import build_parser
+    from mbmon.sim.server import SimServer
+    from mbmon.sources import DEFAULT_BAUD
+    from mbmon.sources.serial import SerialSettings
+
+    parser = build_parser()
+    sim = parser.parse_args(["sim", "--serial", "/dev/ttyX"])
+    proxy = parser.parse_args(["proxy", "--upstream-serial", "/dev/ttyX"])
+    assert sim.baud == proxy.baud == SerialSettings().baudrate == DEFAULT_BAUD == 115200
+    assert SimServer(serial="/dev/ttyX").baudrate == DEFAULT_BAUD
+    for command in ("sim", "sniff", "proxy"):
+        assert f"({'default ' if command == 'sim' else ''}{DEFAULT_BAUD}" in mbmon(
+            command, "--help"
+        ).stdout.replace("\n", " ")

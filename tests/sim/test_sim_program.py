@@ -55,8 +55,11 @@ def test_the_5452_program_reaches_a1_90_and_the_analyzer_reconstructs_it() -> No
     assert result.jog_after_stop == 0
     # the robot's view: speed 90 %, DO[1..5] written, A1 at 90 + the JOG
     assert state["speed_pct"] == 90 and state["motion_state"] == 1
-    # (A1 also moved between R200 = 1 and the program's first A1 read)
-    assert 90 + result.jog_moved <= state["joints"][0] < 90 + result.jog_moved + 0.5
+    # the JOG is measured from the pose before R200 = 1 to the pose once stopped:
+    # all the robot moved, to the register's 0.001 degree
+    assert result.jog_from == 90
+    assert abs(state["joints"][0] - result.jog_to) <= 0.0005
+    assert result.jog_moved == pytest.approx(state["joints"][0] - 90, abs=0.0005)
     assert state["pose"] == (-300, 300, 400, 180, 0, 90)
     assert server.robot.coils[300:305] == [1, 1, 0, 0, 1]
     # the steps: the §5.4.5.2 lines in order, numbered, each answered
