@@ -116,7 +116,9 @@ def read_file(
     try:
         data = memoryview(mapped)
         try:
+            release = _releaser(mapped)
             first = _reader._Pass(False, as_json, timeout, ports, view, None)
+            first.release = release
             try:
                 first.run(data)
             except _reader.Declined as exc:
@@ -126,12 +128,28 @@ def read_file(
             if write is None:
                 return CoreRun(counts=_counts(first))
             second = _reader._Pass(True, as_json, timeout, ports, view, write)
+            second.release = release
             second.run(data)  # the same decisions as the first pass: it cannot decline
             return CoreRun(counts=_counts(second))
         finally:
             data.release()
     finally:
         mapped.close()
+
+
+def _releaser(mapped: Any) -> Any:
+    """``release(offset, length)``: drop pages of the mapped capture already read from
+    the process (they are read again from the file if ever needed), or ``None``."""
+    import mmap
+
+    advice = getattr(mmap, "MADV_DONTNEED", None)
+    if advice is None or not hasattr(mapped, "madvise"):
+        return None
+
+    def release(offset: int, length: int) -> None:
+        mapped.madvise(advice, offset, length)
+
+    return release
 
 
 def _counts(done: Any) -> dict[str, Any]:

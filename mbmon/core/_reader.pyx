@@ -21,8 +21,9 @@ checked against the bytes present before it is read through a pointer.
 """
 
 from libc.stdlib cimport malloc, realloc, free
-from libc.string cimport memcpy, memmove
-from libc.math cimport floor, isfinite, fabs
+from libc.string cimport memcmp, memcpy, memmove, memset
+from libc.math cimport floor, isfinite, fabs, nextafter, INFINITY
+from libc.stdlib cimport strtod
 from libc.stdint cimport uint8_t, uint32_t, uint64_t, int64_t
 
 cdef extern from "Python.h":
@@ -49,7 +50,6 @@ class Declined(Exception):
     """The input has something the core does not cover; the message says what."""
 
 
-DEF MASK = 0xFFFFFFFF
 DEF MAX_ACK_JUMP = 1 << 24
 DEF REUSE_DISTANCE = 1 << 20
 DEF CLOSED_LINGER = 60.0
@@ -60,15 +60,20 @@ DEF MAX_PENDING_TOTAL = 90000  # ... and 100,000 in all
 DEF TICK_EVERY = 0.1
 DEF MAX_RECORD = 1 << 26
 DEF FLUSH_AT = 1 << 20
+DEF RELEASE_EVERY = 1 << 24  # a multiple of every page size
 
 cdef int FIN = 0x01, SYN = 0x02, RST = 0x04, ACK = 0x10
+# 32-bit sequence arithmetic as C constants (a literal above C int range is a Python int)
+cdef int64_t MASK = 0xFFFFFFFF
+cdef int64_t HALF = 0x80000000
+cdef int64_t TWO32 = 0x100000000
 
 # --------------------------------------------------------------------------- helpers
 
 
 cdef inline int64_t signed32(int64_t diff):
     diff &= MASK
-    return diff - 0x100000000 if diff & 0x80000000 else diff
+    return diff - TWO32 if diff & HALF else diff
 
 
 cdef inline uint32_t be16(const uint8_t* p):
@@ -92,6 +97,33 @@ cdef inline uint32_t rd16(const uint8_t* p, bint big):
 
 
 cdef const char* HEXD = b"0123456789ABCDEF"
+
+# the decimal text of every 16-bit value (register values are most of a line's digits)
+cdef char DEC[65536][6]   # [length, digits...]
+
+
+cdef void _fill_dec():
+    cdef int v, n, x
+    cdef char tmp[5]
+    for v in range(65536):
+        n = 0
+        x = v
+        while True:
+            tmp[n] = <char>(48 + x % 10)
+            n += 1
+            x //= 10
+            if x == 0:
+                break
+        DEC[v][0] = <char>n
+        for x in range(n):
+            DEC[v][1 + x] = tmp[n - 1 - x]
+
+
+_fill_dec()
+
+
+cdef inline int put_u16(Buf* b, unsigned int v) except -1:
+    return put(b, &DEC[v & 0xFFFF][1], DEC[v & 0xFFFF][0])
 
 
 cdef struct Buf:
@@ -193,6 +225,84 @@ cdef int put_json_float(Buf* b, double v) except -1:
     return put_bytes(b, _orjson.dumps(v))
 
 
+cdef int put_trimmed(Buf* b, char* s, Py_ssize_t n) except -1:
+    """A fixed-point number without its trailing zeros (one digit stays after the point)."""
+    while n > 2 and s[n - 1] == 48 and s[n - 2] != 46:
+        n -= 1
+    return put(b, s, n)
+
+
+cdef int put_json_time(Buf* b, double ts) except -1:
+    """``orjson.dumps(ts)`` of a capture time: its microseconds' decimal text, trimmed,
+    when that text reads back as ``ts`` (then, below 2^33 s, no shorter text does and
+    it is the shortest repr); CPython's repr otherwise."""
+    cdef double whole, x
+    cdef int64_t us, sec
+    cdef char tmp[40]
+    cdef int i, n
+    cdef char* end
+    cdef int verdict
+    if 0.0 <= ts < 8589934592.0:
+        whole = floor(ts)
+        x = (ts - whole) * 1e6 + 0.5
+        us = 999999 if x > 999999.0 else <int64_t>x
+        sec = <int64_t>whole
+        n = 0
+        if sec == 0:
+            tmp[0] = 48
+            n = 1
+        else:
+            i = 20
+            while sec:
+                i -= 1
+                tmp[i] = <char>(48 + sec % 10)
+                sec //= 10
+            n = 20 - i
+            memmove(tmp, tmp + i, n)
+        tmp[n] = 46
+        for i in range(6, 0, -1):
+            tmp[n + i] = <char>(48 + us % 10)
+            us //= 10
+        n += 7
+        tmp[n] = 0
+        verdict = round_trips(ts, whole, <double>(<int64_t>x if x <= 999999.0 else 999999))
+        if verdict > 0 or (verdict == 0 and strtod(tmp, &end) == ts):
+            return put_trimmed(b, tmp, n)
+    return put_json_float(b, ts)
+
+
+cdef int round_trips(double ts, double whole, double us):
+    """Whether the decimal ``whole + us / 1e6`` reads back as ``ts``: 1 yes, -1 no, 0 too
+    close to call (the caller asks strtod). ``ts - whole`` is exact; the error of the
+    computed difference is below 1e-15, kept as a margin on each side."""
+    cdef double e = us * 1e-6 - (ts - whole)
+    cdef double half
+    if e >= 0:
+        half = (nextafter(ts, INFINITY) - ts) / 2
+    else:
+        half = (ts - nextafter(ts, -INFINITY)) / 2
+        e = -e
+    if e < half - 1e-15:
+        return 1
+    if e > half + 1e-15:
+        return -1
+    return 0
+
+
+cdef int put_json_round3(Buf* b, double v) except -1:
+    """``orjson.dumps(round(v, 3))``: CPython's correctly rounded three decimals, trimmed
+    (below 1e9 no shorter text reads back as that float)."""
+    cdef char* s = PyOS_double_to_string(v, b'f', 3, 0, NULL)
+    cdef Py_ssize_t n = 0
+    while s[n]:
+        n += 1
+    try:
+        put_trimmed(b, s, n)
+    finally:
+        PyMem_Free(s)
+    return 0
+
+
 cdef double py_round3(double v) except? -1.0:
     """``round(v, 3)``: CPython's correctly rounded digits, read back."""
     cdef char* s = PyOS_double_to_string(v, b'f', 3, 0, NULL)
@@ -273,9 +383,14 @@ cdef class _Pass:
     cdef bint as_json
     cdef double timeout
     cdef object ports           # frozenset of Modbus/TCP ports
+    cdef uint8_t port_map[65536]  # the same, one byte per port
+    cdef uint8_t ckey[64][12]   # a direct-mapped cache of the flow table (12-byte keys)
+    cdef int cval[64]           # its values; -1: empty
     cdef object view
     cdef object tf
     cdef object write
+    cdef public object release  # release(offset, length): the mapped file's pages read
+    cdef Py_ssize_t released
     cdef Buf out
     # connections
     cdef Conn* conns
@@ -286,8 +401,6 @@ cdef class _Pass:
     cdef int nopen
     cdef object closed_fifo     # [conn, until] in closing order
     cdef double due
-    cdef bytes k1, k2
-    cdef int v1, v2
     # pairing
     cdef Pend* pool
     cdef int npool
@@ -350,16 +463,21 @@ cdef class _Pass:
         self.as_json = as_json
         self.timeout = timeout
         self.ports = ports
+        memset(self.port_map, 0, 65536)
+        for port in ports:
+            if 0 <= port <= 0xFFFF:
+                self.port_map[<int>port] = 1
+        self.clear_cache()
         self.view = view
         self.tf = view.time_format if view is not None else None
         self.write = write
+        self.release = None
+        self.released = 0
         self.flows = {}
         self.open_order = []
         self.nopen = 0
         self.closed_fifo = []
         self.due = float("inf")
-        self.k1 = None
-        self.k2 = None
         self.tbits = 10
         self.table = <int*>malloc(sizeof(int) << self.tbits)
         if self.table == NULL:
@@ -539,7 +657,7 @@ cdef class _Pass:
             put(o, b'{"index":', 9)
             put_i(o, index)
             put(o, b',"time":', 8)
-            put_json_float(o, ts)
+            put_json_time(o, ts)
             put_c(o, 44)
             put_bytes(o, self.heads[sid][d])
             put(o, b',"transport":"tcp","tid":', 25)
@@ -600,7 +718,7 @@ cdef class _Pass:
             o.n += note_end - note_at
             put(o, b'"],"crc_ok":null,"latency_ms":', 30)
             if req != NULL and fabs(latency) < 1e9:
-                put_json_float(o, py_round3(latency * 1000))
+                put_json_round3(o, latency * 1000)
             elif req != NULL:
                 put_bytes(o, _orjson.dumps(round(latency * 1000, 3)))
             else:
@@ -658,7 +776,7 @@ cdef class _Pass:
                 for i in range(shown):
                     if i:
                         put(o, b", ", 2)
-                    put_u(o, be16(n.vdata + 2 * i))
+                    put_u16(o, be16(n.vdata + 2 * i))
                 if n.nvalues > 16:
                     put(o, b", \xe2\x80\xa6 (", 7)
                     put_u(o, n.nvalues)
@@ -974,7 +1092,7 @@ cdef class _Pass:
     cdef int new_conn(self, bytes key, const uint8_t* addrs, int sport, int dport, int flags,
                       double ts) except -1:
         """A new connection on ``key`` (dissector ``_new_tcp``); returns flow value."""
-        cdef bint src_in = sport in self.ports, dst_in = dport in self.ports
+        cdef bint src_in = self.port_map[sport], dst_in = self.port_map[dport]
         cdef bint sender_client
         cdef int ci, cap, d
         cdef Conn* c
@@ -1030,9 +1148,14 @@ cdef class _Pass:
             ((dport >> 8, dport & 255, sport >> 8, sport & 255)))
         self.flows[key] = ci * 2 + (1 if sender_client else 0)
         self.flows[rkey] = ci * 2 + (0 if sender_client else 1)
-        self.k1 = None
-        self.k2 = None
+        self.clear_cache()
         return ci * 2 + (1 if sender_client else 0)
+
+    cdef int clear_cache(self) except -1:
+        cdef int i
+        for i in range(64):
+            self.cval[i] = -1
+        return 0
 
     cdef int forget(self, int ci) except -1:
         """Drop a connection's two keys (unless a newer connection took them)."""
@@ -1045,8 +1168,7 @@ cdef class _Pass:
             v = self.flows.get(k)
             if v is not None and v // 2 == ci:
                 del self.flows[k]
-        self.k1 = None
-        self.k2 = None
+        self.clear_cache()
         return 0
 
     cdef int closed_conn(self, int ci, double ts) except -1:
@@ -1115,8 +1237,8 @@ cdef class _Pass:
         cdef int64_t old
         if diff == 0:
             return self.deliver(ci, d, ts, p, n)
-        if diff & 0x80000000:
-            old = 0x100000000 - diff
+        if diff & HALF:
+            old = TWO32 - diff
             if old >= n:
                 return 0  # a retransmission: counted by the dissector, dropped
             return self.deliver(ci, d, ts, p + old, n - old)
@@ -1201,6 +1323,8 @@ cdef class _Pass:
         cdef int64_t seq, ack
         cdef const uint8_t* b
         cdef bint from_client, first_fragment
+        cdef uint8_t kb[12]
+        cdef uint32_t slot
         if ts >= self.due:
             self.dissector_tick(ts)
         if end <= off:
@@ -1281,7 +1405,7 @@ cdef class _Pass:
             if ip_end - l4 >= 4:
                 sport = (buf[l4] << 8) | buf[l4 + 1]
                 dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
-                if sport in self.ports or dport in self.ports:
+                if self.port_map[sport] or self.port_map[dport]:
                     raise Declined("Modbus over UDP")
             return 0
         if proto != 6:
@@ -1291,7 +1415,7 @@ cdef class _Pass:
         b = &buf[l4]
         sport = (b[0] << 8) | b[1]
         dport = (b[2] << 8) | b[3]
-        if sport not in self.ports and dport not in self.ports:
+        if not self.port_map[sport] and not self.port_map[dport]:
             return 0
         if first_fragment:
             raise Declined("a fragmented IP packet on a Modbus port")
@@ -1301,21 +1425,24 @@ cdef class _Pass:
         seq = be32(b + 4)
         ack = be32(b + 8)
         flags = b[13]
-        key = PyBytes_FromStringAndSize(<const char*>&buf[off + 12], 8) + bytes(
-            (sport >> 8, sport & 255, dport >> 8, dport & 255))
-        if key == self.k1:
-            v = self.v1
-        elif key == self.k2:
-            v = self.v2
+        memcpy(kb, &buf[off + 12], 8)
+        kb[8] = sport >> 8
+        kb[9] = sport & 255
+        kb[10] = dport >> 8
+        kb[11] = dport & 255
+        slot = (be32(kb) * 31 + be32(kb + 4) * 17 + <uint32_t>sport * 7 + <uint32_t>dport) & 63
+        if self.cval[slot] >= 0 and memcmp(self.ckey[slot], kb, 12) == 0:
+            v = self.cval[slot]
         else:
+            key = PyBytes_FromStringAndSize(<const char*>kb, 12)
             got = self.flows.get(key)
             v = -1 if got is None else got
         if v < 0 or flags & SYN or self.conns[v >> 1].closed:
+            key = PyBytes_FromStringAndSize(<const char*>kb, 12)
             v = self.tcp_flow(key, &buf[off + 12], v, ts, seq, flags, ip_end > l4 + doff,
                               sport, dport)
-        if key != self.k1:
-            self.k2, self.v2 = self.k1, self.v1
-            self.k1, self.v1 = key, v
+        memcpy(self.ckey[slot], kb, 12)
+        self.cval[slot] = v
         from_client = v & 1
         if ip_end > l4 + doff:
             return self.segment(v >> 1, from_client, ts, seq, ack, flags, &buf[l4 + doff],
@@ -1371,7 +1498,7 @@ cdef class _Pass:
         if (proto == 6 or proto == 17) and 0 <= l4 and ip_end - l4 >= 4:
             sport = (buf[l4] << 8) | buf[l4 + 1]
             dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
-            if sport in self.ports or dport in self.ports:
+            if self.port_map[sport] or self.port_map[dport]:
                 raise Declined("Modbus over IPv6")
         return 0
 
@@ -1414,6 +1541,8 @@ cdef class _Pass:
             start = pos + header
             pos = start + caplen
             self.packet(ts, link, data, start, pos)
+            if pos - self.released >= RELEASE_EVERY:
+                self.release_to(pos)
         self.end_ts = ts
         return 0
 
@@ -1507,7 +1636,18 @@ cdef class _Pass:
                     raise Declined("a pcapng timestamp resolution beyond 2^53")
                 ifaces.append((link, div, tsoff, snaplen))
             pos += blen
+            if pos - self.released >= RELEASE_EVERY:
+                self.release_to(pos)
         self.end_ts = ts
+        return 0
+
+    cdef int release_to(self, Py_ssize_t pos) except -1:
+        """Give the pages of the file read so far back (peak RSS stays flat in its size);
+        nothing points into them any more: held bytes are copies."""
+        cdef Py_ssize_t upto = pos - pos % RELEASE_EVERY
+        if self.release is not None and upto > self.released:
+            self.release(self.released, upto - self.released)
+        self.released = upto
         return 0
 
     cpdef run(self, const uint8_t[::1] data):
@@ -1705,7 +1845,7 @@ cdef int put_values_json(Buf* o, Native* n) except -1:
         elif n.bits:
             put_c(o, 49 if (n.vdata[i >> 3] >> (i & 7)) & 1 else 48)
         else:
-            put_u(o, be16(n.vdata + 2 * i))
+            put_u16(o, be16(n.vdata + 2 * i))
     return put_c(o, 93)
 
 
