@@ -26,7 +26,14 @@ import stat
 from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["CoreRun", "available", "decline_for_options", "read_file", "status"]
+__all__ = [
+    "CoreRun",
+    "available",
+    "decline_for_options",
+    "read_buffer",
+    "read_file",
+    "status",
+]
 
 #: why the compiled core cannot run at all, or None when it can
 _UNAVAILABLE: str | None
@@ -116,25 +123,48 @@ def read_file(
     try:
         data = memoryview(mapped)
         try:
-            release = _releaser(mapped)
-            first = _reader._Pass(False, as_json, timeout, ports, view, None)
-            first.release = release
-            try:
-                first.run(data)
-            except _reader.Declined as exc:
-                return CoreRun(declined=str(exc))
-            if first.frames == 0:
-                return CoreRun(declined="no Modbus frames (the reference reader gives the hints)")
-            if write is None:
-                return CoreRun(counts=_counts(first))
-            second = _reader._Pass(True, as_json, timeout, ports, view, write)
-            second.release = release
-            second.run(data)  # the same decisions as the first pass: it cannot decline
-            return CoreRun(counts=_counts(second))
+            return read_buffer(
+                data,
+                ports=ports,
+                timeout=timeout,
+                view=view,
+                as_json=as_json,
+                write=write,
+                release=_releaser(mapped),
+            )
         finally:
             data.release()
     finally:
         mapped.close()
+
+
+def read_buffer(
+    data: Any,
+    *,
+    ports: frozenset[int],
+    timeout: float,
+    view: Any,
+    as_json: bool,
+    write: Any | None,
+    release: Any | None = None,
+) -> CoreRun:
+    """:func:`read_file` on a capture already in memory (``data``: bytes or a buffer)."""
+    if _reader is None:
+        return CoreRun(declined=f"the compiled core is unavailable: {_UNAVAILABLE}")
+    first = _reader._Pass(False, as_json, timeout, ports, view, None)
+    first.release = release
+    try:
+        first.run(data)
+    except _reader.Declined as exc:
+        return CoreRun(declined=str(exc))
+    if first.frames == 0:
+        return CoreRun(declined="no Modbus frames (the reference reader gives the hints)")
+    if write is None:
+        return CoreRun(counts=_counts(first))
+    second = _reader._Pass(True, as_json, timeout, ports, view, write)
+    second.release = release
+    second.run(data)  # the same decisions as the first pass: it cannot decline
+    return CoreRun(counts=_counts(second))
 
 
 def _releaser(mapped: Any) -> Any:
