@@ -74,7 +74,8 @@ def _core_run(data: bytes, as_json: bool) -> tuple[bytes, str | None]:
 
 def test_mutated_captures() -> None:
     require_core()
-    rng = random.Random(int(os.environ.get("MBMON_FUZZ_SEED", "26")))
+    seed = int(os.environ.get("MBMON_FUZZ_SEED", "26"))
+    rng = random.Random(seed)
     with tempfile.TemporaryDirectory() as tmp:
         seeds = _seeds(Path(tmp))
         ran = 0
@@ -91,7 +92,7 @@ def test_mutated_captures() -> None:
                 path = Path(tmp) / "m.pcap"
                 path.write_bytes(data)
                 want, _ = reference(path, as_json=as_json)
-                assert got == want, f"case {case}: the core and the reference differ"
+                assert got == want, f"seed {seed} case {case}: the core and the reference differ"
         if RUNS >= 100:
             assert ran, "the core declined every mutation: the fuzz test exercised nothing"
 
