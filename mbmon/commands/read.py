@@ -158,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
         err(f"{path}: no such file")
         return EXIT_BAD_INPUT
     if not args.rtu_raw and not (not live and _looks_like_mcap(path)):
-        done = _read_with_core(path, args, view, flt, live=live)
+        done = _read_with_core(path, args, view, flt, live=live, progress=progress)
         if done is not None:
             progress.close()
             return done
@@ -241,7 +241,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _read_with_core(
-    path: str, args: argparse.Namespace, view: Any, flt: Any, *, live: bool
+    path: str, args: argparse.Namespace, view: Any, flt: Any, *, live: bool, progress: Any
 ) -> int | None:
     """``read`` by the compiled core when it covers the options and the input: its exit
     status; ``None`` when it declined (before writing anything: the Python pipeline
@@ -278,7 +278,9 @@ def _read_with_core(
             view=view,
             as_json=args.json,
             write=write,
+            progress=progress,
         )
+        progress.close()
         why = run.declined
     if why is not None:
         if args.debug_core:

@@ -105,6 +105,7 @@ def read_file(
     view: Any,
     as_json: bool,
     write: Any | None,
+    progress: Any | None = None,
 ) -> CoreRun:
     """Run the core on the capture at ``path``: a deciding pass, then (unless it
     declined, and when ``write`` is given) a writing pass that hands its output,
@@ -131,6 +132,7 @@ def read_file(
                 as_json=as_json,
                 write=write,
                 release=_releaser(mapped),
+                progress=progress,
             )
         finally:
             data.release()
@@ -147,12 +149,15 @@ def read_buffer(
     as_json: bool,
     write: Any | None,
     release: Any | None = None,
+    progress: Any | None = None,
 ) -> CoreRun:
-    """:func:`read_file` on a capture already in memory (``data``: bytes or a buffer)."""
+    """:func:`read_file` on a capture already in memory (``data``: bytes or a buffer);
+    ``progress(done, total)`` is called about once per MiB (each pass is half)."""
     if _reader is None:
         return CoreRun(declined=f"the compiled core is unavailable: {_UNAVAILABLE}")
     first = _reader._Pass(False, as_json, timeout, ports, view, None)
     first.release = release
+    first.progress = progress
     try:
         first.run(data)
     except _reader.Declined as exc:
@@ -163,6 +168,8 @@ def read_buffer(
         return CoreRun(counts=_counts(first))
     second = _reader._Pass(True, as_json, timeout, ports, view, write)
     second.release = release
+    second.progress = progress
+    second.progress_base = len(data) // 2
     second.run(data)  # the same decisions as the first pass: it cannot decline
     return CoreRun(counts=_counts(second))
 

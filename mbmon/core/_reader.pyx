@@ -391,6 +391,10 @@ cdef class _Pass:
     cdef object write
     cdef public object release  # release(offset, length): the mapped file's pages read
     cdef Py_ssize_t released
+    cdef public object progress  # progress(done, total) about once per MiB, or None
+    cdef public Py_ssize_t progress_base  # bytes counted done before this pass
+    cdef Py_ssize_t next_progress
+    cdef Py_ssize_t size
     cdef Buf out
     # connections
     cdef Conn* conns
@@ -473,6 +477,9 @@ cdef class _Pass:
         self.write = write
         self.release = None
         self.released = 0
+        self.progress = None
+        self.progress_base = 0
+        self.next_progress = 0
         self.flows = {}
         self.open_order = []
         self.nopen = 0
@@ -1543,6 +1550,8 @@ cdef class _Pass:
             self.packet(ts, link, data, start, pos)
             if pos - self.released >= RELEASE_EVERY:
                 self.release_to(pos)
+            if pos >= self.next_progress:
+                self.report(pos)
         self.end_ts = ts
         return 0
 
@@ -1638,7 +1647,16 @@ cdef class _Pass:
             pos += blen
             if pos - self.released >= RELEASE_EVERY:
                 self.release_to(pos)
+            if pos >= self.next_progress:
+                self.report(pos)
         self.end_ts = ts
+        return 0
+
+    cdef int report(self, Py_ssize_t pos) except -1:
+        """Progress: each of the two passes is half of the work."""
+        self.next_progress = pos + (1 << 20)
+        if self.progress is not None:
+            self.progress(self.progress_base + pos // 2, self.size)
         return 0
 
     cdef int release_to(self, Py_ssize_t pos) except -1:
@@ -1655,6 +1673,7 @@ cdef class _Pass:
         cdef int ci
         cdef Conn* c
         cdef int s, e, nxt
+        self.size = data.shape[0]
         if data.shape[0] < 12:
             raise Declined("a capture too short")
         if le32(&data[0]) == 0x0A0D0D0A:
