@@ -48,11 +48,12 @@ def _which_path(mb: list[str], path: Path) -> str:
     return next((ln for ln in done.stderr.splitlines() if "core:" in ln), "?").strip()
 
 
-def _instructions(cmd: list[str]) -> int:
+def _instructions(cmd: list[str], *, pure: bool = False) -> int:
     out = OUT / "core-callgrind.out"
+    env = dict(os.environ, MBMON_NO_EXTENSIONS="1") if pure else None
     subprocess.run(
         ["valgrind", "--tool=callgrind", f"--callgrind-out-file={out}", *cmd],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO, check=False,
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO, check=False, env=env,
     )  # fmt: skip
     text = out.read_text(errors="replace")
     out.unlink()
@@ -63,16 +64,40 @@ def cpu(run: Run) -> float:
     return run.user + run.sys
 
 
+def callgrind_figures(n: int) -> None:
+    """Marginal instructions per ADU: (I(n) - I(n/5)) / (4n/5), core and pure."""
+    if not shutil.which("valgrind"):
+        print("  (valgrind is missing: no instruction counts)")
+        return
+    k = n - n % 10
+    small = capture("polling", k // 5, 8, 2, "aligned")
+    big = capture("polling", k, 8, 2, "aligned")
+    py = [sys.executable, "-m", "mbmon", "read"]
+    for label, extra, pure in (
+        ("core: read (text)", [], False),
+        ("core: read --json", ["--json"], False),
+        ("pure: read (text)", [], True),
+        ("pure: read --json", ["--json"], True),
+    ):
+        lo = _instructions([*py, str(small), *extra], pure=pure)
+        hi = _instructions([*py, str(big), *extra], pure=pure)
+        print(f"  callgrind instructions per ADU, {label}: {(hi - lo) / (k - k // 5):,.0f}")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--adus", type=int, default=1_000_000, help="ADUs per capture (even)")
     ap.add_argument("--callgrind", type=int, metavar="N", help="instructions per ADU at N ADUs")
     ap.add_argument("--flat", action="store_true", help="also 5x the ADUs: peak RSS flat?")
     ap.add_argument("--skip-pure", action="store_true", help="no pure-Python runs")
+    ap.add_argument("--callgrind-only", action="store_true", help="only the callgrind figures")
     args = ap.parse_args(argv)
     load = os.getloadavg()
     print(f"machine: {os.cpu_count()} CPUs, load average {load[0]:.2f} {load[1]:.2f}"
           f" {load[2]:.2f}; python {sys.version.split()[0]}")  # fmt: skip
+    if args.callgrind_only:
+        callgrind_figures(args.callgrind or 100_000)
+        return 0
     n = args.adus
     aligned = capture("polling", n, 8, 2, "aligned")
     mixed = capture("polling", n, 8, 2, "mixed")
@@ -119,21 +144,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  peak RSS of mbmon runs: {peak:.1f} MB (target < {MAX_RSS_MB:.0f} MB)")
     if "flat" in runs:
         print(f"  RSS at 5x / 1x: {runs['flat'].rss_mb / runs['json'].rss_mb:.2f}")
-    if args.callgrind and shutil.which("valgrind"):
-        k = args.callgrind - args.callgrind % 10
-        small, big = capture("polling", k // 5, 8, 2, "aligned"), capture("polling", k, 8, 2,
-                                                                          "aligned")  # fmt: skip
-        py = [sys.executable, "-m", "mbmon", "read"]
-        for label, extra, pure in (
-            ("core: read (text)", [], False),
-            ("core: read --json", ["--json"], False),
-            ("pure: read (text)", [], True),
-        ):
-            wrap = _pure if pure else (lambda cmd: cmd)
-            lo = _instructions(wrap([*py, str(small), *extra]))
-            hi = _instructions(wrap([*py, str(big), *extra]))
-            per = (hi - lo) / (k - k // 5)
-            print(f"  callgrind instructions per ADU, {label}: {per:,.0f}")
+    if args.callgrind:
+        callgrind_figures(args.callgrind)
     return 0
 
 
