@@ -35,36 +35,43 @@ __all__ = [
     "status",
 ]
 
-#: why the compiled core cannot run at all, or None when it can
-_UNAVAILABLE: str | None
 _reader: Any = None
-if os.environ.get("MBMON_NO_EXTENSIONS", "") not in ("", "0"):
-    _UNAVAILABLE = "MBMON_NO_EXTENSIONS is set"
-else:
-    try:
-        _reader = importlib.import_module("mbmon.core._reader")
-    except ImportError as exc:  # installed without a compiler, or not built in place
-        _UNAVAILABLE = f"not built ({exc})"
-    else:
-        _UNAVAILABLE = None
+_tried = False
+#: why the compiled core cannot run at all (None: it can), once it was looked for
+_UNAVAILABLE: str | None = None
+
+
+def _load() -> str | None:
+    """Import the extension on first need (a run the options decline never pays for it);
+    why it is unavailable, or ``None``."""
+    global _reader, _tried, _UNAVAILABLE
+    if not _tried:
+        _tried = True
+        if os.environ.get("MBMON_NO_EXTENSIONS", "") not in ("", "0"):
+            _UNAVAILABLE = "MBMON_NO_EXTENSIONS is set"
+        else:
+            try:
+                _reader = importlib.import_module("mbmon.core._reader")
+            except ImportError as exc:  # installed without a compiler, or not built in place
+                _UNAVAILABLE = f"not built ({exc})"
+    return _UNAVAILABLE
 
 
 def available() -> bool:
     """Whether the compiled core can run in this process."""
-    return _UNAVAILABLE is None
+    return _load() is None
 
 
 def status() -> str:
     """Which core is active, for ``mbmon --version``."""
-    if _UNAVAILABLE is None:
+    why = _load()
+    if why is None:
         return "core: compiled (Cython extension mbmon.core._reader)"
-    return f"core: pure Python ({_UNAVAILABLE})"
+    return f"core: pure Python ({why})"
 
 
 def decline_for_options(args: Any, *, live: bool, flt: Any) -> str | None:
     """Why the options alone keep ``read`` off the core, or ``None`` when they allow it."""
-    if _UNAVAILABLE is not None:
-        return f"the compiled core is unavailable: {_UNAVAILABLE}"
     checks = (
         (args.rtu_raw, "--rtu-raw (RTU)"),
         (args.rtu_port, "--rtu-port (RTU over TCP/UDP)"),
@@ -79,7 +86,8 @@ def decline_for_options(args: Any, *, live: bool, flt: Any) -> str | None:
     for present, what in checks:
         if present:
             return f"{what} is not covered by the core"
-    return None
+    why = _load()
+    return None if why is None else f"the compiled core is unavailable: {why}"
 
 
 @dataclass
@@ -110,7 +118,7 @@ def read_file(
     """Run the core on the capture at ``path``: a deciding pass, then (unless it
     declined, and when ``write`` is given) a writing pass that hands its output,
     in blocks of about 1 MiB of UTF-8, to ``write``. The counts are the summary's."""
-    if _reader is None:
+    if _load() is not None:
         return CoreRun(declined=f"the compiled core is unavailable: {_UNAVAILABLE}")
     if not _regular_file(path):
         return CoreRun(declined="not a regular file")
@@ -153,7 +161,7 @@ def read_buffer(
 ) -> CoreRun:
     """:func:`read_file` on a capture already in memory (``data``: bytes or a buffer);
     ``progress(done, total)`` is called about once per MiB (each pass is half)."""
-    if _reader is None:
+    if _load() is not None:
         return CoreRun(declined=f"the compiled core is unavailable: {_UNAVAILABLE}")
     first = _reader._Pass(False, as_json, timeout, ports, view, None)
     first.release = release
@@ -216,6 +224,6 @@ def fill_summary(summary: Any, counts: dict[str, Any]) -> None:
 
 def _pdu_entry(data: bytes, response: bool, request: bytes | None = None) -> Any:
     """Test-only: the core's decode and generic note of one PDU (see tests/core)."""
-    if _reader is None:
+    if _load() is not None:
         raise RuntimeError(status())
     return _reader._native_note(data, response, request)
