@@ -37,7 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
         "crosses the wire between a PLC and a robot, and what it means.",
         epilog="Run 'mbmon COMMAND --help' for the options and examples of each command.",
     )
-    parser.add_argument("--version", action="version", version=f"mbmon {__version__}")
+    parser.add_argument("--version", action="version", version=_version())
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS[:2]:  # read, decode
         importlib.import_module(f"mbmon.commands.{name}").register(sub)
@@ -47,6 +47,13 @@ def build_parser() -> argparse.ArgumentParser:
     for name in COMMANDS[2:]:
         importlib.import_module(f"mbmon.commands.{name}").register(sub)
     return parser
+
+
+def _version() -> str:
+    """``mbmon --version``: the version and which core is active (compiled or pure Python)."""
+    from mbmon import core
+
+    return f"mbmon {__version__} ({core.status()})"
 
 
 def main(argv: list[str] | None = None) -> int:

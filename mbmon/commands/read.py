@@ -99,6 +99,12 @@ def register(sub: Any) -> None:
         help="RTU baud rate (silence gaps become health hints)",
     )
     src.add_argument(
+        "--debug-core",
+        action="store_true",
+        help="say on stderr whether the compiled core or the Python pipeline read the "
+        "input, and why (see docs/architecture.md)",
+    )
+    src.add_argument(
         "-c",
         "--count",
         type=positive_int,
@@ -159,6 +165,11 @@ def run(args: argparse.Namespace) -> int:
     if not os.path.exists(path):
         err(f"{path}: no such file")
         return EXIT_BAD_INPUT
+    if not args.rtu_raw and not (not live and _looks_like_mcap(path)):
+        done = _read_with_core(path, args, view, flt, live=live, progress=progress)
+        if done is not None:
+            progress.close()
+            return done
     if args.rtu_raw:
         from mbmon.sources.pcapfile import CaptureError
         from mbmon.sources.rawfile import read_rtu_raw
@@ -245,6 +256,70 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_BAD_INPUT
     if any(why != "broken pipe" for _name, why in hub.failures):
         return EXIT_BAD_INPUT
+    return EXIT_OK
+
+
+def _read_with_core(
+    path: str, args: argparse.Namespace, view: Any, flt: Any, *, live: bool, progress: Any
+) -> int | None:
+    """``read`` by the compiled core when it covers the options and the input: its exit
+    status; ``None`` when it declined (before writing anything: the Python pipeline
+    then reads the input). ``--debug-core`` says which path ran and why."""
+    from mbmon import core
+
+    why = core.decline_for_options(args, live=live, flt=flt)
+    write = None
+    broken: list[bool] = []
+    if why is None and not args.quiet:
+        from mbmon.sinks.console import utf8_buffer
+
+        buffer = utf8_buffer(sys.stdout)
+        if buffer is None:
+            why = "stdout is not UTF-8"
+        else:
+
+            def write(data: bytes) -> None:
+                if broken:
+                    return
+                try:
+                    buffer.write(data)
+                except BrokenPipeError:  # the reader went away (| head), as the hub does
+                    from mbmon.hub import _quiet_stdout
+
+                    broken.append(True)
+                    _quiet_stdout()
+
+    if why is None:
+        run = core.read_file(
+            path,
+            ports=frozenset({502, *args.port}),
+            timeout=args.timeout,
+            view=view,
+            as_json=args.json,
+            write=write,
+            progress=progress,
+        )
+        progress.close()
+        why = run.declined
+    if why is not None:
+        if args.debug_core:
+            err(f"core: declined ({why}); the Python pipeline reads the input")
+        return None
+    if write is not None and not broken:
+        try:
+            sys.stdout.flush()
+        except BrokenPipeError:
+            from mbmon.hub import _quiet_stdout
+
+            _quiet_stdout()
+    if args.debug_core:
+        err("core: the compiled core read the input")
+    if not args.quiet:
+        from mbmon.sinks.summary import Summary
+
+        summary = Summary(None)
+        core.fill_summary(summary, run.counts)
+        _report(summary, {}, args, timed=True)
     return EXIT_OK
 
 

@@ -1,0 +1,153 @@
+"""``mbmon read`` by the compiled core, next to tshark's best case and the pure-Python
+pipeline, in the same run (CPU time, wall time, peak RSS; callgrind instructions).
+
+    python bench/core_read.py                      # 1,000,000 ADUs (realistic.py's files)
+    python bench/core_read.py --adus 200000
+    python bench/core_read.py --callgrind 100000   # + instructions per ADU (marginal)
+    python bench/core_read.py --flat               # + 5x the ADUs: is peak RSS flat?
+
+What this script owns: the runs and the figures for the core (docs/performance.md
+records them). The captures are bench/realistic.py's (cached in bench/out/): the
+``aligned`` file (one ADU per TCP segment: tshark's best case, the anchor) and the
+``mixed`` one (8 % multi-ADU segments, 2 % split ADUs). The anchor is
+``tshark -r F -Y mbtcp > /dev/null``; every mbmon run writes to /dev/null too.
+Ratios are by CPU time (user + sys of the one child: the machine is shared).
+Callgrind figures are marginal: (I(N) - I(N/5)) / (4N/5), so start-up and imports
+cancel out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "bench"))
+sys.path.insert(0, str(REPO))
+from read_throughput import Run, mbmon_cmd, measure  # noqa: E402
+from realistic import OUT, capture  # noqa: E402
+
+TARGETS = {"text": 10.0, "json": 8.0}  # x tshark's best case, by CPU
+MIXED = 1.25  # mixed / aligned, at most
+MAX_RSS_MB = 100.0
+
+
+def _pure(cmd: list[str]) -> list[str]:
+    return ["env", "MBMON_NO_EXTENSIONS=1", *cmd]
+
+
+def _which_path(mb: list[str], path: Path) -> str:
+    """What ``--debug-core`` says for this file (the core must really have run)."""
+    done = subprocess.run(
+        [*mb, "read", str(path), "-q", "--debug-core"], capture_output=True, text=True, check=False
+    )
+    return next((ln for ln in done.stderr.splitlines() if "core:" in ln), "?").strip()
+
+
+def _instructions(cmd: list[str], *, pure: bool = False) -> int:
+    out = OUT / "core-callgrind.out"
+    env = dict(os.environ, MBMON_NO_EXTENSIONS="1") if pure else None
+    subprocess.run(
+        ["valgrind", "--tool=callgrind", f"--callgrind-out-file={out}", *cmd],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO, check=False, env=env,
+    )  # fmt: skip
+    text = out.read_text(errors="replace")
+    out.unlink()
+    return int(next(ln for ln in text.splitlines() if ln.startswith("summary:")).split()[1])
+
+
+def cpu(run: Run) -> float:
+    return run.user + run.sys
+
+
+def callgrind_figures(n: int) -> None:
+    """Marginal instructions per ADU: (I(n) - I(n/5)) / (4n/5), core and pure."""
+    if not shutil.which("valgrind"):
+        print("  (valgrind is missing: no instruction counts)")
+        return
+    k = n - n % 10
+    small = capture("polling", k // 5, 8, 2, "aligned")
+    big = capture("polling", k, 8, 2, "aligned")
+    py = [sys.executable, "-m", "mbmon", "read"]
+    for label, extra, pure in (
+        ("core: read (text)", [], False),
+        ("core: read --json", ["--json"], False),
+        ("pure: read (text)", [], True),
+        ("pure: read --json", ["--json"], True),
+    ):
+        lo = _instructions([*py, str(small), *extra], pure=pure)
+        hi = _instructions([*py, str(big), *extra], pure=pure)
+        print(f"  callgrind instructions per ADU, {label}: {(hi - lo) / (k - k // 5):,.0f}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--adus", type=int, default=1_000_000, help="ADUs per capture (even)")
+    ap.add_argument("--callgrind", type=int, metavar="N", help="instructions per ADU at N ADUs")
+    ap.add_argument("--flat", action="store_true", help="also 5x the ADUs: peak RSS flat?")
+    ap.add_argument("--skip-pure", action="store_true", help="no pure-Python runs")
+    ap.add_argument("--callgrind-only", action="store_true", help="only the callgrind figures")
+    args = ap.parse_args(argv)
+    load = os.getloadavg()
+    print(f"machine: {os.cpu_count()} CPUs, load average {load[0]:.2f} {load[1]:.2f}"
+          f" {load[2]:.2f}; python {sys.version.split()[0]}")  # fmt: skip
+    if args.callgrind_only:
+        callgrind_figures(args.callgrind or 100_000)
+        return 0
+    n = args.adus
+    aligned = capture("polling", n, 8, 2, "aligned")
+    mixed = capture("polling", n, 8, 2, "mixed")
+    mb = mbmon_cmd()
+    for path in (aligned, mixed):
+        print(f"  {path.name}: {_which_path(mb, path)}")
+    runs: dict[str, Run] = {}
+    if shutil.which("tshark"):
+        runs["tshark"] = measure("tshark -Y mbtcp (aligned)", ["tshark", "-r", str(aligned),
+                                 "-Y", "mbtcp"], None)  # fmt: skip
+    runs["text"] = measure("core: read (text)", [*mb, "read", str(aligned)], None)
+    runs["json"] = measure("core: read --json", [*mb, "read", str(aligned), "--json"], None)
+    runs["mixed"] = measure("core: read (text, mixed)", [*mb, "read", str(mixed)], None)
+    if not args.skip_pure:
+        runs["pure-text"] = measure("pure: read (text)", _pure([*mb, "read", str(aligned)]), None)
+        runs["pure-json"] = measure(
+            "pure: read --json", _pure([*mb, "read", str(aligned), "--json"]), None
+        )
+    if args.flat:
+        big = capture("polling", 5 * n, 8, 2, "aligned")
+        print(f"  {big.name}: {_which_path(mb, big)}")
+        runs["flat"] = measure(f"core: read --json ({5 * n:,})", [*mb, "read", str(big),
+                               "--json"], None)  # fmt: skip
+    print("results (CPU = user + sys of the child):")
+    for run in runs.values():
+        print(f"  {run.name:<28} CPU {cpu(run):7.2f} s  wall {run.wall:7.2f} s"
+              f"  peak RSS {run.rss_mb:7.1f} MB  exit {run.rc}")  # fmt: skip
+    print("verdicts:")
+    ts = runs.get("tshark")
+    for key in ("text", "json"):
+        if ts is not None:
+            ratio = cpu(ts) / cpu(runs[key])
+            ok = "met" if ratio >= TARGETS[key] else "NOT met"
+            print(f"  {key} vs tshark's best case, CPU: {ratio:.2f}x (target >= "
+                  f"{TARGETS[key]}x) -> {ok}")  # fmt: skip
+    ratio = cpu(runs["mixed"]) / cpu(runs["text"])
+    print(f"  mixed / aligned CPU: {ratio:.2f} (target <= {MIXED}) -> "
+          f"{'met' if ratio <= MIXED else 'NOT met'}")  # fmt: skip
+    if "pure-text" in runs:
+        for key in ("text", "json"):
+            print(f"  core vs pure Python ({key}), CPU: "
+                  f"{cpu(runs['pure-' + key]) / cpu(runs[key]):.1f}x")  # fmt: skip
+    peak = max(run.rss_mb for key, run in runs.items() if key != "tshark")
+    print(f"  peak RSS of mbmon runs: {peak:.1f} MB (target < {MAX_RSS_MB:.0f} MB)")
+    if "flat" in runs:
+        print(f"  RSS at 5x / 1x: {runs['flat'].rss_mb / runs['json'].rss_mb:.2f}")
+    if args.callgrind:
+        callgrind_figures(args.callgrind)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

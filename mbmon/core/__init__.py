@@ -1,0 +1,229 @@
+"""The compiled core and the one place that decides whether it runs.
+
+The core (:mod:`mbmon.core._reader`, Cython, built by ``pip install .``) runs
+``mbmon read`` on the cases it covers and writes the very bytes the reference
+pipeline would; everything else it *declines before writing a byte* and the
+reference pipeline (pure Python) runs instead. The decision is made in two
+places, both here:
+
+* by the options (:func:`decline_for_options`): anything but a plain read of a
+  capture file to the console (``--json`` allowed) is declined at once;
+* by the input (:func:`read_file`): the core's first pass reads the whole
+  capture and only decides; a decline there (a gap, noise, a link type it does
+  not cover, ...) comes before any output. Only when nothing declined does the
+  second pass write.
+
+``MBMON_NO_EXTENSIONS=1`` (or an install without a compiler) means the core is
+never used; :func:`status` says which core is active (``mbmon --version``).
+docs/architecture.md lists what the core covers and declines.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import stat
+from dataclasses import dataclass, field
+from typing import Any
+
+__all__ = [
+    "CoreRun",
+    "available",
+    "decline_for_options",
+    "read_buffer",
+    "read_file",
+    "status",
+]
+
+_reader: Any = None
+_tried = False
+#: why the compiled core cannot run at all (None: it can), once it was looked for
+_UNAVAILABLE: str | None = None
+
+
+def _load() -> str | None:
+    """Import the extension on first need (a run the options decline never pays for it);
+    why it is unavailable, or ``None``."""
+    global _reader, _tried, _UNAVAILABLE
+    if not _tried:
+        _tried = True
+        if os.environ.get("MBMON_NO_EXTENSIONS", "") not in ("", "0"):
+            _UNAVAILABLE = "MBMON_NO_EXTENSIONS is set"
+        else:
+            try:
+                _reader = importlib.import_module("mbmon.core._reader")
+            except ImportError as exc:  # installed without a compiler, or not built in place
+                _UNAVAILABLE = f"not built ({exc})"
+    return _UNAVAILABLE
+
+
+def available() -> bool:
+    """Whether the compiled core can run in this process."""
+    return _load() is None
+
+
+def status() -> str:
+    """Which core is active, for ``mbmon --version``."""
+    why = _load()
+    if why is None:
+        return "core: compiled (Cython extension mbmon.core._reader)"
+    return f"core: pure Python ({why})"
+
+
+def decline_for_options(args: Any, *, live: bool, flt: Any) -> str | None:
+    """Why the options alone keep ``read`` off the core, or ``None`` when they allow it."""
+    checks = (
+        (args.rtu_raw, "--rtu-raw (RTU)"),
+        (args.rtu_port, "--rtu-port (RTU over TCP/UDP)"),
+        (args.write, "-w (logs)"),
+        (args.profile, "--profile"),
+        (args.robot, "--robot"),
+        (args.count, "-c"),
+        (flt is not None and getattr(flt, "active", False), "filters"),
+        (args.time_format != "a", "-t other than a"),
+        (live, "a pipe, FIFO or device as input"),
+    )
+    for present, what in checks:
+        if present:
+            return f"{what} is not covered by the core"
+    why = _load()
+    return None if why is None else f"the compiled core is unavailable: {why}"
+
+
+@dataclass
+class CoreRun:
+    """What the core did: ``declined`` says why it did not run (nothing was written)."""
+
+    declined: str | None = None
+    counts: dict[str, Any] = field(default_factory=dict)
+
+
+def _regular_file(path: str) -> bool:
+    try:
+        return stat.S_ISREG(os.stat(path).st_mode)
+    except OSError:
+        return False
+
+
+def read_file(
+    path: str,
+    *,
+    ports: frozenset[int],
+    timeout: float,
+    view: Any,
+    as_json: bool,
+    write: Any | None,
+    progress: Any | None = None,
+) -> CoreRun:
+    """Run the core on the capture at ``path``: a deciding pass, then (unless it
+    declined, and when ``write`` is given) a writing pass that hands its output,
+    in blocks of about 1 MiB of UTF-8, to ``write``. The counts are the summary's."""
+    if _load() is not None:
+        return CoreRun(declined=f"the compiled core is unavailable: {_UNAVAILABLE}")
+    if not _regular_file(path):
+        return CoreRun(declined="not a regular file")
+    import mmap
+
+    with open(path, "rb") as f:
+        try:
+            mapped: Any = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+        except ValueError:  # an empty file cannot be mapped
+            return CoreRun(declined="an empty file")
+    try:
+        data = memoryview(mapped)
+        try:
+            return read_buffer(
+                data,
+                ports=ports,
+                timeout=timeout,
+                view=view,
+                as_json=as_json,
+                write=write,
+                release=_releaser(mapped),
+                progress=progress,
+            )
+        finally:
+            data.release()
+    finally:
+        mapped.close()
+
+
+def read_buffer(
+    data: Any,
+    *,
+    ports: frozenset[int],
+    timeout: float,
+    view: Any,
+    as_json: bool,
+    write: Any | None,
+    release: Any | None = None,
+    progress: Any | None = None,
+) -> CoreRun:
+    """:func:`read_file` on a capture already in memory (``data``: bytes or a buffer);
+    ``progress(done, total)`` is called about once per MiB (each pass is half)."""
+    if _load() is not None:
+        return CoreRun(declined=f"the compiled core is unavailable: {_UNAVAILABLE}")
+    first = _reader._Pass(False, as_json, timeout, ports, view, None)
+    first.release = release
+    first.progress = progress
+    try:
+        first.run(data)
+    except _reader.Declined as exc:
+        return CoreRun(declined=str(exc))
+    if first.frames == 0:
+        return CoreRun(declined="no Modbus frames (the reference reader gives the hints)")
+    if write is None:
+        return CoreRun(counts=_counts(first))
+    second = _reader._Pass(True, as_json, timeout, ports, view, write)
+    second.release = release
+    second.progress = progress
+    second.progress_base = len(data) // 2
+    second.run(data)  # the same decisions as the first pass: it cannot decline
+    return CoreRun(counts=_counts(second))
+
+
+def _releaser(mapped: Any) -> Any:
+    """``release(offset, length)``: drop pages of the mapped capture already read from
+    the process (they are read again from the file if ever needed), or ``None``."""
+    import mmap
+
+    advice = getattr(mmap, "MADV_DONTNEED", None)
+    if advice is None or not hasattr(mapped, "madvise"):
+        return None
+
+    def release(offset: int, length: int) -> None:
+        mapped.madvise(advice, offset, length)
+
+    return release
+
+
+def _counts(done: Any) -> dict[str, Any]:
+    return {
+        "requests": done.requests,
+        "responses": done.responses,
+        "exceptions": done.exceptions,
+        "timeouts": done.timeouts,
+        "unsolicited": done.unsolicited,
+        "malformed": done.malformed,
+        "max_stream": done.max_stream,
+        "first": done.first if done.any_record else None,
+        "last": done.last if done.any_record else None,
+        "events": dict(done.events),
+    }
+
+
+def fill_summary(summary: Any, counts: dict[str, Any]) -> None:
+    """Put the core's counts into a :class:`~mbmon.sinks.summary.Summary`."""
+    for name in ("requests", "responses", "exceptions", "timeouts", "unsolicited", "malformed"):
+        setattr(summary, name, counts[name])
+    summary.max_stream = counts["max_stream"]
+    summary.first = counts["first"]
+    summary.last = counts["last"]
+    summary.events.update(counts["events"])
+
+
+def _pdu_entry(data: bytes, response: bool, request: bytes | None = None) -> Any:
+    """Test-only: the core's decode and generic note of one PDU (see tests/core)."""
+    if _load() is not None:
+        raise RuntimeError(status())
+    return _reader._native_note(data, response, request)

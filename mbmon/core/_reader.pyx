@@ -1,0 +1,1907 @@
+# cython: language_level=3, boundscheck=True, wraparound=False, cdivision=True
+"""The compiled core of ``mbmon read``: capture bytes in, console lines out.
+
+One fused loop does what the reference pipeline does for the cases it covers
+(pcap/pcapng records -> link layer -> IPv4 -> TCP reassembly -> MBAP framing ->
+pairing and timeouts -> the text or JSON line in one growing buffer), with the
+same rules as :mod:`mbmon.sources.pcapfile`, :mod:`mbmon.sources.dissect`,
+:mod:`mbmon.sources.tcpflow`, :mod:`mbmon.protocol.mbap`,
+:mod:`mbmon.protocol.pairing` and :mod:`mbmon.pipeline`. Anything outside them
+raises :class:`Declined`; :func:`read_capture_core` runs the loop twice, a
+first pass that only decides (nothing is written) and, when nothing declined,
+a second pass that writes, so a decline always comes before the first byte.
+
+Lines of the common PDUs (well-formed 01-06, 0F, 10 and exceptions) are made
+here; every other record (events, other function codes, malformed PDUs) is
+built as the reference pipeline's :class:`~mbmon.model.Record` and formatted by
+:mod:`mbmon.format` itself, so it is the same by construction.
+
+Memory safety: the file is a bounds-checked typed memoryview; every header is
+checked against the bytes present before it is read through a pointer.
+"""
+
+from libc.stdlib cimport malloc, realloc, free
+from libc.string cimport memcmp, memcpy, memmove, memset
+from libc.math cimport floor, isfinite, fabs, nextafter, INFINITY
+from libc.stdlib cimport strtod
+from libc.stdint cimport uint8_t, uint32_t, uint64_t, int64_t
+
+cdef extern from "Python.h":
+    char* PyOS_double_to_string(double val, char format_code, int precision,
+                                int flags, int *ptype) except NULL
+    double PyOS_string_to_double(const char *s, char **endptr,
+                                 object overflow_exception) except? -1.0
+    void PyMem_Free(void *p)
+    int Py_DTSF_ADD_DOT_0
+
+from cpython.bytes cimport PyBytes_FromStringAndSize
+
+import orjson as _orjson
+
+from mbmon.format import function_name, exception_name, record_json_bytes, record_line
+from mbmon.model import (
+    Direction, Event, EventKind, Frame, Record, RecordKind, Stream, Transport,
+)
+from mbmon.protocol.pairing import _needs_request
+from mbmon.protocol.pdu import decode_pdu
+
+
+class Declined(Exception):
+    """The input has something the core does not cover; the message says what."""
+
+
+DEF MAX_ACK_JUMP = 1 << 24
+DEF REUSE_DISTANCE = 1 << 20
+DEF CLOSED_LINGER = 60.0
+DEF MAX_CLOSED = 4096
+DEF MAX_OPEN = 9000            # the dissector evicts at 10,000 open connections
+DEF MAX_PENDING_STREAM = 9000  # the pairer evicts at 10,000 per stream
+DEF MAX_PENDING_TOTAL = 90000  # ... and 100,000 in all
+DEF TICK_EVERY = 0.1
+DEF MAX_RECORD = 1 << 26
+DEF FLUSH_AT = 1 << 20
+DEF RELEASE_EVERY = 1 << 24  # a multiple of every page size
+
+cdef int FIN = 0x01, SYN = 0x02, RST = 0x04, ACK = 0x10
+# 32-bit sequence arithmetic as C constants (a literal above C int range is a Python int)
+cdef int64_t MASK = 0xFFFFFFFF
+cdef int64_t HALF = 0x80000000
+cdef int64_t TWO32 = 0x100000000
+
+# --------------------------------------------------------------------------- helpers
+
+
+cdef inline int64_t signed32(int64_t diff):
+    diff &= MASK
+    return diff - TWO32 if diff & HALF else diff
+
+
+cdef inline uint32_t be16(const uint8_t* p):
+    return (<uint32_t>p[0] << 8) | p[1]
+
+
+cdef inline uint32_t be32(const uint8_t* p):
+    return (<uint32_t>p[0] << 24) | (<uint32_t>p[1] << 16) | (<uint32_t>p[2] << 8) | p[3]
+
+
+cdef inline uint32_t le32(const uint8_t* p):
+    return (<uint32_t>p[3] << 24) | (<uint32_t>p[2] << 16) | (<uint32_t>p[1] << 8) | p[0]
+
+
+cdef inline uint32_t rd32(const uint8_t* p, bint big):
+    return be32(p) if big else le32(p)
+
+
+cdef inline uint32_t rd16(const uint8_t* p, bint big):
+    return ((<uint32_t>p[0] << 8) | p[1]) if big else ((<uint32_t>p[1] << 8) | p[0])
+
+
+cdef const char* HEXD = b"0123456789ABCDEF"
+
+# the decimal text of every 16-bit value (register values are most of a line's digits)
+cdef char DEC[65536][6]   # [length, digits...]
+
+
+cdef void _fill_dec():
+    cdef int v, n, x
+    cdef char tmp[5]
+    for v in range(65536):
+        n = 0
+        x = v
+        while True:
+            tmp[n] = <char>(48 + x % 10)
+            n += 1
+            x //= 10
+            if x == 0:
+                break
+        DEC[v][0] = <char>n
+        for x in range(n):
+            DEC[v][1 + x] = tmp[n - 1 - x]
+
+
+_fill_dec()
+
+
+cdef inline int put_u16(Buf* b, unsigned int v) except -1:
+    return put(b, &DEC[v & 0xFFFF][1], DEC[v & 0xFFFF][0])
+
+
+cdef struct Buf:
+    char* p
+    Py_ssize_t n
+    Py_ssize_t cap
+
+
+cdef int buf_need(Buf* b, Py_ssize_t more) except -1:
+    cdef Py_ssize_t cap
+    cdef char* p
+    if b.n + more <= b.cap:
+        return 0
+    cap = b.cap * 2 if b.cap else 1 << 16
+    while cap < b.n + more:
+        cap *= 2
+    p = <char*>realloc(b.p, cap)
+    if p == NULL:
+        raise MemoryError()
+    b.p = p
+    b.cap = cap
+    return 0
+
+
+cdef inline int put(Buf* b, const char* s, Py_ssize_t n) except -1:
+    if b.n + n > b.cap:
+        buf_need(b, n)
+    memcpy(b.p + b.n, s, n)
+    b.n += n
+    return 0
+
+
+cdef inline int put_bytes(Buf* b, bytes s) except -1:
+    return put(b, s, len(s))
+
+
+cdef inline int put_c(Buf* b, char c) except -1:
+    if b.n + 1 > b.cap:
+        buf_need(b, 1)
+    b.p[b.n] = c
+    b.n += 1
+    return 0
+
+
+cdef int put_u(Buf* b, uint64_t v) except -1:
+    cdef char tmp[24]
+    cdef int i = 24
+    if v == 0:
+        return put_c(b, 48)
+    while v:
+        i -= 1
+        tmp[i] = <char>(48 + v % 10)
+        v //= 10
+    return put(b, tmp + i, 24 - i)
+
+
+cdef int put_i(Buf* b, int64_t v) except -1:
+    if v < 0:
+        put_c(b, 45)
+        return put_u(b, <uint64_t>(-v))
+    return put_u(b, <uint64_t>v)
+
+
+cdef int put_hex(Buf* b, const uint8_t* p, Py_ssize_t n) except -1:
+    """``n`` bytes as upper-case hex pairs separated by single spaces."""
+    cdef Py_ssize_t i
+    cdef char* o
+    if n <= 0:
+        return 0
+    buf_need(b, 3 * n)
+    o = b.p + b.n
+    for i in range(n):
+        o[0] = HEXD[p[i] >> 4]
+        o[1] = HEXD[p[i] & 15]
+        o[2] = 32
+        o += 3
+    b.n += 3 * n - 1
+    return 0
+
+
+cdef int put_double(Buf* b, double v, char code, int precision, int flags) except -1:
+    """``v`` formatted by CPython's own float formatting (repr 'r', or 'f')."""
+    cdef char* s = PyOS_double_to_string(v, code, precision, flags, NULL)
+    cdef Py_ssize_t n = 0
+    while s[n]:
+        n += 1
+    try:
+        put(b, s, n)
+    finally:
+        PyMem_Free(s)
+    return 0
+
+
+cdef int put_json_float(Buf* b, double v) except -1:
+    """``orjson.dumps(v)``: CPython's repr where the two agree, orjson itself elsewhere."""
+    cdef double a = fabs(v)
+    if isfinite(v) and (a == 0.0 or (1e-4 <= a < 1e16)):
+        return put_double(b, v, b'r', 0, Py_DTSF_ADD_DOT_0)
+    return put_bytes(b, _orjson.dumps(v))
+
+
+cdef int put_trimmed(Buf* b, char* s, Py_ssize_t n) except -1:
+    """A fixed-point number without its trailing zeros (one digit stays after the point)."""
+    while n > 2 and s[n - 1] == 48 and s[n - 2] != 46:
+        n -= 1
+    return put(b, s, n)
+
+
+cdef int put_json_time(Buf* b, double ts) except -1:
+    """``orjson.dumps(ts)`` of a capture time: its microseconds' decimal text, trimmed,
+    when that text reads back as ``ts`` (then, below 2^33 s, no shorter text does and
+    it is the shortest repr); CPython's repr otherwise."""
+    cdef double whole, x
+    cdef int64_t us, sec
+    cdef char tmp[40]
+    cdef int i, n
+    cdef char* end
+    cdef int verdict
+    if 0.0 <= ts < 8589934592.0:
+        whole = floor(ts)
+        x = (ts - whole) * 1e6 + 0.5
+        us = 999999 if x > 999999.0 else <int64_t>x
+        sec = <int64_t>whole
+        n = 0
+        if sec == 0:
+            tmp[0] = 48
+            n = 1
+        else:
+            i = 20
+            while sec:
+                i -= 1
+                tmp[i] = <char>(48 + sec % 10)
+                sec //= 10
+            n = 20 - i
+            memmove(tmp, tmp + i, n)
+        tmp[n] = 46
+        for i in range(6, 0, -1):
+            tmp[n + i] = <char>(48 + us % 10)
+            us //= 10
+        n += 7
+        tmp[n] = 0
+        verdict = round_trips(ts, whole, <double>(<int64_t>x if x <= 999999.0 else 999999))
+        if verdict > 0 or (verdict == 0 and strtod(tmp, &end) == ts):
+            return put_trimmed(b, tmp, n)
+    return put_json_float(b, ts)
+
+
+cdef int round_trips(double ts, double whole, double us):
+    """Whether the decimal ``whole + us / 1e6`` reads back as ``ts``: 1 yes, -1 no, 0 too
+    close to call (the caller asks strtod). ``ts - whole`` is exact; the error of the
+    computed difference is below 1e-15, kept as a margin on each side."""
+    cdef double e = us * 1e-6 - (ts - whole)
+    cdef double half
+    if e >= 0:
+        half = (nextafter(ts, INFINITY) - ts) / 2
+    else:
+        half = (ts - nextafter(ts, -INFINITY)) / 2
+        e = -e
+    if e < half - 1e-15:
+        return 1
+    if e > half + 1e-15:
+        return -1
+    return 0
+
+
+cdef int put_json_round3(Buf* b, double v) except -1:
+    """``orjson.dumps(round(v, 3))``: CPython's correctly rounded three decimals, trimmed
+    (below 1e9 no shorter text reads back as that float)."""
+    cdef char* s = PyOS_double_to_string(v, b'f', 3, 0, NULL)
+    cdef Py_ssize_t n = 0
+    while s[n]:
+        n += 1
+    try:
+        put_trimmed(b, s, n)
+    finally:
+        PyMem_Free(s)
+    return 0
+
+
+cdef double py_round3(double v) except? -1.0:
+    """``round(v, 3)``: CPython's correctly rounded digits, read back."""
+    cdef char* s = PyOS_double_to_string(v, b'f', 3, 0, NULL)
+    cdef double r
+    try:
+        r = PyOS_string_to_double(s, NULL, None)
+    finally:
+        PyMem_Free(s)
+    return r
+
+
+# --------------------------------------------------------------------------- state
+
+
+cdef struct Half:
+    int64_t nxt            # next expected sequence number; -1: none yet
+    int64_t isn            # from the SYN; -1: none
+    int64_t fin            # sequence number of the FIN; -1: none
+    bint done              # FIN reached in order
+    uint8_t* buf           # MBAP bytes held (an ADU not complete yet)
+    int blen
+    int bcap
+
+
+cdef struct Conn:
+    int sid
+    Half h[2]              # 0: client to server, 1: server to client
+    bint connected
+    bint closed
+    bint open_             # in the dissector's open connections
+    int fin_by             # 0 none, 1 client, 2 server
+    uint8_t caddr[4]
+    uint8_t saddr[4]
+    int cport
+    int sport
+
+
+cdef struct Pend:
+    double ts
+    int64_t index          # the request's record index
+    uint64_t key
+    int sid
+    int tid
+    int unit
+    int fc
+    int prev               # the stream's pending requests, oldest first
+    int next
+    int alen
+    uint8_t raw[262]
+
+
+cdef struct SPend:        # one stream's pending requests
+    int head
+    int tail
+    int count
+    int aprev              # streams with pending requests, in the pairer's dict order
+    int anext
+    bint active
+
+
+cdef struct Native:       # a PDU this module formats itself
+    int kind               # 0 request, 1 response, 2 exception
+    int fc
+    int has_addr
+    int address
+    int count              # -1: none
+    int nvalues            # -1: values null
+    int bits               # values are bits (else registers)
+    const uint8_t* vdata   # registers: big-endian words; bits: packed bytes
+    int exc                # exception code, -1 none
+    int onoff              # 05: the note says ON/OFF
+
+
+cdef class _Pass:
+    """One pass over a capture: every decision; with ``emit``, every line too."""
+
+    cdef bint emit
+    cdef bint as_json
+    cdef double timeout
+    cdef object ports           # frozenset of Modbus/TCP ports
+    cdef uint8_t port_map[65536]  # the same, one byte per port
+    cdef uint8_t ckey[64][12]   # a direct-mapped cache of the flow table (12-byte keys)
+    cdef int cval[64]           # its values; -1: empty
+    cdef object view
+    cdef object tf
+    cdef object write
+    cdef public object release  # release(offset, length): the mapped file's pages read
+    cdef Py_ssize_t released
+    cdef public object progress  # progress(done, total) about once per MiB, or None
+    cdef public Py_ssize_t progress_base  # bytes counted done before this pass
+    cdef Py_ssize_t next_progress
+    cdef Py_ssize_t size
+    cdef Buf out
+    # connections
+    cdef Conn* conns
+    cdef int nconns
+    cdef int capconns
+    cdef dict flows             # 12-byte key -> conn * 2 + (sender is client)
+    cdef list open_order        # conn indexes in creation order (open ones are open_)
+    cdef int nopen
+    cdef object closed_fifo     # [conn, until] in closing order
+    cdef double due
+    # pairing
+    cdef Pend* pool
+    cdef int npool
+    cdef int cappool
+    cdef int free_head
+    cdef int* table
+    cdef int tbits
+    cdef int tused
+    cdef SPend* sp
+    cdef int capsp
+    cdef int ahead
+    cdef int atail
+    cdef int total
+    cdef double next_tick
+    cdef double last_ts
+    cdef double end_ts
+    # records and the summary
+    cdef public int64_t index
+    cdef public int64_t frames
+    cdef public int64_t requests, responses, exceptions, timeouts, unsolicited, malformed
+    cdef public int64_t max_stream
+    cdef public double first, last
+    cdef public bint any_record
+    cdef public dict events
+    # emitting
+    cdef list streams           # Stream objects, by id (made when a line needs one)
+    cdef list labels            # per stream: (label C2S, label S2C) in UTF-8
+    cdef list heads             # per stream: JSON '"src":"..","dst":".."' both ways
+    cdef double second
+    cdef bytes prefix
+    cdef list fnames            # function names in UTF-8, None where not plain
+    cdef list enames
+    cdef list _sid_conn         # stream id -> connection index
+    cdef double pl_last         # the pipeline's _last_ts (chunks set it, events raise it)
+
+    def __cinit__(self):
+        self.conns = NULL
+        self.pool = NULL
+        self.table = NULL
+        self.sp = NULL
+        self.out.p = NULL
+        self.out.n = 0
+        self.out.cap = 0
+
+    def __dealloc__(self):
+        cdef int i, d
+        if self.conns != NULL:
+            for i in range(self.nconns):
+                for d in range(2):
+                    if self.conns[i].h[d].buf != NULL:
+                        free(self.conns[i].h[d].buf)
+            free(self.conns)
+        free(self.pool)
+        free(self.table)
+        free(self.sp)
+        free(self.out.p)
+
+    def __init__(self, bint emit, bint as_json, double timeout, ports, view, write):
+        self.emit = emit
+        self.as_json = as_json
+        self.timeout = timeout
+        self.ports = ports
+        memset(self.port_map, 0, 65536)
+        for port in ports:
+            if 0 <= port <= 0xFFFF:
+                self.port_map[<int>port] = 1
+        self.clear_cache()
+        self.view = view
+        self.tf = view.time_format if view is not None else None
+        self.write = write
+        self.release = None
+        self.released = 0
+        self.progress = None
+        self.progress_base = 0
+        self.next_progress = 0
+        self.flows = {}
+        self.open_order = []
+        self.nopen = 0
+        self.closed_fifo = []
+        self.due = float("inf")
+        self.tbits = 10
+        self.table = <int*>malloc(sizeof(int) << self.tbits)
+        if self.table == NULL:
+            raise MemoryError()
+        for i in range(1 << self.tbits):
+            self.table[i] = -1
+        self.free_head = -1
+        self.ahead = -1
+        self.atail = -1
+        self.next_tick = float("-inf")
+        self.last_ts = 0.0
+        self.end_ts = 0.0
+        self.pl_last = 0.0
+        self._sid_conn = []
+        self.index = 0
+        self.max_stream = -1
+        self.any_record = False
+        self.events = {}
+        self.streams = []
+        self.labels = []
+        self.heads = []
+        self.second = float("nan")
+        self.prefix = None
+        self.fnames = []
+        for fc in range(128):
+            self.fnames.append(_plain(function_name(fc)))
+        self.enames = []
+        for code in range(256):
+            self.enames.append(_plain(exception_name(code)))
+
+    # ------------------------------------------------------------------ output
+
+    cdef int flush_out(self) except -1:
+        if self.out.n:
+            self.write(PyBytes_FromStringAndSize(self.out.p, self.out.n))
+            self.out.n = 0
+        return 0
+
+    cdef int put_time(self, double ts) except -1:
+        """``view.time_format.bytes(ts)``: its per-second prefix, then microseconds."""
+        cdef double whole, x
+        cdef int64_t us
+        cdef char tmp[6]
+        cdef int i
+        if not isfinite(ts):
+            return put_bytes(&self.out, self.tf.bytes(ts))
+        whole = floor(ts)
+        if whole != self.second:
+            self.tf.bytes(ts)  # fills the format's own per-second cache (and its day)
+            self.second = whole
+            self.prefix = self.tf._second[2]
+        if self.prefix is None:
+            return put_bytes(&self.out, self.tf.bytes(ts))
+        put_bytes(&self.out, self.prefix)
+        x = (ts - whole) * 1e6 + 0.5
+        us = 999999 if x > 999999.0 else <int64_t>x
+        for i in range(5, -1, -1):
+            tmp[i] = <char>(48 + us % 10)
+            us //= 10
+        return put(&self.out, tmp, 6)
+
+    # ------------------------------------------------------------------ records
+
+    cdef int count_record(self, double ts, int sid) except -1:
+        self.any_record = True
+        if self.index == 0 or ts < self.first:
+            self.first = ts
+        if self.index == 0 or ts > self.last:
+            self.last = ts
+        if sid > self.max_stream:
+            self.max_stream = sid
+        self.index += 1
+        return 0
+
+    cdef object stream_obj(self, int sid):
+        cdef Conn* c
+        while len(self.streams) <= sid:
+            self.streams.append(None)
+            self.labels.append(None)
+            self.heads.append(None)
+        s = self.streams[sid]
+        if s is None:
+            c = &self.conns[self.conn_of_sid(sid)]
+            client = "%d.%d.%d.%d:%d" % (c.caddr[0], c.caddr[1], c.caddr[2], c.caddr[3], c.cport)
+            server = "%d.%d.%d.%d:%d" % (c.saddr[0], c.saddr[1], c.saddr[2], c.saddr[3], c.sport)
+            s = Stream(sid, Transport.TCP, client, server)
+            self.streams[sid] = s
+        return s
+
+    cdef int conn_of_sid(self, int sid) except -1:
+        return self._sid_conn[sid]
+
+    cdef int event(self, double ts, int sid, object kind, object info) except -1:
+        """An event record (connect, disconnect, timeout), formatted by mbmon.format."""
+        cdef int64_t index = self.index
+        name = kind.value
+        self.events[name] = self.events.get(name, 0) + 1
+        if kind is EventKind.TIMEOUT:
+            self.timeouts += 1
+        elif ts > self.pl_last:  # a source's event, fed to the pipeline
+            self.pl_last = ts
+        self.count_record(ts, sid)
+        if not self.emit:
+            return 0
+        stream = self.stream_obj(sid)
+        ev = Event(ts, stream, kind) if info is None else Event(ts, stream, kind, info)
+        rec = Record(index, ts, RecordKind.EVENT, stream, event=ev)
+        return self.put_record(rec)
+
+    cdef int put_record(self, object rec) except -1:
+        if self.as_json:
+            put_bytes(&self.out, record_json_bytes(rec, self.view))
+        else:
+            put_bytes(&self.out, record_line(rec, self.view).encode("utf-8", "backslashreplace"))
+        put_c(&self.out, 10)
+        if self.out.n >= FLUSH_AT:
+            self.flush_out()
+        return 0
+
+    cdef int frame_record(self, int sid, int d, double ts, const uint8_t* adu, int alen,
+                          Pend* req) except -1:
+        """The record of one frame: a request, or a response with its request (``req``)
+        or without (NULL)."""
+        cdef int64_t index = self.index
+        cdef uint8_t code = adu[7]
+        cdef Native nat, rnat
+        cdef bint native
+        cdef double latency = 0.0
+        if d == 0:
+            self.requests += 1
+        elif code & 0x80:
+            self.exceptions += 1
+        else:
+            self.responses += 1
+        if d == 1 and req == NULL:
+            self.unsolicited += 1
+        self.count_record(ts, sid)
+        if not self.emit:
+            return 0
+        if req != NULL:
+            latency = ts - req.ts
+        # the PDUs this module formats itself; the rest goes to mbmon.format
+        if d == 0:
+            native = native_pdu(adu + 7, alen - 7, False, NULL, &nat)
+        elif req != NULL:
+            native = (native_pdu(req.raw + 7, req.alen - 7, False, NULL, &rnat)
+                      and native_pdu(adu + 7, alen - 7, True, &rnat, &nat))
+        else:
+            native = native_pdu(adu + 7, alen - 7, True, NULL, &nat)
+        if native and self.fnames[nat.fc] is None:
+            native = False
+        if native and nat.exc >= 0 and self.enames[nat.exc] is None:
+            native = False
+        if not native:
+            return self.python_frame(index, sid, d, ts, adu, alen, req, latency)
+        if req != NULL and nat.kind != 0 and not nat.has_addr and rnat.has_addr:
+            # a response's address and count are its read request's (the JSON's, the note's)
+            nat.has_addr = 1
+            nat.address = rnat.address
+            nat.count = rnat.count
+        stream = self.stream_obj(sid)
+        if self.labels[sid] is None:
+            self.labels[sid] = (
+                self.view.label(stream, Direction.C2S).encode("utf-8"),
+                self.view.label(stream, Direction.S2C).encode("utf-8"),
+            )
+            self.heads[sid] = (
+                _inner(_orjson.dumps({"stream": sid, "src": stream.client, "dst": stream.server})),
+                _inner(_orjson.dumps({"stream": sid, "src": stream.server, "dst": stream.client})),
+            )
+        cdef Buf* o = &self.out
+        cdef Py_ssize_t note_at, note_end, line_at
+        cdef bytes label = self.labels[sid][d]
+        cdef int tid = (adu[0] << 8) | adu[1]
+        cdef int unit = adu[6]
+        if self.as_json:
+            put(o, b'{"index":', 9)
+            put_i(o, index)
+            put(o, b',"time":', 8)
+            put_json_time(o, ts)
+            put_c(o, 44)
+            put_bytes(o, self.heads[sid][d])
+            put(o, b',"transport":"tcp","tid":', 25)
+            put_u(o, tid)
+            put(o, b',"unit":', 8)
+            put_u(o, unit)
+            put(o, b',"fc":', 6)
+            put_u(o, nat.fc)
+            if nat.kind == 0:
+                put(o, b',"kind":"request","exception_code":', 35)
+            elif nat.kind == 1:
+                put(o, b',"kind":"response","exception_code":', 36)
+            else:
+                put(o, b',"kind":"exception","exception_code":', 37)
+            if nat.exc >= 0:
+                put_u(o, nat.exc)
+            else:
+                put(o, b"null", 4)
+            put(o, b',"address":', 11)
+            if nat.has_addr:
+                put_u(o, nat.address)
+            else:
+                put(o, b"null", 4)
+            put(o, b',"count":', 9)
+            if nat.has_addr and nat.count >= 0:
+                put_u(o, nat.count)
+            else:
+                put(o, b"null", 4)
+            put(o, b',"values":', 10)
+            put_values_json(o, &nat)
+            put(o, b',"pdu":"', 8)
+            put_hex(o, adu + 7, alen - 7)
+            put(o, b'","line":"', 10)
+        line_at = o.n
+        self.put_time(ts)
+        put(o, b"  ", 2)
+        put_bytes(o, label)
+        put(o, b"  [u", 4)
+        put_u(o, unit)
+        put(o, b" t", 2)
+        put_u(o, tid)
+        put(o, b"]  ", 3)
+        put_hex(o, adu + 7, alen - 7)
+        put(o, b"  | ", 4)
+        note_at = o.n
+        self.put_note(&nat)
+        note_end = o.n
+        if req != NULL:
+            put(o, b" (", 2)
+            put_double(o, latency * 1000, b'f', 1, 0)
+            put(o, b" ms)", 4)
+        elif d == 1:
+            put(o, b" (no matching request)", 22)
+        if self.as_json:
+            put(o, b'","notes":["', 12)
+            buf_need(o, note_end - note_at)
+            memcpy(o.p + o.n, o.p + note_at, note_end - note_at)
+            o.n += note_end - note_at
+            put(o, b'"],"crc_ok":null,"latency_ms":', 30)
+            if req != NULL and fabs(latency) < 1e9:
+                put_json_round3(o, latency * 1000)
+            elif req != NULL:
+                put_bytes(o, _orjson.dumps(round(latency * 1000, 3)))
+            else:
+                put(o, b"null", 4)
+            put(o, b',"malformed":null,"request_index":', 34)
+            if req != NULL:
+                put_i(o, req.index)
+            else:
+                put(o, b"null", 4)
+            put_c(o, 125)
+        put_c(o, 10)
+        if o.n >= FLUSH_AT:
+            self.flush_out()
+        return 0
+
+    cdef int put_note(self, Native* n) except -1:
+        """The generic note (``mbmon.format.generic_note``) of a native PDU."""
+        cdef Buf* o = &self.out
+        cdef int i, shown, bit
+        if n.kind == 2:
+            put(o, b"Exception ", 10)
+            put_c(o, HEXD[n.exc >> 4])
+            put_c(o, HEXD[n.exc & 15])
+            put_c(o, 32)
+            put_bytes(o, self.enames[n.exc])
+            put(o, b" (", 2)
+            put_bytes(o, self.fnames[n.fc])
+            put_c(o, 41)
+            return 0
+        put_bytes(o, self.fnames[n.fc])
+        if n.has_addr:
+            put_c(o, 32)
+            put_u(o, n.address)
+            if n.count > 1:
+                put(o, b"..", 2)
+                put_u(o, n.address + n.count - 1)
+        if n.nvalues > 0:
+            put(o, b" = ", 3)
+            if n.onoff:
+                if n.vdata[0]:
+                    put(o, b"ON", 2)
+                else:
+                    put(o, b"OFF", 3)
+            elif n.bits:
+                shown = n.nvalues if n.nvalues < 64 else 64
+                buf_need(o, shown)
+                for i in range(shown):
+                    bit = (n.vdata[i >> 3] >> (i & 7)) & 1
+                    o.p[o.n] = 49 if bit else 48
+                    o.n += 1
+                if n.nvalues > 64:
+                    put(o, b"\xe2\x80\xa6", 3)
+            else:
+                shown = n.nvalues if n.nvalues < 16 else 16
+                for i in range(shown):
+                    if i:
+                        put(o, b", ", 2)
+                    put_u16(o, be16(n.vdata + 2 * i))
+                if n.nvalues > 16:
+                    put(o, b", \xe2\x80\xa6 (", 7)
+                    put_u(o, n.nvalues)
+                    put(o, b" values)", 8)
+        return 0
+
+    cdef int python_frame(self, int64_t index, int sid, int d, double ts, const uint8_t* adu,
+                          int alen, Pend* req, double latency) except -1:
+        """A frame record the reference way: its Frame and Record, formatted by mbmon.format."""
+        stream = self.stream_obj(sid)
+        raw = PyBytes_FromStringAndSize(<const char*>adu, alen)
+        tid = (adu[0] << 8) | adu[1]
+        pdu = decode_pdu(raw[7:], d == 1)
+        request = None
+        req_index = None
+        lat = None
+        if req != NULL:
+            req_raw = PyBytes_FromStringAndSize(<const char*>req.raw, req.alen)
+            req_pdu = decode_pdu(req_raw[7:], False)
+            request = Frame(req.ts, stream, Direction.C2S, req.unit, req.tid, req_pdu, req_raw,
+                            None)
+            if _needs_request(pdu, req_pdu):
+                pdu = decode_pdu(pdu.raw, True, request=req_pdu)
+            req_index = req.index
+            lat = latency
+        frame = Frame(ts, stream, Direction.S2C if d else Direction.C2S, adu[6], tid, pdu, raw,
+                      None)
+        if pdu.malformed:
+            self.malformed += 1
+        kind = _RECORD_KIND[pdu.kind]
+        rec = Record(index, ts, kind, stream, frame, request if d else None, req_index, lat)
+        return self.put_record(rec)
+
+    # ------------------------------------------------------------------ pairing
+
+    cdef int pend_slot(self, uint64_t key):
+        """The table slot holding ``key``, or the empty slot where it would go (as -1 - slot)."""
+        cdef uint64_t mask = (1 << self.tbits) - 1
+        cdef uint64_t i = (key * <uint64_t>0x9E3779B97F4A7C15) >> (64 - self.tbits)
+        cdef int e
+        while True:
+            e = self.table[i]
+            if e < 0:
+                return -1 - <int>i
+            if self.pool[e].key == key:
+                return <int>i
+            i = (i + 1) & mask
+
+    cdef int table_grow(self) except -1:
+        cdef int old_bits = self.tbits
+        cdef int* old = self.table
+        cdef int i, slot
+        self.tbits += 1
+        self.table = <int*>malloc(sizeof(int) << self.tbits)
+        if self.table == NULL:
+            self.table = old
+            self.tbits = old_bits
+            raise MemoryError()
+        for i in range(1 << self.tbits):
+            self.table[i] = -1
+        for i in range(1 << old_bits):
+            if old[i] >= 0:
+                slot = self.pend_slot(self.pool[old[i]].key)
+                self.table[-1 - slot] = old[i]
+        free(old)
+        return 0
+
+    cdef int table_remove(self, int slot):
+        """Backward-shift deletion (linear probing)."""
+        cdef uint64_t mask = (1 << self.tbits) - 1
+        cdef uint64_t i = slot, j = slot, home
+        cdef int e
+        while True:
+            j = (j + 1) & mask
+            e = self.table[j]
+            if e < 0:
+                break
+            home = (self.pool[e].key * <uint64_t>0x9E3779B97F4A7C15) >> (64 - self.tbits)
+            # may the entry at j move to i? (home not cyclically in (i, j])
+            if (j > i and (home <= i or home > j)) or (j < i and (home <= i and home > j)):
+                self.table[i] = e
+                i = j
+        self.table[i] = -1
+        self.tused -= 1
+        return 0
+
+    cdef int ensure_stream(self, int sid) except -1:
+        cdef int cap, i
+        cdef SPend* p
+        if sid < self.capsp:
+            return 0
+        cap = self.capsp * 2 if self.capsp else 64
+        while cap <= sid:
+            cap *= 2
+        p = <SPend*>realloc(self.sp, cap * sizeof(SPend))
+        if p == NULL:
+            raise MemoryError()
+        for i in range(self.capsp, cap):
+            p[i].head = -1
+            p[i].tail = -1
+            p[i].count = 0
+            p[i].aprev = -1
+            p[i].anext = -1
+            p[i].active = False
+        self.sp = p
+        self.capsp = cap
+        return 0
+
+    cdef int new_pend(self) except -1:
+        cdef int e, cap
+        cdef Pend* p
+        if self.free_head >= 0:
+            e = self.free_head
+            self.free_head = self.pool[e].next
+            return e
+        if self.npool == self.cappool:
+            cap = self.cappool * 2 if self.cappool else 256
+            p = <Pend*>realloc(self.pool, cap * sizeof(Pend))
+            if p == NULL:
+                raise MemoryError()
+            self.pool = p
+            self.cappool = cap
+        e = self.npool
+        self.npool += 1
+        return e
+
+    cdef int unlink(self, int e) except -1:
+        """Take pending request ``e`` out of the table, its stream's list and the pool."""
+        cdef Pend* p = &self.pool[e]
+        cdef SPend* s = &self.sp[p.sid]
+        cdef int slot = self.pend_slot(p.key)
+        self.table_remove(slot)
+        if p.prev >= 0:
+            self.pool[p.prev].next = p.next
+        else:
+            s.head = p.next
+        if p.next >= 0:
+            self.pool[p.next].prev = p.prev
+        else:
+            s.tail = p.prev
+        s.count -= 1
+        self.total -= 1
+        if s.count == 0:  # the pairer deletes an emptied stream's dict
+            s.active = False
+            if s.aprev >= 0:
+                self.sp[s.aprev].anext = s.anext
+            else:
+                self.ahead = s.anext
+            if s.anext >= 0:
+                self.sp[s.anext].aprev = s.aprev
+            else:
+                self.atail = s.aprev
+            s.aprev = -1
+            s.anext = -1
+        p.next = self.free_head
+        self.free_head = e
+        return 0
+
+    cdef int timeout_record(self, double ts, int e) except -1:
+        """A request that got no answer: its TIMEOUT event, then it is forgotten."""
+        cdef Pend* p = &self.pool[e]
+        info = {"request_index": p.index, "unit": p.unit, "fc": p.fc, "tid": p.tid}
+        sid = p.sid
+        self.unlink(e)
+        return self.event(ts, sid, EventKind.TIMEOUT, info)
+
+    cdef int pair_tick(self, double now) except -1:
+        cdef double limit = now - self.timeout
+        cdef int s = self.ahead, nxt, e
+        while s >= 0:
+            nxt = self.sp[s].anext
+            while self.sp[s].count:
+                e = self.sp[s].head
+                if self.pool[e].ts > limit:
+                    break
+                self.timeout_record(now, e)
+            s = nxt
+        return 0
+
+    cdef int on_frame(self, int ci, int d, double ts, const uint8_t* adu, int alen) except -1:
+        cdef int sid = self.conns[ci].sid
+        cdef int tid = (adu[0] << 8) | adu[1]
+        cdef int unit = adu[6]
+        cdef int fc = adu[7] & 0x7F
+        cdef uint64_t key = (<uint64_t>sid << 24) | (<uint64_t>tid << 8) | <uint64_t>unit
+        cdef int slot, e
+        cdef SPend* s
+        cdef Pend* p
+        self.frames += 1
+        self.ensure_stream(sid)
+        slot = self.pend_slot(key)
+        if d == 0:
+            if slot >= 0:  # the same (tid, unit) again: the old request times out
+                self.timeout_record(ts, self.table[slot])
+            if self.sp[sid].count >= MAX_PENDING_STREAM or self.total >= MAX_PENDING_TOTAL:
+                raise Declined("more requests pending than the core keeps")
+            e = self.new_pend()
+            p = &self.pool[e]
+            p.ts = ts
+            p.index = self.index
+            p.key = key
+            p.sid = sid
+            p.tid = tid
+            p.unit = unit
+            p.fc = fc
+            p.alen = alen
+            memcpy(p.raw, adu, alen)
+            s = &self.sp[sid]
+            if not s.active:
+                s.active = True
+                s.aprev = self.atail
+                s.anext = -1
+                if self.atail >= 0:
+                    self.sp[self.atail].anext = sid
+                else:
+                    self.ahead = sid
+                self.atail = sid
+            p.prev = s.tail
+            p.next = -1
+            if s.tail >= 0:
+                self.pool[s.tail].next = e
+            else:
+                s.head = e
+            s.tail = e
+            s.count += 1
+            self.total += 1
+            if 2 * (self.tused + 1) > (1 << self.tbits):
+                self.table_grow()
+            slot = self.pend_slot(key)
+            self.table[-1 - slot] = e
+            self.tused += 1
+            return self.frame_record(sid, 0, ts, adu, alen, NULL)
+        if slot >= 0 and self.pool[self.table[slot]].fc == fc:
+            e = self.table[slot]
+            self.frame_record(sid, 1, ts, adu, alen, &self.pool[e])
+            self.unlink(e)
+            return 0
+        return self.frame_record(sid, 1, ts, adu, alen, NULL)
+
+    # ------------------------------------------------------------------ MBAP framing
+
+    cdef Py_ssize_t frames_of(self, int ci, int d, double ts, const uint8_t* p,
+                              Py_ssize_t n) except -1:
+        """Frame every whole ADU of ``p[:n]``; the offset of the first byte left."""
+        cdef Py_ssize_t pos = 0, end
+        cdef int length
+        while n - pos >= 6:
+            if p[pos + 2] == 0 and p[pos + 3] == 0:
+                length = (p[pos + 4] << 8) | p[pos + 5]
+                if 2 <= length <= 254:
+                    end = pos + 6 + length
+                    if end > n:
+                        break
+                    self.on_frame(ci, d, ts, p + pos, 6 + length)
+                    pos = end
+                    continue
+                if length == 255:
+                    raise Declined("an MBAP length of 255 (decoded, marked malformed)")
+            raise Declined("bytes that are no MBAP header (noise resynchronisation)")
+        return pos
+
+    cdef int on_chunk(self, int ci, int d, double ts, const uint8_t* p,
+                      Py_ssize_t n) except -1:
+        cdef Half* h = &self.conns[ci].h[d]
+        cdef Py_ssize_t pos, rest
+        self.last_ts = ts
+        self.pl_last = ts
+        if h.blen == 0:
+            pos = self.frames_of(ci, d, ts, p, n)
+            rest = n - pos
+            if rest:
+                self.hold(ci, d, p + pos, rest)
+        else:
+            self.hold(ci, d, p, n)
+            h = &self.conns[ci].h[d]
+            pos = self.frames_of(ci, d, ts, h.buf, h.blen)
+            h = &self.conns[ci].h[d]
+            if pos:
+                memmove(h.buf, h.buf + pos, h.blen - pos)
+                h.blen -= <int>pos
+        if ts >= self.next_tick:
+            self.next_tick = ts + TICK_EVERY
+            self.pair_tick(ts)
+        return 0
+
+    cdef int hold(self, int ci, int d, const uint8_t* p, Py_ssize_t n) except -1:
+        cdef Half* h = &self.conns[ci].h[d]
+        cdef int cap
+        cdef uint8_t* b
+        if h.blen + n > 1 << 24:
+            raise Declined("an ADU held over more than 16 MiB")
+        if h.blen + n > h.bcap:
+            cap = h.bcap * 2 if h.bcap else 512
+            while cap < h.blen + n:
+                cap *= 2
+            b = <uint8_t*>realloc(h.buf, cap)
+            if b == NULL:
+                raise MemoryError()
+            h.buf = b
+            h.bcap = cap
+        memcpy(h.buf + h.blen, p, n)
+        h.blen += <int>n
+        return 0
+
+    cdef int close_stream(self, int ci) except -1:
+        """The pipeline's DISCONNECT: the stream's decoders flush (held bytes: noise)."""
+        if self.conns[ci].h[0].blen or self.conns[ci].h[1].blen:
+            raise Declined("an incomplete ADU when its connection ended (noise)")
+        return 0
+
+    # ------------------------------------------------------------------ TCP
+
+    cdef int new_conn(self, bytes key, const uint8_t* addrs, int sport, int dport, int flags,
+                      double ts) except -1:
+        """A new connection on ``key`` (dissector ``_new_tcp``); returns flow value."""
+        cdef bint src_in = self.port_map[sport], dst_in = self.port_map[dport]
+        cdef bint sender_client
+        cdef int ci, cap, d
+        cdef Conn* c
+        cdef Conn* nc
+        if src_in and dst_in:
+            if flags & (SYN | ACK) == SYN:
+                sender_client = True
+            elif flags & (SYN | ACK) == (SYN | ACK):
+                sender_client = False
+            else:
+                sender_client = dport <= sport
+        else:
+            sender_client = dst_in
+        if self.nopen >= MAX_OPEN:
+            raise Declined("more open connections than the core keeps")
+        if self.nconns == self.capconns:
+            cap = self.capconns * 2 if self.capconns else 64
+            nc = <Conn*>realloc(self.conns, cap * sizeof(Conn))
+            if nc == NULL:
+                raise MemoryError()
+            self.conns = nc
+            self.capconns = cap
+        ci = self.nconns
+        self.nconns += 1
+        c = &self.conns[ci]
+        c.sid = len(self._sid_conn)
+        self._sid_conn.append(ci)
+        for d in range(2):
+            c.h[d].nxt = -1
+            c.h[d].isn = -1
+            c.h[d].fin = -1
+            c.h[d].done = False
+            c.h[d].buf = NULL
+            c.h[d].blen = 0
+            c.h[d].bcap = 0
+        c.connected = False
+        c.closed = False
+        c.open_ = True
+        c.fin_by = 0
+        if sender_client:
+            memcpy(c.caddr, addrs, 4)
+            memcpy(c.saddr, addrs + 4, 4)
+            c.cport = sport
+            c.sport = dport
+        else:
+            memcpy(c.caddr, addrs + 4, 4)
+            memcpy(c.saddr, addrs, 4)
+            c.cport = dport
+            c.sport = sport
+        self.open_order.append(ci)
+        self.nopen += 1
+        rkey = bytes(addrs[4:8]) + bytes(addrs[0:4]) + bytes(
+            ((dport >> 8, dport & 255, sport >> 8, sport & 255)))
+        self.flows[key] = ci * 2 + (1 if sender_client else 0)
+        self.flows[rkey] = ci * 2 + (0 if sender_client else 1)
+        self.clear_cache()
+        return ci * 2 + (1 if sender_client else 0)
+
+    cdef int clear_cache(self) except -1:
+        cdef int i
+        for i in range(64):
+            self.cval[i] = -1
+        return 0
+
+    cdef int forget(self, int ci) except -1:
+        """Drop a connection's two keys (unless a newer connection took them)."""
+        cdef Conn* c = &self.conns[ci]
+        k1 = bytes(c.caddr[:4]) + bytes(c.saddr[:4]) + bytes(
+            (c.cport >> 8, c.cport & 255, c.sport >> 8, c.sport & 255))
+        k2 = bytes(c.saddr[:4]) + bytes(c.caddr[:4]) + bytes(
+            (c.sport >> 8, c.sport & 255, c.cport >> 8, c.cport & 255))
+        for k in (k1, k2):
+            v = self.flows.get(k)
+            if v is not None and v // 2 == ci:
+                del self.flows[k]
+        self.clear_cache()
+        return 0
+
+    cdef int closed_conn(self, int ci, double ts) except -1:
+        """Watcher ``closed``: the connection leaves the open ones; its keys linger."""
+        cdef Conn* c = &self.conns[ci]
+        c.closed = True
+        if not c.open_:
+            return 0
+        c.open_ = False
+        self.nopen -= 1
+        until = ts + CLOSED_LINGER
+        if not self.closed_fifo and until < self.due:
+            self.due = until
+        self.closed_fifo.append([ci, until])
+        if len(self.closed_fifo) > MAX_CLOSED:
+            old = self.closed_fifo.pop(0)
+            self.forget(old[0])
+        return 0
+
+    cdef int dissector_tick(self, double now) except -1:
+        """The dissector's ``_tick`` for files: closed connections whose linger ended."""
+        fifo = self.closed_fifo
+        while fifo:
+            if fifo[0][1] > now:
+                break
+            old = fifo.pop(0)
+            self.forget(old[0])
+        self.due = fifo[0][1] if fifo else float("inf")
+        return 0
+
+    cdef bint is_new(self, int ci, bint from_client, int64_t seq, int flags, bint has_payload):
+        cdef Conn* c = &self.conns[ci]
+        cdef Half* half = &c.h[0 if from_client else 1]
+        cdef Half* other = &c.h[1 if from_client else 0]
+        cdef int syn_ack = flags & (SYN | ACK)
+        if syn_ack == SYN:
+            if c.closed:
+                return True
+            if half.isn < 0:
+                return half.nxt >= 0 or other.nxt >= 0
+            return seq != half.isn
+        if syn_ack == (SYN | ACK):
+            return c.closed or (half.isn >= 0 and seq != half.isn)
+        if c.closed and has_payload:
+            return half.nxt < 0 or abs(signed32(seq - half.nxt)) > REUSE_DISTANCE
+        return False
+
+    cdef int acked(self, int ci, int d, int64_t ack) except -1:
+        """The peer acknowledged bytes this direction never showed (``acked-unseen``)."""
+        cdef Half* other = &self.conns[ci].h[d]
+        cdef int64_t diff
+        if other.nxt >= 0 and not other.done:
+            diff = (ack - other.nxt) & MASK
+            if 0 < diff <= MAX_ACK_JUMP:
+                raise Declined("bytes the capture missed (an ACK beyond them: a gap)")
+        return 0
+
+    cdef int deliver(self, int ci, int d, double ts, const uint8_t* p, Py_ssize_t n) except -1:
+        self.conns[ci].h[d].nxt = (self.conns[ci].h[d].nxt + n) & MASK
+        return self.on_chunk(ci, d, ts, p, n)
+
+    cdef int data(self, int ci, int d, double ts, int64_t seq, const uint8_t* p,
+                  Py_ssize_t n) except -1:
+        cdef Half* h = &self.conns[ci].h[d]
+        cdef int64_t diff = (seq - h.nxt) & MASK
+        cdef int64_t old
+        if diff == 0:
+            return self.deliver(ci, d, ts, p, n)
+        if diff & HALF:
+            old = TWO32 - diff
+            if old >= n:
+                return 0  # a retransmission: counted by the dissector, dropped
+            return self.deliver(ci, d, ts, p + old, n - old)
+        raise Declined("out-of-order TCP segments (held behind a hole)")
+
+    cdef int segment(self, int ci, bint from_client, double ts, int64_t seq, int64_t ack,
+                     int flags, const uint8_t* p, Py_ssize_t n) except -1:
+        """``TcpConnection.segment`` for the cases the core covers."""
+        cdef Conn* c = &self.conns[ci]
+        cdef int d = 0 if from_client else 1
+        cdef Half* half = &c.h[d]
+        cdef Half* other = &c.h[1 - d]
+        if not flags & 0x07 and half.nxt == seq and half.fin < 0:
+            if c.closed:
+                if n:
+                    raise Declined("payload after its connection ended")
+                return 0
+            if flags & ACK:
+                self.acked(ci, 1 - d, ack)
+            if n:
+                self.deliver(ci, d, ts, p, n)
+            return 0
+        if c.closed:
+            if n:
+                raise Declined("payload after its connection ended")
+            return 0
+        if flags & RST:
+            if (half.fin >= 0 and not half.done) or (other.fin >= 0 and not other.done):
+                raise Declined("a reset before a FIN was reached (a gap)")
+            self.event(ts, c.sid, EventKind.DISCONNECT,
+                       {"how": "rst", "by": "client" if from_client else "server"})
+            self.close_stream(ci)
+            self.closed_conn(ci, ts)
+            return 0
+        if flags & SYN and flags & FIN:
+            flags &= ~FIN
+        if flags & SYN:
+            if half.isn < 0 and half.nxt < 0:
+                half.isn = seq & MASK
+                half.nxt = (seq + 1) & MASK
+            if not c.connected:
+                c.connected = True
+                self.event(ts, c.sid, EventKind.CONNECT, None)
+            seq = (seq + 1) & MASK
+        elif half.nxt < 0 and (n or flags & FIN):
+            half.nxt = seq
+        if flags & ACK:
+            self.acked(ci, 1 - d, ack)
+        c = &self.conns[ci]
+        half = &c.h[d]
+        other = &c.h[1 - d]
+        if n and half.nxt >= 0:
+            if half.done:
+                raise Declined("payload after its direction's FIN")
+            self.data(ci, d, ts, seq, p, n)
+            c = &self.conns[ci]
+            half = &c.h[d]
+            other = &c.h[1 - d]
+        if flags & FIN and half.fin < 0 and half.nxt >= 0:
+            half.fin = (seq + n) & MASK
+            if c.fin_by == 0:
+                c.fin_by = 1 if from_client else 2
+            if signed32(half.nxt - half.fin) < 0:
+                raise Declined("a FIN ahead of bytes not seen (a gap)")
+            if not half.done:
+                half.done = True
+                half.nxt = (half.fin + 1) & MASK
+                if other.done and not c.closed:
+                    self.event(ts, c.sid, EventKind.DISCONNECT,
+                               {"how": "fin", "by": "client" if c.fin_by == 1 else "server"})
+                    self.close_stream(ci)
+                    self.closed_conn(ci, ts)
+        return 0
+
+    # ------------------------------------------------------------------ packets
+
+    cdef int packet(self, double ts, int link, const uint8_t[::1] buf, Py_ssize_t off,
+                    Py_ssize_t end) except -1:
+        """``Dissector.packet`` for the link types and IPv4/TCP the core covers."""
+        cdef int et, vihl, ihl, proto, sport, dport, doff, flags, family, i, v
+        cdef Py_ssize_t total, ip_end, l4
+        cdef int64_t seq, ack
+        cdef const uint8_t* b
+        cdef bint from_client, first_fragment
+        cdef uint8_t kb[12]
+        cdef uint32_t slot
+        if ts >= self.due:
+            self.dissector_tick(ts)
+        if end <= off:
+            if link in (1, 113, 276, 0, 108, 101, 12, 14, 228, 229):
+                return 0  # truncated: counted, skipped
+            if link < 0:
+                return 0
+            raise Declined("link type %d" % link)
+        b = &buf[off]
+        if link == 1:
+            if end - off < 14:
+                return 0
+            et = (b[12] << 8) | b[13]
+            off += 14
+        elif link == 113:
+            if end - off < 16:
+                return 0
+            et = (b[14] << 8) | b[15]
+            off += 16
+        elif link == 276:
+            if end - off < 20:
+                return 0
+            et = (b[0] << 8) | b[1]
+            off += 20
+        elif link == 101 or link == 12 or link == 14:
+            v = b[0] >> 4
+            et = 0x0800 if v == 4 else (0x86DD if v == 6 else 0)
+        elif link == 0 or link == 108:
+            if end - off < 4:
+                return 0
+            family = <int>le32(b)
+            if <uint32_t>le32(b) > 0xFFFF:
+                family = <int>be32(b)
+            et = 0x0800 if family == 2 else (
+                0x86DD if family in (10, 23, 24, 28, 30) else 0)
+            off += 4
+        elif link == 228:
+            et = 0x0800
+        elif link == 229:
+            et = 0x86DD
+        elif link < 0:
+            return 0
+        else:
+            raise Declined("link type %d" % link)
+        while et == 0x8100 or et == 0x88A8 or et == 0x9100:
+            if end - off < 4:
+                return 0
+            et = (buf[off + 2] << 8) | buf[off + 3]
+            off += 4
+        if et == 0x86DD:
+            return self.ipv6(buf, off, end)
+        if et != 0x0800:
+            return 0
+        if end - off < 20:
+            return 0
+        b = &buf[off]
+        vihl = b[0]
+        ihl = (vihl & 15) << 2
+        if vihl >> 4 != 4 or ihl < 20:
+            return 0
+        total = (b[2] << 8) | b[3]
+        if total == 0:
+            ip_end = end
+        elif total < ihl:
+            return 0
+        else:
+            ip_end = off + total
+            if ip_end > end:
+                ip_end = end
+        first_fragment = False
+        if ((b[6] << 8) | b[7]) & 0x3FFF:
+            if ((b[6] << 8) | b[7]) & 0x1FFF:
+                return 0  # not the first fragment: no transport header
+            first_fragment = True
+        proto = b[9]
+        l4 = off + ihl
+        if proto == 17:
+            if ip_end - l4 >= 4:
+                sport = (buf[l4] << 8) | buf[l4 + 1]
+                dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
+                if self.port_map[sport] or self.port_map[dport]:
+                    raise Declined("Modbus over UDP")
+            return 0
+        if proto != 6:
+            return 0
+        if ip_end - l4 < 20:
+            return 0
+        b = &buf[l4]
+        sport = (b[0] << 8) | b[1]
+        dport = (b[2] << 8) | b[3]
+        if not self.port_map[sport] and not self.port_map[dport]:
+            return 0
+        if first_fragment:
+            raise Declined("a fragmented IP packet on a Modbus port")
+        doff = (b[12] >> 2) & 0x3C
+        if doff < 20 or l4 + doff > ip_end:
+            return 0
+        seq = be32(b + 4)
+        ack = be32(b + 8)
+        flags = b[13]
+        memcpy(kb, &buf[off + 12], 8)
+        kb[8] = sport >> 8
+        kb[9] = sport & 255
+        kb[10] = dport >> 8
+        kb[11] = dport & 255
+        slot = (be32(kb) * 31 + be32(kb + 4) * 17 + <uint32_t>sport * 7 + <uint32_t>dport) & 63
+        if self.cval[slot] >= 0 and memcmp(self.ckey[slot], kb, 12) == 0:
+            v = self.cval[slot]
+        else:
+            key = PyBytes_FromStringAndSize(<const char*>kb, 12)
+            got = self.flows.get(key)
+            v = -1 if got is None else got
+        if v < 0 or flags & SYN or self.conns[v >> 1].closed:
+            key = PyBytes_FromStringAndSize(<const char*>kb, 12)
+            v = self.tcp_flow(key, &buf[off + 12], v, ts, seq, flags, ip_end > l4 + doff,
+                              sport, dport)
+        memcpy(self.ckey[slot], kb, 12)
+        self.cval[slot] = v
+        from_client = v & 1
+        if ip_end > l4 + doff:
+            return self.segment(v >> 1, from_client, ts, seq, ack, flags, &buf[l4 + doff],
+                                ip_end - (l4 + doff))
+        return self.segment(v >> 1, from_client, ts, seq, ack, flags, NULL, 0)
+
+    cdef int tcp_flow(self, bytes key, const uint8_t* addrs, int v, double ts, int64_t seq,
+                      int flags, bint has_payload, int sport, int dport) except -1:
+        cdef int ci
+        if v < 0:
+            return self.new_conn(key, addrs, sport, dport, flags, ts)
+        ci = v >> 1
+        if (flags & SYN or self.conns[ci].closed) and self.is_new(ci, v & 1, seq, flags,
+                                                                   has_payload):
+            if not self.conns[ci].closed:
+                raise Declined("a connection replaced on the same addresses")
+            # a closed connection's addresses reused: the old one is forgotten
+            for i, item in enumerate(self.closed_fifo):
+                if item[0] == ci:
+                    del self.closed_fifo[i]
+                    break
+            self.forget(ci)
+            return self.new_conn(key, addrs, sport, dport, flags, ts)
+        return v
+
+    cdef int ipv6(self, const uint8_t[::1] buf, Py_ssize_t off, Py_ssize_t end) except -1:
+        """IPv6: declined when it carries Modbus (the ports), else skipped."""
+        cdef Py_ssize_t ip_end, l4, plen
+        cdef int proto, k, sport, dport
+        if end - off < 40 or buf[off] >> 4 != 6:
+            return 0
+        plen = (buf[off + 4] << 8) | buf[off + 5]
+        ip_end = off + 40 + plen if plen else end
+        if ip_end > end:
+            ip_end = end
+        proto = buf[off + 6]
+        l4 = off + 40
+        for k in range(16):
+            if proto in (0, 43, 60, 135, 139, 140, 253, 254):
+                if ip_end - l4 < 8:
+                    return 0
+                proto, l4 = buf[l4], l4 + ((buf[l4 + 1] + 1) << 3)
+            elif proto == 44:
+                if ip_end - l4 < 8:
+                    return 0
+                proto, l4 = buf[l4], l4 + 8
+            elif proto == 51:
+                if ip_end - l4 < 8:
+                    return 0
+                proto, l4 = buf[l4], l4 + ((buf[l4 + 1] + 2) << 2)
+            else:
+                break
+        if (proto == 6 or proto == 17) and 0 <= l4 and ip_end - l4 >= 4:
+            sport = (buf[l4] << 8) | buf[l4 + 1]
+            dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
+            if self.port_map[sport] or self.port_map[dport]:
+                raise Declined("Modbus over IPv6")
+        return 0
+
+    # ------------------------------------------------------------------ containers
+
+    cdef int run_pcap(self, const uint8_t[::1] data) except -1:
+        cdef Py_ssize_t size = data.shape[0], pos = 24, start, caplen
+        cdef bint big
+        cdef uint32_t magic = le32(&data[0])
+        cdef double divisor
+        cdef int header = 16, link
+        cdef uint32_t snaplen, limit
+        cdef double ts = 0.0
+        if magic in (0xA1B2C3D4, 0xA1B23C4D, 0xA1B2CD34):
+            big = False
+        else:
+            big = True
+            magic = be32(&data[0])
+        divisor = 1e9 if magic == 0xA1B23C4D else 1e6
+        if magic == 0xA1B2CD34:
+            header = 24
+        if size < 24 or rd16(&data[4], big) != 2:
+            raise Declined("a damaged pcap file header")
+        snaplen = rd32(&data[16], big)
+        link = rd32(&data[20], big) & 0x0FFFFFFF
+        limit = snaplen if snaplen > 262144 else 262144
+        if limit > MAX_RECORD:
+            limit = MAX_RECORD
+        while True:
+            if size - pos < header:
+                if size == pos:
+                    break
+                raise Declined("a damaged capture (truncated record header)")
+            caplen = rd32(&data[pos + 8], big)
+            if caplen > limit:
+                raise Declined("a damaged capture (corrupt record header)")
+            if pos + header + caplen > size:
+                raise Declined("a damaged capture (truncated record)")
+            ts = <double>rd32(&data[pos], big) + <double>rd32(&data[pos + 4], big) / divisor
+            start = pos + header
+            pos = start + caplen
+            self.packet(ts, link, data, start, pos)
+            if pos - self.released >= RELEASE_EVERY:
+                self.release_to(pos)
+            if pos >= self.next_progress:
+                self.report(pos)
+        self.end_ts = ts
+        return 0
+
+    cdef int run_pcapng(self, const uint8_t[::1] data) except -1:
+        cdef Py_ssize_t size = data.shape[0], pos = 0, blen, end, caplen, start, p
+        cdef bint big = False
+        cdef uint32_t btype, iface
+        cdef uint64_t stamp
+        cdef double ts = 0.0
+        cdef int code, olen, resol
+        cdef list ifaces = []   # (link, divisor, offset, snaplen)
+        while True:
+            if size - pos < 12:
+                if size == pos:
+                    break
+                raise Declined("a damaged capture (truncated block header)")
+            btype = rd32(&data[pos], big)
+            if le32(&data[pos]) == 0x0A0D0D0A:
+                if be32(&data[pos + 8]) == 0x4D3C2B1A:
+                    big = False
+                elif be32(&data[pos + 8]) == 0x1A2B3C4D:
+                    big = True
+                else:
+                    raise Declined("a damaged capture (section header)")
+                btype = 0x0A0D0D0A
+                ifaces = []
+            blen = rd32(&data[pos + 4], big)
+            if blen < 12 or blen % 4 or blen > MAX_RECORD:
+                raise Declined("a damaged capture (block length)")
+            if size - pos < blen:
+                raise Declined("a damaged capture (truncated block)")
+            end = pos + blen - 4
+            if rd32(&data[end], big) != <uint32_t>blen:
+                raise Declined("a damaged capture (trailing length)")
+            if btype == 6 or btype == 2:
+                if blen < 32:
+                    raise Declined("a damaged capture (packet block)")
+                if btype == 6:
+                    iface = rd32(&data[pos + 8], big)
+                    stamp = (<uint64_t>rd32(&data[pos + 12], big) << 32) | rd32(&data[pos + 16], big)
+                    caplen = rd32(&data[pos + 20], big)
+                else:
+                    iface = rd16(&data[pos + 8], big)
+                    stamp = (<uint64_t>rd32(&data[pos + 12], big) << 32) | rd32(&data[pos + 16], big)
+                    caplen = rd32(&data[pos + 20], big)
+                if pos + 28 + caplen > end:
+                    raise Declined("a damaged capture (packet length)")
+                if iface < <uint32_t>len(ifaces):
+                    link, div, tsoff, _ = ifaces[iface]
+                    if stamp > (<uint64_t>1 << 53) or not -(1 << 53) <= tsoff <= (1 << 53):
+                        raise Declined("pcapng timestamps beyond 2^53 units")
+                    ts = <double>stamp / <double>div + <double>tsoff
+                    self.packet(ts, link, data, pos + 28, pos + 28 + caplen)
+                else:
+                    self.packet(ts, -1, data, pos, pos)
+            elif btype == 3:
+                if blen < 16:
+                    raise Declined("a damaged capture (simple packet block)")
+                caplen = rd32(&data[pos + 8], big)
+                if caplen > end - (pos + 12):
+                    caplen = end - (pos + 12)
+                if ifaces:
+                    link, _, _, snaplen = ifaces[0]
+                    if snaplen and caplen > snaplen:
+                        caplen = snaplen
+                    self.packet(ts, link, data, pos + 12, pos + 12 + caplen)
+                else:
+                    self.packet(ts, -1, data, pos, pos)
+            elif btype == 1:
+                if blen < 20:
+                    raise Declined("a damaged capture (interface block)")
+                link = rd16(&data[pos + 8], big)
+                snaplen = rd32(&data[pos + 12], big)
+                div = 1000000
+                tsoff = 0
+                p = pos + 16
+                while p + 4 <= end:
+                    code = rd16(&data[p], big)
+                    olen = rd16(&data[p + 2], big)
+                    if code == 0 or p + 4 + olen > end:
+                        break
+                    if code == 9 and olen >= 1:
+                        resol = data[p + 4]
+                        div = (2 ** int(resol & 0x7F)) if resol & 0x80 else (
+                            10 ** int(min(resol, 30)))
+                    elif code == 14 and olen >= 8:
+                        tsoff = int.from_bytes(bytes(data[p + 4:p + 12]),
+                                               "big" if big else "little", signed=True)
+                    p += 4 + olen + (4 - olen % 4) % 4
+                if div > (1 << 53) or div == 0:
+                    raise Declined("a pcapng timestamp resolution beyond 2^53")
+                ifaces.append((link, div, tsoff, snaplen))
+            pos += blen
+            if pos - self.released >= RELEASE_EVERY:
+                self.release_to(pos)
+            if pos >= self.next_progress:
+                self.report(pos)
+        self.end_ts = ts
+        return 0
+
+    cdef int report(self, Py_ssize_t pos) except -1:
+        """Progress: each of the two passes is half of the work."""
+        self.next_progress = pos + (1 << 20)
+        if self.progress is not None:
+            self.progress(self.progress_base + pos // 2, self.size)
+        return 0
+
+    cdef int release_to(self, Py_ssize_t pos) except -1:
+        """Give the pages of the file read so far back (peak RSS stays flat in its size);
+        nothing points into them any more: held bytes are copies."""
+        cdef Py_ssize_t upto = pos - pos % RELEASE_EVERY
+        if self.release is not None and upto > self.released:
+            self.release(self.released, upto - self.released)
+        self.released = upto
+        return 0
+
+    cpdef run(self, const uint8_t[::1] data):
+        """Every record of the capture ``data``, then the end of input."""
+        cdef int ci
+        cdef Conn* c
+        cdef int s, e, nxt
+        self.size = data.shape[0]
+        if data.shape[0] < 12:
+            raise Declined("a capture too short")
+        if le32(&data[0]) == 0x0A0D0D0A:
+            self.run_pcapng(data)
+        elif le32(&data[0]) in (0xA1B2C3D4, 0xA1B23C4D, 0xA1B2CD34) or be32(&data[0]) in (
+                0xA1B2C3D4, 0xA1B23C4D, 0xA1B2CD34):
+            self.run_pcap(data)
+        else:
+            raise Declined("a container other than pcap and pcapng")
+        # the dissector's finish: half-closed connections end
+        for ci in self.open_order:
+            c = &self.conns[ci]
+            if not c.open_ or c.closed:
+                continue
+            if (c.h[0].fin >= 0 and not c.h[0].done) or (c.h[1].fin >= 0 and not c.h[1].done):
+                raise Declined("a FIN not reached at the end (a gap)")
+            if c.fin_by:
+                self.event(self.end_ts, c.sid, EventKind.DISCONNECT,
+                           {"how": "fin", "by": "client" if c.fin_by == 1 else "server",
+                            "half_closed": True})
+                self.close_stream(ci)
+                self.closed_conn(ci, self.end_ts)
+        # the pipeline's finish: decoders flush, every pending request times out
+        for ci in range(self.nconns):
+            if self.conns[ci].h[0].blen or self.conns[ci].h[1].blen:
+                raise Declined("an incomplete ADU at the end of the capture (noise)")
+        when = self.pl_last
+        s = self.ahead
+        while s >= 0:
+            nxt = self.sp[s].anext
+            while self.sp[s].count:
+                self.timeout_record(when, self.sp[s].head)
+            s = nxt
+        self.flush_out()
+
+
+
+cdef bytes _inner(bytes obj):
+    """A JSON object's text without its braces."""
+    return obj[1:len(obj) - 1]
+
+
+cdef object _plain(str text):
+    """``text`` in UTF-8 when it can go into a JSON string as it is, else ``None``."""
+    for ch in text:
+        if ch in '"\\' or ord(ch) < 0x20:
+            return None
+    return text.encode("utf-8")
+
+
+_RECORD_KIND = {}
+
+
+def _init_kinds():
+    from mbmon.model import Kind
+
+    _RECORD_KIND[Kind.REQUEST] = RecordKind.REQUEST
+    _RECORD_KIND[Kind.RESPONSE] = RecordKind.RESPONSE
+    _RECORD_KIND[Kind.EXCEPTION] = RecordKind.EXCEPTION
+
+
+_init_kinds()
+
+
+# --------------------------------------------------------------------------- PDUs
+
+
+cdef bint native_pdu(const uint8_t* d, int n, bint response, Native* req, Native* out):
+    """Decode the PDUs whose line this module writes (``pdu._well_formed``'s cases,
+    exceptions, answers whose request changes nothing or only trims bits); False
+    for every other PDU, which the reference decoder and formatter take."""
+    cdef int fc, bc, address, count, value
+    if n < 1:
+        return False
+    fc = d[0] & 0x7F
+    out.fc = fc
+    out.has_addr = 0
+    out.address = 0
+    out.count = -1
+    out.nvalues = -1
+    out.bits = 0
+    out.vdata = NULL
+    out.exc = -1
+    out.onoff = 0
+    if d[0] & 0x80:
+        if not response or n != 2:
+            return False
+        out.kind = 2
+        out.exc = d[1]
+        return True
+    if fc == 0 or fc > 0x10:
+        return False
+    out.kind = 1 if response else 0
+    if response:
+        if fc <= 4:
+            if n < 3:
+                return False
+            bc = d[1]
+            if n != bc + 2:
+                return False
+            out.vdata = d + 2
+            if fc >= 3:
+                if bc & 1:
+                    return False
+                if req != NULL and req.fc == fc and req.kind == 0 and bc != 2 * req.count:
+                    return False  # decoded again with the request (a byte count it breaks)
+                out.nvalues = bc >> 1
+            else:
+                out.bits = 1
+                if req != NULL and req.fc == fc and req.kind == 0:
+                    if bc != (req.count + 7) >> 3:
+                        return False
+                    out.nvalues = req.count  # the requested bits only
+                else:
+                    out.nvalues = 8 * bc
+            return True
+    else:
+        if fc <= 4:
+            if n != 5:
+                return False
+            address = (d[1] << 8) | d[2]
+            count = (d[3] << 8) | d[4]
+            if not 1 <= count <= (2000 if fc <= 2 else 125) or address + count > 0x10000:
+                return False
+            out.has_addr = 1
+            out.address = address
+            out.count = count
+            return True
+        if fc >= 0x0F and n != 5:
+            if n < 6:
+                return False
+            bc = d[5]
+            count = (d[3] << 8) | d[4]
+            address = (d[1] << 8) | d[2]
+            if n - 6 != bc or count < 1 or address + count > 0x10000:
+                return False
+            out.has_addr = 1
+            out.address = address
+            out.count = count
+            out.vdata = d + 6
+            out.nvalues = count
+            if fc == 0x0F:
+                if count > 1968 or bc != (count + 7) >> 3:
+                    return False
+                out.bits = 1
+            else:
+                if count > 123 or bc != 2 * count:
+                    return False
+            return True
+    if n != 5:
+        return False
+    address = (d[1] << 8) | d[2]
+    value = (d[3] << 8) | d[4]
+    out.has_addr = 1
+    out.address = address
+    if fc == 5:
+        if value != 0xFF00 and value != 0:
+            return False
+        out.count = 1
+        out.nvalues = 1
+        out.bits = 1
+        out.onoff = 1
+        out.vdata = d + 3  # 0xFF: ON, 0x00: OFF (read as the first bit)
+        return True
+    if fc == 6:
+        out.count = 1
+        out.nvalues = 1
+        out.vdata = d + 3
+        return True
+    if fc >= 0x0F and response:
+        if not 1 <= value <= (1968 if fc == 0x0F else 123) or address + value > 0x10000:
+            return False
+        out.count = value
+        return True
+    return False
+
+
+cdef int put_values_json(Buf* o, Native* n) except -1:
+    cdef int i
+    if n.nvalues < 0:
+        return put(o, b"null", 4)
+    put_c(o, 91)
+    for i in range(n.nvalues):
+        if i:
+            put_c(o, 44)
+        if n.onoff:
+            put_c(o, 49 if n.vdata[0] else 48)
+        elif n.bits:
+            put_c(o, 49 if (n.vdata[i >> 3] >> (i & 7)) & 1 else 48)
+        else:
+            put_u16(o, be16(n.vdata + 2 * i))
+    return put_c(o, 93)
+
+
+def _native_note(bytes data, bint response, request=None):
+    """Test-only entry: ``None`` when the core leaves the PDU to the reference decoder,
+    else ``(fc, kind, address, count, values, note)`` as the core writes them (a
+    response with ``request``: as paired with that request's PDU)."""
+    cdef Native nat, rnat
+    cdef Native* rp = NULL
+    cdef bytes req = request
+    cdef bint ok
+    cdef _Pass p
+    if req is not None:
+        if not native_pdu(<const uint8_t*><char*>req, len(req), False, NULL, &rnat):
+            return None
+        rp = &rnat
+    ok = native_pdu(<const uint8_t*><char*>data, len(data), response, rp, &nat)
+    if not ok:
+        return None
+    p = _Pass(True, False, 1.0, frozenset(), None, None)
+    if p.fnames[nat.fc] is None or (nat.exc >= 0 and p.enames[nat.exc] is None):
+        return None
+    if rp != NULL and nat.kind != 0 and not nat.has_addr and rnat.has_addr:
+        nat.has_addr = 1
+        nat.address = rnat.address
+        nat.count = rnat.count
+    p.put_note(&nat)
+    note = PyBytes_FromStringAndSize(p.out.p, p.out.n).decode("utf-8")
+    p.out.n = 0
+    put_values_json(&p.out, &nat)
+    values = _orjson.loads(PyBytes_FromStringAndSize(p.out.p, p.out.n))
+    return (
+        nat.fc,
+        ("request", "response", "exception")[nat.kind],
+        nat.address if nat.has_addr else None,
+        nat.count if nat.has_addr and nat.count >= 0 else None,
+        values,
+        nat.exc if nat.exc >= 0 else None,
+        note,
+    )

@@ -1,0 +1,114 @@
+"""Generated captures for the differential suites: one TCP conversation per file,
+written segment by segment with chosen cuts, retransmissions, holes and noise."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from mbmon.protocol.mbap import encode_adu
+from mbmon.protocol.pdu import (
+    encode_exception,
+    encode_read_request,
+    encode_read_response,
+    encode_write_multiple_request,
+    encode_write_multiple_response,
+    encode_write_single,
+)
+from mbmon.sources.pcapwrite import PcapngWriter, PcapWriter, TcpConversation
+
+T0 = 1_700_000_000.25
+
+
+def every_function_pair() -> list[tuple[bytes, bytes]]:
+    """A request and its answer (PDUs) for the common and the rarer function codes."""
+    pairs = [
+        (encode_read_request(1, 10, 11), encode_read_response(1, [1, 0, 1] * 3 + [1, 1], 11)),
+        (encode_read_request(2, 0, 70), encode_read_response(2, [1] * 70, 70)),
+        (encode_read_request(3, 100, 3), encode_read_response(3, [1, 65535, 300])),
+        (encode_read_request(4, 0, 20), encode_read_response(4, list(range(20)))),
+        (encode_write_single(5, 7, 1), encode_write_single(5, 7, 1)),
+        (encode_write_single(5, 8, 0), encode_write_single(5, 8, 0)),
+        (encode_write_single(6, 200, 1234), encode_write_single(6, 200, 1234)),
+        (
+            encode_write_multiple_request(15, 3, [1, 0, 1, 1, 0, 0, 1, 0, 1]),
+            encode_write_multiple_response(15, 3, 9),
+        ),
+        (
+            encode_write_multiple_request(16, 200, list(range(18))),
+            encode_write_multiple_response(16, 200, 18),
+        ),
+        (encode_read_request(3, 5, 2), encode_exception(3, 2)),
+        (encode_read_request(4, 5, 2), encode_exception(4, 0x0B)),
+        (b"\x07", b"\x07\x05"),  # read exception status
+        (b"\x08\x00\x00\x12\x34", b"\x08\x00\x00\x12\x34"),  # diagnostics echo
+        (b"\x0b", b"\x0b\x00\x00\x00\x05"),  # comm event counter
+        (b"\x11", b"\x11\x05\x01\xff\x02\x03"),  # report server id
+        (b"\x16\x00\x04\x00\xf2\x00\x25", b"\x16\x00\x04\x00\xf2\x00\x25"),  # mask write
+        (
+            b"\x17\x00\x03\x00\x02\x00\x0e\x00\x01\x02\x00\xff",
+            b"\x17\x04\x00\x0a\x00\x0b",
+        ),  # read/write multiple
+        (b"\x18\x04\xde", b"\x18\x00\x06\x00\x02\x01\xb8\x12\x84"),  # FIFO
+        (b"\x2b\x0e\x01\x00", b"\x2b\x0e\x01\x01\x00\x00\x01\x00\x03ABC"),  # device id
+        (b"\x41\x01\x02", b"\x41\x03"),  # user-defined
+        (encode_read_request(3, 0, 1), encode_read_response(3, [1, 2])),  # count disagrees
+        (b"\x03\x00\x00\x00\x00", b"\x83\x03"),  # count 0: malformed request
+        (b"\x06\x00\x01", b"\x86\x03\x00"),  # truncated request, exception with a trailing byte
+        (b"\x01\x00\x00\x00\x08", b"\x01\x02\xff\xff"),  # byte count breaks the request
+        (b"\x90\x00", b"\x90\x00"),  # the exception bit in a request
+    ]
+    return pairs
+
+
+def adus(pairs: list[tuple[bytes, bytes]], unit: int = 1) -> list[tuple[bool, bytes]]:
+    """(from client, ADU) for each request and answer, transaction ids from 1."""
+    out = []
+    for tid, (req, resp) in enumerate(pairs, 1):
+        out.append((True, encode_adu(tid, unit, req)))
+        out.append((False, encode_adu(tid, unit, resp)))
+    return out
+
+
+def write_conversation(
+    path: Path,
+    segments: list[tuple[bool, bytes]],
+    *,
+    handshake: bool = True,
+    close: str | None = "fin",
+    step: float = 0.001,
+    linktype: int = 1,
+    pcapng: bool = False,
+    times: list[float] | None = None,
+    vlans: tuple[tuple[int, int], ...] = (),
+) -> Path:
+    """A capture of one connection: optional handshake, ``segments`` (from client,
+    payload) each one segment (PSH|ACK), then a FIN close, a RST or nothing."""
+    conv = TcpConversation("10.0.0.1:40000", "10.0.0.2:502", linktype=linktype, vlans=vlans)
+    frames: list[bytes] = []
+    if handshake:
+        frames += conv.open()
+    else:
+        conv.client_next, conv.server_next = 1001, 5001
+    frames += [conv.send(c, data) for c, data in segments]
+    if close == "fin":
+        frames += conv.close(True)
+    elif close == "rst":
+        frames.append(conv.reset(False))
+    stamps = times if times is not None else [T0 + i * step for i in range(len(frames))]
+    if pcapng:
+        with PcapngWriter(path) as w:
+            w.add_interface(linktype)
+            for ts, frame in zip(stamps, frames, strict=False):
+                w.write(ts, frame)
+    else:
+        with PcapWriter(path, linktype) as w:
+            for ts, frame in zip(stamps, frames, strict=False):
+                w.write(ts, frame)
+    return path
+
+
+def write_frames(path: Path, frames: list[tuple[float, bytes]], linktype: int = 1) -> Path:
+    with PcapWriter(path, linktype) as w:
+        for ts, frame in frames:
+            w.write(ts, frame)
+    return path
