@@ -17,14 +17,28 @@ Framing is length prediction + CRC (DESIGN rules 2 and 3), never timing:
 * When a reading has no predictable length (unknown function codes, 0x2B
   responses, 0x08 sub-function 0x00, ...), the decoder tries the CRC at every
   length from 4 to 256 bytes, shortest first, once enough bytes are there.
-  Such a guess never swallows frames that validate on their own (issue 8
-  item 5): it is refused when a frame of predictable length with a good CRC
-  starts inside it and either reaches its end or is followed by a second
-  such frame (that parse explains more bytes with valid CRCs; a CRC match
-  found by scanning 250 lengths is far likelier chance than two in a row).
+  Such a guess never swallows frames that validate on their own: it is
+  refused when a frame of predictable length with a good CRC ("a frame of
+  its own") starts inside it and either reaches its end or is followed by a
+  second such frame (that parse explains more bytes with valid CRCs; a CRC
+  match found by scanning 250 lengths is far likelier chance than two in a
+  row).
+* A reading still missing bytes is a guess too: it waits for them, unless
+  frames of their own inside what it would take line up with the bus (one
+  starts or ends at the latest silence, ends the bytes before a silence, is
+  followed by another, or two are there; or, as long as no frame has gone on
+  across a silence, any one before the silence).
+* Where the readings fail, a CRC that validates at a boundary the bus marks
+  (the latest silence, the end of the bytes before a silence or of the
+  stream, or where the next frame of its own starts) is a frame whatever its
+  fields say: the PDU decoder flags it malformed (libmodbus's quantity-0
+  writes, whose byte count disagrees with their length).
 * When nothing fits, one byte is skipped into a run of noise; one
-  :class:`Noise` is reported per run (before the next frame, at a silence, or
-  at ``flush``/``reset``), split only every ``NOISE_CAP`` bytes.
+  :class:`Noise` is reported per run (before the next frame, at a silence
+  when no undecided byte is left before it, or at ``flush``/``reset``), split
+  only every ``NOISE_CAP`` bytes. Noise is stamped when its first byte
+  arrived, a frame when its last byte did (the read that brought it), however
+  late either is decided.
 
 A stream carried in TCP/UDP with a known direction (RTU over TCP) passes
 ``Direction.C2S`` or ``Direction.S2C``: then only that reading is tried.
@@ -38,8 +52,8 @@ instead of waiting for 256 bytes, and a reading that would need bytes from
 after the silence no longer blocks the next reading; but when no reading
 fits the bytes before the silence and one needs more, the decoder still
 waits, because USB adapters deliver bytes in bunches and the "silence" may be
-their latency. Timing is a hint only. That holds for a scanned reading too
-(issue 11): bytes of unpredictable length with no CRC match yet become noise
+their latency. Timing is a hint only. That holds for a scanned reading too:
+bytes of unpredictable length with no CRC match yet become noise
 at a silence only when a frame of predictable length with a valid CRC starts
 after them, before the silence or right at its end (so the next bytes
 decide); otherwise they may be a frame split by the adapter and wait.
