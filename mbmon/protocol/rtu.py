@@ -172,6 +172,7 @@ class RtuDecoder(StreamDecoder):
         "_settled",
         "_silence",
         "_t35",
+        "_tails",
         "_ticked",
         "baudrate",
         "stats",
@@ -210,6 +211,7 @@ class RtuDecoder(StreamDecoder):
         #: (first: the next frame of its own) frames line up with the bus at k
         #: (state 1), cannot be told at k (-1), or do not before k (0)
         self._lined: tuple[int, int, int, int] | None = None
+        self._tails: list[int] | None = None  # within one pass: see _ends_at_silence
         self.stats: dict[str, int] = {
             "frames": 0,
             "noise_bytes": 0,
@@ -406,7 +408,7 @@ class RtuDecoder(StreamDecoder):
         pending = self._pending
         frames = 0
         last = n - 1
-        self._near = self._lined = None
+        self._near = self._lined = self._tails = None
         mark = self._mark if mode == _STREAM else 0
         while pos < n:
             if pos < last:
@@ -576,6 +578,13 @@ class RtuDecoder(StreamDecoder):
             if found < 0:
                 return _WAITING
             if found:
+                # the reading whose length it has, if any (a reading missing bytes
+                # stopped the others being tried): the direction any chunking gives
+                whole = buf[pos + 1 : pos + found]
+                for is_resp in readings:
+                    plen = pdu_length(whole, is_resp)
+                    if plen is not None and plen != NEED_MORE and plen + 3 == found:
+                        return found, is_resp, ""
                 return found, readings[0], ""
         if crc_failed:
             return _SKIP, False, _BAD_CRC
@@ -661,8 +670,24 @@ class RtuDecoder(StreamDecoder):
                 k += 1
         else:
             k = stop
+            if mode == _SILENCE and not self._bursty:
+                # a frame whose fields disagree ends at the silence: its CRC there
+                # lines it up as well (what follows is settled by the silence)
+                for j in self._ends_at_silence(buf, n):
+                    if pos < j < stop:
+                        k, state = j, 1
+                        break
         self._lined = (pos, first, k, state)
         return state if k < far else 0
+
+    def _ends_at_silence(self, buf: bytes | bytearray, n: int) -> list[int]:
+        """Offsets ``j`` (ascending, the last ``MAX_ADU`` bytes) where a CRC-valid ADU
+        ``buf[j:n]`` ends right at the silence; computed once per decoding pass."""
+        tails = self._tails
+        if tails is None:
+            tails = [j for j in range(max(0, n - MAX_ADU), n - MIN_ADU + 1) if _crc_ok(buf, j, n)]
+            self._tails = tails
+        return tails
 
     def _boundary(self, buf: bytes | bytearray, pos: int, n: int, mode: int) -> int:
         """Length of a CRC-valid ADU at ``pos`` that ends at a boundary the bus marks:
@@ -735,14 +760,28 @@ class RtuDecoder(StreamDecoder):
                 continue
             if fc & 0x80 and not is_resp:
                 continue
-            plen = pdu_length(buf[k + 1 : k + MAX_ADU], is_resp)
-            if plen is None:
-                continue
-            if plen == NEED_MORE:
-                short = True
-                continue
-            total = plen + 3
-            if plen < 1 or total > MAX_ADU:
+            rule = (_RESP_RULES if is_resp else _REQ_RULES).get(fc)
+            if type(rule) is int:  # the simple rules as the framing loop reads them
+                total = rule
+            elif rule is not None:
+                at = k + rule[0]
+                if at >= n:
+                    short = True
+                    continue
+                total = rule[1] + buf[at]
+            else:
+                plen = pdu_length(buf[k + 1 : k + 1 + _PEEK], is_resp)
+                if plen == NEED_MORE and avail - 1 > _PEEK:
+                    plen = pdu_length(buf[k + 1 : k + MAX_ADU], is_resp)
+                if plen is None:
+                    continue
+                if plen == NEED_MORE:
+                    short = True
+                    continue
+                if plen < 1:
+                    continue
+                total = plen + 3
+            if total > MAX_ADU:
                 continue
             if total > avail:
                 short = True
