@@ -17,14 +17,28 @@ Framing is length prediction + CRC (DESIGN rules 2 and 3), never timing:
 * When a reading has no predictable length (unknown function codes, 0x2B
   responses, 0x08 sub-function 0x00, ...), the decoder tries the CRC at every
   length from 4 to 256 bytes, shortest first, once enough bytes are there.
-  Such a guess never swallows frames that validate on their own (issue 8
-  item 5): it is refused when a frame of predictable length with a good CRC
-  starts inside it and either reaches its end or is followed by a second
-  such frame (that parse explains more bytes with valid CRCs; a CRC match
-  found by scanning 250 lengths is far likelier chance than two in a row).
+  Such a guess never swallows frames that validate on their own: it is
+  refused when a frame of predictable length with a good CRC ("a frame of
+  its own") starts inside it and either reaches its end or is followed by a
+  second such frame (that parse explains more bytes with valid CRCs; a CRC
+  match found by scanning 250 lengths is far likelier chance than two in a
+  row).
+* A reading still missing bytes is a guess too: it waits for them, unless
+  frames of their own inside what it would take line up with the bus (one
+  starts or ends at the latest silence, ends the bytes before a silence, is
+  followed by another, or two are there; or, as long as no frame has gone on
+  across a silence, any one before the silence).
+* Where the readings fail, a CRC that validates at a boundary the bus marks
+  (the latest silence, the end of the bytes before a silence or of the
+  stream, or where the next frame of its own starts) is a frame whatever its
+  fields say: the PDU decoder flags it malformed (libmodbus's quantity-0
+  writes, whose byte count disagrees with their length).
 * When nothing fits, one byte is skipped into a run of noise; one
-  :class:`Noise` is reported per run (before the next frame, at a silence, or
-  at ``flush``/``reset``), split only every ``NOISE_CAP`` bytes.
+  :class:`Noise` is reported per run (before the next frame, at a silence
+  when no undecided byte is left before it, or at ``flush``/``reset``), split
+  only every ``NOISE_CAP`` bytes. Noise is stamped when its first byte
+  arrived, a frame when its last byte did (the read that brought it), however
+  late either is decided.
 
 A stream carried in TCP/UDP with a known direction (RTU over TCP) passes
 ``Direction.C2S`` or ``Direction.S2C``: then only that reading is tried.
@@ -38,8 +52,8 @@ instead of waiting for 256 bytes, and a reading that would need bytes from
 after the silence no longer blocks the next reading; but when no reading
 fits the bytes before the silence and one needs more, the decoder still
 waits, because USB adapters deliver bytes in bunches and the "silence" may be
-their latency. Timing is a hint only. That holds for a scanned reading too
-(issue 11): bytes of unpredictable length with no CRC match yet become noise
+their latency. Timing is a hint only. That holds for a scanned reading too:
+bytes of unpredictable length with no CRC match yet become noise
 at a silence only when a frame of predictable length with a valid CRC starts
 after them, before the silence or right at its end (so the next bytes
 decide); otherwise they may be a frame split by the adapter and wait.
@@ -148,12 +162,17 @@ class RtuDecoder(StreamDecoder):
     __slots__ = (
         "_allow_req",
         "_allow_resp",
+        "_bursty",
         "_char",
+        "_chunks",
+        "_lined",
         "_mark",
+        "_near",
         "_pending",
         "_settled",
         "_silence",
         "_t35",
+        "_tails",
         "_ticked",
         "baudrate",
         "stats",
@@ -181,6 +200,18 @@ class RtuDecoder(StreamDecoder):
             self._t35 = 0.0
         self._pending: tuple[int, int] | None = None
         self._mark = 0  # bytes of _buf that came before the latest silence
+        #: a frame went on across a silence: silences may be a USB adapter's latency
+        self._bursty = False
+        #: (end offset in _buf, arrival time) of each chunk whose bytes _buf holds
+        self._chunks: list[tuple[int, float]] = []
+        #: within one decoding pass: (lo, k, s), no frame of its own starts in (lo, k),
+        #: at k one of length s (-1: cannot tell yet; 0: k is where the search stopped)
+        self._near: tuple[int, int, int] | None = None
+        #: within one decoding pass: (lo, first, k, state), for offsets lo..first-1
+        #: (first: the next frame of its own) frames line up with the bus at k
+        #: (state 1), cannot be told at k (-1), or do not before k (0)
+        self._lined: tuple[int, int, int, int] | None = None
+        self._tails: list[int] | None = None  # within one pass: see _ends_at_silence
         self.stats: dict[str, int] = {
             "frames": 0,
             "noise_bytes": 0,
@@ -197,13 +228,7 @@ class RtuDecoder(StreamDecoder):
             silence = ts - self._last_ts - len(data) * self._char
             if silence > self._t35:
                 self.stats["timing_gaps"] += 1
-                if self._buf:
-                    pos = self._decode(self._buf, self._last_ts, out, len(self._buf), _SILENCE)
-                    del self._buf[:pos]
-                    self._mark = len(self._buf)
-                run = self._take_noise()
-                if run is not None:
-                    out.append(run)
+                self._at_silence(out)
         self._last_ts = ts
         old = len(self._buf)
         if old:
@@ -228,6 +253,7 @@ class RtuDecoder(StreamDecoder):
         """Drop the buffer and the pending request (e.g. after a gap); report dropped bytes."""
         self.stats["noise_bytes"] += len(self._buf)
         out = self._discard(ts)
+        self._chunks = []
         self._mark = 0
         self._pending = None
         self._last_ts = None
@@ -248,13 +274,7 @@ class RtuDecoder(StreamDecoder):
         out: list[Frame | Noise] = []
         if self._char is not None and self._ticked != last and now >= last + self._t35 + 1e-6:
             self._ticked = last
-            if self._buf:
-                pos = self._decode(self._buf, last, out, len(self._buf), _SILENCE)
-                del self._buf[:pos]
-                self._mark = len(self._buf)
-            run = self._take_noise()
-            if run is not None:
-                out.append(run)
+            self._at_silence(out)
         if self._silence is not None and self._settled != last and now >= last + self._silence:
             self._settled = last
             out.extend(self._settle(last))
@@ -275,12 +295,60 @@ class RtuDecoder(StreamDecoder):
 
     # ------------------------------------------------------------------ internals
 
+    def _at_silence(self, out: list[Frame | Noise]) -> None:
+        """A silence longer than t3.5 follows the bytes held: decide what it settles.
+
+        The noise run ends here only when no undecided byte is left before the
+        silence (those may still join it: one run of noise is one record).
+        """
+        if self._buf:
+            pos = self._decode(self._buf, self._last_ts or 0.0, out, len(self._buf), _SILENCE)
+            self._drop(pos)
+        self._mark = len(self._buf)
+        if not self._buf:
+            run = self._take_noise()
+            if run is not None:
+                out.append(run)
+
+    def _keep(self, buf: bytes | bytearray, pos: int, old: int, ts: float) -> None:
+        """Keep ``buf[pos:]`` (see :class:`StreamDecoder`) and when each kept byte arrived."""
+        n = len(buf)
+        if pos >= n:
+            if self._chunks:
+                self._chunks = []
+        elif old:
+            kept = [(end - pos, t) for end, t in self._chunks if end > pos]
+            if n > old:
+                kept.append((n - pos, ts))
+            self._chunks = kept
+        else:
+            self._chunks = [(n - pos, ts)]
+        super()._keep(buf, pos, old, ts)
+        if self._chunks:
+            self._buf_ts = self._chunks[0][1]
+
+    def _drop(self, pos: int) -> None:
+        """The first ``pos`` bytes of ``_buf`` are decided: drop them."""
+        if pos:
+            del self._buf[:pos]
+            self._chunks = [(end - pos, t) for end, t in self._chunks if end > pos]
+            if self._chunks:
+                self._buf_ts = self._chunks[0][1]
+
+    def _arrival(self, i: int) -> float:
+        """When ``_buf[i]`` arrived (the time of the chunk that brought it)."""
+        for end, ts in self._chunks:
+            if i < end:
+                return ts
+        return self._last_ts or 0.0
+
     def _settle(self, ts: float) -> list[Frame | Noise]:
         """Decide every byte held (frames stamped ``ts``, noise when it arrived)."""
         out: list[Frame | Noise] = []
         if self._buf:
             self._decode(self._buf, ts, out, len(self._buf), _FINAL)
             self._buf = bytearray()
+            self._chunks = []
         self._mark = 0
         run = self._take_noise()
         if run is not None:
@@ -313,8 +381,9 @@ class RtuDecoder(StreamDecoder):
     ) -> int:
         """Frame ADUs from ``buf``; return the offset of the first undecided byte.
 
-        ``buf[:old]`` arrived at ``_buf_ts``, the rest at ``ts``: noise is
-        stamped when its bytes arrived, frames when their last byte did.
+        ``buf[:old]`` is what ``_buf`` held (its chunks' times in ``_chunks``),
+        the rest arrived at ``ts``: noise is stamped when its first byte
+        arrived, a frame when its last byte did (whenever it is decided).
 
         The common case is decided in the loop itself: the preferred reading
         (the one :meth:`_decide` tries first) has a length that a simple rule of
@@ -339,6 +408,8 @@ class RtuDecoder(StreamDecoder):
         pending = self._pending
         frames = 0
         last = n - 1
+        self._near = self._lined = self._tails = None
+        mark = self._mark if mode == _STREAM else 0
         while pos < n:
             if pos < last:
                 unit = buf[pos]
@@ -357,6 +428,8 @@ class RtuDecoder(StreamDecoder):
                         at = pos + rule[0]
                         end = pos + rule[1] + buf[at] if at < n else n + 1
                     if end <= n and end - pos <= MAX_ADU and crc_ok(buf, pos, end):
+                        if mark and pos < mark < end:
+                            self._bursty = True
                         if self._noise:
                             append(self._flush_noise_run())
                         raw = bytes(buf[pos:end]) if copy else buf[pos:end]
@@ -367,7 +440,8 @@ class RtuDecoder(StreamDecoder):
                             pending = (unit, fc) if unit != 0 else None
                             direction = _C2S
                         pdu = decode(raw[1:-2], is_resp)
-                        append(new_frame(ts, stream, direction, unit, None, pdu, raw, True))
+                        when = ts if end > old else self._arrival(end - 1)
+                        append(new_frame(when, stream, direction, unit, None, pdu, raw, True))
                         frames += 1
                         pos = end
                         continue
@@ -377,6 +451,8 @@ class RtuDecoder(StreamDecoder):
                 if self._noise:
                     append(self._flush_noise_run())
                 end = pos + length
+                if mark and pos < mark < end:
+                    self._bursty = True
                 raw = bytes(buf[pos:end]) if copy else buf[pos:end]
                 unit = raw[0]
                 pdu = decode(raw[1:-2], is_resp)
@@ -386,13 +462,14 @@ class RtuDecoder(StreamDecoder):
                 else:
                     pending = (unit, raw[1]) if unit != 0 else None
                     direction = _C2S
-                append(new_frame(ts, stream, direction, unit, None, pdu, raw, True))
+                when = ts if end > old else self._arrival(end - 1)
+                append(new_frame(when, stream, direction, unit, None, pdu, raw, True))
                 frames += 1
                 pos = end
             elif length == _WAIT:
                 break
             else:
-                self._add_noise(buf[pos], reason, self._buf_ts if pos < old else ts, out)
+                self._add_noise(buf[pos], reason, self._arrival(pos) if pos < old else ts, out)
                 pos += 1
         self._pending = pending
         if frames:
@@ -404,6 +481,14 @@ class RtuDecoder(StreamDecoder):
 
         Returns (ADU length, is response, "") for a frame, (_WAIT, False, "")
         when more bytes are needed, or (_SKIP, False, reason) for a noise byte.
+
+        In order: a reading whose predicted length is there with a valid CRC; a
+        reading still missing bytes waits, unless a frame that frames on its
+        own starts inside it, lined up with a boundary of the bus
+        (:meth:`_lined_up`); a reading of unpredictable length is scanned for
+        its CRC; where the readings fail, a CRC that validates at a boundary the
+        bus marks is a frame whatever its fields say (:meth:`_boundary`; the
+        PDU decoder flags them malformed); the rest is noise.
         """
         avail = n - pos
         if avail < 2:
@@ -430,7 +515,9 @@ class RtuDecoder(StreamDecoder):
 
         peek = buf[pos + 1 : pos + 1 + _PEEK]
         incomplete = False
+        far = 0  # where the longest reading still missing bytes would end
         crc_failed = False
+        cut = False  # a reading missing bytes would swallow a frame lined up with the bus
         unpredictable: list[bool] | None = None
         for is_resp in readings:
             plen = pdu_length(peek, is_resp)
@@ -443,24 +530,30 @@ class RtuDecoder(StreamDecoder):
                     unpredictable.append(is_resp)
                 continue
             if plen == NEED_MORE:
-                if mode == _STREAM:
-                    return _WAITING
                 incomplete = True
+                far = max(far, pos + MAX_ADU)
+                if mode == _STREAM:
+                    break  # a later reading must not be taken before this one is known
                 continue
             total = plen + 3
             if total > MAX_ADU or plen < 1:
                 continue
             if total > avail:
-                if mode == _STREAM:
-                    return _WAITING
                 incomplete = True
+                far = max(far, pos + total)
+                if mode == _STREAM:
+                    break
                 continue
             if _crc_ok(buf, pos, pos + total):
                 return total, is_resp, ""
             crc_failed = True
         if incomplete and mode != _FINAL:
-            return _WAIT, False, ""
-        if unpredictable:
+            # USB adapters bunch bytes: a frame may go on after a silence, so wait;
+            # but not for bytes that frame on their own at the bus's boundaries
+            if self._lined_up(buf, pos, n, mode, far) != 1:
+                return _WAITING
+            cut = True
+        elif unpredictable:
             limit = min(MAX_ADU, avail)
             found = _scan(buf, pos, limit) if limit >= MIN_ADU else 0
             if found:
@@ -474,17 +567,146 @@ class RtuDecoder(StreamDecoder):
                 # No CRC match yet: the frame may go on in bytes still to come,
                 # also after a silence (USB adapters bunch bytes). Before a
                 # silence it is noise only when a frame of its own starts
-                # after it and no later than the silence.
+                # after it and no later than the silence, or one lines up.
                 mark = n if mode == _SILENCE else self._mark
-                if pos >= mark or self._frame_within(buf, pos + 1, mark, n, mode) != 1:
+                if (
+                    pos >= mark or self._frame_within(buf, pos + 1, mark, n, mode) != 1
+                ) and self._lined_up(buf, pos, n, mode, pos + MAX_ADU) != 1:
                     return _WAIT, False, ""
+        if crc_failed or cut:
+            found = self._boundary(buf, pos, n, mode)
+            if found < 0:
+                return _WAITING
+            if found:
+                # the reading whose length it has, if any (a reading missing bytes
+                # stopped the others being tried): the direction any chunking gives
+                whole = buf[pos + 1 : pos + found]
+                for is_resp in readings:
+                    plen = pdu_length(whole, is_resp)
+                    if plen is not None and plen != NEED_MORE and plen + 3 == found:
+                        return found, is_resp, ""
+                return found, readings[0], ""
         if crc_failed:
             return _SKIP, False, _BAD_CRC
+        if cut:
+            return _SKIP, False, _CUT
         if incomplete:
             return _SKIP, False, _TRUNCATED
         if unpredictable:
             return _SKIP, False, f"no valid frame (unknown function code 0x{fc:02X})"
         return _SKIP, False, f"no valid frame (function code 0x{fc:02X})"
+
+    def _next_frame(self, buf: bytes | bytearray, pos: int, n: int, mode: int) -> tuple[int, int]:
+        """The first offset ``k`` after ``pos`` (at most ``MAX_ADU`` on) where a frame
+        of predictable length with a valid CRC starts: ``(k, its length)``, or
+        ``(where the search stopped, 0)`` when there is none. An offset whose
+        frame would need bytes still to come is passed over: such a frame
+        would run past the frames found after it, and they frame on their own.
+        Remembered within one decoding pass, so a run of noise costs one look
+        at each offset."""
+        stop = min(n, pos + MAX_ADU + 1)
+        start = pos + 1
+        near = self._near
+        if near is not None and near[0] <= pos < near[1]:
+            if near[2]:
+                return near[1], near[2]
+            start = near[1]
+            lo = near[0]
+        else:
+            lo = pos
+        k = start
+        found = 0
+        while k < stop:
+            found = self._standalone(buf, k, n, mode)
+            if found > 0:
+                break
+            k += 1
+        else:
+            found = 0
+        self._near = (lo, k, found)
+        return k, found
+
+    def _lined_up(self, buf: bytes | bytearray, pos: int, n: int, mode: int, far: int) -> int:
+        """Whether frames of their own after ``pos`` and before ``far`` line up with the
+        bus: one starts or ends at the latest silence, ends the bytes before a
+        silence or the stream, or is followed by another (right after it or
+        later: two CRCs a guess would swallow). 1 yes, 0 no, -1 cannot tell yet.
+        Remembered within one decoding pass (``_lined``) like :meth:`_next_frame`."""
+        lined = self._lined
+        if lined is not None and lined[0] <= pos < lined[1]:
+            k, state = lined[2], lined[3]
+            if state:
+                return state if k < far else 0
+            if far <= k:
+                return 0
+        k, length = self._next_frame(buf, pos, n, mode)
+        first = k
+        mark = self._mark
+        stop = min(far, n)
+        state = 0
+        seen = False
+        while length and k < stop:
+            end = k + length
+            if (
+                seen
+                or (mark and (k == mark or end == mark))
+                or (mode != _STREAM and end == n)
+                or (not self._bursty and (mode == _SILENCE or end <= mark))
+            ):
+                state = 1
+                break
+            after = self._standalone(buf, end, n, mode)
+            if after:
+                state = 1 if after > 0 else -1
+                break
+            seen = True
+            k += 1
+            length = 0
+            while k < stop:
+                length = self._standalone(buf, k, n, mode)
+                if length > 0:
+                    break
+                length = 0
+                k += 1
+        else:
+            k = stop
+            if mode == _SILENCE and not self._bursty:
+                # a frame whose fields disagree ends at the silence: its CRC there
+                # lines it up as well (what follows is settled by the silence)
+                for j in self._ends_at_silence(buf, n):
+                    if pos < j < stop:
+                        k, state = j, 1
+                        break
+        self._lined = (pos, first, k, state)
+        return state if k < far else 0
+
+    def _ends_at_silence(self, buf: bytes | bytearray, n: int) -> list[int]:
+        """Offsets ``j`` (ascending, the last ``MAX_ADU`` bytes) where a CRC-valid ADU
+        ``buf[j:n]`` ends right at the silence; computed once per decoding pass."""
+        tails = self._tails
+        if tails is None:
+            tails = [j for j in range(max(0, n - MAX_ADU), n - MIN_ADU + 1) if _crc_ok(buf, j, n)]
+            self._tails = tails
+        return tails
+
+    def _boundary(self, buf: bytes | bytearray, pos: int, n: int, mode: int) -> int:
+        """Length of a CRC-valid ADU at ``pos`` that ends at a boundary the bus marks:
+        the latest silence, the end of the bytes before a silence (or of the
+        stream), or where the next frame of its own starts; never past that
+        frame. 0 none, -1 cannot tell yet (no boundary in sight, more bytes to come)."""
+        k, length = self._next_frame(buf, pos, n, mode)
+        mark = self._mark
+        ends = [k] if length else []
+        if pos < mark <= k:
+            ends.append(mark)
+        if mode != _STREAM and n <= k:
+            ends.append(n)
+        for end in sorted(ends):
+            if end - pos >= MIN_ADU and _crc_ok(buf, pos, end):
+                return end - pos
+        if not length and mode == _STREAM and k >= n:
+            return -1
+        return 0
 
     def _crosses_frames(
         self, buf: bytes | bytearray, start: int, end: int, n: int, mode: int
@@ -538,14 +760,28 @@ class RtuDecoder(StreamDecoder):
                 continue
             if fc & 0x80 and not is_resp:
                 continue
-            plen = pdu_length(buf[k + 1 : k + MAX_ADU], is_resp)
-            if plen is None:
-                continue
-            if plen == NEED_MORE:
-                short = True
-                continue
-            total = plen + 3
-            if plen < 1 or total > MAX_ADU:
+            rule = (_RESP_RULES if is_resp else _REQ_RULES).get(fc)
+            if type(rule) is int:  # the simple rules as the framing loop reads them
+                total = rule
+            elif rule is not None:
+                at = k + rule[0]
+                if at >= n:
+                    short = True
+                    continue
+                total = rule[1] + buf[at]
+            else:
+                plen = pdu_length(buf[k + 1 : k + 1 + _PEEK], is_resp)
+                if plen == NEED_MORE and avail - 1 > _PEEK:
+                    plen = pdu_length(buf[k + 1 : k + MAX_ADU], is_resp)
+                if plen is None:
+                    continue
+                if plen == NEED_MORE:
+                    short = True
+                    continue
+                if plen < 1:
+                    continue
+                total = plen + 3
+            if total > MAX_ADU:
                 continue
             if total > avail:
                 short = True
@@ -557,3 +793,4 @@ class RtuDecoder(StreamDecoder):
 _CROSSED = "no valid frame (a CRC match by scanning would swallow valid frames)"
 _BAD_CRC = "no valid frame (bad CRC)"
 _TRUNCATED = "truncated frame at end of stream"
+_CUT = "no valid frame (cut short by the next frame)"
