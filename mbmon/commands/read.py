@@ -298,6 +298,7 @@ def _read_with_core(
             as_json=args.json,
             write=write,
             progress=progress,
+            detect=not args.no_detect,
         )
         progress.close()
         why = run.declined

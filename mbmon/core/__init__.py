@@ -114,10 +114,13 @@ def read_file(
     as_json: bool,
     write: Any | None,
     progress: Any | None = None,
+    detect: bool = False,
 ) -> CoreRun:
     """Run the core on the capture at ``path``: a deciding pass, then (unless it
     declined, and when ``write`` is given) a writing pass that hands its output,
-    in blocks of about 1 MiB of UTF-8, to ``write``. The counts are the summary's."""
+    in blocks of about 1 MiB of UTF-8, to ``write``. The counts are the summary's.
+    With ``detect`` (the reference's port detection is on) it declines any TCP payload
+    on ports outside ``ports``: detection may find Modbus there."""
     if _load() is not None:
         return CoreRun(declined=f"the compiled core is unavailable: {_UNAVAILABLE}")
     if not _regular_file(path):
@@ -141,6 +144,7 @@ def read_file(
                 write=write,
                 release=_releaser(mapped),
                 progress=progress,
+                detect=detect,
             )
         finally:
             data.release()
@@ -158,12 +162,13 @@ def read_buffer(
     write: Any | None,
     release: Any | None = None,
     progress: Any | None = None,
+    detect: bool = False,
 ) -> CoreRun:
     """:func:`read_file` on a capture already in memory (``data``: bytes or a buffer);
     ``progress(done, total)`` is called about once per MiB (each pass is half)."""
     if _load() is not None:
         return CoreRun(declined=f"the compiled core is unavailable: {_UNAVAILABLE}")
-    first = _reader._Pass(False, as_json, timeout, ports, view, None)
+    first = _reader._Pass(False, as_json, timeout, ports, view, None, detect)
     first.release = release
     first.progress = progress
     try:
@@ -174,7 +179,7 @@ def read_buffer(
         return CoreRun(declined="no Modbus frames (the reference reader gives the hints)")
     if write is None:
         return CoreRun(counts=_counts(first))
-    second = _reader._Pass(True, as_json, timeout, ports, view, write)
+    second = _reader._Pass(True, as_json, timeout, ports, view, write, detect)
     second.release = release
     second.progress = progress
     second.progress_base = len(data) // 2

@@ -383,6 +383,7 @@ cdef class _Pass:
     cdef bint as_json
     cdef double timeout
     cdef object ports           # frozenset of Modbus/TCP ports
+    cdef bint detect            # the reference would look for Modbus on other TCP ports
     cdef uint8_t port_map[65536]  # the same, one byte per port
     cdef uint8_t ckey[64][12]   # a direct-mapped cache of the flow table (12-byte keys)
     cdef int cval[64]           # its values; -1: empty
@@ -462,8 +463,10 @@ cdef class _Pass:
         free(self.sp)
         free(self.out.p)
 
-    def __init__(self, bint emit, bint as_json, double timeout, ports, view, write):
+    def __init__(self, bint emit, bint as_json, double timeout, ports, view, write,
+                 bint detect=False):
         self.emit = emit
+        self.detect = detect
         self.as_json = as_json
         self.timeout = timeout
         self.ports = ports
@@ -1423,6 +1426,10 @@ cdef class _Pass:
         sport = (b[0] << 8) | b[1]
         dport = (b[2] << 8) | b[3]
         if not self.port_map[sport] and not self.port_map[dport]:
+            if self.detect and (first_fragment or ip_end - l4 > ((b[12] >> 2) & 0x3C)):
+                # port detection reads this payload in the reference pipeline
+                raise Declined("TCP payload on other ports, where port detection looks "
+                               "for Modbus by its structure (--no-detect)")
             return 0
         if first_fragment:
             raise Declined("a fragmented IP packet on a Modbus port")
@@ -1507,6 +1514,9 @@ cdef class _Pass:
             dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
             if self.port_map[sport] or self.port_map[dport]:
                 raise Declined("Modbus over IPv6")
+            if self.detect and proto == 6:
+                raise Declined("TCP over IPv6 on other ports, where port detection looks "
+                               "for Modbus by its structure (--no-detect)")
         return 0
 
     # ------------------------------------------------------------------ containers

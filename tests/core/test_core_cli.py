@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from core_diff import ROOT, require_core
@@ -56,3 +57,41 @@ def test_declines_are_visible_and_change_nothing() -> None:
     count = _mbmon("read", str(DEMO), "-c", "3", "--debug-core")
     assert b"core: declined (-c is not covered" in count.stderr
     assert len(count.stdout.splitlines()) == 3
+
+
+def _two_ports(path: Path, other_port: int) -> Path:
+    """A capture of two Modbus/TCP connections, one to port 502 and one to
+    ``other_port``, interleaved packet by packet."""
+    from gen import T0, adus, every_function_pair, write_frames
+
+    from mbmon.sources.pcapwrite import TcpConversation
+
+    pairs = every_function_pair()[:6]
+    frames: list[bytes] = []
+    convs = [
+        TcpConversation("10.0.0.1:40000", "10.0.0.2:502"),
+        TcpConversation("10.0.0.3:40001", f"10.0.0.4:{other_port}"),
+    ]
+    for conv in convs:
+        frames += conv.open()
+    for c, data in adus(pairs):
+        frames += [conv.send(c, data) for conv in convs]
+    return write_frames(path, [(T0 + i * 0.001, f) for i, f in enumerate(frames)])
+
+
+def test_port_detection_declines_only_where_it_could_find_something(tmp_path: Path) -> None:
+    """Port detection (on by default) may find Modbus on any TCP port: the core reads a
+    capture only when no TCP payload travels on other ports, or with --no-detect."""
+    require_core()
+    both = _two_ports(tmp_path / "both.pcap", 1502)
+    fast = _mbmon("read", str(both), "--debug-core")
+    assert b"core: declined (TCP payload on other ports" in fast.stderr
+    assert b"found Modbus/TCP on port 1502" in fast.stderr
+    pure = _mbmon("read", str(both), pure=True)
+    assert fast.stdout == pure.stdout
+    assert fast.stdout.count(b"\n") > 12  # both connections' frames
+    bare = _mbmon("read", str(both), "--no-detect", "--debug-core")
+    assert b"core: the compiled core read the input" in bare.stderr
+    assert bare.stdout == _mbmon("read", str(both), "--no-detect", pure=True).stdout
+    only502 = _mbmon("read", str(DEMO), "--debug-core")
+    assert b"core: the compiled core read the input" in only502.stderr
