@@ -76,6 +76,8 @@ def decline_for_options(args: Any, *, live: bool, flt: Any) -> str | None:
         (args.rtu_raw, "--rtu-raw (RTU)"),
         (args.rtu_port, "--rtu-port (RTU over TCP/UDP)"),
         (args.write, "-w (logs)"),
+        (getattr(args, "trigger", None), "--trigger"),
+        (getattr(args, "rotate", None), "--rotate"),
         (args.profile, "--profile"),
         (args.robot, "--robot"),
         (args.count, "-c"),
