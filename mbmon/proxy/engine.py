@@ -100,6 +100,13 @@ HANDOVER = 0.002
 #: so that their late answers are recognised and dropped.
 LATE_MEMORY = 4096
 
+#: A client's upstream connection renewed after a gateway timeout stays open this many
+#: ``timeout``\ s (while it owes answers, longer), so that the late answer is seen and
+#: logged as dropped; at most ``MAX_RETIRED`` such connections per client (the oldest
+#: closes first).
+LINGER = 4
+MAX_RETIRED = 2
+
 #: How many bytes one read of a socket takes at most. The engine reads into one
 #: buffer of its own (:class:`_Reader`): asyncio's plain protocols get a new
 #: 256 KiB ``bytes`` per read, which glibc serves above its mmap threshold, so
@@ -177,6 +184,8 @@ class ProxyStats:
     late_dropped: int = 0
     unanswered: int = 0  # RTU master requests left silent (gateway 0x0A/0x0B)
     unmatched_dropped: int = 0
+    unmatched_forwarded: int = 0  # per client: answers with an unknown tid, forwarded
+    upstream_renewed: int = 0  # per client: connections renewed after a gateway timeout
     upstream_connects: int = 0
     upstream_failures: int = 0
     bytes_from_clients: int = 0
@@ -196,9 +205,11 @@ class ProxyStats:
             f"exceptions made by the proxy {made} (0x0A {self.exceptions_0a}, "
             f"0x0B {self.exceptions_0b}, guard {self.guard_refusals})",
             f"guard refusals {self.guard_refusals}, late answers dropped {self.late_dropped}, "
-            f"unmatched answers dropped {self.unmatched_dropped}",
+            f"unmatched answers dropped {self.unmatched_dropped}, "
+            f"forwarded with an unknown tid {self.unmatched_forwarded}",
             f"upstream connections {self.upstream_connects} "
-            f"(failed attempts {self.upstream_failures})",
+            f"(failed attempts {self.upstream_failures}, "
+            f"renewed after a gateway timeout {self.upstream_renewed})",
             f"bytes client->server {self.bytes_from_clients}, "
             f"server->client {self.bytes_to_clients}",
         ]
@@ -316,7 +327,18 @@ class Observer:
 class _Pending:
     """One request in flight upstream."""
 
-    __slots__ = ("client", "deadline", "done", "fc", "link", "raw", "tid", "unit", "utid")
+    __slots__ = (
+        "client",
+        "deadline",
+        "done",
+        "extended",
+        "fc",
+        "link",
+        "raw",
+        "tid",
+        "unit",
+        "utid",
+    )
 
     def __init__(self, client: _Client, tid: int, utid: int, unit: int, fc: int, raw: bytes):
         self.client = client
@@ -328,6 +350,7 @@ class _Pending:
         self.link: _Link | None = None
         self.deadline: float | None = None  # loop time of its 0x0B, once armed
         self.done = False  # answered, expired or forgotten: the deadline queue skips it
+        self.extended = False  # its timeout was extended once for an answer half forwarded
 
 
 class _Reader(asyncio.BufferedProtocol):
@@ -392,6 +415,9 @@ class _Link:
         self.next_tid = 0
         self.last_error = ""
         self.resetting = False  # the proxy itself is aborting the connection
+        #: per client: connections retired after a gateway timeout, still draining
+        self.retired: list[_Link] = []
+        self.parent: _Link | None = None  # of a retired connection: the client's link
 
     # -------------------------------------------------------------- connecting
 
@@ -428,6 +454,7 @@ class _Link:
                 keepalive(sock)
         self.decoder = MbapDecoder(self._stream(), _S2C)
         self.received = self.consumed = 0
+        self.late.clear()  # what the old connection owed can never arrive on this one
         engine.stats.upstream_connects += 1
         engine.upstream_state = "up"
         if self.failing:
@@ -560,28 +587,108 @@ class _Link:
             late.popitem(last=False)
 
     def _expire(self, entry: _Pending) -> None:
-        """No answer in time: 0x0B to the client; a half-received answer resets the link."""
-        entry.done = True
+        """No answer in time: 0x0B to the client, and nothing the upstream sends for
+        it later may reach the client. Per client, the upstream connection is renewed
+        (:meth:`_retire`): the old one drains and drops what it owes; shared, the id
+        is remembered (ids are unique on the link) and a half-received answer resets
+        the link. An answer whose first bytes the client has already (forwarded as
+        they came) gets one more ``timeout``; then the client is dropped, since no
+        exception can go between an answer's bytes."""
         engine = self.engine
         if entry in self.queued:  # still connecting after the whole timeout
+            entry.done = True
             self.queued.remove(entry)
             engine.answer_exception(entry, GATEWAY_PATH_UNAVAILABLE)
             return
+        streaming = not self.remap and self.state == "up"
+        if (
+            streaming
+            and self.received > self.consumed
+            and entry in self.pending.get(entry.utid, ())
+        ):
+            held = self.received - self.consumed
+            if not entry.extended:
+                entry.extended = True
+                engine.arm(entry)
+                return
+            entry.done = True
+            owner = self.owner
+            if owner is not None:
+                owner.drop(
+                    f"upstream sent {held} bytes of an answer and nothing more for "
+                    f"{2 * engine.config.timeout:g} s (the client has them: no exception "
+                    "can follow)"
+                )
+            return
+        entry.done = True
         if not self._remove(entry):
             return
-        self._remember_late(entry.utid, "answered 0x0B already")
+        holder = self._retire() if streaming else self
+        holder._remember_late(entry.utid, "answered 0x0B already")
         if not entry.client.closed:
+            renewed = "; upstream connection renewed" if streaming else ""
             entry.client.notice(
                 f"no answer from upstream within {engine.config.timeout:g} s to tid "
-                f"{entry.tid}: answered 0x0B",
+                f"{entry.tid}: answered 0x0B{renewed}",
                 {"tid": entry.tid, "fc": entry.fc, "unit": entry.unit},
             )
         engine.answer_exception(entry, GATEWAY_TARGET_FAILED)
-        if self.state == "up" and self.received > self.consumed:
+        if self.state == "retired":
+            self._drained()
+        elif self.state == "up" and self.remap and self.received > self.consumed:
             self.reset(
                 f"upstream sent an incomplete answer ({self.received - self.consumed} bytes) "
                 "and nothing more"
             )
+
+    def _retire(self) -> _Link:
+        """Move this client's upstream connection aside after a gateway timeout: it
+        takes no new requests, its requests in flight still get their answers (or
+        their own 0x0B), anything else it receives is dropped and logged, and it
+        closes once it owes nothing (:data:`LINGER`). New
+        requests go on a new connection (opened now), so a late answer can never
+        be taken for the answer to a request that reuses its transaction id."""
+        old = _Link(self.engine, self.owner)
+        old.state = "retired"
+        old.parent = self
+        old.proto, old.decoder, old.pending = self.proto, self.decoder, self.pending
+        old.received, old.consumed = self.received, self.consumed
+        if old.proto is not None:
+            old.proto.link = old
+        for lst in old.pending.values():
+            for entry in lst:
+                entry.link = old
+        self.retired.append(old)
+        while len(self.retired) > MAX_RETIRED:
+            self.retired[0].close()
+        self.proto = None
+        self.decoder = None
+        self.pending = {}
+        self.late = OrderedDict()
+        self.received = self.consumed = 0
+        self.state = "down"
+        self.next_attempt = 0.0
+        self.engine.stats.upstream_renewed += 1
+        old._linger()
+        self.connect()
+        return old
+
+    def _linger(self) -> None:
+        """A retired connection waits for what it owes, then closes (:data:`LINGER`)."""
+        self.engine.loop.call_later(LINGER * self.engine.config.timeout, self._linger_over)
+
+    def _linger_over(self) -> None:
+        if self.state != "retired":
+            return
+        if self.pending:
+            self._linger()  # its own requests in flight expire (0x0B) first
+            return
+        self.close()
+
+    def _drained(self) -> None:
+        """A retired connection that owes nothing more and expects no late answer closes."""
+        if not self.pending and not self.late:
+            self.close()
 
     # -------------------------------------------------------------- answers
 
@@ -591,6 +698,9 @@ class _Link:
         engine = self.engine
         ts = time.time()
         self.received += len(data)
+        if not self.remap and self.state == "up":
+            self._pass(data, ts)
+            return
         bad: Noise | None = None
         raws = self.decoder.split_clean(data, ts)
         if raws is None:  # not whole clean ADUs: the decoder frames (or finds noise)
@@ -629,16 +739,117 @@ class _Link:
         for client, parts in outs.items():
             stats.responses += len(parts)
             client.send(parts[0] if len(parts) == 1 else b"".join(parts), ts)
+        if self.state == "retired":
+            self._drained()
+
+    def _pass(self, data: bytes, ts: float) -> None:
+        """One client's own upstream connection: the bytes go to the client as they
+        came (a split answer too, before its last byte is here), unchanged, whatever
+        their transaction id; framing only tells which requests are answered. Bytes
+        that are not Modbus/TCP are not forwarded: the connection is reset."""
+        owner = self.owner
+        assert owner is not None and self.decoder is not None
+        decoder = self.decoder
+        raws = decoder.split_clean(data, ts)
+        if raws is not None:
+            self.consumed += len(data)
+            self._answered(raws)
+            owner.send(data, ts)
+            return
+        raws, bad = decoder.feed_adus(data, ts)
+        for raw in raws:
+            self.consumed += len(raw)
+        if raws:
+            self._answered(raws)
+        if bad is None and decoder.synced:
+            owner.send(data, ts)
+            return
+        # up to the end of the last whole ADU, the bytes go on; the rest never does
+        upto = self.consumed - (self.received - len(data))
+        if upto > 0:
+            owner.send(data[:upto], ts)
+        if bad is not None:
+            self.consumed += len(bad.raw)
+        self.reset(
+            "upstream sent bytes that are not Modbus/TCP"
+            + (f" ({bad.reason})" if bad is not None else "")
+        )
+
+    def _answered(self, raws: list[bytes]) -> None:
+        """The answers ``raws`` go to the client (per client): their requests are no
+        longer in flight. An answer whose transaction id matches no request is still
+        the upstream's answer: it answers the oldest request in flight of its unit
+        and function (else the oldest), which so gets no 0x0B."""
+        pending = self.pending
+        self.engine.stats.responses += len(raws)
+        for raw in raws:
+            utid = (raw[0] << 8) | raw[1]
+            lst = pending.get(utid)
+            if lst:
+                entry = lst.pop(0)
+                if not lst:
+                    del pending[utid]
+            else:
+                entry = self._adopt(utid, raw)
+                if entry is None:
+                    continue
+            entry.done = True
+            entry.client.outstanding.discard(entry)
+
+    def _adopt(self, utid: int, raw: bytes) -> _Pending | None:
+        """An answer with an unknown transaction id, forwarded unchanged: the request
+        it is taken to answer (removed from those in flight), or ``None``."""
+        engine = self.engine
+        engine.stats.unmatched_forwarded += 1
+        unit, fc = raw[6], raw[7] & 0x7F if len(raw) > 7 else -1
+        first: _Pending | None = None
+        chosen: _Pending | None = None
+        for lst in self.pending.values():  # in the order they were sent
+            for entry in lst:
+                if first is None:
+                    first = entry
+                if entry.unit == unit and entry.fc == fc:
+                    chosen = entry
+                    break
+            if chosen is not None:
+                break
+        if chosen is None:
+            chosen = first
+        info: dict[str, Any] = {"tid": utid, "raw": raw.hex(" ").upper()}
+        if chosen is None:
+            message = (
+                f"answer from upstream with tid {utid} matches no request in flight: "
+                "forwarded unchanged"
+            )
+        else:
+            self._remove(chosen)
+            info["request_tid"] = chosen.tid
+            message = (
+                f"answer from upstream with tid {utid} matches no request's tid: "
+                f"forwarded unchanged, as the answer to tid {chosen.tid}"
+            )
+        self._notice(message, info)
+        return chosen
 
     def _unexpected(self, utid: int, raw: bytes) -> None:
+        """An answer a shared or retired connection cannot route: dropped, logged."""
         engine = self.engine
         why = self.late.pop(utid, None)
         if why is not None:
             engine.stats.late_dropped += 1
             message = f"late answer from upstream (tid {utid}) dropped: {why}"
+        elif self.state == "retired":
+            engine.stats.late_dropped += 1
+            message = (
+                f"answer from upstream with tid {utid} on a connection renewed after a "
+                "gateway timeout dropped: it may answer a request answered 0x0B already"
+            )
         else:
             engine.stats.unmatched_dropped += 1
-            message = f"answer from upstream with unknown tid {utid} dropped"
+            message = (
+                f"answer from upstream with unknown tid {utid} dropped: the shared "
+                "connection routes answers by tid"
+            )
         self._notice(message, {"tid": utid, "raw": raw.hex(" ").upper()})
 
     def connection_lost(self, proto: _Upstream, exc: Exception | None) -> None:
@@ -647,6 +858,20 @@ class _Link:
         self.proto = None
         self.decoder = None
         if self.state == "closed":
+            return
+        if self.state == "retired":
+            self._detach()
+            in_flight = [e for lst in self.pending.values() for e in lst]
+            self.pending = {}
+            if in_flight:
+                self._notice(
+                    f"upstream {self.engine.config.upstream} closed a renewed connection "
+                    f"with {len(in_flight)} requests in flight: answered 0x0B",
+                    {"upstream": self.engine.config.upstream},
+                )
+            for entry in in_flight:
+                self._cancel_timer(entry)
+                self.engine.answer_exception(entry, GATEWAY_TARGET_FAILED)
             return
         self.state = "down"
         self.next_attempt = 0.0  # a lost connection is tried again at once
@@ -683,9 +908,19 @@ class _Link:
         if proto is not None and proto.transport is not None:
             proto.transport.write(data)
 
-    def close(self) -> None:
-        """The owner is gone: no reconnects, and the connection closes."""
+    def _detach(self) -> None:
+        """A retired connection ends: closed, and off its client's list."""
         self.state = "closed"
+        parent = self.parent
+        if parent is not None and self in parent.retired:
+            parent.retired.remove(self)
+
+    def close(self) -> None:
+        """The owner is gone (or a retired connection is done): no reconnects, and
+        the connection closes."""
+        self._detach()
+        for old in list(self.retired):
+            old.close()
         for lst in self.pending.values():
             for entry in lst:
                 self._cancel_timer(entry)
@@ -880,7 +1115,7 @@ class _Client(_Reader):
         left = len(self.outstanding)
         if link is not None:
             for entry in list(self.outstanding):
-                link._forget(entry, "its client left")
+                (entry.link or link)._forget(entry, "its client left")
             if link.owner is self:
                 link.close()
         self.outstanding.clear()

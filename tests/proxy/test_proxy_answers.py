@@ -1,0 +1,369 @@
+"""The proxy never invents or hides an answer: ``mbmon proxy`` as a real subprocess
+between raw clients and a scripted upstream on 127.0.0.1 (an asyncio server in the
+test's own loop, so each test says exactly what the upstream sends and when).
+
+* per client, whatever the upstream sends goes to the client unchanged, an answer
+  with an unknown transaction id too, and a request the upstream answered that way
+  gets no gateway exception (libmodbus's server answers tid 0x27 with tid 0);
+* with ``--share-upstream`` such an answer cannot be routed: dropped, and said so;
+* once the proxy answered a request itself (0x0B), nothing the upstream sends for
+  it reaches the client: 0 wrong answers in 10,000 with in-order and out-of-order
+  upstreams, reused and incrementing transaction ids, delays around the timeout;
+* the upstream's bytes go on as they arrive (an answer sent a byte every 5 ms).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import random
+import struct
+import time
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+
+import pytest
+
+from tests.proxy.test_proxy_e2e import Proxy
+
+Handler = Callable[[asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]]
+
+
+def mbap(tid: int, unit: int, pdu: bytes) -> bytes:
+    return struct.pack(">HHHB", tid, 0, len(pdu) + 1, unit) + pdu
+
+
+async def read_adu(reader: asyncio.StreamReader) -> bytes:
+    head = await reader.readexactly(7)
+    return head + await reader.readexactly(struct.unpack(">H", head[4:6])[0] - 1)
+
+
+async def start_upstream(handle: Handler) -> tuple[asyncio.Server, int]:
+    server = await asyncio.start_server(handle, "127.0.0.1", 0)
+    return server, int(server.sockets[0].getsockname()[1])
+
+
+async def start_proxy(port: int, tmp: Path, *args: str) -> Proxy:
+    return await asyncio.to_thread(Proxy, port, "--quiet", *args, tmp=tmp)
+
+
+async def stop_proxy(p: Proxy) -> str:
+    _out, err = await asyncio.to_thread(p.stop)
+    assert p.returncode == 0, err
+    return err
+
+
+async def silence(reader: asyncio.StreamReader, seconds: float) -> bytes:
+    """What arrives within ``seconds`` (b"" when nothing does)."""
+    try:
+        return await asyncio.wait_for(reader.read(100), seconds)
+    except TimeoutError:
+        return b""
+
+
+def log_notices(path: Path) -> list[dict]:
+    out = []
+    for line in path.read_text().splitlines():
+        rec = json.loads(line)
+        if rec.get("kind") == "event":
+            out.append(rec)
+    return out
+
+
+# --------------------------------------------------------------------------- unknown tid
+
+#: libmodbus's unit-test-server, asked for R0x171, answers with transaction id 0
+#: whatever the request's (``UT_REGISTERS_ADDRESS_INVALID_TID_OR_SLAVE``).
+LIBMODBUS_BAD_TID_REQUEST = bytes.fromhex("00 27 00 00 00 06 FF 03 01 71 00 01")
+LIBMODBUS_BAD_TID_ANSWER = bytes.fromhex("00 00 00 00 00 05 FF 03 02 00 00")
+#: the client's next transaction, and its proper answer
+NEXT_REQUEST = bytes.fromhex("00 2D 00 00 00 06 FF 03 01 60 00 01")
+NEXT_ANSWER = bytes.fromhex("00 2D 00 00 00 05 FF 03 02 12 34")
+
+
+def bad_tid_upstream(bad_tid: int = 0) -> Handler:
+    """Answers R0x171 with transaction id ``bad_tid`` (libmodbus's: 0), the rest as asked."""
+
+    async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        try:
+            while True:
+                req = await read_adu(reader)
+                if req[8:10] == b"\x01\x71":
+                    writer.write(bad_tid.to_bytes(2, "big") + LIBMODBUS_BAD_TID_ANSWER[2:])
+                else:
+                    writer.write(req[:2] + NEXT_ANSWER[2:])
+        except (asyncio.IncompleteReadError, ConnectionError):
+            pass
+        finally:
+            writer.close()
+
+    return handle
+
+
+def test_unknown_tid_answer_is_forwarded_unchanged_and_no_0B_follows(tmp_path: Path) -> None:
+    async def main() -> str:
+        server, port = await start_upstream(bad_tid_upstream())
+        p = await start_proxy(port, tmp_path, "--timeout", "0.3", "-w", "bad-tid.jsonl")
+        try:
+            reader, writer = await asyncio.open_connection("127.0.0.1", p.port)
+            writer.write(LIBMODBUS_BAD_TID_REQUEST)
+            assert await asyncio.wait_for(read_adu(reader), 5) == LIBMODBUS_BAD_TID_ANSWER
+            # the upstream answered: no made-up 0x0B, not at the timeout, not later
+            assert await silence(reader, 0.9) == b""
+            writer.write(NEXT_REQUEST)
+            assert await asyncio.wait_for(read_adu(reader), 5) == NEXT_ANSWER
+            assert await silence(reader, 0.5) == b""
+            writer.close()
+        finally:
+            err = await stop_proxy(p)
+            server.close()
+        return err
+
+    err = asyncio.run(main())
+    assert "0x0B 0" in err
+    assert "forwarded with an unknown tid 1" in err
+    notices = [n["info"].get("message", "") for n in log_notices(tmp_path / "bad-tid.jsonl")]
+    assert any("tid 0 matches no request's tid: forwarded unchanged" in m for m in notices)
+
+
+def test_unknown_tid_answer_is_dropped_and_said_so_when_shared(tmp_path: Path) -> None:
+    """Shared, answers are routed by tid: one that cannot be routed (the shared link's
+    ids start at 0, so the upstream answers with an id never given) is dropped and
+    logged, and the request (never answered) gets its 0x0B at the timeout."""
+
+    async def main() -> str:
+        server, port = await start_upstream(bad_tid_upstream(0xBEEF))
+        p = await start_proxy(
+            port, tmp_path, "--timeout", "0.3", "--share-upstream", "-w", "shared.jsonl"
+        )
+        try:
+            reader, writer = await asyncio.open_connection("127.0.0.1", p.port)
+            writer.write(LIBMODBUS_BAD_TID_REQUEST)
+            got = await asyncio.wait_for(read_adu(reader), 5)
+            assert got == bytes.fromhex("00 27 00 00 00 03 FF 83 0B")
+            writer.write(NEXT_REQUEST)
+            assert await asyncio.wait_for(read_adu(reader), 5) == NEXT_ANSWER
+            writer.close()
+        finally:
+            err = await stop_proxy(p)
+            server.close()
+        return err
+
+    err = asyncio.run(main())
+    assert "unmatched answers dropped 1" in err
+    notices = [n["info"].get("message", "") for n in log_notices(tmp_path / "shared.jsonl")]
+    assert any("unknown tid 48879 dropped: the shared connection routes" in m for m in notices)
+
+
+# --------------------------------------------------------------------------- late answers
+
+TIMEOUT = 0.05
+
+
+def _value(address: int) -> int:
+    return (address * 7 + 3) & 0xFFFF
+
+
+def make_upstream(order: str, rng: random.Random) -> Handler:
+    """An upstream that answers a read of one register at A with ``_value(A)`` after a
+    random delay of 0..2 timeouts: ``in-order`` one request after the other per
+    connection, ``out-of-order`` each request on its own (answers overtake)."""
+
+    async def answer(writer: asyncio.StreamWriter, req: bytes, delay: float) -> None:
+        await asyncio.sleep(delay)
+        address = (req[8] << 8) | req[9]
+        if not writer.is_closing():
+            writer.write(
+                mbap((req[0] << 8) | req[1], req[6], struct.pack(">BBH", 3, 2, _value(address)))
+            )
+
+    async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        tasks = set()
+        try:
+            while True:
+                req = await read_adu(reader)
+                delay = rng.uniform(0, 2 * TIMEOUT)
+                if order == "in-order":
+                    await answer(writer, req, delay)
+                else:
+                    task = asyncio.ensure_future(answer(writer, req, delay))
+                    tasks.add(task)
+                    task.add_done_callback(tasks.discard)
+        except (asyncio.IncompleteReadError, ConnectionError):
+            pass
+        finally:
+            for task in tasks:
+                task.cancel()
+            writer.close()
+
+    return handle
+
+
+class Tally:
+    def __init__(self) -> None:
+        self.answers = 0
+        self.gateway = 0
+        self.wrong: list[str] = []
+
+
+async def client(
+    port: int, n: int, tids: str, depth: int, rng: random.Random, tally: Tally
+) -> None:
+    """``n`` reads of one register each, ``depth`` in flight at once; every answer must
+    be its own request's value, or exception 0x0B; nothing more may come after."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    in_flight: dict[int, int] = {}  # tid -> address
+    sent = 0
+    tid = 1
+    last_address = -1
+    while sent < n or in_flight:
+        while sent < n and len(in_flight) < depth:
+            if tids == "incrementing":
+                tid = (tid + 1) & 0xFFFF
+            address = rng.randrange(0, 60000)
+            if address == last_address:
+                address += 1
+            last_address = address
+            in_flight[tid] = address
+            writer.write(mbap(tid, 1, struct.pack(">BHH", 3, address, 1)))
+            sent += 1
+        try:
+            got = await asyncio.wait_for(read_adu(reader), 10)
+        except (TimeoutError, asyncio.IncompleteReadError) as exc:
+            tally.wrong.append(f"no answer: {exc!r}")
+            break
+        rtid = (got[0] << 8) | got[1]
+        address = in_flight.pop(rtid, None)
+        if address is None:
+            tally.wrong.append(f"answer to no request in flight: {got.hex(' ')}")
+            continue
+        tally.answers += 1
+        if got[7] == 0x83:
+            if got[8] != 0x0B:
+                tally.wrong.append(f"exception {got.hex(' ')}")
+            tally.gateway += 1
+        elif got[7:9] != b"\x03\x02" or (got[9] << 8 | got[10]) != _value(address):
+            tally.wrong.append(f"R{address} answered {got.hex(' ')}")
+    extra = await silence(reader, 4 * TIMEOUT)
+    if extra:
+        tally.wrong.append(f"after the last answer: {extra.hex(' ')}")
+    writer.close()
+
+
+@pytest.mark.parametrize(
+    ("order", "tids", "depth"),
+    [
+        ("in-order", "reused", 1),
+        ("in-order", "incrementing", 3),
+        ("out-of-order", "reused", 1),
+        ("out-of-order", "incrementing", 3),
+    ],
+)
+def test_late_answers_never_reach_a_later_request(
+    tmp_path: Path, order: str, tids: str, depth: int
+) -> None:
+    """2,500 requests per case (10,000 over the four) of 50 clients, answers random
+    0..100 ms late around a 50 ms timeout: each answer is its own request's or 0x0B."""
+    rng = random.Random(f"{order}-{tids}")
+    tally = Tally()
+
+    async def main() -> str:
+        server, port = await start_upstream(make_upstream(order, rng))
+        p = await start_proxy(port, tmp_path, "--timeout", str(TIMEOUT))
+        try:
+            await asyncio.gather(
+                *(client(p.port, 50, tids, depth, random.Random(i), tally) for i in range(50))
+            )
+        finally:
+            err = await stop_proxy(p)
+            server.close()
+        return err
+
+    start = time.monotonic()
+    err = asyncio.run(main())
+    assert tally.wrong == [], f"{len(tally.wrong)} wrong: {tally.wrong[:5]}"
+    assert tally.answers == 2500
+    # the case is real: many late answers were made 0x0B, many answers came in time
+    assert 200 < tally.gateway < 2300, (tally.gateway, err)
+    assert "late answers dropped 0" not in err
+    assert time.monotonic() - start < 120
+
+
+def test_late_answers_never_reach_a_later_request_shared(tmp_path: Path) -> None:
+    rng = random.Random("shared")
+    tally = Tally()
+
+    async def main() -> str:
+        server, port = await start_upstream(make_upstream("out-of-order", rng))
+        p = await start_proxy(port, tmp_path, "--timeout", str(TIMEOUT), "--share-upstream")
+        try:
+            await asyncio.gather(
+                *(client(p.port, 40, "reused", 1, random.Random(i), tally) for i in range(50))
+            )
+        finally:
+            err = await stop_proxy(p)
+            server.close()
+        return err
+
+    asyncio.run(main())
+    assert tally.wrong == [], f"{len(tally.wrong)} wrong: {tally.wrong[:5]}"
+    assert tally.answers == 2000
+    assert tally.gateway > 100
+
+
+# --------------------------------------------------------------------------- as they arrive
+
+#: libmodbus's server, asked for R0x173, sends its answer one byte every 5 ms.
+SLOW_REQUEST = bytes.fromhex("00 1C 00 00 00 06 FF 03 01 73 00 01")
+SLOW_ANSWER = bytes.fromhex("00 1C 00 00 00 05 FF 03 02 00 00")
+
+
+async def _byte_by_byte(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+    try:
+        while True:
+            req = await read_adu(reader)
+            answer = req[:2] + SLOW_ANSWER[2:]
+            for i in range(len(answer)):
+                writer.write(answer[i : i + 1])
+                await writer.drain()
+                await asyncio.sleep(0.005)
+    except (asyncio.IncompleteReadError, ConnectionError):
+        pass
+    finally:
+        writer.close()
+
+
+def test_answer_bytes_are_forwarded_as_they_arrive(tmp_path: Path) -> None:
+    """Per client, the client reads the first bytes of an answer while the upstream is
+    still sending the rest (not all at once after the last byte)."""
+
+    async def main() -> list[float]:
+        server, port = await start_upstream(_byte_by_byte)
+        p = await start_proxy(port, tmp_path, "-w", "slow.jsonl")
+        try:
+            reader, writer = await asyncio.open_connection("127.0.0.1", p.port)
+            writer.write(SLOW_REQUEST)
+            got = b""
+            times = []
+            while len(got) < len(SLOW_ANSWER):
+                part = await asyncio.wait_for(reader.read(100), 5)
+                assert part
+                got += part
+                times.append(time.monotonic())
+            assert got == SLOW_ANSWER
+            writer.close()
+        finally:
+            await stop_proxy(p)
+            server.close()
+        return times
+
+    times = asyncio.run(main())
+    # 11 bytes 5 ms apart: the reads are spread over the ~50 ms the upstream took
+    assert len(times) >= 4, times
+    assert times[-1] - times[0] > 0.025
+    # the log still holds the one whole answer, paired with its request
+    records = [json.loads(line) for line in (tmp_path / "slow.jsonl").read_text().splitlines()]
+    assert [r["kind"] for r in records if r["kind"] in ("request", "response")] == [
+        "request",
+        "response",
+    ]
