@@ -65,7 +65,6 @@ from mbmon.model import (
     Direction,
     Event,
     EventKind,
-    Noise,
     Stream,
     Transport,
     fast_constructor,
@@ -418,6 +417,11 @@ class _Link:
         #: per client: connections retired after a gateway timeout, still draining
         self.retired: list[_Link] = []
         self.parent: _Link | None = None  # of a retired connection: the client's link
+        #: shared: the request whose answer is being forwarded as it comes, how many of
+        #: its bytes went already, and the bytes of the incomplete answer so far
+        self.streaming: _Pending | None = None
+        self.streamed = 0
+        self.tail = b""
 
     # -------------------------------------------------------------- connecting
 
@@ -455,6 +459,9 @@ class _Link:
         self.decoder = MbapDecoder(self._stream(), _S2C)
         self.received = self.consumed = 0
         self.late.clear()  # what the old connection owed can never arrive on this one
+        self.streaming = None
+        self.streamed = 0
+        self.tail = b""
         engine.stats.upstream_connects += 1
         engine.upstream_state = "up"
         if self.failing:
@@ -601,7 +608,7 @@ class _Link:
             engine.answer_exception(entry, GATEWAY_PATH_UNAVAILABLE)
             return
         streaming = not self.remap and self.state == "up"
-        if (
+        if entry is self.streaming or (
             streaming
             and self.received > self.consumed
             and entry in self.pending.get(entry.utid, ())
@@ -612,13 +619,14 @@ class _Link:
                 engine.arm(entry)
                 return
             entry.done = True
-            owner = self.owner
-            if owner is not None:
-                owner.drop(
-                    f"upstream sent {held} bytes of an answer and nothing more for "
-                    f"{2 * engine.config.timeout:g} s (the client has them: no exception "
-                    "can follow)"
-                )
+            entry.client.drop(
+                f"upstream sent {held} bytes of an answer and nothing more for "
+                f"{2 * engine.config.timeout:g} s (the client has them: no exception "
+                "can follow)"
+            )
+            if entry is self.streaming:
+                self.streaming = None
+                self.reset("the answer being forwarded stopped half-way")
             return
         entry.done = True
         if not self._remove(entry):
@@ -695,36 +703,97 @@ class _Link:
     def data_received(self, proto: _Upstream, data: bytes) -> None:
         if proto is not self.proto or self.decoder is None:
             return
-        engine = self.engine
         ts = time.time()
         self.received += len(data)
         if not self.remap and self.state == "up":
             self._pass(data, ts)
             return
-        bad: Noise | None = None
         raws = self.decoder.split_clean(data, ts)
         if raws is None:  # not whole clean ADUs: the decoder frames (or finds noise)
-            raws, bad = self.decoder.feed_adus(data, ts)
-            if not raws and bad is None:
-                return
+            self._split(data, ts)
+            return
+        self.consumed += len(data)
+        self._route(raws, ts)
+
+    def _split(self, data: bytes, ts: float) -> None:
+        """A read that is not whole clean ADUs, on a shared (or retired) connection:
+        whole ADUs are routed; of an answer still incomplete, once its transaction id
+        is here, the bytes go to its client as they come (its own id put back), on
+        the shared connection (a retired one forwards only whole answers)."""
+        assert self.decoder is not None
+        decoder = self.decoder
+        raws, bad = decoder.feed_adus(data, ts)
+        buf = self.tail + data if self.tail else data
+        used = 0
+        for raw in raws:
+            used += len(raw)
+        entry = self.streaming
+        if raws and entry is not None:  # the answer being forwarded is complete
+            first = raws.pop(0)
+            self.streaming = None
+            entry.done = True
+            client = entry.client
+            client.outstanding.discard(entry)
+            self.consumed += len(first)
+            self.engine.stats.responses += 1
+            client.send(first[self.streamed :], ts)
+            self.streamed = 0
+        if raws:
+            self._route(raws, ts)
+        if bad is not None or not decoder.synced:
+            self.tail = b""
+            if bad is not None:
+                self.consumed += len(bad.raw)
+                self.reset(f"upstream sent bytes that are not Modbus/TCP ({bad.reason})")
+            return
+        tail = self.tail = buf[used:]
+        if len(tail) < 2 or self.state != "up":
+            return
+        entry = self.streaming
+        if entry is None:
+            utid = (tail[0] << 8) | tail[1]
+            lst = self.pending.get(utid)
+            if not lst:
+                return  # unknown id: judged when whole
+            entry = lst.pop(0)
+            if not lst:
+                del self.pending[utid]
+            self.streaming = entry
+            tid = entry.tid
+            self.streamed = len(tail)
+            entry.client.send(bytes((tid >> 8, tid & 0xFF)) + tail[2:], ts)
+        elif len(tail) > self.streamed:
+            part = tail[self.streamed :]
+            self.streamed = len(tail)
+            entry.client.send(part, ts)
+
+    def _route(self, raws: list[bytes], ts: float) -> None:
+        """Whole answers on a shared or retired connection: each to the client of its
+        request (its own id put back); what cannot be routed is judged by
+        :meth:`_unexpected`."""
+        engine = self.engine
         outs: dict[_Client, list[bytes]] = {}
         pending = self.pending
         for raw in raws:
             self.consumed += len(raw)
             utid = (raw[0] << 8) | raw[1]
             lst = pending.get(utid)
-            if not lst:
-                self._unexpected(utid, raw)
-                continue
-            entry = lst.pop(0)
-            if not lst:
-                del pending[utid]
+            if lst:
+                entry = lst.pop(0)
+                if not lst:
+                    del pending[utid]
+                unchanged = False
+            else:
+                adopted = self._unexpected(utid, raw)
+                if adopted is None:
+                    continue
+                entry, unchanged = adopted, True
             entry.done = True
             client = entry.client
             client.outstanding.discard(entry)
             if client.closed:
                 continue
-            if self.remap:
+            if self.remap and not unchanged:
                 tid = entry.tid
                 raw = bytes((tid >> 8, tid & 0xFF)) + raw[2:]
             out = outs.get(client)
@@ -732,9 +801,6 @@ class _Link:
                 outs[client] = [raw]
             else:
                 out.append(raw)
-        if bad is not None:
-            self.consumed += len(bad.raw)
-            self.reset(f"upstream sent bytes that are not Modbus/TCP ({bad.reason})")
         stats = engine.stats
         for client, parts in outs.items():
             stats.responses += len(parts)
@@ -831,10 +897,20 @@ class _Link:
         self._notice(message, info)
         return chosen
 
-    def _unexpected(self, utid: int, raw: bytes) -> None:
-        """An answer a shared or retired connection cannot route: dropped, logged."""
+    def _in_flight(self) -> int:
+        return sum(map(len, self.pending.values()))
+
+    def _unexpected(self, utid: int, raw: bytes) -> _Pending | None:
+        """An answer whose id is no request's on a shared or retired connection: on a
+        shared one with exactly one request in flight (and not a late answer), that
+        request's answer, forwarded unchanged (the request returned, its client to
+        judge the id); else dropped and logged (``None``)."""
         engine = self.engine
         why = self.late.pop(utid, None)
+        if why is None and self.state == "up" and len(self.pending) == 1:
+            (only,) = self.pending.values()
+            if len(only) == 1:
+                return self._adopt(utid, raw)
         if why is not None:
             engine.stats.late_dropped += 1
             message = f"late answer from upstream (tid {utid}) dropped: {why}"
@@ -848,9 +924,10 @@ class _Link:
             engine.stats.unmatched_dropped += 1
             message = (
                 f"answer from upstream with unknown tid {utid} dropped: the shared "
-                "connection routes answers by tid"
+                f"connection routes answers by tid ({self._in_flight()} requests in flight)"
             )
         self._notice(message, {"tid": utid, "raw": raw.hex(" ").upper()})
+        return None
 
     def connection_lost(self, proto: _Upstream, exc: Exception | None) -> None:
         if proto is not self.proto:
@@ -880,6 +957,19 @@ class _Link:
         if by == "upstream":
             self.engine.upstream_state = f"lost ({how.upper()})"
         self.resetting = False
+        # a client that has part of an answer already cannot be given an exception
+        # after it: its stream cannot go on
+        half = self.streaming.client if self.streaming is not None else None
+        if half is None and not self.remap and self.received > self.consumed:
+            half = self.owner
+        held = self.received - self.consumed
+        self.streaming = None
+        self.tail = b""
+        if half is not None:
+            half.drop(
+                f"the upstream connection ended after {held} bytes of an answer "
+                "the client has already"
+            )
         in_flight = [e for lst in self.pending.values() for e in lst]
         self.pending = {}
         if self.owner is None or not self.owner.closed:
