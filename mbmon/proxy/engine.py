@@ -70,7 +70,7 @@ from mbmon.model import (
     fast_constructor,
 )
 from mbmon.protocol.mbap import MbapDecoder, encode_adu
-from mbmon.protocol.pdu import decode_pdu, encode_exception
+from mbmon.protocol.pdu import encode_exception
 from mbmon.proxy.guard import ClientFilter, Guard
 
 __all__ = [
@@ -1143,7 +1143,7 @@ class _Client(_Reader):
         out: list[bytes] = []
         for raw in raws:
             if check:
-                verdict = guard.check(raw[6], decode_pdu(raw[7:], False))
+                verdict = guard.check_raw(raw[6], raw[7:])
                 if verdict is not None:
                     self._refuse(raw, verdict.message, verdict.info, ts)
                     continue

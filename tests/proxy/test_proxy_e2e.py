@@ -6,6 +6,7 @@ socket clients (garbage, slowloris, a client that never reads)."""
 from __future__ import annotations
 
 import asyncio
+import json
 import os
 import re
 import signal
@@ -618,6 +619,48 @@ def test_read_only_blocks_every_write_and_audits_in_mcap(tmp_path: Path) -> None
     by_fc = {i["fc"]: i for i in infos}
     assert (by_fc[0x10]["address"], by_fc[0x10]["count"]) == (16, 2)
     assert (by_fc[0x17]["address"], by_fc[0x17]["count"]) == (16, 1)
+
+
+def test_read_only_allow_list_malformed_writes_and_allow_fc_end_to_end(tmp_path: Path) -> None:
+    """--read-only lets only known reads through: 08/01 (restart communications),
+    08/04 (force listen-only) and user-defined 65 are refused and audited, a write
+    whose quantity and byte count disagree is refused as malformed although
+    --allow-write covers its address; --allow-fc 8/1 opens exactly 08/01."""
+    args = ["--quiet", "--read-only", "--allow-write", "hr:200-251", "--allow-fc", "8/1",
+            "--guard-exception", "4", "-w", "ro.jsonl"]  # fmt: skip
+    cases = [
+        (bytes.fromhex("08 00 01 00 00"), True),  # opened by --allow-fc 8/1
+        (bytes.fromhex("08 00 04 00 00"), False),
+        (bytes.fromhex("08 00 00 12 34"), True),  # Return Query Data: a known read
+        (bytes.fromhex("41 00 01"), False),
+        (bytes.fromhex("10 00 FB 00 01 04 00 01 00 02"), False),  # qty 1, 2 values
+        (bytes.fromhex("10 00 FB 00 01 02 00 01"), True),
+        (bytes.fromhex("0F 00 10 00 08 02 FF FF"), False),  # not in --allow-write anyway
+    ]
+    with fake() as up, proxy(up.port, *args, tmp=tmp_path) as p:
+        sock = connect(p.port)
+        for tid, (pdu, passes) in enumerate(cases, start=1):
+            got = rpc(sock, tid, pdu)
+            if passes:
+                assert got[7:9] != bytes([pdu[0] | 0x80, 0x04]), pdu.hex(" ")
+            else:
+                assert got == exception(tid, pdu[0], 0x04), pdu.hex(" ")
+        sock.close()
+        time.sleep(0.2)
+        _out, err = p.stop()
+        received = up.fcs()
+    assert received == [0x08, 0x08, 0x10]
+    assert "guard refusals 4" in err
+    records = [json.loads(line) for line in (tmp_path / "ro.jsonl").read_text().splitlines()]
+    guards = [r["info"] for r in records if r.get("event") == "guard"]
+    assert [(g["fc"], g["rule"]) for g in guards] == [
+        (0x08, "read-only"),
+        (0x41, "read-only"),
+        (0x10, "malformed"),
+        (0x0F, "malformed"),
+    ]
+    assert guards[0]["sub_function"] == 4
+    assert "byte count 4 but 1 registers need 2" in guards[2]["reason"]
 
 
 def test_allow_and_deny_edges_end_to_end(tmp_path: Path) -> None:
