@@ -1046,6 +1046,8 @@ class _Client(_Reader):
         self.paused_since: float | None = None
         self.drop_reason: str | None = None
         self.peer = ""
+        #: the proxy's own answers to this client: ``client -> the proxy`` (made once needed)
+        self.own: Stream | None = None
 
     # -------------------------------------------------------------- asyncio hooks
 
@@ -1127,26 +1129,39 @@ class _Client(_Reader):
 
     def _requests(self, raws: list[bytes], ts: float) -> None:
         engine = self.engine
-        stream = self.stream
-        assert stream is not None
-        engine.observer.chunk(stream, _C2S, raws[0] if len(raws) == 1 else b"".join(raws), ts)
         engine.stats.requests += len(raws)
+        if not engine.config.guard.active:
+            stream = self.stream
+            assert stream is not None
+            engine.observer.chunk(stream, _C2S, raws[0] if len(raws) == 1 else b"".join(raws), ts)
         self.forward(raws, ts)
 
     def forward(self, raws: list[bytes], ts: float, guarded: bool = False) -> None:
         """Guard (unless ``guarded`` already), then send ``raws`` (whole Modbus/TCP
-        request ADUs, already observed and counted) upstream or queue them."""
-        guard = self.engine.config.guard
-        check = guard.active and not guarded
+        request ADUs, counted) upstream or queue them. Observed already when the
+        guard is off or ``guarded``; else here, after the guard: what passes on the
+        client's stream to the upstream, what it refuses on the proxy's own stream
+        (:meth:`_refuse`: the upstream never saw it)."""
+        engine = self.engine
+        guard = engine.config.guard
+        if guard.active and not guarded:
+            passed: list[bytes] = []
+            for raw in raws:
+                verdict = guard.check_raw(raw[6], raw[7:])
+                if verdict is None:
+                    passed.append(raw)
+                else:
+                    self._refuse(raw, verdict.message, verdict.info, ts)
+            if not passed:
+                return
+            raws = passed
+            stream = self.stream
+            assert stream is not None
+            engine.observer.chunk(stream, _C2S, raws[0] if len(raws) == 1 else b"".join(raws), ts)
         link = self.link
         assert link is not None
         out: list[bytes] = []
         for raw in raws:
-            if check:
-                verdict = guard.check_raw(raw[6], raw[7:])
-                if verdict is not None:
-                    self._refuse(raw, verdict.message, verdict.info, ts)
-                    continue
             tid = (raw[0] << 8) | raw[1]
             utid = link.assign_tid(tid) if link.remap else tid
             if utid != tid:
@@ -1158,12 +1173,16 @@ class _Client(_Reader):
             link.write(out[0] if len(out) == 1 else b"".join(out))
 
     def _refuse(self, raw: bytes, message: str, info: Any, ts: float) -> None:
-        """Answer the request ADU ``raw`` with the guard's exception, and audit it."""
+        """Answer the request ADU ``raw`` with the guard's exception, and audit it. A
+        socket client's refused request and its answer are observed on the proxy's
+        own stream (:meth:`send_own`), where they paired: the upstream never saw it."""
         engine = self.engine
         code = engine.config.guard.exception_code
         engine.stats.guard_refusals += 1
         adu = encode_adu((raw[0] << 8) | raw[1], raw[6], encode_exception(raw[7], code))
-        self.send(adu, ts)
+        if type(self).send is _Client.send and self.transport is not None and not self.closed:
+            engine.observer.chunk(self._own_stream(), _C2S, raw, ts)
+        self.send_own(adu, ts)
         engine.observer.event(
             self.stream,
             EventKind.GUARD,
@@ -1237,6 +1256,35 @@ class _Client(_Reader):
             transport.close()
             self._finish_half_closed()
 
+    def send_own(self, data: bytes, ts: float) -> None:
+        """An answer the proxy made itself (0x0A, 0x0B, a guard refusal): to the client
+        like any answer, observed on the proxy's own stream, ``client -> the proxy's
+        listening endpoint`` (its source is the proxy, not the server): no log,
+        screen or export shows it as sent by the server. A subclass that writes
+        answers its own way (an RTU master's port) gets it through its ``send``."""
+        if type(self).send is not _Client.send:
+            self.send(data, ts)
+            return
+        transport = self.transport
+        if transport is None or self.closed:
+            return
+        transport.write(data)
+        engine = self.engine
+        engine.stats.bytes_to_clients += len(data)
+        engine.observer.chunk(self._own_stream(), _S2C, data, ts)
+        if self.half_closed and not self.outstanding:
+            self.closed = True
+            self.drop_reason = None
+            transport.close()
+            self._finish_half_closed()
+
+    def _own_stream(self) -> Stream:
+        own = self.own
+        if own is None:
+            engine = self.engine
+            own = self.own = engine.observer.new_stream(Transport.TCP, self.peer, engine.name)
+        return own
+
     def _finish_half_closed(self) -> None:
         engine = self.engine
         engine.clients.discard(self)
@@ -1295,6 +1343,9 @@ class ProxyEngine:
         self.shared: Any = None  # the shared _Link, or the upstream factory's link
         self.loop: asyncio.AbstractEventLoop = None  # type: ignore[assignment]
         self.address: tuple[str, int] | None = None
+        #: the proxy as an endpoint (its listening address): the server side of the
+        #: streams of its own answers (:meth:`_Client.send_own`)
+        self.name = "proxy"
         self._server: asyncio.base_events.Server | None = None
         self._stop: asyncio.Event | None = None
         #: requests waiting for their answer, in deadline order (one timeout for all)
@@ -1363,7 +1414,7 @@ class ProxyEngine:
             self.stats.exceptions_0a += 1
         else:
             self.stats.exceptions_0b += 1
-        client.send(
+        client.send_own(
             encode_adu(entry.tid, entry.unit, encode_exception(entry.fc, code)), time.time()
         )
 
@@ -1406,7 +1457,7 @@ class ProxyEngine:
             sock = self._server.sockets[0]
             name = sock.getsockname()
             self.address = (str(name[0]), int(name[1]))
-            where = endpoint(*self.address)
+            where = self.name = endpoint(*self.address)
         self.observer.event(
             None,
             EventKind.NOTICE,

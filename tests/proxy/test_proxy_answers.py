@@ -403,3 +403,91 @@ def test_answer_bytes_are_forwarded_as_they_arrive(tmp_path: Path, shared: bool)
         "request",
         "response",
     ]
+
+
+# --------------------------------------------------------------------------- who answered
+
+
+def test_gateway_exception_is_logged_as_the_proxys_own_answer(tmp_path: Path) -> None:
+    """A 0x0B the proxy made has the proxy as its source in the JSON, in the MCAP log
+    and in the pcap ``export`` makes of it: never the server's endpoint."""
+    import subprocess
+    import sys
+
+    from tests.proxy.test_proxy_e2e import ENV
+
+    async def silent(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        try:
+            while True:
+                await read_adu(reader)
+        except (asyncio.IncompleteReadError, ConnectionError):
+            pass
+        finally:
+            writer.close()
+
+    async def main() -> tuple[int, int]:
+        server, port = await start_upstream(silent)
+        p = await start_proxy(port, tmp_path, "--timeout", "0.2", "-w", "gw.jsonl", "-w", "gw.mcap")
+        try:
+            reader, writer = await asyncio.open_connection("127.0.0.1", p.port)
+            writer.write(NEXT_REQUEST)
+            got = await asyncio.wait_for(read_adu(reader), 5)
+            assert got == bytes.fromhex("00 2D 00 00 00 03 FF 83 0B")
+            writer.close()
+        finally:
+            await stop_proxy(p)
+            server.close()
+        return port, p.port
+
+    upstream_port, proxy_port = asyncio.run(main())
+    proxy_at = f"127.0.0.1:{proxy_port}"
+
+    def exceptions(lines: list[str]) -> list[dict]:
+        recs = [json.loads(line) for line in lines if line.strip()]
+        return [r for r in recs if r.get("kind") == "exception"]
+
+    (live,) = exceptions((tmp_path / "gw.jsonl").read_text().splitlines())
+    assert live["src"] == proxy_at and live["exception_code"] == 0x0B
+    out = subprocess.run(
+        [sys.executable, "-m", "mbmon", "export", "gw.mcap", "-o", "gw.pcap"],
+        cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    out = subprocess.run(
+        [sys.executable, "-m", "mbmon", "replay", "gw.mcap", "--json"],
+        cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    got = exceptions(out.stdout.splitlines())
+    assert [(r["src"], r["exception_code"]) for r in got] == [(proxy_at, 0x0B)]
+    # the pcap: the 0x0B's TCP segment comes from the proxy's port
+    ports = {
+        payload: (sport, dport) for sport, dport, payload in tcp_payloads(tmp_path / "gw.pcap")
+    }
+    assert ports[bytes.fromhex("00 2D 00 00 00 03 FF 83 0B")][0] == proxy_port
+    assert ports[NEXT_REQUEST][1] == upstream_port  # the request went to the server
+
+
+def tcp_payloads(path: Path) -> list[tuple[int, int, bytes]]:
+    """(source port, destination port, payload) of each TCP segment with data of a
+    classic Ethernet/IPv4 pcap (what ``export`` writes for a TCP log)."""
+    data = path.read_bytes()
+    assert struct.unpack("<I", data[:4])[0] == 0xA1B2C3D4
+    assert struct.unpack("<I", data[20:24])[0] == 1  # Ethernet
+    out = []
+    pos = 24
+    while pos + 16 <= len(data):
+        incl = struct.unpack("<I", data[pos + 8 : pos + 12])[0]
+        frame = data[pos + 16 : pos + 16 + incl]
+        pos += 16 + incl
+        if frame[12:14] != b"\x08\x00":
+            continue
+        ip = frame[14:]
+        ihl = (ip[0] & 0x0F) * 4
+        total = struct.unpack(">H", ip[2:4])[0]
+        tcp = ip[ihl:total]
+        sport, dport = struct.unpack(">HH", tcp[:4])
+        payload = tcp[(tcp[12] >> 4) * 4 :]
+        if payload:
+            out.append((sport, dport, payload))
+    return out
