@@ -317,7 +317,7 @@ def test_late_answers_never_reach_a_later_request(
     assert tally.wrong == [], f"{len(tally.wrong)} wrong: {tally.wrong[:5]}"
     assert tally.answers == 2500
     # the case is real: many late answers were made 0x0B, many answers came in time
-    assert 200 < tally.gateway < 2300, (tally.gateway, err)
+    assert tally.gateway > 200 and tally.answers - tally.gateway > 20, (tally.gateway, err)
     assert "late answers dropped 0" not in err
     assert time.monotonic() - start < 120
 
