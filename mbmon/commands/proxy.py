@@ -17,6 +17,7 @@ import argparse
 import os
 import signal
 import sys
+import time
 from typing import Any
 
 _EPILOG = """\
@@ -340,6 +341,18 @@ def run(args: argparse.Namespace) -> int:
         file=sys.stderr,
         flush=True,
     )
+    if args.upstream is not None:
+        why = unresolved(up_host, up_port)
+        if why is not None:
+            # the host may come later (DNS, /etc/hosts): keep running, answer 0x0A
+            warning = (
+                f"upstream host {up_host!r} does not resolve ({why}): clients get "
+                "exception 0x0A until it does; the proxy keeps trying"
+            )
+            print(f"mbmon proxy: warning: {warning}", file=sys.stderr, flush=True)
+            from mbmon.model import Event, EventKind
+
+            hub.put(Event(time.time(), None, EventKind.NOTICE, {"message": warning}))
     # the screen last: the logs are open, and the start-up line is on the terminal
     # before the live monitor takes it
     console, monitor = open_console(
@@ -373,6 +386,35 @@ def run(args: argparse.Namespace) -> int:
     if any(name != "stdout" or why != "broken pipe" for name, why in hub.failures):
         return EXIT_BAD_INPUT
     return EXIT_OK
+
+
+def unresolved(host: str, port: int, wait: float = 2.0) -> str | None:
+    """Why ``host`` does not resolve (``None`` when it does, or is an address): the
+    lookup runs in a thread, so a slow resolver delays the start by ``wait`` at most."""
+    import ipaddress
+    import socket
+    import threading
+
+    try:
+        ipaddress.ip_address(host.split("%", 1)[0])
+        return None
+    except ValueError:
+        pass
+    result: list[str | None] = []
+
+    def lookup() -> None:
+        try:
+            socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+            result.append(None)
+        except (OSError, UnicodeError) as exc:
+            result.append(getattr(exc, "strerror", None) or str(exc) or type(exc).__name__)
+
+    thread = threading.Thread(target=lookup, name="mbmon-resolve", daemon=True)
+    thread.start()
+    thread.join(wait)
+    if not result:
+        return f"no answer from the resolver in {wait:g} s"
+    return result[0]
 
 
 def attach_engine(

@@ -491,3 +491,43 @@ def tcp_payloads(path: Path) -> list[tuple[int, int, bytes]]:
         if payload:
             out.append((sport, dport, payload))
     return out
+
+
+def test_unresolvable_upstream_warns_at_start_and_keeps_running(tmp_path: Path) -> None:
+    """``--upstream nosuchhost.invalid:502``: a warning right after the start-up line
+    (and in the log), then the proxy runs on and answers 0x0A (the host may come)."""
+    import re
+    import signal
+    import socket
+    import subprocess
+    import sys
+
+    from tests.proxy.test_proxy_e2e import ENV
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mbmon", "proxy", "--upstream", "nosuchhost.invalid:502",
+         "--listen", "127.0.0.1:0", "--quiet", "-w", "nh.jsonl"],
+        cwd=tmp_path, env=ENV, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert proc.stderr is not None
+        first = proc.stderr.readline()
+        m = re.search(r"listening on 127\.0\.0\.1:(\d+)", first)
+        assert m, first
+        second = proc.stderr.readline()
+        assert "warning: upstream host 'nosuchhost.invalid' does not resolve" in second
+        assert "0x0A" in second
+        with socket.create_connection(("127.0.0.1", int(m.group(1))), timeout=10) as s:
+            s.sendall(NEXT_REQUEST)
+            got = b""
+            while len(got) < 9:
+                part = s.recv(100)
+                assert part
+                got += part
+        assert got == bytes.fromhex("00 2D 00 00 00 03 FF 83 0A")
+        assert proc.poll() is None
+    finally:
+        proc.send_signal(signal.SIGINT)
+        rest = proc.communicate(timeout=20)[1]
+    assert proc.returncode == 0, rest
+    assert "does not resolve" in (tmp_path / "nh.jsonl").read_text()
