@@ -531,3 +531,69 @@ def test_unresolvable_upstream_warns_at_start_and_keeps_running(tmp_path: Path) 
         rest = proc.communicate(timeout=20)[1]
     assert proc.returncode == 0, rest
     assert "does not resolve" in (tmp_path / "nh.jsonl").read_text()
+
+
+def test_renewed_connection_drains_and_says_which_late_answer_it_dropped(
+    tmp_path: Path,
+) -> None:
+    """Per client: A (tid 7) gets 0x0B at the timeout; B, sent before that on the same
+    upstream connection, still gets its own answer from it; A's late answer is
+    dropped and logged with its bytes; C, reusing tid 7 on the renewed connection,
+    gets its own answer, never A's."""
+    # by register address: A's late answer (0.6 s) comes while C is in flight
+    delays = {0x0A: 0.6, 0x0B: 0.2, 0x0C: 0.25}
+
+    async def upstream(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        async def answer(req: bytes) -> None:
+            address = (req[8] << 8) | req[9]
+            await asyncio.sleep(delays[address])
+            writer.write(
+                req[:2] + bytes.fromhex("00 00 00 05") + req[6:8] + b"\x02\x00" + bytes([address])
+            )
+
+        tasks = set()
+        try:
+            while True:
+                task = asyncio.ensure_future(answer(await read_adu(reader)))
+                tasks.add(task)
+                task.add_done_callback(tasks.discard)
+        except (asyncio.IncompleteReadError, ConnectionError):
+            pass
+        finally:
+            writer.close()
+
+    def read(tid: int, address: int) -> bytes:
+        return mbap(tid, 1, struct.pack(">BHH", 3, address, 1))
+
+    def answer(tid: int, address: int) -> bytes:
+        return mbap(tid, 1, bytes([3, 2, 0, address]))
+
+    async def main() -> str:
+        server, port = await start_upstream(upstream)
+        p = await start_proxy(port, tmp_path, "--timeout", "0.4", "-w", "renew.jsonl")
+        try:
+            reader, writer = await asyncio.open_connection("127.0.0.1", p.port)
+            writer.write(read(7, 0x0A))  # A: 0x0B at 0.4 s, answered at 0.6 s
+            await asyncio.sleep(0.3)
+            writer.write(read(8, 0x0B))  # B: answered at 0.5 s, on the old connection
+            got = await asyncio.wait_for(read_adu(reader), 5)
+            assert got == bytes.fromhex("00 07 00 00 00 03 01 83 0B")
+            got = await asyncio.wait_for(read_adu(reader), 5)
+            assert got == answer(8, 0x0B)
+            writer.write(read(7, 0x0C))  # C: tid 7 again, in flight when A's answer comes
+            got = await asyncio.wait_for(read_adu(reader), 5)
+            assert got == answer(7, 0x0C)
+            assert await silence(reader, 0.5) == b""  # A's late answer never comes
+            writer.close()
+        finally:
+            err = await stop_proxy(p)
+            server.close()
+        return err
+
+    err = asyncio.run(main())
+    assert "late answers dropped 1" in err
+    assert "renewed after a gateway timeout 1" in err
+    notices = [n["info"] for n in log_notices(tmp_path / "renew.jsonl")]
+    (late,) = [n for n in notices if "late answer" in n.get("message", "")]
+    assert late["tid"] == 7
+    assert late["raw"] == answer(7, 0x0A).hex(" ").upper()
