@@ -140,7 +140,7 @@ def register(sub: Any) -> None:
         help="only what is known to be a read passes: FC 01-04 07 0B 0C 11 14 18, 2B/0E "
         "and Diagnostics 08 sub-functions 00, 02, 0B-12 (counters); every write (05 06 0F "
         "10 15 16, the write of 17) except what --allow-write allows and every other code "
-        "(08/01 restart, 08/04 listen-only, user-defined 65-72, 100-110...) is refused "
+        "(08/01 restart, 08/04 listen-only, user-defined 0x41-0x48, 0x64-0x6E...) is refused "
         "and audited unless --allow-fc opens it",
     )
     guard.add_argument(

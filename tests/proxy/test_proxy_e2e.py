@@ -850,6 +850,11 @@ def test_help_teaches_the_defaults_rules_and_specs() -> None:
         "--upstream-serial",
         "--listen-serial",
         "the summary still go to stderr",
+        "--allow-fc CODE[/SUB]",
+        "8/1",
+        "only what is known to be a read passes",
+        "refused as malformed",
+        "that connection is renewed",
     ):
         assert words in text, words  # fmt: skip
     assert "no summary" not in text  # the proxy always prints its summary (a supervisor's)
