@@ -400,6 +400,9 @@ class _Link:
         self.engine = engine
         self.owner = owner  # the client of a per-client link; None when shared
         self.remap = owner is None
+        #: per client, to a client that takes the upstream's bytes as they come (a
+        #: socket client; an RTU master's port needs whole answers to make frames)
+        self.passthrough = owner is not None and takes_bytes(owner)
         self.state = "down"  # down | connecting | up | closed
         self.proto: _Upstream | None = None
         self.pending: dict[int, list[_Pending]] = {}
@@ -607,9 +610,10 @@ class _Link:
             self.queued.remove(entry)
             engine.answer_exception(entry, GATEWAY_PATH_UNAVAILABLE)
             return
-        streaming = not self.remap and self.state == "up"
+        per_client = not self.remap and self.state == "up"
         if entry is self.streaming or (
-            streaming
+            per_client
+            and self.passthrough
             and self.received > self.consumed
             and entry in self.pending.get(entry.utid, ())
         ):
@@ -631,10 +635,10 @@ class _Link:
         entry.done = True
         if not self._remove(entry):
             return
-        holder = self._retire() if streaming else self
+        holder = self._retire() if per_client else self
         holder._remember_late(entry.utid, "answered 0x0B already")
         if not entry.client.closed:
-            renewed = "; upstream connection renewed" if streaming else ""
+            renewed = "; upstream connection renewed" if per_client else ""
             entry.client.notice(
                 f"no answer from upstream within {engine.config.timeout:g} s to tid "
                 f"{entry.tid}: answered 0x0B{renewed}",
@@ -643,7 +647,12 @@ class _Link:
         engine.answer_exception(entry, GATEWAY_TARGET_FAILED)
         if self.state == "retired":
             self._drained()
-        elif self.state == "up" and self.remap and self.received > self.consumed:
+        elif (
+            self.state == "up"
+            and self.remap
+            and self.streaming is None  # one being forwarded has a timer of its own
+            and self.received > self.consumed
+        ):
             self.reset(
                 f"upstream sent an incomplete answer ({self.received - self.consumed} bytes) "
                 "and nothing more"
@@ -705,7 +714,7 @@ class _Link:
             return
         ts = time.time()
         self.received += len(data)
-        if not self.remap and self.state == "up":
+        if self.passthrough and self.state == "up":
             self._pass(data, ts)
             return
         raws = self.decoder.split_clean(data, ts)
@@ -753,8 +762,8 @@ class _Link:
         if entry is None:
             utid = (tail[0] << 8) | tail[1]
             lst = self.pending.get(utid)
-            if not lst:
-                return  # unknown id: judged when whole
+            if not lst or not takes_bytes(lst[0].client):
+                return  # unknown id (judged when whole), or a client that needs it whole
             entry = lst.pop(0)
             if not lst:
                 del self.pending[utid]
@@ -922,9 +931,10 @@ class _Link:
             )
         else:
             engine.stats.unmatched_dropped += 1
+            which = "the shared connection" if self.remap else "this connection"
             message = (
-                f"answer from upstream with unknown tid {utid} dropped: the shared "
-                f"connection routes answers by tid ({self._in_flight()} requests in flight)"
+                f"answer from upstream with unknown tid {utid} dropped: {which} "
+                f"routes answers by tid ({self._in_flight()} requests in flight)"
             )
         self._notice(message, {"tid": utid, "raw": raw.hex(" ").upper()})
         return None
@@ -1180,7 +1190,7 @@ class _Client(_Reader):
         code = engine.config.guard.exception_code
         engine.stats.guard_refusals += 1
         adu = encode_adu((raw[0] << 8) | raw[1], raw[6], encode_exception(raw[7], code))
-        if type(self).send is _Client.send and self.transport is not None and not self.closed:
+        if takes_bytes(self) and self.transport is not None and not self.closed:
             engine.observer.chunk(self._own_stream(), _C2S, raw, ts)
         self.send_own(adu, ts)
         engine.observer.event(
@@ -1262,7 +1272,7 @@ class _Client(_Reader):
         listening endpoint`` (its source is the proxy, not the server): no log,
         screen or export shows it as sent by the server. A subclass that writes
         answers its own way (an RTU master's port) gets it through its ``send``."""
-        if type(self).send is not _Client.send:
+        if not takes_bytes(self):
             self.send(data, ts)
             return
         transport = self.transport
@@ -1592,6 +1602,12 @@ class ProxyThread:
         """Wait for the thread; whether it has ended."""
         self._thread.join(timeout)
         return not self._thread.is_alive()
+
+
+def takes_bytes(client: _Client) -> bool:
+    """Whether ``client`` takes an answer's bytes as they come (a socket client),
+    not only whole answers (a subclass with its own ``send``: an RTU master's port)."""
+    return type(client).send is _Client.send
 
 
 def keepalive(sock: Any) -> None:

@@ -597,3 +597,67 @@ def test_renewed_connection_drains_and_says_which_late_answer_it_dropped(
     (late,) = [n for n in notices if "late answer" in n.get("message", "")]
     assert late["tid"] == 7
     assert late["raw"] == answer(7, 0x0A).hex(" ").upper()
+
+
+def test_rtu_master_gets_a_whole_frame_of_an_answer_sent_byte_by_byte(tmp_path: Path) -> None:
+    """An RTU master (``--listen-serial``) needs whole answers to make RTU frames: an
+    upstream answer that comes a byte at a time reaches it as one frame, CRC right."""
+    import os
+    import select
+    import shutil
+    import signal
+    import subprocess
+    import sys
+    import threading
+
+    from socat_ptys import pty_pair
+
+    from mbmon.protocol.rtu import encode_rtu
+    from tests.proxy.test_proxy_e2e import ENV
+
+    if shutil.which("socat") is None:
+        pytest.skip("socat is not installed (the serial side needs a pty pair)")
+    loop = asyncio.new_event_loop()
+    ready = threading.Event()
+    ports: list[int] = []
+
+    def run() -> None:
+        asyncio.set_event_loop(loop)
+        server, port = loop.run_until_complete(start_upstream(_byte_by_byte))
+        ports.append(port)
+        ready.set()
+        loop.run_forever()
+        server.close()
+
+    threading.Thread(target=run, daemon=True).start()
+    ready.wait(10)
+    try:
+        with pty_pair() as (master, master_side):
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "mbmon", "proxy", "--listen-serial", master_side,
+                 "--upstream", f"127.0.0.1:{ports[0]}", "--quiet"],
+                cwd=tmp_path, env=ENV, stderr=subprocess.PIPE, text=True,
+            )  # fmt: skip
+            try:
+                assert proc.stderr is not None
+                assert "listening on" in proc.stderr.readline()
+                fd = os.open(master, os.O_RDWR | os.O_NOCTTY)
+                try:
+                    time.sleep(0.3)
+                    os.write(fd, encode_rtu(0xFF, bytes.fromhex("03 01 73 00 01")))
+                    want = encode_rtu(0xFF, bytes.fromhex("03 02 00 00"))
+                    got = b""
+                    deadline = time.monotonic() + 5
+                    while len(got) < len(want) and time.monotonic() < deadline:
+                        if select.select([fd], [], [], 0.2)[0]:
+                            got += os.read(fd, 100)
+                    assert got == want
+                finally:
+                    os.close(fd)
+            finally:
+                proc.send_signal(signal.SIGINT)
+                err = proc.communicate(timeout=20)[1]
+            assert proc.returncode == 0, err
+            assert "requests 1, responses 1" in err
+    finally:
+        loop.call_soon_threadsafe(loop.stop)
