@@ -17,6 +17,7 @@ import argparse
 import os
 import signal
 import sys
+import time
 from typing import Any
 
 _EPILOG = """\
@@ -38,12 +39,18 @@ examples:
 
 listening: 127.0.0.1:1502 by default. Other interfaces and port 502 are used only
 when --listen names them explicitly (e.g. --listen 0.0.0.0:502).
-gateway rules: upstream down -> exception 0x0A; no answer in --timeout -> 0x0B;
-the client stays connected; late answers are dropped and logged; an RTU master
-(--listen-serial) gets silence instead, as from an RTU slave (docs/proxy.md).
+gateway rules: upstream down -> exception 0x0A; no answer in --timeout -> 0x0B
+(then, with one upstream connection per client, that connection is renewed so its
+late answer can never reach a later request); the client stays connected; late
+answers are dropped and logged; answers go on as their bytes arrive, unchanged
+(an unknown transaction id too; --share-upstream drops what it cannot route); an
+RTU master (--listen-serial) gets silence instead, as from an RTU slave (docs/proxy.md).
 screen: the live monitor on a terminal; --plain, --json or a pipe: one line per record.
 write specs: hr:100  hr:200-251  coil:0-7  unit:2  unit:2,hr:100-110 ; --deny-write
-always wins; with --read-only or any --allow-write only allowed writes pass.
+always wins; with --read-only or any --allow-write only allowed writes pass; with any
+guard option a write whose byte count, quantity and length disagree (or whose range
+runs past 0xFFFF) is refused as malformed. --read-only is an allow-list of known
+reads; --allow-fc CODE[/SUB] opens one more (e.g. --allow-fc 8/1 --allow-fc 65-72).
 forwarding: a TCP proxy forwards in a process of its own, on uvloop when installed
 (MBMON_EVENT_LOOP=asyncio: asyncio's own loop); TCP keepalive finds vanished peers.
 exit status: 0 ok, 1 cannot listen or an output failed, 2 usage
@@ -135,8 +142,20 @@ def register(sub: Any) -> None:
     guard.add_argument(
         "--read-only",
         action="store_true",
-        help="refuse every write (FC 05 06 0F 10 15 16, the write of 17) except what "
-        "--allow-write allows",
+        help="only what is known to be a read passes: FC 01-04 07 0B 0C 11 14 18, 2B/0E "
+        "and Diagnostics 08 sub-functions 00, 02, 0B-12 (counters); every write (05 06 0F "
+        "10 15 16, the write of 17) except what --allow-write allows and every other code "
+        "(08/01 restart, 08/04 listen-only, user-defined 0x41-0x48, 0x64-0x6E...) is refused "
+        "and audited unless --allow-fc opens it",
+    )
+    guard.add_argument(
+        "--allow-fc",
+        action="append",
+        default=[],
+        metavar="CODE[/SUB]",
+        help="with --read-only: let a code that does not write through (repeatable): "
+        "65, 65-72, 0x41, 8/1 (a Diagnostics sub-function), 0x2B/0x0D (an MEI type); "
+        "decimal or 0x hex",
     )
     guard.add_argument(
         "--allow-write",
@@ -228,7 +247,11 @@ def run(args: argparse.Namespace) -> int:
         )
     try:
         guard = Guard.from_options(
-            args.read_only, args.allow_write, args.deny_write, args.guard_exception
+            args.read_only,
+            args.allow_write,
+            args.deny_write,
+            args.guard_exception,
+            allow_fc=args.allow_fc,
         )
         clients = ClientFilter(args.allow_from)
     except GuardSpecError as exc:
@@ -331,6 +354,18 @@ def run(args: argparse.Namespace) -> int:
         file=sys.stderr,
         flush=True,
     )
+    if args.upstream is not None:
+        why = unresolved(up_host, up_port)
+        if why is not None:
+            # the host may come later (DNS, /etc/hosts): keep running, answer 0x0A
+            warning = (
+                f"upstream host {up_host!r} does not resolve ({why}): clients get "
+                "exception 0x0A until it does; the proxy keeps trying"
+            )
+            print(f"mbmon proxy: warning: {warning}", file=sys.stderr, flush=True)
+            from mbmon.model import Event, EventKind
+
+            hub.put(Event(time.time(), None, EventKind.NOTICE, {"message": warning}))
     # the screen last: the logs are open, and the start-up line is on the terminal
     # before the live monitor takes it
     console, monitor = open_console(
@@ -366,6 +401,35 @@ def run(args: argparse.Namespace) -> int:
     if any(name != "stdout" or why != "broken pipe" for name, why in hub.failures):
         return EXIT_BAD_INPUT
     return EXIT_OK
+
+
+def unresolved(host: str, port: int, wait: float = 2.0) -> str | None:
+    """Why ``host`` does not resolve (``None`` when it does, or is an address): the
+    lookup runs in a thread, so a slow resolver delays the start by ``wait`` at most."""
+    import ipaddress
+    import socket
+    import threading
+
+    try:
+        ipaddress.ip_address(host.split("%", 1)[0])
+        return None
+    except ValueError:
+        pass
+    result: list[str | None] = []
+
+    def lookup() -> None:
+        try:
+            socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+            result.append(None)
+        except (OSError, UnicodeError) as exc:
+            result.append(getattr(exc, "strerror", None) or str(exc) or type(exc).__name__)
+
+    thread = threading.Thread(target=lookup, name="mbmon-resolve", daemon=True)
+    thread.start()
+    thread.join(wait)
+    if not result:
+        return f"no answer from the resolver in {wait:g} s"
+    return result[0]
 
 
 def attach_engine(

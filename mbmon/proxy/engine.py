@@ -65,13 +65,12 @@ from mbmon.model import (
     Direction,
     Event,
     EventKind,
-    Noise,
     Stream,
     Transport,
     fast_constructor,
 )
 from mbmon.protocol.mbap import MbapDecoder, encode_adu
-from mbmon.protocol.pdu import decode_pdu, encode_exception
+from mbmon.protocol.pdu import encode_exception
 from mbmon.proxy.guard import ClientFilter, Guard
 
 __all__ = [
@@ -99,6 +98,13 @@ HANDOVER = 0.002
 #: How many answered-with-0x0B (or orphaned) upstream transaction ids are remembered,
 #: so that their late answers are recognised and dropped.
 LATE_MEMORY = 4096
+
+#: A client's upstream connection renewed after a gateway timeout stays open this many
+#: ``timeout``\ s (while it owes answers, longer), so that the late answer is seen and
+#: logged as dropped; at most ``MAX_RETIRED`` such connections per client (the oldest
+#: closes first).
+LINGER = 4
+MAX_RETIRED = 2
 
 #: How many bytes one read of a socket takes at most. The engine reads into one
 #: buffer of its own (:class:`_Reader`): asyncio's plain protocols get a new
@@ -177,6 +183,8 @@ class ProxyStats:
     late_dropped: int = 0
     unanswered: int = 0  # RTU master requests left silent (gateway 0x0A/0x0B)
     unmatched_dropped: int = 0
+    unmatched_forwarded: int = 0  # per client: answers with an unknown tid, forwarded
+    upstream_renewed: int = 0  # per client: connections renewed after a gateway timeout
     upstream_connects: int = 0
     upstream_failures: int = 0
     bytes_from_clients: int = 0
@@ -196,9 +204,11 @@ class ProxyStats:
             f"exceptions made by the proxy {made} (0x0A {self.exceptions_0a}, "
             f"0x0B {self.exceptions_0b}, guard {self.guard_refusals})",
             f"guard refusals {self.guard_refusals}, late answers dropped {self.late_dropped}, "
-            f"unmatched answers dropped {self.unmatched_dropped}",
+            f"unmatched answers dropped {self.unmatched_dropped}, "
+            f"forwarded with an unknown tid {self.unmatched_forwarded}",
             f"upstream connections {self.upstream_connects} "
-            f"(failed attempts {self.upstream_failures})",
+            f"(failed attempts {self.upstream_failures}, "
+            f"renewed after a gateway timeout {self.upstream_renewed})",
             f"bytes client->server {self.bytes_from_clients}, "
             f"server->client {self.bytes_to_clients}",
         ]
@@ -316,7 +326,18 @@ class Observer:
 class _Pending:
     """One request in flight upstream."""
 
-    __slots__ = ("client", "deadline", "done", "fc", "link", "raw", "tid", "unit", "utid")
+    __slots__ = (
+        "client",
+        "deadline",
+        "done",
+        "extended",
+        "fc",
+        "link",
+        "raw",
+        "tid",
+        "unit",
+        "utid",
+    )
 
     def __init__(self, client: _Client, tid: int, utid: int, unit: int, fc: int, raw: bytes):
         self.client = client
@@ -328,6 +349,7 @@ class _Pending:
         self.link: _Link | None = None
         self.deadline: float | None = None  # loop time of its 0x0B, once armed
         self.done = False  # answered, expired or forgotten: the deadline queue skips it
+        self.extended = False  # its timeout was extended once for an answer half forwarded
 
 
 class _Reader(asyncio.BufferedProtocol):
@@ -378,6 +400,9 @@ class _Link:
         self.engine = engine
         self.owner = owner  # the client of a per-client link; None when shared
         self.remap = owner is None
+        #: per client, to a client that takes the upstream's bytes as they come (a
+        #: socket client; an RTU master's port needs whole answers to make frames)
+        self.passthrough = owner is not None and takes_bytes(owner)
         self.state = "down"  # down | connecting | up | closed
         self.proto: _Upstream | None = None
         self.pending: dict[int, list[_Pending]] = {}
@@ -392,6 +417,14 @@ class _Link:
         self.next_tid = 0
         self.last_error = ""
         self.resetting = False  # the proxy itself is aborting the connection
+        #: per client: connections retired after a gateway timeout, still draining
+        self.retired: list[_Link] = []
+        self.parent: _Link | None = None  # of a retired connection: the client's link
+        #: shared: the request whose answer is being forwarded as it comes, how many of
+        #: its bytes went already, and the bytes of the incomplete answer so far
+        self.streaming: _Pending | None = None
+        self.streamed = 0
+        self.tail = b""
 
     # -------------------------------------------------------------- connecting
 
@@ -428,6 +461,10 @@ class _Link:
                 keepalive(sock)
         self.decoder = MbapDecoder(self._stream(), _S2C)
         self.received = self.consumed = 0
+        self.late.clear()  # what the old connection owed can never arrive on this one
+        self.streaming = None
+        self.streamed = 0
+        self.tail = b""
         engine.stats.upstream_connects += 1
         engine.upstream_state = "up"
         if self.failing:
@@ -560,61 +597,212 @@ class _Link:
             late.popitem(last=False)
 
     def _expire(self, entry: _Pending) -> None:
-        """No answer in time: 0x0B to the client; a half-received answer resets the link."""
-        entry.done = True
+        """No answer in time: 0x0B to the client, and nothing the upstream sends for
+        it later may reach the client. Per client, the upstream connection is renewed
+        (:meth:`_retire`): the old one drains and drops what it owes; shared, the id
+        is remembered (ids are unique on the link) and a half-received answer resets
+        the link. An answer whose first bytes the client has already (forwarded as
+        they came) gets one more ``timeout``; then the client is dropped, since no
+        exception can go between an answer's bytes."""
         engine = self.engine
         if entry in self.queued:  # still connecting after the whole timeout
+            entry.done = True
             self.queued.remove(entry)
             engine.answer_exception(entry, GATEWAY_PATH_UNAVAILABLE)
             return
+        per_client = not self.remap and self.state == "up"
+        if entry is self.streaming or (
+            per_client
+            and self.passthrough
+            and self.received > self.consumed
+            and entry in self.pending.get(entry.utid, ())
+        ):
+            held = self.received - self.consumed
+            if not entry.extended:
+                entry.extended = True
+                engine.arm(entry)
+                return
+            entry.done = True
+            entry.client.drop(
+                f"upstream sent {held} bytes of an answer and nothing more for "
+                f"{2 * engine.config.timeout:g} s (the client has them: no exception "
+                "can follow)"
+            )
+            if entry is self.streaming:
+                self.streaming = None
+                self.reset("the answer being forwarded stopped half-way")
+            return
+        entry.done = True
         if not self._remove(entry):
             return
-        self._remember_late(entry.utid, "answered 0x0B already")
+        holder = self._retire() if per_client else self
+        holder._remember_late(entry.utid, "answered 0x0B already")
         if not entry.client.closed:
+            renewed = "; upstream connection renewed" if per_client else ""
             entry.client.notice(
                 f"no answer from upstream within {engine.config.timeout:g} s to tid "
-                f"{entry.tid}: answered 0x0B",
+                f"{entry.tid}: answered 0x0B{renewed}",
                 {"tid": entry.tid, "fc": entry.fc, "unit": entry.unit},
             )
         engine.answer_exception(entry, GATEWAY_TARGET_FAILED)
-        if self.state == "up" and self.received > self.consumed:
+        if self.state == "retired":
+            self._drained()
+        elif (
+            self.state == "up"
+            and self.remap
+            and self.streaming is None  # one being forwarded has a timer of its own
+            and self.received > self.consumed
+        ):
             self.reset(
                 f"upstream sent an incomplete answer ({self.received - self.consumed} bytes) "
                 "and nothing more"
             )
+
+    def _retire(self) -> _Link:
+        """Move this client's upstream connection aside after a gateway timeout: it
+        takes no new requests, its requests in flight still get their answers (or
+        their own 0x0B), anything else it receives is dropped and logged, and it
+        closes once it owes nothing (:data:`LINGER`). New
+        requests go on a new connection (opened now), so a late answer can never
+        be taken for the answer to a request that reuses its transaction id."""
+        old = _Link(self.engine, self.owner)
+        old.state = "retired"
+        old.parent = self
+        old.proto, old.decoder, old.pending = self.proto, self.decoder, self.pending
+        old.received, old.consumed = self.received, self.consumed
+        if old.proto is not None:
+            old.proto.link = old
+        for lst in old.pending.values():
+            for entry in lst:
+                entry.link = old
+        self.retired.append(old)
+        while len(self.retired) > MAX_RETIRED:
+            self.retired[0].close()
+        self.proto = None
+        self.decoder = None
+        self.pending = {}
+        self.late = OrderedDict()
+        self.received = self.consumed = 0
+        self.state = "down"
+        self.next_attempt = 0.0
+        self.engine.stats.upstream_renewed += 1
+        old._linger()
+        self.connect()
+        return old
+
+    def _linger(self) -> None:
+        """A retired connection waits for what it owes, then closes (:data:`LINGER`)."""
+        self.engine.loop.call_later(LINGER * self.engine.config.timeout, self._linger_over)
+
+    def _linger_over(self) -> None:
+        if self.state != "retired":
+            return
+        if self.pending:
+            self._linger()  # its own requests in flight expire (0x0B) first
+            return
+        self.close()
+
+    def _drained(self) -> None:
+        """A retired connection that owes nothing more and expects no late answer closes."""
+        if not self.pending and not self.late:
+            self.close()
 
     # -------------------------------------------------------------- answers
 
     def data_received(self, proto: _Upstream, data: bytes) -> None:
         if proto is not self.proto or self.decoder is None:
             return
-        engine = self.engine
         ts = time.time()
         self.received += len(data)
-        bad: Noise | None = None
+        if self.passthrough and self.state == "up":
+            self._pass(data, ts)
+            return
         raws = self.decoder.split_clean(data, ts)
         if raws is None:  # not whole clean ADUs: the decoder frames (or finds noise)
-            raws, bad = self.decoder.feed_adus(data, ts)
-            if not raws and bad is None:
-                return
+            self._split(data, ts)
+            return
+        self.consumed += len(data)
+        self._route(raws, ts)
+
+    def _split(self, data: bytes, ts: float) -> None:
+        """A read that is not whole clean ADUs, on a shared (or retired) connection:
+        whole ADUs are routed; of an answer still incomplete, once its transaction id
+        is here, the bytes go to its client as they come (its own id put back), on
+        the shared connection (a retired one forwards only whole answers)."""
+        assert self.decoder is not None
+        decoder = self.decoder
+        raws, bad = decoder.feed_adus(data, ts)
+        buf = self.tail + data if self.tail else data
+        used = 0
+        for raw in raws:
+            used += len(raw)
+        entry = self.streaming
+        if raws and entry is not None:  # the answer being forwarded is complete
+            first = raws.pop(0)
+            self.streaming = None
+            entry.done = True
+            client = entry.client
+            client.outstanding.discard(entry)
+            self.consumed += len(first)
+            self.engine.stats.responses += 1
+            client.send(first[self.streamed :], ts)
+            self.streamed = 0
+        if raws:
+            self._route(raws, ts)
+        if bad is not None or not decoder.synced:
+            self.tail = b""
+            if bad is not None:
+                self.consumed += len(bad.raw)
+                self.reset(f"upstream sent bytes that are not Modbus/TCP ({bad.reason})")
+            return
+        tail = self.tail = buf[used:]
+        if len(tail) < 2 or self.state != "up":
+            return
+        entry = self.streaming
+        if entry is None:
+            utid = (tail[0] << 8) | tail[1]
+            lst = self.pending.get(utid)
+            if not lst or not takes_bytes(lst[0].client):
+                return  # unknown id (judged when whole), or a client that needs it whole
+            entry = lst.pop(0)
+            if not lst:
+                del self.pending[utid]
+            self.streaming = entry
+            tid = entry.tid
+            self.streamed = len(tail)
+            entry.client.send(bytes((tid >> 8, tid & 0xFF)) + tail[2:], ts)
+        elif len(tail) > self.streamed:
+            part = tail[self.streamed :]
+            self.streamed = len(tail)
+            entry.client.send(part, ts)
+
+    def _route(self, raws: list[bytes], ts: float) -> None:
+        """Whole answers on a shared or retired connection: each to the client of its
+        request (its own id put back); what cannot be routed is judged by
+        :meth:`_unexpected`."""
+        engine = self.engine
         outs: dict[_Client, list[bytes]] = {}
         pending = self.pending
         for raw in raws:
             self.consumed += len(raw)
             utid = (raw[0] << 8) | raw[1]
             lst = pending.get(utid)
-            if not lst:
-                self._unexpected(utid, raw)
-                continue
-            entry = lst.pop(0)
-            if not lst:
-                del pending[utid]
+            if lst:
+                entry = lst.pop(0)
+                if not lst:
+                    del pending[utid]
+                unchanged = False
+            else:
+                adopted = self._unexpected(utid, raw)
+                if adopted is None:
+                    continue
+                entry, unchanged = adopted, True
             entry.done = True
             client = entry.client
             client.outstanding.discard(entry)
             if client.closed:
                 continue
-            if self.remap:
+            if self.remap and not unchanged:
                 tid = entry.tid
                 raw = bytes((tid >> 8, tid & 0xFF)) + raw[2:]
             out = outs.get(client)
@@ -622,24 +810,134 @@ class _Link:
                 outs[client] = [raw]
             else:
                 out.append(raw)
-        if bad is not None:
-            self.consumed += len(bad.raw)
-            self.reset(f"upstream sent bytes that are not Modbus/TCP ({bad.reason})")
         stats = engine.stats
         for client, parts in outs.items():
             stats.responses += len(parts)
             client.send(parts[0] if len(parts) == 1 else b"".join(parts), ts)
+        if self.state == "retired":
+            self._drained()
 
-    def _unexpected(self, utid: int, raw: bytes) -> None:
+    def _pass(self, data: bytes, ts: float) -> None:
+        """One client's own upstream connection: the bytes go to the client as they
+        came (a split answer too, before its last byte is here), unchanged, whatever
+        their transaction id; framing only tells which requests are answered. Bytes
+        that are not Modbus/TCP are not forwarded: the connection is reset."""
+        owner = self.owner
+        assert owner is not None and self.decoder is not None
+        decoder = self.decoder
+        raws = decoder.split_clean(data, ts)
+        if raws is not None:
+            self.consumed += len(data)
+            self._answered(raws)
+            owner.send(data, ts)
+            return
+        raws, bad = decoder.feed_adus(data, ts)
+        for raw in raws:
+            self.consumed += len(raw)
+        if raws:
+            self._answered(raws)
+        if bad is None and decoder.synced:
+            owner.send(data, ts)
+            return
+        # up to the end of the last whole ADU, the bytes go on; the rest never does
+        upto = self.consumed - (self.received - len(data))
+        if upto > 0:
+            owner.send(data[:upto], ts)
+        if bad is not None:
+            self.consumed += len(bad.raw)
+        self.reset(
+            "upstream sent bytes that are not Modbus/TCP"
+            + (f" ({bad.reason})" if bad is not None else "")
+        )
+
+    def _answered(self, raws: list[bytes]) -> None:
+        """The answers ``raws`` go to the client (per client): their requests are no
+        longer in flight. An answer whose transaction id matches no request is still
+        the upstream's answer: it answers the oldest request in flight of its unit
+        and function (else the oldest), which so gets no 0x0B."""
+        pending = self.pending
+        self.engine.stats.responses += len(raws)
+        for raw in raws:
+            utid = (raw[0] << 8) | raw[1]
+            lst = pending.get(utid)
+            if lst:
+                entry = lst.pop(0)
+                if not lst:
+                    del pending[utid]
+            else:
+                entry = self._adopt(utid, raw)
+                if entry is None:
+                    continue
+            entry.done = True
+            entry.client.outstanding.discard(entry)
+
+    def _adopt(self, utid: int, raw: bytes) -> _Pending | None:
+        """An answer with an unknown transaction id, forwarded unchanged: the request
+        it is taken to answer (removed from those in flight), or ``None``."""
+        engine = self.engine
+        engine.stats.unmatched_forwarded += 1
+        unit, fc = raw[6], raw[7] & 0x7F if len(raw) > 7 else -1
+        first: _Pending | None = None
+        chosen: _Pending | None = None
+        for lst in self.pending.values():  # in the order they were sent
+            for entry in lst:
+                if first is None:
+                    first = entry
+                if entry.unit == unit and entry.fc == fc:
+                    chosen = entry
+                    break
+            if chosen is not None:
+                break
+        if chosen is None:
+            chosen = first
+        info: dict[str, Any] = {"tid": utid, "raw": raw.hex(" ").upper()}
+        if chosen is None:
+            message = (
+                f"answer from upstream with tid {utid} matches no request in flight: "
+                "forwarded unchanged"
+            )
+        else:
+            self._remove(chosen)
+            info["request_tid"] = chosen.tid
+            message = (
+                f"answer from upstream with tid {utid} matches no request's tid: "
+                f"forwarded unchanged, as the answer to tid {chosen.tid}"
+            )
+        self._notice(message, info)
+        return chosen
+
+    def _in_flight(self) -> int:
+        return sum(map(len, self.pending.values()))
+
+    def _unexpected(self, utid: int, raw: bytes) -> _Pending | None:
+        """An answer whose id is no request's on a shared or retired connection: on a
+        shared one with exactly one request in flight (and not a late answer), that
+        request's answer, forwarded unchanged (the request returned, its client to
+        judge the id); else dropped and logged (``None``)."""
         engine = self.engine
         why = self.late.pop(utid, None)
+        if why is None and self.state == "up" and len(self.pending) == 1:
+            (only,) = self.pending.values()
+            if len(only) == 1:
+                return self._adopt(utid, raw)
         if why is not None:
             engine.stats.late_dropped += 1
             message = f"late answer from upstream (tid {utid}) dropped: {why}"
+        elif self.state == "retired":
+            engine.stats.late_dropped += 1
+            message = (
+                f"answer from upstream with tid {utid} on a connection renewed after a "
+                "gateway timeout dropped: it may answer a request answered 0x0B already"
+            )
         else:
             engine.stats.unmatched_dropped += 1
-            message = f"answer from upstream with unknown tid {utid} dropped"
+            which = "the shared connection" if self.remap else "this connection"
+            message = (
+                f"answer from upstream with unknown tid {utid} dropped: {which} "
+                f"routes answers by tid ({self._in_flight()} requests in flight)"
+            )
         self._notice(message, {"tid": utid, "raw": raw.hex(" ").upper()})
+        return None
 
     def connection_lost(self, proto: _Upstream, exc: Exception | None) -> None:
         if proto is not self.proto:
@@ -648,6 +946,20 @@ class _Link:
         self.decoder = None
         if self.state == "closed":
             return
+        if self.state == "retired":
+            self._detach()
+            in_flight = [e for lst in self.pending.values() for e in lst]
+            self.pending = {}
+            if in_flight:
+                self._notice(
+                    f"upstream {self.engine.config.upstream} closed a renewed connection "
+                    f"with {len(in_flight)} requests in flight: answered 0x0B",
+                    {"upstream": self.engine.config.upstream},
+                )
+            for entry in in_flight:
+                self._cancel_timer(entry)
+                self.engine.answer_exception(entry, GATEWAY_TARGET_FAILED)
+            return
         self.state = "down"
         self.next_attempt = 0.0  # a lost connection is tried again at once
         how = "rst" if exc is not None or self.resetting else "fin"
@@ -655,6 +967,19 @@ class _Link:
         if by == "upstream":
             self.engine.upstream_state = f"lost ({how.upper()})"
         self.resetting = False
+        # a client that has part of an answer already cannot be given an exception
+        # after it: its stream cannot go on
+        half = self.streaming.client if self.streaming is not None else None
+        if half is None and not self.remap and self.received > self.consumed:
+            half = self.owner
+        held = self.received - self.consumed
+        self.streaming = None
+        self.tail = b""
+        if half is not None:
+            half.drop(
+                f"the upstream connection ended after {held} bytes of an answer "
+                "the client has already"
+            )
         in_flight = [e for lst in self.pending.values() for e in lst]
         self.pending = {}
         if self.owner is None or not self.owner.closed:
@@ -683,9 +1008,19 @@ class _Link:
         if proto is not None and proto.transport is not None:
             proto.transport.write(data)
 
-    def close(self) -> None:
-        """The owner is gone: no reconnects, and the connection closes."""
+    def _detach(self) -> None:
+        """A retired connection ends: closed, and off its client's list."""
         self.state = "closed"
+        parent = self.parent
+        if parent is not None and self in parent.retired:
+            parent.retired.remove(self)
+
+    def close(self) -> None:
+        """The owner is gone (or a retired connection is done): no reconnects, and
+        the connection closes."""
+        self._detach()
+        for old in list(self.retired):
+            old.close()
         for lst in self.pending.values():
             for entry in lst:
                 self._cancel_timer(entry)
@@ -721,6 +1056,8 @@ class _Client(_Reader):
         self.paused_since: float | None = None
         self.drop_reason: str | None = None
         self.peer = ""
+        #: the proxy's own answers to this client: ``client -> the proxy`` (made once needed)
+        self.own: Stream | None = None
 
     # -------------------------------------------------------------- asyncio hooks
 
@@ -802,26 +1139,39 @@ class _Client(_Reader):
 
     def _requests(self, raws: list[bytes], ts: float) -> None:
         engine = self.engine
-        stream = self.stream
-        assert stream is not None
-        engine.observer.chunk(stream, _C2S, raws[0] if len(raws) == 1 else b"".join(raws), ts)
         engine.stats.requests += len(raws)
+        if not engine.config.guard.active:
+            stream = self.stream
+            assert stream is not None
+            engine.observer.chunk(stream, _C2S, raws[0] if len(raws) == 1 else b"".join(raws), ts)
         self.forward(raws, ts)
 
     def forward(self, raws: list[bytes], ts: float, guarded: bool = False) -> None:
         """Guard (unless ``guarded`` already), then send ``raws`` (whole Modbus/TCP
-        request ADUs, already observed and counted) upstream or queue them."""
-        guard = self.engine.config.guard
-        check = guard.active and not guarded
+        request ADUs, counted) upstream or queue them. Observed already when the
+        guard is off or ``guarded``; else here, after the guard: what passes on the
+        client's stream to the upstream, what it refuses on the proxy's own stream
+        (:meth:`_refuse`: the upstream never saw it)."""
+        engine = self.engine
+        guard = engine.config.guard
+        if guard.active and not guarded:
+            passed: list[bytes] = []
+            for raw in raws:
+                verdict = guard.check_raw(raw[6], raw[7:])
+                if verdict is None:
+                    passed.append(raw)
+                else:
+                    self._refuse(raw, verdict.message, verdict.info, ts)
+            if not passed:
+                return
+            raws = passed
+            stream = self.stream
+            assert stream is not None
+            engine.observer.chunk(stream, _C2S, raws[0] if len(raws) == 1 else b"".join(raws), ts)
         link = self.link
         assert link is not None
         out: list[bytes] = []
         for raw in raws:
-            if check:
-                verdict = guard.check(raw[6], decode_pdu(raw[7:], False))
-                if verdict is not None:
-                    self._refuse(raw, verdict.message, verdict.info, ts)
-                    continue
             tid = (raw[0] << 8) | raw[1]
             utid = link.assign_tid(tid) if link.remap else tid
             if utid != tid:
@@ -833,12 +1183,16 @@ class _Client(_Reader):
             link.write(out[0] if len(out) == 1 else b"".join(out))
 
     def _refuse(self, raw: bytes, message: str, info: Any, ts: float) -> None:
-        """Answer the request ADU ``raw`` with the guard's exception, and audit it."""
+        """Answer the request ADU ``raw`` with the guard's exception, and audit it. A
+        socket client's refused request and its answer are observed on the proxy's
+        own stream (:meth:`send_own`), where they paired: the upstream never saw it."""
         engine = self.engine
         code = engine.config.guard.exception_code
         engine.stats.guard_refusals += 1
         adu = encode_adu((raw[0] << 8) | raw[1], raw[6], encode_exception(raw[7], code))
-        self.send(adu, ts)
+        if takes_bytes(self) and self.transport is not None and not self.closed:
+            engine.observer.chunk(self._own_stream(), _C2S, raw, ts)
+        self.send_own(adu, ts)
         engine.observer.event(
             self.stream,
             EventKind.GUARD,
@@ -880,7 +1234,7 @@ class _Client(_Reader):
         left = len(self.outstanding)
         if link is not None:
             for entry in list(self.outstanding):
-                link._forget(entry, "its client left")
+                (entry.link or link)._forget(entry, "its client left")
             if link.owner is self:
                 link.close()
         self.outstanding.clear()
@@ -911,6 +1265,35 @@ class _Client(_Reader):
             self.drop_reason = None
             transport.close()
             self._finish_half_closed()
+
+    def send_own(self, data: bytes, ts: float) -> None:
+        """An answer the proxy made itself (0x0A, 0x0B, a guard refusal): to the client
+        like any answer, observed on the proxy's own stream, ``client -> the proxy's
+        listening endpoint`` (its source is the proxy, not the server): no log,
+        screen or export shows it as sent by the server. A subclass that writes
+        answers its own way (an RTU master's port) gets it through its ``send``."""
+        if not takes_bytes(self):
+            self.send(data, ts)
+            return
+        transport = self.transport
+        if transport is None or self.closed:
+            return
+        transport.write(data)
+        engine = self.engine
+        engine.stats.bytes_to_clients += len(data)
+        engine.observer.chunk(self._own_stream(), _S2C, data, ts)
+        if self.half_closed and not self.outstanding:
+            self.closed = True
+            self.drop_reason = None
+            transport.close()
+            self._finish_half_closed()
+
+    def _own_stream(self) -> Stream:
+        own = self.own
+        if own is None:
+            engine = self.engine
+            own = self.own = engine.observer.new_stream(Transport.TCP, self.peer, engine.name)
+        return own
 
     def _finish_half_closed(self) -> None:
         engine = self.engine
@@ -970,6 +1353,9 @@ class ProxyEngine:
         self.shared: Any = None  # the shared _Link, or the upstream factory's link
         self.loop: asyncio.AbstractEventLoop = None  # type: ignore[assignment]
         self.address: tuple[str, int] | None = None
+        #: the proxy as an endpoint (its listening address): the server side of the
+        #: streams of its own answers (:meth:`_Client.send_own`)
+        self.name = "proxy"
         self._server: asyncio.base_events.Server | None = None
         self._stop: asyncio.Event | None = None
         #: requests waiting for their answer, in deadline order (one timeout for all)
@@ -1038,7 +1424,7 @@ class ProxyEngine:
             self.stats.exceptions_0a += 1
         else:
             self.stats.exceptions_0b += 1
-        client.send(
+        client.send_own(
             encode_adu(entry.tid, entry.unit, encode_exception(entry.fc, code)), time.time()
         )
 
@@ -1081,7 +1467,7 @@ class ProxyEngine:
             sock = self._server.sockets[0]
             name = sock.getsockname()
             self.address = (str(name[0]), int(name[1]))
-            where = endpoint(*self.address)
+            where = self.name = endpoint(*self.address)
         self.observer.event(
             None,
             EventKind.NOTICE,
@@ -1216,6 +1602,12 @@ class ProxyThread:
         """Wait for the thread; whether it has ended."""
         self._thread.join(timeout)
         return not self._thread.is_alive()
+
+
+def takes_bytes(client: _Client) -> bool:
+    """Whether ``client`` takes an answer's bytes as they come (a socket client),
+    not only whole answers (a subclass with its own ``send``: an RTU master's port)."""
+    return type(client).send is _Client.send
 
 
 def keepalive(sock: Any) -> None:

@@ -18,8 +18,20 @@ fc     writes                       address range checked
        is never refused)
 =====  ===========================  ==========================================
 
-Every other function code (reads, diagnostics, user-defined codes) is never
-refused by the guard.
+A write whose fields disagree (byte count, quantity and length; a range that runs
+past 0xFFFF; truncated) is refused as malformed (rule ``malformed``) whenever the
+guard is on: its range cannot be trusted.
+
+``--read-only`` is an allow-list: only what is known to be a read passes --
+01-04, 07, 0B, 0C, 11, 14, 18, 2B/0E (Read Device Identification), and of the
+Diagnostics (08) sub-functions 00 (Return Query Data), 02 (diagnostic register)
+and 0B-12 (the counters). Everything else (08/01 restart communications, 08/04
+force listen-only, 08/0A clear counters, user-defined codes 65-72 and 100-110,
+unknown codes) is refused (rule ``read-only``) and audited, unless ``--allow-fc``
+opens it: ``--allow-fc CODE`` (every sub-function), ``--allow-fc CODE/SUB``
+(08/SUB, 2B/MEI type), ``--allow-fc A-B`` (a range of codes); numbers decimal or
+0x hex (``65-72``, ``0x41``, ``8/1``, ``0x2B/0x0D``). Writes stay judged by the
+write specs. Without ``--read-only`` codes that do not write are not refused.
 
 Specs (``--allow-write`` / ``--deny-write``): comma-joined terms that must all
 match, each ``TABLE:A`` or ``TABLE:A-B`` (inclusive, decimal or 0x hex):
@@ -52,17 +64,21 @@ from typing import Any
 
 from mbmon.model import Pdu
 from mbmon.protocol.functions import FUNCTIONS
+from mbmon.protocol.pdu import decode_pdu
 
 __all__ = [
     "COIL",
     "HOLDING",
+    "KNOWN_READS",
     "ClientFilter",
+    "FcRule",
     "Guard",
     "GuardSpecError",
     "Verdict",
     "WriteSpec",
     "WriteTarget",
     "is_write",
+    "parse_fc",
     "parse_spec",
     "write_target",
 ]
@@ -77,6 +93,28 @@ _WRITE_TABLE: dict[int, str | None] = {
     for code, spec in FUNCTIONS.items()
     if spec.writes
 }
+
+#: Function codes known to only read, that ``--read-only`` lets through: code ->
+#: the sub-functions that read (``None``: all). 08: Return Query Data, the diagnostic
+#: register and the counters (0B-12); 2B: Read Device Identification (0E).
+KNOWN_READS: dict[int, frozenset[int] | None] = {
+    0x01: None,
+    0x02: None,
+    0x03: None,
+    0x04: None,
+    0x07: None,
+    0x08: frozenset({0x00, 0x02, *range(0x0B, 0x13)}),
+    0x0B: None,
+    0x0C: None,
+    0x11: None,
+    0x14: None,
+    0x18: None,
+    0x2B: frozenset({0x0E}),
+}
+
+#: Codes that always pass unchecked while no write spec or ``--read-only`` restricts
+#: anything but reads: the guard's fast path decodes nothing for them.
+_PLAIN_READS = frozenset(code for code, subs in KNOWN_READS.items() if subs is None)
 
 #: Spec table names and their aliases.
 _TABLE_NAMES = {
@@ -132,7 +170,7 @@ def write_target(pdu: Pdu) -> WriteTarget | None:
         # truncated or malformed: an unknown range is judged as if it touched the
         # whole table (deny specs hit it, allow specs must cover everything)
         return WriteTarget(fc, table, 0, 0xFFFF)
-    return WriteTarget(fc, table, address, min(address + count - 1, 0xFFFF))
+    return WriteTarget(fc, table, address, address + count - 1)
 
 
 @dataclass(frozen=True, slots=True)
@@ -226,6 +264,73 @@ def parse_spec(text: str) -> WriteSpec:
 
 
 @dataclass(frozen=True, slots=True)
+class FcRule:
+    """One ``--allow-fc`` value: function codes ``first..last``, and one sub-function
+    (08) or MEI type (2B), ``None`` for all."""
+
+    text: str
+    first: int
+    last: int
+    sub: int | None = None
+
+    def opens(self, fc: int, sub: int | None) -> bool:
+        return self.first <= fc <= self.last and (self.sub is None or self.sub == sub)
+
+
+def _code(text: str, what: str, spec: str, top: int) -> int:
+    """A number of an ``--allow-fc`` value: decimal (leading zeros allowed) or 0x hex."""
+    t = text.strip().lower()
+    try:
+        value = int(t[2:], 16) if t.startswith("0x") else int(t, 10)
+    except ValueError:
+        raise GuardSpecError(
+            f"--allow-fc {spec!r}: {what} {text.strip()!r} is not a number (decimal, or "
+            "hex as 0x2B)"
+        ) from None
+    if not 0 <= value <= top:
+        raise GuardSpecError(f"--allow-fc {spec!r}: {what} {value} outside 0..{top}")
+    return value
+
+
+def parse_fc(text: str) -> FcRule:
+    """Parse an ``--allow-fc`` value: ``65``, ``65-72``, ``0x41``, ``8/1``, ``0x2B/0x0D``."""
+    spec = text.strip()
+    code, sep, sub_text = spec.partition("/")
+    lo_text, dash, hi_text = code.partition("-")
+    first = _code(lo_text, "function code", spec, 0x7F)
+    last = _code(hi_text, "function code", spec, 0x7F) if dash else first
+    if last < first:
+        raise GuardSpecError(f"--allow-fc {spec!r}: range runs backwards")
+    if first == 0:
+        raise GuardSpecError(f"--allow-fc {spec!r}: there is no function code 0")
+    sub = None
+    if sep:
+        if last != first or first not in (0x08, 0x2B):
+            raise GuardSpecError(
+                f"--allow-fc {spec!r}: CODE/SUB names a Diagnostics (8/SUB) sub-function "
+                "or an MEI type (0x2B/TYPE)"
+            )
+        sub = _code(sub_text, "sub-function", spec, 0xFFFF if first == 0x08 else 0xFF)
+    for fc in range(first, last + 1):
+        if fc in _WRITE_TABLE:
+            raise GuardSpecError(
+                f"--allow-fc {spec!r}: 0x{fc:02X} writes; writes are opened by --allow-write"
+            )
+    return FcRule(spec, first, last, sub)
+
+
+def sub_function(pdu: bytes | bytearray | memoryview) -> int | None:
+    """The sub-function (08) or MEI type (2B) of a request PDU (function code first);
+    ``None`` for other codes or when the PDU is too short to have it."""
+    fc = pdu[0] if pdu else 0
+    if fc == 0x08:
+        return (pdu[1] << 8) | pdu[2] if len(pdu) >= 3 else None
+    if fc == 0x2B:
+        return pdu[1] if len(pdu) >= 2 else None
+    return None
+
+
+@dataclass(frozen=True, slots=True)
 class Verdict:
     """A refusal: the rule that refused and the audit fields (see :meth:`Guard.check`)."""
 
@@ -255,6 +360,7 @@ class Guard:
     allow: tuple[WriteSpec, ...] = ()
     deny: tuple[WriteSpec, ...] = ()
     exception_code: int = 0x01
+    allow_fc: tuple[FcRule, ...] = ()
     _restricted: bool = field(init=False, default=False)
 
     def __post_init__(self) -> None:
@@ -267,15 +373,22 @@ class Guard:
         allow: Sequence[str],
         deny: Sequence[str],
         exception_code: int = 0x01,
+        allow_fc: Sequence[str] = (),
     ) -> Guard:
         """A guard from command-line values; :class:`GuardSpecError` for a bad spec."""
         if not 1 <= exception_code <= 0xFF:
             raise GuardSpecError(f"exception code {exception_code} outside 1..255")
+        if allow_fc and not read_only:
+            raise GuardSpecError(
+                "--allow-fc opens codes that --read-only refuses; without --read-only "
+                "codes that do not write already pass"
+            )
         return cls(
             read_only,
             tuple(parse_spec(s) for s in allow),
             tuple(parse_spec(s) for s in deny),
             exception_code,
+            tuple(parse_fc(s) for s in allow_fc),
         )
 
     @property
@@ -288,21 +401,34 @@ class Guard:
         parts = []
         if self.read_only:
             parts.append("read-only")
+        parts.extend(f"allow-fc {r.text}" for r in self.allow_fc)
         parts.extend(f"allow-write {s.text}" for s in self.allow)
         parts.extend(f"deny-write {s.text}" for s in self.deny)
         return ", ".join(parts) if parts else "off"
+
+    def check_raw(self, unit: int, pdu: bytes) -> Verdict | None:
+        """:meth:`check` for the request PDU bytes ``pdu``: the common reads (01-04,
+        07, 0B, 0C, 11, 14, 18) pass without being decoded."""
+        if pdu and pdu[0] in _PLAIN_READS:
+            return None
+        return self.check(unit, decode_pdu(pdu, False))
 
     def check(self, unit: int, pdu: Pdu) -> Verdict | None:
         """``None`` to forward the request ``pdu`` for ``unit``; else the refusal.
 
         The verdict's ``info`` holds ``rule``, ``fc``, ``unit``, ``address``
-        and ``count`` (the written range; ``None`` for file records).
+        and ``count`` (the written range; ``None`` for file records and codes
+        that do not write; ``sub_function`` for 08 and 2B).
         """
         if not self.active:
             return None
         target = write_target(pdu)
         if target is None:
+            if self.read_only:
+                return self._read_only(unit, pdu)
             return None
+        if pdu.malformed is not None:
+            return self._verdict("malformed", unit, target, pdu.malformed)
         for spec in self.deny:
             if spec.overlaps(unit, target):
                 return self._verdict(f"deny-write {spec.text}", unit, target)
@@ -324,14 +450,46 @@ class Guard:
             return False
         return _cover(pieces, target.first, target.last)
 
-    def _verdict(self, rule: str, unit: int, target: WriteTarget) -> Verdict:
+    def _read_only(self, unit: int, pdu: Pdu) -> Verdict | None:
+        """Under ``--read-only``, a code that does not write passes only when it is a
+        known read (:data:`KNOWN_READS`) or ``--allow-fc`` opens it."""
+        fc = pdu.fc
+        sub = sub_function(pdu.raw)
+        if fc in KNOWN_READS:
+            subs = KNOWN_READS[fc]
+            if subs is None or sub in subs:
+                return None
+        for rule in self.allow_fc:
+            if rule.opens(fc, sub):
+                return None
+        name = FUNCTIONS[fc].name if fc in FUNCTIONS else "user-defined or unknown code"
+        what = f"0x{fc:02X}" + ("" if sub is None else f"/0x{sub:02X}")
+        message = (
+            f"refused {what} ({name}) on unit {unit} (read-only: not a known read; "
+            "--allow-fc opens it)"
+        )
+        info: dict[str, Any] = {
+            "rule": "read-only",
+            "fc": fc,
+            "unit": unit,
+            "address": None,
+            "count": None,
+        }
+        if sub is not None:
+            info["sub_function"] = sub
+        return Verdict("read-only", message, info)
+
+    def _verdict(
+        self, rule: str, unit: int, target: WriteTarget, why: str | None = None
+    ) -> Verdict:
         where = ""
         if target.table is not None and target.first is not None and target.last is not None:
             prefix = "R" if target.table == HOLDING else "coil "
             where = f" {prefix}{target.first}" + (
                 f"..{target.last}" if target.last != target.first else ""
             )
-        message = f"refused 0x{target.fc:02X} write{where} on unit {unit} ({rule})"
+        detail = rule if why is None else f"{rule}: {why}"
+        message = f"refused 0x{target.fc:02X} write{where} on unit {unit} ({detail})"
         info = {
             "rule": rule,
             "fc": target.fc,
@@ -339,6 +497,8 @@ class Guard:
             "address": target.first,
             "count": target.count,
         }
+        if why is not None:
+            info["reason"] = why
         return Verdict(rule, message, info)
 
 

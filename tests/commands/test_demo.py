@@ -96,7 +96,12 @@ def test_demo_log_holds_every_step_s_frames(
     answers = {f["request_index"]: f for f in frames if f["kind"] != "request"}
     assert len(answers) == len(requests), "every request answered"
     assert {f["unit"] for f in frames} == {1}
-    assert len({f["stream"] for f in frames}) == 1  # one client connection through the proxy
+    # one client connection through the proxy to the robot; what the proxy answered
+    # itself (the guard's refusal) is on the proxy's own stream, client -> proxy
+    robot = {f["src"] for f in frames if f["kind"] == "response"}
+    assert len(robot) == 1
+    to_robot = {f["stream"] for f in frames if robot & {f["src"], f["dst"]}}
+    assert len(to_robot) == 1
 
     def find(fc: int, address: int, values: list[int] | None = None) -> list[dict[str, Any]]:
         return [
@@ -345,7 +350,10 @@ def test_keep_running_serves_sim_and_proxy_until_ctrl_c(tmp_path: Path) -> None:
     assert "mbmon replay k.mcap" in stdout
     # the user's own traffic is in the log too: a second client connection
     topics = read_log(tmp_path / "k.mcap")
-    streams = {f["stream"] for f in topics["/modbus/frames"]}
+    frames = topics["/modbus/frames"]
+    robot = {f["src"] for f in frames if f["kind"] == "response"}
+    assert len(robot) == 1  # the proxy's own answers (guard) come from the proxy
+    streams = {f["stream"] for f in frames if robot & {f["src"], f["dst"]}}
     assert len(streams) == 2
     guard = [e for e in topics["/mbmon/events"] if e.get("event") == "guard"]
     assert [g["info"]["address"] for g in guard] == [0, 2]

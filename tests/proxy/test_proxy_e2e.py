@@ -6,6 +6,7 @@ socket clients (garbage, slowloris, a client that never reads)."""
 from __future__ import annotations
 
 import asyncio
+import json
 import os
 import re
 import signal
@@ -545,12 +546,31 @@ def test_late_answer_is_dropped_never_delivered(tmp_path: Path, shared: bool) ->
     assert f"late answer from upstream (tid {0 if shared else 1}) dropped" in log
 
 
-def test_half_answer_gives_0B_and_a_fresh_upstream_connection(tmp_path: Path) -> None:
-    with fake("half") as up, proxy(up.port, "--quiet", "--timeout", "0.5", tmp=tmp_path) as p:
+@pytest.mark.parametrize("shared", [False, True], ids=["per-client", "share-upstream"])
+def test_half_answer_is_forwarded_then_the_client_dropped(tmp_path: Path, shared: bool) -> None:
+    """The upstream's bytes go on as they come (shared: once the transaction id is
+    there): the client has the first half of the answer at once; no exception can
+    follow it, so when the rest never comes (one more timeout) the client is
+    dropped, and its next connection works (on a fresh upstream connection)."""
+    extra = ["--share-upstream"] if shared else []
+    with (
+        fake("half") as up,
+        proxy(up.port, "--quiet", "--timeout", "0.5", *extra, tmp=tmp_path) as p,
+    ):
         sock = connect(p.port)
+        whole = expected_hr(1, 1, 0, 4)
         start = time.monotonic()
-        assert rpc(sock, 1, read_hr(0, 4)) == exception(1, 3, 0x0B)
-        assert time.monotonic() - start < 1.5
+        sock.sendall(adu(1, 1, read_hr(0, 4)))
+        assert recv_exactly(sock, len(whole) // 2) == whole[: len(whole) // 2]
+        assert time.monotonic() - start < 0.4  # before the timeout: not held back
+        sock.settimeout(5)
+        try:
+            assert sock.recv(100) == b""  # dropped, nothing else came
+        except ConnectionResetError:
+            pass  # dropped with a reset
+        assert 0.8 < time.monotonic() - start < 3
+        sock.close()
+        sock = connect(p.port)
         deadline = time.monotonic() + 5
         tid = 2
         while rpc(sock, tid, read_hr(0, 4)) != expected_hr(tid, 1, 0, 4):
@@ -558,6 +578,7 @@ def test_half_answer_gives_0B_and_a_fresh_upstream_connection(tmp_path: Path) ->
             tid += 1
         sock.close()
         _out, err = p.stop()
+    assert "dropped 1" in err
     assert "upstream connections 2" in err
 
 
@@ -598,6 +619,48 @@ def test_read_only_blocks_every_write_and_audits_in_mcap(tmp_path: Path) -> None
     by_fc = {i["fc"]: i for i in infos}
     assert (by_fc[0x10]["address"], by_fc[0x10]["count"]) == (16, 2)
     assert (by_fc[0x17]["address"], by_fc[0x17]["count"]) == (16, 1)
+
+
+def test_read_only_allow_list_malformed_writes_and_allow_fc_end_to_end(tmp_path: Path) -> None:
+    """--read-only lets only known reads through: 08/01 (restart communications),
+    08/04 (force listen-only) and user-defined 65 are refused and audited, a write
+    whose quantity and byte count disagree is refused as malformed although
+    --allow-write covers its address; --allow-fc 8/1 opens exactly 08/01."""
+    args = ["--quiet", "--read-only", "--allow-write", "hr:200-251", "--allow-fc", "8/1",
+            "--guard-exception", "4", "-w", "ro.jsonl"]  # fmt: skip
+    cases = [
+        (bytes.fromhex("08 00 01 00 00"), True),  # opened by --allow-fc 8/1
+        (bytes.fromhex("08 00 04 00 00"), False),
+        (bytes.fromhex("08 00 00 12 34"), True),  # Return Query Data: a known read
+        (bytes.fromhex("41 00 01"), False),
+        (bytes.fromhex("10 00 FB 00 01 04 00 01 00 02"), False),  # qty 1, 2 values
+        (bytes.fromhex("10 00 FB 00 01 02 00 01"), True),
+        (bytes.fromhex("0F 00 10 00 08 02 FF FF"), False),  # not in --allow-write anyway
+    ]
+    with fake() as up, proxy(up.port, *args, tmp=tmp_path) as p:
+        sock = connect(p.port)
+        for tid, (pdu, passes) in enumerate(cases, start=1):
+            got = rpc(sock, tid, pdu)
+            if passes:
+                assert got[7:9] != bytes([pdu[0] | 0x80, 0x04]), pdu.hex(" ")
+            else:
+                assert got == exception(tid, pdu[0], 0x04), pdu.hex(" ")
+        sock.close()
+        time.sleep(0.2)
+        _out, err = p.stop()
+        received = up.fcs()
+    assert received == [0x08, 0x08, 0x10]
+    assert "guard refusals 4" in err
+    records = [json.loads(line) for line in (tmp_path / "ro.jsonl").read_text().splitlines()]
+    guards = [r["info"] for r in records if r.get("event") == "guard"]
+    assert [(g["fc"], g["rule"]) for g in guards] == [
+        (0x08, "read-only"),
+        (0x41, "read-only"),
+        (0x10, "malformed"),
+        (0x0F, "malformed"),
+    ]
+    assert guards[0]["sub_function"] == 4
+    assert "byte count 4 but 1 registers need 2" in guards[2]["reason"]
 
 
 def test_allow_and_deny_edges_end_to_end(tmp_path: Path) -> None:
@@ -787,6 +850,11 @@ def test_help_teaches_the_defaults_rules_and_specs() -> None:
         "--upstream-serial",
         "--listen-serial",
         "the summary still go to stderr",
+        "--allow-fc CODE[/SUB]",
+        "8/1",
+        "only what is known to be a read passes",
+        "refused as malformed",
+        "that connection is renewed",
     ):
         assert words in text, words  # fmt: skip
     assert "no summary" not in text  # the proxy always prints its summary (a supervisor's)

@@ -220,3 +220,175 @@ def test_client_filter() -> None:
     assert ClientFilter([]).allows("192.0.2.1")
     with pytest.raises(GuardSpecError, match="CIDR"):
         ClientFilter(["10.0.0.0/33"])
+
+
+# --------------------------------------------------------------------------- malformed writes
+
+#: writes whose byte count, quantity and length disagree, or whose range runs past
+#: 0xFFFF: (request PDU, why), each next to R200..R251 / coils 200..251
+MALFORMED_WRITES = [
+    ("10 00 FB 00 01 04 00 01 00 02", "byte count 4 but 1 registers need 2"),
+    ("10 00 FB 00 02 02 00 01", "byte count 2 but 2 registers need 4"),
+    ("10 00 FA 00 01 02 00 01 00 02", "byte count 2 but 4 data bytes"),
+    ("0F 00 C8 00 08 02 FF FF", "byte count 2 but 8 bits need 1"),
+    ("17 00 00 00 01 00 FB 00 01 04 00 01 00 02", "write byte count 4 but 1 registers"),
+    ("10 FF FF 00 02 04 00 01 00 02", "exceeds 65536"),
+    ("0F FF FE 00 08 01 FF", "exceeds 65536"),
+    ("17 00 00 00 01 FF FF 00 02 04 00 01 00 02", "exceeds 65536"),
+    ("10 00 C8 00 00 00", "quantity"),
+]
+
+
+@pytest.mark.parametrize(("pdu", "why"), MALFORMED_WRITES)
+@pytest.mark.parametrize(
+    "options",
+    [
+        (True, ["hr:200-251", "coil:200-251", "hr:0-65535"], []),
+        (False, ["hr:0-65535", "coil:0-65535"], []),
+        (False, [], ["unit:9"]),  # a deny spec that does not touch it: still malformed
+    ],
+    ids=["read-only+allow", "allow-all", "deny-other"],
+)
+def test_malformed_write_is_refused_whatever_the_specs(
+    pdu: str, why: str, options: tuple[bool, list[str], list[str]]
+) -> None:
+    request = req(pdu)
+    if why == "quantity":  # quantity 0: the decoder names it its own way
+        assert request.malformed is not None
+    else:
+        assert why in (request.malformed or "")
+    verdict = Guard.from_options(*options).check(1, request)
+    assert verdict is not None and verdict.rule == "malformed"
+    assert verdict.info["reason"] == request.malformed
+    assert "malformed" in verdict.message
+
+
+@pytest.mark.parametrize(
+    "pdu",
+    [
+        "10 00 FB 00 01 02 00 01",  # R251, one register: the last allowed
+        "10 00 FA 00 02 04 00 01 00 02",  # R250..R251
+        "0F 00 C8 00 08 01 FF",  # coils 200..207, 8 bits in one byte
+        "17 00 00 00 01 00 FB 00 01 02 00 01",
+    ],
+)
+def test_well_formed_writes_at_the_edge_pass(pdu: str) -> None:
+    guard = Guard.from_options(True, ["hr:200-251", "coil:200-251"], [])
+    assert guard.check(1, req(pdu)) is None
+
+
+def test_no_guard_forwards_malformed_writes_untouched() -> None:
+    """Without any guard option the proxy never alters traffic."""
+    for pdu, _why in MALFORMED_WRITES:
+        assert Guard.from_options(False, [], []).check(1, req(pdu)) is None
+
+
+# --------------------------------------------------------------------------- read-only allow-list
+
+#: request PDU -> passes --read-only
+READ_ONLY_TABLE = {
+    "01 00 00 00 08": True,
+    "02 00 00 00 08": True,
+    "03 00 00 00 0A": True,
+    "04 00 00 00 0A": True,
+    "07": True,
+    "0B": True,
+    "0C": True,
+    "11": True,
+    "14 07 06 00 04 00 01 00 02": True,
+    "18 04 DE": True,
+    "2B 0E 01 00": True,
+    "08 00 00 12 34": True,  # Return Query Data
+    "08 00 02 00 00": True,  # Return Diagnostic Register
+    "08 00 0B 00 00": True,  # Return Bus Message Count
+    "08 00 12 00 00": True,  # Return Bus Character Overrun Count
+    "08 00 01 00 00": False,  # Restart Communications
+    "08 00 01 FF 00": False,
+    "08 00 04 00 00": False,  # Force Listen Only Mode
+    "08 00 03 3A 00": False,  # Change ASCII Input Delimiter
+    "08 00 0A 00 00": False,  # Clear Counters and Diagnostic Register
+    "08 00 14 00 00": False,  # Clear Overrun Counter and Flag
+    "08 00": False,  # too short to say which
+    "2B 0D 00 00": False,  # CANopen General Reference
+    "41 00 01": False,  # user-defined 65
+    "48": False,  # user-defined 72
+    "64 01 02": False,  # user-defined 100
+    "6E": False,  # user-defined 110
+    "09": False,  # unknown to the spec
+    "7F 00": False,
+}
+
+
+@pytest.mark.parametrize(("pdu", "passes"), sorted(READ_ONLY_TABLE.items()))
+def test_read_only_is_an_allow_list(pdu: str, passes: bool) -> None:
+    guard = Guard.from_options(True, [], [])
+    verdict = guard.check(1, req(pdu))
+    assert (verdict is None) is passes
+    assert (guard.check_raw(1, bytes.fromhex(pdu)) is None) is passes
+    if verdict is not None:
+        assert verdict.rule == "read-only"
+        assert verdict.info["fc"] == bytes.fromhex(pdu)[0]
+        assert "--allow-fc" in verdict.message
+
+
+def test_read_only_refusal_names_the_sub_function() -> None:
+    verdict = Guard.from_options(True, [], []).check(1, req("08 00 04 00 00"))
+    assert verdict is not None
+    assert verdict.info["sub_function"] == 4
+    assert "0x08/0x04" in verdict.message
+
+
+def test_without_read_only_codes_that_do_not_write_pass() -> None:
+    for guard in (
+        Guard.from_options(False, ["hr:200-251"], []),
+        Guard.from_options(False, [], ["hr:0-10"]),
+    ):
+        for pdu in READ_ONLY_TABLE:
+            assert guard.check(1, req(pdu)) is None, pdu
+
+
+@pytest.mark.parametrize(
+    ("allow_fc", "pdu", "passes"),
+    [
+        (["8/1"], "08 00 01 00 00", True),
+        (["8/1"], "08 00 04 00 00", False),
+        (["0x08/0x0004"], "08 00 04 00 00", True),
+        (["08"], "08 00 0A 00 00", True),
+        (["65-72"], "41 00", True),
+        (["65-72"], "48", True),
+        (["65-72"], "49", False),
+        (["0x64-0x6E"], "6E", True),
+        (["0x2B/0x0D"], "2B 0D 00 00", True),
+        (["0x2B/0x0D"], "2B 0E 01 00", True),  # a known read anyway
+        (["100"], "64 01 02", True),
+        (["100"], "41 00", False),
+    ],
+)
+def test_allow_fc_opens_a_named_code(allow_fc: list[str], pdu: str, passes: bool) -> None:
+    guard = Guard.from_options(True, [], [], allow_fc=allow_fc)
+    assert (guard.check(1, req(pdu)) is None) is passes
+    assert "allow-fc" in guard.describe()
+
+
+def test_allow_fc_never_opens_writes() -> None:
+    guard = Guard.from_options(True, [], [], allow_fc=["65-72"])
+    assert guard.check(1, req("06 00 10 00 2A")) is not None
+
+
+@pytest.mark.parametrize(
+    ("values", "read_only", "words"),
+    [
+        (["6"], True, "writes; writes are opened by --allow-write"),
+        (["1-16"], True, "writes"),
+        (["x"], True, "is not a number"),
+        (["0"], True, "no function code 0"),
+        (["200"], True, "outside 0..127"),
+        (["72-65"], True, "backwards"),
+        (["3/1"], True, "CODE/SUB names a Diagnostics"),
+        (["8/0x10000"], True, "outside 0..65535"),
+        (["65"], False, "without --read-only"),
+    ],
+)
+def test_bad_allow_fc_says_why(values: list[str], read_only: bool, words: str) -> None:
+    with pytest.raises(GuardSpecError, match=words):
+        Guard.from_options(read_only, [], [], allow_fc=values)

@@ -85,11 +85,17 @@ def test_live_monitor_renders_proxied_traffic_and_proxy_figures() -> None:
             hub.close()
         monitor.on_tick(time.time())
         text = render_text(monitor, (300, 60))
-    # both directions with the robot's (the upstream's) labels, and the guard's answer
+    # both directions with the robot's (the upstream's) labels; the refused write and
+    # the guard's answer between the client and the proxy (never the robot), paired
     assert re.search(r"Receive from client  \[u1 t7\]  03 00 00 00 04 ", text), text
     assert re.search(r"Send to client  \[u1 t7\]  03 08( [0-9A-F]{2}){8} ", text), text
-    assert re.search(r"Receive from client  \[u1 t8\]  06 00 C8 00 05 ", text)
-    assert re.search(r"Send to client  \[u1 t8\]  86 01 ", text)
+    proxy_at = re.escape(f"127.0.0.1:{lport}")
+    client_at = r"127\.0\.0\.1:\d+"
+    assert re.search(rf"{client_at} → {proxy_at}  \[u1 t8\]  06 00 C8 00 05 ", text), text
+    assert re.search(rf"{proxy_at} → {client_at}  \[u1 t8\]  86 01  \| .*\(\d+\.\d ms\)", text)
+    assert "Receive from client  [u1 t8]" not in text
+    assert "Send to client  [u1 t8]" not in text
+    assert "No response" not in text
     assert "Guard: refused 0x06 write R200 on unit 1 (read-only)" in text
     # the proxy's own figures in the header
     assert "guard refusals 1" in text
