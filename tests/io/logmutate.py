@@ -424,8 +424,9 @@ def main() -> None:
     parser.add_argument("--logs", type=int, default=10_000)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--work", type=Path, default=Path("/tmp/logmutate"))
+    parser.add_argument("--report-every", type=int, default=1000)
     args = parser.parse_args()
-    result = campaign(args.logs, args.seed, args.work / f"seed{args.seed}")
+    result = campaign(args.logs, args.seed, args.work / f"seed{args.seed}", args.report_every)
     print(json.dumps(result, indent=1))
 
 
