@@ -73,13 +73,22 @@ def main(argv: list[str] | None = None) -> int:
     # only noted: an exception raised inside the import system can be swallowed
     # ("Exception ignored in ... _get_module_lock") instead of ending the run
     noted: list[int] = []
+
+    def note(signum: int, frame: object) -> None:
+        noted.append(signum)
+
+    previous = {}
     for sig in (signal.SIGINT, signal.SIGTERM):
         if signal.getsignal(sig) is not signal.SIG_IGN:  # nohup, a background job: kept
-            signal.signal(sig, lambda signum, frame: noted.append(signum))
+            previous[sig] = signal.signal(sig, note)
     try:
         return _run(argv, noted)
     except KeyboardInterrupt as exc:  # not caught by the command
         return 128 + getattr(exc, "signum", signal.SIGINT)
+    finally:
+        for sig, handler in previous.items():  # still noting (--help, a usage error): undo
+            if signal.getsignal(sig) is note:
+                signal.signal(sig, handler)
 
 
 def _run(argv: list[str] | None, noted: list[int]) -> int:
