@@ -196,6 +196,12 @@ _TYPE_TESTS: dict[str, dict[type, Callable[[Any], bool] | None]] = {
 }
 
 
+#: schema keys that only describe (a field whose schema has just these and "type" is a
+#: type test alone)
+_TYPE_ONLY = frozenset({"type", "description", "title", "$comment", "contentEncoding"})
+_JSON_TYPES = (dict, list, str, int, float, bool, type(None))
+
+
 def _compile(schema: Mapping[str, Any]) -> Callable[[Any], bool]:
     """A fast yes/no test of ``value`` against a schema node (what :func:`_problem` judges)."""
     tests: list[Callable[[Any], bool]] = []
@@ -226,15 +232,30 @@ def _compile(schema: Mapping[str, Any]) -> Callable[[Any], bool]:
         item = _compile(schema["items"])
         tests.append(lambda v: type(v) is not list or all(map(item, v)))
     if "properties" in schema:
-        props = [(k, _compile(sub)) for k, sub in schema["properties"].items()]
+        # per field: {Python type: None (fits) or a test of the value} when the field's
+        # schema is a type alone (most are), else every type to its compiled test
+        props: list[tuple[str, dict[type, Any]]] = []
+        for key, sub in schema["properties"].items():
+            if set(sub) <= _TYPE_ONLY and "type" in sub:
+                names = (sub["type"],) if isinstance(sub["type"], str) else sub["type"]
+                field_types: dict[type, Any] = {}
+                for name in names:
+                    field_types.update(_TYPE_TESTS[name])
+            else:
+                full = _compile(sub)
+                field_types = {t: full for t in _JSON_TYPES}
+            props.append((key, field_types))
 
         def fields(v: Any) -> bool:
             if type(v) is not dict:
                 return True  # the type test judges it
             get = v.get
-            for key, test in props:
+            for key, types in props:
                 x = get(key, _ABSENT)
-                if x is not _ABSENT and not test(x):
+                if x is _ABSENT:
+                    continue
+                f = types.get(type(x), False)
+                if f is not None and (f is False or not f(x)):
                     return False
             return True
 

@@ -54,6 +54,10 @@ def _not_json(constant: str) -> Any:
     raise ValueError(f"{constant} is not a JSON number")
 
 
+#: one decoder for every payload (``json.loads`` with an option builds one per call)
+_decode_json = json.JSONDecoder(parse_constant=_not_json).decode
+
+
 @dataclass(frozen=True, slots=True)
 class LogMessage:
     """One message as stored: topic, capture times in ns, and its JSON payload.
@@ -83,7 +87,7 @@ class LogMessage:
     def decode(self) -> tuple[Any, str | None]:
         """``(payload, None)``, or ``(None, why)`` when the payload is not valid JSON."""
         try:
-            return json.loads(self.raw, parse_constant=_not_json), None
+            return _decode_json(self.raw.decode()), None
         except RecursionError:
             return None, "not valid JSON: nested too deeply"
         except ValueError as exc:
