@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import base64
 import json
+import math
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,6 +44,7 @@ from mbmon.filters import (  # noqa: F401  (re-exported: their home is mbmon.fil
 from mbmon.io.mcap.layout import (
     METADATA_NAME,
     RECORD_TOPICS,
+    SOURCE_EVENTS,
     TOPIC_MONITOR,
     TOPIC_RAW,
     payload_problem,
@@ -170,10 +172,43 @@ def _raw_item(data: dict[str, Any], streams: dict[int, Stream]) -> Chunk | Event
             streams[sid] = stream
     ts = float(data["ts"])
     if data.get("type") == "event":
-        return Event(ts, stream, EventKind(data["event"]), dict(data.get("info") or {}))
+        kind = EventKind(data["event"])
+        if kind not in SOURCE_EVENTS:
+            raise ValueError(f"a {kind.value} event is not a source event")
+        return Event(ts, stream, kind, _source_info(data.get("info") or {}))
     if stream is None:
         raise ValueError("chunk without a stream")
-    return Chunk(ts, stream, Direction(data["direction"]), base64.b64decode(data["data"]))
+    direction = Direction(data["direction"])
+    if direction is Direction.BUS and not stream.transport.is_rtu:  # a bus carries RTU only
+        raise ValueError(f"direction bus on a {stream.transport.value} stream")
+    return Chunk(ts, stream, direction, base64.b64decode(data["data"]))
+
+
+#: the fields of a source event's info the decoders and writers read, and their types
+_SOURCE_INFO: dict[str, type | tuple[type, ...]] = {
+    "how": str, "by": str, "message": str, "direction": str, "bytes": int, "half_closed": bool,
+}  # fmt: skip
+
+
+def _source_info(info: dict[str, Any]) -> dict[str, Any]:
+    """A source event's info as the pipeline may trust it: the fields it reads have their
+    types (else ``ValueError``); other fields only plain values (the rest dropped)."""
+    out: dict[str, Any] = {}
+    for key, value in info.items():
+        wanted = _SOURCE_INFO.get(key)
+        if wanted is not None:
+            if type(value) is not wanted:
+                raise ValueError(f"info.{key} is not a {wanted.__name__}")  # type: ignore[union-attr]
+            if key == "direction":
+                Direction(value)
+            elif key == "bytes" and not 0 <= value < 1 << 32:
+                raise ValueError(f"info.bytes out of range: {value}")
+            out[key] = value
+        elif isinstance(value, str | bool | int | None) or (
+            isinstance(value, float) and math.isfinite(value)
+        ):
+            out[key] = value
+    return out
 
 
 # --------------------------------------------------------------------------- recorded options

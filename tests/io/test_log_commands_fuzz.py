@@ -170,3 +170,39 @@ def test_a_damaged_message_is_reported_where_it_is_and_the_rest_shown(
     assert len(out.splitlines()) == n  # its monitor line is intact: shown
     status, out, err, escape = logmutate.run_command(["info", str(path), "--json"])
     assert status == 1 and json.loads(out)["damaged_messages"], err
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("direction", "bus"),  # a chunk of a TCP stream said to be on a serial bus
+        ("info", {"how": True}),  # a source event whose info has the wrong types
+        ("info", {"how": "fin", "by": 7}),
+        ("info", {"bytes": 1e999, "direction": "c2s"}),
+        ("info", {"direction": "sideways"}),
+        ("event", "timeout"),  # not a source event: the pipeline makes those itself
+    ],
+)
+def test_redecode_of_damaged_raw_messages(
+    tmp_path: Path, bases: list[logmutate.BaseLog], field: str, value: object
+) -> None:
+    """Found by the offline campaign: raw messages whose fields have the right JSON types
+    but values the decoder cannot take. ``replay --redecode`` and ``export -o .pcap``
+    leave such a message out, say where it is, and decode everything else."""
+    base = next(b for b in bases if b.name == "hrss_ptp")
+    raw = [i for i, m in enumerate(base.messages) if m[0] == "/modbus/raw"]
+    want = "chunk" if field == "direction" else "event"
+    at = next(i for i in raw if json.loads(base.messages[i][2])["type"] == want)
+    obj = json.loads(base.messages[at][2])
+    obj[field] = value
+    if field == "info":
+        obj["event"] = "disconnect" if "how" in value else "gap"  # type: ignore[operator]
+    path = _write(tmp_path, _rewritten(base, {at: json.dumps(obj).encode()}))
+    for argv in (["replay", str(path), "--redecode"],
+                 ["export", str(path), "-o", str(tmp_path / "x.pcap")]):  # fmt: skip
+        status, out, err, escape = logmutate.run_command(argv)
+        assert escape is None, escape.text
+        assert status == 1 and "1 damaged message left out" in err, err
+        assert "message on /modbus/raw at byte" in err
+    status, out, err, escape = logmutate.run_command(["replay", str(path), "--redecode"])
+    assert len(out.splitlines()) > 50  # the whole session but what the message held
