@@ -4,9 +4,12 @@ A finished file (footer, summary and chunk index present) is read through its
 chunk index. A file that was never finished (the process was killed, the disk
 filled up) is read linearly: every complete chunk is recovered, and
 :attr:`McapLog.status` says how many messages came back and at which byte the
-read stopped. Bytes that are not MCAP, or a chunk that fails its CRC or does
-not decompress, raise :class:`LogError` with the offset, never a traceback from
-the ``mcap`` package.
+read stopped. Bytes that are not MCAP raise :class:`LogError`; a chunk that
+fails its CRC, does not decompress or does not parse is passed over, the chunks
+after it are read, and :class:`LogError` names it by its offset at the end;
+never a traceback from the ``mcap`` package. Payloads are the readers' to
+judge (:func:`mbmon.io.replay.payload`): a damaged one is left out and
+recorded with where it is (:meth:`McapLog.skip`, :attr:`ReadStatus.skipped`).
 
 Messages are yielded in file order, which is the order mbmon wrote them (the
 order of records on the console), not re-sorted by log time.
