@@ -1,7 +1,10 @@
-"""``python -m mbmon`` runs the command line."""
+"""``python -m mbmon`` runs the command line (a Ctrl-C at any instant exits 130 quietly)."""
 
 import sys
 
-from mbmon.cli import main
+try:
+    from mbmon.cli import main
+except KeyboardInterrupt:  # before main() could take over
+    sys.exit(130)
 
 sys.exit(main())

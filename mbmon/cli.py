@@ -4,33 +4,46 @@ Every command is a module of :mod:`mbmon.commands` (``register`` adds its
 parser, ``run`` wires sources, hub and listeners); the log commands are in
 :mod:`mbmon.commands.logs`. Exit codes are defined once, in
 :mod:`mbmon.commands.common`.
+
+Importing this module imports nothing else of mbmon and nothing heavy: the
+console script imports it before :func:`main` runs, and a Ctrl-C that comes
+while the commands are still being imported must meet :func:`main`'s handler
+(exit 130, quietly), not a traceback.
 """
 
 from __future__ import annotations
 
-import argparse
-import importlib
-import os
+import signal
 import sys
-from collections.abc import Callable
 
-from mbmon import __version__
-from mbmon.commands import COMMANDS
-from mbmon.commands.common import (
-    EXIT_BAD_INPUT,
-    EXIT_INTERRUPTED,
-    EXIT_OK,
-    EXIT_USAGE,
-    UsageError,
-    install_signal_handlers,
-    make_annotator,
-)
+TYPE_CHECKING = False  # typing.TYPE_CHECKING without importing typing
+if TYPE_CHECKING:
+    import argparse
+    from typing import Any
+
+    from mbmon.commands.common import EXIT_BAD_INPUT, EXIT_OK, EXIT_USAGE, make_annotator
 
 __all__ = ["EXIT_BAD_INPUT", "EXIT_OK", "EXIT_USAGE", "build_parser", "main", "make_annotator"]
+
+#: names this module re-exports from :mod:`mbmon.commands.common`, imported when first used
+_COMMON = frozenset({"EXIT_BAD_INPUT", "EXIT_OK", "EXIT_USAGE", "make_annotator"})
+
+
+def __getattr__(name: str) -> Any:
+    if name in _COMMON:
+        from mbmon.commands import common
+
+        return getattr(common, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``mbmon`` parser with every command's sub-parser."""
+    import argparse
+    import importlib
+
+    from mbmon.commands import COMMANDS
+
     parser = argparse.ArgumentParser(
         prog="mbmon",
         description="Modbus RTU/TCP analyzer and monitor for HIWIN robot cells: shows what "
@@ -51,34 +64,73 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _version() -> str:
     """``mbmon --version``: the version and which core is active (compiled or pure Python)."""
-    from mbmon import core
+    from mbmon import __version__, core
 
     return f"mbmon {__version__} ({core.status()})"
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run one command; every failure ends in a message and an exit code, not a traceback."""
+    """Run one command; every failure ends in a message and an exit code, not a traceback.
+
+    SIGINT and SIGTERM end a run the same way from the first instant (also while
+    the commands are being imported): quietly, with 128 + the signal's number
+    (130, 143), after the command finished what it had open."""
+    # until the commands are imported and the one handler is installed, a signal is
+    # only noted: an exception raised inside the import system can be swallowed
+    # ("Exception ignored in ... _get_module_lock") instead of ending the run
+    noted: list[int] = []
+
+    def note(signum: int, frame: object) -> None:
+        noted.append(signum)
+
+    previous = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        if signal.getsignal(sig) is not signal.SIG_IGN:  # nohup, a background job: kept
+            previous[sig] = signal.signal(sig, note)
+    try:
+        return _run(argv, noted)
+    except KeyboardInterrupt as exc:  # not caught by the command
+        return 128 + getattr(exc, "signum", signal.SIGINT)
+    finally:
+        for sig, handler in previous.items():  # still noting (--help, a usage error): undo
+            if signal.getsignal(sig) is note:
+                signal.signal(sig, handler)
+
+
+def _run(argv: list[str] | None, noted: list[int]) -> int:
+    import os
+
+    from mbmon.commands.common import (
+        EXIT_BAD_INPUT,
+        EXIT_INTERRUPTED,
+        EXIT_OK,
+        EXIT_USAGE,
+        UsageError,
+        install_signal_handlers,
+        interrupted_status,
+    )
+    from mbmon.sinks.base import SinkError
+
     parser = build_parser()
     args = parser.parse_args(argv)
-    func: Callable[[argparse.Namespace], int] | None = getattr(args, "func", None)
+    install_signal_handlers()
+    if noted:  # Ctrl-C or SIGTERM while starting: nothing has begun, nothing to finish
+        return 128 + noted[0]
+    func = getattr(args, "func", None)
     if func is None:
         parser.print_help()
         return EXIT_USAGE
-    from mbmon.sinks.base import SinkError
 
-    install_signal_handlers()
     if hasattr(sys.stdout, "reconfigure"):
         # a terminal that cannot show "→" or "°" gets \u2192 escapes (valid inside JSON
         # strings too) instead of a traceback
         sys.stdout.reconfigure(errors="backslashreplace")
     try:
-        return func(args)
+        status: int = func(args)
     except UsageError as exc:
         command_parser = _subparser(parser, args.command)
         command_parser.print_usage(sys.stderr)
         command_parser.exit(EXIT_USAGE, f"mbmon {args.command}: error: {exc}\n")
-    except KeyboardInterrupt:
-        return EXIT_INTERRUPTED
     except BrokenPipeError:
         # stdout closed early (e.g. `mbmon read big.pcap | head`): stop quietly.
         devnull = os.open(os.devnull, os.O_WRONLY)
@@ -91,11 +143,15 @@ def main(argv: list[str] | None = None) -> int:
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"mbmon: {where}{exc.strerror or exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    return EXIT_OK
+    if status == EXIT_INTERRUPTED:  # a command that caught the signal and finished up
+        return interrupted_status()
+    return status
 
 
 def _subparser(parser: argparse.ArgumentParser, name: str | None) -> argparse.ArgumentParser:
     """The sub-parser of command ``name`` (its usage line is what a usage error shows)."""
+    import argparse
+
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction) and name in action.choices:
             return action.choices[name]

@@ -10,6 +10,7 @@ spaces: no unit id, no MBAP header, no CRC (manual §5.5, Table 57).
 
 from __future__ import annotations
 
+import math
 from binascii import hexlify as _hexlify
 from dataclasses import dataclass, field
 from typing import Any
@@ -544,12 +545,41 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
+def finite(value: Any) -> Any:
+    """``value`` with NaN/inf (not JSON) replaced by None, recursively."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [finite(v) for v in value]
+    return value
+
+
+def _careful_line(obj: Any) -> str:
+    """:func:`json_line` of what orjson refuses (a record read from a damaged log): an
+    integer beyond 64 bits stays exact, NaN/inf become null, a string with a lone
+    surrogate is escaped (``\\udcff``), keys and other values become strings."""
+    import json
+
+    clean = finite(obj)
+    text = json.dumps(clean, ensure_ascii=False, separators=(",", ":"), default=str)
+    try:
+        text.encode()
+    except UnicodeEncodeError:
+        text = json.dumps(clean, separators=(",", ":"), default=str)
+    return text
+
+
 try:  # orjson is several times faster than the standard encoder on the hot path
     import orjson as _orjson
 
     def json_line(obj: dict[str, Any]) -> str:
         """One JSON record as a compact line (no trailing newline), non-ASCII kept."""
-        return _orjson.dumps(obj).decode()
+        try:
+            return _orjson.dumps(obj).decode()
+        except TypeError:  # orjson.JSONEncodeError: see _careful_line
+            return _careful_line(obj)
 
     _json_bytes = _orjson.dumps  # json_line(obj) in UTF-8
 

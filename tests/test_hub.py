@@ -268,7 +268,7 @@ def test_console_lines_are_flushed_within_half_a_second_on_an_idle_stream() -> N
 _SCRIPT = textwrap.dedent(
     """
     import sys, threading
-    from mbmon.commands.common import install_signal_handlers
+    from mbmon.commands.common import install_signal_handlers, interrupted_status
     from mbmon.hub import Hub
     from mbmon.pipeline import Pipeline
 
@@ -288,8 +288,8 @@ _SCRIPT = textwrap.dedent(
     try:
         with hub:
             hub.run()
-    except KeyboardInterrupt:
-        pass
+    except KeyboardInterrupt:  # SIGINT and SIGTERM alike (one handler)
+        sys.exit(interrupted_status())
     """
 )
 
@@ -314,7 +314,7 @@ def test_close_runs_on_every_listener_after_an_error_and_on_sigint(tmp_path: Pat
     code, marks, stderr = _run_until_signal(tmp_path, signal.SIGINT)
     assert marks == ["closed", "closed"]
     assert "broken listener" in stderr and "Traceback" not in stderr
-    assert code == 0
+    assert code == 128 + signal.SIGINT
 
 
 def test_close_runs_on_every_listener_on_sigterm(tmp_path: Path) -> None:

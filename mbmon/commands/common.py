@@ -280,13 +280,67 @@ def add_live_options(group: Any) -> None:
 # --------------------------------------------------------------------------- shared steps
 
 
+class Interrupted(KeyboardInterrupt):
+    """The run was stopped by SIGINT (Ctrl-C) or SIGTERM: ``signum`` says which.
+
+    A ``KeyboardInterrupt``, so every ``except KeyboardInterrupt`` that finishes a
+    run (logs closed, summary, "interrupted; LOG was finished") treats both
+    signals alike."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+#: the signals :func:`install_signal_handlers` turned into :class:`Interrupted`, in order
+_received: list[int] = []
+
+
+#: a signal that came while the import system ran, to be raised a moment later
+_deferred: list[int] = []
+
+
+def _importing(frame: Any) -> bool:
+    """Whether ``frame`` runs inside an import (the import system is on its stack)."""
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib"):
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    if _importing(frame):
+        # raised inside an import, the exception can be swallowed by the import
+        # system ("Exception ignored in ... _get_module_lock") or crash an extension
+        # module's initialisation: raise it once the import is over (retried every 5 ms)
+        _deferred.append(signum)
+        signal.setitimer(signal.ITIMER_REAL, 0.005)
+        return
+    _received.append(signum)
+    raise Interrupted(signum)
+
+
+def _retry(signum: int, frame: Any) -> None:
+    if _deferred:
+        _interrupt(_deferred.pop(0), frame)
+
+
 def install_signal_handlers() -> None:
-    """SIGTERM ends the run like Ctrl-C does, so every listener's close() runs."""
+    """SIGINT and SIGTERM end the run the same way, through one handler: it raises
+    :class:`Interrupted` (a ``KeyboardInterrupt``), so every listener's close() runs
+    and the command's own Ctrl-C ending (summary, message) follows either signal.
+    A signal that comes during an import is raised when the import is over
+    (retried every 5 ms through SIGALRM); an ignored signal stays ignored."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        if signal.getsignal(sig) is not signal.SIG_IGN:  # nohup, a background job: kept
+            signal.signal(sig, _interrupt)
+    signal.signal(signal.SIGALRM, _retry)
 
-    def _terminate(signum: int, frame: object) -> None:
-        raise SystemExit(128 + signum)
 
-    signal.signal(signal.SIGTERM, _terminate)
+def interrupted_status() -> int:
+    """The exit status of a run a signal ended: 128 + its number (130 Ctrl-C, 143 SIGTERM)."""
+    return 128 + (_received[0] if _received else signal.SIGINT)
 
 
 def make_annotator(specs: list[str]) -> Any:

@@ -269,6 +269,17 @@ def _log_times(args: argparse.Namespace, log: Any) -> tuple[Any, Any]:
     return fmt, build_filter(args, start, fmt)
 
 
+def _filter_failed(log: Any, exc: Exception) -> int:
+    """A filter that cannot be built: a usage error (2), unless no record of the log can
+    be read because of damage (``--since +5s`` has no start): then the damage (1)."""
+    status = log.status
+    if status.stopped_at is not None and "no records" in str(exc):
+        _err(f"{log.path}: no record can be read: {status.problem} (at byte {status.stopped_at})")
+        return EXIT_BAD_INPUT
+    _err(f"error: {exc}")
+    return EXIT_USAGE
+
+
 def _retimed(
     obj: dict[str, Any] | None, line: str, ts: float, fmt: Any
 ) -> tuple[dict[str, Any] | None, str]:
@@ -287,6 +298,16 @@ def _note_status(log: Any) -> None:
     status = log.status
     if not status.finished:
         _err(f"note: {log.path}: {status.describe()}")
+
+
+def _report_skipped(log: Any) -> bool:
+    """Say which damaged messages the reading left out (stderr); whether there were any."""
+    lines = log.status.skipped_lines()
+    if lines:
+        _err(f"{log.path}: {lines[0]}")
+        for line in lines[1:]:
+            print(line, file=sys.stderr)
+    return bool(lines)
 
 
 # --------------------------------------------------------------------------- replay
@@ -323,8 +344,7 @@ def run_replay(args: argparse.Namespace) -> int:
         try:
             fmt, flt = _log_times(args, log)
         except FilterError as exc:
-            _err(f"error: {exc}")
-            return EXIT_USAGE
+            return _filter_failed(log, exc)
         pacer = Pacer(args.speed) if args.speed else None
         try:
             feed = _ReplayFeed.open(args, log, flt.active)
@@ -359,6 +379,7 @@ def run_replay(args: argparse.Namespace) -> int:
             out.flush()
             bar.close()  # before the message: the bar shares stderr
             _err(str(exc))
+            _report_skipped(log)
             return EXIT_BAD_INPUT
         finally:
             bar.close()
@@ -366,6 +387,8 @@ def run_replay(args: argparse.Namespace) -> int:
                 feed.close()
         out.flush()
         _note_status(log)
+        if _report_skipped(log):
+            return EXIT_BAD_INPUT
     return EXIT_OK
 
 
@@ -637,8 +660,14 @@ def _record_index(msg: Any) -> int | None:
 
 def summarize(log: Any) -> dict[str, Any]:
     """Everything ``mbmon info`` reports, as one JSON-able dict (one pass over the log)."""
-    from mbmon.io.mcap.layout import METADATA_NAME, TOPIC_COMMANDS, TOPIC_EVENTS, TOPIC_FRAMES
-    from mbmon.io.replay import FRAME_KINDS, stored_profile_names
+    from mbmon.io.mcap.layout import (
+        METADATA_NAME,
+        TOPIC_COMMANDS,
+        TOPIC_EVENTS,
+        TOPIC_FRAMES,
+        TOPIC_RAW,
+    )
+    from mbmon.io.replay import FRAME_KINDS, payload, recorded_options, stored_profile_names
 
     topics: Counter[str] = Counter({t: 0 for t in log.topics})
     first = last = None
@@ -662,27 +691,28 @@ def summarize(log: Any) -> dict[str, Any]:
             t = msg.log_time
             first = t if first is None or t < first else first
             last = t if last is None or t > last else last
-            if msg.topic == "/modbus/raw":
-                data = msg.json()
-                sid = data.get("stream")
+            if msg.topic not in (TOPIC_RAW, TOPIC_FRAMES, TOPIC_EVENTS, TOPIC_COMMANDS):
+                continue
+            obj = payload(log, msg)  # the fields of a damaged message are not counted
+            if obj is None:
+                continue
+            if msg.topic == TOPIC_RAW:
+                sid = obj.get("stream")
                 if sid is not None and sid not in streams:
                     streams[sid] = {
                         "id": sid,
-                        "transport": data.get("transport"),
-                        "client": data.get("client"),
-                        "server": data.get("server"),
+                        "transport": obj.get("transport"),
+                        "client": obj.get("client"),
+                        "server": obj.get("server"),
                         "chunks": 0,
                         "bytes": 0,
                         "frames": 0,
                     }
-                if data.get("type") == "chunk" and sid is not None:
-                    b64 = str(data.get("data") or "")
+                if obj.get("type") == "chunk" and sid is not None:
+                    b64 = str(obj.get("data") or "")
                     streams[sid]["chunks"] += 1
                     streams[sid]["bytes"] += len(b64) * 3 // 4 - b64.count("=", -2)
                 continue
-            if msg.topic not in (TOPIC_FRAMES, TOPIC_EVENTS, TOPIC_COMMANDS):
-                continue
-            obj = msg.json()
             kind = obj.get("kind")
             if msg.topic == TOPIC_FRAMES and kind in FRAME_KINDS:
                 fc = obj.get("fc")
@@ -737,10 +767,7 @@ def summarize(log: Any) -> dict[str, Any]:
     except LogError as exc:
         error = str(exc)
     meta = log.metadata.get(METADATA_NAME, {})
-    try:
-        command_line = json.loads(meta.get("command_line", "[]"))
-    except ValueError:
-        command_line = []
+    command_line = recorded_options(log).command_line
     status = log.status
     from mbmon.format import exception_name, function_name
 
@@ -752,6 +779,7 @@ def summarize(log: Any) -> dict[str, Any]:
         "stopped_at": status.stopped_at,
         "problem": status.problem,
         "error": error,
+        "damaged_messages": list(status.skipped.values()),
         "status": status.describe(),
         "recorded_by": meta.get("version"),
         "command_line": command_line,
@@ -807,6 +835,8 @@ def _print_info(s: dict[str, Any], out: IO[str], mode: str = "a") -> None:
     w(f"state:       {s['status']}\n")
     if s["error"]:
         w(f"damage:      {s['error']}\n")
+    if s["damaged_messages"]:
+        w(f"damaged:     {len(s['damaged_messages'])} messages left out (see stderr)\n")
     if s["recorded_by"]:
         w(f"recorded by: mbmon {s['recorded_by']}: {' '.join(s['command_line'])}\n")
     if s["source"]:
@@ -882,13 +912,15 @@ def run_info(args: argparse.Namespace) -> int:
         finally:
             bar.close()
     if args.json:
-        print(json.dumps(summary, ensure_ascii=False, indent=2))
+        from mbmon.format import finite
+
+        print(json.dumps(finite(summary), ensure_ascii=False, indent=2, default=str))
     else:
         _print_info(summary, sys.stdout, args.time_format)
     if summary["error"]:
         _err(summary["error"])
-        return EXIT_BAD_INPUT
-    return EXIT_OK
+    _report_skipped(log)
+    return EXIT_BAD_INPUT if summary["error"] or summary["damaged_messages"] else EXIT_OK
 
 
 # --------------------------------------------------------------------------- export
@@ -914,8 +946,7 @@ def run_export(args: argparse.Namespace) -> int:
         try:
             fmt, flt = _log_times(args, log)
         except FilterError as exc:
-            _err(f"error: {exc}")
-            return EXIT_USAGE
+            return _filter_failed(log, exc)
         if suffix in (".pcap", ".mcap") and (
             flt.units is not None
             or flt.fcs is not None
@@ -970,11 +1001,14 @@ def run_export(args: argparse.Namespace) -> int:
             return EXIT_BAD_INPUT
         except LogError as exc:
             bar.close()  # before the message: the bar shares stderr
-            _err(f"{exc} (the output holds everything before the damage)")
+            _err(f"{exc} (the output holds everything readable)")
+            _report_skipped(log)
             return EXIT_BAD_INPUT
         finally:
             bar.close()
         _note_status(log)
+        if _report_skipped(log):
+            return EXIT_BAD_INPUT
     return EXIT_OK
 
 

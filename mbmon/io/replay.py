@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import base64
 import json
+import math
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,8 +41,15 @@ from mbmon.filters import (  # noqa: F401  (re-exported: their home is mbmon.fil
     parse_when,
     touches,
 )
-from mbmon.io.mcap.layout import METADATA_NAME, RECORD_TOPICS, TOPIC_MONITOR, TOPIC_RAW
-from mbmon.io.mcap.reader import LogError, McapLog
+from mbmon.io.mcap.layout import (
+    METADATA_NAME,
+    RECORD_TOPICS,
+    SOURCE_EVENTS,
+    TOPIC_MONITOR,
+    TOPIC_RAW,
+    payload_problem,
+)
+from mbmon.io.mcap.reader import LogError, LogMessage, McapLog
 from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport
 
 FRAME_KINDS = frozenset({"request", "response", "exception"})
@@ -71,16 +79,32 @@ class LoggedRecord:
         return ""
 
 
+def payload(log: McapLog, msg: LogMessage) -> dict[str, Any] | None:
+    """The payload of ``msg`` when it can be trusted, else ``None``: every reader of a
+    log asks here. A payload that is not JSON or does not match its topic's schema
+    (:func:`~mbmon.io.mcap.layout.payload_problem`) is left out and recorded with
+    where it is (:meth:`McapLog.skip`); the commands report it and exit 1."""
+    data, why = msg.decode()
+    if why is None:
+        why = payload_problem(msg.topic, data)
+    if why is not None:
+        log.skip(msg, why)
+        return None
+    return data  # type: ignore[no-any-return]  # an object: payload_problem said so
+
+
 def logged_records(log: McapLog) -> Iterator[LoggedRecord]:
-    """Every record of the log in record order (see the module docstring)."""
+    """Every record of the log in record order (see the module docstring); a damaged
+    message is left out (:func:`payload`), its record shown by what else it has."""
     current: LoggedRecord | None = None
     for msg in log.messages((*RECORD_TOPICS, TOPIC_MONITOR)):
-        data = msg.json()
-        if not isinstance(data, dict):
+        data = payload(log, msg)
+        if data is None:
             continue
         if msg.topic == TOPIC_MONITOR:
             index = data.get("line")
-            if not isinstance(index, int):
+            if index is None:
+                log.skip(msg, "monitor line without its record index")
                 continue
             if current is not None and current.index == index:
                 current.line = data.get("message")
@@ -92,7 +116,7 @@ def logged_records(log: McapLog) -> Iterator[LoggedRecord]:
             current = LoggedRecord(index, ts, None, data.get("message"), data.get("level"))
             continue
         index = data.get("index")
-        if not isinstance(index, int):
+        if index is None:
             continue  # the writer's own stats events
         if current is not None and current.index == index:
             if current.obj is None:
@@ -109,42 +133,82 @@ def writer_stats(log: McapLog) -> dict[str, Any] | None:
     """The last stats event the log writer stored (counters at the end of the log)."""
     last = None
     for msg in log.messages(["/mbmon/events"]):
-        data = msg.json()
-        if isinstance(data, dict) and data.get("index") is None and data.get("event") == "stats":
+        data = payload(log, msg)
+        if data is not None and data.get("index") is None and data.get("event") == "stats":
             last = data.get("info")
     return last
 
 
 def raw_items(log: McapLog) -> Iterator[Chunk | Event]:
-    """The chunks and source events of ``/modbus/raw``, in capture order."""
+    """The chunks and source events of ``/modbus/raw``, in capture order; a damaged
+    message is left out (:func:`payload`) and the rest goes on."""
     streams: dict[int, Stream] = {}
     for msg in log.messages([TOPIC_RAW]):
-        data = msg.json()
+        data = payload(log, msg)
+        if data is None:
+            continue
         try:
-            sid = data.get("stream")
-            stream: Stream | None = None
-            if sid is not None:
-                stream = streams.get(sid)
-                if stream is None:
-                    stream = Stream(
-                        sid,
-                        Transport(data["transport"]),
-                        data["client"],
-                        data["server"],
-                        data.get("timed", True) is not False,
-                    )
-                    streams[sid] = stream
-            ts = float(data["ts"])
-            if data.get("type") == "event":
-                yield Event(ts, stream, EventKind(data["event"]), dict(data.get("info") or {}))
-            else:
-                if stream is None:
-                    raise ValueError("chunk without a stream")
-                yield Chunk(
-                    ts, stream, Direction(data["direction"]), base64.b64decode(data["data"])
-                )
-        except (KeyError, ValueError, TypeError, AttributeError) as exc:
-            raise LogError(f"{log.path}: damaged /modbus/raw message: {exc}") from None
+            item = _raw_item(data, streams)
+        except (KeyError, ValueError, TypeError) as exc:
+            log.skip(msg, f"damaged /modbus/raw message: {exc}")
+            continue
+        yield item
+
+
+def _raw_item(data: dict[str, Any], streams: dict[int, Stream]) -> Chunk | Event:
+    """One ``/modbus/raw`` payload (its types checked against the schema) as a chunk or
+    source event; what the schema leaves open but an item needs raises ``ValueError``."""
+    sid = data.get("stream")
+    stream: Stream | None = None
+    if sid is not None:
+        stream = streams.get(sid)
+        if stream is None:
+            client, server = data.get("client"), data.get("server")
+            if client is None or server is None:
+                raise ValueError(f"stream {sid} without its endpoints")
+            stream = Stream(
+                sid, Transport(data["transport"]), client, server, data.get("timed") is not False
+            )
+            streams[sid] = stream
+    ts = float(data["ts"])
+    if data.get("type") == "event":
+        kind = EventKind(data["event"])
+        if kind not in SOURCE_EVENTS:
+            raise ValueError(f"a {kind.value} event is not a source event")
+        return Event(ts, stream, kind, _source_info(data.get("info") or {}))
+    if stream is None:
+        raise ValueError("chunk without a stream")
+    direction = Direction(data["direction"])
+    if direction is Direction.BUS and not stream.transport.is_rtu:  # a bus carries RTU only
+        raise ValueError(f"direction bus on a {stream.transport.value} stream")
+    return Chunk(ts, stream, direction, base64.b64decode(data["data"]))
+
+
+#: the fields of a source event's info the decoders and writers read, and their types
+_SOURCE_INFO: dict[str, type | tuple[type, ...]] = {
+    "how": str, "by": str, "message": str, "direction": str, "bytes": int, "half_closed": bool,
+}  # fmt: skip
+
+
+def _source_info(info: dict[str, Any]) -> dict[str, Any]:
+    """A source event's info as the pipeline may trust it: the fields it reads have their
+    types (else ``ValueError``); other fields only plain values (the rest dropped)."""
+    out: dict[str, Any] = {}
+    for key, value in info.items():
+        wanted = _SOURCE_INFO.get(key)
+        if wanted is not None:
+            if type(value) is not wanted:
+                raise ValueError(f"info.{key} is not a {wanted.__name__}")  # type: ignore[union-attr]
+            if key == "direction":
+                Direction(value)
+            elif key == "bytes" and not 0 <= value < 1 << 32:
+                raise ValueError(f"info.bytes out of range: {value}")
+            out[key] = value
+        elif isinstance(value, str | bool | int | None) or (
+            isinstance(value, float) and math.isfinite(value)
+        ):
+            out[key] = value
+    return out
 
 
 # --------------------------------------------------------------------------- recorded options
@@ -172,12 +236,9 @@ def recorded_options(log: McapLog) -> RecordedOptions:
     """
     meta = log.metadata.get(METADATA_NAME, {})
     opts = RecordedOptions()
-    try:
-        line = json.loads(meta.get("command_line", "[]"))
-        if isinstance(line, list):
-            opts.command_line = [str(x) for x in line]
-    except ValueError:
-        pass
+    line = _json_value(meta.get("command_line", "[]"))
+    if isinstance(line, list):
+        opts.command_line = [x for x in line if isinstance(x, str)]  # others are damage
     opts.robot = meta.get("robot") or None
     opts.robot_is_client = meta.get("robot_is_client") == "true"
     specs = _stored(meta, "profile_specs", _is_spec_list)
@@ -208,11 +269,16 @@ def _stored(meta: Mapping[str, str], key: str, valid: Callable[[Any], bool]) -> 
     text = meta.get(key)
     if text is None:
         return _MISSING
+    value = _json_value(text)
+    return value if value is not _MISSING and valid(value) else _MISSING
+
+
+def _json_value(text: str) -> Any:
+    """A metadata value's JSON, or ``_MISSING`` when it is not JSON (or nests too deeply)."""
     try:
-        value = json.loads(text)
-    except ValueError:
+        return json.loads(text)
+    except (ValueError, RecursionError):
         return _MISSING
-    return value if valid(value) else _MISSING
 
 
 def _is_spec_list(value: Any) -> bool:
@@ -220,11 +286,17 @@ def _is_spec_list(value: Any) -> bool:
 
 
 def _is_timeout(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool) and value > 0
+    return (
+        isinstance(value, int | float)
+        and not isinstance(value, bool)
+        and 0 < value <= 1e6  # seconds; a larger value is damage, not a timeout
+    )
 
 
 def _is_baud(value: Any) -> bool:
-    return value is None or (isinstance(value, int) and not isinstance(value, bool) and value > 0)
+    return value is None or (
+        isinstance(value, int) and not isinstance(value, bool) and 0 < value <= 100_000_000
+    )
 
 
 #: options of the recording command (``read``) that take a value, for reading its stored
@@ -309,9 +381,9 @@ def recorded_annotator(log: McapLog, opts: RecordedOptions) -> Any:
     try:
         bindings = {
             str(spec): int(number)
-            for spec, number in json.loads(meta.get("profile_bindings", "[]"))
+            for spec, number in _json_value(meta.get("profile_bindings", "[]"))
         }
-    except (ValueError, TypeError):
+    except (ValueError, TypeError):  # not pairs of a spec and a number (_MISSING too)
         bindings = {}
     loaded: dict[int, Profile] = {}  # one Profile per attachment, shared by its specs
 
@@ -363,18 +435,21 @@ def _stored_number_for(name: str, numbers: Mapping[str, int]) -> int | None:
 
 def stored_profile_names(log: McapLog) -> list[str]:
     meta = log.metadata.get(METADATA_NAME, {})
-    try:
-        names = json.loads(meta.get("profiles", "[]"))
-    except ValueError:
-        names = []
-    return [str(n) for n in names] if isinstance(names, list) else []
+    names = _json_value(meta.get("profiles", "[]"))
+    return [n for n in names if isinstance(n, str)] if isinstance(names, list) else []
 
 
 def first_record_time(log: McapLog) -> float | None:
-    """Capture time of the first record (the origin of ``+5s`` offsets)."""
+    """Capture time of the first record (the origin of ``+5s`` offsets): from the
+    statistics of a finished log, else the first readable message's. ``None`` when
+    no chunk can be read: the damage is in :attr:`McapLog.status`, and the read
+    that follows reports it."""
     span = log.time_span
     if span is not None:
         return span[0] / 1e9
-    for msg in log.messages((*RECORD_TOPICS, TOPIC_MONITOR, TOPIC_RAW)):
-        return msg.log_time / 1e9
+    try:
+        for msg in log.messages((*RECORD_TOPICS, TOPIC_MONITOR, TOPIC_RAW)):
+            return msg.log_time / 1e9
+    except LogError:
+        pass
     return None

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import gzip
 import os
+import stat
 import struct
 import zlib
 from collections.abc import Callable, Iterator
@@ -81,6 +82,7 @@ class _Input:
         "pos",
         "position",
         "progress",
+        "size",
         "total",
     )
 
@@ -101,18 +103,33 @@ class _Input:
         self.position = position
         self.count = 0  # records read (set by the pump when it yields or stops)
         self.last_ts = 0.0  # timestamp of the last record read
+        #: the size of the bytes being parsed, when known (a plain file, not a pipe or gzip)
+        self.size: int | None = None
 
     def fill(self, need: int) -> bool:
-        """Make ``need`` unread bytes available; False when the file ends first."""
+        """Make ``need`` unread bytes available; False when the file ends first.
+
+        A size field of a damaged file may claim gigabytes: a plain file's size is
+        checked before anything is read (``size``), and no read asks for more than
+        :data:`_MAX_RECORD` at once, so memory follows the bytes that exist."""
         avail = len(self.buf) - self.pos
         if avail >= need:
             return True
+        end = self.base + len(self.buf)  # file offset of the first byte not read yet
+        if self.size is not None and end + need - avail > self.size:
+            self.size = os.fstat(self.f.fileno()).st_size  # it may have grown since
+        if self.size is not None and end + need - avail > self.size:
+            need = avail + max(0, min(self.size - end, _BLOCK))  # what is there, a block at most
+            if need == avail:
+                return False
+            self.fill(need)
+            return False
         parts = [self.buf[self.pos :]]
         # read1: what is there now (up to a block), so a pipe fed slowly (tcpdump -w -)
         # streams record by record instead of waiting for a whole block
         read = getattr(self.f, "read1", self.f.read)
         while avail < need and not self.eof:
-            data = read(max(_BLOCK, need - avail))
+            data = read(min(max(_BLOCK, need - avail), _MAX_RECORD))
             if not data:
                 self.eof = True
                 break
@@ -447,6 +464,8 @@ def read_capture(
         if not raw.seekable():  # a pipe: no size, and the position is what was read
             inp.total = 0
             inp.position = lambda: inp.base + len(inp.buf)
+        elif f is raw and stat.S_ISREG(os.fstat(raw.fileno()).st_mode):
+            inp.size = total  # sizes in the file are checked against it before reading
         try:
             pump = _open_pump(inp, name)
         except (OSError, EOFError, zlib.error) as exc:

@@ -796,3 +796,64 @@ def test_stopping_early_still_fills_stats(tmp_path: Path) -> None:
     assert first_chunk.data == REQUEST
     items.close()  # type: ignore[attr-defined]
     assert stats["packets"] == 4  # handshake + the request
+
+
+_LIMITED_READ = """\
+import resource, sys
+limit = 3 << 30  # 3 GiB of address space: a 4 GB allocation fails
+resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+from mbmon.cli import main
+sys.exit(main(["read", sys.argv[1]]))
+"""
+
+
+@pytest.mark.parametrize(
+    ("header_size", "data_size"), [(32, 0xFFFF0000), (0xFFFFFFF0, 24), (32, 0x7FFFFFFF)]
+)
+def test_5view_header_claiming_gigabytes_is_not_allocated(
+    tmp_path: Path, header_size: int, data_size: int
+) -> None:
+    """A 5View file header whose sizes claim about 4 GB (the file holds 60 bytes) is a
+    clear error, read under a 3 GiB address-space limit: nothing is allocated for it."""
+    import subprocess
+    import sys
+
+    path = _5view(tmp_path / "x.5vw", [(0, b"x" * 20)])
+    data = bytearray(path.read_bytes())
+    struct.pack_into("<II", data, 4, header_size, 0x00010000)
+    struct.pack_into("<I", data, 12, data_size)
+    path.write_bytes(bytes(data))
+    proc = subprocess.run(
+        [sys.executable, "-c", _LIMITED_READ, str(path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=Path(__file__).resolve().parents[2],
+    )
+    assert "Traceback" not in proc.stderr and "MemoryError" not in proc.stderr, proc.stderr
+    assert proc.returncode == 1, proc.stderr
+    assert "truncated 5View file header" in proc.stderr
+
+
+def test_sizes_are_checked_against_the_file_before_reading(tmp_path: Path) -> None:
+    """A record whose length claims more than the file holds (50 MB, under the record
+    cap) is damage found before anything is read for it: reading the file takes
+    memory for the bytes it has, not for what a field claims."""
+    import tracemalloc
+
+    frames = exchange(TcpConversation(CLIENT, SERVER))
+    path = _5view(tmp_path / "x.5vw", [(0, f) for f in frames])
+    data = bytearray(path.read_bytes())
+    last = len(data) - len(frames[-1]) - 36  # the last record's header
+    struct.pack_into("<I", data, last + 16, 50_000_000)  # its size field
+    path.write_bytes(bytes(data))
+    tracemalloc.start()
+    try:
+        items = read_all(path)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    errors = [i for i in items if isinstance(i, Event) and i.kind is EventKind.ERROR]
+    assert errors and "truncated record" in errors[0].info["message"]
+    assert f"{len(frames) - 1} packets read" in errors[0].info["message"]  # all before it
+    assert peak < 10_000_000, f"{peak} bytes allocated to read a {len(data)}-byte file"

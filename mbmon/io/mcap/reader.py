@@ -4,9 +4,12 @@ A finished file (footer, summary and chunk index present) is read through its
 chunk index. A file that was never finished (the process was killed, the disk
 filled up) is read linearly: every complete chunk is recovered, and
 :attr:`McapLog.status` says how many messages came back and at which byte the
-read stopped. Bytes that are not MCAP, or a chunk that fails its CRC or does
-not decompress, raise :class:`LogError` with the offset, never a traceback from
-the ``mcap`` package.
+read stopped. Bytes that are not MCAP raise :class:`LogError`; a chunk that
+fails its CRC, does not decompress or does not parse is passed over, the chunks
+after it are read, and :class:`LogError` names it by its offset at the end;
+never a traceback from the ``mcap`` package. Payloads are the readers' to
+judge (:func:`mbmon.io.replay.payload`): a damaged one is left out and
+recorded with where it is (:meth:`McapLog.skip`, :attr:`ReadStatus.skipped`).
 
 Messages are yielded in file order, which is the order mbmon wrote them (the
 order of records on the console), not re-sorted by log time.
@@ -50,22 +53,52 @@ class LogError(Exception):
     """A log that cannot be read (not MCAP, corrupt chunk, unreadable file)."""
 
 
+def _not_json(constant: str) -> Any:
+    raise ValueError(f"{constant} is not a JSON number")
+
+
+#: one decoder for every payload (``json.loads`` with an option builds one per call)
+_decode_json = json.JSONDecoder(parse_constant=_not_json).decode
+
+
 @dataclass(frozen=True, slots=True)
 class LogMessage:
-    """One message as stored: topic, capture times in ns, and its JSON payload."""
+    """One message as stored: topic, capture times in ns, and its JSON payload.
+
+    ``chunk`` is the file offset of the chunk (or the record) that holds it and
+    ``at`` the message record's offset among the chunk's records: where it is,
+    for a report of damage (:meth:`McapLog.skip`).
+    """
 
     topic: str
     log_time: int
     publish_time: int
     sequence: int
     raw: bytes
+    chunk: int = 0
+    at: int = 0
 
     def json(self) -> Any:
-        """Decode the JSON payload (every mbmon topic is JSON encoded)."""
+        """Decode the JSON payload (every mbmon topic is JSON encoded); a payload that
+        is not JSON (or nests deeper than a parser goes, or holds NaN) is a
+        :class:`LogError` that says where the message is."""
+        value, why = self.decode()
+        if why is not None:
+            raise LogError(f"{self.where()}: {why}")
+        return value
+
+    def decode(self) -> tuple[Any, str | None]:
+        """``(payload, None)``, or ``(None, why)`` when the payload is not valid JSON."""
         try:
-            return json.loads(self.raw)
+            return _decode_json(self.raw.decode()), None
+        except RecursionError:
+            return None, "not valid JSON: nested too deeply"
         except ValueError as exc:
-            raise LogError(f"message on {self.topic} is not valid JSON: {exc}") from None
+            return None, f"not valid JSON: {exc}"
+
+    def where(self) -> str:
+        """Where the message is in its file, in words."""
+        return f"message on {self.topic} at byte {self.at} of the chunk at byte {self.chunk}"
 
 
 @dataclass(frozen=True, slots=True)
@@ -94,6 +127,9 @@ class ReadStatus:
     messages: int = 0
     stopped_at: int | None = None
     problem: str | None = None
+    #: messages whose payload is damaged, left out by the readers (:meth:`McapLog.skip`):
+    #: (chunk offset, record offset) -> why
+    skipped: dict[tuple[int, int], str] = field(default_factory=dict)
 
     def describe(self) -> str:
         """One line for the user about the state of the file."""
@@ -102,6 +138,17 @@ class ReadStatus:
         where = f"stopped at byte {self.stopped_at} of {self.file_size}"
         why = f" ({self.problem})" if self.problem else ""
         return f"log was not finished: recovered {self.messages} messages, {where}{why}"
+
+    def skipped_lines(self, most: int = 5) -> list[str]:
+        """The damaged messages left out, for the user: a count, and the first few."""
+        if not self.skipped:
+            return []
+        n = len(self.skipped)
+        lines = [f"{n} damaged message{'s' if n != 1 else ''} left out (everything else shown):"]
+        lines += [f"  {why}" for why in list(self.skipped.values())[:most]]
+        if n > most:
+            lines.append(f"  ... {n - most} more")
+        return lines
 
 
 @dataclass(slots=True)
@@ -146,6 +193,7 @@ class McapLog:
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
+        self.status = ReadStatus(finished=False, file_size=0)  # filled in once the layout is read
         try:
             self._f: BinaryIO = open(self.path, "rb")
         except OSError as exc:
@@ -173,12 +221,8 @@ class McapLog:
         self.progress: Callable[[int, int], None] | None = None
         self.metadata: dict[str, dict[str, str]] = layout.metadata
         self.attachments: list[LogAttachment] = layout.attachments
-        self.status = ReadStatus(
-            finished=self.finished,
-            file_size=self.size,
-            stopped_at=layout.stopped_at,
-            problem=layout.problem,
-        )
+        self.status.finished, self.status.file_size = self.finished, self.size
+        self.status.stopped_at, self.status.problem = layout.stopped_at, layout.problem
 
     # -- public -----------------------------------------------------------
 
@@ -222,30 +266,43 @@ class McapLog:
 
         After the generator is exhausted, :attr:`status` holds the count of
         messages recovered from the chunks read, on every topic (so a read of
-        some topics reports what a read of all would). Raises
-        :class:`LogError` when a chunk is damaged, after yielding every
-        message before it.
+        some topics reports what a read of all would). A damaged chunk (cut,
+        not decompressing, failing its CRC, records that do not parse) is
+        passed over, the chunks after it are read, and at the end
+        :class:`LogError` names the first damaged chunk by its offset (and how
+        many more there were), after every readable message was yielded.
         """
         wanted = set(topics) if topics is not None else None
         layout = self._layout
         self.status.messages = 0
         channels = layout.channels
         wanted_ids: set[int] | None = None
+        damage: list[str] = []
         for span in layout.chunks:
             if wanted is not None and span.channels is not None:
                 if wanted_ids is None or len(wanted_ids) < len(channels):
                     wanted_ids = {c.id for c in channels.values() if c.topic in wanted}
                 if not (span.channels & wanted_ids):
                     continue
-            data = self._chunk_records(span)
             status = self.status
-            for msg in self._parse_records(data, span.offset):
-                status.messages += 1
-                if wanted is not None and msg.topic not in wanted:
-                    continue
-                yield msg
+            try:
+                data = self._chunk_records(span)
+                for msg in self._parse_records(data, span.offset):
+                    status.messages += 1
+                    if wanted is not None and msg.topic not in wanted:
+                        continue
+                    yield msg
+            except LogError as exc:
+                damage.append(str(exc))
             if self.progress is not None:
                 self.progress(span.offset + span.length, self.size)
+        if damage:
+            more = len(damage) - 1
+            also = f" (and {more} more damaged chunk{'s' if more > 1 else ''})" if more else ""
+            raise LogError(
+                f"{self.path}: {damage[0]}{also}; {self.status.messages} messages read, "
+                "everything readable shown"
+            )
 
     # -- layout -----------------------------------------------------------
 
@@ -459,10 +516,19 @@ class McapLog:
             raise self._damage(span.offset, f"{where} fails its CRC")
         return data
 
+    def skip(self, msg: LogMessage, why: str) -> None:
+        """Record that a reader left ``msg`` out because its payload is damaged (``why``);
+        the same message met again by another pass over the log counts once."""
+        key = (msg.chunk, msg.at)
+        if key not in self.status.skipped:
+            self.status.skipped[key] = f"{msg.where()}: {why}"
+
     def _damage(self, offset: int, why: str) -> LogError:
-        self.status.stopped_at = offset
-        self.status.problem = why
-        return LogError(f"{self.path}: {why}; {self.status.messages} messages read before it")
+        """Damage at ``offset``: the first (lowest) damage of the file is its status."""
+        status = self.status
+        if status.stopped_at is None or offset < status.stopped_at:
+            status.stopped_at, status.problem = offset, why
+        return LogError(why)
 
     def _parse_records(
         self, data: bytes, chunk_offset: int, layout: _Layout | None = None
@@ -481,12 +547,14 @@ class McapLog:
                 if end > n:
                     raise ValueError("record runs past the end of the chunk")
                 if op == _OP_MESSAGE:
+                    if length < _MSG_HEAD.size:
+                        raise ValueError(f"message record of {length} bytes")
                     cid, seq, log_time, pub_time = _MSG_HEAD.unpack_from(view, body)
                     ch = channels.get(cid)
                     if ch is None:
                         raise ValueError(f"message on unknown channel {cid}")
                     data = bytes(view[body + 22 : end])
-                    yield LogMessage(ch.topic, log_time, pub_time, seq, data)
+                    yield LogMessage(ch.topic, log_time, pub_time, seq, data, chunk_offset, p)
                 elif op == _OP_CHANNEL:
                     cid, sid = _U16.unpack_from(view, body)[0], _U16.unpack_from(view, body + 2)[0]
                     q = body + 4

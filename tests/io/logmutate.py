@@ -1,0 +1,434 @@
+"""Hostile MCAP logs for the log commands, and the commands run on them in-process.
+
+Shared by the CI fuzz test (``test_log_commands_fuzz.py``, hypothesis drives the
+``random.Random`` every mutation draws from) and the offline campaign (run this
+file: ``python3 tests/io/logmutate.py --logs 100000 --seed 1``), so both mutate
+logs the same two ways:
+
+- **blind**: bytes of a real, zstd-compressed log (finished, or cut as a
+  ``kill -9`` leaves it) flipped, overwritten in bursts, inserted, deleted, or
+  the file truncated;
+- **structure-aware**: the same messages rewritten into a log of uncompressed
+  chunks without CRCs (so damage reaches the payload parsers instead of being
+  stopped by a chunk CRC), with JSON payloads, metadata values and attachments
+  mutated: wrong types, integers beyond 64 bits, missing keys, nested garbage,
+  deep nesting, bytes that are not JSON or not UTF-8; then, sometimes, bytes of
+  the file flipped or the file cut.
+
+:func:`run_commands` runs ``replay``, ``replay --json``, ``replay --redecode``,
+``info``, ``info --json`` and ``export`` (each output format in turn) through
+their ``run_*`` functions and returns what escaped each: nothing may.
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import contextlib
+import io
+import json
+import random
+import struct
+import sys
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[2]
+if str(ROOT) not in sys.path:  # run as a script from anywhere: this tree's mbmon
+    sys.path.insert(0, str(ROOT))
+
+_REC = struct.Struct("<BQ")
+_U32 = struct.Struct("<I")
+_U64 = struct.Struct("<Q")
+MAGIC_LEN = 8
+
+#: captures of the project (captures/) a base log is recorded from, with the profile in force
+BASE_CAPTURES = (
+    ("hrss_ptp.pcap", ["hrss"]),
+    ("hrss_rtu.pcap", ["hrss"]),
+    ("sim_exceptions.pcap", []),
+    ("demo.pcap", ["hrss"]),
+)
+
+
+@dataclass(frozen=True, slots=True)
+class BaseLog:
+    """One recorded log: its zstd file bytes, the same cut before its summary, and its parts."""
+
+    name: str
+    finished: bytes
+    unfinished: bytes
+    messages: list[tuple[str, int, bytes]]  # (topic, log time, payload) in file order
+    metadata: dict[str, dict[str, str]]
+    attachments: list[tuple[str, str, bytes, int]]  # name, media type, data, log time
+
+
+def record_base_logs(tmp: Path, chunk_size: int = 3000) -> list[BaseLog]:
+    """Record every capture of :data:`BASE_CAPTURES` with the MCAP sink (small chunks,
+    zstd as ``read -w`` writes) and keep each log's bytes and messages."""
+    from mbmon.commands.common import make_annotator, profile_sources
+    from mbmon.format import View
+    from mbmon.hub import Hub
+    from mbmon.io.mcap.reader import McapLog
+    from mbmon.pipeline import Pipeline
+    from mbmon.sinks.base import SinkContext
+    from mbmon.sinks.mcap import McapSink
+    from mbmon.sources.pcapfile import read_capture
+
+    out = []
+    for capture, specs in BASE_CAPTURES:
+        src = ROOT / "captures" / capture
+        if not src.exists():
+            continue
+        annotator = make_annotator(specs) if specs else None
+        path = tmp / (Path(capture).stem + ".mcap")
+        ctx = SinkContext(
+            view=View(),
+            command_line=["mbmon", "read", str(src), *(f"--profile={s}" for s in specs)],
+            source=str(src),
+            profiles=profile_sources(annotator),
+            profile_specs=list(specs),
+        )
+        with Hub(Pipeline(annotator)) as hub:
+            hub.add_listener(McapSink(path, ctx, chunk_size=chunk_size))
+            hub.run_items(read_capture(src))
+        data = path.read_bytes()
+        summary_start = _U64.unpack_from(data, len(data) - MAGIC_LEN - 20 + 9)[0]
+        with McapLog(path) as log:
+            messages = [(m.topic, m.log_time, m.raw) for m in log.messages()]
+            metadata = {k: dict(v) for k, v in log.metadata.items()}
+            attachments = [(a.name, a.media_type, a.data, a.log_time) for a in log.attachments]
+        out.append(BaseLog(path.stem, data, data[:summary_start], messages, metadata, attachments))
+    if not out:
+        raise FileNotFoundError(f"no capture of {BASE_CAPTURES} in {ROOT / 'captures'}")
+    return out
+
+
+# --------------------------------------------------------------------------- blind
+
+
+def blind(base: BaseLog, rng: random.Random) -> bytes:
+    """The zstd log (finished or unfinished) with a few random byte-level damages."""
+    data = bytearray(base.finished if rng.random() < 0.6 else base.unfinished)
+    for _ in range(rng.choice((1, 1, 1, 2, 3, 8))):
+        _damage_bytes(data, rng, start=MAGIC_LEN if rng.random() < 0.97 else 0)
+    return bytes(data)
+
+
+def _damage_bytes(data: bytearray, rng: random.Random, start: int = MAGIC_LEN) -> None:
+    if len(data) <= start + 1:
+        return
+    at = rng.randrange(start, len(data))
+    kind = rng.randrange(7)
+    if kind == 0:  # one bit
+        data[at] ^= 1 << rng.randrange(8)
+    elif kind == 1:  # one byte
+        data[at] = rng.randrange(256)
+    elif kind == 2:  # a burst of random or extreme bytes
+        n = rng.choice((2, 4, 8, 16, 64))
+        data[at : at + n] = rng.choice(
+            (rng.randbytes(n), b"\xff" * n, b"\x00" * n, b"\x7f" + b"\xff" * (n - 1))
+        )
+    elif kind == 3:  # bytes inserted
+        data[at:at] = rng.randbytes(rng.choice((1, 3, 9, 100)))
+    elif kind == 4:  # bytes deleted
+        del data[at : at + rng.choice((1, 4, 9, 100))]
+    elif kind == 5:  # the file cut short
+        del data[at:]
+    else:  # a little-endian length-like field overwritten
+        width = rng.choice((4, 8))
+        value = rng.choice((0, 1, 9, (1 << (8 * width)) - 1, 1 << 31, rng.randrange(len(data))))
+        value &= (1 << (8 * width)) - 1
+        data[at : at + width] = value.to_bytes(width, "little")
+
+
+# --------------------------------------------------------------------------- structure-aware
+
+_KEYS = (
+    "index", "time", "kind", "fc", "unit", "stream", "line", "message", "level", "pdu",
+    "transport", "client", "server", "direction", "ts", "data", "type", "event", "info",
+    "command", "phase", "text", "duration", "latency_ms", "crc_ok", "malformed",
+    "exception_code", "request_index", "address", "values", "timed", "name", "file",
+)  # fmt: skip
+
+
+def garbage(rng: random.Random, depth: int = 0) -> Any:
+    """A JSON value chosen to break code that trusts a field's type or range."""
+    choices: list[Callable[[], Any]] = [
+        lambda: None,
+        lambda: rng.choice((True, False)),
+        lambda: rng.choice((0, -1, 1, 255, 65536, 2**31, 2**53 + 1, 2**63 - 1, 2**63, 2**64)),
+        lambda: rng.choice((2**64 + 1, -(2**63) - 1, 10**30, -(10**30), 10**400)),
+        lambda: rng.choice((0.5, -1e300, 1e308, 1e-320, float("inf"), float("-inf"))),
+        lambda: float("nan"),
+        lambda: rng.choice(("", "x", "03", "request", "tcp", "rtu", "\udcff", "\x00", "é" * 50)),
+        lambda: rng.choice(("2024-05-01", "12:00:05", "+5s", "ff ff", "0x10", "-1", "1e999")),
+        lambda: "A" * rng.choice((1, 1000, 100_000)),
+    ]
+    if depth < 3:
+        choices += [
+            lambda: [garbage(rng, depth + 1) for _ in range(rng.randrange(4))],
+            lambda: {rng.choice(_KEYS): garbage(rng, depth + 1) for _ in range(rng.randrange(4))},
+        ]
+    return rng.choice(choices)()
+
+
+def mutate_obj(obj: Any, rng: random.Random) -> Any:
+    """A decoded payload with one to three fields given the wrong type, range or absence."""
+    if not isinstance(obj, dict) or rng.random() < 0.08:
+        return garbage(rng)
+    obj = dict(obj)
+    for _ in range(rng.choice((1, 1, 2, 3))):
+        keys = list(obj)
+        what = rng.randrange(4)
+        if what == 0 and keys:  # a key missing
+            del obj[rng.choice(keys)]
+        elif what == 1 and keys:  # a key's value replaced
+            obj[rng.choice(keys)] = garbage(rng)
+        elif what == 2:  # a key the reader looks for, added with a hostile value
+            obj[rng.choice(_KEYS)] = garbage(rng)
+        elif keys:  # a nested value's own fields mutated
+            key = rng.choice(keys)
+            obj[key] = mutate_obj(obj[key], rng) if isinstance(obj[key], dict) else garbage(rng)
+    return obj
+
+
+def mutate_payload(raw: bytes, rng: random.Random) -> bytes:
+    """A message payload mutated as JSON (mostly) or as bytes."""
+    r = rng.random()
+    if r < 0.06:  # not JSON, not UTF-8, or nested deeper than any parser recurses
+        return rng.choice(
+            (b"", b"{", b"\xff\xfe", raw[: len(raw) // 2], b"[" * 100_000, b'{"a":' * 5000)
+        )
+    if r < 0.12:  # a raw chunk's base64 damaged
+        try:
+            obj = json.loads(raw)
+            if isinstance(obj, dict) and isinstance(obj.get("data"), str):
+                obj["data"] = rng.choice(("!!", "A", base64.b64encode(rng.randbytes(9)).decode()))
+                return json.dumps(obj).encode()
+        except ValueError:
+            pass
+    try:
+        obj = json.loads(raw)
+    except ValueError:
+        return raw
+    return json.dumps(mutate_obj(obj, rng), ensure_ascii=rng.random() < 0.5).encode(
+        "utf-8", "surrogatepass"
+    )
+
+
+def structured(base: BaseLog, rng: random.Random) -> bytes:
+    """The log's messages rewritten into uncompressed, CRC-less chunks, payloads mutated."""
+    from mbmon.io.mcap.writer import McapFileWriter
+
+    rate = rng.choice((0.01, 0.05, 0.2, 1.0))
+    metadata = {k: dict(v) for k, v in base.metadata.items()}
+    if rng.random() < 0.3:
+        meta = metadata.setdefault("mbmon", {})
+        for _ in range(rng.randrange(1, 4)):
+            key = rng.choice(
+                ("command_line", "profile_specs", "profile_bindings", "profiles", "timeout",
+                 "baud", "robot", "robot_is_client", "source", "version", "started")
+            )  # fmt: skip
+            if rng.random() < 0.2:
+                meta.pop(key, None)
+            else:
+                meta[key] = json.dumps(garbage(rng))
+    attachments = list(base.attachments)
+    if attachments and rng.random() < 0.15:
+        name, media, data, t = attachments[0]
+        data = bytearray(data)
+        _damage_bytes(data, rng, start=0)
+        attachments[0] = (name, media, bytes(data), t)
+    buf = io.BytesIO()
+    writer = McapFileWriter(buf, chunk_size=rng.choice((300, 1000, 5000)))
+    writer.compression, writer._compress = "", None
+    writer.start(library="mbmon fuzz")
+    for name, data in metadata.items():
+        writer.add_metadata(name, data)
+    for name, media, data, t in attachments:
+        writer.add_attachment(0, t, name, media, data)
+    channels: dict[str, int] = {}
+    for topic, log_time, raw in base.messages:
+        if topic not in channels:
+            channels[topic] = writer.register_channel(topic, "json", 0)
+        if rng.random() < rate:
+            raw = mutate_payload(raw, rng)
+        if rng.random() < 0.01:
+            log_time = rng.choice((0, 1, 2**63, 2**64 - 1))
+        writer.add_message(channels[topic], log_time, raw)
+    writer.finish()
+    data = bytearray(_without_crcs(buf.getvalue()))
+    r = rng.random()
+    if r < 0.25:  # as a kill -9 leaves it: no summary, maybe a chunk cut
+        summary_start = _U64.unpack_from(data, len(data) - MAGIC_LEN - 20 + 9)[0]
+        del data[rng.randrange(summary_start - 50, summary_start + 1) :]
+    if rng.random() < 0.3:  # damage that reaches the record parsers (no chunk CRC stops it)
+        for _ in range(rng.choice((1, 2, 5))):
+            _damage_bytes(data, rng)
+    return bytes(data)
+
+
+def walk(data: bytes) -> list[tuple[int, int, int]]:
+    """The top-level records of an undamaged file: (offset, opcode, body length)."""
+    out = []
+    p = MAGIC_LEN
+    while p + 9 <= len(data):
+        op, length = _REC.unpack_from(data, p)
+        out.append((p, op, length))
+        p += 9 + length
+    return out
+
+
+def _without_crcs(data: bytes) -> bytes:
+    """The file with every chunk CRC and the summary CRC set to 0 (MCAP: not computed)."""
+    out = bytearray(data)
+    for p, op, _length in walk(data[:-MAGIC_LEN]):
+        if op == 0x06:
+            _U32.pack_into(out, p + 9 + 24, 0)
+        elif op == 0x02:
+            _U32.pack_into(out, p + 9 + 16, 0)
+    return bytes(out)
+
+
+def mutated(bases: list[BaseLog], rng: random.Random) -> tuple[str, bytes]:
+    """One mutated log of either kind: (``"blind"`` or ``"structured"``, its bytes)."""
+    base = rng.choice(bases)
+    if rng.random() < 0.5:
+        return "blind", blind(base, rng)
+    return "structured", structured(base, rng)
+
+
+# --------------------------------------------------------------------------- the commands
+
+#: the command lines run on every mutated log (LOG and OUT filled in); ``export`` takes
+#: one output format per log, in turn
+COMMANDS: tuple[tuple[str, ...], ...] = (
+    ("replay", "LOG"),
+    ("replay", "LOG", "--json"),
+    ("replay", "LOG", "--redecode"),
+    ("replay", "LOG", "--since", "+0.5s", "-t", "r"),
+    ("info", "LOG"),
+    ("info", "LOG", "--json"),
+    ("export", "LOG", "-o", "OUT"),
+)
+EXPORT_SUFFIXES = (".jsonl", ".csv", ".txt", ".pcap", ".mcap")
+
+_parser: argparse.ArgumentParser | None = None
+
+
+@dataclass(slots=True)
+class Escape:
+    """An exception that escaped a command: the command line and the formatted traceback."""
+
+    argv: list[str]
+    kind: str
+    where: str  # the innermost mbmon frame, file:line
+    text: str
+
+
+def run_command(argv: list[str]) -> tuple[int | None, str, str, Escape | None]:
+    """Run one log command in-process, as ``mbmon.cli.main`` does after parsing:
+    (exit status, stdout, stderr, what escaped or ``None``). Only the exceptions
+    ``main`` turns into messages are allowed (and usage errors never arise here)."""
+    global _parser
+    from mbmon.cli import build_parser
+
+    if _parser is None:
+        _parser = build_parser()
+    args = _parser.parse_args(argv)
+    out, err = io.StringIO(), io.StringIO()
+    status: int | None = None
+    escape = None
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            status = args.func(args)
+        except Exception as exc:
+            tb = traceback.extract_tb(exc.__traceback__)
+            ours = [f for f in tb if "/mbmon/" in f.filename]
+            where = f"{ours[-1].filename.split('/mbmon/', 1)[1]}:{ours[-1].lineno}" if ours else "?"
+            text = "".join(traceback.format_exception(exc))
+            escape = Escape(argv, type(exc).__name__, where, text)
+    return status, out.getvalue(), err.getvalue(), escape
+
+
+def run_commands(path: Path, out_dir: Path, turn: int = 0) -> list[Escape]:
+    """Every command of :data:`COMMANDS` on the log at ``path``; what escaped them.
+
+    Besides escapes, a run that ends in status 1 must say why on stderr."""
+    escapes = []
+    for command in COMMANDS:
+        suffix = EXPORT_SUFFIXES[turn % len(EXPORT_SUFFIXES)]
+        argv = [
+            str(path) if a == "LOG" else str(out_dir / f"out{suffix}") if a == "OUT" else a
+            for a in command
+        ]
+        status, _out, err, escape = run_command(argv)
+        if escape is None and status not in (0, 1):
+            escape = Escape(argv, f"status {status}", "?", err)
+        elif escape is None and status == 1 and not err.strip():
+            escape = Escape(argv, "silent failure", "?", "exit status 1 without a message")
+        if escape is not None:
+            escapes.append(escape)
+    return escapes
+
+
+# --------------------------------------------------------------------------- campaign
+
+
+def campaign(n: int, seed: int, work: Path, report_every: int = 10_000) -> dict[str, Any]:
+    """Run the commands on ``n`` mutated logs (seeded); count logs with any escape, by kind
+    and by place; keep one log per place in ``work/found``."""
+    import time
+
+    work.mkdir(parents=True, exist_ok=True)
+    (work / "found").mkdir(exist_ok=True)
+    bases = record_base_logs(work)
+    rng = random.Random(seed)
+    logs = {"blind": 0, "structured": 0}
+    failed = {"blind": 0, "structured": 0}
+    places: dict[str, int] = {}
+    started = time.monotonic()
+    path = work / "m.mcap"
+    for i in range(n):
+        kind, data = mutated(bases, rng)
+        path.write_bytes(data)
+        logs[kind] += 1
+        escapes = run_commands(path, work, i)
+        if escapes:
+            failed[kind] += 1
+        for e in escapes:
+            key = f"{e.kind} at {e.where} ({e.argv[0]})"
+            if key not in places:
+                (work / "found" / f"{len(places):03d}.mcap").write_bytes(data)
+                (work / "found" / f"{len(places):03d}.txt").write_text(
+                    " ".join(e.argv) + "\n" + e.text
+                )
+            places[key] = places.get(key, 0) + 1
+        if (i + 1) % report_every == 0 or i + 1 == n:
+            took = time.monotonic() - started
+            print(
+                f"{i + 1} logs in {took:.0f} s: blind {failed['blind']}/{logs['blind']}, "
+                f"structured {failed['structured']}/{logs['structured']} with an escape; "
+                f"{len(places)} places",
+                flush=True,
+            )
+    return {"logs": logs, "failed": failed, "places": places}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description="the offline campaign of hostile logs")
+    parser.add_argument("--logs", type=int, default=10_000)
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--work", type=Path, default=Path("/tmp/logmutate"))
+    parser.add_argument("--report-every", type=int, default=1000)
+    args = parser.parse_args()
+    result = campaign(args.logs, args.seed, args.work / f"seed{args.seed}", args.report_every)
+    print(json.dumps(result, indent=1))
+
+
+if __name__ == "__main__":
+    main()
