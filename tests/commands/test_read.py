@@ -261,7 +261,7 @@ def test_rtu_raw_reads_a_pipe_and_a_fifo(tmp_path: Path) -> None:
 
 
 def test_ctrl_c_during_read_w_says_the_log_is_finished(tmp_path: Path) -> None:
-    """Item 21: Ctrl-C while recording a pipe: the log is finished, and it says where."""
+    """Ctrl-C while recording a pipe: the log is finished, and it says where."""
     cap = tmp_path / "poll.pcap"
     polling_pcap(cap, 200)
     log = tmp_path / "live.mcap"
@@ -274,7 +274,17 @@ def test_ctrl_c_during_read_w_says_the_log_is_finished(tmp_path: Path) -> None:
     assert proc.stdin is not None and proc.stderr is not None
     proc.stdin.write(cap.read_bytes())  # the pipe stays open: a live capture
     proc.stdin.flush()
-    time.sleep(1.5)
+    # Ctrl-C once everything is on disk (the log flushes every second): its size has
+    # settled above zero; on a loaded machine mbmon may take seconds just to start
+    deadline, last, settled = time.monotonic() + 60, -1, 0.0
+    while time.monotonic() < deadline:
+        size = log.stat().st_size if log.exists() else 0
+        if size and size == last:
+            if time.monotonic() - settled >= 1.5:
+                break
+        else:
+            last, settled = size, time.monotonic()
+        time.sleep(0.1)
     proc.send_signal(signal.SIGINT)
     err = proc.stderr.read().decode()
     proc.wait(timeout=60)
