@@ -108,3 +108,20 @@ def test_a_well_formed_modbus_frame_comes_out_the_same_either_way() -> None:
     fast, general = _run([frame], False, False), _run([frame], False, True)
     assert fast == general
     assert [item.data for item in fast[0] if hasattr(item, "data")] == [adu]
+
+
+def _frame(total: int, sport: int, dport: int, body: bytes = b"x" * 10) -> bytes:
+    tcp = struct.pack(">HHIIHHHH", sport, dport, 1000, 0, (5 << 12) | 0x18, 65535, 0, 0) + body
+    ip = struct.pack(">BBHHHBBH4s4s", 0x45, 0, total, 1, 0, 64, 6, 0, HOSTS[0], HOSTS[1])
+    return b"\x00" * 12 + b"\x08\x00" + ip + tcp
+
+
+def test_an_ip_length_shorter_than_the_headers_is_damage_on_any_port() -> None:
+    """The cases the differential test found: an IP length of 30 (TCP header cut)
+    on other ports was counted as a non-Modbus packet by the fast path; an IP
+    length of 10 on Modbus ports made the packet the last good one."""
+    for general in (False, True):
+        _out, stats, _ports, good_ts, _ = _run([_frame(30, 40000, 8080)], False, general)
+        assert (stats["non_modbus"], stats["truncated"], good_ts) == (0, 1, None), general
+        _out, stats, _ports, good_ts, _ = _run([_frame(10, 40000, 502)], False, general)
+        assert (stats["modbus_packets"], stats["malformed"], good_ts) == (0, 1, None), general
