@@ -102,9 +102,11 @@ class Hooks:
 
     def item(self, item: Item) -> None:
         """Hand a source's chunk or event over (``on_chunk`` or ``on_event``)."""
-        fn = self.on_chunk if isinstance(item, Chunk) else self.on_event
-        if fn is not None:
-            fn(item)  # type: ignore[arg-type]
+        if isinstance(item, Chunk):
+            if self.on_chunk is not None:
+                self.on_chunk(item)
+        elif self.on_event is not None:
+            self.on_event(item)
 
     def tick(self, now: float) -> None:
         """Call ``on_tick(now)`` where the listener has it."""
