@@ -17,12 +17,17 @@ Two ways in:
   in the hub's thread and feeds what it returns: that is how a live capture
   runs the packet dissector (whose TCP reassembly is hub-thread state).
 
-Listeners have optional hooks, called only where defined:
+The listener contract lives here, and only here: a listener is any object
+with any of the optional hooks in :data:`HOOKS`, called only where defined:
 ``on_chunk(chunk)`` and ``on_event(event)`` for input as the sources gave it,
 ``on_records(records)`` (a batch, when the listener wants one call per batch)
-or else ``on_record(record)``, ``on_tick(now)``, and ``close()``. A listener
-that raises is reported once (stderr and an ``/mbmon/events`` notice to the
-others) and detached; the sources and the other listeners go on. Broken pipes
+or else ``on_record(record)``, ``on_tick(now)``, and ``close()``. No hook is
+required. :func:`hooks_of` looks a listener's hooks up once (:class:`Hooks`);
+the hub uses it, and so does every listener that wraps others (the selection of
+what is shown, ``sniff``'s ``-c`` budget, a trigger's gate, a rotating sink),
+so a new hook is added here and nowhere else. A listener that raises is
+reported once (stderr and an ``/mbmon/events`` notice to the others) and
+detached; the sources and the other listeners go on. Broken pipes
 (``mbmon read … | head``) detach the listener quietly.
 
 Time: for files, the capture's; for live sources, the packets' own timestamps,
@@ -38,7 +43,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import IO, Any, Protocol
 
 from mbmon.model import Chunk, Event, EventKind, Record, Stream, Transport
@@ -47,8 +52,9 @@ from mbmon.pipeline import Pipeline
 Item = Chunk | Event
 Producer = Callable[[], Iterable[Item]]
 
-#: Hooks of a listener, looked up once when it is added.
-_HOOKS = ("on_chunk", "on_event", "on_records", "on_record", "on_tick", "close")
+#: The optional hooks of a listener (the one list; see the module docstring).
+HOOKS = ("on_chunk", "on_event", "on_records", "on_record", "on_tick", "close")
+#: The hooks the hub indexes one by one (records keep each listener's batch-or-single choice).
 _INDEXED = ("on_chunk", "on_event", "on_tick")
 
 #: How often listeners' ``on_tick`` runs on a live stream (text flushed within 0.5 s).
@@ -69,13 +75,79 @@ class Ticking(Protocol):
     def next_deadline(self) -> float | None: ...
 
 
+@dataclass(frozen=True, slots=True)
+class Hooks:
+    """A listener's bound hooks, ``None`` where it has none; ``on_record`` is
+    ``None`` when the listener has ``on_records`` (the batch hook wins)."""
+
+    on_chunk: Callable[[Chunk], Any] | None = None
+    on_event: Callable[[Event], Any] | None = None
+    on_records: Callable[[list[Record]], Any] | None = None
+    on_record: Callable[[Record], Any] | None = None
+    on_tick: Callable[[float], Any] | None = None
+    close: Callable[[], Any] | None = None
+
+    @property
+    def takes_records(self) -> bool:
+        """Whether the listener wants records at all (``on_records`` or ``on_record``)."""
+        return self.on_records is not None or self.on_record is not None
+
+    def records(self, records: list[Record]) -> None:
+        """Hand ``records`` over: the batch hook at once, or ``on_record`` per record."""
+        if self.on_records is not None:
+            self.on_records(records)
+        elif self.on_record is not None:
+            for record in records:
+                self.on_record(record)
+
+    def item(self, item: Item) -> None:
+        """Hand a source's chunk or event over (``on_chunk`` or ``on_event``)."""
+        if isinstance(item, Chunk):
+            if self.on_chunk is not None:
+                self.on_chunk(item)
+        elif self.on_event is not None:
+            self.on_event(item)
+
+    def tick(self, now: float) -> None:
+        """Call ``on_tick(now)`` where the listener has it."""
+        if self.on_tick is not None:
+            self.on_tick(now)
+
+
+def hooks_of(listener: Any) -> Hooks:
+    """The hooks ``listener`` has (see :data:`HOOKS`), looked up once: what the hub
+    calls, and what a listener that wraps others calls on them."""
+    found: dict[str, Callable[..., Any] | None] = {}
+    for hook in HOOKS:
+        fn = getattr(listener, hook, None)
+        found[hook] = fn if callable(fn) else None
+    if found["on_records"] is not None:
+        found["on_record"] = None
+    return Hooks(**found)
+
+
+def close_all(listeners: Iterable[Hooks]) -> None:
+    """Close each listener that has ``close``, whatever the others do; the first
+    failure is raised once all were closed (a wrapper's own ``close``)."""
+    failure: BaseException | None = None
+    for hooks in listeners:
+        if hooks.close is None:
+            continue
+        try:
+            hooks.close()
+        except Exception as exc:
+            failure = failure or exc
+    if failure is not None:
+        raise failure
+
+
 @dataclass
 class _Slot:
     """One attached listener and its bound hooks (``None`` where it has none)."""
 
     listener: Any
     name: str
-    hooks: dict[str, Callable[..., Any] | None] = field(default_factory=dict)
+    hooks: Hooks
 
 
 class _Collector:
@@ -144,13 +216,7 @@ class Hub:
 
     def add_listener(self, listener: Any) -> None:
         """Attach ``listener``; its hooks are looked up now and called only where defined."""
-        slot = _Slot(listener, listener_name(listener))
-        for hook in _HOOKS:
-            fn = getattr(listener, hook, None)
-            slot.hooks[hook] = fn if callable(fn) else None
-        if slot.hooks["on_records"] is not None:
-            slot.hooks["on_record"] = None  # the batch hook wins
-        self._slots.append(slot)
+        self._slots.append(_Slot(listener, listener_name(listener), hooks_of(listener)))
         self._index_hooks()
 
     def add_ticker(self, stage: Ticking) -> None:
@@ -177,34 +243,21 @@ class Hub:
         by_hook: dict[str, list[tuple[_Slot, Callable[..., Any]]]] = {h: [] for h in _INDEXED}
         for slot in self._slots:
             for hook in _INDEXED:
-                fn = slot.hooks[hook]
+                fn = getattr(slot.hooks, hook)
                 if fn is not None:
                     by_hook[hook].append((slot, fn))
         self._by_hook = by_hook
         self._record_hooks = [
-            (slot, slot.hooks["on_records"], slot.hooks["on_record"])
+            (slot, slot.hooks.on_records, slot.hooks.on_record)
             for slot in self._slots
-            if slot.hooks["on_records"] is not None or slot.hooks["on_record"] is not None
+            if slot.hooks.takes_records
         ]
 
     # ------------------------------------------------------------------ same-thread input
 
     def feed(self, item: Item) -> None:
-        """Take one chunk or event now, in the calling thread."""
-        self.seen += 1
-        if isinstance(item, Chunk):
-            for slot, fn in self._by_hook["on_chunk"]:
-                self._call(slot, fn, item)
-        else:
-            if item.kind is EventKind.ERROR and item.stream is None:
-                self.errors.append(str(item.info.get("message", "damaged input")))
-            for slot, fn in self._by_hook["on_event"]:
-                self._call(slot, fn, item)
-        if item.ts > self.now:
-            self.now = item.ts
-        records = self.pipeline.feed(item)
-        if records:
-            self._dispatch(records)
+        """Take one chunk or event now, in the calling thread: :meth:`feed_items` of one."""
+        self.feed_items((item,))
 
     def run_items(self, items: Iterable[Item]) -> None:
         """Feed every item of ``items`` (a file's), then finish the pipeline."""
@@ -215,18 +268,22 @@ class Hub:
         """Feed every item of ``items`` in the calling thread, stopping early once
         :attr:`done` (every listener gone, or ``-c N`` reached).
 
-        The per-item work of :meth:`feed`, inlined: this is the loop a 1M-ADU
-        capture goes through, and every batch the proxy and the sniffer submit.
+        The one way input goes in (:meth:`feed` is this with one item): the run's
+        time moves to the item's, the listeners get it as the source gave it, then
+        the pipeline, whose records are fanned out. A listener detached on the way
+        is reported at the time of the item it failed on.
         """
         chunk_hooks = self._by_hook["on_chunk"]
         event_hooks = self._by_hook["on_event"]
         pipeline_feed = self.pipeline.feed
         dispatch = self._dispatch
         error = EventKind.ERROR
-        now = self.now
         n = 0
         for item in items:
             n += 1
+            ts = item.ts
+            if ts > self.now:
+                self.now = ts
             if type(item) is Chunk:
                 if chunk_hooks:
                     for slot, fn in chunk_hooks:
@@ -239,15 +296,11 @@ class Hub:
                     for slot, fn in event_hooks:
                         self._call(slot, fn, item)
                     event_hooks = self._by_hook["on_event"]
-            if item.ts > now:
-                now = item.ts
             records = pipeline_feed(item)
             if records:
-                self.now = now
                 dispatch(records)
                 if self.done:
                     break  # every listener is gone (stdout closed, nothing recorded)
-        self.now = now
         self.seen += n
 
     def iter_records(self, items: Iterable[Item]) -> Iterator[Record]:
@@ -444,7 +497,7 @@ class Hub:
         self.failures.append((slot.name, message))
         text = f"{slot.name} stopped: {message}" if slot.name not in message else message
         self._say(f"mbmon: {text}; the rest of the run goes on")
-        close = slot.hooks.get("close")
+        close = slot.hooks.close
         if close is not None:
             try:
                 close()
@@ -475,7 +528,7 @@ class Hub:
             return
         self._closed = True
         for slot in list(self._slots):
-            close = slot.hooks.get("close")
+            close = slot.hooks.close
             if close is None:
                 continue
             try:

@@ -322,3 +322,51 @@ def test_close_runs_on_every_listener_on_sigterm(tmp_path: Path) -> None:
     assert marks == ["closed", "closed"]
     assert code == 128 + signal.SIGTERM
     assert "Traceback" not in stderr
+
+
+def test_every_hook_is_optional_for_the_hub_and_for_every_wrapper() -> None:
+    """One contract: a listener with no hook at all, or with ``on_record`` only, works
+    behind the hub and behind each wrapper that composes hooks with ``hooks_of``."""
+    from mbmon.analysis.trigger import TriggerGate
+    from mbmon.commands.sniff import _Budget, _Limited
+    from mbmon.filters import parse_expression
+    from mbmon.hub import HOOKS, hooks_of
+    from mbmon.sinks.select import Selection
+
+    class Bare:
+        pass
+
+    class OnlyRecord:
+        def __init__(self) -> None:
+            self.records: list[Record] = []
+
+        def on_record(self, record: Record) -> None:
+            self.records.append(record)
+
+    assert all(getattr(hooks_of(Bare()), hook) is None for hook in HOOKS)
+    hooks = hooks_of(Collect())
+    assert all(getattr(hooks, hook) is not None for hook in HOOKS if hook != "on_records")
+
+    behind_selection, behind_gate, behind_budget = OnlyRecord(), OnlyRecord(), OnlyRecord()
+    gate = TriggerGate(parse_expression("fc 3"), before=10.0, after=10.0)
+    gate.add(Bare())
+    gate.add(behind_gate)
+    budget = _Budget(100, lambda: None, None, View())
+    wrappers = [
+        Selection([Bare(), behind_selection], View()),
+        gate,
+        budget,
+        _Limited(Bare(), budget),
+        _Limited(behind_budget, budget),
+        Bare(),
+    ]
+    hub = Hub(Pipeline(), wrappers)
+    hub.run_items(polling(hub, 3))
+    hub.tick(2000.0)
+    hub.close()
+    assert not hub.failures
+    frames = [
+        [r for r in got.records if r.frame is not None]
+        for got in (behind_selection, behind_gate, behind_budget)
+    ]
+    assert [len(f) for f in frames] == [6, 6, 6]

@@ -35,6 +35,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from mbmon.hub import hooks_of
 from mbmon.sinks.base import SINKS, SinkBase, SinkContext, SinkError, open_sink
 
 __all__ = ["RotatingSink", "RotationError", "parse_rotate", "rotated_name"]
@@ -47,7 +48,9 @@ _SIZE_UNITS = {
     "b": 1, "kb": 10**3, "mb": 10**6, "gb": 10**9, "tb": 10**12,
     "kib": 1 << 10, "mib": 1 << 20, "gib": 1 << 30, "tib": 1 << 40,
 }  # fmt: skip
-#: The optional hooks a rotating sink passes on (those its sink class has).
+#: The input hooks a rotating sink passes on to the file of the item's time
+#: (those of :data:`mbmon.hub.HOOKS` its sink class has; ``on_tick`` and
+#: ``close`` it has itself).
 _PASSED = ("on_chunk", "on_event", "on_records", "on_record")
 
 
@@ -127,8 +130,9 @@ class RotatingSink(SinkBase):
         module_name, class_name = SINKS[suffix]
         cls = getattr(importlib.import_module(module_name), class_name)
         # the hub calls only the hooks a listener has: those of the sink class
+        has = hooks_of(cls)
         for hook in _PASSED:
-            if callable(getattr(cls, hook, None)):
+            if getattr(has, hook) is not None:
                 setattr(self, hook, getattr(self, "_" + hook))
         if not self.path.parent.is_dir():
             raise SinkError(f"{self.path}: cannot write: no such directory {self.path.parent}")
@@ -242,9 +246,7 @@ class RotatingSink(SinkBase):
         if now >= self._until or self._full():
             self._finish()
             return
-        tick = getattr(self._sink, "on_tick", None)
-        if tick is not None:
-            tick(now)
+        hooks_of(self._sink).tick(now)
 
     def close(self) -> None:
         """Finish the current file (the ring stays as it is)."""

@@ -31,14 +31,13 @@ from dataclasses import dataclass
 from typing import Any
 
 from mbmon.filters import Expression
+from mbmon.hub import Hooks, close_all, hooks_of
 from mbmon.model import Record
 
 __all__ = ["MAX_HELD", "TriggerGate", "Window"]
 
 #: Items held before a trigger at most (chunks, events and records).
 MAX_HELD = 1_000_000
-
-_HOOKS = ("on_chunk", "on_event", "on_records", "on_record", "on_tick", "close")
 
 
 @dataclass(slots=True)
@@ -76,7 +75,7 @@ class TriggerGate:
         self.after = after
         self.on_window = on_window
         self._held: deque[tuple[float, int, Any]] = deque(maxlen=max_held)
-        self._targets: list[tuple[Any, dict[str, Any]]] = []
+        self._targets: list[tuple[Any, Hooks]] = []
         self._open: Window | None = None
         self._latest = float("-inf")
         #: the windows kept so far, in order
@@ -84,10 +83,7 @@ class TriggerGate:
 
     def add(self, listener: Any) -> None:
         """A listener behind the gate; its hooks are looked up now, as the hub does."""
-        hooks = {hook: getattr(listener, hook, None) for hook in _HOOKS}
-        if hooks["on_records"] is not None:
-            hooks["on_record"] = None
-        self._targets.append((listener, hooks))
+        self._targets.append((listener, hooks_of(listener)))
 
     @property
     def listeners(self) -> list[Any]:
@@ -114,26 +110,14 @@ class TriggerGate:
             self._close_window()
         self._prune(now)
         for _listener, hooks in self._targets:
-            tick = hooks["on_tick"]
-            if tick is not None:
-                tick(now)
+            hooks.tick(now)
 
     def close(self) -> None:
         """The run ended: an open window ends here; every listener is closed,
         each whatever the others do (the first failure is raised after)."""
         if self._open is not None:
             self._close_window()
-        failure: BaseException | None = None
-        for _listener, hooks in self._targets:
-            close = hooks["close"]
-            if close is None:
-                continue
-            try:
-                close()
-            except Exception as exc:
-                failure = failure or exc
-        if failure is not None:
-            raise failure
+        close_all(hooks for _listener, hooks in self._targets)
 
     # ------------------------------------------------------------------ internals
 
@@ -177,18 +161,10 @@ class TriggerGate:
 
     def _deliver(self, kind: int, item: Any) -> None:
         for _listener, hooks in self._targets:
-            if kind == 0:
-                fn = hooks["on_chunk"]
-                if fn is not None:
-                    fn(item)
-            elif kind == 1:
-                fn = hooks["on_event"]
-                if fn is not None:
-                    fn(item)
-            elif hooks["on_records"] is not None:
-                hooks["on_records"]([item])
-            elif hooks["on_record"] is not None:
-                hooks["on_record"](item)
+            if kind == 2:
+                hooks.records([item])
+            else:
+                hooks.item(item)
 
     def _close_window(self) -> None:
         window = self._open

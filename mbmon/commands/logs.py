@@ -1029,20 +1029,18 @@ def _export_pcap(
     """The raw bytes as a pcap: one ADU per TCP segment unless ``keep_segments``; Modbus
     server ports written as ``server_port`` unless it is ``None`` (the sink's notes,
     on stderr, name the original ports, or the tshark option a kept port needs)."""
+    from mbmon.hub import hooks_of
     from mbmon.io.replay import raw_items
-    from mbmon.model import Chunk
     from mbmon.sinks.pcap import PcapSink
 
     with PcapSink(target, ctx, adu_segments=not keep_segments, server_port=server_port) as sink:
+        take = hooks_of(sink).item
         for item in raw_items(log):
             if flt.since is not None and item.ts < flt.since:
                 continue
             if flt.until is not None and item.ts > flt.until:
                 continue
-            if isinstance(item, Chunk):
-                sink.on_chunk(item)
-            else:
-                sink.on_event(item)
+            take(item)
     if sink.companion is not None:
         _err(f"note: RTU and IP streams mixed: the other kind is in {sink.companion}")
 

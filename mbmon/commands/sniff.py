@@ -188,41 +188,32 @@ class _Limited:
     """An output behind the ``-c`` budget: it sees nothing after the N-th frame."""
 
     def __init__(self, inner: Any, budget: _Budget) -> None:
+        from mbmon.hub import hooks_of
+
         self.inner = inner
         self.budget = budget
         self.name = getattr(inner, "name", None) or getattr(inner, "path", None)
-        self._records = getattr(inner, "on_records", None)
-        self._record = getattr(inner, "on_record", None)
+        self._hooks = hooks_of(inner)
 
     def on_records(self, records: list[Any]) -> None:
         records = self.budget.allowed(records)
-        if not records:
-            return
-        if self._records is not None:
-            self._records(records)
-        elif self._record is not None:
-            for record in records:
-                self._record(record)
+        if records:
+            self._hooks.records(records)
 
     def on_chunk(self, chunk: Any) -> None:
-        fn = getattr(self.inner, "on_chunk", None)
-        if fn is not None and not self.budget.done:
-            fn(chunk)
+        if not self.budget.done:
+            self._hooks.item(chunk)
 
     def on_event(self, event: Any) -> None:
-        fn = getattr(self.inner, "on_event", None)
-        if fn is not None and not self.budget.done:
-            fn(event)
+        if not self.budget.done:
+            self._hooks.item(event)
 
     def on_tick(self, now: float) -> None:
-        fn = getattr(self.inner, "on_tick", None)
-        if fn is not None:
-            fn(now)
+        self._hooks.tick(now)
 
     def close(self) -> None:
-        fn = getattr(self.inner, "close", None)
-        if fn is not None:
-            fn()
+        if self._hooks.close is not None:
+            self._hooks.close()
 
 
 # --------------------------------------------------------------------------- run

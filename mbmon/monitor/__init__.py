@@ -30,7 +30,7 @@ def save_entries(path: str, entries: list[Entry], feed: MonitorFeed, ctx: Any) -
     along (``.mcap``'s raw topic, ``.pcap``'s packets), in time order with the
     records. Returns what was written, in words; raises ``SinkError`` or ``OSError``.
     """
-    from mbmon.model import Chunk
+    from mbmon.hub import hooks_of
     from mbmon.sinks.base import open_sink
 
     if not entries:
@@ -39,10 +39,7 @@ def save_entries(path: str, entries: list[Entry], feed: MonitorFeed, ctx: Any) -
     t0, t1 = records[0].ts, records[-1].ts
     inputs = feed.inputs_between(t0, t1)
     sink: Any = open_sink(path, ctx)
-    on_chunk = getattr(sink, "on_chunk", None)
-    on_event = getattr(sink, "on_event", None)
-    on_records = getattr(sink, "on_records", None)
-    on_record = getattr(sink, "on_record", None)
+    hooks = hooks_of(sink)
     try:
         # inputs before records of the same time: a record is made of what came in
         merged = heapq.merge(
@@ -51,15 +48,9 @@ def save_entries(path: str, entries: list[Entry], feed: MonitorFeed, ctx: Any) -
         )
         for _ts, what, _i, item in merged:
             if what == 0:
-                if isinstance(item, Chunk):
-                    if on_chunk is not None:
-                        on_chunk(item)
-                elif on_event is not None:
-                    on_event(item)
-            elif on_records is not None:
-                on_records([item])
-            elif on_record is not None:
-                on_record(item)
+                hooks.item(item)
+            else:
+                hooks.records([item])
     finally:
         sink.close()
     return f"wrote {len(records)} lines to {path}"

@@ -1,12 +1,9 @@
-"""The listener contract: every writer and view is a listener of the hub (DESIGN rule 7).
+"""Sinks: every writer and view is a listener of the hub (DESIGN rule 7).
 
-A listener has any of the optional hooks ``on_chunk(chunk)`` and
-``on_event(event)`` (input as the sources gave it: raw bytes and connection
-events, for lossless logs and pcap), ``on_record(record)`` (every annotated
-record, in order), ``on_tick(now)`` (time moves on while nothing arrives) and
-``close()``; :class:`mbmon.hub.Hub` calls only the hooks a listener defines.
-A sink is a listener that writes a file, opened by :func:`open_sink` from the
-suffix of ``-w FILE``; sink modules are imported only when used.
+The listener contract (its hooks, every one optional, ``close`` included) is
+:data:`mbmon.hub.HOOKS`, in :mod:`mbmon.hub` only; the hub calls only the hooks
+a listener defines. A sink is a listener that writes a file, opened by
+:func:`open_sink` from the suffix of ``-w FILE``; sink modules are imported only when used.
 """
 
 from __future__ import annotations
@@ -15,7 +12,7 @@ import importlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
-from typing import Protocol, Self, runtime_checkable
+from typing import Self
 
 from mbmon.format import View
 
@@ -42,17 +39,6 @@ class SinkContext:
     profile_specs: list[str] = field(default_factory=list)
     timeout: float = 1.0
     baud: int | None = None
-
-
-@runtime_checkable
-class Listener(Protocol):
-    """The one hook every listener has; the others are optional (see the module text)."""
-
-    def close(self) -> None: ...
-
-
-#: The optional hooks, in the order the hub looks them up.
-HOOKS = ("on_chunk", "on_event", "on_record", "on_tick", "close")
 
 
 class SinkBase:

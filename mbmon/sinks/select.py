@@ -14,6 +14,7 @@ from typing import Any
 
 from mbmon.filters import RecordFilter
 from mbmon.format import View, record_line
+from mbmon.hub import close_all, hooks_of
 from mbmon.model import Record
 
 
@@ -38,6 +39,7 @@ class Selection:
         on_full: Callable[[], None] | None = None,
     ) -> None:
         self.listeners = list(listeners)
+        self._hooks = [hooks_of(listener) for listener in self.listeners]
         self.view = view
         self.filter = flt if flt is not None and flt.active else None
         self.left = count
@@ -58,24 +60,15 @@ class Selection:
         if not records:
             return
         self.selected += len(records)
-        for listener in self.listeners:
-            batch = getattr(listener, "on_records", None)
-            if batch is not None:
-                batch(records)
-            else:
-                for record in records:
-                    listener.on_record(record)
+        for hooks in self._hooks:
+            hooks.records(records)
         if self.left == 0 and self.on_full is not None:
             self.on_full()
 
     def on_tick(self, now: float) -> None:
-        for listener in self.listeners:
-            tick = getattr(listener, "on_tick", None)
-            if tick is not None:
-                tick(now)
+        for hooks in self._hooks:
+            hooks.tick(now)
 
     def close(self) -> None:
-        for listener in self.listeners:
-            close = getattr(listener, "close", None)
-            if close is not None:
-                close()
+        """Close every listener behind the selection, each whatever the others do."""
+        close_all(self._hooks)

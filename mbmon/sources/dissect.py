@@ -424,34 +424,55 @@ class Dissector:
             et, vihl, total, frag, proto, addrs, sport, dport, seq, ack, hl = _eth_ipv4_tcp(
                 buf, off
             )
-            if et == 0x0800 and vihl == 0x45 and proto == 6 and not frag & 0x3FFF:
+            ip_end = off + 14 + total
+            doff = (hl >> 10) & 0x3C
+            if (
+                et == 0x0800
+                and vihl == 0x45
+                and proto == 6
+                and not frag & 0x3FFF
+                and 40 <= total
+                and ip_end <= end
+                and 20 <= doff <= total - 20
+            ):
+                # whole headers and a whole IP packet: anything else (a cut, a
+                # length the capture left out, a bad offset) is the general path's
                 self.good_ts = ts
                 ports = self.ports
                 if sport not in ports and dport not in ports:
                     if self.detector is not None:
-                        ip_end = off + 14 + total
-                        doff = (hl >> 10) & 0x3C
-                        if 40 <= total and ip_end <= end and 20 <= doff <= total - 20:
-                            payload = buf[off + 34 + doff : ip_end]
-                            self._detect(
-                                ts, (addrs, sport, dport), seq, ack, hl & 0xFF, payload, out
-                            )
-                            return
+                        payload = buf[off + 34 + doff : ip_end]
+                        self._detect(ts, (addrs, sport, dport), seq, ack, hl & 0xFF, payload, out)
+                        return
                     self.non_modbus += 1
                     self._other_port(sport if sport < dport else dport)
                     return
-                ip_end = off + 14 + total
-                doff = (hl >> 10) & 0x3C
-                if 40 <= total and ip_end <= end and 20 <= doff <= total - 20:
-                    self.modbus_packets += 1
-                    flags = hl & 0xFF
-                    key = (addrs, sport, dport)
-                    flow = self.tcp.get(key)
-                    payload = buf[off + 34 + doff : ip_end]
-                    if flow is None or flags & SYN or flow[0].closed:
-                        flow = self._tcp_flow(key, flow, ts, seq, flags, bool(payload), out)
-                    flow[0].segment(ts, flow[1], seq, ack, flags, payload, out)
-                    return
+                self.modbus_packets += 1
+                flags = hl & 0xFF
+                key = (addrs, sport, dport)
+                flow = self.tcp.get(key)
+                payload = buf[off + 34 + doff : ip_end]
+                if flow is None or flags & SYN or flow[0].closed:
+                    flow = self._tcp_flow(key, flow, ts, seq, flags, bool(payload), out)
+                flow[0].segment(ts, flow[1], seq, ack, flags, payload, out)
+                return
+        self._general(ts, link, iface, buf, off, end, out)
+
+    def packet_general(
+        self, ts: float, link: int, iface: int, buf: bytes, off: int, end: int, out: list[Any]
+    ) -> None:
+        """:meth:`packet` without its Ethernet/IPv4/TCP fast path: every record the
+        general way. The differential tests feed the same packets both ways and pin
+        the results (chunks, events, counters) equal."""
+        if ts >= self._due:
+            self._tick(ts, out)
+        self._general(ts, link, iface, buf, off, end, out)
+
+    def _general(
+        self, ts: float, link: int, iface: int, buf: bytes, off: int, end: int, out: list[Any]
+    ) -> None:
+        """Any link type, VLAN tags, IPv4 (options, fragments) or IPv6 (extension
+        headers), TCP or UDP: what :meth:`packet`'s fast path does not take."""
         # ---- link layer -> ethertype
         if link == _ETHERNET:
             if end - off < 14:

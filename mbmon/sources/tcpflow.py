@@ -241,6 +241,29 @@ class TcpConnection:
                 out.append(make_chunk(ts, self.stream, half.direction, payload))
                 half.nxt = (seq + len(payload)) & _MASK
             return
+        self.segment_general(ts, from_client, seq, ack, flags, payload, out)
+
+    def segment_general(
+        self,
+        ts: float,
+        from_client: bool,
+        seq: int,
+        ack: int,
+        flags: int,
+        payload: bytes,
+        out: list[Chunk | Event],
+    ) -> None:
+        """:meth:`segment` without its fast branch: every segment the general way.
+
+        :meth:`segment` takes the common case (in-order data or a pure ACK on an
+        open connection) in a few lines and hands everything else here; the
+        differential tests feed the same segments both ways and pin the results
+        equal."""
+        self.last = ts
+        if from_client:
+            half, other = self._c2s, self._s2c
+        else:
+            half, other = self._s2c, self._c2s
         if self.closed:
             if payload:
                 self.stats.after_close += 1
