@@ -54,6 +54,11 @@ def test_declines_are_visible_and_change_nothing() -> None:
     assert rtu.stdout == _mbmon("read", str(RTU), pure=True).stdout
     robot = _mbmon("read", str(DEMO), "--robot", "127.0.0.1:502", "--debug-core")
     assert b"core: declined (--robot is not covered by the core)" in robot.stderr
+    for window in ("--before", "--after"):  # the pipeline's usage error, not the core's lines
+        alone = _mbmon("read", str(DEMO), window, "5s", "--debug-core")
+        assert b"core: declined (" + window.encode() + b" is not covered" in alone.stderr
+        assert alone.returncode == 2 and b"needs --trigger" in alone.stderr
+        assert alone.stdout == b""
     count = _mbmon("read", str(DEMO), "-c", "3", "--debug-core")
     assert b"core: declined (-c is not covered" in count.stderr
     assert len(count.stdout.splitlines()) == 3
