@@ -78,6 +78,9 @@ def decline_for_options(args: Any, *, live: bool, flt: Any) -> str | None:
         (args.write, "-w (logs)"),
         (getattr(args, "trigger", None), "--trigger"),
         (getattr(args, "rotate", None), "--rotate"),
+        # without --trigger, a window is a usage error the Python path reports
+        (getattr(args, "before", None) not in (None, "30s"), "--before"),
+        (getattr(args, "after", None) not in (None, "10s"), "--after"),
         (args.profile, "--profile"),
         (args.robot, "--robot"),
         (args.count, "-c"),

@@ -953,6 +953,13 @@ cdef class _Pass:
         self.unlink(e)
         return self.event(ts, sid, EventKind.TIMEOUT, info)
 
+    cdef inline double due_by(self, int e, double now):
+        """The time of request ``e``'s TIMEOUT decided at ``now``: when its answer was
+        due (its time plus the timeout), or ``now`` if that came first -- the pairer's
+        ``min(req.ts + timeout, now)``, NaN and ties included."""
+        cdef double due = self.pool[e].ts + self.timeout
+        return now if now < due else due
+
     cdef int pair_tick(self, double now) except -1:
         cdef double limit = now - self.timeout
         cdef int s = self.ahead, nxt, e
@@ -962,7 +969,7 @@ cdef class _Pass:
                 e = self.sp[s].head
                 if self.pool[e].ts > limit:
                     break
-                self.timeout_record(now, e)
+                self.timeout_record(self.due_by(e, now), e)
             s = nxt
         return 0
 
@@ -980,7 +987,12 @@ cdef class _Pass:
         slot = self.pend_slot(key)
         if d == 0:
             if slot >= 0:  # the same (tid, unit) again: the old request times out
-                self.timeout_record(ts, self.table[slot])
+                e = self.table[slot]
+                self.timeout_record(self.due_by(e, ts), e)
+            if adu[7] == 0x08 and alen >= 10 and adu[8] == 0 and adu[9] == 0x04:
+                # Diagnostics 04 (Force Listen Only Mode) is never answered: the
+                # pairer does not hold it (``expects_reply``), so it never times out
+                return self.frame_record(sid, 0, ts, adu, alen, NULL)
             if self.sp[sid].count >= MAX_PENDING_STREAM or self.total >= MAX_PENDING_TOTAL:
                 raise Declined("more requests pending than the core keeps")
             e = self.new_pend()
@@ -1054,6 +1066,11 @@ cdef class _Pass:
         cdef Py_ssize_t pos, rest
         self.last_ts = ts
         self.pl_last = ts
+        if ts >= self.next_tick:
+            # the pipeline ticks the pairer before it decodes the chunk: requests due
+            # before it are reported first, and an answer in it after the timeout is late
+            self.next_tick = ts + TICK_EVERY
+            self.pair_tick(ts)
         if h.blen == 0:
             pos = self.frames_of(ci, d, ts, p, n)
             rest = n - pos
@@ -1067,9 +1084,6 @@ cdef class _Pass:
             if pos:
                 memmove(h.buf, h.buf + pos, h.blen - pos)
                 h.blen -= <int>pos
-        if ts >= self.next_tick:
-            self.next_tick = ts + TICK_EVERY
-            self.pair_tick(ts)
         return 0
 
     cdef int hold(self, int ci, int d, const uint8_t* p, Py_ssize_t n) except -1:
@@ -1715,7 +1729,8 @@ cdef class _Pass:
         while s >= 0:
             nxt = self.sp[s].anext
             while self.sp[s].count:
-                self.timeout_record(when, self.sp[s].head)
+                e = self.sp[s].head
+                self.timeout_record(self.due_by(e, when), e)
             s = nxt
         self.flush_out()
 

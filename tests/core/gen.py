@@ -56,6 +56,7 @@ def every_function_pair() -> list[tuple[bytes, bytes]]:
         (b"\x06\x00\x01", b"\x86\x03\x00"),  # truncated request, exception with a trailing byte
         (b"\x01\x00\x00\x00\x08", b"\x01\x02\xff\xff"),  # byte count breaks the request
         (b"\x90\x00", b"\x90\x00"),  # the exception bit in a request
+        (b"\x08\x00\x04\x00\x00", b"\x08\x00\x04\x00\x00"),  # listen only: never pending
     ]
     return pairs
 

@@ -54,6 +54,11 @@ def test_declines_are_visible_and_change_nothing() -> None:
     assert rtu.stdout == _mbmon("read", str(RTU), pure=True).stdout
     robot = _mbmon("read", str(DEMO), "--robot", "127.0.0.1:502", "--debug-core")
     assert b"core: declined (--robot is not covered by the core)" in robot.stderr
+    for window in ("--before", "--after"):  # the pipeline's usage error, not the core's lines
+        alone = _mbmon("read", str(DEMO), window, "5s", "--debug-core")
+        assert b"core: declined (" + window.encode() + b" is not covered" in alone.stderr
+        assert alone.returncode == 2 and b"needs --trigger" in alone.stderr
+        assert alone.stdout == b""
     count = _mbmon("read", str(DEMO), "-c", "3", "--debug-core")
     assert b"core: declined (-c is not covered" in count.stderr
     assert len(count.stdout.splitlines()) == 3
@@ -95,3 +100,32 @@ def test_port_detection_declines_only_where_it_could_find_something(tmp_path: Pa
     assert bare.stdout == _mbmon("read", str(both), "--no-detect", pure=True).stdout
     only502 = _mbmon("read", str(DEMO), "--debug-core")
     assert b"core: the compiled core read the input" in only502.stderr
+
+
+@pytest.mark.parametrize("fmt", [[], ["--json"]])
+def test_the_common_capture_with_its_end_unanswered_is_read_by_the_core(
+    tmp_path: Path, fmt: list[str]
+) -> None:
+    """A capture that starts mid-connection, every request answered but the last ones:
+    the core reads it (their 'No response' at the end is mirrored, not declined), with
+    the pipeline's bytes on stdout and the same summary."""
+    require_core()
+    from gen import T0, adus, every_function_pair, write_conversation
+
+    from mbmon.protocol.mbap import encode_adu
+    from mbmon.protocol.pdu import encode_read_request
+
+    stream = adus(every_function_pair()) + [
+        (True, encode_adu(200 + i, 1, encode_read_request(3, i, 1))) for i in range(3)
+    ]
+    times = [T0 + 0.02 * i for i in range(len(stream) - 1)] + [T0 + 9.0]
+    path = write_conversation(
+        tmp_path / "end.pcap", stream, handshake=False, close=None, times=times
+    )
+    fast = _mbmon("read", str(path), "--debug-core", *fmt)
+    pure = _mbmon("read", str(path), "--debug-core", *fmt, pure=True)
+    assert fast.returncode == pure.returncode == 0
+    assert b"core: the compiled core read the input" in fast.stderr
+    assert fast.stdout == pure.stdout
+    assert fast.stderr.splitlines()[1:] == pure.stderr.splitlines()[1:]  # the summary
+    assert sum(b"No response" in line for line in fast.stdout.splitlines()) == 3

@@ -8,6 +8,7 @@ only memory safety). The seed of each case is in the failure message.
 
 from __future__ import annotations
 
+import itertools
 import os
 import random
 import struct
@@ -16,7 +17,7 @@ from pathlib import Path
 
 import pytest
 from core_diff import ROOT, reference, require_core
-from gen import adus, every_function_pair, write_conversation
+from gen import T0, adus, every_function_pair, write_conversation
 
 from mbmon import core
 from mbmon.format import View
@@ -31,6 +32,12 @@ def _seeds(tmp: Path) -> list[bytes]:
     stream = adus(every_function_pair())
     seeds.append(write_conversation(tmp / "a.pcapng", stream, pcapng=True).read_bytes())
     seeds.append(write_conversation(tmp / "b.pcap", stream, linktype=113).read_bytes())
+    # answers late and early around the 1 s timeout: ticks, timeouts at their due time
+    times = list(itertools.accumulate(0.3 + 0.95 * (i % 3 == 1) for i in range(len(stream))))
+    slow = write_conversation(
+        tmp / "c.pcap", stream, times=[T0 + t for t in times], handshake=False, close=None
+    )
+    seeds.append(slow.read_bytes())
     return seeds
 
 

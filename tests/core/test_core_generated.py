@@ -5,11 +5,12 @@ closes, timeouts and impossible timestamps; random segmentations (hypothesis).""
 from __future__ import annotations
 
 import itertools
+import json
 import tempfile
 from pathlib import Path
 
 import pytest
-from core_diff import assert_same, require_core
+from core_diff import assert_same, require_core, with_core
 from gen import T0, adus, every_function_pair, write_conversation, write_frames
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -178,3 +179,67 @@ def test_random_segmentations(client_cuts: list[int], server_cuts: list[int], ga
     with tempfile.TemporaryDirectory() as tmp:
         path = write_conversation(Path(tmp) / "r.pcap", segments, step=gap)
         assert_same(path, covered=True)
+
+
+def test_no_response_at_the_due_time_and_late_answers(tmp_path: Path) -> None:
+    """An unanswered request times out at its time plus the timeout, before the lines
+    of the packet that passed that deadline; an answer after it is unsolicited."""
+    req = encode_adu(1, 1, encode_read_request(3, 0, 2))
+    late = encode_adu(1, 1, encode_read_response(3, [1, 2]))
+    nxt = encode_adu(2, 1, encode_read_request(3, 2, 2))
+    segments = [(True, req), (False, late), (True, nxt)]
+    # handshake (3 frames), the request, its answer 15 s late, a request, the close
+    times = [T0, T0, T0, T0 + 0.5, T0 + 15.5, T0 + 16.0] + [T0 + 16.1 + i for i in range(4)]
+    path = write_conversation(tmp_path / "late.pcap", segments, times=times)
+    assert_same(path, covered=True)
+    out, _, why = with_core(path, as_json=True)
+    assert why is None
+    records = [json.loads(line) for line in out.splitlines()]
+    at = next(i for i, r in enumerate(records) if r.get("event") == "timeout")
+    assert records[at]["time"] == T0 + 1.5  # the request's time plus 1 s, not the answer's
+    assert records[at]["info"]["request_index"] == records[at - 1]["index"]
+    late = records[at + 1]  # the answer: no request left to pair it with
+    assert (late["kind"], late["request_index"], late["latency_ms"]) == ("response", None, None)
+
+
+def test_flush_at_the_end_of_a_capture_that_starts_mid_stream(tmp_path: Path) -> None:
+    """The realistic case: connections open before the capture, every request answered
+    except the last ones; the core reads it (the end's timeouts are mirrored)."""
+    stream = adus(every_function_pair()[:8])
+    stream += [(True, encode_adu(90, 1, encode_read_request(3, 0, 2)))]
+    stream += [(True, encode_adu(91, 1, encode_read_request(4, 0, 2)))]
+    times = [T0 + 0.01 * i for i in range(len(stream) - 1)] + [T0 + 5.0]
+    path = write_conversation(
+        tmp_path / "end.pcap", stream, handshake=False, close=None, times=times
+    )
+    assert_same(path, covered=True)
+    assert_same(path, covered=True, timeout=10.0)  # both decided by the end, not the timeout
+    out, _, _ = with_core(path, as_json=True)
+    assert out.count(b'"timeout"') == 2
+
+
+def test_diagnostics_04_is_never_pending(tmp_path: Path) -> None:
+    """Force Listen Only Mode (08/0004) gets no answer: never 'No response', an answer
+    to it is unsolicited, and it still makes a pending request with its id impossible;
+    a truncated 08/0004 counts, an 0x88 request (no sub-function decoded) is held."""
+    listen = b"\x08\x00\x04\x00\x00"
+    segments = [
+        (True, encode_adu(1, 1, listen)),
+        (True, encode_adu(2, 1, encode_read_request(3, 0, 2))),
+        (True, encode_adu(2, 1, listen)),  # tid 2 reused: the read times out
+        (True, encode_adu(3, 1, b"\x08\x00\x04")),  # truncated, still sub-function 04
+        (True, encode_adu(4, 1, b"\x08\x00")),  # no sub-function: held
+        (True, encode_adu(5, 1, b"\x88\x00\x04\x00\x00")),  # exception bit: held
+        (True, encode_adu(6, 1, b"\x08\x00\x01\x00\x00")),  # restart: held, answered
+        (False, encode_adu(6, 1, b"\x08\x00\x01\x00\x00")),
+        (False, encode_adu(1, 1, listen)),  # an answer to 04: unsolicited
+        (True, encode_adu(7, 1, encode_read_request(3, 0, 1))),
+        (False, encode_adu(7, 1, encode_read_response(3, [9]))),
+    ]
+    times = [T0, T0, T0] + [T0 + 0.1 * (i + 1) for i in range(len(segments))]
+    times += [T0 + 3.0 + i for i in range(4)]
+    path = write_conversation(tmp_path / "listen.pcap", segments, times=times)
+    for timeout in (1.0, 0.05):
+        assert_same(path, covered=True, timeout=timeout)
+    out, _, _ = with_core(path, as_json=True)
+    assert out.count(b'"timeout"') == 3  # the reused read, 08 without sub-function, 0x88
