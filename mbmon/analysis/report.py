@@ -234,7 +234,8 @@ def analyse(
             if bus is None:
                 bus = buses[obj.get("stream")] = Bus(str(name))
             pdu = obj.get("pdu")
-            size = len(str(pdu).split()) + 3 if pdu else 0  # + unit id and CRC
+            # a frame's pdu lacks its unit id and CRC; noise's holds every byte it had
+            size = len(str(pdu).split()) + (0 if kind == "noise" else 3) if pdu else 0
             bus.bytes += size
             if kind == "noise":
                 if "CRC" in " ".join(obj.get("notes") or ()):
