@@ -8,7 +8,7 @@
 What this script owns: a reproducible (seeded) capture of an HRSS robot cell
 as a PLC and an HMI see it, cached in ``bench/out/``, and the timing of both
 commands as child processes (stdout to /dev/null, wall time, best of N).
-Issue 10's target: ``--profile hrss`` costs at most 1.5x plain ``read``.
+The target: ``--profile hrss`` costs at most 1.5x plain ``read``.
 
 The capture (Ethernet/IPv4/TCP, one ADU per segment, checksums valid, written
 with :mod:`mbmon.sources.pcapwrite`): a robot at 192.168.0.10:502 (unit 1), two

@@ -2,7 +2,7 @@
 
     python bench/proxy_floor.py STAGE --upstream HOST:PORT    # serve until Ctrl-C
 
-Why this exists: issue 12 asks ``mbmon proxy`` for at least 0.8x the bare
+Why this exists: the target asks ``mbmon proxy`` for at least 0.8x the bare
 forwarder's throughput at 8 clients, and an added p50 at most 1.5x the bare
 forwarder's, while it observes (and logs) every request. The forwarding and the
 observing share the machine's cores with the clients and the upstream, so what

@@ -44,7 +44,7 @@ Every target is warmed up first (:func:`warm_up`). ``--anchor DIR`` adds ``mbmon
 ``mbmon -w mcap@anchor``: mbmon from another source tree (``git archive main |
 tar -x -C DIR``), run next to this tree's in the same minutes.
 
-Issue 12's targets: added p50 at most 1.5x the bare
+The targets: added p50 at most 1.5x the bare
 forwarder's (with and without -w x.mcap); with 8 clients, throughput at least
 2.5x modbus-proxy's and at least 0.8x the bare forwarder's; memory flat over a
 10-minute soak. The figures are for the machine they ran on: compare ratios.
@@ -152,7 +152,7 @@ asyncio.run(main())
 #: The same forwarder reading into a buffer of its own (asyncio.BufferedProtocol), as
 #: mbmon's engine does; plain asyncio protocols get a new 256 KiB bytes object per read
 #: (mmap + mremap + munmap with glibc's default threshold). Informational (--bare-buffered):
-#: the issue's anchor is the plain forwarder above.
+#: the targets' anchor is the plain forwarder above.
 BARE_BUFFERED = BARE.replace(
     "class Up(asyncio.Protocol):",
     "BUF = memoryview(bytearray(65536))\n"
@@ -693,8 +693,8 @@ def main() -> None:
     parser.add_argument(
         "--fixed-values",
         action="store_true",
-        help="the upstream answers the same 10 register values every time (before the "
-        "eighth session, every figure was measured so); default: values that change "
+        help="the upstream answers the same 10 register values every time (the "
+        "figures before the benchmark was corrected were measured so); default: values that change "
         "every poll, as a moving robot's positions do",
     )
     parser.add_argument(

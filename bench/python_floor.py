@@ -2,9 +2,9 @@
 
     python bench/python_floor.py                  # 1,000,000 ADUs: floor stages, mbmon, tshark
     python bench/python_floor.py --adus 250000 --skip-tshark
-    python bench/python_floor.py --realistic --adus 1000000   # issue 10's realistic capture
+    python bench/python_floor.py --realistic --adus 1000000   # the realistic capture
 
-Why this exists: issue 2 asks ``mbmon read --json`` for at least 5x tshark's
+Why this exists: the target asks ``mbmon read --json`` for at least 5x tshark's
 ADUs/s. This script measures how fast *any* Python code can go on the same
 file on the same interpreter, so that the target can be judged against the
 floor rather than against a guess. It is not mbmon and is never imported by it.
@@ -26,7 +26,7 @@ runs as its own child process (wall time and peak RSS of that child, as in
 5. ``text``: stage 4 with the monitor text line alone (``mbmon read`` without
    ``--json``): time of day, label, ids, hex, note and latency.
 
-``--realistic`` runs the stages on issue 10's realistic polling capture
+``--realistic`` runs the stages on the realistic polling capture
 (``bench/realistic.py``: connections open before the capture, register values
 that change every poll), where a cache of per-PDU parts misses on most
 answers, so each of them pays its decode and note, as it must in any reader.
@@ -218,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--realistic",
         action="store_true",
-        help="issue 10's realistic polling capture (bench/realistic.py), 8 connections",
+        help="the realistic polling capture (bench/realistic.py), 8 connections",
     )
     ap.add_argument("--stage", type=int, choices=range(1, 6), help=argparse.SUPPRESS)
     ap.add_argument("--file", help=argparse.SUPPRESS)
@@ -258,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
         print("  !! a run failed (see above); no verdict")
         return 1
     if tshark is not None:
-        print("ratios to tshark's ADUs/s (issue 10's target for read and read --json: >= 2.5):")
+        print("ratios to tshark's ADUs/s (the realistic target for read and read --json: >= 2.5):")
         for run in runs[:-1]:
             print(f"  {run.name:<26} {tshark.wall / run.wall:6.2f}x")
     return 0

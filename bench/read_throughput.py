@@ -10,7 +10,7 @@ What this script owns: the synthetic capture (built once, cached in
 ``bench/out/``), running each command as its own child process, and the
 figures: wall time, ADUs/s and peak RSS of that child (``os.wait4`` rusage, so
 every figure belongs to exactly one process), the mbmon/tshark ratio and the
-targets of issue 2 (>= 5x tshark's ADUs/s, peak RSS < 150 MB, flat in size).
+targets (>= 5x tshark's ADUs/s, peak RSS < 150 MB, flat in size).
 
 The capture: Ethernet/IPv4/TCP, server 10.0.0.1:502, 16 client connections
 (each opened with a three-way handshake, closed with FIN), transactions

@@ -1,4 +1,4 @@
-"""Speed on captures that look like a cell's, side by side with tshark (issue 10).
+"""Speed on captures that look like a cell's, side by side with tshark.
 
     python bench/realistic.py                      # 1,000,000 ADUs, every mode
     python bench/realistic.py --adus 200000 --modes json,text

@@ -18,7 +18,7 @@ CRC only. It is fed in ``--read``-byte chunks as a serial reader would deliver
 it to (a) :class:`mbmon.protocol.rtu.RtuDecoder` alone and (b) the whole
 :class:`mbmon.pipeline.Pipeline` (decoder, pairing, records), and the script
 reports MB/s, frames/s, the frame and noise counts (checked against what was
-written) and the target of issue 11 (decoder >= 1 MB/s, ~100x a 115200-baud line).
+written) and the target (decoder >= 1 MB/s, ~100x a 115200-baud line).
 """
 
 from __future__ import annotations

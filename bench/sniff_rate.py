@@ -32,7 +32,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = Path(__file__).resolve().parent / "out"
-TARGET = 10_000  # ADU/s, issue 11
+TARGET = 10_000  # ADU/s, the live-capture target
 
 REQUEST = bytes.fromhex("0000 0000 0006 01 03 0000 0003")
 RESPONSE = bytes.fromhex("0000 0000 0009 01 03 06 0001 0002 0003")

@@ -55,7 +55,7 @@ BAD_REQUESTS: list[tuple[bytes, bytes]] = [
 ]
 #: A frame libmodbus's master sends that reads as the answer to its previous request.
 RESPONSE_SHAPED = h("12 03 04 00 00 00 00 D8 F2")
-#: The read of the issue: a bad CRC, then the good one.
+#: A read with a bad CRC, then the good one.
 BAD_CRC = h("11 03 01 60 00 01 87 79")
 GOOD = h("11 03 01 60 00 01 87 78")
 

@@ -105,7 +105,7 @@ def test_session_is_the_readme_s(source: str) -> None:
         req, resp = frames[i], frames[i + 1]
         assert req["kind"] == "request" and resp["kind"] in ("response", "exception")
         assert resp["request_index"] == req["index"]
-        # a raw dump has no timing: no latency is made up (issue 8 item 11)
+        # a raw dump has no timing: no latency is made up
         assert (resp["latency_ms"] is None) == (source == "rtu-raw")
         assert resp["fc"] == req["fc"] and resp["tid"] == req["tid"]
 

@@ -1,4 +1,4 @@
-"""Record filters (issue 8 item 15): one implementation for live records (``read``)
+"""Record filters: one implementation for live records (``read``)
 and logged JSON objects (``replay``/``export``); options shared by both commands."""
 
 from __future__ import annotations

@@ -321,7 +321,7 @@ def test_every_time_mode_reaches_lines_and_json_alike(mode: str) -> None:
 
 @pytest.mark.parametrize("ts", IMPOSSIBLE_TIMES)
 def test_impossible_times_print(ts: float) -> None:
-    """Item 22: a timestamp no calendar shows prints (as epoch seconds), never raises."""
+    """A timestamp no calendar shows prints (as epoch seconds), never raises."""
     import json
 
     from mbmon.timefmt import epoch_text
@@ -337,7 +337,7 @@ def test_impossible_times_print(ts: float) -> None:
 
 
 def test_untimed_streams_show_record_numbers_and_no_latency() -> None:
-    """Item 11: a raw RTU dump has no capture times: ``#N`` instead of a time, no
+    """A raw RTU dump has no capture times: ``#N`` instead of a time, no
     latency, and null ``time``/``latency_ms`` in valid JSON."""
     import json
 

@@ -68,7 +68,7 @@ IO_MODULES = [
 
 @pytest.mark.parametrize("module", IO_MODULES)
 def test_io_does_not_import_the_cli(module: str) -> None:
-    """Dependencies point down: the log modules never pull in the command line (issue 9)."""
+    """Dependencies point down: the log modules never pull in the command line."""
     code = (
         f"import sys, {module}; "
         "bad = [m for m in ('mbmon.cli', 'mbmon.commands') if m in sys.modules]; "
@@ -89,7 +89,7 @@ def test_the_mcap_reader_does_not_import_the_writer() -> None:
 
 
 def test_no_import_cycles_in_mbmon() -> None:
-    """Dependencies point down (issue 9): no module of mbmon reaches itself through its
+    """Dependencies point down: no module of mbmon reaches itself through its
     imports, lazy ones inside functions included."""
     import ast
 

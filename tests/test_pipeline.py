@@ -140,7 +140,7 @@ RTU_REQ = encode_rtu(1, encode_read_request(3, 0, 2))
 
 
 def test_rtu_request_without_answer_is_unanswered_at_timeout_by_tick() -> None:
-    # issue 9: no further bytes, only time; the bus goes quiet after the request
+    # no further bytes, only time; the bus goes quiet after the request
     pipe = Pipeline(None, PipelineConfig(timeout=1.0))
     recs = pipe.feed(Chunk(10.0, BUS, Direction.BUS, RTU_REQ))
     assert [r.kind for r in recs] == [RecordKind.REQUEST]
@@ -176,7 +176,7 @@ def test_rtu_user_defined_request_settled_then_timed_out_by_ticks() -> None:
 
 
 def test_no_made_up_timeouts_after_source_damage() -> None:
-    # issue 8 item 10: the capture is cut off after two requests
+    # the capture is cut off after two requests
     pipe = Pipeline(None, PipelineConfig(timeout=1.0))
     recs = pipe.feed(c2s(TCP, 1.0, encode_adu(1, 1, encode_read_request(3, 0, 1))))
     recs += pipe.feed(c2s(TCP, 1.5, encode_adu(2, 1, encode_read_request(3, 0, 1))))
@@ -298,7 +298,7 @@ print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
 
 
 def test_memory_stays_flat_over_many_short_streams() -> None:
-    # issue 9: week-long runs. Peak RSS of a child at two sizes (5x apart).
+    # week-long runs. Peak RSS of a child at two sizes (5x apart).
     import subprocess
     import sys
     from pathlib import Path
@@ -321,7 +321,7 @@ def test_memory_stays_flat_over_many_short_streams() -> None:
 
 
 def test_short_garbage_reply_is_one_noise_record_when_it_arrived() -> None:
-    # issue 8 item 8, through the pipeline: no second record at the connection's end
+    # a short garbage reply, through the pipeline: no second record at the connection's end
     recs = run(
         [
             c2s(TCP, 1.0, encode_adu(1, 1, encode_read_request(3, 0, 1))),
@@ -334,7 +334,7 @@ def test_short_garbage_reply_is_one_noise_record_when_it_arrived() -> None:
 
 
 def test_http_bytes_on_502_make_no_frame_and_no_made_up_timeout() -> None:
-    # issue 8 item 4, through the pipeline: was "Function 0x41" then "No response"
+    # HTTP on port 502, through the pipeline: was "Function 0x41" then "No response"
     http = (
         b"GET / HTTP/1.1\r\nHost: x\r\nX-Pad: "
         + bytes.fromhex("00 00 00 00 00 04 07 41 42 43")

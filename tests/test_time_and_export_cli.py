@@ -1,6 +1,6 @@
-"""Issue 8 through the CLI: one time basis (-t on replay/info/export, item 17), impossible
-timestamps (item 22), untimed raw RTU dumps (item 11), disk full names the file (item 24),
-and ``export -o x.pcap`` writing one ADU per TCP segment (item 12)."""
+"""Through the CLI: one time basis (-t on replay/info/export), impossible timestamps,
+untimed raw RTU dumps, disk full names the file, and ``export -o x.pcap`` writing one
+ADU per TCP segment."""
 
 from __future__ import annotations
 
@@ -71,7 +71,7 @@ def tshark_tids(path: Path) -> list[str]:
     return [tid for line in out.splitlines() for tid in line.split(",") if tid]
 
 
-# --------------------------------------------------------------------------- item 12
+# --------------------------------------------------------- export: one ADU per segment
 
 
 @pytest.mark.skipif(not HAS_TSHARK, reason="tshark not installed")
@@ -105,7 +105,7 @@ def test_export_pcap_gives_wireshark_every_adu(tmp_path: Path) -> None:
     assert len(tshark_tids(kept)) < 40  # the original segmentation, as asked
 
 
-# --------------------------------------------------------------------------- item 17
+# --------------------------------------------------------------------- one time basis
 
 
 def test_replay_info_and_export_share_the_time_basis(tmp_path: Path) -> None:
@@ -150,7 +150,7 @@ def test_a_capture_across_midnight_prints_dates(tmp_path: Path) -> None:
     assert mbmon("replay", log, "--since", start).stdout.splitlines() == replayed[-1:]
 
 
-# --------------------------------------------------------------------------- item 22
+# ------------------------------------------------------------------ impossible times
 
 
 @pytest.mark.parametrize("when", [1e17, 1.7e12, 1.8e19])
@@ -184,7 +184,7 @@ def test_impossible_timestamps_print_and_every_sink_writes(tmp_path: Path, when:
     assert sum(o["kind"] in ("request", "response") for o in again) == 4  # every ADU kept
 
 
-# --------------------------------------------------------------------------- item 11
+# --------------------------------------------------------------- untimed raw RTU dumps
 
 
 def test_raw_rtu_dump_shows_no_made_up_times(tmp_path: Path) -> None:
@@ -198,7 +198,7 @@ def test_raw_rtu_dump_shows_no_made_up_times(tmp_path: Path) -> None:
     assert any(o["request_index"] is not None for o in objs)  # still paired
 
 
-# --------------------------------------------------------------------------- item 24
+# ---------------------------------------------------------- disk full names the file
 
 
 @pytest.mark.parametrize("suffix", [".jsonl", ".csv", ".txt", ".pcap"])

@@ -1,4 +1,4 @@
-"""One time basis (issue 8 items 17 and 22): -t modes, the automatic date, any float
+"""One time basis: -t modes, the automatic date, any float
 prints, and --since/--until accept every form a mode prints."""
 
 from __future__ import annotations

@@ -86,7 +86,7 @@ class Expected:
 # dissects nothing in frame 113; neither does mbmon any more: the header found there
 # after noise has a function code of unpredictable length (0x2A) and nothing
 # corroborates it (no header lines up after it, the stream does not end there), so
-# its bytes stay noise (DESIGN rule 4, issue 8 item 4).
+# its bytes stay noise (DESIGN rule 4).
 
 TSHARK_DOES_NOT_FRAME: dict[str, list[Expected]] = {
     # arkime's file merges the Digital Bond part1 and part2 streams (part1 first, so
@@ -130,7 +130,7 @@ TSHARK_DOES_NOT_FRAME: dict[str, list[Expected]] = {
                     "fuzzer's request) that tshark does not dissect as Modbus after that "
                     "frame. Frames 19 and 21 follow a hole in the server's sequence space "
                     "and are released when frame 22 acknowledges them, each with its own "
-                    "frame's time (issue 8 item 6), not frame 22's."
+                    "frame's time, not frame 22's."
                 ),
             )
             for frame, fc, time_frame in (

@@ -1,8 +1,8 @@
 """The one function-code table: what each public Modbus function code is.
 
 Every layer that needs to know something about a function code reads it here
-(issue 9: "one function-code table drives pdu, pairing, formatting and
-annotation"):
+(one function-code table drives pdu, pairing, formatting and
+annotation):
 
 * :mod:`mbmon.protocol.pdu` -- names (``FUNCTION_NAMES``), PDU lengths for RTU
   framing and MBAP resync (:func:`~mbmon.protocol.pdu.pdu_length`), the data

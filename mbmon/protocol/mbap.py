@@ -367,7 +367,7 @@ class MbapDecoder(StreamDecoder):
     ) -> int:
         """Whether the resync candidate at ``pos`` becomes an ADU: 1 yes, 0 no, -1 wait.
 
-        A header found after noise needs corroboration (issue 8 item 4):
+        A header found after noise needs corroboration:
 
         * its function code must be valid for the direction, and
         * when the code has a predictable PDU length (told by the bytes present),

@@ -6,7 +6,7 @@ frame is found, at a gap (``reset``), at a silence (``tick``) or at the end of
 the stream. A run is stamped with the capture time of its first byte: bytes
 that wait in the buffer keep the time they arrived (``_buf_ts``), so undecided
 bytes settled at the end of a stream join the run they continue instead of
-becoming a second record stamped at the end (issue 8 item 8).
+becoming a second record stamped at the end.
 """
 
 from __future__ import annotations

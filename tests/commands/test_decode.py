@@ -1,4 +1,4 @@
-"""`mbmon decode` (issue 8 item 20): bare PDUs in JSON, values as numbers, the CRC a
+"""`mbmon decode`: bare PDUs in JSON, values as numbers, the CRC a
 frame should have had, odd hex digits, and the help's HRSS example."""
 
 from __future__ import annotations

@@ -361,7 +361,7 @@ def test_damaged_and_foreign_logs_fail_cleanly(tmp_path: Path, hrss_log: tuple) 
 
 
 def test_info_and_replay_recover_the_same_count(tmp_path: Path, hrss_log: tuple) -> None:
-    """Item 21: every way of reading a truncated log reports the same recovered count."""
+    """Every way of reading a truncated log reports the same recovered count."""
     import re
 
     log, _ = hrss_log
@@ -378,7 +378,7 @@ def test_info_and_replay_recover_the_same_count(tmp_path: Path, hrss_log: tuple)
 
 
 def test_logs_without_profiles_have_no_hrss_channels(tmp_path: Path) -> None:
-    """Item 21: no empty /hrss/* channels in a log written without --profile."""
+    """No empty /hrss/* channels in a log written without --profile."""
     log = tmp_path / "plain.mcap"
     mbmon("read", OWN / "hrss_ptp.pcap", "-q", "-w", log)
     with open(log, "rb") as f:
@@ -392,7 +392,7 @@ def test_logs_without_profiles_have_no_hrss_channels(tmp_path: Path) -> None:
 
 
 def test_captures_and_foreign_files_get_one_clear_line(tmp_path: Path) -> None:
-    """Item 13: a pcap given to a log command suggests mbmon read (usage, exit 2); any
+    """A pcap given to a log command suggests mbmon read (usage, exit 2); any
     other file that is not a log is one line (exit 1)."""
     capture = OWN / "hrss_ptp.pcap"
     other = tmp_path / "notes.mcap"
@@ -408,7 +408,7 @@ def test_captures_and_foreign_files_get_one_clear_line(tmp_path: Path) -> None:
 
 
 def test_progress_on_a_terminal_never_takes_stdout(tmp_path: Path) -> None:
-    """Item 21: on a big log, info, replay and export show a progress bar on stderr when
+    """On a big log, info, replay and export show a progress bar on stderr when
     it is a terminal (a real pty here) and stdout (a file) still gets every line."""
     import pty
     import random
@@ -576,7 +576,7 @@ def test_sigkill_keeps_everything_older_than_a_second(tmp_path: Path, long_captu
 
 
 def test_signal_statistics_count_what_the_chunks_hold(tmp_path: Path, long_capture: Path) -> None:
-    """Item 25: a recording stopped by SIGINT/SIGTERM at random moments (10 runs) has a
+    """A recording stopped by SIGINT/SIGTERM at random moments (10 runs) has a
     Statistics record whose per-channel counts and time span are exactly those of a
     linear read of its chunks, and a final stats event that counts the logged records."""
     import random

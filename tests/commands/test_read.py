@@ -98,7 +98,7 @@ def _under_terminal_stderr(args: list[str], stdout_path: Path) -> tuple[int, byt
 def test_records_go_to_stdout_not_the_terminal_of_stderr(
     big: Path, tmp_path: Path, extra: list[str]
 ) -> None:
-    """Item 1: with stderr on a terminal (the progress bar shows), every record still
+    """With stderr on a terminal (the progress bar shows), every record still
     goes to the redirected stdout; the terminal gets the bar and the summary only."""
     args = ["read", str(big), *(a.format(tmp=tmp_path) for a in extra)]
     out = tmp_path / "out.txt"
@@ -115,7 +115,7 @@ def test_records_go_to_stdout_not_the_terminal_of_stderr(
 
 
 def test_an_output_that_is_an_input_is_refused(tmp_path: Path) -> None:
-    """Item 2: `read IN -w IN` (also through a symlink or a hard link) never truncates IN."""
+    """`read IN -w IN` (also through a symlink or a hard link) never truncates IN."""
     cap = tmp_path / "in.pcap"
     cap.write_bytes(HRSS.read_bytes())
     before = cap.read_bytes()
@@ -135,7 +135,7 @@ def test_an_output_that_is_an_input_is_refused(tmp_path: Path) -> None:
 def test_a_closed_stdout_stops_printing_but_the_log_gets_everything(
     big: Path, tmp_path: Path
 ) -> None:
-    """Item 3: `read big -w x.mcap | head -1`: the log holds every record."""
+    """`read big -w x.mcap | head -1`: the log holds every record."""
     log = tmp_path / "x.mcap"
     proc = subprocess.run(
         f"{sys.executable} -m mbmon read {big} -w {log} | head -n 1",
@@ -176,7 +176,7 @@ def test_count_stops_after_n_records(tmp_path: Path) -> None:
 
 
 def test_no_modbus_names_the_busiest_ports(tmp_path: Path) -> None:
-    """Item 13: a capture with Modbus on another port says where the traffic is (with
+    """A capture with Modbus on another port says where the traffic is (with
     port detection off; on, the port is found by the structure of its bytes)."""
     cap = tmp_path / "other.pcap"
     polling_pcap(cap, 20, server="10.0.0.2:1502")
@@ -199,7 +199,8 @@ def test_an_mcap_log_suggests_replay(tmp_path: Path) -> None:
 
 
 def test_robot_option_is_checked_and_a_missing_robot_is_a_warning(tmp_path: Path) -> None:
-    """Item 14."""
+    """A malformed --robot is a usage error (exit 2); a robot that appears in no
+    stream is a warning, not an error."""
     for bad in ("10.0.0.2:notaport", "10.0.0.2:70000", "a b", "[::1"):
         res = run("read", str(HRSS), "--robot", bad)
         assert res.returncode == 2, bad
@@ -233,14 +234,14 @@ def test_with_several_clients_robot_labels_name_the_peer(tmp_path: Path) -> None
     ],
 )
 def test_bad_values_are_usage_errors_with_the_commands_usage(args: list[str]) -> None:
-    """Item 18: exit 2 and the command's own usage, for every bad value."""
+    """Exit 2 and the command's own usage, for every bad value."""
     res = run("read", str(HRSS), *args)
     assert res.returncode == 2, res
     assert "usage: mbmon read" in res.stderr and "Traceback" not in res.stderr
 
 
 def test_rtu_raw_reads_a_pipe_and_a_fifo(tmp_path: Path) -> None:
-    """Item 19: `cat dump | mbmon read --rtu-raw -`, and a FIFO."""
+    """`cat dump | mbmon read --rtu-raw -`, and a FIFO."""
     data = b"".join(
         encode_rtu(1, encode_read_request(3, i, 1)) + encode_rtu(1, encode_read_response(3, [i]))
         for i in range(10)

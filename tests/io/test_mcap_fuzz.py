@@ -1,4 +1,4 @@
-"""Mutated MCAP logs through the tolerant reader (issue 8, item 23).
+"""Mutated MCAP logs through the tolerant reader.
 
 Logs written by the sink here are damaged the ways real files get damaged:
 every length and offset field of every record (chunk lengths, compressed and

@@ -91,7 +91,7 @@ IMPOSSIBLE = [1e17, 5.5e17, 1.8e19, -5.0, -1e17, float("inf"), float("nan")]
 
 
 def test_impossible_times_leave_a_readable_log(tmp_path: Path, session_stream: list) -> None:
-    """Item 22: each record at an impossible time is logged (clamped log time, the true
+    """Each record at an impossible time is logged (clamped log time, the true
     time in its JSON) or reported by a notice naming it; the records around it are
     logged and the file is finished."""
     recs = [x for x in session_stream if isinstance(x, Record)]

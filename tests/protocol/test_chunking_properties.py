@@ -239,7 +239,7 @@ def test_rtu_mutated_streams(
     assert frame_keys(split) == frame_keys(whole)
 
 
-# ---------------------------------------------------------------- RTU in bursts (issue 11)
+# ---------------------------------------------------------------- RTU in bursts
 #
 # Any chunking of a valid bus stream recovers every valid frame, also when the
 # chunks come in bursts with silences between them. USB serial adapters

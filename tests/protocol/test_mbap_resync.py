@@ -1,5 +1,5 @@
 """MBAP resynchronisation needs corroboration; length 255; one noise run, one record;
-the decoder's tick (issue 8 items 4, 7, 8; issue 9 "time reaches every layer")."""
+the decoder's tick (time reaches every layer)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from mbmon.protocol.mbap import MbapDecoder, encode_adu
 STREAM = Stream(0, Transport.TCP, "10.0.0.2:50000", "10.0.0.1:502")
 REQ_03 = bytes.fromhex("00 01 00 00 00 06 11 03 00 6B 00 03")
 
-#: issue 8 item 4: an HTTP request to port 502 with an MBAP look-alike inside
+#: an HTTP request to port 502 with an MBAP look-alike inside
 HTTP = (
     b"GET / HTTP/1.1\r\nHost: x\r\nX-Pad: "
     + bytes.fromhex("00 00 00 00 00 04 07 41 42 43")
@@ -150,7 +150,7 @@ def test_length_255_after_noise_is_a_resync_point() -> None:
 
 
 def test_short_garbage_reply_is_one_noise_record_stamped_on_arrival() -> None:
-    # issue 8 item 8: was a noise record + "truncated ADU at end of stream" at the end
+    # was a noise record + "truncated ADU at end of stream" at the end
     dec = MbapDecoder(STREAM, Direction.S2C)
     garbage = bytes.fromhex("DE AD BE EF 12 34 56")
     assert dec.feed(garbage, 3.0) == []

@@ -185,7 +185,7 @@ def test_request_context_ignored_when_not_a_pair() -> None:
 
 
 def test_read_file_record_response_with_byte_count_0_is_malformed() -> None:
-    # issue 8 item 9: the request and both 0x15 frames were flagged, this was not
+    # the request and both 0x15 frames were flagged, this was not
     from mbmon.protocol.pdu import decode_pdu
 
     pdu = decode_pdu(bytes([0x14, 0x00]), True)

@@ -286,7 +286,7 @@ def test_silence_settles_leftover_noise() -> None:
     # decoded at once. The junk could still be the start of a frame of
     # unpredictable length delivered late (USB adapters bunch bytes), so it
     # becomes noise only with the next bytes, when a frame of its own starts
-    # right after the silence (issue 11).
+    # right after the silence.
     timed = RtuDecoder(BUS, baudrate=9600)
     assert timed.feed(junk, 1.0) == []
     out = timed.feed(req, 2.0)

@@ -1,5 +1,5 @@
-"""RTU: a CRC scan never swallows frames that validate on their own (issue 8
-item 5); time reaches the decoder through tick (issue 9)."""
+"""RTU: a CRC scan never swallows frames that validate on their own; time reaches
+the decoder through tick."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""bench/proxy_floor.py, the least observer that issue 12's targets are judged
+"""bench/proxy_floor.py, the least observer that the proxy's targets are judged
 against, does the work it claims: every ADU framed however the chunks cut
 them, every request paired with its answer, one JSON line per ADU, on mbmon's
 own forwarding process (a real upstream on 127.0.0.1, stopped like Ctrl-C)."""

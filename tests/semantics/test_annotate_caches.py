@@ -1,4 +1,4 @@
-"""The annotator's and the HRSS session's caches change no output (issue 10).
+"""The annotator's and the HRSS session's caches change no output.
 
 ``read --profile hrss`` remembers per (profile, table, address, count) what a
 read shows and per (address, count) where the session's registers sit in an

@@ -1,4 +1,4 @@
-"""The fast paths of ``--profile hrss`` say what the general code says (issue 10).
+"""The fast paths of ``--profile hrss`` say what the general code says.
 
 Each test runs generated inputs through a remembered or specialised path and
 through the plain code it stands for, and wants the very same result:

@@ -145,7 +145,7 @@ def _retimed(stream: list[Chunk | Record], ts: float) -> list[Chunk | Record]:
     )
 )
 def test_fuzz_every_line_sink_writes_any_time(session_stream: list, ts: float) -> None:
-    """Issue 8 item 22: a record with any timestamp is written by .jsonl, .csv and .txt
+    """A record with any timestamp is written by .jsonl, .csv and .txt
     (times print as epoch seconds where no calendar shows them), never raises."""
     import tempfile
 

@@ -112,7 +112,7 @@ def test_nothing_written_is_a_valid_empty_capture(tmp_path: Path) -> None:
     st.booleans(),
 )
 def test_fuzz_any_time_is_written_or_counted(ts: float, pcapng: bool) -> None:
-    """Issue 8 item 22: a time the file cannot hold never raises (it was struct.error):
+    """A time the file cannot hold never raises (it was struct.error):
     the packet is written at the previous packet's time and counted."""
     import dataclasses
     import io

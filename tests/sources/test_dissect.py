@@ -227,8 +227,8 @@ def test_a_million_connections_keep_memory_flat() -> None:
     """A million short connections (SYN, request + FIN, response + FIN) and 200,000
     half-open ones (SYN + request, never closed; twenty times the open-connection
     bound, so the bound works all along), each through one dissector: the peak RSS
-    after all of them is the peak after the first tenth (issue 9: a million of
-    either peaked at 2.7 GB and 2.0 GB). Two children, run side by side."""
+    after all of them is the peak after the first tenth (a million of either once
+    peaked at 2.7 GB and 2.0 GB). Two children, run side by side."""
     sizes = {"short": 1_000_000, "half-open": 200_000}
     env = {"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"}
     children = {
@@ -311,7 +311,7 @@ def _records(path: Path, timeout: float = 1.0) -> list[object]:
 
 
 def test_response_behind_a_hole_keeps_its_own_time_and_latency(tmp_path: Path) -> None:
-    """Issue 8 item 6: request at 10.0, response at 10.2 behind a lost server segment,
+    """Request at 10.0, response at 10.2 behind a lost server segment,
     the hole given up at 15.0 (the client's ACK passes it): the response is stamped
     10.2, latency 200 ms (was 15.0 and 5 s; or 0.0 ms when both waited)."""
     conv = conversation()

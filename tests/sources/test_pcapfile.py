@@ -608,7 +608,7 @@ def test_truncated_pcap_at_every_offset(tmp_path: Path) -> None:
     ],
 )
 def test_error_after_damage_carries_the_last_good_time(tmp_path: Path, tail: bytes) -> None:
-    """Issue 8 item 10: the ERROR event (and what the end releases) is stamped with
+    """The ERROR event (and what the end releases) is stamped with
     the time of the last record that made sense, not with a damaged record's."""
     conv = TcpConversation(CLIENT, SERVER)
     path = write_pcap(tmp_path / "x.pcap", [*conv.open(), conv.send(True, REQUEST)])

@@ -79,7 +79,7 @@ def test_out_of_order_segments_wait_for_the_hole() -> None:
     c2s(conn, out, 0, b"ab", ts=4.0)
     assert delivered(out) == b"abcdef"
     # held bytes come out as chunks of their own, each with the time of the packet
-    # that carried them (issue 8 item 6), not the time the hole was filled
+    # that carried them, not the time the hole was filled
     assert [(i.ts, i.data) for i in out if isinstance(i, Chunk)] == [
         (4.0, b"ab"),
         (3.0, b"cd"),
