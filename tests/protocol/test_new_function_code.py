@@ -118,8 +118,10 @@ def _capture(path: Path) -> None:
 def _read(path: Path, *, with_row: bool) -> list[str]:
     """``mbmon read`` of ``path`` in a process that registers the toy row first (or not).
 
-    ``-c 100`` keeps the compiled core off: its decode is compiled and does not
-    read the table, so a registered code reaches the Python pipeline only.
+    ``-c 100`` keeps the compiled core off, so that the test reads the same path
+    whether the extension is built or not (the core hands codes above 0x10 to
+    ``decode_pdu`` and takes names from ``format``, but its own fast decode of
+    0x01..0x10 is compiled and does not read the table).
     """
     register_row = (
         f"from mbmon.protocol.functions import FunctionCode, register; register({TOY_ROW}); "
