@@ -297,17 +297,18 @@ def write_spans(pdu: Pdu) -> tuple[WriteSpan, ...]:
     if not is_write(pdu):
         return ()
     fc = pdu.fc
-    if fc == 0x15:
+    spec = FUNCTIONS[fc]
+    if spec.table is None:  # 0x15: file records (its own layout)
         return tuple(
             WriteSpan("file", rec["record_number"], rec["record_length"], rec["file_number"])
             for rec in pdu.fields.get("records", ())
         )
-    if fc == 0x17:
+    if spec.shape == "read_write":
         address, count = pdu.fields.get("write_address"), pdu.fields.get("write_count")
     else:
         address = pdu.address
-        count = pdu.count if pdu.count is not None else 1  # 0x16: one register
+        count = pdu.count if pdu.count is not None else 1  # mask write: one register
     if address is None or count is None:
         return ()
-    table = "coil" if FUNCTIONS[fc].table == "coil" else "hr"
+    table = "coil" if spec.table == "coil" else "hr"
     return (WriteSpan(table, address, count),)
