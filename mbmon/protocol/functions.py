@@ -27,8 +27,9 @@ and small pure functions: imports nothing from mbmon but the model.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 from typing import Final
 
 from mbmon.model import Kind, Pdu
@@ -42,6 +43,7 @@ __all__ = [
     "PROFILE_TABLE",
     "SHAPE",
     "SHAPES",
+    "SHIPPED",
     "FunctionCode",
     "LengthRule",
     "WriteSpan",
@@ -192,6 +194,9 @@ FUNCTIONS: Final[dict[int, FunctionCode]] = {
     )
 }  # fmt: skip
 
+#: The rows as shipped, whatever :func:`register` adds or replaces later.
+SHIPPED: Final[Mapping[int, FunctionCode]] = MappingProxyType(dict(FUNCTIONS))
+
 #: Function code -> its :attr:`FunctionCode.shape` (codes with a shape only).
 SHAPE: Final[dict[int, str]] = {}
 #: Responses decoded again with their request, always: bit reads are trimmed to the
@@ -223,6 +228,8 @@ def register(spec: FunctionCode) -> None:
         raise ValueError(f"function code {spec.code} is outside 1..127")
     if spec.shape is not None and spec.shape not in SHAPES:
         raise ValueError(f"unknown shape {spec.shape!r} (one of {', '.join(sorted(SHAPES))})")
+    if spec.bits and spec.shape in ("mask_write", "read_write"):
+        raise ValueError(f"shape {spec.shape!r} is for registers, not bits")
     FUNCTIONS[spec.code] = spec
     _rebuild_all()
 

@@ -94,6 +94,7 @@ from mbmon.model import EMPTY, Kind, Pdu, fast_constructor
 from mbmon.protocol.functions import (
     FUNCTIONS,
     NEED_MORE,
+    SHIPPED,
     FunctionCode,
     LengthRule,
     derived,
@@ -737,6 +738,10 @@ _BY_SHAPE: Final[dict[tuple[str, bool], tuple[_Decoder, _Decoder]]] = {
     ("mask_write", False): (_mask_write, _mask_write),
     ("read_write", False): (_rw_multi_req, _regs_resp),
 }
+#: The codes :func:`_well_formed` decides: 0x01..0x10 with a shape it knows, while
+#: their row is the shipped one (by :func:`_from_table`).
+_FAST: Final[set[int]] = set()
+_FAST_SHAPES: Final = ("read", "write_single", "write_multiple")
 #: fc -> (request decoder, response decoder), from the table (by :func:`_from_table`).
 _DECODERS: Final[dict[int, tuple[_Decoder, _Decoder]]] = {}
 
@@ -839,7 +844,7 @@ def _decode(d: bytes, response: bool, request: Pdu | None) -> Pdu:
             fields=_fields({"data": d[1:]}),
             malformed=f"exception bit set in request function code 0x{code:02X}",
         )
-    if request is None and 0 < fc <= 0x10:
+    if request is None and fc in _FAST:
         pdu = _well_formed(d, fc, response)
         if pdu is not None:
             return pdu
@@ -977,6 +982,12 @@ def _from_table() -> None:
         decoders = _BY_CODE.get(code) if f.shape is None else _BY_SHAPE[(f.shape, f.bits)]
         if decoders is not None:
             _DECODERS[code] = decoders
+    _FAST.clear()
+    _FAST.update(
+        code
+        for code, f in FUNCTIONS.items()
+        if code <= 0x10 and f.shape in _FAST_SHAPES and f is SHIPPED.get(code)
+    )
     for cache in (_REQUESTS, _RESPONSES, _PAIRED_CACHE):
         cache.clear()
     _held[:] = [0, 0, 0]

@@ -8,6 +8,7 @@ through ``mbmon read`` like 0x03, with no other file touched.
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -151,3 +152,39 @@ def test_mbmon_read_prints_a_registered_read(tmp_path: Path) -> None:
     assert lines[2].endswith("[u1 t1]  41 04 00 07 00 08  | Toy Read 16..17 = 7, 8 (2.0 ms)")
     assert lines[3].endswith("| Toy Read 16..215 [malformed: count 200 outside 1..125]")
     assert lines[-1] == "-- No response to Toy Read (record #3)"
+
+
+def test_a_replaced_public_row_is_honoured_by_the_fast_path() -> None:
+    # a device that gives 0x06 a layout of its own (no shape) and one that allows 10
+    # registers per read: the well-formed fast path follows the replaced rows, and
+    # the shipped rows come back afterwards
+    shipped6, shipped3 = FUNCTIONS[0x06], FUNCTIONS[0x03]
+    write = bytes([0x06, 0x00, 0x01, 0x00, 0x02])
+    narrow = bytes([0x03, 0x00, 0x00, 0x00, 0x0B])  # 11 registers
+    assert decode_pdu(write, False).values == (2,)
+    register(FunctionCode(0x06, "Vendor Write", 5, 5))
+    register(dataclasses.replace(shipped3, max_count=10))
+    try:
+        custom = decode_pdu(write, False)
+        assert (custom.address, custom.values, custom.fields["data"]) == (None, None, write[1:])
+        assert decode_pdu(narrow, False).malformed == "count 11 outside 1..10"
+    finally:
+        register(shipped6)
+        register(shipped3)
+    assert decode_pdu(write, False).values == (2,)
+    assert decode_pdu(narrow, False).malformed is None
+
+
+@pytest.mark.parametrize(
+    ("row", "reason"),
+    [
+        (FunctionCode(0x00, "Zero", 1, 1), "outside 1..127"),
+        (FunctionCode(0x81, "High", 1, 1), "outside 1..127"),
+        (FunctionCode(0x42, "Odd", 5, 5, shape="scatter"), "unknown shape 'scatter'"),
+        (FunctionCode(0x42, "Bits", 7, 7, bits=True, shape="mask_write"), "for registers"),
+    ],
+)
+def test_register_refuses_a_row_it_cannot_use(row: FunctionCode, reason: str) -> None:
+    with pytest.raises(ValueError, match=reason):
+        register(row)
+    assert row.code not in FUNCTIONS or FUNCTIONS[row.code] is not row
