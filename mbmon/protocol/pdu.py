@@ -70,8 +70,9 @@ their bytes after the function code in ``fields["data"]`` and are not
 malformed. A request with the 0x80 bit set is decoded the same way, with
 ``fc`` cleared and a malformed reason.
 
-Checked and reported in ``malformed`` (short, lower-case, specific): spec
-quantity limits (read bits 1..2000, read registers 1..125, write coils
+Checked and reported in ``malformed`` (short, lower-case, specific): the
+spec's quantity limits, from the function-code table's ``max_count`` and
+``max_write_count`` (read bits 1..2000, read registers 1..125, write coils
 1..1968, write registers 1..123, 0x17 read 1..125 / write 1..121),
 address + count past 65536, byte counts that disagree with the count, with the
 paired request or with the bytes present (``"byte count 6 but 4 data
