@@ -26,7 +26,7 @@ from mbmon.model import (
     Stream,
     Transport,
 )
-from mbmon.protocol.functions import FUNCTIONS
+from mbmon.protocol.functions import FUNCTIONS, SHAPE, derived
 from mbmon.timefmt import TimeFormat
 
 #: Function code names (Modbus Application Protocol v1.1b); kept here so that
@@ -34,7 +34,6 @@ from mbmon.timefmt import TimeFormat
 _FC_NAMES: dict[int, str] | None = None
 _EXC_NAMES: dict[int, str] | None = None
 
-_BIT_TABLES = {1: "coils", 2: "discrete inputs", 5: "coil", 15: "coils"}
 _MAX_VALUES_SHOWN = 16
 _MAX_NOISE_HEX = 32
 
@@ -251,15 +250,16 @@ def _generic_note(pdu: Pdu, request: Pdu | None) -> str:
     elif count is not None:
         parts.append(f"count {count}")
     text = " ".join(parts)
-    if fc == 0x16 and "and_mask" in pdu.fields and "or_mask" in pdu.fields:
+    shape = spec.shape if spec is not None else None
+    if shape == "mask_write" and "and_mask" in pdu.fields and "or_mask" in pdu.fields:
         text += f" and=0x{pdu.fields['and_mask']:04X} or=0x{pdu.fields['or_mask']:04X}"
-    if fc == 0x17 and pdu.kind is Kind.REQUEST and "write_address" in pdu.fields:
+    if shape == "read_write" and pdu.kind is Kind.REQUEST and "write_address" in pdu.fields:
         text += f", write {_range(pdu.fields['write_address'], pdu.fields.get('write_count'))}"
         written = _values_text(pdu.fields.get("write_values"), False)
         if written:
             text += f" = {written}"
     shown = _values_text(pdu.values, bits)
-    if fc == 5 and pdu.values:
+    if bits and shape == "write_single" and pdu.values:
         shown = "ON" if pdu.values[0] else "OFF"
     if shown:
         text += f" = {shown}"
@@ -318,25 +318,22 @@ def frame_notes(record: Record) -> tuple[str, ...]:
 
 # --------------------------------------------------------------------------- details
 
-#: Where a PDU's fields sit after the function code, per function code and kind:
-#: field -> (start, end) offsets in the PDU (``None`` end: to the PDU's end).
-_FIELD_AT: dict[tuple[int, Kind], dict[str, tuple[int, int | None]]] = {}
-for _fc in (1, 2, 3, 4):
-    _FIELD_AT[(_fc, Kind.REQUEST)] = {"address": (1, 3), "count": (3, 5)}
-    _FIELD_AT[(_fc, Kind.RESPONSE)] = {"byte_count": (1, 2), "values": (2, None)}
-for _fc in (5, 6):
-    _FIELD_AT[(_fc, Kind.REQUEST)] = _FIELD_AT[(_fc, Kind.RESPONSE)] = {
-        "address": (1, 3),
-        "values": (3, 5),
-    }
-for _fc in (15, 16):
-    _FIELD_AT[(_fc, Kind.REQUEST)] = {
+#: Where a PDU's fields sit after the function code, per shape of the function-code
+#: table (:data:`~mbmon.protocol.functions.SHAPE`) and kind: field -> (start, end)
+#: offsets in the PDU (``None`` end: to the PDU's end).
+_FIELD_AT: dict[tuple[str, Kind], dict[str, tuple[int, int | None]]] = {
+    ("read", Kind.REQUEST): {"address": (1, 3), "count": (3, 5)},
+    ("read", Kind.RESPONSE): {"byte_count": (1, 2), "values": (2, None)},
+    ("write_single", Kind.REQUEST): {"address": (1, 3), "values": (3, 5)},
+    ("write_single", Kind.RESPONSE): {"address": (1, 3), "values": (3, 5)},
+    ("write_multiple", Kind.REQUEST): {
         "address": (1, 3),
         "count": (3, 5),
         "byte_count": (5, 6),
         "values": (6, None),
-    }
-    _FIELD_AT[(_fc, Kind.RESPONSE)] = {"address": (1, 3), "count": (3, 5)}
+    },
+    ("write_multiple", Kind.RESPONSE): {"address": (1, 3), "count": (3, 5)},
+}
 
 #: One line of a frame's details and the bytes of the ADU it describes (``None``: none).
 Detail = tuple[str, tuple[int, int] | None]
@@ -385,7 +382,7 @@ def frame_details(
         out.append((f"CRC: {verdict}", (len(raw) - 2, len(raw)) if rtu else None))
     out.append((f"kind: {pdu.kind.value}", (at, at + 1)))
     out.append((f"meaning: {generic_note(pdu, request)}", (at, end)))
-    where = _FIELD_AT.get((pdu.fc, pdu.kind), {})
+    where = _FIELD_AT.get((SHAPE.get(pdu.fc, ""), pdu.kind), {})
     if pdu.kind is Kind.EXCEPTION:
         where = {"exception_code": (1, 2)}
 
@@ -715,7 +712,15 @@ _SEEN_ONCE_SIZE = 16384
 #: "malformed" to "request_index":, end of the object, values are bits). An answer
 #: then only encodes its values, its hex and its values' text (:func:`_fill_read`).
 _READ_TEMPLATES: dict[tuple[Any, ...], tuple[Any, ...]] = {}
-_READS = frozenset(fc for fc, spec in FUNCTIONS.items() if spec.read)
+_READS: set[int] = set()  # the reads, from the one function-code table
+
+
+@derived
+def _reads_from_table() -> None:
+    _READS.clear()
+    _READS.update(fc for fc, spec in FUNCTIONS.items() if spec.read)
+
+
 _RESPONSE_KIND = RecordKind.RESPONSE
 
 

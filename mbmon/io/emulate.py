@@ -46,6 +46,7 @@ from dataclasses import dataclass, field
 
 from mbmon.io.exchanges import Exchange
 from mbmon.model import Direction, Frame, Kind, Pdu, Stream, Transport
+from mbmon.protocol.functions import FUNCTIONS, SHAPE, mask_write
 from mbmon.protocol.pdu import (
     FUNCTION_NAMES,
     encode_exception,
@@ -64,8 +65,19 @@ TABLE_NAMES = {
     "input_register": "input registers",
 }
 _EXC_ILLEGAL_VALUE = 0x03
-#: the reads whose recorded answers ``state="follow"`` gives again in the recorded order
-_READS = frozenset({0x01, 0x02, 0x03, 0x04})
+#: the shapes (:data:`mbmon.protocol.functions.SHAPE`) of the reads whose recorded
+#: answers ``state="follow"`` gives again in the recorded order
+_FOLLOWED = ("read",)
+#: the shapes whose answer carries values the image learns
+_READ_SHAPES = ("read", "read_write")
+
+
+def _bit_read(fc: int) -> bool:
+    """Whether ``fc`` reads bits (its answer is padded to whole bytes)."""
+    spec = FUNCTIONS.get(fc)
+    return spec is not None and spec.bits and spec.read
+
+
 #: the values of :attr:`RegisterImage.state`
 STATES = ("follow", "first", "last")
 #: kinds of missed request listed one by one; beyond, they are only counted (a client
@@ -168,7 +180,7 @@ class RegisterImage:
             return
         request = ex.request
         key = _key(ex.unit, request)
-        if self.state == "follow" and request.fc in _READS and not request.malformed:
+        if self.state == "follow" and SHAPE.get(request.fc) in _FOLLOWED and not request.malformed:
             self.script.setdefault((ex.unit, request.raw), deque()).append(response)
         if response.kind is Kind.EXCEPTION:
             if key not in self._accepted and response.exception_code is not None:
@@ -182,11 +194,11 @@ class RegisterImage:
             self.verbatim[(ex.unit, request.raw)] = response.raw
             return
         self._apply_write(ex.unit, request, learning=True)
-        if fc in (0x01, 0x02, 0x03, 0x04, 0x17) and request.address is not None:
+        if SHAPE.get(fc) in _READ_SHAPES and request.address is not None:
             values = response.values
             if values is None:
                 return
-            if fc in (0x01, 0x02) and request.count is not None:
+            if _bit_read(fc) and request.count is not None:
                 values = values[: request.count]  # bits past the count are padding
             table = self._table(ex.unit, table_of(fc) or "")
             keep = self.state != "last"
@@ -212,7 +224,8 @@ class RegisterImage:
         """The response PDU for ``request`` to ``unit``; writes change the image."""
         key = _key(unit, request)
         fc = request.fc
-        if self.state == "follow" and fc in _READS:
+        shape = SHAPE.get(fc)
+        if self.state == "follow" and shape in _FOLLOWED:
             queue = self.script.get((unit, request.raw))
             if queue:
                 return self._follow(unit, request, queue)
@@ -231,11 +244,11 @@ class RegisterImage:
             return encode_exception(fc, _EXC_ILLEGAL_VALUE)
         unknown = self._unknown_writes(unit, request)
         read_table: dict[int, int] = {}
-        if fc in (0x01, 0x02, 0x03, 0x04, 0x17):
+        if shape in _READ_SHAPES:
             read_table = self.tables.get((unit, table), {})
             assert request.address is not None and request.count is not None  # not malformed
             wrote = set()
-            if fc == 0x17:  # the write happens first: what it writes is known afterwards
+            if shape == "read_write":  # the write happens first: what it writes is known afterwards
                 wa, wc = request.fields.get("write_address"), request.fields.get("write_count")
                 if isinstance(wa, int) and isinstance(wc, int):
                     wrote = set(range(wa, wa + wc))
@@ -250,9 +263,9 @@ class RegisterImage:
         if self.state == "follow":
             self._mark_written(unit, request)
         self.answered += 1
-        if fc in (0x05, 0x06, 0x16):
+        if shape == "write_single" or shape == "mask_write":
             return request.raw  # the spec's echo
-        if fc in (0x0F, 0x10):
+        if shape == "write_multiple":
             assert request.address is not None and request.count is not None
             return encode_write_multiple_response(fc, request.address, request.count)
         assert request.address is not None and request.count is not None
@@ -271,8 +284,9 @@ class RegisterImage:
             return recorded.raw
         if address is None or count is None:
             return recorded.raw
-        values = list(recorded.values[:count] if fc in (0x01, 0x02) else recorded.values)
-        if fc in (0x01, 0x02) and len(values) < count:
+        bits = _bit_read(fc)
+        values = list(recorded.values[:count] if bits else recorded.values)
+        if bits and len(values) < count:
             return recorded.raw  # a short answer: given as it was, teaches nothing
         table = self._table(unit, name)
         written = self._written.get((unit, name), set())
@@ -288,9 +302,11 @@ class RegisterImage:
 
     def _mark_written(self, unit: int, request: Pdu) -> None:
         """Remember the addresses a write of the new client set (``state="follow"``)."""
-        if request.fc == 0x16:
+        if SHAPE.get(request.fc) == "mask_write":
             if request.address is not None:
-                self._written.setdefault((unit, "holding_register"), set()).add(request.address)
+                self._written.setdefault((unit, table_of(request.fc) or ""), set()).add(
+                    request.address
+                )
             return
         parts = self._write_parts(request)
         if parts is None:
@@ -332,25 +348,27 @@ class RegisterImage:
     def _write_parts(self, request: Pdu) -> tuple[str, int, list[int | None]] | None:
         """(table, address, new values) of a write request; ``None`` in the list for a
         value that depends on an unknown one (16 with a mask that keeps bits)."""
-        fc = request.fc
-        if fc in (0x05, 0x06, 0x0F, 0x10):
+        shape = SHAPE.get(request.fc)
+        table = table_of(request.fc)
+        if table is None:
+            return None
+        if shape == "write_single" or shape == "write_multiple":
             if request.address is None or request.values is None:
                 return None
-            table = "coil" if fc in (0x05, 0x0F) else "holding_register"
             return table, request.address, list(request.values)
-        if fc == 0x17:
+        if shape == "read_write":
             wa, wv = request.fields.get("write_address"), request.fields.get("write_values")
             if not isinstance(wa, int) or wv is None:
                 return None
-            return "holding_register", wa, list(wv)
+            return table, wa, list(wv)
         return None
 
     def _unknown_writes(self, unit: int, request: Pdu) -> list[int]:
         """Addresses a write request touches that the image has never seen."""
-        fc = request.fc
-        if fc == 0x16:
+        if SHAPE.get(request.fc) == "mask_write":
             a = request.address
-            return [] if a is None or a in self.tables.get((unit, "holding_register"), {}) else [a]
+            known = self.tables.get((unit, table_of(request.fc) or ""), {})
+            return [] if a is None or a in known else [a]
         parts = self._write_parts(request)
         if parts is None:
             return []
@@ -366,18 +384,18 @@ class RegisterImage:
         changes known addresses only (the caller has checked they are all known).
         """
         keep = learning and self.state != "last"
-        if request.fc == 0x16:
+        if SHAPE.get(request.fc) == "mask_write":
             a = request.address
             and_mask, or_mask = request.fields.get("and_mask"), request.fields.get("or_mask")
             if a is None or not isinstance(and_mask, int) or not isinstance(or_mask, int):
                 return
-            table = self._table(unit, "holding_register")
+            table = self._table(unit, table_of(request.fc) or "")
             current = table.get(a)
             if keep and current is not None:
                 return
             if current is None and and_mask != 0:
                 return  # the result keeps bits nobody has seen
-            table[a] = ((current or 0) & and_mask) | (or_mask & ~and_mask & 0xFFFF)
+            table[a] = mask_write(current or 0, and_mask, or_mask)
             return
         parts = self._write_parts(request)
         if parts is None:

@@ -26,7 +26,7 @@ from typing import IO
 from mbmon.io.emulate import TABLE_NAMES
 from mbmon.io.exchanges import Exchange
 from mbmon.model import Direction, Frame, Kind, Pdu, Stream, Transport
-from mbmon.protocol.functions import is_write
+from mbmon.protocol.functions import FUNCTIONS, SHAPE, is_write
 from mbmon.protocol.pdu import EXCEPTION_NAMES, FUNCTION_NAMES, decode_pdu, table_of
 
 __all__ = [
@@ -89,13 +89,13 @@ def compare(request: Pdu, recorded: Pdu | None, live: Pdu | None) -> list[str]:
     table = table_of(request.fc)
     if (
         table is not None
-        and request.fc in (0x01, 0x02, 0x03, 0x04, 0x17)
+        and SHAPE.get(request.fc) in ("read", "read_write")
         and request.address is not None
         and recorded.values is not None
         and live.values is not None
     ):
         rv, lv = recorded.values, live.values
-        if request.count is not None and request.fc in (0x01, 0x02):
+        if request.count is not None and FUNCTIONS[request.fc].bits:  # bit reads: padding
             rv, lv = rv[: request.count], lv[: request.count]
         out: list[str] = []
         if len(rv) != len(lv):

@@ -25,6 +25,8 @@ from typing import Any
 
 from mbmon.format import View, record_line
 from mbmon.model import Chunk, Event, EventKind, Kind, Record, RecordKind
+from mbmon.protocol.functions import SHAPE
+from mbmon.protocol.pdu import table_of
 
 __all__ = ["KEEP", "Entry", "FeedView", "MonitorFeed", "RegisterImage"]
 
@@ -43,13 +45,6 @@ TABLE_PREFIX = {
     "coil": "C",
     "discrete_input": "DI",
 }
-_READ_TABLES = {
-    1: "coil",
-    2: "discrete_input",
-    3: "holding_register",
-    4: "input_register",
-}
-_WRITE_TABLES = {5: "coil", 6: "holding_register", 15: "coil", 16: "holding_register"}
 
 
 @dataclass(frozen=True, slots=True)
@@ -96,14 +91,16 @@ class RegisterImage:
         fc = req.fc
         if req.address is None or req.malformed:
             return
-        if fc in _READ_TABLES:
+        shape = SHAPE.get(fc)
+        table = table_of(fc)
+        if table is None:
+            return
+        if shape == "read":
             values = frame.pdu.values
-            table = _READ_TABLES[fc]
             if values is not None and req.count is not None:
                 values = values[: req.count]  # bits past the count are padding
-        elif fc in _WRITE_TABLES:
+        elif shape == "write_single" or shape == "write_multiple":
             values = req.values
-            table = _WRITE_TABLES[fc]
         else:
             return
         if not values:

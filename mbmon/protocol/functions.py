@@ -16,29 +16,42 @@ annotation):
   (:data:`PROFILE_TABLE`);
 * the proxy's write guard -- :func:`is_write` and :func:`write_spans`.
 
-A new function code is one :class:`FunctionCode` entry here (plus its field
-decoder in ``pdu.py`` when it has fields). Pure data and small pure functions:
-imports nothing from mbmon but the model.
+A new function code is one :class:`FunctionCode` entry here -- or one
+:func:`register` call for a user-defined code -- plus its field decoder in
+``pdu.py`` only when its fields have a layout of their own (no ``shape``).
+Quantity limits, the data table, read/write nature and the mask-write rule live
+here only; modules that copy something out of the table do it in a
+:func:`derived` function, so that a registered code reaches them too. Pure data
+and small pure functions: imports nothing from mbmon but the model.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 from typing import Final
 
 from mbmon.model import Kind, Pdu
 
 __all__ = [
     "FUNCTIONS",
+    "MAX_READ_WORDS",
     "NEED_MORE",
     "PAIR_ALWAYS",
     "PAIR_ON_COUNT",
     "PROFILE_TABLE",
+    "SHAPE",
+    "SHAPES",
+    "SHIPPED",
     "FunctionCode",
     "LengthRule",
     "WriteSpan",
+    "derived",
     "is_write",
+    "mask_write",
+    "register",
+    "unregister",
     "write_spans",
 ]
 
@@ -89,6 +102,15 @@ class FunctionCode:
     its request changes server data (0x17 writes and reads); ``bits`` whether
     its values are bits; ``read`` whether it is a read whose response takes its
     address and count from the request.
+
+    ``shape`` is the layout of its fields, which picks the field decoder in
+    ``pdu.py`` and says how every layer reads it (:data:`SHAPES`): ``"read"``
+    (address + count, answered by a byte count and values), ``"write_single"``
+    (address + one value, echoed), ``"write_multiple"`` (address + count + byte
+    count + values, answered by address + count), ``"mask_write"``,
+    ``"read_write"`` (0x17), or ``None`` (a layout of its own, decoded by its
+    code). ``max_count`` is the spec's quantity limit of its count (the read
+    part of 0x17), ``max_write_count`` that of 0x17's write part.
     """
 
     code: int
@@ -99,49 +121,146 @@ class FunctionCode:
     writes: bool = False
     bits: bool = False
     read: bool = False
+    shape: str | None = None
+    max_count: int | None = None
+    max_write_count: int | None = None
 
+
+#: The field layouts a :class:`FunctionCode` may name as its ``shape``.
+SHAPES: Final = frozenset({"read", "write_single", "write_multiple", "mask_write", "read_write"})
+
+_READ_BITS: Final = 2000  # the spec's quantity limits
+_READ_WORDS: Final = 125
+_WRITE_BITS: Final = 1968
+_WRITE_WORDS: Final = 123
+_RW_WRITE_WORDS: Final = 121
+MAX_READ_WORDS: Final = _READ_WORDS
+"""Most registers one read may ask for (the spec's limit for 0x03/0x04): the widest
+field a device profile may declare."""
 
 FUNCTIONS: Final[dict[int, FunctionCode]] = {
     f.code: f
     for f in (
-        FunctionCode(0x01, "Read Coils", 5, (1, 2), "coil", bits=True, read=True),
         FunctionCode(
-            0x02, "Read Discrete Inputs", 5, (1, 2), "discrete_input", bits=True, read=True
+            0x01, "Read Coils", 5, (1, 2), "coil", bits=True, read=True,
+            shape="read", max_count=_READ_BITS,
         ),
-        FunctionCode(0x03, "Read Holding Registers", 5, (1, 2), "holding_register", read=True),
-        FunctionCode(0x04, "Read Input Registers", 5, (1, 2), "input_register", read=True),
-        FunctionCode(0x05, "Write Single Coil", 5, 5, "coil", writes=True, bits=True),
-        FunctionCode(0x06, "Write Single Register", 5, 5, "holding_register", writes=True),
+        FunctionCode(
+            0x02, "Read Discrete Inputs", 5, (1, 2), "discrete_input", bits=True, read=True,
+            shape="read", max_count=_READ_BITS,
+        ),
+        FunctionCode(
+            0x03, "Read Holding Registers", 5, (1, 2), "holding_register", read=True,
+            shape="read", max_count=_READ_WORDS,
+        ),
+        FunctionCode(
+            0x04, "Read Input Registers", 5, (1, 2), "input_register", read=True,
+            shape="read", max_count=_READ_WORDS,
+        ),
+        FunctionCode(
+            0x05, "Write Single Coil", 5, 5, "coil", writes=True, bits=True,
+            shape="write_single",
+        ),
+        FunctionCode(
+            0x06, "Write Single Register", 5, 5, "holding_register", writes=True,
+            shape="write_single",
+        ),
         FunctionCode(0x07, "Read Exception Status", 1, 2),
         FunctionCode(0x08, "Diagnostics", _diag_request, _diag_response),
         FunctionCode(0x0B, "Get Comm Event Counter", 1, 5),
         FunctionCode(0x0C, "Get Comm Event Log", 1, (1, 2)),
-        FunctionCode(0x0F, "Write Multiple Coils", (5, 6), 5, "coil", writes=True, bits=True),
-        FunctionCode(0x10, "Write Multiple Registers", (5, 6), 5, "holding_register", writes=True),
+        FunctionCode(
+            0x0F, "Write Multiple Coils", (5, 6), 5, "coil", writes=True, bits=True,
+            shape="write_multiple", max_count=_WRITE_BITS,
+        ),
+        FunctionCode(
+            0x10, "Write Multiple Registers", (5, 6), 5, "holding_register", writes=True,
+            shape="write_multiple", max_count=_WRITE_WORDS,
+        ),
         FunctionCode(0x11, "Report Server ID", 1, (1, 2)),
         FunctionCode(0x14, "Read File Record", (1, 2), (1, 2)),
         FunctionCode(0x15, "Write File Record", (1, 2), (1, 2), writes=True),
-        FunctionCode(0x16, "Mask Write Register", 7, 7, "holding_register", writes=True),
         FunctionCode(
-            0x17,
-            "Read/Write Multiple Registers",
-            (9, 10),
-            (1, 2),
-            "holding_register",
-            writes=True,
-            read=True,
+            0x16, "Mask Write Register", 7, 7, "holding_register", writes=True,
+            shape="mask_write",
+        ),
+        FunctionCode(
+            0x17, "Read/Write Multiple Registers", (9, 10), (1, 2), "holding_register",
+            writes=True, read=True, shape="read_write",
+            max_count=_READ_WORDS, max_write_count=_RW_WRITE_WORDS,
         ),
         FunctionCode(0x18, "Read FIFO Queue", 3, _fifo_response),
         FunctionCode(0x2B, "Encapsulated Interface Transport", _mei_request, None),
     )
-}
+}  # fmt: skip
 
+#: The rows as shipped, whatever :func:`register` adds or replaces later.
+SHIPPED: Final[Mapping[int, FunctionCode]] = MappingProxyType(dict(FUNCTIONS))
+
+#: Function code -> its :attr:`FunctionCode.shape` (codes with a shape only).
+SHAPE: Final[dict[int, str]] = {}
 #: Responses decoded again with their request, always: bit reads are trimmed to the
 #: requested count, diagnostics and file records copy or compare request fields.
-PAIR_ALWAYS: Final = frozenset({0x01, 0x02, 0x08, 0x14})
+PAIR_ALWAYS: Final[set[int]] = set()
 #: Responses decoded again with their request when the byte count disagrees with
 #: the requested register count (register reads are only checked against it).
-PAIR_ON_COUNT: Final = frozenset({0x03, 0x04, 0x17})
+PAIR_ON_COUNT: Final[set[int]] = set()
+_PAIR_BY_FIELDS: Final = (0x08, 0x14)  # their decoders compare request fields
+
+_rebuilds: list[Callable[[], None]] = []
+
+
+def derived(rebuild: Callable[[], None]) -> Callable[[], None]:
+    """Register ``rebuild``, which (re)computes a module's tables derived from
+    :data:`FUNCTIONS` in place, and run it now; :func:`register` runs it again.
+    A module that copies anything out of the table does it in such a function."""
+    _rebuilds.append(rebuild)
+    rebuild()
+    return rebuild
+
+
+def register(spec: FunctionCode) -> None:
+    """Add (or replace) one function code -- a user-defined one such as 0x41 --
+    and bring every table derived from :data:`FUNCTIONS` up to date. A code with a
+    ``shape`` is decoded, paired, annotated and printed like the public codes of
+    that shape; without one its bytes after the code stay in ``fields["data"]``."""
+    if not 0 < spec.code < 0x80:
+        raise ValueError(f"function code {spec.code} is outside 1..127")
+    if spec.shape is not None and spec.shape not in SHAPES:
+        raise ValueError(f"unknown shape {spec.shape!r} (one of {', '.join(sorted(SHAPES))})")
+    if spec.bits and spec.shape in ("mask_write", "read_write"):
+        raise ValueError(f"shape {spec.shape!r} is for registers, not bits")
+    FUNCTIONS[spec.code] = spec
+    _rebuild_all()
+
+
+def unregister(code: int) -> None:
+    """Remove one function code added by :func:`register` (tests, plug-ins)."""
+    FUNCTIONS.pop(code, None)
+    _rebuild_all()
+
+
+def _rebuild_all() -> None:
+    for rebuild in _rebuilds:
+        rebuild()
+
+
+@derived
+def _own_tables() -> None:
+    SHAPE.clear()
+    SHAPE.update({c: f.shape for c, f in FUNCTIONS.items() if f.shape is not None})
+    PAIR_ALWAYS.clear()
+    PAIR_ALWAYS.update(c for c, f in FUNCTIONS.items() if f.read and f.bits)
+    PAIR_ALWAYS.update(_PAIR_BY_FIELDS)
+    PAIR_ON_COUNT.clear()
+    PAIR_ON_COUNT.update(c for c, f in FUNCTIONS.items() if f.read and not f.bits)
+
+
+def mask_write(current: int, and_mask: int, or_mask: int) -> int:
+    """The register a Mask Write (0x16) leaves: ``(current AND and_mask) OR
+    (or_mask AND NOT and_mask)`` (Modbus Application Protocol 6.16)."""
+    return (current & and_mask) | (or_mask & ~and_mask & 0xFFFF)
+
 
 #: Data table of :attr:`FunctionCode.table` -> profile table name (``semantics``).
 PROFILE_TABLE: Final[dict[str, str]] = {
@@ -185,17 +304,18 @@ def write_spans(pdu: Pdu) -> tuple[WriteSpan, ...]:
     if not is_write(pdu):
         return ()
     fc = pdu.fc
-    if fc == 0x15:
+    spec = FUNCTIONS[fc]
+    if spec.table is None:  # 0x15: file records (its own layout)
         return tuple(
             WriteSpan("file", rec["record_number"], rec["record_length"], rec["file_number"])
             for rec in pdu.fields.get("records", ())
         )
-    if fc == 0x17:
+    if spec.shape == "read_write":
         address, count = pdu.fields.get("write_address"), pdu.fields.get("write_count")
     else:
         address = pdu.address
-        count = pdu.count if pdu.count is not None else 1  # 0x16: one register
+        count = pdu.count if pdu.count is not None else 1  # mask write: one register
     if address is None or count is None:
         return ()
-    table = "coil" if FUNCTIONS[fc].table == "coil" else "hr"
+    table = "coil" if spec.table == "coil" else "hr"
     return (WriteSpan(table, address, count),)

@@ -70,8 +70,9 @@ their bytes after the function code in ``fields["data"]`` and are not
 malformed. A request with the 0x80 bit set is decoded the same way, with
 ``fc`` cleared and a malformed reason.
 
-Checked and reported in ``malformed`` (short, lower-case, specific): spec
-quantity limits (read bits 1..2000, read registers 1..125, write coils
+Checked and reported in ``malformed`` (short, lower-case, specific): the
+spec's quantity limits, from the function-code table's ``max_count`` and
+``max_write_count`` (read bits 1..2000, read registers 1..125, write coils
 1..1968, write registers 1..123, 0x17 read 1..125 / write 1..121),
 address + count past 65536, byte counts that disagree with the count, with the
 paired request or with the bytes present (``"byte count 6 but 4 data
@@ -91,7 +92,14 @@ from types import MappingProxyType
 from typing import Any, Final
 
 from mbmon.model import EMPTY, Kind, Pdu, fast_constructor
-from mbmon.protocol.functions import FUNCTIONS, NEED_MORE, LengthRule
+from mbmon.protocol.functions import (
+    FUNCTIONS,
+    NEED_MORE,
+    SHIPPED,
+    FunctionCode,
+    LengthRule,
+    derived,
+)
 
 __all__ = [
     "DIAGNOSTIC_NAMES",
@@ -115,8 +123,9 @@ __all__ = [
     "with_malformed",
 ]
 
-#: Names of the public function codes, from the one table (:mod:`mbmon.protocol.functions`).
-FUNCTION_NAMES: Final[dict[int, str]] = {code: f.name for code, f in FUNCTIONS.items()}
+#: Names of the function codes, from the one table (:mod:`mbmon.protocol.functions`;
+#: kept up to date by :func:`_from_table`).
+FUNCTION_NAMES: Final[dict[int, str]] = {}
 
 EXCEPTION_NAMES: Final[dict[int, str]] = {
     0x01: "Illegal Function",
@@ -177,9 +186,7 @@ MEI_OBJECT_NAMES: Final[dict[int, str]] = {
     0x06: "UserApplicationName",
 }
 
-_TABLES: Final[dict[int, str]] = {
-    code: f.table for code, f in FUNCTIONS.items() if f.table is not None
-}
+_TABLES: Final[dict[int, str]] = {}  # by :func:`_from_table`
 
 
 def table_of(fc: int) -> str | None:
@@ -195,12 +202,10 @@ def table_of(fc: int) -> str | None:
 
 # Length rules by code, from the one table: int = fixed; (i, base) = base + data[i];
 # a function of the first bytes for the codes whose length depends on a sub-code.
-_REQ_LEN: Final[dict[int, LengthRule]] = {
-    code: f.request_length for code, f in FUNCTIONS.items() if f.request_length is not None
-}
-_RESP_LEN: Final[dict[int, LengthRule]] = {
-    code: f.response_length for code, f in FUNCTIONS.items() if f.response_length is not None
-}
+_REQ_LEN: Final[dict[int, LengthRule]] = {}  # by :func:`_from_table`
+_RESP_LEN: Final[dict[int, LengthRule]] = {}
+#: Function code -> the spec's quantity limit of its count (by :func:`_from_table`).
+_MAX_COUNT: Final[dict[int, int]] = {}
 
 
 def pdu_length(data: bytes | bytearray | memoryview, response: bool) -> int | None:
@@ -335,14 +340,14 @@ def _read_req(o: _Out, request: Pdu | None) -> None:
         count = (d[3] << 8) | d[4]
         o.address = address
         o.count = count
-        if not 1 <= count <= (2000 if o.fc in (0x01, 0x02) else 125):
-            o.limit("count", count, 2000 if o.fc in (0x01, 0x02) else 125)
+        if not 1 <= count <= _MAX_COUNT[o.fc]:
+            o.limit("count", count, _MAX_COUNT[o.fc])
         if address + count > 0x10000:
             o.span(address, count)
         return
     o.fixed(5)
     o.address, o.count = _u16(d, 1), _u16(d, 3)
-    o.limit("count", o.count, 2000 if o.fc in (0x01, 0x02) else 125)
+    o.limit("count", o.count, _MAX_COUNT[o.fc])
     o.span(o.address, o.count)
 
 
@@ -464,14 +469,14 @@ def _event_log_resp(o: _Out, request: Pdu | None) -> None:
 
 def _write_multi_req(o: _Out, request: Pdu | None) -> None:
     d = o.d
-    coils = o.fc == 0x0F
+    coils = FUNCTIONS[o.fc].bits
     o.address, o.count = _u16(d, 1), _u16(d, 3)
     if not o.need(6):
         return
     data = o.counted(5)
     bc = o.byte_count or 0
     n = o.count or 0
-    o.limit("count", o.count, 1968 if coils else 123)
+    o.limit("count", o.count, _MAX_COUNT[o.fc])
     o.span(o.address, o.count)
     if coils:
         want = (n + 7) // 8
@@ -488,7 +493,7 @@ def _write_multi_req(o: _Out, request: Pdu | None) -> None:
 def _write_multi_resp(o: _Out, request: Pdu | None) -> None:
     o.fixed(5)
     o.address, o.count = _u16(o.d, 1), _u16(o.d, 3)
-    o.limit("count", o.count, 1968 if o.fc == 0x0F else 123)
+    o.limit("count", o.count, _MAX_COUNT[o.fc])
     o.span(o.address, o.count)
 
 
@@ -616,8 +621,9 @@ def _rw_multi_req(o: _Out, request: Pdu | None) -> None:
         o.fields["write_address"] = waddr
     if wcount is not None:
         o.fields["write_count"] = wcount
-    o.limit("read count", o.count, 125)
-    o.limit("write count", wcount, 121)
+    spec = FUNCTIONS[o.fc]
+    o.limit("read count", o.count, spec.max_count or 0)
+    o.limit("write count", wcount, spec.max_write_count or 0)
     o.span(o.address, o.count)
     o.span(waddr, wcount)
     if not o.need(10):
@@ -709,31 +715,36 @@ def _mei(o: _Out, request: Pdu | None) -> None:
 
 _Decoder = Callable[[_Out, Pdu | None], None]
 
-# fc -> (request decoder, response decoder)
-_DECODERS: Final[dict[int, tuple[_Decoder, _Decoder]]] = {
-    0x01: (_read_req, _bits_resp),
-    0x02: (_read_req, _bits_resp),
-    0x03: (_read_req, _regs_resp),
-    0x04: (_read_req, _regs_resp),
-    0x05: (_write_coil, _write_coil),
-    0x06: (_write_reg, _write_reg),
+#: Field decoders of the codes whose layout is their own (no ``shape`` in the table):
+#: fc -> (request decoder, response decoder).
+_BY_CODE: Final[dict[int, tuple[_Decoder, _Decoder]]] = {
     0x07: (_empty_req, _exc_status_resp),
     0x08: (_diagnostics, _diagnostics),
     0x0B: (_empty_req, _event_counter_resp),
     0x0C: (_empty_req, _event_log_resp),
-    0x0F: (_write_multi_req, _write_multi_resp),
-    0x10: (_write_multi_req, _write_multi_resp),
     0x11: (_empty_req, _server_id_resp),
     0x14: (_read_file_req, _read_file_resp),
     0x15: (_write_file, _write_file),
-    0x16: (_mask_write, _mask_write),
-    0x17: (_rw_multi_req, _regs_resp),
     0x18: (_fifo_req, _fifo_resp),
     0x2B: (_mei, _mei),
 }
-
-
-assert set(_DECODERS) <= set(FUNCTIONS), "every decoded code is in the one table"
+#: Field decoders of a table ``shape``: (shape, bits) -> (request, response decoder).
+_BY_SHAPE: Final[dict[tuple[str, bool], tuple[_Decoder, _Decoder]]] = {
+    ("read", True): (_read_req, _bits_resp),
+    ("read", False): (_read_req, _regs_resp),
+    ("write_single", True): (_write_coil, _write_coil),
+    ("write_single", False): (_write_reg, _write_reg),
+    ("write_multiple", True): (_write_multi_req, _write_multi_resp),
+    ("write_multiple", False): (_write_multi_req, _write_multi_resp),
+    ("mask_write", False): (_mask_write, _mask_write),
+    ("read_write", False): (_rw_multi_req, _regs_resp),
+}
+#: The codes :func:`_well_formed` decides: 0x01..0x10 with a shape it knows, while
+#: their row is the shipped one (by :func:`_from_table`).
+_FAST: Final[set[int]] = set()
+_FAST_SHAPES: Final = ("read", "write_single", "write_multiple")
+#: fc -> (request decoder, response decoder), from the table (by :func:`_from_table`).
+_DECODERS: Final[dict[int, tuple[_Decoder, _Decoder]]] = {}
 
 
 def _fields(f: dict[str, Any]) -> Mapping[str, Any]:
@@ -834,7 +845,7 @@ def _decode(d: bytes, response: bool, request: Pdu | None) -> Pdu:
             fields=_fields({"data": d[1:]}),
             malformed=f"exception bit set in request function code 0x{code:02X}",
         )
-    if request is None and 0 < fc <= 0x10:
+    if request is None and fc in _FAST:
         pdu = _well_formed(d, fc, response)
         if pdu is not None:
             return pdu
@@ -872,7 +883,7 @@ def _well_formed(d: bytes, fc: int, response: bool) -> Pdu | None:
                 return None
             address = (d[1] << 8) | d[2]
             count = (d[3] << 8) | d[4]
-            if not 1 <= count <= (2000 if fc <= 0x02 else 125) or address + count > 0x10000:
+            if not 1 <= count <= _MAX_COUNT[fc] or address + count > 0x10000:
                 return None
             return _new_pdu(d, fc, _REQUEST, None, address, count, None, None, EMPTY, None)
         if fc >= 0x0F and n != 5:  # 0F / 10 request with its data
@@ -884,11 +895,11 @@ def _well_formed(d: bytes, fc: int, response: bool) -> Pdu | None:
             if n - 6 != bc or count < 1 or address + count > 0x10000:
                 return None
             if fc == 0x0F:
-                if count > 1968 or bc != (count + 7) >> 3:
+                if count > _MAX_COUNT[fc] or bc != (count + 7) >> 3:
                     return None
                 values = _bits(d[6:])[:count]
             else:
-                if count > 123 or bc != 2 * count:
+                if count > _MAX_COUNT[fc] or bc != 2 * count:
                     return None
                 values = struct.unpack_from(f">{count}H", d, 6)
             return _new_pdu(d, fc, _REQUEST, None, address, count, bc, values, EMPTY, None)
@@ -905,7 +916,7 @@ def _well_formed(d: bytes, fc: int, response: bool) -> Pdu | None:
     if fc == 0x06:
         return _new_pdu(d, 6, kind, None, address, 1, None, (value,), EMPTY, None)
     if fc >= 0x0F and response:  # 0F / 10 response: address, count
-        if not 1 <= value <= (1968 if fc == 0x0F else 123) or address + value > 0x10000:
+        if not 1 <= value <= _MAX_COUNT[fc] or address + value > 0x10000:
             return None
         return _new_pdu(d, fc, kind, None, address, value, None, None, EMPTY, None)
     return None
@@ -953,6 +964,36 @@ _REQUEST: Final = Kind.REQUEST
 _new_pdu = fast_constructor(Pdu)  # per decoded PDU (cache misses): Pdu(...) by its slots
 
 
+@derived
+def _from_table() -> None:
+    """Copy names, tables, length rules, quantity limits and field decoders out of
+    the one table, and forget decoded PDUs: run again when a code is registered."""
+    for copy in (FUNCTION_NAMES, _TABLES, _REQ_LEN, _RESP_LEN, _MAX_COUNT, _DECODERS):
+        copy.clear()
+    for code, f in FUNCTIONS.items():
+        FUNCTION_NAMES[code] = f.name
+        if f.table is not None:
+            _TABLES[code] = f.table
+        if f.request_length is not None:
+            _REQ_LEN[code] = f.request_length
+        if f.response_length is not None:
+            _RESP_LEN[code] = f.response_length
+        if f.max_count is not None:
+            _MAX_COUNT[code] = f.max_count
+        decoders = _BY_CODE.get(code) if f.shape is None else _BY_SHAPE[(f.shape, f.bits)]
+        if decoders is not None:
+            _DECODERS[code] = decoders
+    _FAST.clear()
+    _FAST.update(
+        code
+        for code, f in FUNCTIONS.items()
+        if code <= 0x10 and f.shape in _FAST_SHAPES and f is SHIPPED.get(code)
+    )
+    for cache in (_REQUESTS, _RESPONSES, _PAIRED_CACHE):
+        cache.clear()
+    _held[:] = [0, 0, 0]
+
+
 def with_malformed(pdu: Pdu, reason: str) -> Pdu:
     """``pdu`` with ``reason`` put first in its ``malformed`` (a breach found outside
     the PDU, e.g. by the framing), the PDU's own reasons after it."""
@@ -998,12 +1039,13 @@ def encode_read_response(fc: int, values: Sequence[int], count: int | None = Non
     For bits, ``count`` is how many of ``values`` to pack (default all); the
     last byte is zero-padded. ``count`` is ignored for registers.
     """
-    if fc in (0x01, 0x02):
+    spec = _shaped(fc, "read", "read_write")
+    if spec is not None and spec.bits:
         n = len(values) if count is None else count
         if not 0 <= n <= len(values):
             raise ValueError(f"count {n} but {len(values)} values")
         data = _pack_bits(values[:n])
-    elif fc in (0x03, 0x04, 0x17):
+    elif spec is not None:
         data = _pack_words(values)
     else:
         raise ValueError(f"0x{fc:02X} is not a read function code")
@@ -1016,30 +1058,35 @@ def encode_write_single(fc: int, address: int, value: int | bool) -> bytes:
     For 05 a ``bool`` becomes 0xFF00/0x0000 and an ``int`` is sent as is (so
     tests can build illegal coil values); for 06 ``value`` is the register.
     """
-    if fc == 0x05 and isinstance(value, bool):
-        value = 0xFF00 if value else 0x0000
-    elif fc not in (0x05, 0x06):
+    spec = _shaped(fc, "write_single")
+    if spec is None:
         raise ValueError(f"0x{fc:02X} is not a write single function code")
+    if spec.bits and isinstance(value, bool):
+        value = 0xFF00 if value else 0x0000
     return bytes((fc,)) + _w("address", address) + _w("value", int(value))
 
 
 def encode_write_multiple_request(fc: int, address: int, values: Sequence[int]) -> bytes:
     """Write multiple request PDU: coils (0F, truthy = 1) or registers (10)."""
-    if fc == 0x0F:
-        data = _pack_bits(values)
-    elif fc == 0x10:
-        data = _pack_words(values)
-    else:
+    spec = _shaped(fc, "write_multiple")
+    if spec is None:
         raise ValueError(f"0x{fc:02X} is not a write multiple function code")
+    data = _pack_bits(values) if spec.bits else _pack_words(values)
     head = bytes((fc,)) + _w("address", address) + _w("count", len(values))
     return head + bytes((_u8("byte count", len(data)),)) + data
 
 
 def encode_write_multiple_response(fc: int, address: int, count: int) -> bytes:
     """Write multiple response PDU (0F/10): fc, address, count."""
-    if fc not in (0x0F, 0x10):
+    if _shaped(fc, "write_multiple") is None:
         raise ValueError(f"0x{fc:02X} is not a write multiple function code")
     return bytes((fc,)) + _w("address", address) + _w("count", count)
+
+
+def _shaped(fc: int, *shapes: str) -> FunctionCode | None:
+    """The table's entry for ``fc`` when its shape is one of ``shapes``."""
+    spec = FUNCTIONS.get(fc)
+    return spec if spec is not None and spec.shape in shapes else None
 
 
 def encode_exception(fc: int, code: int) -> bytes:

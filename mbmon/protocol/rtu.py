@@ -72,6 +72,7 @@ from __future__ import annotations
 from mbmon.model import Direction, Frame, Noise, Stream, fast_constructor
 from mbmon.protocol.crc import CRC_TABLE, add_crc
 from mbmon.protocol.crc import crc_ok_at as _crc_ok
+from mbmon.protocol.functions import derived
 from mbmon.protocol.pdu import NEED_MORE, decode_pdu, pdu_length, simple_length_rules
 from mbmon.protocol.stream import StreamDecoder
 
@@ -91,8 +92,18 @@ def _adu_rules(response: bool) -> dict[int, int | tuple[int, int]]:
     }
 
 
-_REQ_RULES = _adu_rules(False)
-_RESP_RULES = _adu_rules(True)
+_REQ_RULES: dict[int, int | tuple[int, int]] = {}
+_RESP_RULES: dict[int, int | tuple[int, int]] = {}
+
+
+@derived
+def _rules_from_table() -> None:
+    """Fill the ADU rules in place, again when a function code is registered."""
+    for rules, response in ((_REQ_RULES, False), (_RESP_RULES, True)):
+        rules.clear()
+        rules.update(_adu_rules(response))
+
+
 _NO_RULES: dict[int, int | tuple[int, int]] = {}
 
 MAX_ADU = 256

@@ -35,7 +35,7 @@ from mbmon.model import (
     TxStatus,
     fast_constructor,
 )
-from mbmon.protocol.functions import FUNCTIONS, PROFILE_TABLE
+from mbmon.protocol.functions import FUNCTIONS, PROFILE_TABLE, SHAPE, derived
 from mbmon.semantics.profile import (
     REGISTER_PREFIX,
     Field,
@@ -52,14 +52,25 @@ _EMPTY = Annotation()
 _new_annotation = fast_constructor(Annotation)  # per step: twice as fast as the class
 _PENDING, _TIMEOUT, _ANSWERED = TxStatus.PENDING, TxStatus.TIMEOUT, TxStatus.ANSWERED
 _REQUEST, _RESPONSE = Kind.REQUEST, Kind.RESPONSE
-_READ_FCS = frozenset({0x01, 0x02, 0x03, 0x04})
+#: the reads (shape "read") and function code -> profile table, from the one
+#: function-code table (kept up to date by :func:`_from_table`)
+_READ_FCS: set[int] = set()
+_TABLE: dict[int, str] = {}
 
-#: function code -> profile table, from the one function-code table
-_TABLE = {code: PROFILE_TABLE[f.table] for code, f in FUNCTIONS.items() if f.table is not None}
+
+@derived
+def _from_table() -> None:
+    _READ_FCS.clear()
+    _READ_FCS.update(code for code, shape in SHAPE.items() if shape == "read")
+    _TABLE.clear()
+    _TABLE.update(
+        {code: PROFILE_TABLE[f.table] for code, f in FUNCTIONS.items() if f.table is not None}
+    )
+
+
 _BITS = frozenset({"coils", "discrete_inputs"})
 _MAX_RUN_WORDS = 12  # values shown in a merged run / block note before "…"
 _MAX_RUN_BITS = 8  # bits shown as ON/OFF words; longer runs list the ON ones
-_MAX_READ_WORDS = 125  # most registers one read may ask for (Modbus spec): layouts made ahead
 _NO_UNIT_SPACE = frozenset({"°", "%", ""})
 
 
@@ -223,16 +234,19 @@ class Annotator:
         table = _TABLE.get(fc)
         if table is None:
             return ()
-        if pdu.kind is Kind.REQUEST and fc in (0x01, 0x02, 0x03, 0x04):
+        shape = SHAPE.get(fc)
+        if pdu.kind is Kind.REQUEST and shape == "read":
             return _read_request_note(profile, table, pdu.address, pdu.count)
         if pdu.kind is Kind.REQUEST:
-            if fc in (0x05, 0x06, 0x0F, 0x10):
+            if shape == "write_single" or shape == "write_multiple":
                 if pdu.address is None or not pdu.values:
                     return []
                 return self._field_notes(frame, profile, table, pdu.address, pdu.values, "write")
-            if fc == 0x16:
+            if shape == "mask_write":
                 return _mask_note(profile, pdu.address, pdu.fields)
-            # 0x17: write part now, read part with the response
+            if shape != "read_write":
+                return []
+            # read/write: write part now, read part with the response
             waddr = pdu.fields.get("write_address")
             wvals = pdu.fields.get("write_values")
             notes: list[str] = []
@@ -241,14 +255,16 @@ class Annotator:
             notes += _read_request_note(profile, table, pdu.address, pdu.count)
             return notes
         # responses
-        if fc in (0x05, 0x06):  # echo of the write: self-contained
+        if shape == "write_single":  # echo of the write: self-contained
             if pdu.address is None or not pdu.values:
                 return []
             return self._field_notes(frame, profile, table, pdu.address, pdu.values, "write")
-        if fc in (0x0F, 0x10):
+        if shape == "write_multiple":
             return _span_note(profile, table, pdu.address, pdu.count, "written")
-        if fc == 0x16:
+        if shape == "mask_write":
             return _mask_note(profile, pdu.address, pdu.fields)
+        if shape != "read" and shape != "read_write":
+            return []
         req = tx.request
         if req is None or req.pdu.address is None or not pdu.values:
             return []
@@ -383,7 +399,9 @@ def _read_of(profile: Profile, pdu: Pdu) -> _Read:
     address, count = pdu.address, pdu.count
     found = _read_request_note(profile, table, address, count)
     layout = None
-    if table not in _BITS and address is not None and count and count <= _MAX_READ_WORDS:
+    # layouts are made ahead for reads within the spec's quantity limit only
+    limit = FUNCTIONS[pdu.fc].max_count or 0
+    if table not in _BITS and address is not None and count and count <= limit:
         layout = _layout(profile, table, address, count)
     read = _Read(
         _new_annotation(found, (), None) if found else _EMPTY,

@@ -32,24 +32,21 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from mbmon.protocol.functions import FUNCTIONS, PROFILE_TABLE
 from mbmon.sim.robot import SimEvent, SimRobot
 from mbmon.sources import DEFAULT_BAUD
 
 __all__ = ["SimServer"]
 
-#: Function code -> register table, as pymodbus hands them to the ``action`` hook.
-_TABLE_OF_FC: dict[int, str] = {
-    1: "coils",
-    5: "coils",
-    15: "coils",
-    2: "discrete_inputs",
-    4: "input_registers",
-    3: "holding_registers",
-    6: "holding_registers",
-    16: "holding_registers",
-}
 #: Table 10 of the manual: the function codes HRSS serves; any other is answered exception 01.
 FUNCTION_CODES = frozenset({1, 2, 3, 4, 5, 6, 15, 16})
+#: Function code -> register table, as pymodbus hands them to the ``action`` hook
+#: (from the one function-code table).
+_TABLE_OF_FC: dict[int, str] = {
+    fc: PROFILE_TABLE[table] for fc in FUNCTION_CODES if (table := FUNCTIONS[fc].table)
+}
+#: the bit reads, whose address range the robot checks before pymodbus answers
+_BIT_READS = frozenset(fc for fc in FUNCTION_CODES if FUNCTIONS[fc].read and FUNCTIONS[fc].bits)
 _EXC_ILLEGAL_FUNCTION = 1
 _EXC_ILLEGAL_DATA_VALUE = 3
 _EXC_GATEWAY_NO_RESPONSE = 0x0B
@@ -222,7 +219,7 @@ class SimServer:
             return _Refusal(fc, dev_id, tid, _EXC_ILLEGAL_FUNCTION)
         if pdu is None:
             return _Refusal(fc, dev_id, tid, _EXC_ILLEGAL_DATA_VALUE)
-        if fc in (1, 2):
+        if fc in _BIT_READS:
             with self.lock:
                 exc = self.robot.check(_TABLE_OF_FC[fc], pdu.address, pdu.count)
             if exc is not None:

@@ -85,3 +85,23 @@ def test_write_spans() -> None:
     assert write_spans(wf) == (WriteSpan("file", 7, 3, file=4),)
     assert write_spans(req(encode_read_request(3, 0, 10))) == ()
     assert write_spans(req(bytes([0x06, 0x00]))) == ()  # truncated: no address
+
+
+def test_quantity_limits_and_shapes_are_the_spec_s() -> None:
+    limits = {c: (f.shape, f.max_count, f.max_write_count) for c, f in FUNCTIONS.items() if f.shape}
+    assert limits == {
+        0x01: ("read", 2000, None), 0x02: ("read", 2000, None),
+        0x03: ("read", 125, None), 0x04: ("read", 125, None),
+        0x05: ("write_single", None, None), 0x06: ("write_single", None, None),
+        0x0F: ("write_multiple", 1968, None), 0x10: ("write_multiple", 123, None),
+        0x16: ("mask_write", None, None), 0x17: ("read_write", 125, 121),
+    }  # fmt: skip
+    assert functions.PAIR_ALWAYS == {0x01, 0x02, 0x08, 0x14}
+    assert functions.PAIR_ON_COUNT == {0x03, 0x04, 0x17}
+
+
+def test_mask_write_is_the_spec_s_example() -> None:
+    # Modbus Application Protocol 6.16: current 0x12, AND 0xF2, OR 0x25 -> 0x17
+    assert functions.mask_write(0x12, 0xF2, 0x25) == 0x17
+    assert functions.mask_write(0xFFFF, 0x0000, 0x1234) == 0x1234
+    assert functions.mask_write(0xABCD, 0xFFFF, 0x1234) == 0xABCD

@@ -35,6 +35,7 @@ from mbmon.model import (
     TxStatus,
     fast_constructor,
 )
+from mbmon.protocol.functions import FUNCTIONS, SHAPE, derived, mask_write
 from mbmon.semantics.hrss.render import Decoded, decode_command_from, decode_returns
 from mbmon.semantics.hrss.spec import CommandSpec, load_spec
 from mbmon.semantics.words import s16
@@ -74,7 +75,29 @@ _DECODED_PER_CODE = 8  # of them with the same R201 word (the newest)
 _ANSWERS_MAX = 64  # FC 04 answers (of different shapes) kept before they go to the image
 
 _MOVING = (2, 3, 4)  # IR524 Running, Hold, Delay
-_WRITE_FCS = frozenset({0x06, 0x10, 0x16, 0x17})  # what _request applies to the holding image
+#: what _request applies to the holding image: the codes that write holding registers,
+#: from the one function-code table
+_WRITE_FCS: set[int] = set()
+#: the reads whose answer goes to the holding image, and those that go to the input image
+_HOLDING_READS: set[int] = set()
+_INPUT_READS: set[int] = set()
+
+
+@derived
+def _from_table() -> None:
+    for codes, table, writes in (
+        (_WRITE_FCS, "holding_register", True),
+        (_HOLDING_READS, "holding_register", False),
+        (_INPUT_READS, "input_register", False),
+    ):
+        codes.clear()
+        codes.update(
+            code
+            for code, f in FUNCTIONS.items()
+            if f.table == table and (f.writes if writes else f.read)
+        )
+
+
 _PENDING, _ANSWERED = TxStatus.PENDING, TxStatus.ANSWERED
 _NOTHING = Annotation()
 _new_annotation = fast_constructor(Annotation)  # per step: twice as fast as the class
@@ -273,22 +296,23 @@ class HrssSession:
         if pdu.kind is not Kind.REQUEST:
             return
         writes: list[tuple[int, int | None]] = []
-        if pdu.fc == 0x06 and pdu.address is not None and pdu.values:
+        shape = SHAPE.get(pdu.fc) if pdu.fc in _WRITE_FCS else None
+        if shape == "write_single" and pdu.address is not None and pdu.values:
             writes = [(pdu.address, pdu.values[0])]
-        elif pdu.fc == 0x10 and pdu.address is not None and pdu.values is not None:
+        elif shape == "write_multiple" and pdu.address is not None and pdu.values is not None:
             writes = [(pdu.address + i, v) for i, v in enumerate(pdu.values)]
-        elif pdu.fc == 0x17:
+        elif shape == "read_write":
             addr = pdu.fields.get("write_address")
             vals = pdu.fields.get("write_values")
             if addr is not None and vals is not None:
                 writes = [(addr + i, v) for i, v in enumerate(vals)]
-        elif pdu.fc == 0x16 and pdu.address is not None:
+        elif shape == "mask_write" and pdu.address is not None:
             old = self._holding.get(pdu.address)
             and_m, or_m = pdu.fields.get("and_mask"), pdu.fields.get("or_mask")
             if old is None or and_m is None or or_m is None:
                 writes = [(pdu.address, None)]  # result unknown
             else:
-                writes = [(pdu.address, (old & and_m) | (or_m & ~and_m & 0xFFFF))]
+                writes = [(pdu.address, mask_write(old, and_m, or_m))]
         if not writes:
             return
         w = _Write(old={a: self._holding.get(a) for a, _ in writes}, new={})
@@ -464,11 +488,11 @@ class HrssSession:
         values = rs.values
         if rq.count is not None:
             values = values[: rq.count]
-        if rq.fc in (0x03, 0x17):
+        if rq.fc in _HOLDING_READS:
             for i, v in enumerate(values):
                 self._holding[rq.address + i] = v
                 self._unconfirmed.discard(rq.address + i)
-        elif rq.fc == 0x04:
+        elif rq.fc in _INPUT_READS:
             address, n = rq.address, len(values)
             plan = self._plans.get((address, n))
             if plan is None:

@@ -15,6 +15,7 @@ from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
+from mbmon.protocol.functions import MAX_READ_WORDS
 from mbmon.semantics.profile.model import (
     BIT_TABLES,
     BUILTIN_PROFILES,
@@ -352,8 +353,8 @@ class _Reader:
             if "words" not in e:
                 raise self.fail(w, "words", f'type "{ftype}" needs "words"')
             words = self.integer(e["words"], w, "words")
-            if not 1 <= words <= 125:
-                raise self.fail(w, "words", f"{words} is outside 1..125")
+            if not 1 <= words <= MAX_READ_WORDS:
+                raise self.fail(w, "words", f"{words} is outside 1..{MAX_READ_WORDS}")
         else:
             words = TYPE_WORDS[ftype]
             if "words" in e and self.integer(e["words"], w, "words") != words:
