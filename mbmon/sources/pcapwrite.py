@@ -620,6 +620,9 @@ class ChunkWriter:
         #: (transport, server port) written as they were, that Wireshark does not
         #: decode as Modbus with no option
         self.ports_kept: set[tuple[Transport, int]] = set()
+        # (transport, host, port as written) -> the port it stands for: two servers of
+        # one host (a proxy's own answers beside its robot's) never become one endpoint
+        self._claimed: dict[tuple[Transport, str, int], int] = {}
         #: bytes the capture lost, numbered over (adu_segments): (time, stream,
         #: direction value, bytes), in order
         self.losses: list[tuple[float, Stream, str, int]] = []
@@ -692,9 +695,13 @@ class ChunkWriter:
         client, server = self._stream_endpoints(stream)
         host, port = parse_endpoint(server)
         mbap = stream.transport in (Transport.TCP, Transport.UDP)
-        if mbap and self._server_port is not None and port != self._server_port:
-            self.ports_rewritten[(stream.transport, port)] = self._server_port
-            server = join_endpoint(host, self._server_port)
+        if mbap and self._server_port is not None:
+            claim = self._claimed.setdefault((stream.transport, host, self._server_port), port)
+            if claim != port:  # another server of this host is written there: keep this one
+                self.ports_kept.add((stream.transport, port))
+            elif port != self._server_port:
+                self.ports_rewritten[(stream.transport, port)] = self._server_port
+                server = join_endpoint(host, self._server_port)
         elif not mbap or port != MODBUS_PORT:
             self.ports_kept.add((stream.transport, port))
         ends = self._ends[stream.id] = (client, server)

@@ -449,7 +449,7 @@ def test_gateway_exception_is_logged_as_the_proxys_own_answer(tmp_path: Path) ->
     (live,) = exceptions((tmp_path / "gw.jsonl").read_text().splitlines())
     assert live["src"] == proxy_at and live["exception_code"] == 0x0B
     out = subprocess.run(
-        [sys.executable, "-m", "mbmon", "export", "gw.mcap", "-o", "gw.pcap"],
+        [sys.executable, "-m", "mbmon", "export", "gw.mcap", "-o", "gw.pcap", "--keep-port"],
         cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert out.returncode == 0, out.stderr
