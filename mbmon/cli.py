@@ -92,6 +92,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt as exc:  # not caught by the command
         return 128 + getattr(exc, "signum", signal.SIGINT)
     finally:
+        # a deferred signal's retry timer must not outlive the run: at exit Python puts
+        # SIGALRM back to its default action, which would kill the process (-14)
+        signal.setitimer(signal.ITIMER_REAL, 0)
         for sig, handler in previous.items():  # still noting (--help, a usage error): undo
             if signal.getsignal(sig) is note:
                 signal.signal(sig, handler)

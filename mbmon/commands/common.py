@@ -309,8 +309,14 @@ def _importing(frame: Any) -> bool:
     return False
 
 
+#: how many 5-ms retries a deferred signal waits for an import to end (then it is raised)
+_MAX_RETRIES = 40
+_retries: list[int] = [0]
+
+
 def _interrupt(signum: int, frame: Any) -> None:
-    if _importing(frame):
+    if _importing(frame) and _retries[0] < _MAX_RETRIES:
+        _retries[0] += 1
         # raised inside an import, the exception can be swallowed by the import
         # system ("Exception ignored in ... _get_module_lock") or crash an extension
         # module's initialisation: raise it once the import is over (retried every 5 ms)
@@ -318,6 +324,8 @@ def _interrupt(signum: int, frame: Any) -> None:
         signal.setitimer(signal.ITIMER_REAL, 0.005)
         return
     _received.append(signum)
+    signal.setitimer(signal.ITIMER_REAL, 0)  # a deferred retry still pending is this one
+    _deferred.clear()
     raise Interrupted(signum)
 
 
