@@ -66,6 +66,7 @@ examples:
   mbmon export cell.mcap -o cell.pcap --keep-port
                                             the original ports; a note prints the option
                                             (tshark -d tcp.port==1502,mbtcp)
+  mbmon export cell.mcap -o cell.pcapng     the same as pcapng, the changes marked as comments
   mbmon export cell.mcap -o cell.parquet    one row per record: DuckDB, Spark, Trino (docs/fleet.md)
   mbmon export crashed.mcap -o fixed.mcap   rewrite an unfinished log as a finished one
 
@@ -148,7 +149,7 @@ def add_subcommands(sub: Any) -> None:
 
     export = sub.add_parser(
         "export",
-        help="convert an MCAP log to .csv, .jsonl, .txt, .pcap (or a repaired .mcap)",
+        help="convert an MCAP log to .csv, .jsonl, .txt, .pcap, .pcapng (or a repaired .mcap)",
         description="Convert an MCAP log by the suffix of OUT: .csv (one row per frame), "
         ".jsonl (read --json lines), .txt (monitor lines), .pcap (Modbus/TCP re-wrapped in "
         "Ethernet/IPv4/TCP with consistent sequence numbers, original endpoints and times, "

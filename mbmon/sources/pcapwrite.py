@@ -907,9 +907,11 @@ class ChunkWriter:
                 direction = str(event.info.get("direction", Direction.C2S.value))
                 self.losses.append((event.ts, stream, direction, size))
                 client = direction != Direction.S2C.value
+                side = "client" if client else "server"
+                amount = "1 byte" if size == 1 else f"{size} bytes"
                 self._loss_notes.setdefault((stream.id, client), []).append(
-                    f"mbmon: {size} byte{'' if size == 1 else 's'} of the {'client' if client else 'server'}'s stream "
-                    f"were not captured before this segment (lost at {_utc_text(event.ts)})"
+                    f"mbmon: {amount} of the {side}'s stream {'was' if size == 1 else 'were'} "
+                    f"not captured before this segment (lost at {_utc_text(event.ts)})"
                 )
                 return []
             from_client = event.info.get("direction") == Direction.C2S.value

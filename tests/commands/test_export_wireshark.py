@@ -347,7 +347,7 @@ def test_pcapng_export_marks_the_loss(tmp_path: Path) -> None:
     assert flags == [], "the export leaves a hole in the sequence numbers"
     marked = comments_of(pcapng)
     assert [text for _n, text in marked] == [
-        "mbmon: 1 byte of the server's stream were not captured before this segment "
+        "mbmon: 1 byte of the server's stream was not captured before this segment "
         "(lost at 2024-05-01 12:00:00.088994 UTC)"
     ]
     # the comment is on the server's first segment after the loss: the rest of the response
