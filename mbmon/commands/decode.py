@@ -175,3 +175,4 @@ def _rtu_with_bad_crc(data: bytes, response: bool) -> bool:
     if pdu_length(body, as_response) != len(body) or decode_pdu(body, as_response).malformed:
         return False
     return bool(decode_pdu(data, response or bool(data[0] & 0x80)).malformed)
+
