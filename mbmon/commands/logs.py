@@ -66,6 +66,7 @@ examples:
   mbmon export cell.mcap -o cell.pcap --keep-port
                                             the original ports; a note prints the option
                                             (tshark -d tcp.port==1502,mbtcp)
+  mbmon export cell.mcap -o cell.pcapng     the same as pcapng, the changes marked as comments
   mbmon export cell.mcap -o cell.parquet    one row per record: DuckDB, Spark, Trino (docs/fleet.md)
   mbmon export crashed.mcap -o fixed.mcap   rewrite an unfinished log as a finished one
 
@@ -148,7 +149,7 @@ def add_subcommands(sub: Any) -> None:
 
     export = sub.add_parser(
         "export",
-        help="convert an MCAP log to .csv, .jsonl, .txt, .pcap (or a repaired .mcap)",
+        help="convert an MCAP log to .csv, .jsonl, .txt, .pcap, .pcapng (or a repaired .mcap)",
         description="Convert an MCAP log by the suffix of OUT: .csv (one row per frame), "
         ".jsonl (read --json lines), .txt (monitor lines), .pcap (Modbus/TCP re-wrapped in "
         "Ethernet/IPv4/TCP with consistent sequence numbers, original endpoints and times, "
@@ -947,7 +948,7 @@ def run_export(args: argparse.Namespace) -> int:
             fmt, flt = _log_times(args, log)
         except FilterError as exc:
             return _filter_failed(log, exc)
-        if suffix in (".pcap", ".mcap") and (
+        if suffix in (".pcap", ".pcapng", ".mcap") and (
             flt.units is not None
             or flt.fcs is not None
             or flt.address is not None
@@ -975,12 +976,13 @@ def run_export(args: argparse.Namespace) -> int:
         try:
             if suffix == ".mcap":
                 _export_mcap(log, target, RecordFilter(since=flt.since, until=flt.until))
-            elif suffix == ".pcap":
+            elif suffix in (".pcap", ".pcapng"):
                 _export_pcap(
                     log,
                     target,
                     ctx,
                     flt,
+                    pcapng=suffix == ".pcapng",
                     keep_segments=args.keep_segments,
                     server_port=None if args.keep_port else args.server_port,
                 )
@@ -1024,16 +1026,25 @@ def _recovers_nothing(log: Any) -> bool:
 
 
 def _export_pcap(
-    log: Any, target: Path, ctx: Any, flt: Any, *, keep_segments: bool, server_port: int | None
+    log: Any,
+    target: Path,
+    ctx: Any,
+    flt: Any,
+    *,
+    keep_segments: bool,
+    server_port: int | None,
+    pcapng: bool = False,
 ) -> None:
-    """The raw bytes as a pcap: one ADU per TCP segment unless ``keep_segments``; Modbus
-    server ports written as ``server_port`` unless it is ``None`` (the sink's notes,
-    on stderr, name the original ports, or the tshark option a kept port needs)."""
+    """The raw bytes as a pcap (or ``pcapng``): one ADU per TCP segment unless
+    ``keep_segments``; Modbus server ports written as ``server_port`` unless it is
+    ``None`` (the sink's notes, on stderr, name the original ports, or the tshark
+    option a kept port needs; pcapng also carries them as comments)."""
     from mbmon.hub import hooks_of
     from mbmon.io.replay import raw_items
-    from mbmon.sinks.pcap import PcapSink
+    from mbmon.sinks.pcap import PcapngSink, PcapSink
 
-    with PcapSink(target, ctx, adu_segments=not keep_segments, server_port=server_port) as sink:
+    cls = PcapngSink if pcapng else PcapSink
+    with cls(target, ctx, adu_segments=not keep_segments, server_port=server_port) as sink:
         take = hooks_of(sink).item
         for item in raw_items(log):
             if flt.since is not None and item.ts < flt.since:

@@ -66,6 +66,7 @@ SINKS: dict[str, tuple[str, str]] = {
     ".csv": ("mbmon.sinks.csvfile", "CsvSink"),
     ".txt": ("mbmon.sinks.text", "TextSink"),
     ".pcap": ("mbmon.sinks.pcap", "PcapSink"),
+    ".pcapng": ("mbmon.sinks.pcap", "PcapngSink"),
     ".parquet": ("mbmon.sinks.parquet", "ParquetSink"),  # needs the 'parquet' extra
 }
 

@@ -1,4 +1,5 @@
-"""Pcap sink (``-w FILE.pcap`` and ``mbmon export LOG.mcap -o FILE.pcap``).
+"""Pcap sink (``-w FILE.pcap`` and ``mbmon export LOG.mcap -o FILE.pcap``), and
+its pcapng form (``.pcapng``: one file, the changes marked as comments in it).
 
 A thin listener over :class:`mbmon.sources.pcapwrite.ChunkWriter`, which owns
 how captured bytes are re-wrapped so Wireshark decodes them (TCP conversations
@@ -57,6 +58,7 @@ class PcapSink(SinkBase):
     ``timeout``, as the records were), instead of one record per serial read.
     ``server_port``: write every Modbus/TCP and Modbus/UDP server port as this one
     (the export's default: 502, which Wireshark decodes with no option).
+    ``pcapng``: write pcapng (:class:`PcapngSink`) instead.
     """
 
     def __init__(
@@ -66,6 +68,7 @@ class PcapSink(SinkBase):
         *,
         adu_segments: bool = False,
         server_port: int | None = None,
+        pcapng: bool = False,
     ) -> None:
         self.path = Path(path)
         self.ctx = ctx
@@ -75,6 +78,7 @@ class PcapSink(SinkBase):
             self.path.open("ab").close()
             self._writer = ChunkWriter(
                 self.path,
+                pcapng=pcapng,
                 nanosecond=False,
                 adu_segments=adu_segments,
                 companion=self._companion_path,
@@ -197,3 +201,21 @@ class PcapSink(SinkBase):
                 f"(first: {first} s); written at the previous packet's time",
                 file=sys.stderr,
             )
+
+
+class PcapngSink(PcapSink):
+    """The same packets as :class:`PcapSink`, as pcapng (``-w x.pcapng``, ``export -o
+    x.pcapng``): one file for IP streams and buses alike, and what the export changed
+    is marked in it, not only noted on stderr: a comment on the first packet of a
+    stream whose server port was rewritten, on the first segment after bytes the
+    capture lost, and a summary in the section header."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        ctx: SinkContext | None = None,
+        *,
+        adu_segments: bool = False,
+        server_port: int | None = None,
+    ) -> None:
+        super().__init__(path, ctx, adu_segments=adu_segments, server_port=server_port, pcapng=True)

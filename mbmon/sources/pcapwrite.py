@@ -18,6 +18,7 @@ Pure Python, no scapy.
 
 from __future__ import annotations
 
+import datetime
 import ipaddress
 import struct
 from collections.abc import Callable, Sequence
@@ -26,6 +27,7 @@ from types import TracebackType
 from typing import Any, BinaryIO, Self
 
 from mbmon.model import Chunk, Direction, Event, EventKind, Frame, Stream, Transport
+from mbmon.timefmt import epoch_text
 
 LINKTYPE_NULL = 0  # BSD loopback: 4-byte address family in the writer's byte order
 LINKTYPE_ETHERNET = 1
@@ -52,6 +54,15 @@ MODBUS_PORT = 502  # the port Wireshark decodes as Modbus/TCP and Modbus/UDP
 
 _PCAP_MAGIC_US = 0xA1B2C3D4
 _PCAP_MAGIC_NS = 0xA1B23C4D
+
+
+def _utc_text(ts: float) -> str:
+    """``ts`` as a UTC date and time with microseconds (epoch seconds out of range)."""
+    try:
+        when = datetime.datetime.fromtimestamp(ts, datetime.UTC)
+    except (ValueError, OverflowError, OSError):
+        return f"{epoch_text(ts)} s"
+    return when.strftime("%Y-%m-%d %H:%M:%S.%f UTC")
 
 
 def parse_endpoint(endpoint: str) -> tuple[str, int]:
@@ -451,11 +462,13 @@ class PcapngWriter(_CaptureFile):
     default; 9 = nanoseconds; 0x80 | n = 2^-n seconds).
     """
 
-    def __init__(self, out: str | Path | BinaryIO, *, big_endian: bool = False) -> None:
+    def __init__(
+        self, out: str | Path | BinaryIO, *, big_endian: bool = False, comments: Sequence[str] = ()
+    ) -> None:
         super().__init__(out)
         self._e = ">" if big_endian else "<"
         self._ifaces: list[tuple[int, int]] = []  # (resolution divisor, snaplen)
-        self.new_section()
+        self.new_section(comments=comments)
 
     def _block(self, block_type: int, body: bytes) -> None:
         body += b"\0" * (-len(body) % 4)
@@ -466,14 +479,51 @@ class PcapngWriter(_CaptureFile):
     def _option(self, code: int, value: bytes) -> bytes:
         return struct.pack(self._e + "HH", code, len(value)) + value + b"\0" * (-len(value) % 4)
 
-    def new_section(self, *, big_endian: bool | None = None) -> None:
-        """Start a section (SHB); interfaces of earlier sections are forgotten."""
+    def _comments(self, comments: Sequence[str]) -> bytes:
+        """One ``opt_comment`` (option 1, UTF-8) per comment; the end-of-options
+        marker is the caller's."""
+        return b"".join(self._option(1, text.encode("utf-8")) for text in comments)
+
+    def _section_header(self, comments: Sequence[str] = ()) -> bytes:
+        """The SHB body: byte-order magic, version 1.0, unknown section length,
+        ``shb_comment`` for each of ``comments``, ``shb_userappl`` mbmon."""
+        body = struct.pack(self._e + "IHHq", 0x1A2B3C4D, 1, 0, -1)
+        return body + self._comments(comments) + self._option(4, b"mbmon") + self._option(0, b"")
+
+    def new_section(self, *, big_endian: bool | None = None, comments: Sequence[str] = ()) -> None:
+        """Start a section (SHB, with a ``shb_comment`` for each of ``comments``);
+        interfaces of earlier sections are forgotten."""
         if big_endian is not None:
             self._e = ">" if big_endian else "<"
         self._ifaces = []
-        body = struct.pack(self._e + "IHHq", 0x1A2B3C4D, 1, 0, -1)
-        body += self._option(4, b"mbmon") + self._option(0, b"")
-        self._block(0x0A0D0D0A, body)
+        self._block(0x0A0D0D0A, self._section_header(comments))
+
+    @staticmethod
+    def comment_first_section(path: str | Path, comments: Sequence[str]) -> None:
+        """Give the first section of the finished pcapng file ``path`` the
+        ``shb_comment`` options ``comments`` (replacing its header, which must be
+        one this writer wrote); the file is rewritten beside itself and renamed over,
+        so a failure leaves the original whole. What a file says about itself is
+        known only once it is written: the writer starts it with a plain header so
+        that a live capture is readable from its first packet."""
+        path = Path(path)
+        with open(path, "rb") as f:
+            head = f.read(12)
+            if len(head) < 12 or head[:4] != b"\x0a\x0d\x0d\x0a":
+                raise ValueError(f"{path}: not a pcapng file")
+            e = "<" if head[8:12] == b"\x4d\x3c\x2b\x1a" else ">"
+            (length,) = struct.unpack(e + "I", head[4:8])
+            f.seek(length)
+            tmp = path.with_name(path.name + ".tmp")
+            try:
+                with open(tmp, "wb") as out:
+                    PcapngWriter(out, big_endian=e == ">", comments=comments)
+                    while block := f.read(1 << 20):
+                        out.write(block)
+                tmp.replace(path)
+            except BaseException:
+                tmp.unlink(missing_ok=True)
+                raise
 
     def add_interface(
         self,
@@ -508,8 +558,11 @@ class PcapngWriter(_CaptureFile):
         interface: int = 0,
         orig_len: int | None = None,
         tsoffset: int = 0,
+        comments: Sequence[str] = (),
     ) -> None:
-        """An Enhanced Packet Block (``tsoffset``: the interface's if_tsoffset, if set)."""
+        """An Enhanced Packet Block (``tsoffset``: the interface's if_tsoffset, if set;
+        ``comments``: an ``opt_comment`` each, what Wireshark shows as the packet's
+        comments, ``frame.comment``)."""
         units = self._units(interface, ts, tsoffset)
         head = struct.pack(
             self._e + "IIIII",
@@ -519,7 +572,10 @@ class PcapngWriter(_CaptureFile):
             len(data),
             len(data) if orig_len is None else orig_len,
         )
-        self._block(6, head + data)
+        body = head + data + b"\0" * (-len(data) % 4)
+        if comments:
+            body += self._comments(comments) + self._option(0, b"")
+        self._block(6, body)
 
     def write_simple(self, data: bytes, *, orig_len: int | None = None) -> None:
         """A Simple Packet Block (interface 0, no timestamp)."""
@@ -628,6 +684,10 @@ class ChunkWriter:
         self.losses: list[tuple[float, Stream, str, int]] = []
         #: link type 147 records written (RTU bus bytes)
         self.bus_records = 0
+        # pcapng packet comments waiting for their packet: a stream's first (its
+        # server port rewritten), a direction's next segment (bytes lost before it)
+        self._stream_notes: dict[int, str] = {}
+        self._loss_notes: dict[tuple[int, bool], list[str]] = {}
         # (stream id, direction) -> (stream, its MBAP decoder), with adu_segments
         self._framers: dict[tuple[int, Direction], tuple[Stream, Any]] = {}
         # the range of times the file holds: pcap has 32-bit seconds; pcapng 64-bit units
@@ -652,8 +712,15 @@ class ChunkWriter:
             self.first_bad_time = ts
         return self._last_ts
 
-    def _emit(self, ts: float, frame: bytes, linktype: int, stream_id: int) -> None:
+    def _emit(
+        self, ts: float, frame: bytes, linktype: int, stream_id: int, comments: Sequence[str] = ()
+    ) -> None:
+        """Write one packet of ``stream_id`` (pcapng: with ``comments``, and the
+        stream's own note before them on its first packet)."""
         ts = self._time(ts)
+        note = self._stream_notes.pop(stream_id, None)
+        if note is not None:
+            comments = [note, *comments]
         if linktype == LINKTYPE_USER0:
             self.bus_records += 1
         if self._pcapng is not None:
@@ -667,7 +734,7 @@ class ChunkWriter:
                 if self._ether_iface is None:
                     self._ether_iface = self._pcapng.add_interface(LINKTYPE_ETHERNET, tsresol=9)
                 iface = self._ether_iface
-            self._pcapng.write(ts, frame, interface=iface)
+            self._pcapng.write(ts, frame, interface=iface, comments=comments)
             return
         if self._pcap is None:
             self._pcap = PcapWriter(self._out, linktype, nanosecond=self._nanosecond)
@@ -701,6 +768,10 @@ class ChunkWriter:
                 self.ports_kept.add((stream.transport, port))
             elif port != self._server_port:
                 self.ports_rewritten[(stream.transport, port)] = self._server_port
+                self._stream_notes[stream.id] = (
+                    f"mbmon: server port {port} in the original capture, written as "
+                    f"{self._server_port}"
+                )
                 server = join_endpoint(host, self._server_port)
         elif not mbap or port != MODBUS_PORT:
             self.ports_kept.add((stream.transport, port))
@@ -785,9 +856,11 @@ class ChunkWriter:
     def _segments(self, stream: Stream, from_client: bool, data: bytes, ts: float) -> None:
         """``data`` as TCP segments of at most :attr:`MAX_SEGMENT` bytes."""
         conv = self._conversation(stream)
+        comments = self._loss_notes.pop((stream.id, from_client), [])
         for start in range(0, max(len(data), 1), self.MAX_SEGMENT):
             frame = conv.send(from_client, data[start : start + self.MAX_SEGMENT])
-            self._emit(ts, frame, LINKTYPE_ETHERNET, stream.id)
+            self._emit(ts, frame, LINKTYPE_ETHERNET, stream.id, comments)
+            comments = []
 
     def _adu_segment(
         self, stream: Stream, from_client: bool, data: bytes, framed: bool, ts: float
@@ -841,6 +914,13 @@ class ChunkWriter:
                 # one ADU per segment: numbered on, nothing for Wireshark to wait for
                 direction = str(event.info.get("direction", Direction.C2S.value))
                 self.losses.append((event.ts, stream, direction, size))
+                client = direction != Direction.S2C.value
+                side = "client" if client else "server"
+                amount = "1 byte" if size == 1 else f"{size} bytes"
+                self._loss_notes.setdefault((stream.id, client), []).append(
+                    f"mbmon: {amount} of the {side}'s stream {'was' if size == 1 else 'were'} "
+                    f"not captured before this segment (lost at {_utc_text(event.ts)})"
+                )
                 return []
             from_client = event.info.get("direction") == Direction.C2S.value
             if from_client:
@@ -858,6 +938,26 @@ class ChunkWriter:
                 return [conv.segment(by_client, FIN | ACK)]
             return conv.close(by_client)
         return []
+
+    def section_comments(self) -> list[str]:
+        """What the export changed, for the pcapng section header (``shb_comment``):
+        server ports rewritten and bytes lost where the segments are numbered on;
+        the packets concerned carry a comment each."""
+        out = [
+            f"mbmon: Modbus/{transport.value.upper()} server port {port} in the original capture, "
+            f"written as {new} (comment on each such stream's first packet)"
+            for (transport, port), new in sorted(
+                self.ports_rewritten.items(), key=lambda kv: (kv[0][0].value, kv[0][1])
+            )
+        ]
+        if self.losses:
+            lost = sum(n for _ts, _stream, _direction, n in self.losses)
+            out.append(
+                f"mbmon: {lost} byte(s) were not captured in {len(self.losses)} place(s); the "
+                "segments are numbered contiguously, one ADU each (comment on the first "
+                "segment after each loss)"
+            )
+        return out
 
     def flush(self) -> None:
         """Hand what was written so far to the OS (a live ``-w x.pcap`` on each tick);
@@ -879,6 +979,9 @@ class ChunkWriter:
         finally:
             if self._pcapng is not None:
                 self._pcapng.close()
+                summary = self.section_comments()
+                if summary and isinstance(self._out, str | Path):
+                    PcapngWriter.comment_first_section(self._out, summary)
             elif self._pcap is not None:
                 self._pcap.close()
             else:

@@ -281,3 +281,98 @@ def test_rtu_export_has_one_adu_per_record(tmp_path: Path) -> None:
     rows = tshark(out, *options, display="mbrtu")
     assert adus_seen(rows) == 16
     assert len(rows) == 16  # one frame per record: nothing for tshark to reassemble
+
+
+# --------------------------------------------------------------------------- pcapng
+
+
+FIELDS_COMMENT = ["-e", "frame.number", "-e", "frame.comment"]
+
+
+def comments_of(path: Path) -> list[tuple[int, str]]:
+    """``(frame number, comment)`` of every packet comment tshark shows (4.x: the
+    field is ``frame.comment``; several comments on one packet are comma-joined)."""
+    assert TSHARK is not None
+    out = subprocess.run(
+        [TSHARK, "-r", str(path), "-Y", "frame.comment", "-T", "fields", *FIELDS_COMMENT],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    ).stdout
+    return [(int(n), text) for n, text in (line.split("\t", 1) for line in out.splitlines())]
+
+
+def section_comments(path: Path) -> str:
+    """The section header's comments, as ``capinfos`` prints them."""
+    capinfos = shutil.which("capinfos")
+    if capinfos is None:
+        pytest.skip("capinfos (Wireshark's tools) is not installed")
+    out = subprocess.run(
+        [capinfos, str(path)], capture_output=True, text=True, timeout=120, check=True
+    ).stdout
+    return "\n".join(line for line in out.splitlines() if "comment" in line.lower())
+
+
+def export_both(log: Path, tmp_path: Path, name: str) -> tuple[Path, Path, str]:
+    """The log exported as ``NAME.pcap`` and ``NAME.pcapng``; the pcapng's stderr."""
+    mbmon("export", log, "-o", tmp_path / f"{name}.pcap")
+    err = mbmon("export", log, "-o", tmp_path / f"{name}.pcapng").stderr
+    return tmp_path / f"{name}.pcap", tmp_path / f"{name}.pcapng", err
+
+
+def read_lines(capture: Path) -> list[str]:
+    return mbmon("read", capture, "--port", "502").stdout.splitlines()
+
+
+def test_pcapng_export_marks_the_rewritten_port(tmp_path: Path) -> None:
+    capture = tcp_capture(tmp_path / "p1502.pcap", "10.0.0.1:1502")
+    pcap, pcapng, err = export_both(log_of(capture, tmp_path, "--port", "1502"), tmp_path, "p")
+    assert pcapng.read_bytes()[:4] == b"\x0a\x0d\x0d\x0a"
+    assert "server port 1502 written as 502" in err  # the stderr note stays
+    assert adus_seen(tshark(pcapng)) == adus_seen(tshark(pcap)) == 60
+    assert not any(r[2] for r in tshark(pcapng)), "TCP analysis flags"
+    # the stream's first packet (its SYN) says what the port was; nothing else has a comment
+    assert comments_of(pcapng) == [
+        (1, "mbmon: server port 1502 in the original capture, written as 502")
+    ]
+    assert "Modbus/TCP server port 1502 in the original capture, written as 502" in (
+        section_comments(pcapng)
+    )
+    lines = read_lines(pcapng)
+    assert len(lines) > 60 and lines == read_lines(pcap)
+    # a port kept as it was is no rewrite: no comment anywhere
+    kept = tmp_path / "k.pcapng"
+    mbmon("export", log_of(capture, tmp_path, "--port", "1502"), "-o", kept, "--keep-port")
+    assert comments_of(kept) == [] and section_comments(kept) == ""
+
+
+def test_pcapng_export_marks_the_loss(tmp_path: Path) -> None:
+    pcap, pcapng, err = export_both(
+        log_of(lossy_capture(tmp_path / "lossy.pcap"), tmp_path), tmp_path, "l"
+    )
+    assert "lost 1 byte(s) of Modbus/TCP in 1 place(s)" in err
+    rows = tshark(pcapng)
+    assert adus_seen(rows) == adus_seen(tshark(pcap)) == 239
+    flags = tshark(pcapng, display="tcp.analysis.lost_segment || tcp.analysis.ack_lost_segment")
+    assert flags == [], "the export leaves a hole in the sequence numbers"
+    marked = comments_of(pcapng)
+    assert [text for _n, text in marked] == [
+        "mbmon: 1 byte of the server's stream was not captured before this segment "
+        "(lost at 2024-05-01 12:00:00.088994 UTC)"
+    ]
+    # the comment is on the server's first segment after the loss: the rest of the response
+    number = marked[0][0]
+    fields = ["-e", "tcp.srcport", "-e", "tcp.len"]
+    assert TSHARK is not None
+    segment = subprocess.run(
+        [TSHARK, "-r", str(pcapng), "-Y", f"frame.number == {number}", "-T", "fields", *fields],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    ).stdout.split()
+    assert segment[0] == "502" and int(segment[1]) > 0
+    assert "1 byte(s) were not captured in 1 place(s)" in section_comments(pcapng)
+    lines = read_lines(pcapng)
+    assert len(lines) > 239 and lines == read_lines(pcap)

@@ -67,6 +67,45 @@ def test_pcapng_blocks_are_well_formed(tmp_path: Path) -> None:
     assert struct.unpack_from("<III", epb, 8) == (0, 0, 2_000_000_000)
 
 
+def test_pcapng_packet_and_section_comments_are_opt_comment_options(tmp_path: Path) -> None:
+    """EPB: data padded, then one ``opt_comment`` (code 1) per comment and the end of
+    options; the section comment is put in a finished file in either byte order."""
+    for big, e in ((False, "<"), (True, ">")):
+        path = tmp_path / f"c{int(big)}.pcapng"
+        with PcapngWriter(path, big_endian=big) as writer:
+            writer.add_interface(LINKTYPE_ETHERNET, tsresol=9)
+            writer.write(2.0, b"abc", comments=["lost 3", "port"])
+            writer.write(3.0, b"de")  # no comment: no options at all
+        plain = path.read_bytes()
+        PcapngWriter.comment_first_section(path, ["two rewrites", "é"])
+        data = path.read_bytes()
+        shb_len = struct.unpack_from(e + "I", data, 4)[0]
+        old_len = struct.unpack_from(e + "I", plain, 4)[0]
+        assert data[shb_len:] == plain[old_len:]  # every other block as it was
+        assert struct.unpack_from(e + "I", data, shb_len - 4)[0] == shb_len
+        options = data[8 + 16 : shb_len - 4]
+        assert options == (
+            struct.pack(e + "HH", 1, 12) + b"two rewrites"
+            + struct.pack(e + "HH", 1, 2) + "é".encode() + b"\0\0"
+            + struct.pack(e + "HH", 4, 5) + b"mbmon\0\0\0"
+            + struct.pack(e + "HH", 0, 0)
+        )  # fmt: skip
+        pos = shb_len
+        pos += struct.unpack_from(e + "I", data, pos + 4)[0]  # the IDB
+        epb_len = struct.unpack_from(e + "I", data, pos + 4)[0]
+        epb = data[pos : pos + epb_len]
+        assert epb[28:] == (
+            b"abc\0"
+            + struct.pack(e + "HH", 1, 6) + b"lost 3\0\0"
+            + struct.pack(e + "HH", 1, 4) + b"port"
+            + struct.pack(e + "HH", 0, 0)
+            + struct.pack(e + "I", epb_len)
+        )  # fmt: skip
+        second = data[pos + epb_len :]
+        assert len(second) == 12 + 20 + 4 and second[28:32] == b"de\0\0"
+        assert not list(tmp_path.glob("*.tmp"))
+
+
 def _tshark_fields(path: Path, *fields: str) -> list[list[str]]:
     assert TSHARK is not None
     args = [TSHARK, "-r", str(path), "-o", "tcp.relative_sequence_numbers:FALSE"]
