@@ -645,6 +645,7 @@ class RtuDecoder(StreamDecoder):
         stop = min(far, n)
         state = 0
         seen = False
+        unsure = -1  # where a frame's follower could not be told yet (bytes to come)
         while length and k < stop:
             end = k + length
             if (
@@ -656,9 +657,13 @@ class RtuDecoder(StreamDecoder):
                 state = 1
                 break
             after = self._standalone(buf, end, n, mode)
-            if after:
-                state = 1 if after > 0 else -1
+            if after > 0:
+                state = 1
                 break
+            if after and unsure < 0:
+                # a follower cannot be told yet, but a later frame (at the silence,
+                # or a second one) may line up for sure: look on
+                unsure = k
             seen = True
             k += 1
             length = 0
@@ -677,6 +682,8 @@ class RtuDecoder(StreamDecoder):
                     if pos < j < stop:
                         k, state = j, 1
                         break
+        if not state and unsure >= 0:
+            k, state = unsure, -1
         self._lined = (pos, first, k, state)
         return state if k < far else 0
 
