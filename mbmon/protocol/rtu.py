@@ -723,17 +723,20 @@ class RtuDecoder(StreamDecoder):
 
         Yes when a frame of predictable length with a valid CRC starts inside it
         and either reaches ``end`` (or beyond) or is followed right away by a
-        second such frame.
+        second such frame. Offsets before the latest silence are told as at the
+        silence (as :meth:`_frame_within` does): a frame there that needs more
+        bytes than all those present is none, not a reason to wait.
         """
+        mark = self._mark if mode == _STREAM else 0
         for j in range(start + 1, end):
-            first = self._standalone(buf, j, n, mode)
+            first = self._standalone(buf, j, n, _SILENCE if j < mark else mode)
             if first < 0:
                 return -1
             if not first:
                 continue
             if j + first >= end:
                 return 1
-            second = self._standalone(buf, j + first, n, mode)
+            second = self._standalone(buf, j + first, n, _SILENCE if j + first < mark else mode)
             if second < 0:
                 return -1
             if second:

@@ -166,6 +166,27 @@ def test_late_reader_frame_between_noise_out_with_the_read_after_the_silence() -
     assert at == reads[3].ts  # with the next frame, not t3.5 after it
 
 
+def test_scanned_frame_between_noise_out_with_the_frame_at_the_silence() -> None:
+    # an unknown function code (0x42, length found by its CRC) with a noise byte
+    # before and a bad-CRC copy of the answer after it, then a silence and the
+    # answer: the read that brings the answer decides it. Inside the scanned frame
+    # "55 10 .." reads as a write request whose byte count (at the answer) asks for
+    # 26 bytes; before the silence that is no frame (it once waited for the tick)
+    frame, answer = h("11 42 00 00 00 00 7B 55"), h("11 C2 01 B1 65")
+    dec = RtuDecoder(BUS, baudrate=BAUD, silence=1.0)
+    reads = [
+        Delivered(1.0, h("00")),
+        Delivered(1.0 + 0.002 + 13 * CHAR, frame + h("10 C2 01 B1 65")),
+        Delivered(1.0 + 0.004 + 18 * CHAR, answer),
+    ]
+    out = drive(dec, reads)
+    assert frames([x for _, x in out]) == [(Direction.C2S, frame), (Direction.S2C, answer)]
+    assert [x.raw for _, x in out if isinstance(x, Noise)] == [h("00"), h("10 C2 01 B1 65")]
+    [(at, f)] = [(at, x) for at, x in out if isinstance(x, Frame) and x.raw == frame]
+    assert f.ts == reads[1].ts
+    assert at == reads[2].ts  # with the answer, not t3.5 after it
+
+
 def h(text: str) -> bytes:
     return bytes.fromhex(text)
 
