@@ -656,6 +656,7 @@ class RtuDecoder(StreamDecoder):
         stop = min(far, n)
         state = 0
         seen = False
+        unsure = -1  # where a frame's follower could not be told yet (bytes to come)
         while length and k < stop:
             end = k + length
             if (
@@ -667,9 +668,13 @@ class RtuDecoder(StreamDecoder):
                 state = 1
                 break
             after = self._standalone(buf, end, n, mode)
-            if after:
-                state = 1 if after > 0 else -1
+            if after > 0:
+                state = 1
                 break
+            if after and unsure < 0:
+                # a follower cannot be told yet, but a later frame (at the silence,
+                # or a second one) may line up for sure: look on
+                unsure = k
             seen = True
             k += 1
             length = 0
@@ -688,6 +693,8 @@ class RtuDecoder(StreamDecoder):
                     if pos < j < stop:
                         k, state = j, 1
                         break
+        if not state and unsure >= 0:
+            k, state = unsure, -1
         self._lined = (pos, first, k, state)
         return state if k < far else 0
 
@@ -727,17 +734,20 @@ class RtuDecoder(StreamDecoder):
 
         Yes when a frame of predictable length with a valid CRC starts inside it
         and either reaches ``end`` (or beyond) or is followed right away by a
-        second such frame.
+        second such frame. Offsets before the latest silence are told as at the
+        silence (as :meth:`_frame_within` does): a frame there that needs more
+        bytes than all those present is none, not a reason to wait.
         """
+        mark = self._mark if mode == _STREAM else 0
         for j in range(start + 1, end):
-            first = self._standalone(buf, j, n, mode)
+            first = self._standalone(buf, j, n, _SILENCE if j < mark else mode)
             if first < 0:
                 return -1
             if not first:
                 continue
             if j + first >= end:
                 return 1
-            second = self._standalone(buf, j + first, n, mode)
+            second = self._standalone(buf, j + first, n, _SILENCE if j + first < mark else mode)
             if second < 0:
                 return -1
             if second:

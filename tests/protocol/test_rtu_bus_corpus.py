@@ -17,7 +17,7 @@ import itertools
 import random
 
 import pytest
-from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import HealthCheck, assume, example, given, settings
 from hypothesis import strategies as st
 from rtu_corpus import (
     BAD_CRC,
@@ -39,6 +39,7 @@ from mbmon.protocol.rtu import RtuDecoder, t35
 
 BUS = Stream(0, Transport.RTU, "/dev/ttyUSB0", "/dev/ttyUSB0")
 T35 = t35(BAUD)
+PROMPT_BYTES = int(T35 / CHAR)  # the most bytes a prompt read holds: they span < t3.5
 
 
 def frames(items: list) -> list[tuple[Direction, bytes]]:
@@ -131,6 +132,59 @@ def test_noise_glued_to_a_frame_is_settled_at_the_silence() -> None:
     assert f.ts == 5.0 and at <= 5.0 + T35 + 1e-5
     [n] = noises([x for _, x in out])
     assert n.raw == h("FF 03")
+
+
+def test_late_reader_frame_between_noise_out_with_the_read_after_the_silence() -> None:
+    # A reader hands over 19 bytes 1.8 ms (> t3.5) after the first came: the tick
+    # t3.5 after the lone byte before them falls inside a frame, so the line looks
+    # like a bursty adapter's and a frame between noise waits for one that lines it
+    # up. Here the frame after the silence starts right at it: the read that brings
+    # it decides the frame before, though a bad-CRC copy after that one needs more
+    # bytes than are there to be told apart (it once waited for the next tick).
+    request = h("11 01 01 30 00 01 FE A9")
+    answer = h("11 01 01 01 94 88")
+    noise = h("10 0F 01 30 00 25 05 CD 6B B2 0E 1B CC C1")
+    frame = h("11 0F 01 30 00 25 05 CD 6B B2 0E 1B CC C1")
+    bad = h("10 0F 01 30 00 25 97 73")
+    last = h("11 0F 01 30 00 25 97 73")
+    parts = [request, h("10 01 01 01 94 88"), answer, noise, frame, bad, last]
+    bytes_at = wire(parts, [0.002, 0.0, 0.0, 0.002, 0.0, 0.0, 0.002])
+    data = b"".join(parts)
+    cut = [0, 1, 20, 56, len(data)]  # 1 byte, 19 late, the 36 before the silence, 8
+    reads = [Delivered(bytes_at[b - 1][0], data[a:b]) for a, b in itertools.pairwise(cut)]
+    dec = RtuDecoder(BUS, baudrate=BAUD, silence=1.0)
+    out = drive(dec, reads)
+    assert frames([x for _, x in out]) == [
+        (Direction.C2S, request),
+        (Direction.S2C, answer),
+        (Direction.C2S, frame),
+        (Direction.S2C, last),
+    ]
+    assert [x.raw for _, x in out if isinstance(x, Noise)] == [parts[1], noise, bad]
+    [(at, f)] = [(at, x) for at, x in out if isinstance(x, Frame) and x.raw == frame]
+    assert f.ts == reads[2].ts
+    assert at == reads[3].ts  # with the next frame, not t3.5 after it
+
+
+def test_scanned_frame_between_noise_out_with_the_frame_at_the_silence() -> None:
+    # an unknown function code (0x42, length found by its CRC) with a noise byte
+    # before and a bad-CRC copy of the answer after it, then a silence and the
+    # answer: the read that brings the answer decides it. Inside the scanned frame
+    # "55 10 .." reads as a write request whose byte count (at the answer) asks for
+    # 26 bytes; before the silence that is no frame (it once waited for the tick)
+    frame, answer = h("11 42 00 00 00 00 7B 55"), h("11 C2 01 B1 65")
+    dec = RtuDecoder(BUS, baudrate=BAUD, silence=1.0)
+    reads = [
+        Delivered(1.0, h("00")),
+        Delivered(1.0 + 0.002 + 13 * CHAR, frame + h("10 C2 01 B1 65")),
+        Delivered(1.0 + 0.004 + 18 * CHAR, answer),
+    ]
+    out = drive(dec, reads)
+    assert frames([x for _, x in out]) == [(Direction.C2S, frame), (Direction.S2C, answer)]
+    assert [x.raw for _, x in out if isinstance(x, Noise)] == [h("00"), h("10 C2 01 B1 65")]
+    [(at, f)] = [(at, x) for at, x in out if isinstance(x, Frame) and x.raw == frame]
+    assert f.ts == reads[1].ts
+    assert at == reads[2].ts  # with the answer, not t3.5 after it
 
 
 def h(text: str) -> bytes:
@@ -244,6 +298,32 @@ def noisy_bus(draw: st.DrawFn) -> tuple[list[bytes], list[int]]:
     st.lists(st.sampled_from([0.0, 0.002, 0.005, 0.05, 0.3]), min_size=1, max_size=6),
     st.booleans(),
 )
+@example(
+    bus=(
+        [
+            b"\x10\x05\x010\xff\x00\x8fY",
+            b"\x11\x05\x010\xff\x00\x8fY",
+            b"\x10\x05\x010\xff\x00\x8fY",
+            b"\x11\x05\x010\xff\x00\x8fY",
+            b"\x11\x01\x010\x00\x01\xfe\xa9",
+            b"\x10\x01\x01\x01\x94\x88",
+            b"\x11\x01\x01\x01\x94\x88",
+            b"\x10\x0f\x010\x00%\x05\xcdk\xb2\x0e\x1b\xcc\xc1",
+            b"\x11\x0f\x010\x00%\x05\xcdk\xb2\x0e\x1b\xcc\xc1",
+            b"\x10\x0f\x010\x00%\x97s",
+            b"\x11\x0f\x010\x00%\x97s",
+            b"\x11\x01\x010\x00%\xfe\xb2",
+            b"\x11\x01\x05\xcdk\xb2\x0e\x1bE\xe6",
+            b"\x11\x02\x01\xc4\x00\x16\xbbU",
+            b"\x11\x02\x03\xac\xdb5 \x18",
+            b"\x11\x06\x01`\x124\x87\xcf",
+        ],
+        [0, 2, 5, 7, 9],
+    ),
+    cuts=[172],
+    gaps=[0.0, 0.002, 0.0],
+    usb=False,
+).via("discovered failure")
 def test_noise_bursts_any_chunking_each_frame_once_on_time(
     bus: tuple[list[bytes], list[int]], cuts: list[int], gaps: list[float], usb: bool
 ) -> None:
@@ -270,6 +350,13 @@ def test_noise_bursts_any_chunking_each_frame_once_on_time(
             if gap:
                 points.add(edge)
             edge += len(part)
+        # and hands over each byte within t3.5 of its arrival: a read holding more
+        # bytes than t3.5 carries is late, the decoder's tick then falls inside a
+        # frame and rightly takes the line for a bursty adapter's
+        # (test_late_reader_frame_between_noise_out_with_the_read_after_the_silence)
+        cut = sorted(points)
+        for a, b in itertools.pairwise(cut):
+            points.update(range(a + PROMPT_BYTES, b, PROMPT_BYTES))
         cut = sorted(points)
         reads = [Delivered(bytes_at[b - 1][0], data[a:b]) for a, b in itertools.pairwise(cut)]
     # the reads a silence follows (or the last): t3.5 later the decoder is ticked
