@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
+from mbmon_cli import mbmon
 
 from mbmon.protocol.mbap import encode_adu
 from mbmon.sources.pcapwrite import PcapWriter, TcpConversation
@@ -51,16 +52,6 @@ def cell(
                 )
         for frame in conv.close():
             out.write(t + 5, frame)
-
-
-def mbmon(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "mbmon", *args],
-        capture_output=True,
-        text=True,
-        cwd=REPO,
-        timeout=300,
-    )
 
 
 @pytest.fixture(scope="module")

@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from mbmon_cli import mbmon
 
 from mbmon.analysis.report import analyse, percentile, text_tables
 from mbmon.format import View, record_to_json
@@ -73,16 +74,6 @@ def objects(path: Path, baud: int | None = None) -> list[dict]:
     view = View()
     pipeline = Pipeline(config=PipelineConfig(baudrate=baud))
     return [record_to_json(r, view) for r in pipeline.run(read_capture(path))]
-
-
-def mbmon(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "mbmon", *args],
-        capture_output=True,
-        text=True,
-        cwd=REPO,
-        timeout=300,
-    )
 
 
 def test_figures_of_a_capture_with_known_periods_latencies_and_faults(capture: Path) -> None:

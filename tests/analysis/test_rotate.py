@@ -8,12 +8,11 @@ import calendar
 import csv
 import json
 import re
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
+from mbmon_cli import mbmon
 
 from mbmon.analysis.rotate import RotatingSink, parse_rotate, rotated_name
 from mbmon.protocol.mbap import encode_adu
@@ -60,16 +59,6 @@ def polling(path: Path, *, hours: float = 3.0, period: float = 10.0) -> int:
 def capture(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, int]:
     path = tmp_path_factory.mktemp("rot") / "cell.pcap"
     return path, polling(path)
-
-
-def mbmon(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "mbmon", *args],
-        capture_output=True,
-        text=True,
-        cwd=REPO,
-        timeout=300,
-    )
 
 
 def ring(directory: Path, suffix: str) -> list[Path]:

@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from mbmon_cli import mbmon
 
 from mbmon.analysis.trigger import TriggerGate
 from mbmon.filters import FilterError, parse_expression
@@ -57,16 +58,6 @@ def capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("trig") / "hour.pcap"
     faulty(path)
     return path
-
-
-def mbmon(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "mbmon", *args],
-        capture_output=True,
-        text=True,
-        cwd=REPO,
-        timeout=300,
-    )
 
 
 def test_an_hour_with_three_faults_gives_three_windows_of_the_right_frames(
