@@ -21,10 +21,10 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from long_capture import write_long_capture
 from mcap.reader import make_reader
 
 from mbmon.io.mcap.reader import McapLog
-from mbmon.sources.pcapwrite import PcapWriter, TcpConversation
 
 REPO = Path(__file__).resolve().parents[2]
 OWN = REPO / "captures"
@@ -476,24 +476,8 @@ def test_progress_on_a_terminal_never_takes_stdout(tmp_path: Path) -> None:
 @pytest.fixture(scope="module")
 def long_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A Modbus/TCP capture that takes mbmon many seconds to read (25 ADUs per segment)."""
-    path = tmp_path_factory.mktemp("big") / "long.pcap"
-    conv = TcpConversation("10.0.0.2:40000", "10.0.0.1:502")
-    ts = 1_700_000_000.0
-    with PcapWriter(path) as w:
-        for frame in conv.open():
-            w.write(ts, frame)
-        tid = 0
-        for _ in range(16000):  # 400,000 ADUs: many seconds even on a fast machine
-            reqs, resps = b"", b""
-            for _ in range(25):
-                tid = (tid + 1) & 0xFFFF
-                reqs += tid.to_bytes(2, "big") + bytes.fromhex("0000000601030064000A")
-                resps += tid.to_bytes(2, "big") + bytes.fromhex("00000017010314") + bytes(20)
-            ts += 0.001
-            w.write(ts, conv.send(True, reqs))
-            ts += 0.001
-            w.write(ts, conv.send(False, resps))
-    return path
+    # 400,000 ADUs: many seconds even on a fast machine
+    return write_long_capture(tmp_path_factory.mktemp("big") / "long.pcap", 16000)
 
 
 def _start_recording(

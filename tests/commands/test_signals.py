@@ -21,9 +21,9 @@ import time
 from pathlib import Path
 
 import pytest
+from long_capture import write_long_capture
 
 from mbmon.io.mcap.reader import McapLog
-from mbmon.sources.pcapwrite import PcapWriter, TcpConversation
 
 REPO = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "PYTHONPATH": str(REPO), "TZ": "UTC"}
@@ -32,26 +32,7 @@ ENV = {**os.environ, "PYTHONPATH": str(REPO), "TZ": "UTC"}
 @pytest.fixture(scope="module")
 def long_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A Modbus/TCP capture that takes mbmon many seconds to read (25 ADUs per segment)."""
-    path = tmp_path_factory.mktemp("long") / "long.pcap"
-    conv = TcpConversation("10.0.0.2:40000", "10.0.0.1:502")
-    ts = 1_700_000_000.0
-    req = bytes.fromhex("0000000601030064000A")
-    resp = bytes.fromhex("00000017010314") + bytes(20)
-    with PcapWriter(path) as w:
-        for frame in conv.open():
-            w.write(ts, frame)
-        tid = 0
-        for _ in range(12000):
-            reqs, resps = [], []
-            for _ in range(25):
-                tid = (tid + 1) & 0xFFFF
-                reqs.append(tid.to_bytes(2, "big") + req)
-                resps.append(tid.to_bytes(2, "big") + resp)
-            ts += 0.001
-            w.write(ts, conv.send(True, b"".join(reqs)))
-            ts += 0.001
-            w.write(ts, conv.send(False, b"".join(resps)))
-    return path
+    return write_long_capture(tmp_path_factory.mktemp("long") / "long.pcap", 12000)
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
