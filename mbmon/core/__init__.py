@@ -124,8 +124,9 @@ def read_file(
     """Run the core on the capture at ``path``: a deciding pass, then (unless it
     declined, and when ``write`` is given) a writing pass that hands its output,
     in blocks of about 1 MiB of UTF-8, to ``write``. The counts are the summary's.
-    With ``detect`` (the reference's port detection is on) it declines any TCP payload
-    on ports outside ``ports``: detection may find Modbus there."""
+    With ``detect`` (the reference's port detection is on) the first pass feeds the
+    reference's port detector every TCP segment on other ports and declines when it
+    finds Modbus there."""
     if _load() is not None:
         return CoreRun(declined=f"the compiled core is unavailable: {_UNAVAILABLE}")
     if not _regular_file(path):
@@ -184,7 +185,9 @@ def read_buffer(
         return CoreRun(declined="no Modbus frames (the reference reader gives the hints)")
     if write is None:
         return CoreRun(counts=_counts(first))
-    second = _reader._Pass(True, as_json, timeout, ports, view, write, detect)
+    # the first pass fed port detection every other-port segment and found no Modbus
+    # there: the writing pass need not look again
+    second = _reader._Pass(True, as_json, timeout, ports, view, write, False)
     second.release = release
     second.progress = progress
     second.progress_base = len(data) // 2

@@ -384,6 +384,7 @@ cdef class _Pass:
     cdef double timeout
     cdef object ports           # frozenset of Modbus/TCP ports
     cdef bint detect            # the reference would look for Modbus on other TCP ports
+    cdef object detector        # with detect: the reference's PortDetector, fed the same segments
     cdef uint8_t port_map[65536]  # the same, one byte per port
     cdef uint8_t ckey[64][12]   # a direct-mapped cache of the flow table (12-byte keys)
     cdef int cval[64]           # its values; -1: empty
@@ -467,6 +468,11 @@ cdef class _Pass:
                  bint detect=False):
         self.emit = emit
         self.detect = detect
+        self.detector = None
+        if detect:
+            from mbmon.analysis.detect import PortDetector
+
+            self.detector = PortDetector()
         self.as_json = as_json
         self.timeout = timeout
         self.ports = ports
@@ -1399,7 +1405,7 @@ cdef class _Pass:
             et = (buf[off + 2] << 8) | buf[off + 3]
             off += 4
         if et == 0x86DD:
-            return self.ipv6(buf, off, end)
+            return self.ipv6(ts, buf, off, end)
         if et != 0x0800:
             return 0
         if end - off < 20:
@@ -1440,10 +1446,13 @@ cdef class _Pass:
         sport = (b[0] << 8) | b[1]
         dport = (b[2] << 8) | b[3]
         if not self.port_map[sport] and not self.port_map[dport]:
-            if self.detect and (first_fragment or ip_end - l4 > ((b[12] >> 2) & 0x3C)):
-                # port detection reads this payload in the reference pipeline
-                raise Declined("TCP payload on other ports, where port detection looks "
-                               "for Modbus by its structure (--no-detect)")
+            if self.detect:
+                doff = (b[12] >> 2) & 0x3C
+                if not first_fragment and not (total and off + total > end) and (
+                        20 <= doff <= ip_end - l4):
+                    self.detect_segment(ts, bytes(buf[off + 12:off + 20]), sport, dport,
+                                        be32(b + 4), be32(b + 8), b[13],
+                                        bytes(buf[l4 + doff:ip_end]))
             return 0
         if first_fragment:
             raise Declined("a fragmented IP packet on a Modbus port")
@@ -1496,15 +1505,19 @@ cdef class _Pass:
             return self.new_conn(key, addrs, sport, dport, flags, ts)
         return v
 
-    cdef int ipv6(self, const uint8_t[::1] buf, Py_ssize_t off, Py_ssize_t end) except -1:
-        """IPv6: declined when it carries Modbus (the ports), else skipped."""
+    cdef int ipv6(self, double ts, const uint8_t[::1] buf, Py_ssize_t off,
+                  Py_ssize_t end) except -1:
+        """IPv6: declined when it carries Modbus (the ports); TCP on other ports goes to
+        port detection as the reference's general path sends it; else skipped."""
         cdef Py_ssize_t ip_end, l4, plen
-        cdef int proto, k, sport, dport
+        cdef int proto, k, sport, dport, doff, frag
+        cdef bint short = False
         if end - off < 40 or buf[off] >> 4 != 6:
             return 0
         plen = (buf[off + 4] << 8) | buf[off + 5]
         ip_end = off + 40 + plen if plen else end
         if ip_end > end:
+            short = True
             ip_end = end
         proto = buf[off + 6]
         l4 = off + 40
@@ -1516,6 +1529,11 @@ cdef class _Pass:
             elif proto == 44:
                 if ip_end - l4 < 8:
                     return 0
+                frag = (buf[l4 + 2] << 8) | buf[l4 + 3]
+                if frag & 0xFFF9:
+                    if frag & 0xFFF8:
+                        return 0  # not the first fragment: no transport header
+                    short = True
                 proto, l4 = buf[l4], l4 + 8
             elif proto == 51:
                 if ip_end - l4 < 8:
@@ -1528,9 +1546,26 @@ cdef class _Pass:
             dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
             if self.port_map[sport] or self.port_map[dport]:
                 raise Declined("Modbus over IPv6")
-            if self.detect and proto == 6:
-                raise Declined("TCP over IPv6 on other ports, where port detection looks "
-                               "for Modbus by its structure (--no-detect)")
+            if self.detect and proto == 6 and ip_end - l4 >= 20 and not short:
+                doff = (buf[l4 + 12] >> 2) & 0x3C
+                if 20 <= doff <= ip_end - l4:
+                    self.detect_segment(ts, bytes(buf[off + 8:off + 40]), sport, dport,
+                                        be32(&buf[l4 + 4]), be32(&buf[l4 + 8]), buf[l4 + 13],
+                                        bytes(buf[l4 + doff:ip_end]))
+        return 0
+
+    cdef int detect_segment(self, double ts, bytes addrs, int sport, int dport, int64_t seq,
+                            int64_t ack, int flags, bytes payload) except -1:
+        """A TCP segment on no Modbus port: the reference's port detector judges it
+        (the same detector, fed the same segments as the reference dissector feeds
+        it). While nothing is found, the reference drops these segments as the core
+        does; a connection found to be Modbus is the reference's to read."""
+        if self.detector is None:
+            return 0
+        verdict = self.detector.segment(ts, (addrs, sport, dport), seq, ack, flags, payload)
+        if verdict is not True and verdict is not False:
+            raise Declined("Modbus found by port detection on a port not named (port %d)"
+                           % min(sport, dport))
         return 0
 
     # ------------------------------------------------------------------ containers

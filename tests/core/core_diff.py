@@ -46,7 +46,12 @@ def require_core() -> None:
 
 
 def reference(
-    path: str | Path, *, as_json: bool, ports: frozenset[int] = frozenset({502}), timeout=1.0
+    path: str | Path,
+    *,
+    as_json: bool,
+    ports: frozenset[int] = frozenset({502}),
+    timeout: float = 1.0,
+    detect: bool = False,
 ) -> tuple[bytes, str]:
     """``mbmon read`` by the Python pipeline: stdout's bytes and the summary's text."""
     raw = io.BytesIO()
@@ -57,7 +62,7 @@ def reference(
     hub.add_listener(Selection([ConsoleListener(out, view, as_json=as_json)], view))
     hub.add_listener(summary)
     try:
-        hub.run_items(read_capture(path, CaptureConfig(tcp_ports=ports)))
+        hub.run_items(read_capture(path, CaptureConfig(tcp_ports=ports, detect=detect)))
     except CaptureError as exc:
         return b"", f"error: {exc}"
     hub.close()
@@ -66,7 +71,12 @@ def reference(
 
 
 def with_core(
-    path: str | Path, *, as_json: bool, ports: frozenset[int] = frozenset({502}), timeout=1.0
+    path: str | Path,
+    *,
+    as_json: bool,
+    ports: frozenset[int] = frozenset({502}),
+    timeout: float = 1.0,
+    detect: bool = False,
 ) -> tuple[bytes, str, str | None]:
     """``mbmon read`` by the compiled core: stdout's bytes, the summary, the decline."""
     chunks: list[bytes] = []
@@ -77,6 +87,7 @@ def with_core(
         view=View(time_format=TimeFormat("a")),
         as_json=as_json,
         write=chunks.append,
+        detect=detect,
     )
     if run.declined is not None:
         assert not chunks, "a decline wrote bytes"

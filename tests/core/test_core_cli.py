@@ -85,12 +85,14 @@ def _two_ports(path: Path, other_port: int) -> Path:
 
 
 def test_port_detection_declines_only_where_it_could_find_something(tmp_path: Path) -> None:
-    """Port detection (on by default) may find Modbus on any TCP port: the core reads a
-    capture only when no TCP payload travels on other ports, or with --no-detect."""
+    """Port detection (on by default) may find Modbus on any TCP port: the core
+    declines a capture where it does (and reads it with --no-detect)."""
     require_core()
     both = _two_ports(tmp_path / "both.pcap", 1502)
     fast = _mbmon("read", str(both), "--debug-core")
-    assert b"core: declined (TCP payload on other ports" in fast.stderr
+    assert b"core: declined (Modbus found by port detection on a port not named (port 1502))" in (
+        fast.stderr
+    )
     assert b"found Modbus/TCP on port 1502" in fast.stderr
     pure = _mbmon("read", str(both), pure=True)
     assert fast.stdout == pure.stdout
