@@ -18,12 +18,12 @@ from mbmon_cli import mbmon
 
 from mbmon.analysis.report import analyse, percentile, text_tables
 from mbmon.format import View, record_to_json
+from mbmon.io import pcap as pw
+from mbmon.io.pcap import PcapWriter, TcpConversation
 from mbmon.pipeline import Pipeline, PipelineConfig
 from mbmon.protocol.crc import add_crc
 from mbmon.protocol.mbap import encode_adu
-from mbmon.sources import pcapwrite as pw
 from mbmon.sources.pcapfile import read_capture
-from mbmon.sources.pcapwrite import PcapWriter, TcpConversation
 
 REPO = Path(__file__).resolve().parents[2]
 START = calendar.timegm((2026, 11, 26, 8, 0, 0))

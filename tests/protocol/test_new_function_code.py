@@ -16,13 +16,13 @@ from pathlib import Path
 
 import pytest
 
+from mbmon.io.pcap import PcapWriter, TcpConversation
 from mbmon.model import Frame, Kind, Stream, Transport
 from mbmon.protocol import functions
 from mbmon.protocol.functions import FUNCTIONS, FunctionCode, register, unregister
 from mbmon.protocol.mbap import encode_adu
 from mbmon.protocol.pdu import decode_pdu, pdu_length, table_of
 from mbmon.protocol.rtu import RtuDecoder, encode_rtu
-from mbmon.sources.pcapwrite import PcapWriter, TcpConversation
 
 REPO = Path(__file__).resolve().parents[2]
 
