@@ -66,6 +66,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport
+from mbmon.sources.headers import ipv4_header, ipv6_header, link_layer
 from mbmon.sources.tcpflow import ACK, SYN, TcpConnection, TcpStats, make_chunk
 
 if TYPE_CHECKING:
@@ -117,27 +118,10 @@ def _address(raw: bytes, port: int) -> str:
     return f"[{ipaddress.IPv6Address(raw).compressed}]:{port}"
 
 
-_ETHERNET = 1
-_RAW = frozenset({101, 12, 14})
-_LOOPBACK = frozenset({0, 108})
-_AF_INET6 = frozenset({10, 23, 24, 28, 30})
-_VLAN = frozenset({0x8100, 0x88A8, 0x9100})
-_IPV6_EXT = frozenset({0, 43, 60, 135, 139, 140, 253, 254})
-
 _tcp_unpack = struct.Struct("!HHIIH").unpack_from
 _udp_unpack = struct.Struct("!HHH").unpack_from
-_ipv4_unpack = struct.Struct("!BxHxxHxB").unpack_from
 # Ethernet type, IPv4 (version/IHL, length, flags/offset, protocol, addresses), TCP
 _eth_ipv4_tcp = struct.Struct("!12xHBxHxxHxBxx8sHHIIH").unpack_from
-_h_unpack = struct.Struct("!H").unpack_from
-_af_unpack = struct.Struct("<I").unpack_from
-#: link types with a fixed header: (header length, where its ethertype is)
-_LINK_HEADERS = {_ETHERNET: (14, 12), 113: (16, 14), 276: (20, 0)}  # Ethernet, Linux cooked v1, v2
-#: link types that are IP packets of one version: their ethertype
-_IP_LINKS = {228: 0x0800, 229: 0x86DD}
-#: an IP header's meaning for the transport: (protocol, where its header starts, where
-#: the IP packet ends in the record, source + destination addresses, the packet is cut)
-_Ip = tuple[int, int, int, bytes, bool]
 
 
 class Dissector:
@@ -485,14 +469,14 @@ class Dissector:
         if link == 147:
             self._bus(ts, iface, buf[off:end], out)
             return
-        found = self._link(link, buf, off, end)
+        found = link_layer(self, link, buf, off, end)
         if found is None:
             return
         et, off = found
         if et == 0x0800:
-            ip = self._ipv4(buf, off, end)
+            ip = ipv4_header(self, buf, off, end)
         elif et == 0x86DD:
-            ip = self._ipv6(buf, off, end)
+            ip = ipv6_header(self, buf, off, end)
         else:
             self.non_ip += 1
             return
@@ -505,124 +489,6 @@ class Dissector:
             self._udp_general(ts, buf, l4, ip_end, addrs, out)
         else:
             self.non_modbus += 1
-
-    def _link(self, link: int, buf: bytes, off: int, end: int) -> tuple[int, int] | None:
-        """The link layer of one record: (ethertype, where the network layer starts)
-        after any VLAN tags, or ``None`` (counted) when it is cut, unknown or not IP."""
-        header = _LINK_HEADERS.get(link)
-        if header is not None:
-            size, at = header
-            if end - off < size:
-                self.truncated += 1
-                return None
-            et = (buf[off + at] << 8) | buf[off + at + 1]
-            off += size
-        elif link in _RAW:
-            if end <= off:
-                self.truncated += 1
-                return None
-            version = buf[off] >> 4
-            et = 0x0800 if version == 4 else 0x86DD if version == 6 else 0
-        elif link in _LOOPBACK:
-            if end - off < 4:
-                self.truncated += 1
-                return None
-            family = _af_unpack(buf, off)[0]
-            if family > 0xFFFF:  # written in the other byte order
-                family = int.from_bytes(buf[off : off + 4], "big")
-            et = 0x0800 if family == 2 else 0x86DD if family in _AF_INET6 else 0
-            off += 4
-        elif link in _IP_LINKS:
-            et = _IP_LINKS[link]
-        elif link < 0:  # a packet block naming an interface that was never described
-            self.malformed += 1
-            return None
-        else:
-            self.unsupported_link += 1
-            return None
-        while et in _VLAN:
-            if end - off < 4:
-                self.truncated += 1
-                return None
-            et = (buf[off + 2] << 8) | buf[off + 3]
-            off += 4
-        return et, off
-
-    def _ipv4(self, buf: bytes, off: int, end: int) -> _Ip | None:
-        """An IPv4 header at ``off`` (options, fragments, a length the capture left
-        out): what follows it, or ``None`` (counted)."""
-        if end - off < 20:
-            self.truncated += 1
-            return None
-        vihl, total, frag, proto = _ipv4_unpack(buf, off)
-        ihl = (vihl & 15) << 2
-        if vihl >> 4 != 4 or ihl < 20:
-            self.malformed += 1
-            return None
-        short = False
-        if total == 0:  # segmentation offload: the length is left to the capture
-            ip_end = end
-        elif total < ihl:
-            self.malformed += 1
-            return None
-        else:
-            ip_end = off + total
-            if ip_end > end:  # cut by the snap length: counted if it matters below
-                short = True
-                ip_end = end
-        if frag & 0x3FFF:  # more-fragments or an offset
-            self.fragments += 1
-            if frag & 0x1FFF:  # not the first fragment: no transport header
-                return None
-            short = True  # the first one: a cut packet
-        return proto, off + ihl, ip_end, buf[off + 12 : off + 20], short
-
-    def _ipv6(self, buf: bytes, off: int, end: int) -> _Ip | None:
-        """An IPv6 header at ``off`` and its extension headers: what follows them, or
-        ``None`` (counted)."""
-        if end - off < 40:
-            self.truncated += 1
-            return None
-        if buf[off] >> 4 != 6:
-            self.malformed += 1
-            return None
-        plen = (buf[off + 4] << 8) | buf[off + 5]
-        ip_end = off + 40 + plen if plen else end
-        short = ip_end > end
-        if short:
-            ip_end = end
-        after = self._ipv6_extensions(buf, buf[off + 6], off + 40, ip_end)
-        if after is None:
-            return None
-        proto, l4, fragment = after
-        return proto, l4, ip_end, buf[off + 8 : off + 40], short or fragment
-
-    def _ipv6_extensions(
-        self, buf: bytes, proto: int, l4: int, ip_end: int
-    ) -> tuple[int, int, bool] | None:
-        """Walk up to 16 IPv6 extension headers from ``l4``: (transport protocol, where
-        it starts, a first fragment), or ``None`` (counted: cut, or a later fragment)."""
-        fragment = False
-        for _ in range(16):
-            if proto in _IPV6_EXT or proto == 44 or proto == 51:
-                if ip_end - l4 < 8:
-                    self.truncated += 1
-                    return None
-            if proto in _IPV6_EXT:
-                proto, l4 = buf[l4], l4 + ((buf[l4 + 1] + 1) << 3)
-            elif proto == 44:  # fragment header
-                frag = _h_unpack(buf, l4 + 2)[0]
-                if frag & 0xFFF9:  # offset or more-fragments
-                    self.fragments += 1
-                    if frag & 0xFFF8:  # not the first fragment
-                        return None
-                    fragment = True
-                proto, l4 = buf[l4], l4 + 8
-            elif proto == 51:  # authentication header
-                proto, l4 = buf[l4], l4 + ((buf[l4 + 1] + 2) << 2)
-            else:
-                break
-        return proto, l4, fragment
 
     def _cut_transport(self, l4: int, ip_end: int, size: int) -> bool:
         """Whether a transport header of ``size`` bytes at ``l4`` is missing (counted:
