@@ -508,3 +508,27 @@ def test_notes_name_sub_functions_mei_types_and_show_what_0x17_writes(
     hexpdu: str, response: bool, note: str
 ) -> None:
     assert generic_note(decode_pdu(bytes.fromhex(hexpdu), response)) == note
+
+
+def test_json_caches_belong_to_their_view_and_stay_bounded_in_bytes() -> None:
+    """Each view keeps its own JSON parts (two runs in one process share nothing),
+    and a view's parts never hold much more than their byte bound, whatever the
+    traffic: here long register answers, each seen twice so that its parts are made."""
+    from mbmon.jsoncache import CACHE_BYTES
+
+    view, other = View(), View()
+    req = Frame(1.0, TCP, Direction.C2S, 1, 7, decode_pdu(bytes.fromhex("0300000078"), False), b"")
+    biggest = 0
+    for i in range(1000):
+        values = [(i * 7 + k) & 0xFFFF for k in range(120)]
+        pdu = decode_pdu(_answer(3, 120, False, values), True, req.pdu)
+        frame = Frame(1.0 + i, TCP, Direction.S2C, 1, 7, pdu, b"")
+        for n in range(2):
+            record = Record(
+                2 * i + n, 1.0 + i, RecordKind.RESPONSE, TCP, frame=frame, request=req,
+                request_index=0, latency=0.001,
+            )  # fmt: skip
+            assert record_json_bytes(record, view) == _slow(record, view)
+        biggest = max(biggest, view.json_cache.held)
+    assert view.json_cache.parts and not other.json_cache.parts
+    assert CACHE_BYTES < biggest < CACHE_BYTES + 4096  # emptied once past the bound
