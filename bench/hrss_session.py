@@ -11,7 +11,7 @@ commands as child processes (stdout to /dev/null, wall time, best of N).
 The target: ``--profile hrss`` costs at most 1.5x plain ``read``.
 
 The capture (Ethernet/IPv4/TCP, one ADU per segment, checksums valid, written
-with :mod:`mbmon.sources.pcapwrite`): a robot at 192.168.0.10:502 (unit 1), two
+with :mod:`mbmon.io.pcap`): a robot at 192.168.0.10:502 (unit 1), two
 client connections that were open before the capture started (no handshake):
 
 * a PLC that polls the robot state every cycle (IR200..IR201 status/action,
@@ -50,6 +50,7 @@ GEN_VERSION = 1  # bump when the generator changes: the cache key
 TARGET_RATIO = 1.5
 
 sys.path.insert(0, str(REPO))
+from mbmon.io.pcap import PcapWriter, TcpConversation  # noqa: E402
 from mbmon.protocol.pdu import (  # noqa: E402
     encode_read_request,
     encode_read_response,
@@ -58,7 +59,6 @@ from mbmon.protocol.pdu import (  # noqa: E402
     encode_write_single,
 )
 from mbmon.semantics.words import split_i32, u16  # noqa: E402
-from mbmon.sources.pcapwrite import PcapWriter, TcpConversation  # noqa: E402
 
 ROBOT = "192.168.0.10:502"
 UNIT = 1

@@ -25,9 +25,9 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from mbmon.io.pcap import PcapngWriter, PcapWriter, TcpConversation
 from mbmon.model import Chunk
 from mbmon.sources import pcapfile
-from mbmon.sources.pcapwrite import PcapngWriter, PcapWriter, TcpConversation
 
 
 def build(path: Path, packets: int, fmt: str) -> tuple[int, int]:

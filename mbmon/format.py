@@ -11,10 +11,11 @@ spaces: no unit id, no MBAP header, no CRC (manual §5.5, Table 57).
 from __future__ import annotations
 
 import math
-from binascii import hexlify as _hexlify
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from mbmon.jsoncache import JsonLineCache
 from mbmon.model import (
     Direction,
     EventKind,
@@ -26,7 +27,7 @@ from mbmon.model import (
     Stream,
     Transport,
 )
-from mbmon.protocol.functions import FUNCTIONS, SHAPE, derived
+from mbmon.protocol.functions import FUNCTIONS, SHAPE
 from mbmon.timefmt import TimeFormat
 
 #: Function code names (Modbus Application Protocol v1.1b); kept here so that
@@ -34,7 +35,7 @@ from mbmon.timefmt import TimeFormat
 _FC_NAMES: dict[int, str] | None = None
 _EXC_NAMES: dict[int, str] | None = None
 
-_MAX_VALUES_SHOWN = 16
+MAX_VALUES_SHOWN = 16
 _MAX_NOISE_HEX = 32
 
 
@@ -67,7 +68,7 @@ _CACHE_SIZE = 8192
 #: characters (or bytes) each text cache may hold before it is emptied: caches are
 #: bounded in bytes, not only in entries (register answers make long texts)
 _CACHE_CHARS = 1 << 20
-_held = {"hex": 0, "note": 0, "json": 0}
+_held = {"hex": 0, "note": 0}
 
 
 def monitor_hex(raw: bytes) -> str:
@@ -83,20 +84,20 @@ def monitor_hex(raw: bytes) -> str:
 
 
 #: the default time format (``-t a`` without the automatic date): :func:`format_time`
-_DEFAULT_TIME = TimeFormat(auto_date=False)
+DEFAULT_TIME = TimeFormat(auto_date=False)
 #: its per-second cache: [second, "HH:MM:SS." text, the same in UTF-8]
-_last_second: list[Any] = _DEFAULT_TIME._second
+_last_second: list[Any] = DEFAULT_TIME._second
 
 
 def format_time(ts: float) -> str:
     """Time of day in local time with microseconds, like tcpdump (any float prints:
     see :mod:`mbmon.timefmt`; a view's own format is ``view.time_format``)."""
-    return _DEFAULT_TIME.text(ts)
+    return DEFAULT_TIME.text(ts)
 
 
 def _time_bytes(ts: float) -> bytes:
     """``format_time(ts)`` in UTF-8."""
-    return _DEFAULT_TIME.bytes(ts)
+    return DEFAULT_TIME.bytes(ts)
 
 
 # --------------------------------------------------------------------------- labels
@@ -130,10 +131,8 @@ class View:
     _labels: dict[tuple[int, Direction], tuple[Stream, str]] = field(
         default_factory=dict, compare=False, repr=False
     )
-    #: per stream direction: (stream, JSON from "stream" to "tid":, label JSON-escaped), UTF-8
-    _json_heads: dict[tuple[int, Direction], tuple[Stream, bytes, bytes]] = field(
-        default_factory=dict, compare=False, repr=False
-    )
+    #: the fixed parts of this view's JSON lines (:mod:`mbmon.jsonfmt` fills it)
+    json_cache: JsonLineCache = field(default_factory=JsonLineCache, compare=False, repr=False)
 
     def robot_role(self, stream: Stream | None) -> str | None:
         """``"server"``, ``"client"`` or ``None`` (the robot is not on this stream)."""
@@ -188,7 +187,7 @@ class View:
                 # a second peer: from now on every label names its peer (the cached
                 # labels and JSON heads were made without)
                 self._labels.clear()
-                self._json_heads.clear()
+                self.json_cache.heads.clear()
         return f"{text} {peer}" if len(peers) > 1 else text
 
 
@@ -201,14 +200,14 @@ def _range(address: int, count: int | None) -> str:
     return f"{address}..{address + count - 1}"
 
 
-def _values_text(values: tuple[int, ...] | None, bits: bool) -> str:
+def values_text(values: tuple[int, ...] | None, bits: bool) -> str:
     if not values:
         return ""
     if bits:
         shown = "".join(["1" if v else "0" for v in values[:64]])
         return shown + ("…" if len(values) > 64 else "")
-    text = ", ".join(map(str, values[:_MAX_VALUES_SHOWN]))
-    return text + (f", … ({len(values)} values)" if len(values) > _MAX_VALUES_SHOWN else "")
+    text = ", ".join(map(str, values[:MAX_VALUES_SHOWN]))
+    return text + (f", … ({len(values)} values)" if len(values) > MAX_VALUES_SHOWN else "")
 
 
 def generic_note(pdu: Pdu, request: Pdu | None = None) -> str:
@@ -255,10 +254,10 @@ def _generic_note(pdu: Pdu, request: Pdu | None) -> str:
         text += f" and=0x{pdu.fields['and_mask']:04X} or=0x{pdu.fields['or_mask']:04X}"
     if shape == "read_write" and pdu.kind is Kind.REQUEST and "write_address" in pdu.fields:
         text += f", write {_range(pdu.fields['write_address'], pdu.fields.get('write_count'))}"
-        written = _values_text(pdu.fields.get("write_values"), False)
+        written = values_text(pdu.fields.get("write_values"), False)
         if written:
             text += f" = {written}"
-    shown = _values_text(pdu.values, bits)
+    shown = values_text(pdu.values, bits)
     if bits and shape == "write_single" and pdu.values:
         shown = "ON" if pdu.values[0] else "OFF"
     if shown:
@@ -458,7 +457,7 @@ _IDS = "u%d t%d"  # unit, transaction id
 _IDS_NO_TID = "u%d"  # unit (RTU)
 _LATENCY = " (%.1f ms)"  # a response's latency in ms
 _NO_REQUEST = " (no matching request)"  # a response that nothing asked for
-_LINE_BYTES, _IDS_BYTES, _IDS_NO_TID_BYTES, _LATENCY_BYTES, _NO_REQUEST_BYTES = (
+LINE_BYTES, IDS_BYTES, IDS_NO_TID_BYTES, LATENCY_BYTES, NO_REQUEST_BYTES = (
     text.replace("%s", "%b").encode() for text in (_LINE, _IDS, _IDS_NO_TID, _LATENCY, _NO_REQUEST)
 )
 
@@ -578,7 +577,8 @@ try:  # orjson is several times faster than the standard encoder on the hot path
         except TypeError:  # orjson.JSONEncodeError: see _careful_line
             return _careful_line(obj)
 
-    _json_bytes = _orjson.dumps  # json_line(obj) in UTF-8
+    #: json_line(obj) in UTF-8
+    json_bytes: Callable[[Any], bytes] = _orjson.dumps
 
 except ImportError:  # pragma: no cover - orjson is a dependency; keep working without it
     import json as _json
@@ -589,8 +589,10 @@ except ImportError:  # pragma: no cover - orjson is a dependency; keep working w
         """One JSON record as a compact line (no trailing newline), non-ASCII kept."""
         return _encode(obj)
 
-    def _json_bytes(obj: Any) -> bytes:
+    def _standard_bytes(obj: Any) -> bytes:
         return _encode(obj).encode()
+
+    json_bytes = _standard_bytes
 
 
 #: enum member -> its plain str value (orjson serialises a plain str several times
@@ -684,344 +686,3 @@ def record_to_json(record: Record, view: View, *, line: bool = True) -> dict[str
         }
         out["notes"] = [cmd.text]
     return out
-
-
-# --------------------------------------------------------------------------- JSON lines, fast
-
-#: Stands for a per-record value while the fixed parts of a JSON line are cut out.
-_SENTINEL = "\x00mbmon: per-record value\x00"
-_PER_RECORD = ("index", "time", "tid", "line", "notes", "latency_ms", "request_index")
-
-#: Fixed JSON parts of frame records, in UTF-8, by (id(pdu), id(request pdu), kind,
-#: unit, crc_ok): (pdu, request pdu, text from "unit" to "line":, monitor hex,
-#: generic note as JSON, the same JSON-escaped, text from "crc_ok" to "latency_ms":,
-#: text from "malformed" to "request_index":, end of the object). The PDUs are kept
-#: so that an id is never taken for a later object's.
-_JSON_PARTS: dict[tuple[Any, ...], tuple[Any, ...]] = {}
-#: Keys (as ``_JSON_PARTS``'s) of frame records encoded once in full: their parts are
-#: made on a second sighting. On a cell's capture most answers hold values never seen
-#: before and never seen again; making their parts costs more than encoding them
-#: whole, and only a repeat pays it back. A reused id only makes parts early.
-_SEEN_ONCE: dict[tuple[Any, ...], None] = {}
-_SEEN_ONCE_SIZE = 16384
-#: Answers to reads whose values change every poll (a robot's position, a counter):
-#: per (id(request pdu), unit, crc_ok, fc, PDU length), the fixed parts around the
-#: values, from the first answer whose parts :func:`_cache_json_parts` checked
-#: against its full encoding: (request pdu, text from "unit" to "values":, the
-#: note's JSON up to its values, text from "crc_ok" to "latency_ms":, text from
-#: "malformed" to "request_index":, end of the object, values are bits). An answer
-#: then only encodes its values, its hex and its values' text (:func:`_fill_read`).
-_READ_TEMPLATES: dict[tuple[Any, ...], tuple[Any, ...]] = {}
-_READS: set[int] = set()  # the reads, from the one function-code table
-
-
-@derived
-def _reads_from_table() -> None:
-    _READS.clear()
-    _READS.update(fc for fc, spec in FUNCTIONS.items() if spec.read)
-
-
-_RESPONSE_KIND = RecordKind.RESPONSE
-
-
-def record_json_bytes(record: Record, view: View) -> bytes:
-    """``json_line(record_to_json(record, view))`` in UTF-8, about 3x faster for frames.
-
-    A frame record's JSON differs from one record to the next only in its index,
-    time, transaction id, latency, request index and device notes; the rest is
-    fixed by its stream and direction (endpoints, label) or by its PDU, request
-    PDU, kind, unit and crc_ok, which polling repeats. Those fixed parts are cut
-    once out of the full encoding (:func:`_cache_json_parts`, which checks its
-    work against it) when a PDU is seen the second time (``_SEEN_ONCE``) and
-    cached; a record then only fills in its own values.
-    Bytes, not text: the line holds non-ASCII text (labels), and building it from
-    UTF-8 parts saves encoding about 900 characters per record on output.
-    """
-    frame = record.frame
-    if frame is None:
-        return _json_bytes(record_to_json(record, view))
-    stream = frame.stream
-    pdu = frame.pdu
-    request = record.request
-    req_pdu = request.pdu if request is not None else None
-    head = view._json_heads.get((stream.id, frame.direction))
-    key = (id(pdu), id(req_pdu), record.kind, frame.unit, frame.crc_ok)
-    parts = _JSON_PARTS.get(key)
-    if parts is not None and parts[0] is pdu and parts[1] is req_pdu:
-        if head is not None and head[0] is stream:
-            return _json_from_parts(record, frame, head, parts, view.time_format)
-    elif head is not None and head[0] is stream:
-        if _has_read_template(record, pdu, req_pdu):
-            template = _READ_TEMPLATES.get(
-                (id(req_pdu), frame.unit, frame.crc_ok, pdu.fc, len(pdu.raw))
-            )
-            if template is None or template[0] is not req_pdu:
-                return _cache_json_parts(record, view)  # makes the template
-            if template[1] is not None:
-                parts = _fill_read(template, pdu)
-                if key in _SEEN_ONCE:  # the same values again (polling a still robot)
-                    _keep_parts(parts, record.kind, frame)
-                else:
-                    _seen(key)
-                return _json_from_parts(record, frame, head, parts, view.time_format)
-        if key not in _SEEN_ONCE:
-            _seen(key)
-            return _json_bytes(record_to_json(record, view))
-    return _cache_json_parts(record, view)
-
-
-def _has_read_template(record: Record, pdu: Pdu, req_pdu: Pdu | None) -> bool:
-    """Whether a frame record is an answer that its read's template makes: a
-    well-formed answer to a read, without fields (see ``_READ_TEMPLATES``)."""
-    return (
-        req_pdu is not None
-        and record.kind is _RESPONSE_KIND
-        and pdu.fc in _READS
-        and not pdu.malformed
-        and not pdu.fields
-    )
-
-
-def _seen(key: tuple[Any, ...]) -> None:
-    """Remember a frame record's parts key as seen once (bounded)."""
-    if len(_SEEN_ONCE) >= _SEEN_ONCE_SIZE:
-        _SEEN_ONCE.clear()
-    _SEEN_ONCE[key] = None
-
-
-def _fill_read(template: tuple[Any, ...], pdu: Pdu) -> tuple[Any, ...]:
-    """The fixed JSON parts (as ``_JSON_PARTS`` holds them) of an answer to a read, from
-    its request's template and its own values: what :func:`_parts_from_json` gives,
-    without building and encoding the record's JSON object and generic note."""
-    req_pdu, to_values, note_head, to_latency, to_index, end, bits = template
-    values = pdu.values or ()
-    hex_text = _hexlify(pdu.raw, b" ").upper()
-    values_json = _json_bytes(values)  # a tuple encodes as the list record_to_json has
-    if bits or len(values) > _MAX_VALUES_SHOWN:
-        shown = _values_text(values, bits).encode()
-    else:  # registers in decimal: the JSON list's items, as _values_text joins them
-        shown = values_json[1:-1].replace(b",", b", ")
-    note = b'%b%b"' % (note_head, shown)
-    return (
-        pdu,
-        req_pdu,
-        b'%b%b,"pdu":"%b","line":' % (to_values, values_json, hex_text),
-        hex_text,
-        note,
-        note[1:-1],
-        to_latency,
-        to_index,
-        end,
-    )
-
-
-def _keep_read_template(parts: tuple[Any, ...], frame: Frame) -> None:
-    """Cut the template of answers to ``parts``' request out of one answer's checked
-    parts (see ``_READ_TEMPLATES``); an answer whose parts do not have the values
-    where the template expects them leaves none (its request's answers then take
-    the general path)."""
-    pdu, req_pdu, to_line, _, note_json, _, to_latency, to_index, end = parts
-    spec = _function(pdu.fc)
-    bits = spec is not None and spec.bits
-    # this answer's own pieces, as _fill_read makes them: filled into a template
-    # with nothing around them, its text from "values" on and its note's values
-    mine = _fill_read((req_pdu, b',"values":', b"", to_latency, to_index, end, bits), pdu)
-    tail, shown = mine[2], mine[4]
-    template: tuple[Any, ...] = (req_pdu, None)
-    if to_line.endswith(tail) and note_json.endswith(shown):
-        template = (
-            req_pdu,
-            to_line[: len(to_line) - len(tail)] + b',"values":',
-            note_json[: len(note_json) - len(shown)],
-            to_latency,
-            to_index,
-            end,
-            bits,
-        )
-        if _fill_read(template, pdu) != parts:
-            template = (req_pdu, None)  # none for this request: not tried again
-    if len(_READ_TEMPLATES) >= _CACHE_SIZE:
-        _READ_TEMPLATES.clear()
-    _READ_TEMPLATES[(id(req_pdu), frame.unit, frame.crc_ok, pdu.fc, len(pdu.raw))] = template
-
-
-def _json_from_parts(
-    record: Record,
-    frame: Frame,
-    head: tuple[Stream, bytes, bytes],
-    parts: tuple[Any, ...],
-    time_format: TimeFormat,
-) -> bytes:
-    """A frame record's JSON line from its cached fixed parts and its own values."""
-    return frame_json_bytes(
-        record.index,
-        record.ts,
-        frame.unit,
-        frame.tid,
-        head,
-        parts,
-        record.latency,
-        record.request_index,
-        record.request is None and frame.direction is _S2C,
-        record.notes,
-        time_format,
-    )
-
-
-def frame_json_bytes(
-    index: int,
-    ts: float,
-    unit: int,
-    tid: int | None,
-    head: tuple[Stream, bytes, bytes],
-    parts: tuple[Any, ...],
-    latency: float | None,
-    request_index: int | None,
-    unmatched_response: bool,
-    notes: tuple[str, ...] = (),
-    time_format: TimeFormat = _DEFAULT_TIME,
-) -> bytes:
-    """The JSON line of a frame record from its values and its cached fixed parts.
-
-    ``head`` and ``parts`` are what :func:`record_json_bytes` cached for the record's
-    stream direction and PDU; ``unmatched_response`` is a response without a request
-    (its line says so). The one place that lays out a frame record's line, for
-    :func:`record_json_bytes`.
-    """
-    _, _, to_line, hex_text, note_json, note_escaped, to_latency, to_index, end = parts
-    if notes:  # device notes vary with state: encoded per record
-        encoded = [_json_bytes(note) for note in notes]
-        note_json += b"," + b",".join(encoded)
-        note_escaped += b"; " + b"; ".join(text[1:-1] for text in encoded)
-    if latency is not None:  # as _latency_text
-        note_escaped += _LATENCY_BYTES % (latency * 1000)
-        latency_json = _json_bytes(round(latency * 1000, 3))
-    else:
-        latency_json = b"null"
-        if unmatched_response:
-            note_escaped += _NO_REQUEST_BYTES
-    if tid is None:
-        ids, tid_json = _IDS_NO_TID_BYTES % unit, b"null"
-    else:
-        ids, tid_json = _IDS_BYTES % (unit, tid), b"%d" % tid
-    line = _LINE_BYTES % (time_format.bytes(ts), head[2], ids, hex_text, note_escaped)
-    return b'{"index":%d,"time":%b%b%b%b"%b","notes":[%b]%b%b%b%b%b' % (
-        index,
-        _json_bytes(ts),
-        head[1],
-        tid_json,
-        to_line,
-        line,
-        note_json,
-        to_latency,
-        latency_json,
-        to_index,
-        b"null" if request_index is None else b"%d" % request_index,
-        end,
-    )
-
-
-#: The PDU-dependent JSON keys of a frame record between "tid" and "line", and
-#: after "notes", in record_to_json's order; their texts (``,"key":``) are checked
-#: once against a full encoding before :func:`_parts_from_json` may use them.
-_TO_LINE_KEYS = ("unit", "fc", "kind", "exception_code", "address", "count", "values", "pdu")
-_KEY_TEXT = {
-    k: b',"%b":' % k.encode()
-    for k in (*_TO_LINE_KEYS, "line", "crc_ok", "latency_ms", "malformed", "request_index")
-}
-_keys_checked: list[bool] = []  # [True] once a full encoding confirmed _KEY_TEXT
-
-
-def _parts_from_json(obj: dict[str, Any], pdu: Pdu, req_pdu: Pdu | None) -> tuple[Any, ...]:
-    """A frame record's fixed JSON parts (see ``_JSON_PARTS``) from its
-    :func:`record_to_json` object, each value encoded on its own: what the
-    full encoding cut at the per-record values gives, without encoding the
-    whole object twice and cutting it (a PDU whose values change every poll
-    is seen once; its parts are made here)."""
-    j = _json_bytes
-    k = _KEY_TEXT
-    to_line = b"".join([b"%b%b" % (k[key], j(obj[key])) for key in _TO_LINE_KEYS]) + k["line"]
-    note_json = j(obj["notes"][0])
-    return (
-        pdu,
-        req_pdu,
-        to_line,
-        obj["pdu"].encode(),
-        note_json,
-        note_json[1:-1],
-        k["crc_ok"] + j(obj["crc_ok"]) + k["latency_ms"],
-        k["malformed"] + j(obj["malformed"]) + k["request_index"],
-        b"}",
-    )
-
-
-def _cache_json_parts(record: Record, view: View) -> bytes:
-    """``record``'s JSON line, encoded in full; its fixed parts are cut out of it and
-    cached when they give it back (a note that held the sentinel would not).
-
-    Once the stream direction's head is cached and the key texts are confirmed,
-    a PDU without ``fields`` takes :func:`_parts_from_json` instead: the same
-    parts from the record's JSON object, value by value (``tests/test_format.py``
-    compares every line with the full encoding)."""
-    frame = record.frame
-    assert frame is not None
-    stream, pdu = frame.stream, frame.pdu
-    req_pdu = record.request.pdu if record.request is not None else None
-    head = view._json_heads.get((stream.id, frame.direction))
-    if _keys_checked and head is not None and head[0] is stream and not pdu.fields:
-        parts = _parts_from_json(record_to_json(record, view, line=False), pdu, req_pdu)
-        _keep_parts(parts, record.kind, frame)
-        _maybe_read_template(record, parts, frame)
-        return _json_from_parts(record, frame, head, parts, view.time_format)
-    obj = record_to_json(record, view)
-    full = _json_bytes(obj)
-    original = dict(obj)
-    for key in _PER_RECORD:
-        obj[key] = _SENTINEL
-    pieces = _json_bytes(obj).split(_json_bytes(_SENTINEL))
-    if len(pieces) != len(_PER_RECORD) + 1 or pieces[:2] != [b'{"index":', b',"time":']:
-        return full
-    _, _, head_text, to_line, notes_key, to_latency, to_index, end = pieces
-    if notes_key != b',"notes":':
-        return full
-    note_json = _json_bytes(generic_note(pdu, req_pdu))
-    label_escaped = _json_bytes(view.label(stream, frame.direction))[1:-1]
-    head = (stream, head_text, label_escaped)
-    parts = (
-        pdu,
-        req_pdu,
-        to_line,
-        monitor_hex(pdu.raw).encode(),
-        note_json,
-        note_json[1:-1],
-        to_latency,
-        to_index,
-        end,
-    )
-    if _json_from_parts(record, frame, head, parts, view.time_format) != full:
-        return full
-    if not _keys_checked and "fields" not in original:
-        if _parts_from_json(original, pdu, req_pdu) == parts:
-            _keys_checked.append(True)
-    heads = view._json_heads
-    if len(heads) > 65536:
-        heads.clear()
-    heads[(stream.id, frame.direction)] = head
-    _keep_parts(parts, record.kind, frame)
-    _maybe_read_template(record, parts, frame)
-    return full
-
-
-def _maybe_read_template(record: Record, parts: tuple[Any, ...], frame: Frame) -> None:
-    """Make the read template of a well-formed answer to a read (its parts are checked)."""
-    if _has_read_template(record, frame.pdu, parts[1]):
-        _keep_read_template(parts, frame)
-
-
-def _keep_parts(parts: tuple[Any, ...], kind: RecordKind, frame: Frame) -> None:
-    """Cache a frame record's fixed JSON parts (bounded in entries and in bytes)."""
-    if len(_JSON_PARTS) >= _CACHE_SIZE or _held["json"] > _CACHE_CHARS:
-        _JSON_PARTS.clear()
-        _held["json"] = 0
-    _JSON_PARTS[(id(parts[0]), id(parts[1]), kind, frame.unit, frame.crc_ok)] = parts
-    _held["json"] += len(parts[2]) + len(parts[3]) + 2 * len(parts[4]) + len(parts[8])

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from mbmon.sources.pcapwrite import PcapWriter, TcpConversation
+from mbmon.io.pcap import PcapWriter, TcpConversation
 
 _REQUEST = bytes.fromhex("0000000601030064000A")  # after the tid: read R100..R109
 _ANSWER = bytes.fromhex("00000017010314") + bytes(20)

@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
+from mbmon.io.pcap import PcapWriter, TcpConversation
 from mbmon.protocol.mbap import encode_adu
 from mbmon.protocol.pdu import encode_read_request, encode_read_response
-from mbmon.sources.pcapwrite import PcapWriter, TcpConversation
 
 REPO = Path(__file__).resolve().parents[1]
 MBMON = [sys.executable, "-m", "mbmon"]

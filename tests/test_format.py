@@ -14,10 +14,11 @@ from mbmon.format import (
     generic_note,
     json_line,
     monitor_hex,
-    record_json_bytes,
     record_line,
     record_to_json,
 )
+from mbmon.jsoncache import SEEN_ONCE_SIZE
+from mbmon.jsonfmt import record_json_bytes
 from mbmon.model import Direction, Event, EventKind, Frame, Record, RecordKind, Stream, Transport
 from mbmon.protocol.pdu import decode_pdu
 
@@ -358,7 +359,7 @@ def test_json_bytes_is_the_full_encoding_on_a_realistic_capture(tmp_path: Path) 
     """A cell's capture as bench/realistic.py builds it (connections captured
     mid-stream, register values that change every poll, writes, exceptions):
     nearly every answer is a PDU never seen before, so its fixed JSON parts are
-    made value by value (format._parts_from_json), not cut from a full encoding."""
+    made value by value (jsonfmt._parts_from_json), not cut from a full encoding."""
     import random
     import sys
 
@@ -381,19 +382,20 @@ def test_parts_are_made_on_a_pdus_second_sighting_not_its_first() -> None:
     """An answer with values never seen before is encoded whole (making its parts
     would cost more, and on a cell's capture it never comes again); the second
     record with the same PDU makes the parts, the third uses them. Each line is the
-    full encoding all the same."""
-    from mbmon import format as fmt
-
-    fmt._JSON_PARTS.clear()
-    fmt._SEEN_ONCE.clear()
+    full encoding all the same. A fresh view starts with empty caches: the test does
+    not depend on what other tests encoded before it."""
     view = View()
     first = _pair(1.0)
     resp = first[1]
     frame = resp.frame
-    assert frame is not None
-    other = Frame(0.5, TCP, Direction.S2C, 1, 7, decode_pdu(bytes.fromhex("03020008"), True), b"")
-    for record in (first[0], Record(9, 0.5, RecordKind.RESPONSE, TCP, frame=other)):
-        assert record_json_bytes(record, view) == _slow(record, view)  # the heads
+    req = first[0].frame
+    assert frame is not None and req is not None
+    # another answer to the same read makes the heads and the read's template
+    values = decode_pdu(bytes.fromhex("03020008"), True, req.pdu)
+    other = Frame(0.5, TCP, Direction.S2C, 1, 7, values, b"")
+    answer = Record(9, 0.5, RecordKind.RESPONSE, TCP, frame=other, request=req, request_index=0)
+    for record in (first[0], answer):
+        assert record_json_bytes(record, view) == _slow(record, view)
     key = (id(frame.pdu), id(first[0].frame.pdu), resp.kind, frame.unit, frame.crc_ok)  # type: ignore[union-attr]
     for sighting in (1, 2, 3):
         record = Record(
@@ -401,8 +403,8 @@ def test_parts_are_made_on_a_pdus_second_sighting_not_its_first() -> None:
             request=resp.request, request_index=0, latency=0.001 * sighting,
         )  # fmt: skip
         assert record_json_bytes(record, view) == _slow(record, view)
-        assert (key in fmt._JSON_PARTS) is (sighting >= 2), sighting
-    assert len(fmt._SEEN_ONCE) <= fmt._SEEN_ONCE_SIZE
+        assert (key in view.json_cache.parts) is (sighting >= 2), sighting
+    assert len(view.json_cache.seen_once) <= SEEN_ONCE_SIZE
 
 
 #: reads and answers whose values a hypothesis draws: registers (03, 04, 17; more
@@ -447,7 +449,7 @@ def test_answers_with_new_values_are_filled_from_the_read_template(
     before: after the first, their lines come from the request's template (no JSON
     object, no note made per answer) and are the full encoding all the same, also
     for a malformed answer of the template's length in between."""
-    import mbmon.format as fmt
+    import mbmon.jsonfmt as fmt
 
     view = View(robot=robot)
     req_hex, fc, count, bits = read
@@ -506,3 +508,27 @@ def test_notes_name_sub_functions_mei_types_and_show_what_0x17_writes(
     hexpdu: str, response: bool, note: str
 ) -> None:
     assert generic_note(decode_pdu(bytes.fromhex(hexpdu), response)) == note
+
+
+def test_json_caches_belong_to_their_view_and_stay_bounded_in_bytes() -> None:
+    """Each view keeps its own JSON parts (two runs in one process share nothing),
+    and a view's parts never hold much more than their byte bound, whatever the
+    traffic: here long register answers, each seen twice so that its parts are made."""
+    from mbmon.jsoncache import CACHE_BYTES
+
+    view, other = View(), View()
+    req = Frame(1.0, TCP, Direction.C2S, 1, 7, decode_pdu(bytes.fromhex("0300000078"), False), b"")
+    biggest = 0
+    for i in range(1000):
+        values = [(i * 7 + k) & 0xFFFF for k in range(120)]
+        pdu = decode_pdu(_answer(3, 120, False, values), True, req.pdu)
+        frame = Frame(1.0 + i, TCP, Direction.S2C, 1, 7, pdu, b"")
+        for n in range(2):
+            record = Record(
+                2 * i + n, 1.0 + i, RecordKind.RESPONSE, TCP, frame=frame, request=req,
+                request_index=0, latency=0.001,
+            )  # fmt: skip
+            assert record_json_bytes(record, view) == _slow(record, view)
+        biggest = max(biggest, view.json_cache.held)
+    assert view.json_cache.parts and not other.json_cache.parts
+    assert CACHE_BYTES < biggest < CACHE_BYTES + 4096  # emptied once past the bound

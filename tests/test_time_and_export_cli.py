@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
+from mbmon.io.pcap import LINKTYPE_ETHERNET, PcapngWriter, PcapWriter, TcpConversation
 from mbmon.protocol.mbap import encode_adu
-from mbmon.sources.pcapwrite import LINKTYPE_ETHERNET, PcapngWriter, PcapWriter, TcpConversation
 
 REPO = Path(__file__).resolve().parents[1]
 OWN = REPO / "captures"

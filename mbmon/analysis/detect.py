@@ -45,6 +45,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import dataclass
+from typing import Literal
 
 from mbmon.model import Transport
 from mbmon.protocol.crc import crc_ok_at
@@ -318,7 +319,7 @@ class PortDetector:
             segments.sort(key=lambda segment: segment[0])  # stable: each connection's order
         return Promotion(segments, Found(transport, server[0], server[1]))
 
-    def _judge(self, cand: _Candidate) -> tuple[Transport, bool] | bool | None:
+    def _judge(self, cand: _Candidate) -> tuple[Transport, bool] | Literal[False] | None:
         """The verdict on a candidate's bytes so far: ``(transport, whether side a
         is the client)`` when proved, ``False`` when no hypothesis is left,
         ``None`` while undecided."""
@@ -337,15 +338,15 @@ class PortDetector:
             if not (cand.rtu_a if client_is_a else cand.rtu_b):
                 continue
             cside, sside = (a, b) if client_is_a else (b, a)
-            requests = _rtu_frames(cside.buf, response=False)
-            responses = _rtu_frames(sside.buf, response=True)
-            if requests is None or responses is None:
+            asked = _rtu_frames(cside.buf, response=False)
+            answers = _rtu_frames(sside.buf, response=True)
+            if asked is None or answers is None:
                 if client_is_a:
                     cand.rtu_a = False
                 else:
                     cand.rtu_b = False
                 continue
-            if _rtu_answered(requests, responses, cside, sside):
+            if _rtu_answered(asked, answers, cside, sside):
                 return Transport.RTU_OVER_TCP, client_is_a
         if cand.syn_from_a is not None:  # the SYN fixed the roles: the other one is out
             if cand.syn_from_a:

@@ -140,9 +140,10 @@ class Figures:
     records: int = 0
     blocks: list[Block] = field(default_factory=list)
     latencies_ms: list[float] = field(default_factory=list)
-    faults: list[tuple[float, str, str]] = field(default_factory=list)  # (time, kind, line)
+    #: (time, kind, line); no time for a record without one (an RTU dump's, a damaged log's)
+    faults: list[tuple[float | None, str, str]] = field(default_factory=list)
     # (time written, command text, outcome: its last phase, with the duration when known)
-    commands: list[tuple[float, str, str]] = field(default_factory=list)
+    commands: list[tuple[float | None, str, str]] = field(default_factory=list)
     buses: list[Bus] = field(default_factory=list)
     baud: int | None = None
 
@@ -167,8 +168,9 @@ def analyse(
     commands: dict[Any, int] = {}  # (stream, unit) -> its latest command in fig.commands
     for obj in objs:
         fig.records += 1
-        ts = obj.get("time")
-        if isinstance(ts, int | float):
+        when = obj.get("time")  # a damaged log may hold anything here
+        ts = when if isinstance(when, int | float) else None
+        if ts is not None:
             fig.first = ts if fig.first is None else min(fig.first, ts)
             fig.last = ts if fig.last is None else max(fig.last, ts)
         kind = obj.get("kind")
@@ -189,7 +191,7 @@ def analyse(
             if block is None:
                 block = blocks[key] = Block(str(client), str(server), *key[2:])
             if request:
-                if isinstance(ts, int | float):
+                if ts is not None:
                     block.times.append(ts)
                 index = obj.get("index")
                 if isinstance(index, int):
@@ -203,59 +205,79 @@ def analyse(
                     block.exceptions += 1
                     fig.faults.append((ts, "exception", str(obj.get("line") or "")))
         elif kind == "event" and obj.get("event") == "timeout":
-            info = obj.get("info") or {}
-            block = by_index.get(info.get("request_index")) if isinstance(info, Mapping) else None
+            info = obj.get("info")
+            index = info.get("request_index") if isinstance(info, Mapping) else None
+            block = by_index.get(index) if isinstance(index, int) else None
             if block is not None:
                 block.timeouts += 1
             fig.faults.append((ts, "timeout", str(obj.get("line") or "")))
         elif kind == "command":
-            command = obj.get("command")
-            if isinstance(command, Mapping):
-                text = str(command.get("text") or "")
-                phase = str(command.get("phase") or "")
-                duration = command.get("duration")
-                outcome = phase + (
-                    f" after {duration:.3f} s" if isinstance(duration, int | float) else ""
-                )
-                key = (obj.get("stream"), obj.get("unit"))
-                at = commands.get(key)
-                if at is None or phase == "written" or fig.commands[at][1] != text:
-                    commands[key] = len(fig.commands)
-                    fig.commands.append((ts, text, outcome))
-                else:
-                    fig.commands[at] = (fig.commands[at][0], text, outcome)
+            _command(fig, obj, ts, commands)
         transport = obj.get("transport")
         if isinstance(transport, str) and transport.startswith("rtu") and kind in (
             *FRAME_KINDS, "noise",
         ):  # fmt: skip
-            server = obj.get("dst") if kind == "request" else obj.get("src")
-            name = str(server) if transport == "rtu" else f"{server} (RTU over TCP/UDP)"
-            bus = buses.get(obj.get("stream"))
-            if bus is None:
-                bus = buses[obj.get("stream")] = Bus(str(name))
-            pdu = obj.get("pdu")
-            # a frame's pdu lacks its unit id and CRC; noise's holds every byte it had
-            size = len(str(pdu).split()) + (0 if kind == "noise" else 3) if pdu else 0
-            bus.bytes += size
-            if kind == "noise":
-                if "CRC" in " ".join(obj.get("notes") or ()):
-                    bus.crc_errors += 1
-            else:
-                bus.frames += 1
-            if isinstance(ts, int | float):
-                previous = last_frame_end.get(obj.get("stream"))
-                on_wire = size * 11 / baud if baud else 0.0  # this frame's own bytes
-                if previous is not None and ts - on_wire >= previous:
-                    bus.gaps_ms.append((ts - on_wire - previous) * 1000.0)
-                last_frame_end[obj.get("stream")] = ts
-                bus.first = ts if bus.first is None else bus.first
-                bus.last = ts
+            _bus_record(obj, kind, transport, ts, baud, buses, last_frame_end)
     fig.blocks = sorted(
         blocks.values(), key=lambda b: (b.client, b.server, str(b.unit), str(b.fc), str(b.address))
     )
     fig.blocks = [b for b in fig.blocks if b.times or b.latencies_ms or b.exceptions]
     fig.buses = list(buses.values())
     return fig
+
+
+def _command(fig: Figures, obj: Mapping[str, Any], ts: Any, commands: dict[Any, int]) -> None:
+    """A robot command's record: a new row of ``fig.commands``, or the outcome of the
+    latest row of its (stream, unit) (``commands`` holds where that row is)."""
+    command = obj.get("command")
+    if not isinstance(command, Mapping):
+        return
+    text = str(command.get("text") or "")
+    phase = str(command.get("phase") or "")
+    duration = command.get("duration")
+    outcome = phase + (f" after {duration:.3f} s" if isinstance(duration, int | float) else "")
+    key = (obj.get("stream"), obj.get("unit"))
+    at = commands.get(key)
+    if at is None or phase == "written" or fig.commands[at][1] != text:
+        commands[key] = len(fig.commands)
+        fig.commands.append((ts, text, outcome))
+    else:
+        fig.commands[at] = (fig.commands[at][0], text, outcome)
+
+
+def _bus_record(
+    obj: Mapping[str, Any],
+    kind: Any,
+    transport: str,
+    ts: float | None,
+    baud: int | None,
+    buses: dict[Any, Bus],
+    last_frame_end: dict[Any, float],
+) -> None:
+    """An RTU frame's or noise's record on its bus: bytes, frames, CRC errors and the
+    silence before it (``last_frame_end``: per stream, when its last frame ended)."""
+    server = obj.get("dst") if kind == "request" else obj.get("src")
+    name = str(server) if transport == "rtu" else f"{server} (RTU over TCP/UDP)"
+    bus = buses.get(obj.get("stream"))
+    if bus is None:
+        bus = buses[obj.get("stream")] = Bus(str(name))
+    pdu = obj.get("pdu")
+    # a frame's pdu lacks its unit id and CRC; noise's holds every byte it had
+    size = len(str(pdu).split()) + (0 if kind == "noise" else 3) if pdu else 0
+    bus.bytes += size
+    if kind == "noise":
+        if "CRC" in " ".join(obj.get("notes") or ()):
+            bus.crc_errors += 1
+    else:
+        bus.frames += 1
+    if ts is not None:
+        previous = last_frame_end.get(obj.get("stream"))
+        on_wire = size * 11 / baud if baud else 0.0  # this frame's own bytes
+        if previous is not None and ts - on_wire >= previous:
+            bus.gaps_ms.append((ts - on_wire - previous) * 1000.0)
+        last_frame_end[obj.get("stream")] = ts
+        bus.first = ts if bus.first is None else bus.first
+        bus.last = ts
 
 
 # --------------------------------------------------------------------------- terminal

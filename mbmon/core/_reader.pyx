@@ -38,7 +38,8 @@ from cpython.bytes cimport PyBytes_FromStringAndSize
 
 import orjson as _orjson
 
-from mbmon.format import function_name, exception_name, record_json_bytes, record_line
+from mbmon.format import function_name, exception_name, record_line
+from mbmon.jsonfmt import record_json_bytes
 from mbmon.model import (
     Direction, Event, EventKind, Frame, Record, RecordKind, Stream, Transport,
 )

@@ -17,6 +17,7 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
+from mbmon.model import Record
 from mbmon.monitor.feed import KEEP, Entry, MonitorFeed
 
 __all__ = ["KEEP", "Entry", "MonitorFeed", "run_screen", "save_entries"]
@@ -46,11 +47,11 @@ def save_entries(path: str, entries: list[Entry], feed: MonitorFeed, ctx: Any) -
             ((item.ts, 0, i, item) for i, item in enumerate(inputs)),
             ((rec.ts, 1, i, rec) for i, rec in enumerate(records)),
         )
-        for _ts, what, _i, item in merged:
-            if what == 0:
-                hooks.item(item)
-            else:
+        for _ts, _what, _i, item in merged:
+            if isinstance(item, Record):
                 hooks.records([item])
+            else:
+                hooks.item(item)
     finally:
         sink.close()
     return f"wrote {len(records)} lines to {path}"
@@ -132,7 +133,7 @@ def run_screen(
         ended_note=ended_note,
         display_filter=display_filter,
     )
-    old: dict[int, Any] = {}
+    old: dict[int, Any] = {}  # signal number -> the handler before the screen's
 
     def on_signal(signum: int, frame: Any) -> None:
         app.signalled = True
@@ -149,8 +150,8 @@ def run_screen(
     try:
         app.run()
     finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
+        for signum, handler in old.items():
+            signal.signal(signum, handler)
         if worker.is_alive():
             stop()
             worker.join()

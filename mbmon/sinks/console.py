@@ -15,7 +15,8 @@ import os
 from collections.abc import Callable
 from typing import IO, Any
 
-from mbmon.format import View, record_json_bytes, record_line
+from mbmon.format import View, record_line
+from mbmon.jsonfmt import record_json_bytes
 from mbmon.model import Record
 
 #: Console lines are written in blocks of this many records (with stdout

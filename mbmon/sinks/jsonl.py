@@ -1,7 +1,7 @@
 """JSON Lines sink (``-w FILE.jsonl``): exactly the lines ``mbmon read --json`` prints.
 
 Records go through the same fast encoder as ``read --json`` to stdout
-(:func:`mbmon.format.record_json_bytes`, UTF-8 bytes written to a binary file:
+(:func:`mbmon.jsonfmt.record_json_bytes`, UTF-8 bytes written to a binary file:
 no text layer, no encode step); already-made objects (``mbmon export``) through
 :func:`mbmon.format.json_line`, which gives the same bytes, as ``replay --json``
 does, so that all four agree byte for byte.
@@ -20,7 +20,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import IO, Any
 
-from mbmon.format import json_line, record_json_bytes
+from mbmon.format import json_line
+from mbmon.jsonfmt import record_json_bytes
 from mbmon.model import Record
 from mbmon.sinks.base import SinkBase, SinkContext
 

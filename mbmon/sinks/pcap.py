@@ -1,7 +1,7 @@
 """Pcap sink (``-w FILE.pcap`` and ``mbmon export LOG.mcap -o FILE.pcap``), and
 its pcapng form (``.pcapng``: one file, the changes marked as comments in it).
 
-A thin listener over :class:`mbmon.sources.pcapwrite.ChunkWriter`, which owns
+A thin listener over :class:`mbmon.io.pcap.ChunkWriter`, which owns
 how captured bytes are re-wrapped so Wireshark decodes them (TCP conversations
 with consistent numbers, original endpoints and times, handshakes, FIN/RST,
 gaps; UDP datagrams; RS485 bus bytes as link type 147). This module owns the
@@ -22,9 +22,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from mbmon.io.pcap import LINKTYPE_USER0, ChunkWriter
 from mbmon.model import Chunk, Direction, Event, Transport
 from mbmon.sinks.base import SinkBase, SinkContext
-from mbmon.sources.pcapwrite import LINKTYPE_USER0, ChunkWriter
 from mbmon.timefmt import epoch_text
 
 #: the tshark option that makes Wireshark decode link type 147 (USER0) as Modbus RTU

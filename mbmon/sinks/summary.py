@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections import Counter
 from typing import Any
 
-from mbmon.model import EventKind, Phase, Record, RecordKind
+from mbmon.model import Event, EventKind, Noise, Phase, Record, RecordKind
 from mbmon.timefmt import human_span
 
 _REQUEST, _RESPONSE, _EXCEPTION = RecordKind.REQUEST, RecordKind.RESPONSE, RecordKind.EXCEPTION
@@ -74,21 +74,10 @@ class Summary:
                 if record.request is None:
                     self.unsolicited += 1
             elif kind is _NOISE:
-                noise = record.noise
-                self.noise_records += 1
-                if noise is not None:
-                    self.noise_bytes += len(noise.raw)
-                    if "CRC" in noise.reason:
-                        self.crc_errors += 1
+                self._noise(record.noise)
             elif kind is _EVENT:
-                event = record.event
-                if event is not None:
-                    self.events[event.kind.value] += 1
-                    if event.kind is EventKind.TIMEOUT:
-                        self.timeouts += 1
-                    elif event.kind is EventKind.STATS:
-                        continue  # the source's own counters, stamped when it stopped:
-                        # not traffic, so not part of the time span
+                if record.event is not None and not self._event(record.event):
+                    continue  # not traffic, so not part of the time span
             elif kind is _COMMAND:
                 command = record.command
                 if command is not None:
@@ -107,6 +96,22 @@ class Summary:
                 self.first = ts
             if self.last is None or ts > self.last:
                 self.last = ts
+
+    def _noise(self, noise: Noise | None) -> None:
+        """One noise record: its bytes, and a CRC error when that is why it is noise."""
+        self.noise_records += 1
+        if noise is not None:
+            self.noise_bytes += len(noise.raw)
+            if "CRC" in noise.reason:
+                self.crc_errors += 1
+
+    def _event(self, event: Event) -> bool:
+        """Count one event; whether it is traffic (a STATS event is the source's own
+        counters, stamped when it stopped: not part of the time span)."""
+        self.events[event.kind.value] += 1
+        if event.kind is EventKind.TIMEOUT:
+            self.timeouts += 1
+        return event.kind is not EventKind.STATS
 
     def _command(self, sid: int, unit: int, phase: Phase) -> None:
         """One step of a command's life (written, executing, success/fail, returned):

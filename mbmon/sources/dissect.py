@@ -66,6 +66,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport
+from mbmon.sources.headers import ipv4_header, ipv6_header, link_layer
 from mbmon.sources.tcpflow import ACK, SYN, TcpConnection, TcpStats, make_chunk
 
 if TYPE_CHECKING:
@@ -117,20 +118,10 @@ def _address(raw: bytes, port: int) -> str:
     return f"[{ipaddress.IPv6Address(raw).compressed}]:{port}"
 
 
-_ETHERNET = 1
-_RAW = frozenset({101, 12, 14})
-_LOOPBACK = frozenset({0, 108})
-_AF_INET6 = frozenset({10, 23, 24, 28, 30})
-_VLAN = frozenset({0x8100, 0x88A8, 0x9100})
-_IPV6_EXT = frozenset({0, 43, 60, 135, 139, 140, 253, 254})
-
 _tcp_unpack = struct.Struct("!HHIIH").unpack_from
 _udp_unpack = struct.Struct("!HHH").unpack_from
-_ipv4_unpack = struct.Struct("!BxHxxHxB").unpack_from
 # Ethernet type, IPv4 (version/IHL, length, flags/offset, protocol, addresses), TCP
 _eth_ipv4_tcp = struct.Struct("!12xHBxHxxHxBxx8sHHIIH").unpack_from
-_h_unpack = struct.Struct("!H").unpack_from
-_af_unpack = struct.Struct("<I").unpack_from
 
 
 class Dissector:
@@ -472,201 +463,118 @@ class Dissector:
         self, ts: float, link: int, iface: int, buf: bytes, off: int, end: int, out: list[Any]
     ) -> None:
         """Any link type, VLAN tags, IPv4 (options, fragments) or IPv6 (extension
-        headers), TCP or UDP: what :meth:`packet`'s fast path does not take."""
-        # ---- link layer -> ethertype
-        if link == _ETHERNET:
-            if end - off < 14:
-                self.truncated += 1
-                return
-            et = (buf[off + 12] << 8) | buf[off + 13]
-            off += 14
-        elif link == 147:
+        headers), TCP or UDP: what :meth:`packet`'s fast path does not take. Each
+        layer is one method; a header that makes no sense is counted where it is
+        found and ends the packet."""
+        if link == 147:
             self._bus(ts, iface, buf[off:end], out)
             return
-        elif link == 113:  # Linux cooked v1
-            if end - off < 16:
-                self.truncated += 1
-                return
-            et = (buf[off + 14] << 8) | buf[off + 15]
-            off += 16
-        elif link == 276:  # Linux cooked v2
-            if end - off < 20:
-                self.truncated += 1
-                return
-            et = (buf[off] << 8) | buf[off + 1]
-            off += 20
-        elif link in _RAW:
-            if end <= off:
-                self.truncated += 1
-                return
-            version = buf[off] >> 4
-            et = 0x0800 if version == 4 else 0x86DD if version == 6 else 0
-        elif link in _LOOPBACK:
-            if end - off < 4:
-                self.truncated += 1
-                return
-            family = _af_unpack(buf, off)[0]
-            if family > 0xFFFF:  # written in the other byte order
-                family = int.from_bytes(buf[off : off + 4], "big")
-            et = 0x0800 if family == 2 else 0x86DD if family in _AF_INET6 else 0
-            off += 4
-        elif link == 228:
-            et = 0x0800
-        elif link == 229:
-            et = 0x86DD
-        elif link < 0:  # a packet block naming an interface that was never described
-            self.malformed += 1
+        found = link_layer(self, link, buf, off, end)
+        if found is None:
             return
-        else:
-            self.unsupported_link += 1
-            return
-        while et in _VLAN:
-            if end - off < 4:
-                self.truncated += 1
-                return
-            et = (buf[off + 2] << 8) | buf[off + 3]
-            off += 4
-        # ---- network layer
-        short = False
+        et, off = found
         if et == 0x0800:
-            if end - off < 20:
-                self.truncated += 1
-                return
-            vihl, total, frag, proto = _ipv4_unpack(buf, off)
-            ihl = (vihl & 15) << 2
-            if vihl >> 4 != 4 or ihl < 20:
-                self.malformed += 1
-                return
-            if total == 0:  # segmentation offload: the length is left to the capture
-                ip_end = end
-            elif total < ihl:
-                self.malformed += 1
-                return
-            else:
-                ip_end = off + total
-                if ip_end > end:  # cut by the snap length: counted if it matters below
-                    short = True
-                    ip_end = end
-            if frag & 0x3FFF:  # more-fragments or an offset
-                self.fragments += 1
-                if frag & 0x1FFF:  # not the first fragment: no transport header
-                    return
-                short = True  # the first one: a cut packet
-            addr_at, addr_len = off + 12, 8
-            l4 = off + ihl
+            ip = ipv4_header(self, buf, off, end)
         elif et == 0x86DD:
-            if end - off < 40:
-                self.truncated += 1
-                return
-            if buf[off] >> 4 != 6:
-                self.malformed += 1
-                return
-            plen = (buf[off + 4] << 8) | buf[off + 5]
-            ip_end = off + 40 + plen if plen else end
-            if ip_end > end:
-                short = True
-                ip_end = end
-            proto = buf[off + 6]
-            addr_at, addr_len = off + 8, 32
-            l4 = off + 40
-            for _ in range(16):
-                if proto in _IPV6_EXT:
-                    if ip_end - l4 < 8:
-                        self.truncated += 1
-                        return
-                    proto, l4 = buf[l4], l4 + ((buf[l4 + 1] + 1) << 3)
-                elif proto == 44:  # fragment header
-                    if ip_end - l4 < 8:
-                        self.truncated += 1
-                        return
-                    frag = _h_unpack(buf, l4 + 2)[0]
-                    if frag & 0xFFF9:  # offset or more-fragments
-                        self.fragments += 1
-                        if frag & 0xFFF8:  # not the first fragment
-                            return
-                        short = True
-                    proto, l4 = buf[l4], l4 + 8
-                elif proto == 51:  # authentication header
-                    if ip_end - l4 < 8:
-                        self.truncated += 1
-                        return
-                    proto, l4 = buf[l4], l4 + ((buf[l4 + 1] + 2) << 2)
-                else:
-                    break
+            ip = ipv6_header(self, buf, off, end)
         else:
             self.non_ip += 1
             return
-        # ---- transport layer
+        if ip is None:
+            return
+        proto, l4, ip_end, addrs, short = ip
         if proto == 6:
-            if ip_end - l4 < 20:
-                if ip_end < l4:
-                    self.malformed += 1
-                else:
-                    self.truncated += 1
-                return
-            sport, dport, seq, ack, hl = _tcp_unpack(buf, l4)
-            self.good_ts = ts
-            ports = self.ports
-            if sport not in ports and dport not in ports:
-                doff = (hl >> 10) & 0x3C
-                if self.detector is not None and not short and 20 <= doff <= ip_end - l4:
-                    key = (buf[addr_at : addr_at + addr_len], sport, dport)
-                    payload = buf[l4 + doff : ip_end]
-                    self._detect(ts, key, seq, ack, hl & 0xFF, payload, out)
-                    return
-                self.non_modbus += 1
-                self._other_port(sport if sport < dport else dport)
-                return
-            self.modbus_packets += 1
-            doff = (hl >> 10) & 0x3C
-            if doff < 20:
-                self.malformed += 1
-                return
-            if l4 + doff > ip_end:
-                self.truncated += 1
-                return
-            flags = hl & 0xFF
-            key = (buf[addr_at : addr_at + addr_len], sport, dport)
-            flow = self.tcp.get(key)
-            payload = buf[l4 + doff : ip_end]
-            if flow is None or flags & SYN or flow[0].closed:
-                flow = self._tcp_flow(key, flow, ts, seq, flags, bool(payload), out)
-            flow[0].segment(ts, flow[1], seq, ack, flags, payload, out)
-            if short:
-                self.truncated += 1
+            self._tcp_general(ts, buf, l4, ip_end, addrs, short, out)
         elif proto == 17:
-            if ip_end - l4 < 8:
-                if ip_end < l4:
-                    self.malformed += 1
-                else:
-                    self.truncated += 1
-                return
-            sport, dport, ulen = _udp_unpack(buf, l4)
-            self.good_ts = ts
-            ports = self.ports
-            if sport not in ports and dport not in ports:
-                self.non_modbus += 1
-                self._other_port(_UDP_PORT | (sport if sport < dport else dport))
-                return
-            self.modbus_packets += 1
-            if ulen < 8:
-                self.malformed += 1
-                return
-            if l4 + ulen > ip_end:  # cut, or a first fragment: half a datagram is none
-                self.truncated += 1
-                return
-            if ulen == 8:
-                return
-            key = (buf[addr_at : addr_at + addr_len], sport, dport)
-            dgram = self.udp.get(key)
-            if dgram is None:
-                if len(self._udp_last) >= self.max_flows:
-                    self._evict_udp(ts, out)
-                dgram = self._new_udp(key, ts)
-            self._udp_last[dgram[0].id] = ts
-            out.append(make_chunk(ts, dgram[0], dgram[1], buf[l4 + 8 : l4 + ulen]))
+            self._udp_general(ts, buf, l4, ip_end, addrs, out)
         else:
             self.non_modbus += 1
+
+    def _cut_transport(self, l4: int, ip_end: int, size: int) -> bool:
+        """Whether a transport header of ``size`` bytes at ``l4`` is missing (counted:
+        malformed when the IP header already ran past its packet, else truncated)."""
+        if ip_end - l4 >= size:
+            return False
+        if ip_end < l4:
+            self.malformed += 1
+        else:
+            self.truncated += 1
+        return True
+
+    def _tcp_general(
+        self,
+        ts: float,
+        buf: bytes,
+        l4: int,
+        ip_end: int,
+        addrs: bytes,
+        short: bool,
+        out: list[Any],
+    ) -> None:
+        """A TCP segment at ``l4`` (IP payload up to ``ip_end``, ``short``: the IP packet
+        was cut): to its flow, to port detection, or counted."""
+        if self._cut_transport(l4, ip_end, 20):
+            return
+        sport, dport, seq, ack, hl = _tcp_unpack(buf, l4)
+        self.good_ts = ts
+        ports = self.ports
+        doff = (hl >> 10) & 0x3C
+        if sport not in ports and dport not in ports:
+            if self.detector is not None and not short and 20 <= doff <= ip_end - l4:
+                payload = buf[l4 + doff : ip_end]
+                self._detect(ts, (addrs, sport, dport), seq, ack, hl & 0xFF, payload, out)
+                return
+            self.non_modbus += 1
+            self._other_port(sport if sport < dport else dport)
+            return
+        self.modbus_packets += 1
+        if doff < 20:
+            self.malformed += 1
+            return
+        if l4 + doff > ip_end:
+            self.truncated += 1
+            return
+        flags = hl & 0xFF
+        key = (addrs, sport, dport)
+        flow = self.tcp.get(key)
+        payload = buf[l4 + doff : ip_end]
+        if flow is None or flags & SYN or flow[0].closed:
+            flow = self._tcp_flow(key, flow, ts, seq, flags, bool(payload), out)
+        flow[0].segment(ts, flow[1], seq, ack, flags, payload, out)
+        if short:
+            self.truncated += 1
+
+    def _udp_general(
+        self, ts: float, buf: bytes, l4: int, ip_end: int, addrs: bytes, out: list[Any]
+    ) -> None:
+        """A UDP datagram at ``l4`` (IP payload up to ``ip_end``): a chunk of its
+        stream, or counted."""
+        if self._cut_transport(l4, ip_end, 8):
+            return
+        sport, dport, ulen = _udp_unpack(buf, l4)
+        self.good_ts = ts
+        ports = self.ports
+        if sport not in ports and dport not in ports:
+            self.non_modbus += 1
+            self._other_port(_UDP_PORT | (sport if sport < dport else dport))
+            return
+        self.modbus_packets += 1
+        if ulen < 8:
+            self.malformed += 1
+            return
+        if l4 + ulen > ip_end:  # cut, or a first fragment: half a datagram is none
+            self.truncated += 1
+            return
+        if ulen == 8:
+            return
+        key = (addrs, sport, dport)
+        dgram = self.udp.get(key)
+        if dgram is None:
+            if len(self._udp_last) >= self.max_flows:
+                self._evict_udp(ts, out)
+            dgram = self._new_udp(key, ts)
+        self._udp_last[dgram[0].id] = ts
+        out.append(make_chunk(ts, dgram[0], dgram[1], buf[l4 + 8 : l4 + ulen]))
 
     def _roles(self, key: tuple[bytes, int, int], flags: int) -> tuple[bool, int]:
         """Whether the sender of this first packet is the client, and the server port.

@@ -225,78 +225,34 @@ _NG = {
 }
 
 
+_SECTION_HEADER = 0x0A0D0D0A
+_Interface = tuple[int, int, int, int]  # (link type, timestamp divisor, offset, snaplen)
+
+
 def _pcapng_pump(inp: _Input, packet: _Packet, out: list[Any]) -> Iterator[Any]:
     """Records of a pcapng file: every section, interface and packet block type."""
     endian = "<"
-    head, tail, epb, pb = _NG[endian]
-    # per interface: (link type, timestamp divisor, timestamp offset, snaplen)
-    ifaces: list[tuple[int, int, int, int]] = []
+    # per interface of the current section: (link type, ts divisor, ts offset, snaplen)
+    ifaces: list[_Interface] = []
     count, ts = 0, 0.0
     try:
         while True:
-            buf, pos = inp.buf, inp.pos
-            if len(buf) - pos < 12:
-                if not inp.fill(12):
-                    if len(inp.buf) == inp.pos:
-                        return
-                    raise _Damage("truncated block header", inp.offset())
-                buf, pos = inp.buf, inp.pos
-            btype, blen = head(buf, pos)
-            if btype == 0x0A0D0D0A:
-                bom = buf[pos + 8 : pos + 12]
-                if bom == b"\x4d\x3c\x2b\x1a":
-                    endian = "<"
-                elif bom == b"\x1a\x2b\x3c\x4d":
-                    endian = ">"
-                else:
-                    raise _Damage("corrupt section header (byte-order magic)", inp.offset())
-                head, tail, epb, pb = _NG[endian]
-                btype, blen = head(buf, pos)
-                ifaces = []
-            if blen < 12 or blen % 4 or blen > _MAX_RECORD:
-                raise _Damage(f"corrupt block length {blen}", inp.offset())
-            if len(buf) - pos < blen:
-                if not inp.fill(blen):
-                    raise _Damage("truncated block", inp.offset())
-                buf, pos = inp.buf, inp.pos
-            end = pos + blen - 4
-            if tail(buf, end)[0] != blen:
-                raise _Damage("corrupt block (trailing length differs)", inp.offset())
-            if btype == 6 or btype == 2:  # Enhanced / obsolete Packet Block
-                if blen < 32:
-                    raise _Damage("corrupt packet block", inp.offset())
-                if btype == 6:
-                    iface, hi, lo, caplen = epb(buf, pos + 8)
-                else:
-                    iface, _, hi, lo, caplen = pb(buf, pos + 8)
-                if pos + 28 + caplen > end:
-                    raise _Damage("corrupt packet block (length)", inp.offset())
+            block = _ng_block(inp, endian)
+            if block is None:
+                return
+            order, buf, pos, btype, blen = block
+            if btype == _SECTION_HEADER:
+                endian, ifaces = order, []
+            if btype == 6 or btype == 2 or btype == 3:  # a packet block
+                ts, link, iface, start, stop = _ng_packet(inp, block, ifaces, ts)
                 inp.pos = pos + blen
                 count += 1
-                if iface < len(ifaces):
-                    link, div, off, _ = ifaces[iface]
-                    ts = ((hi << 32) | lo) / div + off
-                    packet(ts, link, iface, buf, pos + 28, pos + 28 + caplen, out)
-                else:  # an interface that was never described
-                    packet(ts, -1, iface, buf, pos, pos, out)
-            elif btype == 3:  # Simple Packet Block: interface 0, no timestamp
-                if blen < 16:
-                    raise _Damage("corrupt simple packet block", inp.offset())
-                inp.pos = pos + blen
-                count += 1
-                caplen = min(tail(buf, pos + 8)[0], end - (pos + 12))  # original length
-                if ifaces:
-                    link, _, _, snaplen = ifaces[0]
-                    if snaplen:
-                        caplen = min(caplen, snaplen)
-                    packet(ts, link, 0, buf, pos + 12, pos + 12 + caplen, out)
-                else:
-                    packet(ts, -1, 0, buf, pos, pos, out)
+                packet(ts, link, iface, buf, start, stop, out)
             else:
                 if btype == 1:  # Interface Description Block
                     if blen < 20:
                         raise _Damage("corrupt interface block", inp.offset())
-                    ifaces.append(_interface(buf, pos + 8, end, endian))
+                    ifaces.append(_interface(buf, pos + 8, pos + blen - 4, endian))
                 inp.pos = pos + blen
                 continue
             if out:
@@ -307,7 +263,72 @@ def _pcapng_pump(inp: _Input, packet: _Packet, out: list[Any]) -> Iterator[Any]:
         inp.count, inp.last_ts = count, ts
 
 
-def _interface(buf: bytes, pos: int, end: int, endian: str) -> tuple[int, int, int, int]:
+def _ng_block(inp: _Input, endian: str) -> tuple[str, bytes, int, int, int] | None:
+    """The next pcapng block, whole in ``inp.buf`` and its lengths checked: (byte
+    order, buffer, where it starts, block type, total length); ``None`` at the end of
+    the file. A section header block names its own byte order."""
+    buf, pos = inp.buf, inp.pos
+    if len(buf) - pos < 12:
+        if not inp.fill(12):
+            if len(inp.buf) == inp.pos:
+                return None
+            raise _Damage("truncated block header", inp.offset())
+        buf, pos = inp.buf, inp.pos
+    btype, blen = _NG[endian][0](buf, pos)
+    if btype == _SECTION_HEADER:
+        bom = buf[pos + 8 : pos + 12]
+        if bom == b"\x4d\x3c\x2b\x1a":
+            endian = "<"
+        elif bom == b"\x1a\x2b\x3c\x4d":
+            endian = ">"
+        else:
+            raise _Damage("corrupt section header (byte-order magic)", inp.offset())
+        btype, blen = _NG[endian][0](buf, pos)
+    if blen < 12 or blen % 4 or blen > _MAX_RECORD:
+        raise _Damage(f"corrupt block length {blen}", inp.offset())
+    if len(buf) - pos < blen:
+        if not inp.fill(blen):
+            raise _Damage("truncated block", inp.offset())
+        buf, pos = inp.buf, inp.pos
+    if _NG[endian][1](buf, pos + blen - 4)[0] != blen:
+        raise _Damage("corrupt block (trailing length differs)", inp.offset())
+    return endian, buf, pos, btype, blen
+
+
+def _ng_packet(
+    inp: _Input, block: tuple[str, bytes, int, int, int], ifaces: list[_Interface], ts: float
+) -> tuple[float, int, int, int, int]:
+    """A packet block (enhanced, obsolete or simple) as the dissector takes it: (time,
+    link type, interface, data start, data end). An interface never described gives
+    link type -1 and no data; a simple packet block keeps the previous time."""
+    endian, buf, pos, btype, blen = block
+    _, tail, epb, pb = _NG[endian]
+    end = pos + blen - 4
+    if btype == 3:  # Simple Packet Block: interface 0, no timestamp
+        if blen < 16:
+            raise _Damage("corrupt simple packet block", inp.offset())
+        if not ifaces:
+            return ts, -1, 0, pos, pos
+        caplen = min(tail(buf, pos + 8)[0], end - (pos + 12))  # original length
+        link, _, _, snaplen = ifaces[0]
+        if snaplen:
+            caplen = min(caplen, snaplen)
+        return ts, link, 0, pos + 12, pos + 12 + caplen
+    if blen < 32:
+        raise _Damage("corrupt packet block", inp.offset())
+    if btype == 6:  # Enhanced Packet Block
+        iface, hi, lo, caplen = epb(buf, pos + 8)
+    else:  # obsolete Packet Block
+        iface, _, hi, lo, caplen = pb(buf, pos + 8)
+    if pos + 28 + caplen > end:
+        raise _Damage("corrupt packet block (length)", inp.offset())
+    if iface >= len(ifaces):  # an interface that was never described
+        return ts, -1, iface, pos, pos
+    link, div, off, _ = ifaces[iface]
+    return ((hi << 32) | lo) / div + off, link, iface, pos + 28, pos + 28 + caplen
+
+
+def _interface(buf: bytes, pos: int, end: int, endian: str) -> _Interface:
     """An IDB body: (link type, timestamp divisor, if_tsoffset seconds, snaplen)."""
     link, _, snaplen = struct.unpack_from(endian + "HHI", buf, pos)
     div, tsoff = 1_000_000, 0

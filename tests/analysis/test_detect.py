@@ -16,14 +16,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mbmon.analysis.detect import MAX_CANDIDATES
+from mbmon.io import pcap as pw
+from mbmon.io.pcap import PcapWriter, TcpConversation
 from mbmon.model import Chunk, Event, EventKind, Transport
 from mbmon.pipeline import Pipeline
 from mbmon.protocol.crc import add_crc
 from mbmon.protocol.mbap import encode_adu
-from mbmon.sources import pcapwrite as pw
 from mbmon.sources.dissect import CaptureConfig, Dissector
 from mbmon.sources.pcapfile import read_capture
-from mbmon.sources.pcapwrite import PcapWriter, TcpConversation
 
 REPO = Path(__file__).resolve().parents[2]
 REAL = REPO / ".." / "shared" / "captures" / "real"

@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 from mbmon_cli import mbmon
 
+from mbmon.io.pcap import PcapWriter, TcpConversation
 from mbmon.protocol.mbap import encode_adu
-from mbmon.sources.pcapwrite import PcapWriter, TcpConversation
 
 pa = pytest.importorskip("pyarrow")
 pq = pytest.importorskip("pyarrow.parquet")

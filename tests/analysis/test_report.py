@@ -18,12 +18,12 @@ from mbmon_cli import mbmon
 
 from mbmon.analysis.report import analyse, percentile, text_tables
 from mbmon.format import View, record_to_json
+from mbmon.io import pcap as pw
+from mbmon.io.pcap import PcapWriter, TcpConversation
 from mbmon.pipeline import Pipeline, PipelineConfig
 from mbmon.protocol.crc import add_crc
 from mbmon.protocol.mbap import encode_adu
-from mbmon.sources import pcapwrite as pw
 from mbmon.sources.pcapfile import read_capture
-from mbmon.sources.pcapwrite import PcapWriter, TcpConversation
 
 REPO = Path(__file__).resolve().parents[2]
 START = calendar.timegm((2026, 11, 26, 8, 0, 0))
@@ -100,6 +100,24 @@ def test_percentile_interpolates_like_numpy() -> None:
     assert percentile([1, 2, 3, 4], 50) == 2.5
     assert percentile([10.0], 99) == 10.0
     assert percentile([1, 2, 3, 4, 5], 95) == pytest.approx(4.8)
+
+
+def test_damaged_records_give_figures_without_times_not_a_crash() -> None:
+    """Records read from a damaged log: a time that is no number and a timeout whose
+    request index is no number are kept without a time (the timeline leaves them
+    out) instead of a time that cannot be drawn or an unhashable lookup."""
+    fig = analyse(
+        [
+            {"kind": "request", "time": 1.0, "index": 0, "src": "c:1", "dst": "s:502", "fc": 3},
+            {"kind": "exception", "time": "noon", "src": "s:502", "dst": "c:1", "fc": 3},
+            {"kind": "event", "event": "timeout", "time": [2], "info": {"request_index": [0]}},
+            {"kind": "command", "time": "x", "command": {"text": "PTP", "phase": "written"}},
+        ]
+    )
+    assert (fig.first, fig.last, fig.records) == (1.0, 1.0, 4)
+    assert [(ts, kind) for ts, kind, _ in fig.faults] == [(None, "exception"), (None, "timeout")]
+    assert fig.commands == [(None, "PTP", "written")]
+    assert "faults: 1 exceptions, 1 timeouts" in text_tables(fig)
 
 
 def test_terminal_tables_without_output(capture: Path) -> None:

@@ -15,9 +15,9 @@ import pytest
 from mbmon_cli import mbmon
 
 from mbmon.analysis.rotate import RotatingSink, parse_rotate, rotated_name
+from mbmon.io.pcap import PcapWriter, TcpConversation
 from mbmon.protocol.mbap import encode_adu
 from mbmon.sinks.base import SinkContext
-from mbmon.sources.pcapwrite import PcapWriter, TcpConversation
 
 REPO = Path(__file__).resolve().parents[2]
 START = calendar.timegm((2026, 11, 26, 10, 20, 0)) + 0.5  # 10:20:00.5 UTC

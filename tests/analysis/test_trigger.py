@@ -16,10 +16,10 @@ from mbmon.analysis.trigger import TriggerGate
 from mbmon.filters import FilterError, parse_expression
 from mbmon.format import View, record_to_json
 from mbmon.hub import Hub
+from mbmon.io.pcap import PcapWriter, TcpConversation
 from mbmon.pipeline import Pipeline
 from mbmon.protocol.mbap import encode_adu
 from mbmon.sources.pcapfile import read_capture
-from mbmon.sources.pcapwrite import PcapWriter, TcpConversation
 
 REPO = Path(__file__).resolve().parents[2]
 START = calendar.timegm((2026, 11, 26, 9, 0, 0))

@@ -28,14 +28,14 @@ from pathlib import Path
 
 import pytest
 
-from mbmon.protocol.crc import crc16
-from mbmon.protocol.mbap import encode_adu
-from mbmon.sources.pcapwrite import (
+from mbmon.io.pcap import (
     LINKTYPE_USER0,
     PcapWriter,
     TcpConversation,
     udp_frame,
 )
+from mbmon.protocol.crc import crc16
+from mbmon.protocol.mbap import encode_adu
 
 REPO = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "PYTHONPATH": str(REPO), "TZ": "UTC"}

@@ -15,10 +15,10 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
+from mbmon.io.pcap import PcapWriter, TcpConversation
 from mbmon.protocol.mbap import encode_adu
 from mbmon.protocol.pdu import encode_read_request, encode_read_response
 from mbmon.protocol.rtu import encode_rtu
-from mbmon.sources.pcapwrite import PcapWriter, TcpConversation
 
 REPO = Path(__file__).resolve().parents[2]
 MBMON = [sys.executable, "-m", "mbmon"]

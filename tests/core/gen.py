@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from mbmon.io.pcap import PcapngWriter, PcapWriter, TcpConversation
 from mbmon.protocol.mbap import encode_adu
 from mbmon.protocol.pdu import (
     encode_exception,
@@ -14,7 +15,6 @@ from mbmon.protocol.pdu import (
     encode_write_multiple_response,
     encode_write_single,
 )
-from mbmon.sources.pcapwrite import PcapngWriter, PcapWriter, TcpConversation
 
 T0 = 1_700_000_000.25
 

@@ -69,7 +69,7 @@ def _two_ports(path: Path, other_port: int) -> Path:
     ``other_port``, interleaved packet by packet."""
     from gen import T0, adus, every_function_pair, write_frames
 
-    from mbmon.sources.pcapwrite import TcpConversation
+    from mbmon.io.pcap import TcpConversation
 
     pairs = every_function_pair()[:6]
     frames: list[bytes] = []

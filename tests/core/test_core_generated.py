@@ -15,9 +15,9 @@ from gen import T0, adus, every_function_pair, write_conversation, write_frames
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from mbmon.io.pcap import TcpConversation
 from mbmon.protocol.mbap import encode_adu
 from mbmon.protocol.pdu import encode_read_request, encode_read_response
-from mbmon.sources.pcapwrite import TcpConversation
 
 
 @pytest.fixture(autouse=True)

@@ -9,7 +9,7 @@ import pytest
 
 from mbmon.commands.common import filter_text
 from mbmon.filters import add_filter_options, build_filter
-from mbmon.monitor.app import FilterSyntaxError, parse_display_filter
+from mbmon.monitor.display_filter import FilterSyntaxError, parse_display_filter
 
 
 @pytest.mark.parametrize(

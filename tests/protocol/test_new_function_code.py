@@ -16,13 +16,13 @@ from pathlib import Path
 
 import pytest
 
+from mbmon.io.pcap import PcapWriter, TcpConversation
 from mbmon.model import Frame, Kind, Stream, Transport
 from mbmon.protocol import functions
 from mbmon.protocol.functions import FUNCTIONS, FunctionCode, register, unregister
 from mbmon.protocol.mbap import encode_adu
 from mbmon.protocol.pdu import decode_pdu, pdu_length, table_of
 from mbmon.protocol.rtu import RtuDecoder, encode_rtu
-from mbmon.sources.pcapwrite import PcapWriter, TcpConversation
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -71,12 +71,13 @@ def test_a_registered_read_decodes_like_0x03(toy: FunctionCode) -> None:
 
 def test_every_derived_table_knows_a_registered_code(toy: FunctionCode) -> None:
     from mbmon import format as fmt
+    from mbmon import jsonfmt
     from mbmon.protocol import rtu
     from mbmon.semantics import annotate
 
     assert rtu._REQ_RULES[0x41] == 8 and rtu._RESP_RULES[0x41] == (2, 5)  # ADU sizes
     assert 0x41 in annotate._READ_FCS and annotate._TABLE[0x41] == "holding_registers"
-    assert 0x41 in fmt._READS and fmt.function_name(0x41) == "Toy Read"
+    assert 0x41 in jsonfmt._READS and fmt.function_name(0x41) == "Toy Read"
 
 
 def test_unregister_forgets_the_row(toy: FunctionCode) -> None:

@@ -26,9 +26,9 @@ from sink_records import REPO, session_items
 
 from mbmon.format import View
 from mbmon.hub import Hub
+from mbmon.io.pcap import PcapWriter, TcpConversation
 from mbmon.pipeline import Pipeline
 from mbmon.sinks.base import SinkContext, open_sink
-from mbmon.sources.pcapwrite import PcapWriter, TcpConversation
 
 FORMATS = (".jsonl", ".csv", ".txt", ".pcap", ".mcap")
 ENV = {**os.environ, "PYTHONPATH": str(REPO), "TZ": "UTC"}

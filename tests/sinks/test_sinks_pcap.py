@@ -16,11 +16,11 @@ import pytest
 from sink_records import feed, run_pipeline
 
 from mbmon.format import View, record_to_json
+from mbmon.io.pcap import LINKTYPE_ETHERNET, LINKTYPE_USER0
 from mbmon.model import Chunk, Record, RecordKind
 from mbmon.sinks.base import SinkContext, open_sink
 from mbmon.sinks.pcap import PcapSink
 from mbmon.sources.pcapfile import read_capture
-from mbmon.sources.pcapwrite import LINKTYPE_ETHERNET, LINKTYPE_USER0
 
 CTX = SinkContext(view=View(), source="x")
 

@@ -11,13 +11,13 @@ from pathlib import Path
 
 import pytest
 
+from mbmon.io import pcap as pw
+from mbmon.io.pcap import PcapWriter, TcpConversation
 from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport
 from mbmon.pipeline import Pipeline, PipelineConfig
 from mbmon.protocol.mbap import encode_adu
-from mbmon.sources import pcapwrite as pw
 from mbmon.sources.dissect import CLOSED_LINGER, CaptureConfig, Dissector
 from mbmon.sources.pcapfile import read_capture
-from mbmon.sources.pcapwrite import PcapWriter, TcpConversation
 
 REPO = Path(__file__).resolve().parents[2]
 ETH = pw.LINKTYPE_ETHERNET
@@ -184,7 +184,7 @@ MANY = textwrap.dedent(
     import resource, struct, sys
     from mbmon.protocol.mbap import encode_adu
     from mbmon.sources.dissect import CaptureConfig, Dissector, MAX_CLOSED, MAX_FLOWS
-    from mbmon.sources.pcapwrite import TcpConversation
+    from mbmon.io.pcap import TcpConversation
 
     n, kind = int(sys.argv[1]), sys.argv[2]
     conv = TcpConversation("10.1.0.2:40000", "10.0.0.1:502")

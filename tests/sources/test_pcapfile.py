@@ -13,10 +13,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from mbmon.io import pcap as pw
+from mbmon.io.pcap import PcapngWriter, PcapWriter, TcpConversation
 from mbmon.model import Chunk, Direction, Event, EventKind, Transport
-from mbmon.sources import pcapwrite as pw
 from mbmon.sources.pcapfile import CaptureConfig, CaptureError, read_capture
-from mbmon.sources.pcapwrite import PcapngWriter, PcapWriter, TcpConversation
 
 T0 = 1_700_000_000.0
 CLIENT = "192.168.1.10:40001"

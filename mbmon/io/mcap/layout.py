@@ -39,9 +39,10 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from mbmon.format import View, record_json_bytes, record_to_json
+from mbmon.format import View, record_to_json
 from mbmon.format import finite as _finite
 from mbmon.io.mcap.writer import MAX_LOG_TIME, MESSAGE_HEAD
+from mbmon.jsonfmt import record_json_bytes
 from mbmon.model import Chunk, Direction, Event, EventKind, Record, RecordKind, Stream
 
 _json_str = json.encoder.encode_basestring  # C-accelerated, keeps non-ASCII

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from mbmon.sources import pcapwrite
-from mbmon.sources.pcapwrite import (
+from mbmon.io import pcap
+from mbmon.io.pcap import (
     LINKTYPE_ETHERNET,
     LINKTYPE_USER0,
     PcapngWriter,
@@ -157,13 +157,13 @@ def test_tshark_sees_a_clean_conversation(tmp_path: Path, client: str) -> None:
 @pytest.mark.parametrize(
     "linktype",
     [
-        pcapwrite.LINKTYPE_NULL,
-        pcapwrite.LINKTYPE_ETHERNET,
-        pcapwrite.LINKTYPE_RAW,
-        pcapwrite.LINKTYPE_LOOP,
-        pcapwrite.LINKTYPE_LINUX_SLL,
-        pcapwrite.LINKTYPE_IPV4,
-        pcapwrite.LINKTYPE_LINUX_SLL2,
+        pcap.LINKTYPE_NULL,
+        pcap.LINKTYPE_ETHERNET,
+        pcap.LINKTYPE_RAW,
+        pcap.LINKTYPE_LOOP,
+        pcap.LINKTYPE_LINUX_SLL,
+        pcap.LINKTYPE_IPV4,
+        pcap.LINKTYPE_LINUX_SLL2,
     ],
 )
 def test_tshark_decodes_every_link_layer(tmp_path: Path, linktype: int) -> None:

@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from mbmon.io.pcap import ChunkWriter
 from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport
 from mbmon.sources.pcapfile import CaptureConfig, read_capture
-from mbmon.sources.pcapwrite import ChunkWriter
 
 REAL = Path(__file__).resolve().parents[2] / ".." / "shared" / "captures" / "real"
 FILES = sorted(p.name for p in REAL.glob("*.pcap*")) if REAL.is_dir() else []
