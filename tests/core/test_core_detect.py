@@ -14,9 +14,9 @@ import pytest
 from core_diff import assert_same, require_core, with_core
 from gen import T0, adus, every_function_pair, write_frames
 
+from mbmon.io.pcap import TcpConversation
 from mbmon.protocol.mbap import encode_adu
 from mbmon.protocol.pdu import encode_read_request
-from mbmon.sources.pcapwrite import TcpConversation
 
 KINDS = ("http", "random", "mbap-unanswered", "mbap-cut", "mbap-answered")
 
