@@ -9,9 +9,10 @@ Responses to reads take their addresses from the paired request. A value that
 spans two registers is combined only when both words are in the same frame;
 otherwise the half is shown raw and marked.
 
-When the profile asks for the HRSS command session (``session = "hrss"``), the
-annotator keeps one :class:`mbmon.semantics.hrss.HrssSession` per (server
-endpoint, unit) and merges its notes, command steps and state into the result.
+When the profile names a device session (``session = "hrss"``), the annotator
+keeps one per (server endpoint, unit), made by what the session registry
+(:mod:`mbmon.semantics.session`) gives for that name, and merges its notes,
+command steps and state into the result.
 
 Cost: with no profile bound, :meth:`Annotator.annotate` returns a shared empty
 annotation at once; with a profile, each field is one dict look-up.
@@ -44,6 +45,7 @@ from mbmon.semantics.profile import (
     ProfileBinding,
     Variant,
 )
+from mbmon.semantics.session import Session, SessionFactory, session_factory
 from mbmon.semantics.words import s16, u32_to_f32
 
 __all__ = ["Annotator", "SelectorMemory", "annotator_for", "field_notes"]
@@ -75,29 +77,33 @@ _NO_UNIT_SPACE = frozenset({"°", "%", ""})
 
 
 class Annotator:
-    """Turns pairing steps into profile notes; owns the HRSS sessions and selector memory."""
+    """Turns pairing steps into profile notes; owns the device sessions and selector memory."""
 
     def __init__(self, binding: ProfileBinding | None = None) -> None:
         self._binding = binding if binding is not None else ProfileBinding()
         self._off = self._binding.empty
-        self._sessions: dict[tuple[str, int], Any] = {}
-        self._session_cls: Any = None
-        self._session_tried = False
+        self._sessions: dict[tuple[str, int], Session] = {}
+        self._factories: dict[str, SessionFactory] = {}  # by session name, asked once each
         # last value of group selectors (PR[n].type) per (server, unit, table, address)
         self._selectors: dict[tuple[str, int, str, int], int] = {}
         self._memories: dict[tuple[str, int, str], SelectorMemory] = {}  # views of _selectors
-        # the (stream, unit) of the last step, its profile and HRSS session (see _bind)
+        # the (stream, unit) of the last step, its profile and session (see _bind)
         self._last_stream: Stream | None = None
         self._last_unit = -1
         self._last_profile: Profile | None = None
-        self._last_session: Any = None
+        self._last_session: Session | None = None
 
     @property
     def binding(self) -> ProfileBinding:
         return self._binding
 
-    def sessions(self) -> dict[tuple[str, int], Any]:
-        """The HRSS sessions by (server endpoint, unit), for sinks that want their state."""
+    @property
+    def has_sessions(self) -> bool:
+        """Whether a bound profile names a device session (the monitor's robot pane)."""
+        return any(p.session is not None for p in self._binding.profiles())
+
+    def sessions(self) -> dict[tuple[str, int], Session]:
+        """The device sessions by (server endpoint, unit), for listeners that show them."""
         return dict(self._sessions)
 
     def annotate(self, tx: Transaction) -> Annotation:
@@ -121,9 +127,9 @@ class Annotator:
             read = profile.memo.get(pdu.raw)
             if read is None:
                 read = _read_of(profile, pdu)
-            if session is None or not session.may_time_out_by(tx.ts):
-                return read.asked  # type: ignore[no-any-return]
-            return session.follow(tx, list(read.asked.notes))  # type: ignore[no-any-return]
+            if session is None or not session.wants_read_request(tx.ts):
+                return read.asked
+            return session.follow(tx, list(read.asked.notes))
         if status is _TIMEOUT:
             notes: list[str] = []
         elif status is _ANSWERED and pdu.kind is _RESPONSE and pdu.fc in _READ_FCS:
@@ -144,22 +150,22 @@ class Annotator:
         else:
             notes = list(self._frame_notes(tx, frame, profile))
         if session is not None:
-            return session.follow(tx, notes)  # type: ignore[no-any-return]
+            return session.follow(tx, notes)
         return _new_annotation(tuple(notes), (), None) if notes else _EMPTY
 
-    def _bind(self, stream: Stream, unit: int) -> tuple[Profile | None, Any]:
-        """The profile and HRSS session (or ``None``) of a stream and unit, remembered as the
+    def _bind(self, stream: Stream, unit: int) -> tuple[Profile | None, Session | None]:
+        """The profile and session (or ``None``) of a stream and unit, remembered as the
         last ones: consecutive steps mostly share a stream, and a binding never changes."""
         profile = self._binding.for_(stream, unit)
         session = None
-        if profile is not None and profile.session == "hrss":
-            session = self._session(stream, unit)
+        if profile is not None and profile.session is not None:
+            session = self._session(stream, unit, profile.session)
         self._last_stream, self._last_unit = stream, unit
         self._last_profile, self._last_session = profile, session
         return profile, session
 
     def tick(self, now: float) -> list[CommandUpdate]:
-        """Time ``now`` passed: command steps the HRSS sessions make due (never-completed warnings).
+        """Time ``now`` passed: command steps the sessions make due (never-completed warnings).
 
         The pipeline emits each as a COMMAND record; nothing here needs a frame.
         """
@@ -179,23 +185,16 @@ class Annotator:
 
     # ------------------------------------------------------------------ sessions
 
-    def _session(self, stream: Stream, unit: int) -> Any:
+    def _session(self, stream: Stream, unit: int, name: str) -> Session:
+        """The session ``name`` of a server endpoint and unit, made on first use."""
         key = (stream.server, unit)
         session = self._sessions.get(key)
         if session is None:
-            cls = self._hrss_class()
-            if cls is None:
-                return None
-            session = self._sessions[key] = cls(stream, unit)
+            factory = self._factories.get(name)
+            if factory is None:  # the registry imports a built-in session only now
+                factory = self._factories[name] = session_factory(name)
+            session = self._sessions[key] = factory(stream, unit)
         return session
-
-    def _hrss_class(self) -> Any:
-        if not self._session_tried:
-            self._session_tried = True
-            from mbmon.semantics.hrss.session import HrssSession  # loads its TOML: only when used
-
-            self._session_cls = HrssSession
-        return self._session_cls
 
     # ------------------------------------------------------------------ notes
 

@@ -293,7 +293,11 @@ def test_error_syntax_has_line() -> None:
             "outside 1..8",
         ),
         (('name = "cell"', "name = 5"), "profile.name", "expected a string"),
-        (('description = "a user profile"', 'session = "plc"'), "profile.session", "one of hrss"),
+        (
+            ('description = "a user profile"', 'session = "plc"'),
+            "profile.session",
+            "unknown session 'plc' (known: hrss",
+        ),
         (
             (
                 '[[coils]]\nname = "Q{n}"\naddress = 16',

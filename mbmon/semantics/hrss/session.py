@@ -36,8 +36,14 @@ from mbmon.model import (
     fast_constructor,
 )
 from mbmon.protocol.functions import FUNCTIONS, SHAPE, derived, mask_write
-from mbmon.semantics.hrss.render import Decoded, decode_command_from, decode_returns
+from mbmon.semantics.hrss.render import (
+    Decoded,
+    decode_command_from,
+    decode_returns,
+    parameter_rows,
+)
 from mbmon.semantics.hrss.spec import CommandSpec, load_spec
+from mbmon.semantics.session import Panel, Session
 from mbmon.semantics.words import s16
 
 
@@ -128,8 +134,11 @@ class _ReadPlan:
     state: tuple[_StateField, ...]
 
 
-class HrssSession:
+class HrssSession(Session):
     """Per (server endpoint, unit): the register image seen so far and the command protocol.
+
+    The device session (:class:`~mbmon.semantics.session.Session`) the ``hrss``
+    profile names (``session = "hrss"``).
 
     Writes (FC 06, 10, 0x16, 17) update the holding image when the *request* is
     seen, so that a command executes on the frame that carries R200 = 1; the
@@ -150,8 +159,7 @@ class HrssSession:
         complete_timeout: float | None = None,
         max_writes: int = 256,
     ) -> None:
-        self.stream = stream
-        self.unit = unit
+        super().__init__(stream, unit)
         self._spec = load_spec()
         p = self._spec
         self._exec_reg = p.reg("execute_reg")
@@ -203,6 +211,14 @@ class HrssSession:
         """Holding registers written by a request whose answer has not been seen."""
         return frozenset(self._unconfirmed)
 
+    def panel(self) -> Panel:
+        """The written command registers (R200..R251), named as the command in R201 says
+        (:func:`~mbmon.semantics.hrss.render.parameter_rows`), for the live monitor."""
+        p = self._spec
+        first = min(p.reg("execute_reg"), p.reg("command_reg"))
+        title = f"command registers R{first}..R{p.reg('param_last')} as written"
+        return Panel(title, tuple(parameter_rows(self._holding, self.unconfirmed, p)))
+
     # ------------------------------------------------------------------ feed
 
     def feed(self, tx: Transaction) -> Annotation:
@@ -249,6 +265,11 @@ class HrssSession:
         if a is not None and ts - a.t0 > self._timeout:
             self._check_timeout(ts, out)
         return out.annotation()
+
+    def wants_read_request(self, ts: float) -> bool:
+        """A read asked for changes no image: :meth:`follow` needs it only when
+        :meth:`may_time_out_by` ``ts``."""
+        return self.may_time_out_by(ts)
 
     def may_time_out_by(self, ts: float) -> bool:
         """Whether a step at ``ts`` that changes nothing (a read asked for) can say something.

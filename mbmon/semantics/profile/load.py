@@ -30,6 +30,7 @@ from mbmon.semantics.profile.model import (
     ProfileError,
     Variant,
 )
+from mbmon.semantics.session import session_names
 
 
 def builtin_profile_text(name: str) -> str:
@@ -221,7 +222,7 @@ class _Reader:
         description = self.string(head.get("description", ""), w, "description")
         session = head.get("session")
         if session is not None:
-            session = self.choice(session, w, "session", ("hrss",))
+            session = self.session(session, w)
         tables: dict[str, tuple[Field, ...]] = {}
         for table in TABLES:
             raw = doc.get(table, [])
@@ -245,6 +246,14 @@ class _Reader:
             source="\n".join(self.lines) + "\n" if self.lines else "",
             path=path,
         )
+
+    def session(self, v: Any, w: list[str | int]) -> str:
+        """The name of a registered device session (:mod:`mbmon.semantics.session`)."""
+        name = self.string(v, w, "session")
+        known = session_names()
+        if name not in known:
+            raise self.fail(w, "session", f"unknown session {name!r} (known: {', '.join(known)})")
+        return name
 
     def channel(self, c: Any, w: list[str | int]) -> Channel:
         c = self.table(c, w, None)
