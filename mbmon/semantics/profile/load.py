@@ -215,7 +215,7 @@ class _Reader:
             raise self.fail([], "profile", "missing [profile] header (name, description, session)")
         head = self.table(doc["profile"], [], "profile")
         w: list[str | int] = ["profile"]
-        self.keys(head, w, ("name", "description", "session"))
+        self.keys(head, w, ("name", "description", "session", "functions"))
         if "name" not in head:
             raise self.fail(w, "name", "missing")
         name = self.string(head["name"], w, "name")
@@ -223,6 +223,7 @@ class _Reader:
         session = head.get("session")
         if session is not None:
             session = self.session(session, w)
+        functions = None if "functions" not in head else self.codes(head["functions"], w)
         tables: dict[str, tuple[Field, ...]] = {}
         for table in TABLES:
             raw = doc.get(table, [])
@@ -240,6 +241,7 @@ class _Reader:
             name=name,
             description=description,
             session=session,
+            functions=functions,
             tables=tables,
             channels=channels,
             notes=notes,
@@ -254,6 +256,18 @@ class _Reader:
         if name not in known:
             raise self.fail(w, "session", f"unknown session {name!r} (known: {', '.join(known)})")
         return name
+
+    def codes(self, v: Any, w: list[str | int]) -> tuple[int, ...]:
+        """The function codes a device serves: distinct integers 1..127."""
+        if not isinstance(v, list) or not v:
+            raise self.fail(w, "functions", f"expected an array of function codes, got {_show(v)}")
+        codes = tuple(self.integer(x, w, "functions") for x in v)
+        for code in codes:
+            if not 0 < code < 0x80:
+                raise self.fail(w, "functions", f"function code {code} is outside 1..127")
+        if len(set(codes)) != len(codes):
+            raise self.fail(w, "functions", f"a function code is listed twice in {list(codes)}")
+        return codes
 
     def channel(self, c: Any, w: list[str | int]) -> Channel:
         c = self.table(c, w, None)
