@@ -139,7 +139,12 @@ class Annotator:
             read = None
             if asked is not None and asked.pdu.fc == pdu.fc and values is not None:
                 read = profile.memo.get(asked.pdu.raw)
-            if read is not None and read.layout is not None and len(values) == read.count:
+            if (
+                read is not None
+                and read.layout is not None
+                and values is not None
+                and len(values) == read.count
+            ):
                 layout = read.layout
                 selector = None
                 if layout.selects:

@@ -362,8 +362,7 @@ class SimRobot:
             self.inputs[IR_ACTION] = u16(cmd.code)
         problems = list(dec.problems)
         if not problems and cmd is not None and dec.layout is not None:
-            raws = {f.name: f.raw(image.get) for f in dec.layout.fields}
-            raws = {k: v for k, v in raws.items() if v is not None}
+            raws = {f.name: raw for f in dec.layout.fields if (raw := f.raw(image.get)) is not None}
             sel = cmd.params.select
             if sel is not None:
                 raw_sel = sel.raw(image.get)
