@@ -40,6 +40,7 @@ __all__ = [
     "Session",
     "SessionFactory",
     "UnknownSession",
+    "annotation",
     "register_session",
     "session_factory",
     "session_names",
