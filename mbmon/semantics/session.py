@@ -41,6 +41,7 @@ __all__ = [
     "SessionFactory",
     "UnknownSession",
     "annotation",
+    "is_session",
     "register_session",
     "session_factory",
     "session_names",
@@ -147,6 +148,15 @@ def unregister_session(name: str) -> None:
     _registered.pop(name, None)
     if name in _BUILTIN:
         _registered[name] = _BUILTIN[name]
+
+
+def is_session(name: str) -> bool:
+    """Whether a profile may name ``name``: registered, or an installed plug-in's
+    (installed packages are looked at only for a name not registered otherwise)."""
+    if name in _registered:
+        return True
+    _read_entry_points()
+    return name in _registered
 
 
 def session_names() -> tuple[str, ...]:

@@ -35,6 +35,7 @@ from mbmon.semantics.session import (
     Panel,
     Session,
     UnknownSession,
+    is_session,
     register_session,
     session_factory,
     session_names,
@@ -235,6 +236,7 @@ def test_the_registry(toy: type[Session]) -> None:
     assert session_factory("hrss") is HrssSession  # built in, imported when asked for
     assert session_factory("toy_pump") is ToyPumpSession
     assert {"hrss", "toy_pump"} <= set(session_names())
+    assert is_session("hrss") and is_session("toy_pump") and not is_session("plc")
     with pytest.raises(UnknownSession, match=r"unknown session 'plc' \(known: hrss, toy_pump"):
         session_factory("plc")
     register_session("broken", "no_such_module_here:Session")

@@ -31,7 +31,7 @@ from mbmon.semantics.profile.model import (
     ProfileError,
     Variant,
 )
-from mbmon.semantics.session import session_names
+from mbmon.semantics.session import is_session, session_names
 
 
 def builtin_profile_text(name: str) -> str:
@@ -253,9 +253,9 @@ class _Reader:
     def session(self, v: Any, w: list[str | int]) -> str:
         """The name of a registered device session (:mod:`mbmon.semantics.session`)."""
         name = self.string(v, w, "session")
-        known = session_names()
-        if name not in known:
-            raise self.fail(w, "session", f"unknown session {name!r} (known: {', '.join(known)})")
+        if not is_session(name):  # installed plug-ins are looked for only then
+            known = ", ".join(session_names())
+            raise self.fail(w, "session", f"unknown session {name!r} (known: {known})")
         return name
 
     def codes(self, v: Any, w: list[str | int]) -> tuple[int, ...]:
