@@ -548,11 +548,11 @@ def robot_text(snap: FeedView, columns: int = 3) -> Text:
         text.append("]", style=style)
     if snap.parameters:
         text.append(f"\n{snap.panel_title} (? = not answered yet)\n", style="dim")
-        for regs, name, value, confirmed in snap.parameters:
+        for regs, name, shown, confirmed in snap.parameters:
             text.append(f"{regs} ", style="dim")
             if name:
                 text.append(f"{name} ", style="bold")
-            text.append(value, style="" if confirmed else "yellow")
+            text.append(shown, style="" if confirmed else "yellow")
             text.append("\n" if confirmed else " ?\n", style="yellow")
     return text
 
