@@ -4,9 +4,10 @@
 keeps the last :data:`KEEP` records with their monitor line (made by
 :func:`mbmon.format.record_line` with the command's view: the line ``read``
 prints), the raw input around them (for ``w`` saves to ``.mcap``/``.pcap``),
-counts and rates, the register image (:class:`RegisterImage`), and with an HRSS
-profile the robot state, the last command and the written command registers
-(:func:`mbmon.semantics.hrss.render.parameter_rows` of the annotator's session).
+counts and rates, the register image (:class:`RegisterImage`), and with a
+profile that has a device session the robot state, the last command and the
+session's panel (:meth:`mbmon.semantics.session.Session.panel`: for HRSS the
+written command registers).
 
 The screen (:mod:`mbmon.monitor.app`, another thread) only reads, through
 :meth:`MonitorFeed.view`: a consistent copy taken under the feed's lock. The
@@ -156,6 +157,7 @@ class FeedView:
     ended: bool
     version: int
     answers: dict[int, Entry] = field(default_factory=dict)
+    panel_title: str = ""  # the session panel's title (its rows are ``parameters``)
 
 
 class MonitorFeed:
@@ -198,6 +200,7 @@ class MonitorFeed:
         self.command: Any = None
         self.registers = RegisterImage()
         self.parameters: list[tuple[str, str, str, bool]] = []
+        self.panel_title = ""
         self._sessions: Any = getattr(annotator, "sessions", None)
         self._robot: tuple[str, int] | None = None
         self.rate = 0.0
@@ -273,9 +276,10 @@ class MonitorFeed:
         t0, n0 = samples[0]
         self.rate = (self.counts["frames"] - n0) / (now - t0) if now > t0 else 0.0
         if self._sessions is not None:
-            rows = _parameter_rows(self._sessions(), self._robot)
+            panel = _panel(self._sessions(), self._robot)
             with self._lock:
-                self.parameters = rows
+                self.parameters = list(panel.rows) if panel is not None else []
+                self.panel_title = panel.title if panel is not None else ""
         with self._lock:
             self._version += 1
 
@@ -335,6 +339,7 @@ class MonitorFeed:
                 ended=self.ended,
                 version=self._version,
                 answers=dict(self._answers),
+                panel_title=self.panel_title,
             )
 
     def inputs_between(self, t0: float, t1: float) -> list[Chunk | Event]:
@@ -371,18 +376,12 @@ def header_items(title: str, snap: FeedView) -> list[tuple[str, Any]]:
     return items
 
 
-def _parameter_rows(
-    sessions: Mapping[tuple[str, int], Any], robot: tuple[str, int] | None
-) -> list[tuple[str, str, str, bool]]:
-    """The written command registers of the robot shown (none without an HRSS session)."""
-    from mbmon.semantics.hrss.render import parameter_rows
-
+def _panel(sessions: Mapping[tuple[str, int], Any], robot: tuple[str, int] | None) -> Any:
+    """The panel of the robot shown's device session (``None`` without a session)."""
     session = sessions.get(robot) if robot is not None else None
     if session is None and len(sessions) == 1:
         session = next(iter(sessions.values()))
-    if session is None:
-        return []
-    return parameter_rows(session.holding, session.unconfirmed)
+    return session.panel() if session is not None else None
 
 
 def is_request(record: Record) -> bool:

@@ -68,9 +68,7 @@ def robot_text(snap: FeedView, columns: int = 3) -> Text:
             text.append(f" after {cmd.duration:.3f} s", style=style)
         text.append("]", style=style)
     if snap.parameters:
-        text.append(
-            "\ncommand registers R200..R251 as written (? = not answered yet)\n", style="dim"
-        )
+        text.append(f"\n{snap.panel_title} (? = not answered yet)\n", style="dim")
         for regs, name, shown, confirmed in snap.parameters:
             text.append(f"{regs} ", style="dim")
             if name:

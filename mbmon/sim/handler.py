@@ -28,10 +28,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from collections import deque
-from typing import Any, Protocol
+from typing import Any, Protocol, cast
 
 from pymodbus.exceptions import ModbusIOException
-from pymodbus.pdu import ExceptionResponse, ModbusPDU
+from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.transaction import TransactionManager
@@ -82,7 +82,7 @@ class SimRequestHandler(ServerRequestHandler):
         super().__init__(owner, owner.trace_packet, owner.trace_pdu, owner.trace_connect)
         self.sim = sim
         self._memo = _FunctionCodeMemo(self.framer.decoder)
-        self.framer.decoder = self._memo
+        self.framer.decoder = cast(DecodePDU, self._memo)  # it stands in for one
         self._mbap = (
             MbapDecoder(Stream(0, Transport.TCP, "client", sim.address), Direction.C2S)
             if tcp
@@ -111,7 +111,8 @@ class SimRequestHandler(ServerRequestHandler):
                 pdu.dev_id, pdu.transaction_id = item.unit, item.tid
                 pdu = self.trace_pdu(False, pdu)  # the sim's hook: SimServer.admit
             else:
-                pdu = self.sim.admit(None, item.raw[7], item.unit, item.tid)
+                tid = item.tid if item.tid is not None else 0  # MBAP frames carry one
+                pdu = self.sim.admit(None, item.raw[7], item.unit, tid)
             if pdu is not None:
                 self._pending.append(pdu)
         if self._pending:

@@ -128,7 +128,7 @@ class _Runner:
 
     def _done(
         self,
-        fc: int,
+        fc: int,  # the code the answer carries (pymodbus's call picks it)
         line: str,
         text: str,
         address: int,
@@ -154,7 +154,7 @@ class _Runner:
         except Exception as exc:  # pymodbus raises ModbusException on no answer
             raise ProgramError(f"{self.part}: {line}: {exc}") from exc
         got = tuple(self._check(rr, line).registers[:count])
-        self._done(4, line, text, address, (count,), got, t)
+        self._done(rr.function_code, line, text, address, (count,), got, t)
         return got
 
     def read_dinput(self, address: int, count: int, line: str, text: str) -> tuple[int, ...]:
@@ -164,7 +164,7 @@ class _Runner:
         except Exception as exc:
             raise ProgramError(f"{self.part}: {line}: {exc}") from exc
         got = tuple(int(b) for b in self._check(rr, line).bits[:count])
-        self._done(2, line, text, address, (count,), got, t)
+        self._done(rr.function_code, line, text, address, (count,), got, t)
         return got
 
     def write_holding(self, address: int, values: Sequence[int], line: str, text: str) -> None:
@@ -174,7 +174,7 @@ class _Runner:
         except Exception as exc:
             raise ProgramError(f"{self.part}: {line}: {exc}") from exc
         self._check(rr, line)
-        self._done(16, line, text, address, values, None, t)
+        self._done(rr.function_code, line, text, address, values, None, t)
 
     def write_coil(self, address: int, bits: Sequence[int], line: str, text: str) -> None:
         t = time.time()
@@ -183,7 +183,7 @@ class _Runner:
         except Exception as exc:
             raise ProgramError(f"{self.part}: {line}: {exc}") from exc
         self._check(rr, line)
-        self._done(15, line, text, address, bits, None, t)
+        self._done(rr.function_code, line, text, address, bits, None, t)
 
     def execute(
         self, params: Sequence[int], what: str, before_start: Callable[[], Any] | None = None

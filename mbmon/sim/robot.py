@@ -20,12 +20,12 @@ values are stored low word first (manual Appendix II, docs/registers.md).
 
 from __future__ import annotations
 
-import math
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from mbmon.sim.motion import Motion, MotionState, jog_rate, position, start_motion
 from mbmon.sim.spec import (
     CommandField,
     Layout,
@@ -39,6 +39,7 @@ from mbmon.sim.spec import (
     split_i32,
     u16,
 )
+from mbmon.sim.timers import Timers
 
 __all__ = [
     "EXC_ILLEGAL_ADDRESS",
@@ -69,49 +70,9 @@ SO_BASE = _P.so - 1  # SO[n] at n-1
 SRW_BASE = 0  # SRW[n] at n-1 (IR0..IR31)
 
 QUEUE_MAX = _P.queue_max  # Table 15: more than 8000 waiting -> motion commands fail
-TIMER_LIMIT = 999_999_999
-NOMINAL_REACH_MM = 500.0  # IR520 for joint motions: fastest joint's angular speed x this
-MIN_MOTION_S = 0.1  # even a move to where the robot already is reports Running for this long
 DEFAULT_HOME = (0.0, 0.0, 0.0, 0.0, -90.0, 0.0)
 DEFAULT_POSE = (400.0, 0.0, 500.0, 180.0, 0.0, 0.0)
 DEFAULT_DI = (1, 3)  # DI[1] and DI[3] on, so a first read shows something
-
-
-class MotionState:
-    """IR524 values (Table 14)."""
-
-    IDLE = 1
-    RUNNING = 2
-    HOLD = 3
-    DELAY = 4
-
-
-@dataclass(slots=True)
-class _Motion:
-    """One motion: a target picked at execute time, a path fixed when it starts."""
-
-    command: str  # text of the command, for events
-    space: str  # "joint" | "cart"
-    target: tuple[float, ...]  # 6 values (deg, or mm/deg) + 3 external axes
-    speed: float  # PTP: fraction of the maximum (0..2); LIN/CIRC: mm/s
-    linear: bool  # LIN/CIRC: speed in mm/s
-    code: int = 0  # custom command code (R226 / R237) -> IR101
-    aux: tuple[float, ...] | None = None  # CIRC auxiliary point (X..C)
-    hold_to_run: bool = False  # GO HOME: stops when R200 returns to 0
-    jog: tuple[int, int] | None = None  # JOG: (axis 0..14, direction -1/1)
-    # set when the motion starts
-    start: tuple[float, ...] = ()
-    duration: float = 0.0
-    elapsed: float = 0.0
-    tcp_speed: float = 0.0  # mm/s reported in IR520 while it runs
-    path: Callable[[float], tuple[float, ...]] | None = None
-
-
-@dataclass(slots=True)
-class _Timer:
-    running: bool = False
-    since: float = 0.0
-    base_ms: int = 0
 
 
 @dataclass(slots=True)
@@ -167,12 +128,12 @@ class SimRobot:
         self.current_tool = 0
         self.current_base = 0
         self.far_prs: dict[int, tuple[int, tuple[int, ...]]] = {}  # PR[51..4000]
-        self.motion: _Motion | None = None
-        self.queue: deque[_Motion] = deque()
+        self.motion: Motion | None = None
+        self.queue: deque[Motion] = deque()
         self.held = False
         self.fault = 0  # HRSS error code (IR502..IR503); non-zero = Fault
         self.acc_ms = 200
-        self.timers = [_Timer() for _ in range(TIMERS + 1)]  # index 1..20
+        self.timers = Timers(self.holding, R_TIMER, TIMER_STRIDE, TIMERS)
         self.executed = 0  # commands executed (R200 edges), for tests and the console
         self.event_error: Exception | None = None  # why on_event was detached, if it was
 
@@ -221,7 +182,7 @@ class SimRobot:
                 return EXC_ILLEGAL_VALUE
         before = self.holding[R_EXECUTE]
         self.holding[address : address + len(words)] = words
-        self._timers_written(address, address + len(words))
+        self.timers.written(address, address + len(words), self.now)
         after = self.holding[R_EXECUTE]
         if address <= R_EXECUTE < address + len(words):
             if before != 1 and after == 1:
@@ -275,7 +236,7 @@ class SimRobot:
             self._place(m)
             left -= need
             self._finish(now - left)
-        self._publish_timers()
+        self.timers.publish(self.now)
 
     # ------------------------------------------------------------------ convenience API
 
@@ -362,8 +323,7 @@ class SimRobot:
             self.inputs[IR_ACTION] = u16(cmd.code)
         problems = list(dec.problems)
         if not problems and cmd is not None and dec.layout is not None:
-            raws = {f.name: f.raw(image.get) for f in dec.layout.fields}
-            raws = {k: v for k, v in raws.items() if v is not None}
+            raws = {f.name: raw for f in dec.layout.fields if (raw := f.raw(image.get)) is not None}
             sel = cmd.params.select
             if sel is not None:
                 raw_sel = sel.raw(image.get)
@@ -409,7 +369,7 @@ class SimRobot:
         speed = p["speed"] if linear else p["speed"] / 100
         self._set_acc(p["acc"])
         self._queue(
-            _Motion(
+            Motion(
                 command=text,
                 space=space,
                 target=(*six, *(ext if ext is not None else self.ext)),
@@ -430,7 +390,7 @@ class SimRobot:
         ext = [p.get(f"E{i}", 0) / 1000 for i in (1, 2, 3)] if p.get("ext") else list(self.ext)
         self._set_acc(p["acc"])
         self._queue(
-            _Motion(
+            Motion(
                 command=text,
                 space="cart",
                 target=(*end, *ext),
@@ -449,10 +409,11 @@ class SimRobot:
             return "robot is moving"
         if p["dir"] == 0:
             return None
-        self.motion = _Motion(
+        self.motion = Motion(
             command=text, space="jog", target=(), speed=0, linear=False, jog=(p["axis"], p["dir"])
         )
-        self.motion.tcp_speed = self._jog_rate(p["axis"]) if p["axis"] in range(6, 9) else 0.0
+        rate = jog_rate(p["axis"], self._override)
+        self.motion.tcp_speed = rate if p["axis"] in range(6, 9) else 0.0
         return None
 
     def _cmd_home(self, text: str, p: Mapping[str, int]) -> str | None:
@@ -467,7 +428,7 @@ class SimRobot:
         if self.motion is not None:
             return "robot is moving"
         self._queue(
-            _Motion(
+            Motion(
                 command=text,
                 space="joint",
                 target=(*(v / 1000 for v in self.home), *self.ext),
@@ -479,15 +440,7 @@ class SimRobot:
         return None
 
     def _cmd_t_stop(self, text: str, p: Mapping[str, int]) -> str | None:
-        t = self.timers[p["timer"]]
-        if p["stop"] == 1:
-            if t.running:
-                t.base_ms = self._timer_value(p["timer"])
-                t.running = False
-        elif not t.running:
-            t.base_ms = join_i32(*self._timer_words(p["timer"]))
-            t.running, t.since = True, self.now
-        self._publish_timers()
+        self.timers.run(p["timer"], p["stop"] != 1, self.now)
         return None
 
     def _cmd_motion_stop(self, text: str, p: Mapping[str, int]) -> str | None:
@@ -575,44 +528,32 @@ class SimRobot:
 
     # ------------------------------------------------------------------ motion
 
-    def _queue(self, m: _Motion) -> None:
+    @property
+    def _override(self) -> float:
+        """The speed setting (R100) as a fraction."""
+        return s16(self.holding[R_SPEED]) / 100
+
+    def _queue(self, m: Motion) -> None:
         if self.motion is None:
             self._begin(m)
         else:
             self.queue.append(m)
 
-    def _begin(self, m: _Motion) -> None:
+    def _begin(self, m: Motion) -> None:
         """Fix the path of ``m`` from where the robot is now, at the speed in force now."""
         self.motion = m
-        m.elapsed = 0.0
-        override = s16(self.holding[R_SPEED]) / 100
         here = self.joints if m.space == "joint" else self.pose
-        m.start = (*here, *self.ext)
-        delta = [t - s for s, t in zip(m.start, m.target, strict=True)]
-        if m.space == "joint":
-            rate = min(m.speed, self.joint_speed) if m.linear else self.joint_speed * m.speed
-            rate *= override
-            m.duration = max(abs(d) for d in delta) / rate
-            m.tcp_speed = rate * math.pi / 180 * NOMINAL_REACH_MM
-            m.path = None
-        else:
-            lin = (m.speed if m.linear else self.cart_speed * m.speed) * override
-            rot = self.rot_speed * (1.0 if m.linear else m.speed) * override
-            length = math.dist(m.start[:3], m.target[:3])
-            if m.aux is not None:
-                m.path, length = _arc(m.start[:3], m.aux[:3], m.target[:3])
-            m.duration = max(length / lin, max(abs(d) for d in delta[3:]) / rot)
-            m.tcp_speed = lin if length > 0 else 0.0
-        if m.duration < MIN_MOTION_S:
-            m.duration = MIN_MOTION_S
-            if m.space == "cart":
-                m.tcp_speed = 0.0 if math.dist(m.start[:3], m.target[:3]) == 0 else m.tcp_speed
+        start_motion(
+            m,
+            (*here, *self.ext),
+            override=self._override,
+            joint_speed=self.joint_speed,
+            cart_speed=self.cart_speed,
+            rot_speed=self.rot_speed,
+        )
 
-    def _place(self, m: _Motion) -> None:
-        f = m.elapsed / m.duration if m.duration > 0 else 1.0
-        values = [s + (t - s) * f for s, t in zip(m.start, m.target, strict=True)]
-        if m.path is not None:
-            values[:3] = m.path(f)
+    def _place(self, m: Motion) -> None:
+        values = position(m)
         if m.space == "joint":
             self.joints[:] = values[:6]
         else:
@@ -630,18 +571,10 @@ class SimRobot:
         if self.queue and self.motion is None:
             self._begin(self.queue.popleft())
 
-    def _jog_rate(self, axis: int) -> float:
-        override = s16(self.holding[R_SPEED]) / 100
-        if axis < 6:
-            return 10.0 * override  # deg/s
-        if axis < 9:
-            return 50.0 * override  # mm/s
-        return 10.0 * override  # deg/s (A, B, C) or units/s (E1..E3)
-
-    def _jog(self, m: _Motion, dt: float) -> None:
+    def _jog(self, m: Motion, dt: float) -> None:
         assert m.jog is not None
         axis, direction = m.jog
-        d = direction * self._jog_rate(axis) * dt
+        d = direction * jog_rate(axis, self._override) * dt
         if axis < 6:
             self.joints[axis] += d
         elif axis < 12:
@@ -658,7 +591,7 @@ class SimRobot:
     def _set_acc(self, acc: int) -> None:
         self.acc_ms = max(10, min(1000, round(20000 / max(acc, 1))))
 
-    # ------------------------------------------------------------------ signals, timers
+    # ------------------------------------------------------------------ signals
 
     def _write_coils(self, address: int, bits: list[int]) -> None:
         old_hold, old_stop = self.coils[SI_HOLD], self.coils[SI_STOP]
@@ -700,30 +633,6 @@ class SimRobot:
         low, high = split_i32(value)
         regs[at], regs[at + 1] = u16(low), u16(high)
 
-    def _timer_words(self, n: int) -> tuple[int, int]:
-        at = R_TIMER + TIMER_STRIDE * (n - 1)
-        return self.holding[at], self.holding[at + 1]
-
-    def _timer_value(self, n: int) -> int:
-        t = self.timers[n]
-        if not t.running:
-            return join_i32(*self._timer_words(n))
-        value = t.base_ms + int((self.now - t.since) * 1000)
-        return max(-TIMER_LIMIT, min(TIMER_LIMIT, value))
-
-    def _publish_timers(self) -> None:
-        for n in range(1, TIMERS + 1):
-            if self.timers[n].running:
-                self._put32(self.holding, R_TIMER + TIMER_STRIDE * (n - 1), self._timer_value(n))
-
-    def _timers_written(self, start: int, end: int) -> None:
-        """A client wrote a running timer: it goes on counting from the written value."""
-        for n in range(1, TIMERS + 1):
-            at = R_TIMER + TIMER_STRIDE * (n - 1)
-            t = self.timers[n]
-            if t.running and start < at + 2 and at < end:
-                t.base_ms, t.since = join_i32(*self._timer_words(n)), self.now
-
     def _event(self, kind: str, text: str, *, ok: bool = True, ts: float | None = None) -> None:
         """Tell ``on_event``; a callback that raises is detached (kept in ``event_error``)."""
         if self.on_event is None:
@@ -733,63 +642,6 @@ class SimRobot:
         except Exception as exc:  # a broken console must not break the robot
             self.on_event = None
             self.event_error = exc
-
-
-def _arc(
-    p0: Sequence[float], p1: Sequence[float], p2: Sequence[float]
-) -> tuple[Callable[[float], tuple[float, ...]], float]:
-    """The circular arc from ``p0`` through ``p1`` to ``p2`` as (f in 0..1 -> point, length).
-
-    Collinear or coincident points give the polyline p0 -> p1 -> p2 instead.
-    """
-
-    def sub(a: Sequence[float], b: Sequence[float]) -> tuple[float, ...]:
-        return tuple(x - y for x, y in zip(a, b, strict=True))
-
-    def cross(a: Sequence[float], b: Sequence[float]) -> tuple[float, float, float]:
-        return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-
-    def dot(a: Sequence[float], b: Sequence[float]) -> float:
-        return sum(x * y for x, y in zip(a, b, strict=True))
-
-    a, b = sub(p1, p0), sub(p2, p0)
-    n = cross(a, b)
-    nn = dot(n, n)
-    if nn < 1e-12:
-        l1, l2 = math.dist(p0, p1), math.dist(p1, p2)
-        total = l1 + l2
-
-        def poly(f: float) -> tuple[float, ...]:
-            s = f * total
-            if total == 0:
-                return tuple(p2)
-            if s <= l1 and l1 > 0:
-                return tuple(x + (y - x) * s / l1 for x, y in zip(p0, p1, strict=True))
-            g = (s - l1) / l2 if l2 > 0 else 1.0
-            return tuple(x + (y - x) * g for x, y in zip(p1, p2, strict=True))
-
-        return poly, total
-    aa, bb = dot(a, a), dot(b, b)
-    t1, t2 = cross(b, n), cross(n, a)
-    center = tuple(p0[i] + (aa * t1[i] + bb * t2[i]) / (2 * nn) for i in range(3))
-    r = math.dist(center, p0)
-    u = tuple(x / r for x in sub(p0, center))
-    nh = tuple(x / math.sqrt(nn) for x in n)
-    v = cross(nh, u)
-
-    def angle(p: Sequence[float]) -> float:
-        d = sub(p, center)
-        return math.atan2(dot(d, v), dot(d, u)) % (2 * math.pi)
-
-    th1, th2 = angle(p1), angle(p2)
-    sweep = th2 if th1 < th2 else th2 - 2 * math.pi
-
-    def arc(f: float) -> tuple[float, ...]:
-        th = sweep * f
-        c, s = math.cos(th), math.sin(th)
-        return tuple(center[i] + r * (c * u[i] + s * v[i]) for i in range(3))
-
-    return arc, abs(sweep) * r
 
 
 _Handler = Callable[[SimRobot, str, Mapping[str, int]], "str | None"]

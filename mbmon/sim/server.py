@@ -34,12 +34,14 @@ from typing import Any
 
 from mbmon.protocol.functions import FUNCTIONS, PROFILE_TABLE
 from mbmon.sim.robot import SimEvent, SimRobot
+from mbmon.sim.spec import served_functions
 from mbmon.sources import DEFAULT_BAUD
 
 __all__ = ["SimServer"]
 
-#: Table 10 of the manual: the function codes HRSS serves; any other is answered exception 01.
-FUNCTION_CODES = frozenset({1, 2, 3, 4, 5, 6, 15, 16})
+#: Table 10 of the manual: the function codes HRSS serves (the ``hrss`` profile's
+#: ``functions``); any other is answered exception 01.
+FUNCTION_CODES = served_functions()
 #: Function code -> register table, as pymodbus hands them to the ``action`` hook
 #: (from the one function-code table).
 _TABLE_OF_FC: dict[int, str] = {

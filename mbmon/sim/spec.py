@@ -44,6 +44,7 @@ __all__ = [
     "join_i32",
     "plan",
     "s16",
+    "served_functions",
     "split_i32",
     "u16",
 ]
@@ -53,6 +54,14 @@ __all__ = [
 def hrss_profile() -> Profile:
     """The built-in ``hrss`` register map."""
     return load_profile("hrss")
+
+
+def served_functions() -> frozenset[int]:
+    """The function codes HRSS serves (the profile's ``functions``, manual Table 10)."""
+    codes = hrss_profile().functions
+    if codes is None:
+        raise ValueError("the hrss profile does not list the function codes it serves")
+    return frozenset(codes)
 
 
 def command_spec() -> Spec:

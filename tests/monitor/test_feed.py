@@ -92,6 +92,7 @@ def test_robot_panel_rows_come_from_the_hrss_session() -> None:
     assert rows["R201"] == ("command", "PTP (0)", True)
     assert rows["R203..R204"] == ("A1", "90 deg", True)
     assert rows["R200"] == ("execute", "Ready (0)", True)
+    assert snap.panel_title == "command registers R200..R251 as written"
 
 
 def test_a_write_not_answered_yet_is_marked() -> None:

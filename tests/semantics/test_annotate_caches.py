@@ -22,6 +22,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import mbmon.semantics.annotate as annotate_mod
+import mbmon.semantics.notes as notes_mod
 from mbmon.format import View, record_line, record_to_json
 from mbmon.model import Direction, Frame, Stream, Transaction, Transport, TxStatus
 from mbmon.pipeline import Pipeline
@@ -81,7 +82,8 @@ def test_cached_output_is_the_uncached_output(
         assert any(">> [success after " in line for line in shown)
         assert any(">> [returned] " in line for line in shown)
     with monkeypatch.context() as m:
-        m.setattr(annotate_mod, "_remember", lambda memo, key, value: None)
+        for module in (annotate_mod, notes_mod):  # every memo of notes and reads off
+            m.setattr(module, "remember", lambda memo, key, value: None)
         build = HrssSession._read_plan
 
         def fresh(self: HrssSession, address: int, count: int) -> Any:

@@ -184,7 +184,7 @@ def test_a_decimal_scale_gives_what_format_gives(k: int, raw: int, kind: str, un
     """A scale of exactly 10**-k is shown from the integer's digits; the text is the
     float formatting's (``format(raw * scale, ".kf")``) for every raw value a field
     can hold, signs and zero included."""
-    from mbmon.semantics.annotate import _decimal_point, _format_value, _ValueFormat
+    from mbmon.semantics.values import ValueFormat, decimal_point, format_value
 
     scale = float(f"1e-{k}")  # as a profile's TOML gives it
     words = 1 if kind in ("u16", "s16") else 2
@@ -194,22 +194,22 @@ def test_a_decimal_scale_gives_what_format_gives(k: int, raw: int, kind: str, un
     u = raw & (2**bits - 1)
     values = [u] if words == 1 else [u >> 16, u & 0xFFFF]
     suffix = f" {unit}" if unit == "mm" else unit
-    decimal = _decimal_point(scale, f".{k}f")
+    decimal = decimal_point(scale, f".{k}f")
     assert decimal is not None
-    fmt = _ValueFormat(
+    fmt = ValueFormat(
         type=kind, words=words, high_low=True, template="", enum=None, enum_by_value=False,
         hex=False, scale=scale, spec=f".{k}f", suffix=suffix, range=None, decimal=decimal,
     )  # fmt: skip
-    assert _format_value(fmt, values, 0) == format(raw * scale, f".{k}f") + suffix
-    assert _format_value(dataclasses.replace(fmt, decimal=None), values, 0) == (
+    assert format_value(fmt, values, 0) == format(raw * scale, f".{k}f") + suffix
+    assert format_value(dataclasses.replace(fmt, decimal=None), values, 0) == (
         format(raw * scale, f".{k}f") + suffix
     )
 
 
 def test_only_exact_powers_of_ten_take_the_digit_path() -> None:
-    from mbmon.semantics.annotate import _decimal_point
+    from mbmon.semantics.values import decimal_point
 
-    assert _decimal_point(0.001, ".3f") == (1000, "%s%d.%03d%s")
-    assert _decimal_point(0.1, ".1f") == (10, "%s%d.%01d%s")
+    assert decimal_point(0.001, ".3f") == (1000, "%s%d.%03d%s")
+    assert decimal_point(0.1, ".1f") == (10, "%s%d.%01d%s")
     for scale, spec in ((0.25, ".2f"), (0.005, ".3f"), (1.0, None), (10.0, None), (0.001, ".2f")):
-        assert _decimal_point(scale, spec) is None, scale
+        assert decimal_point(scale, spec) is None, scale

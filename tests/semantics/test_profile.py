@@ -293,7 +293,23 @@ def test_error_syntax_has_line() -> None:
             "outside 1..8",
         ),
         (('name = "cell"', "name = 5"), "profile.name", "expected a string"),
-        (('description = "a user profile"', 'session = "plc"'), "profile.session", "one of hrss"),
+        (
+            ('description = "a user profile"', "functions = [3, 200]"),
+            "profile.functions",
+            "function code 200 is outside 1..127",
+        ),
+        (
+            ('description = "a user profile"', "functions = [3, 4, 3]"),
+            "profile.functions",
+            "listed twice",
+        ),
+        (('description = "a user profile"', "functions = 3"), "profile.functions", "an array"),
+        (('description = "a user profile"', 'functions = ["3"]'), "profile.functions", "integer"),
+        (
+            ('description = "a user profile"', 'session = "plc"'),
+            "profile.session",
+            "unknown session 'plc' (known: hrss",
+        ),
         (
             (
                 '[[coils]]\nname = "Q{n}"\naddress = 16',
@@ -310,6 +326,15 @@ def test_errors(change: tuple[str, str], key: str, reason: str) -> None:
     assert err.key == key
     assert reason in str(err)
     assert str(err).startswith("my.toml")
+
+
+def test_the_functions_a_device_serves() -> None:
+    # HRSS lists them (Table 10); a profile that does not say has none
+    assert load_profile("hrss").functions == (1, 2, 3, 4, 5, 6, 15, 16)
+    assert load_profile("xeg").functions is None and loads_profile(USER).functions is None
+    p = loads_profile(USER.replace('description = "a user profile"', "functions = [3, 0x10]"))
+    assert p.functions == (3, 16)
+    assert "functions = [3, 16]" in dump_profile(p) and loads_profile(dump_profile(p)) == p
 
 
 def test_missing_header() -> None:

@@ -1,9 +1,12 @@
 """HRSS command reconstruction: the R200/R201..R251 handshake as a lifecycle of commands.
 
 Split along its seams: :mod:`~.spec` (``profiles/hrss_commands.toml`` as
-frozen data), :mod:`~.render` (register image → command in HRSS program form)
-and :mod:`~.session` (:class:`HrssSession`: the handshake followed from
-pairing steps and ticks). See ``docs/commands.md``.
+frozen data), :mod:`~.render` (register image → command in HRSS program form),
+:mod:`~.session` (:class:`HrssSession`, the device session the ``hrss``
+profile names: the handshake followed from pairing steps and ticks), with
+:mod:`~.steps` (what it keeps per write and command, what one step produces)
+and :mod:`~.reads` (what an FC 04 answer carries for it). See
+``docs/commands.md``.
 """
 
 from mbmon.semantics.hrss.render import Decoded, decode_command, decode_returns, format_scaled

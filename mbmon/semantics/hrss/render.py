@@ -225,7 +225,9 @@ def decode_returns(
 
 
 def parameter_rows(
-    holding: Mapping[int, int], unconfirmed: frozenset[int] = frozenset()
+    holding: Mapping[int, int],
+    unconfirmed: frozenset[int] = frozenset(),
+    spec: Spec | None = None,
 ) -> list[tuple[str, str, str, bool]]:
     """The written command registers R200..R251 as ``(registers, name, value, confirmed)``.
 
@@ -235,8 +237,9 @@ def parameter_rows(
     picks, one row per field (``R203..R204 A1 90 deg``); written registers no
     field names show their unsigned word. ``holding`` is a session's holding
     image (unsigned words); ``unconfirmed`` those whose write is unanswered.
+    This is the HRSS session's panel (:meth:`HrssSession.panel`).
     """
-    spec = load_spec()
+    spec = spec or load_spec()
     execute, command = spec.reg("execute_reg"), spec.reg("command_reg")
     first, last = min(execute, command), spec.reg("param_last")
     written = {a: v for a, v in holding.items() if first <= a <= last}

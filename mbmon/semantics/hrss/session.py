@@ -19,8 +19,7 @@ Every command layout, enum, range and state register comes from
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Mapping, Sequence
 from types import MappingProxyType
 from typing import Any
 
@@ -33,40 +32,19 @@ from mbmon.model import (
     Stream,
     Transaction,
     TxStatus,
-    fast_constructor,
 )
 from mbmon.protocol.functions import FUNCTIONS, SHAPE, derived, mask_write
-from mbmon.semantics.hrss.render import Decoded, decode_command_from, decode_returns
-from mbmon.semantics.hrss.spec import CommandSpec, load_spec
+from mbmon.semantics.hrss.reads import ReadPlan, read_plan, read_state
+from mbmon.semantics.hrss.render import (
+    Decoded,
+    decode_command_from,
+    decode_returns,
+    parameter_rows,
+)
+from mbmon.semantics.hrss.spec import load_spec
+from mbmon.semantics.hrss.steps import Exec, LiveImage, StepOut, Write, pop_oldest, write_key
+from mbmon.semantics.session import Panel, Session, annotation
 from mbmon.semantics.words import s16
-
-
-@dataclass(slots=True)
-class _Exec:
-    """One executed command, from R200 = 1 to its end."""
-
-    decoded: Decoded
-    spec: CommandSpec | None
-    t0: float
-    stream: Stream
-    done: bool = False  # IR200 showed 1/2, or the execute was rejected
-    status: int | None = None
-    settled: bool = False  # completion seen another way (motion ended, hold-to-run stopped)
-    looked: bool = False  # the client read IR200 or IR524 after the execute
-    moving: bool = False  # IR524 showed Running/Hold/Delay after the execute
-    warned: bool = False  # "never completes" already said
-    return_seen: set[int] = field(default_factory=set)
-    returned: tuple[Any, ...] | None = None
-
-
-@dataclass(slots=True)
-class _Write:
-    """A write request applied to the holding image, kept until its answer."""
-
-    old: dict[int, int | None]
-    new: dict[int, int]
-    execute: _Exec | None = None
-
 
 #: a decoded command with the registers its decode read and the words they held
 _Remembered = tuple[tuple[int, ...], tuple[int | None, ...], Decoded]
@@ -99,37 +77,13 @@ def _from_table() -> None:
 
 
 _PENDING, _ANSWERED = TxStatus.PENDING, TxStatus.ANSWERED
-_NOTHING = Annotation()
-_new_annotation = fast_constructor(Annotation)  # per step: twice as fast as the class
 
 
-def _notes_only(notes: list[str]) -> Annotation:
-    """The annotation of a step the session has nothing to add to."""
-    return _new_annotation(tuple(notes), (), None) if notes else _NOTHING
-
-
-_S16, _U16, _I32, _U32 = range(4)
-_WORD_TYPES = {"s16": _S16, "u16": _U16, "i32": _I32, "u32": _U32}
-#: (state key, offset of the first word, offset of the last word, word type, scale mode, factor);
-#: scale mode 0: the raw number, 1: raw / factor (a power of ten), 2: raw * factor
-_StateField = tuple[str, int, int, int, int, float]
-
-
-@dataclass(frozen=True, slots=True, eq=False)  # each plan is its own: a cheap dict key
-class _ReadPlan:
-    """Offsets, in one FC 04 read, of the input registers the session watches (None: absent)."""
-
-    addresses: range  # the registers the read carries
-    status: int | None
-    action: int | None
-    returns: tuple[int, ...]  # addresses of IR202..IR251 in the read
-    queue: int | None
-    motion: int | None
-    state: tuple[_StateField, ...]
-
-
-class HrssSession:
+class HrssSession(Session):
     """Per (server endpoint, unit): the register image seen so far and the command protocol.
+
+    The device session (:class:`~mbmon.semantics.session.Session`) the ``hrss``
+    profile names (``session = "hrss"``).
 
     Writes (FC 06, 10, 0x16, 17) update the holding image when the *request* is
     seen, so that a command executes on the frame that carries R200 = 1; the
@@ -150,8 +104,7 @@ class HrssSession:
         complete_timeout: float | None = None,
         max_writes: int = 256,
     ) -> None:
-        self.stream = stream
-        self.unit = unit
+        super().__init__(stream, unit)
         self._spec = load_spec()
         p = self._spec
         self._exec_reg = p.reg("execute_reg")
@@ -163,19 +116,20 @@ class HrssSession:
         )
         self._holding: dict[int, int] = {}
         self._inputs: dict[int, int] = {}  # read it through _input_image()
-        self._answers: dict[_ReadPlan, Sequence[int]] = {}  # not yet in _inputs, oldest first
+        self._answers: dict[ReadPlan, Sequence[int]] = {}  # not yet in _inputs, oldest first
         self._unconfirmed: set[int] = set()
-        self._writes: dict[tuple[Any, ...], _Write] = {}  # unanswered, oldest first, bounded
+        self._writes: dict[tuple[Any, ...], Write] = {}  # unanswered, oldest first, bounded
         self._max_writes = max_writes
         self._block: set[int] = set()  # R201..R251 written since the last execute
         self._block_code: int | None = None  # command whose WRITTEN was emitted for the block
-        self._active: _Exec | None = None  # last executed command
-        self._get: _Exec | None = None  # last executed command that has returns
+        self._active: Exec | None = None  # last executed command
+        self._get: Exec | None = None  # last executed command that has returns
         self._motion: int | None = None
         self._queue_over = False
         self._state: dict[str, float] = {}
-        self._plans: dict[tuple[int, int], _ReadPlan] = {}  # (address, count) of FC 04 reads
-        self._out = _Out(self)  # what the step being followed produces (see follow)
+        self._plans: dict[tuple[int, int], ReadPlan] = {}  # (address, count) of FC 04 reads
+        # what the step being followed produces (see follow)
+        self._out = StepOut(unit, stream, self._state)
         # decoded commands by the R201 word, each with the registers the decode read and
         # their words: the same words decode the same (see _decode); bounded
         self._decoded: dict[int | None, list[_Remembered]] = {}
@@ -196,12 +150,20 @@ class HrssSession:
     @property
     def inputs(self) -> Mapping[int, int]:
         """Input register image (address -> unsigned word) from FC 04 answers (a live view)."""
-        return _LiveImage(self._input_image)
+        return LiveImage(self._input_image)
 
     @property
     def unconfirmed(self) -> frozenset[int]:
         """Holding registers written by a request whose answer has not been seen."""
         return frozenset(self._unconfirmed)
+
+    def panel(self) -> Panel:
+        """The written command registers (R200..R251), named as the command in R201 says
+        (:func:`~mbmon.semantics.hrss.render.parameter_rows`), for the live monitor."""
+        p = self._spec
+        first = min(p.reg("execute_reg"), p.reg("command_reg"))
+        title = f"command registers R{first}..R{p.reg('param_last')} as written"
+        return Panel(title, tuple(parameter_rows(self._holding, self.unconfirmed, p)))
 
     # ------------------------------------------------------------------ feed
 
@@ -219,12 +181,12 @@ class HrssSession:
         req = tx.request
         frame = req if req is not None else tx.response
         if frame is None or frame.unit != self.unit:
-            return _notes_only(notes)
+            return annotation(notes)
         status = tx.status
         if status is _PENDING and req is not None and req.pdu.fc not in _WRITE_FCS:
             # a read asked for: it changes no image, only the clock can say something
             if not self.may_time_out_by(tx.ts):
-                return _notes_only(notes)
+                return annotation(notes)
         out = self._out
         out.ts = ts = tx.ts
         out.stream = frame.stream
@@ -233,7 +195,7 @@ class HrssSession:
         out.state_changed = False
         if status is _ANSWERED and req is not None and tx.response is not None:
             if req.pdu.fc in _WRITE_FCS:
-                key = _key(req)
+                key = write_key(req)
                 if key not in self._writes:
                     self._request(req, out)  # the request was never fed on its own
                 self._confirm(key)
@@ -244,11 +206,16 @@ class HrssSession:
         elif tx.status is TxStatus.EXCEPTION and req is not None:
             self._rejected(req, tx.response, out)  # a write never fed as PENDING: nothing to undo
         elif tx.status is TxStatus.TIMEOUT and req is not None:
-            self._writes.pop(_key(req), None)  # values stay, still unconfirmed
+            self._writes.pop(write_key(req), None)  # values stay, still unconfirmed
         a = self._active
         if a is not None and ts - a.t0 > self._timeout:
             self._check_timeout(ts, out)
         return out.annotation()
+
+    def wants_read_request(self, ts: float) -> bool:
+        """A read asked for changes no image: :meth:`follow` needs it only when
+        :meth:`may_time_out_by` ``ts``."""
+        return self.may_time_out_by(ts)
 
     def may_time_out_by(self, ts: float) -> bool:
         """Whether a step at ``ts`` that changes nothing (a read asked for) can say something.
@@ -269,8 +236,8 @@ class HrssSession:
         a = self._active
         if a is None:
             return []
-        out = _Out(self)
-        out.ts, out.stream = now, a.stream
+        out = StepOut(self.unit, a.stream, self._state)
+        out.ts = now
         self._check_timeout(now, out)
         return out.commands or []
 
@@ -291,7 +258,7 @@ class HrssSession:
 
     # ------------------------------------------------------------------ writes
 
-    def _request(self, req: Frame, out: _Out) -> None:
+    def _request(self, req: Frame, out: StepOut) -> None:
         pdu = req.pdu
         if pdu.kind is not Kind.REQUEST:
             return
@@ -315,7 +282,7 @@ class HrssSession:
                 writes = [(pdu.address, mask_write(old, and_m, or_m))]
         if not writes:
             return
-        w = _Write(old={a: self._holding.get(a) for a, _ in writes}, new={})
+        w = Write(old={a: self._holding.get(a) for a, _ in writes}, new={})
         for a, v in writes:
             if v is None:
                 self._holding.pop(a, None)
@@ -324,9 +291,9 @@ class HrssSession:
                 w.new[a] = v
             self._unconfirmed.add(a)
         writes_map = self._writes
-        writes_map[_key(req)] = w
+        writes_map[write_key(req)] = w
         if len(writes_map) > self._max_writes:
-            _, dropped = _pop_oldest(writes_map)
+            _, dropped = pop_oldest(writes_map)
             lo, hi = min(dropped.old), max(dropped.old)
             span = f"R{lo}" if lo == hi else f"R{lo}..R{hi}"
             out.note(
@@ -335,7 +302,7 @@ class HrssSession:
             )
         self._commands(w, req.ts, out)
 
-    def _commands(self, w: _Write, ts: float, out: _Out) -> None:
+    def _commands(self, w: Write, ts: float, out: StepOut) -> None:
         params = {a for a in w.new if a == self._cmd_reg or a in self._params}
         execute = w.new.get(self._exec_reg)
         before = w.old.get(self._exec_reg)
@@ -375,7 +342,7 @@ class HrssSession:
                 code=None,
             )
 
-    def _execute(self, w: _Write, before: int | None, ts: float, out: _Out) -> None:
+    def _execute(self, w: Write, before: int | None, ts: float, out: StepOut) -> None:
         dec = self._decode()
         old = self._active
         if old is not None and not old.done and not old.settled and old.looked and not old.warned:
@@ -387,7 +354,7 @@ class HrssSession:
                 code=old.decoded.code,
             )
         cmd = self._spec.commands.get(dec.code) if dec.code is not None else None
-        ex = _Exec(decoded=dec, spec=cmd, t0=ts, stream=out.stream)
+        ex = Exec(decoded=dec, spec=cmd, t0=ts, stream=out.stream)
         self._active = ex
         w.execute = ex
         if cmd is not None and cmd.returns is not None:
@@ -454,8 +421,8 @@ class HrssSession:
             if self._holding.get(a) == v:
                 self._unconfirmed.discard(a)
 
-    def _rejected(self, req: Frame, resp: Frame | None, out: _Out) -> None:
-        w = self._writes.pop(_key(req), None)
+    def _rejected(self, req: Frame, resp: Frame | None, out: StepOut) -> None:
+        w = self._writes.pop(write_key(req), None)
         if w is None:
             return
         exc = resp.pdu.exception_code if resp is not None else None
@@ -481,7 +448,7 @@ class HrssSession:
 
     # ------------------------------------------------------------------ reads
 
-    def _answer(self, req: Frame, resp: Frame, out: _Out) -> None:
+    def _answer(self, req: Frame, resp: Frame, out: StepOut) -> None:
         rq, rs = req.pdu, resp.pdu
         if rs.kind is not Kind.RESPONSE or rs.values is None or rq.address is None:
             return
@@ -520,39 +487,15 @@ class HrssSession:
             answers.clear()
         return self._inputs
 
-    def _read_plan(self, address: int, count: int) -> _ReadPlan:
-        """Where the registers the session watches sit in a read of ``count`` from ``address``."""
-        end = address + count
-
-        def offset(reg: int) -> int | None:
-            return reg - address if address <= reg < end else None
-
-        p = self._spec
-        state = []
-        for key, f in p.state:
-            regs = f.regs
-            if regs[0] < address or regs[-1] >= end:
-                continue  # both words from this very answer, or nothing
-            mode, k = (0, 1.0)
-            if f.scale != 1:
-                d = f.decimals
-                mode, k = (1, 10**d) if d and abs(f.scale - 10.0**-d) < 1e-12 else (2, f.scale)
-            state.append((key, regs[0] - address, regs[-1] - address, _WORD_TYPES[f.type], mode, k))
-        plan = _ReadPlan(
-            addresses=range(address, end),
-            status=offset(p.reg("status_reg")),
-            action=offset(p.reg("action_reg")),
-            returns=tuple(r for r in range(address, end) if r in self._returns),
-            queue=offset(p.reg("queue_reg")),
-            motion=offset(p.reg("motion_reg")),
-            state=tuple(state),
-        )
+    def _read_plan(self, address: int, count: int) -> ReadPlan:
+        """:func:`~.reads.read_plan` of a read, remembered by its shape (bounded)."""
+        plan = read_plan(self._spec, self._returns, address, count)
         if len(self._plans) >= 4096:  # bounded: a scan of every address cannot grow it
             self._plans.clear()
         self._plans[(address, count)] = plan
         return plan
 
-    def _inputs_read(self, plan: _ReadPlan, values: Sequence[int], ts: float, out: _Out) -> None:
+    def _inputs_read(self, plan: ReadPlan, values: Sequence[int], ts: float, out: StepOut) -> None:
         p = self._spec
         if plan.status is not None:
             a = self._active
@@ -574,9 +517,9 @@ class HrssSession:
         if plan.motion is not None:
             self._motion_read(s16(values[plan.motion]), ts, out)
         if plan.state:
-            self._state_read(plan.state, values, out)
+            out.state_changed |= read_state(plan.state, values, self._state)
 
-    def _status(self, v: int, action: int | None, ts: float, out: _Out) -> None:
+    def _status(self, v: int, action: int | None, ts: float, out: StepOut) -> None:
         a = self._active
         if a is None or a.done or ts < a.t0:
             return
@@ -600,7 +543,7 @@ class HrssSession:
             note=f"{word}: {a.decoded.text} ({dur:.3f} s)",
         )
 
-    def _returns_read(self, returned: tuple[int, ...], ts: float, out: _Out) -> None:
+    def _returns_read(self, returned: tuple[int, ...], ts: float, out: StepOut) -> None:
         g = self._get
         if g is None or ts < g.t0 or g.status == 2 or g.decoded.code is None:
             return
@@ -629,7 +572,7 @@ class HrssSession:
         if dec.problems:
             out.note("returns out of range: " + "; ".join(dec.problems))
 
-    def _motion_read(self, v: int, ts: float, out: _Out) -> None:
+    def _motion_read(self, v: int, ts: float, out: StepOut) -> None:
         prev = self._motion
         self._motion = v
         if v != prev:
@@ -649,31 +592,9 @@ class HrssSession:
             a.settled = True
             out.note(f"motion done: {a.decoded.text} ({ts - a.t0:.3f} s after R200 = 1)")
 
-    def _state_read(
-        self, fields: tuple[_StateField, ...], values: Sequence[int], out: _Out
-    ) -> None:
-        """State values whose words are all in this answer, read as ``Field.raw``/``value`` do."""
-        state = self._state
-        for key, lo, hi, wtype, mode, k in fields:
-            if wtype == _S16:
-                raw = values[lo] & 0xFFFF
-                if raw & 0x8000:
-                    raw -= 0x10000
-            elif wtype == _U16:
-                raw = values[lo] & 0xFFFF
-            elif wtype == _I32:
-                high = values[hi] & 0xFFFF
-                raw = (high - 0x10000 if high & 0x8000 else high) * 65536 + (values[lo] & 0xFFFF)
-            else:
-                raw = ((values[hi] & 0xFFFF) << 16) | (values[lo] & 0xFFFF)
-            val = float(raw) if mode == 0 else raw / k if mode == 1 else float(raw * k)
-            if state.get(key) != val:
-                state[key] = val
-                out.state_changed = True
-
     # ------------------------------------------------------------------ completion
 
-    def _may_time_out(self, a: _Exec) -> bool:
+    def _may_time_out(self, a: Exec) -> bool:
         """Whether the clock alone can make ``a`` "never completed" (its deadline aside)."""
         if a.done or a.settled or a.warned or not a.looked:
             return False
@@ -681,7 +602,7 @@ class HrssSession:
             return False  # JOG / GO HOME run while R200 = 1
         return not (a.moving and self._motion in _MOVING)  # not while still moving
 
-    def _check_timeout(self, ts: float, out: _Out) -> None:
+    def _check_timeout(self, ts: float, out: StepOut) -> None:
         a = self._active
         if a is None or ts - a.t0 <= self._timeout or not self._may_time_out(a):
             return
@@ -696,96 +617,3 @@ class HrssSession:
             kind="never_completed",
             code=a.decoded.code,
         )
-
-
-class _LiveImage(Mapping[int, int]):
-    """A read-only view of a register image that ``image()`` brings up to date when read."""
-
-    __slots__ = ("_image",)
-
-    def __init__(self, image: Callable[[], dict[int, int]]) -> None:
-        self._image = image
-
-    def __getitem__(self, address: int) -> int:
-        return self._image()[address]
-
-    def __iter__(self) -> Iterator[int]:
-        return iter(self._image())
-
-    def __len__(self) -> int:
-        return len(self._image())
-
-    def __repr__(self) -> str:
-        return f"{type(self).__name__}({self._image()!r})"
-
-
-def _key(req: Frame) -> tuple[Any, ...]:
-    return (req.ts, req.stream.id, req.tid, req.raw)
-
-
-def _pop_oldest(writes: dict[tuple[Any, ...], _Write]) -> tuple[tuple[Any, ...], _Write]:
-    key = next(iter(writes))
-    return key, writes.pop(key)
-
-
-class _Out:
-    """What one step (or tick) produces, gathered in order, stamped ``ts`` on ``stream``.
-
-    One per session, made ready for each step by :meth:`HrssSession.follow`:
-    ``notes`` is the list the step's notes go to, ``commands`` is ``None``
-    until a command step is made.
-    """
-
-    __slots__ = ("commands", "notes", "session", "state_changed", "stream", "ts", "unit")
-
-    def __init__(self, session: HrssSession) -> None:
-        self.session = session
-        self.unit = session.unit
-        self.ts = 0.0
-        self.stream = session.stream
-        self.notes: list[str] = []
-        self.commands: list[CommandUpdate] | None = None
-        self.state_changed = False
-
-    def note(self, text: str) -> None:
-        self.notes.append(text)
-
-    def command(
-        self,
-        phase: Phase,
-        text: str,
-        code: int | None,
-        *,
-        params: Mapping[str, Any],
-        duration: float | None = None,
-        note: str | None = None,
-    ) -> None:
-        update = CommandUpdate(
-            ts=self.ts,
-            stream=self.stream,
-            unit=self.unit,
-            phase=phase,
-            text=text,
-            code=code,
-            duration=duration,
-            params=MappingProxyType(dict(params)),
-        )
-        if self.commands is None:
-            self.commands = [update]
-        else:
-            self.commands.append(update)
-        if note is not None:
-            self.notes.append(note)
-
-    def warn(self, text: str, *, kind: str, code: int | None) -> None:
-        self.command(Phase.WARNING, text, code, params={"warning": kind}, note=f"warning: {text}")
-
-    def annotation(self) -> Annotation:
-        notes, commands = self.notes, self.commands
-        if self.state_changed:
-            return _new_annotation(
-                tuple(notes), tuple(commands) if commands else (), self.session.state
-            )
-        if commands:
-            return _new_annotation(tuple(notes), tuple(commands), None)
-        return _new_annotation(tuple(notes), (), None) if notes else _NOTHING

@@ -83,7 +83,7 @@ class ProfileBinding:
         default); the name after ``=`` is not looked up. Replay uses it to bind
         the profile texts stored in a log (:func:`loads_profile`) as recorded.
         """
-        return cls([_rule(spec, lambda _name, _spec, p=profile: p) for spec, profile in bound])
+        return cls([_rule(spec, _given(profile)) for spec, profile in bound])
 
     def _add(self, r: _Rule) -> None:
         self._profiles[id(r.profile)] = r.profile
@@ -129,6 +129,15 @@ class ProfileBinding:
             (p.name, p.source if p.source is not None else dump_profile(p))
             for p in self._profiles.values()
         ]
+
+
+def _given(profile: Profile) -> Callable[[str, str], Profile]:
+    """The look-up of a profile already loaded: ``profile`` whatever the name."""
+
+    def get(_name: str, _spec: str) -> Profile:
+        return profile
+
+    return get
 
 
 def _rule(spec: str, get: Callable[[str, str], Profile]) -> _Rule:

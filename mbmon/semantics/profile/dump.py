@@ -17,6 +17,8 @@ def dump_profile(profile: Profile) -> str:
         out.append(f"description = {_tv(profile.description)}")
     if profile.session is not None:
         out.append(f"session = {_tv(profile.session)}")
+    if profile.functions is not None:
+        out.append(f"functions = {_tv(list(profile.functions))}")
     for ch in profile.channels:
         out += ["", "[[channels]]", f"name = {_tv(ch.name)}"]
         if ch.description is not None:

@@ -10,6 +10,7 @@ import json
 import re
 import tomllib
 from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
 from importlib import resources
 from itertools import pairwise
 from pathlib import Path
@@ -30,6 +31,7 @@ from mbmon.semantics.profile.model import (
     ProfileError,
     Variant,
 )
+from mbmon.semantics.session import is_session, session_names
 
 
 def builtin_profile_text(name: str) -> str:
@@ -214,14 +216,15 @@ class _Reader:
             raise self.fail([], "profile", "missing [profile] header (name, description, session)")
         head = self.table(doc["profile"], [], "profile")
         w: list[str | int] = ["profile"]
-        self.keys(head, w, ("name", "description", "session"))
+        self.keys(head, w, ("name", "description", "session", "functions"))
         if "name" not in head:
             raise self.fail(w, "name", "missing")
         name = self.string(head["name"], w, "name")
         description = self.string(head.get("description", ""), w, "description")
         session = head.get("session")
         if session is not None:
-            session = self.choice(session, w, "session", ("hrss",))
+            session = self.session(session, w)
+        functions = None if "functions" not in head else self.codes(head["functions"], w)
         tables: dict[str, tuple[Field, ...]] = {}
         for table in TABLES:
             raw = doc.get(table, [])
@@ -239,12 +242,33 @@ class _Reader:
             name=name,
             description=description,
             session=session,
+            functions=functions,
             tables=tables,
             channels=channels,
             notes=notes,
             source="\n".join(self.lines) + "\n" if self.lines else "",
             path=path,
         )
+
+    def session(self, v: Any, w: list[str | int]) -> str:
+        """The name of a registered device session (:mod:`mbmon.semantics.session`)."""
+        name = self.string(v, w, "session")
+        if not is_session(name):  # installed plug-ins are looked for only then
+            known = ", ".join(session_names())
+            raise self.fail(w, "session", f"unknown session {name!r} (known: {known})")
+        return name
+
+    def codes(self, v: Any, w: list[str | int]) -> tuple[int, ...]:
+        """The function codes a device serves: distinct integers 1..127."""
+        if not isinstance(v, list) or not v:
+            raise self.fail(w, "functions", f"expected an array of function codes, got {_show(v)}")
+        codes = tuple(self.integer(x, w, "functions") for x in v)
+        for code in codes:
+            if not 0 < code < 0x80:
+                raise self.fail(w, "functions", f"function code {code} is outside 1..127")
+        if len(set(codes)) != len(codes):
+            raise self.fail(w, "functions", f"a function code is listed twice in {list(codes)}")
+        return codes
 
     def channel(self, c: Any, w: list[str | int]) -> Channel:
         c = self.table(c, w, None)
@@ -273,9 +297,9 @@ class _Reader:
     )  # fmt: skip
 
     def entry(self, e: Any, w: list[str | int], table: str, *, sub: bool = False) -> Field:
+        """One entry of ``table`` (a sub-field of a group when ``sub``): a group of
+        sub-fields (:meth:`group`) or a field with a value (:meth:`value_field`)."""
         e = self.table(e, w, None)
-        bits = table in BIT_TABLES
-        is_range = "n" in e
         is_group = "fields" in e
         if sub:
             allowed = {*self._VALUE_KEYS, "offset", "variants"}
@@ -293,56 +317,89 @@ class _Reader:
         address = self.integer(e[akey], w, akey)
         if not 0 <= address <= 0xFFFF:
             raise self.fail(w, akey, f"{address} is outside 0..65535")
-        n_range = stride = None
-        if is_group and not is_range:
+        n_range = None
+        if is_group and "n" not in e:
             raise self.fail(w, "fields", 'sub-fields need a repeated range ("n = [first, last]")')
-        if is_range:
+        if "n" in e:
             n_range = self.pair(e["n"], w, "n")
             if "{n}" not in name:
                 raise self.fail(
                     w, "name", f'a repeated range needs "{{n}}" in its name, got {name!r}'
                 )
-        label = _opt(e, "label", w, self.string)
-        description = _opt(e, "description", w, self.string)
+        head = _Head(
+            name, address, n_range, _opt(e, "label", w, self.string),
+            _opt(e, "description", w, self.string),
+        )  # fmt: skip
         if is_group:
-            subs = e["fields"]
-            if not isinstance(subs, list) or not subs:
+            return self.group(e, w, table, head)
+        return self.value_field(e, w, table, head)
+
+    def group(self, e: Mapping[str, Any], w: list[str | int], table: str, head: _Head) -> Field:
+        """A repeated block of sub-fields (``PR[n]``), with an optional selector."""
+        subs = e["fields"]
+        if not isinstance(subs, list) or not subs:
+            raise self.fail(w, "fields", f"expected [[{table}.fields]] entries, got {_show(subs)}")
+        fields = tuple(
+            self.entry(s, [*w, "fields", i], table, sub=True) for i, s in enumerate(subs)
+        )
+        names = [f.name for f in fields]
+        dup = {x for x in names if names.count(x) > 1}
+        if dup:
+            raise self.fail(w, "fields", f"duplicate sub-field name {sorted(dup)[0]!r}")
+        span = max(f.address + f.words for f in fields)
+        self.check_overlap(table, fields, where=[*w, "fields"], what="offset")
+        stride = span if "stride" not in e else self.integer(e["stride"], w, "stride")
+        if stride < span:
+            raise self.fail(w, "stride", f"{stride} is smaller than the sub-fields' span {span}")
+        select = _opt(e, "select", w, self.string)
+        if select is not None:
+            sel = next((f for f in fields if f.name == select), None)
+            if sel is None:
+                raise self.fail(w, "select", f"no sub-field named {select!r}")
+            if sel.words != 1:
+                raise self.fail(w, "select", f"selector {select!r} must be one register")
+        else:
+            for i, f in enumerate(fields):
+                if f.variants:
+                    raise self.fail(
+                        [*w, "fields", i], "variants", 'variants need "select" on the range'
+                    )
+        self.check_end(w, head.address, head.n_range, stride, span)
+        return Field(
+            name=head.name, address=head.address, type="group", words=span, label=head.label,
+            description=head.description, n_range=head.n_range, stride=stride, fields=fields,
+            select=select,
+        )  # fmt: skip
+
+    def value_field(
+        self, e: Mapping[str, Any], w: list[str | int], table: str, head: _Head
+    ) -> Field:
+        """A field with a value: its type and width, the value keys (checked against the
+        type), labels of a range, variants of a sub-field, and where it ends."""
+        ftype, words = self.width(e, w, table in BIT_TABLES)
+        v = self.value_keys(e, w, ftype, words)
+        labels = None
+        if "labels" in e:
+            labels = self.labels(e["labels"], w, head.n_range)
+        variants = None if "variants" not in e else self.variants(e["variants"], w)
+        stride = None
+        if head.n_range is not None:
+            stride = words if "stride" not in e else self.integer(e["stride"], w, "stride")
+            if stride < words:
                 raise self.fail(
-                    w, "fields", f"expected [[{table}.fields]] entries, got {_show(subs)}"
+                    w, "stride", f"{stride} is smaller than the field's {words} word(s)"
                 )
-            fields = tuple(
-                self.entry(s, [*w, "fields", i], table, sub=True) for i, s in enumerate(subs)
-            )
-            names = [f.name for f in fields]
-            dup = {x for x in names if names.count(x) > 1}
-            if dup:
-                raise self.fail(w, "fields", f"duplicate sub-field name {sorted(dup)[0]!r}")
-            span = max(f.address + f.words for f in fields)
-            self.check_overlap(table, fields, where=[*w, "fields"], what="offset")
-            stride = span if "stride" not in e else self.integer(e["stride"], w, "stride")
-            if stride < span:
-                raise self.fail(
-                    w, "stride", f"{stride} is smaller than the sub-fields' span {span}"
-                )
-            select = _opt(e, "select", w, self.string)
-            if select is not None:
-                sel = next((f for f in fields if f.name == select), None)
-                if sel is None:
-                    raise self.fail(w, "select", f"no sub-field named {select!r}")
-                if sel.words != 1:
-                    raise self.fail(w, "select", f"selector {select!r} must be one register")
-            else:
-                for i, f in enumerate(fields):
-                    if f.variants:
-                        raise self.fail(
-                            [*w, "fields", i], "variants", 'variants need "select" on the range'
-                        )
-            self.check_end(w, address, n_range, stride, span)
-            return Field(
-                name=name, address=address, type="group", words=span, label=label,
-                description=description, n_range=n_range, stride=stride, fields=fields,
-                select=select,
-            )  # fmt: skip
+            self.check_end(w, head.address, head.n_range, stride, words)
+        elif head.address + words > 0x10000:
+            raise self.fail(w, "address", f"{head.address}+{words} words runs past 65535")
+        return Field(
+            name=head.name, address=head.address, type=ftype, words=words, label=head.label,
+            description=head.description, n_range=head.n_range, stride=stride, labels=labels,
+            variants=variants, **v,
+        )  # fmt: skip
+
+    def width(self, e: Mapping[str, Any], w: list[str | int], bits: bool) -> tuple[str, int]:
+        """A field's type and how many words it takes (``words`` for the sized types)."""
         ftype = self.choice(
             e.get("type", "bit" if bits else "s16"),
             w,
@@ -355,78 +412,71 @@ class _Reader:
             words = self.integer(e["words"], w, "words")
             if not 1 <= words <= MAX_READ_WORDS:
                 raise self.fail(w, "words", f"{words} is outside 1..{MAX_READ_WORDS}")
-        else:
-            words = TYPE_WORDS[ftype]
-            if "words" in e and self.integer(e["words"], w, "words") != words:
-                raise self.fail(w, "words", f'type "{ftype}" is {words} word(s), got {e["words"]}')
-        scale = _opt(e, "scale", w, self.number)
-        if scale is not None and scale == 0:
+            return ftype, words
+        words = TYPE_WORDS[ftype]
+        if "words" in e and self.integer(e["words"], w, "words") != words:
+            raise self.fail(w, "words", f'type "{ftype}" is {words} word(s), got {e["words"]}')
+        return ftype, words
+
+    def value_keys(
+        self, e: Mapping[str, Any], w: list[str | int], ftype: str, words: int
+    ) -> dict[str, Any]:
+        """The keys that say how a value reads (:data:`_VALUE_READERS`, :data:`_CHOICES`),
+        each read by its getter and checked against the type (:data:`_NOT_FOR`)."""
+        v: dict[str, Any] = {}
+        for key, getter in _VALUE_READERS:
+            v[key] = None if key not in e else getattr(self, getter)(e[key], w, key)
+        for key, options in _CHOICES:
+            v[key] = self.choice(e.get(key, options[0]), w, key, options)
+        for key, value, types, why in _NOT_FOR:
+            if key in e and (value is None or v[key] == value) and ftype in types:
+                raise self.fail(w, key, why.format(type=ftype))
+        if v["scale"] == 0:
             raise self.fail(w, "scale", "must not be 0")
-        unit = _opt(e, "unit", w, self.string)
-        rng = None if "range" not in e else self.pair(e["range"], w, "range")
-        enum = None if "enum" not in e else self.str_map(e["enum"], w, "enum")
-        enum_style = self.choice(e.get("enum_style", "name"), w, "enum_style", ("name", "value"))
-        display = self.choice(e.get("display", "dec"), w, "display", ("dec", "hex"))
-        word_order = self.choice(
-            e.get("word_order", "low_high"), w, "word_order", ("low_high", "high_low")
-        )
         if "word_order" in e and words != 2:
             raise self.fail(w, "word_order", "only for two-register types (i32, u32, f32)")
-        fmt = _opt(e, "format", w, self.string)
         if ftype == "version":
-            if fmt is None:
-                fmt = ".".join("{%d}" % i for i in range(words))  # noqa: UP031
-            try:
-                fmt.format(*range(words))
-            except (IndexError, KeyError, ValueError) as err:
-                raise self.fail(
-                    w, "format", f"bad format {fmt!r} for {words} words: {err}"
-                ) from None
-        elif fmt is not None:
+            v["format"] = self.version_format(v["format"], w, words)
+        elif v["format"] is not None:
             raise self.fail(w, "format", 'only for type "version"')
-        if enum is not None and ftype in ("bit", "block", "version", "f32"):
-            raise self.fail(w, "enum", f'not allowed for type "{ftype}"')
-        if scale is not None and ftype in ("bit", "block", "version"):
-            raise self.fail(w, "scale", f'not allowed for type "{ftype}"')
-        if display == "hex" and ftype in ("bit", "f32"):
-            raise self.fail(w, "display", f'"hex" not allowed for type "{ftype}"')
-        labels = None
-        if "labels" in e:
-            if not is_range:
-                raise self.fail(w, "labels", 'only for a repeated range ("n = [first, last]")')
-            labels = self.str_map(e["labels"], w, "labels")
-            lo, hi = n_range  # type: ignore[misc]
-            for k in labels:
-                if not lo <= k <= hi:
-                    raise self.fail(w, "labels", f"n = {k} is outside {lo}..{hi}")
-        variants = None
-        if "variants" in e:
-            variants = {}
-            for k, v in self.int_keyed(e["variants"], w, "variants").items():
-                vw: list[str | int] = [*w, "variants"]
-                v = self.table(v, vw, str(k))
-                self.keys(v, [*vw, str(k)], ("name", "label", "unit", "scale"))
-                variants[k] = Variant(
-                    name=_opt(v, "name", [*vw, str(k)], self.string),
-                    label=_opt(v, "label", [*vw, str(k)], self.string),
-                    unit=_opt(v, "unit", [*vw, str(k)], self.string),
-                    scale=_opt(v, "scale", [*vw, str(k)], self.number),
-                )
-        if is_range:
-            stride = words if "stride" not in e else self.integer(e["stride"], w, "stride")
-            if stride < words:
-                raise self.fail(
-                    w, "stride", f"{stride} is smaller than the field's {words} word(s)"
-                )
-            self.check_end(w, address, n_range, stride, words)
-        elif address + words > 0x10000:
-            raise self.fail(w, "address", f"{address}+{words} words runs past 65535")
-        return Field(
-            name=name, address=address, type=ftype, words=words, label=label,
-            description=description, scale=scale, unit=unit, range=rng, enum=enum,
-            enum_style=enum_style, display=display, word_order=word_order, format=fmt,
-            n_range=n_range, stride=stride, labels=labels, variants=variants,
-        )  # fmt: skip
+        return v
+
+    def version_format(self, fmt: str | None, w: list[str | int], words: int) -> str:
+        """The format of a ``version`` field (default: its words joined by dots)."""
+        if fmt is None:
+            return ".".join("{%d}" % i for i in range(words))  # noqa: UP031
+        try:
+            fmt.format(*range(words))
+        except (IndexError, KeyError, ValueError) as err:
+            raise self.fail(w, "format", f"bad format {fmt!r} for {words} words: {err}") from None
+        return fmt
+
+    def labels(self, v: Any, w: list[str | int], n_range: tuple[int, int] | None) -> dict[int, str]:
+        """Labels of some elements of a repeated range, by ``n``."""
+        if n_range is None:
+            raise self.fail(w, "labels", 'only for a repeated range ("n = [first, last]")')
+        labels = self.str_map(v, w, "labels")
+        lo, hi = n_range
+        for k in labels:
+            if not lo <= k <= hi:
+                raise self.fail(w, "labels", f"n = {k} is outside {lo}..{hi}")
+        return labels
+
+    def variants(self, v: Any, w: list[str | int]) -> dict[int, Variant]:
+        """How a sub-field reads per value of its group's selector."""
+        out = {}
+        vw: list[str | int] = [*w, "variants"]
+        for k, item in self.int_keyed(v, w, "variants").items():
+            item = self.table(item, vw, str(k))
+            where = [*vw, str(k)]
+            self.keys(item, where, ("name", "label", "unit", "scale"))
+            out[k] = Variant(
+                name=_opt(item, "name", where, self.string),
+                label=_opt(item, "label", where, self.string),
+                unit=_opt(item, "unit", where, self.string),
+                scale=_opt(item, "scale", where, self.number),
+            )
+        return out
 
     def check_end(
         self,
@@ -464,6 +514,39 @@ class _Reader:
                     f"{e.name!r} ({e.address}..{e.end_address() - 1}) overlaps "
                     f"{o.name!r} ({o.address}..{o.end_address() - 1})",
                 )
+
+
+@dataclass(frozen=True, slots=True)
+class _Head:
+    """What every entry has: name, address (offset in a group), range, label, description."""
+
+    name: str
+    address: int
+    n_range: tuple[int, int] | None
+    label: str | None
+    description: str | None
+
+
+#: the optional keys of a value, in the order they are read, and the reader of each
+_VALUE_READERS: tuple[tuple[str, str], ...] = (
+    ("scale", "number"),
+    ("unit", "string"),
+    ("range", "pair"),
+    ("enum", "str_map"),
+    ("format", "string"),
+)
+#: the keys with a fixed set of values, the default first
+_CHOICES: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("enum_style", ("name", "value")),
+    ("display", ("dec", "hex")),
+    ("word_order", ("low_high", "high_low")),
+)
+#: (key, value or None for any, the types it is not for, the message)
+_NOT_FOR: tuple[tuple[str, str | None, frozenset[str], str], ...] = (
+    ("enum", None, frozenset({"bit", "block", "version", "f32"}), 'not allowed for type "{type}"'),
+    ("scale", None, frozenset({"bit", "block", "version"}), 'not allowed for type "{type}"'),
+    ("display", "hex", frozenset({"bit", "f32"}), '"hex" not allowed for type "{type}"'),
+)
 
 
 def _list(doc: Mapping[str, Any], key: str, r: _Reader) -> list[Any]:

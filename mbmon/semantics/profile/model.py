@@ -181,6 +181,8 @@ class Profile:
     name: str
     description: str = ""
     session: str | None = None
+    #: the function codes the device serves (the manual's list), ``None``: not stated
+    functions: tuple[int, ...] | None = None
     tables: Mapping[str, tuple[Field, ...]] = field(default_factory=dict)
     channels: tuple[Channel, ...] = ()
     notes: tuple[Note, ...] = ()
