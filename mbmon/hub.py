@@ -228,6 +228,10 @@ class Hub:
         """The listeners still attached, in the order they were added."""
         return [slot.listener for slot in self._slots]
 
+    def clock(self) -> float:
+        """The run's wall clock (``time.time`` unless a test gave another)."""
+        return self._clock()
+
     def new_stream(self, transport: Transport, client: str, server: str) -> Stream:
         """A stream with an id no other source of this run has (thread-safe)."""
         return Stream(self.new_stream_id(), transport, client, server)
