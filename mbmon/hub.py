@@ -288,7 +288,7 @@ class Hub:
             ts = item.ts
             if ts > self.now:
                 self.now = ts
-            if type(item) is Chunk:
+            if isinstance(item, Chunk):
                 if chunk_hooks:
                     for slot, fn in chunk_hooks:
                         self._call(slot, fn, item)
