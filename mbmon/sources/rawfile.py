@@ -21,10 +21,13 @@ from mbmon.sources.pcapfile import CaptureError
 __all__ = ["read_rtu_raw"]
 
 
-def read_rtu_raw(path: str | Path, chunk_size: int = 4096) -> Iterator[Chunk]:
+def read_rtu_raw(
+    path: str | Path, chunk_size: int = 4096, *, stream_id: int = 0
+) -> Iterator[Chunk]:
     """Chunks of at most ``chunk_size`` bytes of the file, in order, on one stream
-    ``Stream(0, Transport.RTU, name, name, timed=False)`` (``name`` = the file name),
-    direction BUS, ts 0.0. Raises :class:`CaptureError` at once if the file cannot be opened."""
+    ``Stream(stream_id, Transport.RTU, name, name, timed=False)`` (``name`` = the file
+    name), direction BUS, ts 0.0. Raises :class:`CaptureError` at once if the file
+    cannot be opened."""
     if chunk_size < 1:
         raise ValueError("chunk_size must be at least 1")
     path = Path(path)
@@ -32,7 +35,8 @@ def read_rtu_raw(path: str | Path, chunk_size: int = 4096) -> Iterator[Chunk]:
         f: BufferedReader = open(path, "rb")
     except OSError as exc:
         raise CaptureError(f"{path}: cannot open ({exc.strerror or exc})") from None
-    return _chunks(f, Stream(0, Transport.RTU, path.name, path.name, timed=False), chunk_size)
+    stream = Stream(stream_id, Transport.RTU, path.name, path.name, timed=False)
+    return _chunks(f, stream, chunk_size)
 
 
 def _chunks(f: BufferedReader, stream: Stream, chunk_size: int) -> Iterator[Chunk]:
