@@ -249,7 +249,8 @@ def run_sniff(args: argparse.Namespace) -> int:
     if not args.quiet:  # before the live screen takes the terminal
         print(f"mbmon: sniffing {source.name} ({source.describe()}); Ctrl-C to stop",
               file=sys.stderr, flush=True)  # fmt: skip
-    wired = _attach_outputs(args, hub, source, view, flt, annotator, stop)
+    ctx = _context(args, source, view, annotator)
+    wired = _attach_outputs(args, hub, source, ctx, flt, annotator, stop)
     if wired is None:
         source.stop()
         return EXIT_BAD_INPUT
@@ -263,7 +264,7 @@ def run_sniff(args: argparse.Namespace) -> int:
                 monitor,
                 partial(run_sources, hub, [source], stop_requested),
                 stop,
-                ctx=_context(args, source, view, annotator),
+                ctx=ctx,
                 submit=hub.submit,
                 display_filter=filter_text(args),
             )
@@ -367,7 +368,7 @@ def _attach_outputs(
     args: argparse.Namespace,
     hub: Hub,
     source: Any,
-    view: Any,
+    ctx: Any,
     flt: Any,
     annotator: Any,
     stop: Callable[[], None],
@@ -382,7 +383,7 @@ def _attach_outputs(
     from mbmon.sinks.summary import Summary
 
     gate = open_trigger(args)  # --trigger: the logs and the screen see only its windows
-    ctx = _context(args, source, view, annotator)
+    view = ctx.view
     opened: list[Any] = []
     try:
         feed = open_foxglove(args, ctx)  # first: it may exit before any file is opened

@@ -11,7 +11,14 @@ from pathlib import Path
 
 from mbmon.cli import build_parser
 from mbmon.commands.common import view_and_filter
-from mbmon.commands.sniff import _attach_outputs, _Budget, _Limited, _open_source, _source
+from mbmon.commands.sniff import (
+    _attach_outputs,
+    _Budget,
+    _context,
+    _Limited,
+    _open_source,
+    _source,
+)
 from mbmon.hub import Hub
 from mbmon.pipeline import Pipeline
 from mbmon.sinks.console import ConsoleListener
@@ -44,7 +51,8 @@ def test_logs_come_before_the_screen_and_the_summary(tmp_path: Path) -> None:
     hub = Hub(Pipeline())
     view, flt = view_and_filter(args)
     source = _source(args)
-    wired = _attach_outputs(args, hub, source, view, flt, None, lambda: None)
+    ctx = _context(args, source, view, None)
+    wired = _attach_outputs(args, hub, source, ctx, flt, None, lambda: None)
     assert wired is not None
     kinds = [type(listener) for listener in hub.listeners]
     assert kinds[0].__name__.lower().startswith("jsonl"), kinds
@@ -56,7 +64,8 @@ def test_count_sits_in_front_of_every_output(tmp_path: Path) -> None:
     args = parse("--serial", "/dev/ttyX", "--plain", "-c", "3", "-w", str(tmp_path / "a.jsonl"))
     hub = Hub(Pipeline())
     view, flt = view_and_filter(args)
-    _attach_outputs(args, hub, _source(args), view, flt, None, lambda: None)
+    source = _source(args)
+    _attach_outputs(args, hub, source, _context(args, source, view, None), flt, None, lambda: None)
     first, *rest = hub.listeners
     assert isinstance(first, _Budget)
     assert all(isinstance(listener, _Limited) for listener in rest)
