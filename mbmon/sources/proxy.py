@@ -77,21 +77,9 @@ class ProxySource(BaseSource):
         """Make the engine, wire its observations to ``hub`` and start it: it listens
         when this returns (:class:`ProxyStartError` when it cannot)."""
         super().open(hub)
-        if self.process:
-            from mbmon.proxy.remote import ProxyProcess
-
-            proc = ProxyProcess(self.config, hub, on_exit=hub.stop)
-            self.engine, self.runner, self.observer = proc.engine, proc, proc
-        else:
-            from mbmon.proxy.engine import Observer, ProxyEngine, ProxyThread
-
-            observer = Observer(
-                hub.put, hub.new_stream, meter=hub, max_backlog=self.config.max_backlog
-            )
-            self.engine = ProxyEngine(self.config, observer, submit=hub.submit, **self.factories)
-            sys.setswitchinterval(SWITCH_INTERVAL)
-            self.observer = observer
-            self.runner = ProxyThread(self.engine, on_exit=hub.stop)
+        self.engine, self.runner, self.observer = attach_engine(
+            hub, self.config, process=self.process, **self.factories
+        )
         try:
             self.address = self.runner.start()
         except OSError as exc:
@@ -125,3 +113,29 @@ class ProxySource(BaseSource):
         stats = self.engine.stats
         stats.not_observed = self.observer.skipped
         return list(stats.summary().splitlines())
+
+
+def attach_engine(
+    hub: Hub, config: Any, *, process: bool = False, **factories: Any
+) -> tuple[Any, Any, Any]:
+    """The proxy's engine for ``config`` wired to ``hub``: ``(engine, runner, observer)``.
+
+    The same wiring as the proxy's own ``attach_engine`` (``mbmon proxy``, ``demo``):
+    observations go to the hub's queue in batches (the hub's count of what it has
+    taken bounds the backlog) and the runner stops the hub when the engine's loop
+    ends; ``runner.start()`` binds. In a child process (``process``) the engine is
+    a ``RemoteEngine`` and the observer the process (its ``skipped``).
+    """
+    if process:
+        if factories:
+            raise ValueError("the serial variants run the engine in a thread")
+        from mbmon.proxy.remote import ProxyProcess
+
+        proc = ProxyProcess(config, hub, on_exit=hub.stop)
+        return proc.engine, proc, proc
+    from mbmon.proxy.engine import Observer, ProxyEngine, ProxyThread
+
+    observer = Observer(hub.put, hub.new_stream, meter=hub, max_backlog=config.max_backlog)
+    engine = ProxyEngine(config, observer, submit=hub.submit, **factories)
+    sys.setswitchinterval(SWITCH_INTERVAL)
+    return engine, ProxyThread(engine, on_exit=hub.stop), observer
