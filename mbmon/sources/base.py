@@ -155,7 +155,9 @@ def run_sources(
     sources through a reader thread with ticks while they wait, live sources
     are started and the hub's loop runs until ``stop`` is set or
     :meth:`~mbmon.hub.Hub.stop` is called (a signal, a source whose input
-    ended, ``-c``). Every source is stopped whatever happens, and their
+    ended, ``-c``); the loop then stops the sources in its own thread and feeds
+    what they queued before it finishes, so nothing delivered is lost. Every
+    source is stopped whatever happens (again: ``stop`` is idempotent), and their
     :meth:`~Source.closing` events are fed at ``clock()`` (default: the hub's
     clock) unless the run ended early (``hub.done``). The pipeline is finished;
     the listeners are not closed (``hub.close()`` is the caller's).
@@ -167,18 +169,29 @@ def run_sources(
         if "live" in modes:
             for source in sources:
                 source.start()
-            hub.run(stop)
+            hub.run(stop, on_stop=lambda: _stop_all(sources))
         else:
             _pull(hub, sources)
     finally:
-        for source in sources:
-            source.stop()
+        _stop_all(sources)
     if hub.done:
         return
     now = clock() if clock is not None else hub.clock()
     for source in sources:
         for event in source.closing(now):
             hub.feed(event)
+
+
+def _stop_all(sources: Sequence[Source]) -> None:
+    """Stop every source, whatever the others do (the first failure is raised last)."""
+    failure: Exception | None = None
+    for source in sources:
+        try:
+            source.stop()
+        except Exception as exc:
+            failure = failure or exc
+    if failure is not None:
+        raise failure
 
 
 def _pull(hub: Hub, sources: Sequence[Source]) -> None:

@@ -251,3 +251,30 @@ def test_live_and_file_sources_do_not_mix() -> None:
     hub = Hub(Pipeline())
     with pytest.raises(ValueError, match="cannot be mixed"):
         run_sources(hub, [ToyFile(1), ToyLive(1)])
+
+
+class LastWords(ToyLive):
+    """A live source whose stop() delivers a last event (the proxy's engine reports
+    its connections closed as it stops): it must reach the listeners."""
+
+    def stop(self) -> None:
+        super().stop()
+        hub = self.hub
+        assert hub is not None
+        hub.put(Event(time.time(), None, EventKind.NOTICE, {"message": "last words"}))
+
+
+def test_what_a_live_source_delivers_as_it_stops_is_not_lost() -> None:
+    ticks = Ticks()
+    hub = Hub(Pipeline(), [ticks])
+    source = LastWords(1_000_000, end_run=False, pause=0.001)
+    source.open(hub)
+    stop = threading.Event()
+    runner = threading.Thread(target=run_sources, args=(hub, [source], stop), daemon=True)
+    runner.start()
+    time.sleep(0.3)
+    stop.set()
+    hub.stop()
+    runner.join(30)
+    assert not runner.is_alive()
+    assert [e.info["message"] for e in ticks.events if e.kind is EventKind.NOTICE] == ["last words"]
