@@ -1,7 +1,8 @@
 """The one loop of a run: sources in, pipeline in the middle, listeners out.
 
 A :class:`Hub` owns one run of any command (``read``, ``replay --redecode``,
-``sniff``, ``proxy``, ``demo``). Sources hand it chunks and events; it feeds the
+``sniff``, ``proxy``, ``demo``). Sources (the contract of :mod:`mbmon.sources.base`,
+run by its ``run_sources``) hand it chunks and events; it feeds the
 :class:`~mbmon.pipeline.Pipeline`, fans the records out to its listeners, moves
 time on (``tick``) and closes everything in order. Model: python-can's
 ``Notifier`` and mitmproxy's addons.
@@ -228,6 +229,10 @@ class Hub:
         """The listeners still attached, in the order they were added."""
         return [slot.listener for slot in self._slots]
 
+    def clock(self) -> float:
+        """The run's wall clock (``time.time`` unless a test gave another)."""
+        return self._clock()
+
     def new_stream(self, transport: Transport, client: str, server: str) -> Stream:
         """A stream with an id no other source of this run has (thread-safe)."""
         return Stream(self.new_stream_id(), transport, client, server)
@@ -284,7 +289,7 @@ class Hub:
             ts = item.ts
             if ts > self.now:
                 self.now = ts
-            if type(item) is Chunk:
+            if isinstance(item, Chunk):
                 if chunk_hooks:
                     for slot, fn in chunk_hooks:
                         self._call(slot, fn, item)
@@ -375,14 +380,22 @@ class Hub:
         """Ask :meth:`run` to finish what is queued and return (any thread, signal handlers)."""
         self._queue.put(_STOP)
 
-    def run(self, stop: threading.Event | None = None, *, until_idle: bool = False) -> None:
+    def run(
+        self,
+        stop: threading.Event | None = None,
+        *,
+        until_idle: bool = False,
+        on_stop: Callable[[], object] | None = None,
+    ) -> None:
         """The live loop: feed queued input, tick on the deadlines, until :meth:`stop`.
 
         Sleeps until the next deadline of any stage (at most ``MAX_SLEEP``), so an
         unanswered request is reported at its timeout while the line is silent, and
         listeners' ``on_tick`` runs every ``LISTENER_TICK`` seconds. ``until_idle``
-        returns as soon as the queue is empty (tests). Finishes the pipeline on the
-        way out; :meth:`close` is the caller's.
+        returns as soon as the queue is empty (tests). On the way out, ``on_stop``
+        (the sources stop delivering; it may block) runs in this thread, then what
+        is queued is fed, so nothing a source delivered before it stopped is lost;
+        then the pipeline finishes. :meth:`close` is the caller's.
         """
         get = self._queue.get
         get_nowait = self._queue.get_nowait
@@ -409,8 +422,7 @@ class Hub:
                     except queue.Empty:
                         break
                     if item is _STOP:
-                        self._drain()
-                        self.finish()
+                        self._end(on_stop)
                         return
                     self._take(item)
             now = self._clock()
@@ -421,6 +433,15 @@ class Hub:
             if (deadline is not None and now >= deadline) or now >= self._next_listener_tick:
                 self._next_listener_tick = now + LISTENER_TICK
                 self.tick(now)
+        self._end(on_stop)
+
+    def _end(self, on_stop: Callable[[], object] | None) -> None:
+        """The end of :meth:`run`: the sources stop, what they queued is fed, finish."""
+        if on_stop is not None:
+            try:
+                on_stop()
+            except Exception as exc:  # a source's own bug must not lose what is queued
+                self._notice(f"source failed to stop: {type(exc).__name__}: {exc}")
         self._drain()
         self.finish()
 

@@ -6,6 +6,12 @@ the sinks. It keeps one sans-I/O decoder per (stream, direction) — one per bus
 for RTU — one :class:`~mbmon.protocol.pairing.Pairer` for all streams, and the
 annotator. Nothing here knows where bytes came from or where records go.
 
+Which decoder frames a stream is the transport's business, and the transport's
+only: :data:`DECODERS` maps each transport to a :class:`DecoderEntry` (how to
+make the decoder of one stream direction, and whether each chunk is a whole
+datagram that is flushed at once). A new transport registers its decoder with
+:func:`register_decoder`; nothing here tests a transport by name.
+
 Time reaches every stage through :meth:`Pipeline.tick`: decoders holding bytes
 settle them after a silence, pairing times requests out, the annotator's
 ``tick`` (when it has one) reports commands, and streams idle for
@@ -17,12 +23,11 @@ bounded per stream and in total.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Hashable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
 from mbmon.model import (
-    RTU_TRANSPORTS,
     Annotation,
     Chunk,
     CommandUpdate,
@@ -49,10 +54,11 @@ class Annotator(Protocol):
     def annotate(self, tx: Transaction) -> Annotation: ...
 
 
-class _Decoder(Protocol):
-    _buf: bytearray
-    _noise: bytearray
-    _last_ts: float | None
+class StreamDecoding(Protocol):
+    """What the pipeline asks of a stream decoder (sans-I/O: see ``mbmon/protocol``)."""
+
+    @property
+    def buffered(self) -> int: ...
 
     def feed(self, data: bytes, ts: float) -> list[Frame | Noise]: ...
 
@@ -77,6 +83,61 @@ class PipelineConfig:
     idle_timeout: float = 600.0  # seconds without input before tick forgets a stream
     max_pending: int = DEFAULT_MAX_TOTAL  # outstanding requests over all streams
 
+    @property
+    def settle_after(self) -> float:
+        """Quiet seconds before a decoder settles what it holds (``silence``, else ``timeout``)."""
+        return self.timeout if self.silence is None else self.silence
+
+
+#: How to make the decoder of one direction of a stream (or of a bus).
+DecoderFactory = Callable[[Stream, Direction, PipelineConfig], StreamDecoding]
+
+
+@dataclass(frozen=True, slots=True)
+class DecoderEntry:
+    """A transport's stream decoder: ``make`` builds one per (stream, direction);
+    ``datagram`` says each chunk is a whole datagram, flushed as soon as it is fed
+    (nothing of it waits for the next one)."""
+
+    make: DecoderFactory
+    datagram: bool = False
+
+
+#: The one registry of stream decoders, keyed by transport (a :class:`Transport`, or
+#: any hashable a new source puts in ``Stream.transport``).
+DECODERS: dict[Hashable, DecoderEntry] = {}
+
+
+def register_decoder(transport: Hashable, make: DecoderFactory, *, datagram: bool = False) -> None:
+    """Make ``make`` the decoder of every stream of ``transport`` (replacing any before).
+
+    Takes effect for decoders made afterwards (a pipeline makes one when a
+    stream direction first brings bytes)."""
+    DECODERS[transport] = DecoderEntry(make, datagram)
+
+
+def decoder_entry(transport: Hashable) -> DecoderEntry:
+    """The registered decoder of ``transport``; ``ValueError`` when there is none."""
+    try:
+        return DECODERS[transport]
+    except KeyError:
+        raise ValueError(f"no stream decoder is registered for transport {transport!r}") from None
+
+
+def _mbap(stream: Stream, direction: Direction, config: PipelineConfig) -> StreamDecoding:
+    return MbapDecoder(stream, direction, silence=config.settle_after)
+
+
+def _rtu(stream: Stream, direction: Direction, config: PipelineConfig) -> StreamDecoding:
+    return RtuDecoder(stream, direction, baudrate=config.baudrate, silence=config.settle_after)
+
+
+register_decoder(Transport.TCP, _mbap)
+register_decoder(Transport.UDP, _mbap, datagram=True)
+register_decoder(Transport.RTU, _rtu)
+register_decoder(Transport.RTU_OVER_TCP, _rtu)
+register_decoder(Transport.RTU_OVER_UDP, _rtu, datagram=True)
+
 
 _KIND_OF_PDU = {
     Kind.REQUEST: RecordKind.REQUEST,
@@ -86,7 +147,6 @@ _KIND_OF_PDU = {
 
 # Per ADU: enum members as module constants (an attribute of an enum class costs
 # about 70 ns, a global 10 ns) and a Record constructor about twice as fast as the class.
-_DATAGRAM = frozenset({Transport.UDP, Transport.RTU_OVER_UDP})
 _EXCEPTION = Kind.EXCEPTION
 _PENDING, _TIMEOUT = TxStatus.PENDING, TxStatus.TIMEOUT
 _new_record = fast_constructor(Record)
@@ -100,11 +160,14 @@ class Pipeline:
         self.annotator = annotator
         cfg = self.config
         self.pairer = Pairer(timeout=cfg.timeout, max_total=cfg.max_pending)
-        self._silence = cfg.timeout if cfg.silence is None else cfg.silence
-        self._decoders: dict[tuple[int, Direction], _Decoder] = {}
+        self._decoders: dict[tuple[int, Direction], StreamDecoding] = {}
         # decoders that held bytes after a chunk: the only ones a tick may concern
-        self._waiting: dict[tuple[int, Direction], _Decoder] = {}
+        self._waiting: dict[tuple[int, Direction], StreamDecoding] = {}
         self._streams: dict[int, Stream] = {}  # streams with a decoder
+        # decoders of datagram transports: each chunk is flushed as soon as it is fed
+        self._datagram: set[tuple[int, Direction]] = set()
+        # when each stream with a decoder last brought bytes (idle expiry)
+        self._last_input: dict[int, float] = {}
         # id(request frame) -> record index, for requests the pairer holds: an entry
         # goes when its request is answered or times out (or is cut off by damage)
         self._pending_index: dict[int, int] = {}
@@ -143,17 +206,23 @@ class Pipeline:
                 self._next_tick = ts + self.config.tick_every
                 self._emit_transactions(self.pairer.tick(ts), out)
             stream = item.stream
-            decoder = self._decoders.get((stream.id, item.direction))
+            key = (stream.id, item.direction)
+            decoder = self._decoders.get(key)
             if decoder is None:
                 decoder = self._decoder(stream, item.direction)
+            self._last_input[stream.id] = ts
             decoded = decoder.feed(item.data, ts)
             if decoded:
                 self._emit_decoded(decoded, out)
-            if stream.transport in _DATAGRAM:
+            if key in self._datagram:
                 self._emit_decoded(decoder.flush(ts), out)
-            elif decoder._buf or decoder._noise:
-                self._waiting[(stream.id, item.direction)] = decoder
+            elif decoder.buffered:
+                self._waiting[key] = decoder
             return out
+        return self._feed_event(item, out)
+
+    def _feed_event(self, item: Event, out: list[Record]) -> list[Record]:
+        """A source event: damage, a gap (the decoder resets), a disconnect (the stream ends)."""
         self._last_ts = max(self._last_ts, item.ts)
         stream = item.stream
         if item.kind is EventKind.ERROR and stream is None:
@@ -189,7 +258,7 @@ class Pipeline:
                     if decoded:
                         self._emit_decoded(decoded, out)
                     deadline = decoder.next_deadline()
-                if deadline is None and not (decoder._buf or decoder._noise):
+                if deadline is None and not decoder.buffered:
                     del waiting[key]
         self._emit_transactions(self.pairer.tick(now), out)
         annotator_tick = getattr(self.annotator, "tick", None)
@@ -208,7 +277,7 @@ class Pipeline:
         deadlines = [self.pairer.next_deadline()]
         for key, decoder in list(self._waiting.items()):
             deadline = decoder.next_deadline()
-            if deadline is None and not (decoder._buf or decoder._noise):
+            if deadline is None and not decoder.buffered:
                 del self._waiting[key]
             deadlines.append(deadline)
         annotator_deadline = getattr(self.annotator, "next_deadline", None)
@@ -225,6 +294,8 @@ class Pipeline:
             self._emit_decoded(self._decoders.pop(key).flush(when), out)
         self._waiting.clear()
         self._streams.clear()
+        self._datagram.clear()
+        self._last_input.clear()
         self._emit_transactions(self.pairer.flush(when), out)
         return out
 
@@ -236,18 +307,16 @@ class Pipeline:
 
     # ------------------------------------------------------------------ internals
 
-    def _decoder(self, stream: Stream, direction: Direction) -> _Decoder:
+    def _decoder(self, stream: Stream, direction: Direction) -> StreamDecoding:
         key = (stream.id, direction)
         decoder = self._decoders.get(key)
         if decoder is None:
+            entry = decoder_entry(stream.transport)
             self._streams[stream.id] = stream
-            if stream.transport in RTU_TRANSPORTS:
-                decoder = RtuDecoder(
-                    stream, direction, baudrate=self.config.baudrate, silence=self._silence
-                )
-            else:
-                decoder = MbapDecoder(stream, direction, silence=self._silence)
+            decoder = entry.make(stream, direction, self.config)
             self._decoders[key] = decoder
+            if entry.datagram:
+                self._datagram.add(key)
         return decoder
 
     def _close_stream(self, stream: Stream, ts: float, out: list[Record]) -> None:
@@ -257,17 +326,14 @@ class Pipeline:
             decoder = self._decoders.pop((sid, direction), None)
             if decoder is not None:
                 self._waiting.pop((sid, direction), None)
+                self._datagram.discard((sid, direction))
                 self._emit_decoded(decoder.flush(ts), out)
         self._streams.pop(sid, None)
+        self._last_input.pop(sid, None)
 
     def _expire_idle(self, before: float, out: list[Record]) -> None:
         """Streams with no input since ``before``: flushed (nothing is lost) and forgotten."""
-        idle: dict[int, float] = {}
-        for (sid, _), decoder in self._decoders.items():
-            last = decoder._last_ts
-            if last is not None and last > idle.get(sid, float("-inf")):
-                idle[sid] = last
-        for sid, last in idle.items():
+        for sid, last in list(self._last_input.items()):
             if last < before:
                 stream = self._streams.get(sid)
                 if stream is not None:
@@ -278,7 +344,7 @@ class Pipeline:
         self._index += 1
         return index
 
-    def _emit_decoded(self, items: list[Frame | Noise], out: list[Record]) -> None:
+    def _emit_decoded(self, items: Sequence[Frame | Noise], out: list[Record]) -> None:
         counts = self.counts
         pair = self.pairer.feed
         for item in items:

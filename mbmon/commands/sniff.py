@@ -1,16 +1,14 @@
 """``mbmon sniff``: passive live capture of Modbus/TCP on a network interface, or of
 Modbus RTU on one or two RS485 taps, through the one hub and pipeline.
 
-Wiring only; the options, filters (:class:`~mbmon.sinks.select.Selection` in
-front of what is shown), ``-c`` and summary (:class:`~mbmon.sinks.summary.Summary`)
-are ``read``'s. Network: a :class:`~mbmon.sources.sniff.PacketCapture` reader
-thread submits packet batches to the hub; the packet dissector (a hub ticker)
-runs in the hub's thread. Serial: one :class:`~mbmon.sources.serial.SerialTap`
-thread per port puts chunks of one bus stream (two taps are merged by
-timestamp in a :class:`~mbmon.sources.serial.TimeMerge` ticker) and
-:class:`~mbmon.sources.serial.BusHealth` watches the bus. The main thread runs
-``hub.run``; Ctrl-C and SIGTERM stop it, the hub finishes the pipeline and closes
-every listener (the MCAP log is complete), and a summary goes to stderr.
+Wiring only: options → a source (:class:`~mbmon.sources.sniff.InterfaceSource`
+for a network interface, :class:`~mbmon.sources.serialbus.SerialBusSource` for
+one or two RS485 taps; both implement :mod:`mbmon.sources.base`'s contract) and
+listeners (logs first, then the screen behind the filters, then the summary; ``-c``
+in front of them) → :func:`~mbmon.sources.base.run_sources` → one exit status.
+The main thread runs the hub's loop; Ctrl-C and SIGTERM stop it, the hub finishes
+the pipeline and closes every listener (the MCAP log is complete), and a summary
+(the source's lines, then ``read``'s counts) goes to stderr.
 """
 
 from __future__ import annotations
@@ -20,10 +18,16 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from functools import partial
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from mbmon.sources import DEFAULT_BAUD
+
+if TYPE_CHECKING:
+    from mbmon.hub import Hub
+    from mbmon.sources.base import Source
 
 _EPILOG = """\
 examples:
@@ -140,13 +144,13 @@ class _Budget:
 
     With filters (``--fc``, ``--unit``, ...) only the frames they let through
     count, as with tcpdump's ``-c`` behind its filter: ``sniff --fc 16 -c 5``
-    shows five writes. Everything up to the N-th counted frame reaches the
-    outputs behind it (:class:`_Limited`), nothing after it.
+    shows five writes; events never count. Everything up to the N-th counted
+    frame reaches the outputs behind it (:class:`_Limited`), nothing after it.
     """
 
     name = "count"
 
-    def __init__(self, count: int, stop: Any, flt: Any = None, view: Any = None) -> None:
+    def __init__(self, count: int, stop: Callable[[], Any], flt: Any = None, view: Any = None):
         self.left = count
         self._stop = stop
         self._filter = flt if flt is not None and flt.active else None
@@ -163,7 +167,7 @@ class _Budget:
             return True
         from mbmon.sinks.select import passes
 
-        return passes(flt, record, self._view)
+        return bool(passes(flt, record, self._view))
 
     def on_records(self, records: list[Any]) -> None:
         if self.done:
@@ -220,35 +224,74 @@ class _Limited:
 
 
 def run_sniff(args: argparse.Namespace) -> int:
-    from mbmon.commands.common import (
-        EXIT_BAD_INPUT,
-        EXIT_OK,
-        Figures,
-        UsageError,
-        check_outputs,
-        check_rotation,
-        filter_text,
-        make_annotator,
-        open_console,
-        open_foxglove,
-        open_log,
-        open_trigger,
-        run_live,
-        view_and_filter,
-    )
-    from mbmon.commands.common import profile_sources as _profile_sources
+    """``mbmon sniff``: options → source and listeners → the hub's loop → exit status."""
+    from mbmon.commands.common import EXIT_BAD_INPUT, EXIT_OK, make_annotator, view_and_filter
     from mbmon.hub import Hub
     from mbmon.pipeline import Pipeline, PipelineConfig
-    from mbmon.sinks.base import SinkContext, SinkError
-    from mbmon.sinks.select import Selection
-    from mbmon.sinks.summary import Summary
+    from mbmon.sources.base import run_sources
 
     if args.list:
-        from mbmon.sources.sniff import list_interfaces
+        return _list_interfaces()
+    source = _source(args)
+    view, flt = view_and_filter(args)
+    annotator = make_annotator(args.profile)
+    baud = getattr(source, "settings", None)
+    config = PipelineConfig(timeout=args.timeout, baudrate=baud.baudrate if baud else None)
+    hub = Hub(Pipeline(annotator, config))
+    stop_requested = threading.Event()
 
-        for name, desc in list_interfaces():
-            print(f"{name:16} {desc}")
-        return EXIT_OK
+    def stop() -> None:
+        stop_requested.set()
+        hub.stop()
+
+    if not _open_source(source, hub):  # before any output: a failure leaves no files
+        return EXIT_BAD_INPUT
+    if not args.quiet:  # before the live screen takes the terminal
+        print(f"mbmon: sniffing {source.name} ({source.describe()}); Ctrl-C to stop",
+              file=sys.stderr, flush=True)  # fmt: skip
+    ctx = _context(args, source, view, annotator)
+    wired = _attach_outputs(args, hub, source, ctx, flt, annotator, stop)
+    if wired is None:
+        source.stop()
+        return EXIT_BAD_INPUT
+    monitor, summary = wired
+    started = time.time()
+    from mbmon.commands.common import filter_text, run_live
+
+    with _signals_stop(stop):
+        try:
+            run_live(
+                monitor,
+                partial(run_sources, hub, [source], stop_requested),
+                stop,
+                ctx=ctx,
+                submit=hub.submit,
+                display_filter=filter_text(args),
+            )
+        finally:
+            source.stop()
+            hub.close()
+    if not args.quiet:
+        _summary(args, summary, source, time.time() - started)
+    if any(why != "broken pipe" for _name, why in hub.failures):
+        return EXIT_BAD_INPUT
+    return EXIT_OK
+
+
+def _list_interfaces() -> int:
+    """``--list``: the interfaces there are, one a line."""
+    from mbmon.sources.sniff import list_interfaces
+
+    for name, desc in list_interfaces():
+        print(f"{name:16} {desc}")
+    return 0
+
+
+def _source(args: argparse.Namespace) -> Any:
+    """The source the options name (usage errors first, and the outputs checked
+    against it): an interface, or the serial bus of one or two taps."""
+    from mbmon.commands.common import UsageError, check_outputs, check_rotation
+
     iface = args.interface or args.iface
     if args.interface and args.iface and args.interface != args.iface:
         raise UsageError("give the interface once (IFACE or -i IFACE)")
@@ -266,178 +309,133 @@ def run_sniff(args: argparse.Namespace) -> int:
         raise UsageError("--baud is for --serial")
     check_outputs(args.write, args.serial)  # before the capture opens: no half start
     check_rotation(args)
-    gate = open_trigger(args)  # --trigger: the logs and the screen see only its windows
+    if args.serial:
+        from mbmon.sources.serial import SerialSettings
+        from mbmon.sources.serialbus import SerialBusSource
 
-    serial = bool(args.serial)
-    baud = (args.baud or DEFAULT_BAUD) if serial else None
-    view, flt = view_and_filter(args)
-    annotator = make_annotator(args.profile)
-    pipeline = Pipeline(annotator, PipelineConfig(timeout=args.timeout, baudrate=baud))
-    hub = Hub(pipeline)
-    stop_requested = threading.Event()
+        settings = SerialSettings(
+            args.baud or DEFAULT_BAUD, args.parity, args.stopbits, args.bytesize
+        )
+        return SerialBusSource(args.serial, settings, merge_window=args.merge_window)
+    from mbmon.sources.pcapfile import CaptureConfig
+    from mbmon.sources.sniff import InterfaceSource
 
-    def stop() -> None:
-        stop_requested.set()
-        hub.stop()
+    config = CaptureConfig(
+        tcp_ports=frozenset({502, *args.port}),
+        rtu_ports=frozenset(args.rtu_port),
+        # live, detection puts every TCP packet through Python: on by default
+        # only while no port is named (a named port keeps the kernel filter narrow)
+        detect=not (args.no_detect or args.port or args.rtu_port),
+    )
+    return InterfaceSource(str(iface), config, args.filter)
 
-    source_name = "+".join(args.serial) if serial else str(iface)
-    ctx = SinkContext(
+
+def _open_source(source: Source, hub: Hub) -> bool:
+    """Open ``source``; on failure say why in one line and return ``False``."""
+    from mbmon.commands.common import serial_open_error
+    from mbmon.sources.base import SourceError
+    from mbmon.sources.serialbus import SerialOpenError
+
+    try:
+        source.open(hub)
+    except SerialOpenError as exc:
+        print(f"mbmon: {serial_open_error(exc.port, exc.error)}", file=sys.stderr)
+        return False
+    except SourceError as exc:
+        print(f"mbmon: {exc}", file=sys.stderr)
+        return False
+    return True
+
+
+def _context(args: argparse.Namespace, source: Any, view: Any, annotator: Any) -> Any:
+    """The run's :class:`~mbmon.sinks.base.SinkContext` (log metadata, the feed's topics)."""
+    from mbmon.commands.common import profile_sources
+    from mbmon.sinks.base import SinkContext
+
+    settings = getattr(source, "settings", None)
+    return SinkContext(
         view=view,
         command_line=["mbmon", *sys.argv[1:]],
-        source=source_name,
-        profiles=_profile_sources(annotator),
+        source=source.name,
+        profiles=profile_sources(annotator),
         profile_specs=list(args.profile),
         timeout=args.timeout,
-        baud=baud,
+        baud=settings.baudrate if settings is not None else None,
     )
 
-    # ---- the source (opened before any output, so a failure leaves no files behind)
-    capture: Any = None
-    taps: list[Any] = []
-    health: Any = None
-    dissector: Any = None
-    if serial:
-        from mbmon.model import Chunk, Direction, Event, EventKind, Transport
-        from mbmon.sources.serial import BusHealth, SerialSettings, SerialTap, TimeMerge
 
-        settings = SerialSettings(baud or DEFAULT_BAUD, args.parity, args.stopbits, args.bytesize)
-        # a reader thread stamps a read when it holds the GIL again: the default 5 ms
-        # switch interval would blur read times (and the gap figures) by up to 5 ms
-        sys.setswitchinterval(0.001)
-        stream = hub.new_stream(Transport.RTU, source_name, source_name)
-        bus = Direction.BUS
+def _attach_outputs(
+    args: argparse.Namespace,
+    hub: Hub,
+    source: Any,
+    ctx: Any,
+    flt: Any,
+    annotator: Any,
+    stop: Callable[[], None],
+) -> tuple[Any, Any] | None:
+    """Open the outputs and attach them: ``-c`` first, then the logs (the Foxglove feed,
+    ``-w``), the screen behind the filters, the summary, the monitor's figures.
+    Returns ``(monitor, summary)``, or ``None`` after saying why one could not open
+    (those already open are closed)."""
+    from mbmon.commands.common import Figures, open_console, open_foxglove, open_log, open_trigger
+    from mbmon.sinks.base import SinkError
+    from mbmon.sinks.select import Selection
+    from mbmon.sinks.summary import Summary
 
-        def notice(ts: float, message: str) -> None:
-            hub.put(Event(ts, stream, EventKind.NOTICE, {"message": message}))
-
-        if len(args.serial) == 1:
-
-            def deliver(ts: float, data: bytes) -> None:
-                hub.put(Chunk(ts, stream, bus, data))
-
-        else:
-            merge = TimeMerge(args.merge_window)
-            hub.add_ticker(merge)
-
-            def deliver(ts: float, data: bytes) -> None:
-                chunk = Chunk(ts, stream, bus, data)
-                hub.submit(lambda: merge.add(chunk))
-
-        for port in args.serial:
-            tap = SerialTap(port, settings, deliver, notice)
-            try:
-                tap.open()
-            except OSError as exc:
-                for t in taps:
-                    t.stop()
-                from mbmon.commands.common import serial_open_error
-
-                print(f"mbmon: {serial_open_error(port, exc)}", file=sys.stderr)
-                return EXIT_BAD_INPUT
-            taps.append(tap)
-        health = BusHealth(stream, settings, hub.put)
-    else:
-        from mbmon.sources.pcapfile import CaptureConfig
-        from mbmon.sources.sniff import (
-            CaptureSetupError,
-            PacketCapture,
-            capture_filter,
-            dissect_batch,
-            open_dissector,
-        )
-
-        config = CaptureConfig(
-            tcp_ports=frozenset({502, *args.port}),
-            rtu_ports=frozenset(args.rtu_port),
-            # live, detection puts every TCP packet through Python: on by default
-            # only while no port is named (a named port keeps the kernel filter narrow)
-            detect=not (args.no_detect or args.port or args.rtu_port),
-        )
-        bpf = args.filter or capture_filter(config)
-        dissector = open_dissector(config, hub.new_stream, bus_name=str(iface))
-        hub.add_ticker(dissector)
-
-        def deliver_batch(batch: list[tuple[float, int, bytes]]) -> None:
-            hub.submit(partial(dissect_batch, dissector, batch))
-
-        def capture_failed(message: str) -> None:
-            from mbmon.model import Event, EventKind
-
-            hub.put(Event(time.time(), None, EventKind.NOTICE, {"message": message}))
-            stop()
-
-        capture = PacketCapture(str(iface), bpf, deliver_batch, on_error=capture_failed)
-        try:
-            capture.open()
-        except CaptureSetupError as exc:
-            print(f"mbmon: {exc}", file=sys.stderr)
-            return EXIT_BAD_INPUT
-
-    def figures() -> dict[str, Any]:
-        if capture is not None:  # the dissector knows connections picked up mid-stream too
-            return {
-                "open connections": dissector.stats()["open_connections"],
-                "kernel drops": capture.kernel_stats().drops,
-            }
-        return health.screen_figures()
-
-    if not args.quiet:  # before the live screen takes the terminal
-        what = f"filter: {capture.bpf}" if capture is not None else health.settings.text()
-        print(f"mbmon: sniffing {source_name} ({what}); Ctrl-C to stop", file=sys.stderr)
-        sys.stderr.flush()
-
-    # ---- outputs
-    budget = _Budget(args.count, stop, flt, view) if args.count else None
-    outputs: list[Any] = []
-    monitor: Any = None
-    summary = None if args.quiet else Summary(view if args.robot else None)
-
-    def abandon() -> None:
-        for out in outputs:
-            out.close()
-        for tap in taps:
-            tap.stop()
-        if capture is not None:
-            capture.stop()
-
+    gate = open_trigger(args)  # --trigger: the logs and the screen see only its windows
+    view = ctx.view
+    opened: list[Any] = []
     try:
         feed = open_foxglove(args, ctx)  # first: it may exit before any file is opened
         if feed is not None:
-            outputs.append(feed)
-        console, monitor = open_console(
-            args, view, title=f"mbmon sniff {source_name}", annotator=annotator
-        )
-        attach = outputs.append
-        if gate is not None:
-            outputs.append(gate)
-            attach = gate.add
-        if console is not None:  # the filters choose what is shown; logs keep everything
-            # (the monitor keeps everything too and starts with them as its display filter)
-            shown = flt.active and monitor is None
-            attach(Selection([console], view, flt) if shown else console)
+            opened.append(feed)
         for target in args.write:
-            attach(open_log(target, ctx, args))
-        if summary is not None:
-            outputs.append(summary)
+            opened.append(open_log(target, ctx, args))
+        console, monitor = open_console(
+            args, view, title=f"mbmon sniff {source.name}", annotator=annotator
+        )
     except SinkError as exc:
-        abandon()
+        for out in opened:
+            out.close()
         print(f"mbmon: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return None
     except SystemExit:
-        abandon()
+        for out in opened:
+            out.close()
         raise
-    if budget is not None:
+    if console is not None:  # the filters choose what is shown; logs keep everything
+        # (the monitor keeps everything too and starts with them as its display filter)
+        opened.append(
+            Selection([console], view, flt) if flt.active and monitor is None else console
+        )
+    outputs: list[Any] = opened
+    if gate is not None:
+        for out in opened:
+            gate.add(out)
+        outputs = [gate]
+    summary = None if args.quiet else Summary(view if args.robot else None)
+    if summary is not None:
+        outputs.append(summary)
+    if args.count:
+
+        def enough() -> None:  # the N-th frame: no more input, no closing figures
+            stop()
+            hub.enough()
+
+        budget = _Budget(args.count, enough, flt, view)
         hub.add_listener(budget)
         outputs = [_Limited(out, budget) for out in outputs]
     for out in outputs:
         hub.add_listener(out)
-    if health is not None:
-        hub.add_listener(health)
     if monitor is not None:
-        hub.add_listener(Figures(monitor, figures))
+        hub.add_listener(Figures(monitor, source.stats))
+    return monitor, summary
 
-    # ---- run
-    started = time.time()
+
+@contextmanager
+def _signals_stop(stop: Callable[[], None]) -> Iterator[None]:
+    """Inside the block SIGINT and SIGTERM call ``stop()`` (the run ends in order:
+    sources stopped, the hub drained and finished, every log closed)."""
     old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
 
     def on_signal(signum: int, frame: object) -> None:
@@ -446,94 +444,24 @@ def run_sniff(args: argparse.Namespace) -> int:
     for sig in old:
         signal.signal(sig, on_signal)
     try:
-        if capture is not None:
-            capture.start()
-        for tap in taps:
-            tap.start()
-        run_live(
-            monitor,
-            partial(hub.run, stop_requested),
-            stop,
-            ctx=ctx,
-            submit=hub.submit,
-            display_filter=filter_text(args),
-        )
+        yield
     finally:
-        if capture is not None:
-            capture.stop()
-        for tap in taps:
-            tap.stop()
-        if not (budget is not None and budget.done):  # the closing figures, in the logs too
-            if health is not None:
-                hub.feed(health.stats_event(time.time()))
-            if capture is not None:
-                hub.feed(_capture_stats(capture, time.time()))
-        hub.close()
         for sig, handler in old.items():
             signal.signal(sig, handler)
 
-    if not args.quiet:
-        _summary(
-            args, summary, capture, taps, health, dissector, time.time() - started, source_name
-        )
-    if any(why != "broken pipe" for _name, why in hub.failures):
-        return EXIT_BAD_INPUT
-    return EXIT_OK
 
-
-def _capture_stats(capture: Any, ts: float) -> Any:
-    """A STATS event with the capture's kernel counters (``/mbmon/events`` in a log),
-    so a log says by itself whether the capture was complete."""
-    from mbmon.model import Event, EventKind
-
-    k = capture.kernel_stats()
-    info = {
-        "interface": capture.iface,
-        "packets": capture.packets,
-        "kernel_packets": k.packets,
-        "kernel_drops": k.drops,
-        "complete": k.drops == 0,
-    }
-    return Event(ts, None, EventKind.STATS, info)
-
-
-def _summary(
-    args: argparse.Namespace,
-    summary: Any,
-    capture: Any,
-    taps: list[Any],
-    health: Any,
-    dissector: Any,
-    elapsed: float,
-    source: str,
-) -> None:
+def _summary(args: argparse.Namespace, summary: Any, source: Any, elapsed: float) -> None:
     """The closing summary on stderr (not with ``-q``): what the source saw (kernel
-    counters, dissector, serial reads, bus health) and the records' counts in the
-    words of ``read``'s summary (:class:`~mbmon.sinks.summary.Summary`)."""
-    lines = [f"mbmon: sniffed {source} for {elapsed:.1f} s"]
-    if capture is not None:
-        k = capture.kernel_stats()
-        lines.append(
-            f"  {capture.packets} packets captured; kernel: {k.packets} matched the filter, "
-            f"{k.drops} dropped" + (" (capture INCOMPLETE)" if k.drops else "")
-        )
-        if dissector is not None:
-            s = dissector.stats()
-            lines.append(
-                f"  {s.get('modbus_packets', 0)} Modbus packets, {s.get('streams', 0)} streams, "
-                f"{s.get('gaps', 0)} TCP gaps"
-            )
-            from mbmon.commands.read import detected_lines
+    counters and the dissector, or the serial reads and bus health) and the records'
+    counts in the words of ``read``'s summary (:class:`~mbmon.sinks.summary.Summary`)."""
+    lines = [f"mbmon: sniffed {source.name} for {elapsed:.1f} s"]
+    lines.extend("  " + line for line in source.summary())
+    detected = getattr(source, "detected", None)
+    if detected is not None:
+        from mbmon.commands.read import detected_lines
 
-            lines.extend("  " + line for line in detected_lines(dissector.detected()))
-    for tap in taps:
-        lines.append(
-            f"  {tap.port}: {tap.reads} reads, {tap.bytes} bytes"
-            + (f", lost {tap.losses} times" if tap.losses else "")
-        )
+        lines.extend("  " + line for line in detected_lines(detected()))
     lines.extend("  " + line for line in summary.text().splitlines())
-    if health is not None:
-        lines.extend("  " + line for line in health.summary())
     if args.robot and summary.streams and not summary.robot_seen:
         lines.append(f"  warning: the robot {args.robot} (--robot) appears in no stream")
     print("\n".join(lines), file=sys.stderr)

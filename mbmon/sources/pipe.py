@@ -33,12 +33,15 @@ class _End:
         self.error = error
 
 
-def feed_pipe(hub: Hub, items: Iterable[Item], *, every: float = LISTENER_TICK) -> None:
+def feed_pipe(
+    hub: Hub, items: Iterable[Item], *, every: float = LISTENER_TICK, finish: bool = True
+) -> None:
     """Feed ``items`` (read as they come from a pipe) to ``hub``, ticking it every
     ``every`` seconds while none arrive; then finish the pipeline, as
     :meth:`Hub.run_items` does. An exception of the reader is raised here; so is a
     ``KeyboardInterrupt`` arriving while this waits. Stops early once
-    :attr:`Hub.done` (every listener gone, or ``-c N`` reached)."""
+    :attr:`Hub.done` (every listener gone, or ``-c N`` reached). ``finish=False``
+    leaves the pipeline open (more sources follow: :func:`mbmon.sources.base.run_sources`)."""
     inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
 
     def read() -> None:
@@ -81,4 +84,5 @@ def feed_pipe(hub: Hub, items: Iterable[Item], *, every: float = LISTENER_TICK) 
             hub.feed_items(batch)
     if end is not None and end.error is not None:
         raise end.error
-    hub.finish()
+    if finish:
+        hub.finish()

@@ -68,7 +68,7 @@ class SerialSettings:
 def open_port(port: str, settings: SerialSettings) -> Any:
     """A pyserial port opened with ``settings``, non-blocking (``timeout=0``); raises
     ``OSError`` with the system's reason (or the bad setting) when it cannot be."""
-    import serial
+    import serial  # type: ignore[import-untyped]  # pyserial ships no types
 
     s = settings
     try:

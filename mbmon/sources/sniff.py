@@ -28,13 +28,18 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
-from mbmon.model import Chunk, Event, Stream, Transport
+from mbmon.model import Chunk, Event, EventKind, Stream, Transport
+from mbmon.sources.base import BaseSource, SourceError, SourceMode
 from mbmon.sources.pcapfile import CaptureConfig
+
+if TYPE_CHECKING:
+    from mbmon.hub import Hub
 
 __all__ = [
     "CaptureSetupError",
+    "InterfaceSource",
     "PacketCapture",
     "PacketDissector",
     "capture_filter",
@@ -65,7 +70,7 @@ _SO_RCVBUFFORCE = 33
 _SIOCGIFADDR = 0x8915
 
 
-class CaptureSetupError(Exception):
+class CaptureSetupError(SourceError):
     """The capture cannot start (no such interface, no permission, bad filter): one line."""
 
 
@@ -81,6 +86,8 @@ class PacketDissector(Protocol):
     def finish(self, ts: float) -> list[Chunk | Event]: ...
 
     def stats(self) -> dict[str, int]: ...
+
+    def detected(self) -> list[tuple[str, int, str, int]]: ...
 
 
 def open_dissector(
@@ -332,3 +339,102 @@ def _python() -> str:
     import sys
 
     return sys.executable
+
+
+class InterfaceSource(BaseSource):
+    """A network interface as a live source of the hub: a :class:`PacketCapture`
+    reader thread submits packet batches, and the packet dissector (a hub ticker,
+    its stream ids the hub's) runs them in the hub's thread.
+
+    ``bpf`` is the kernel filter (default: :func:`capture_filter` of ``config``).
+    A capture that fails while running puts a NOTICE and stops the run.
+    """
+
+    mode: SourceMode = "live"
+
+    def __init__(self, iface: str, config: CaptureConfig, bpf: str | None = None) -> None:
+        super().__init__()
+        self.name = iface
+        self.config = config
+        self.bpf = bpf or capture_filter(config)
+        self.capture: PacketCapture | None = None
+        self.dissector: PacketDissector | None = None
+
+    def open(self, hub: Hub) -> None:
+        """Open the socket with its filter (:class:`CaptureSetupError` when it cannot)
+        and register the dissector."""
+        super().open(hub)
+        dissector = self.dissector = open_dissector(self.config, hub.new_stream, self.name)
+
+        def deliver(batch: list[tuple[float, int, bytes]]) -> None:
+            hub.submit(lambda: dissect_batch(dissector, batch))
+
+        def failed(message: str) -> None:
+            hub.put(Event(time.time(), None, EventKind.NOTICE, {"message": message}))
+            hub.stop()
+
+        capture = PacketCapture(self.name, self.bpf, deliver, on_error=failed)
+        capture.open()
+        self.capture = capture
+        hub.add_ticker(dissector)
+
+    def start(self) -> None:
+        """Start the reader thread."""
+        if self.capture is not None:
+            self.capture.start()
+
+    def stop(self) -> None:
+        """Stop reading and close the socket (idempotent)."""
+        if self.capture is not None:
+            self.capture.stop()
+
+    def describe(self) -> str:
+        """The kernel filter, for the banner."""
+        return f"filter: {self.bpf}"
+
+    def stats(self) -> dict[str, Any]:
+        """Open connections (picked up mid-stream too) and kernel drops, for the screen."""
+        if self.capture is None or self.dissector is None:
+            return {}
+        return {
+            "open connections": self.dissector.stats()["open_connections"],
+            "kernel drops": self.capture.kernel_stats().drops,
+        }
+
+    def closing(self, ts: float) -> list[Event]:
+        """A STATS event with the kernel's counters: a log says by itself whether the
+        capture was complete."""
+        capture = self.capture
+        if capture is None:
+            return []
+        k = capture.kernel_stats()
+        info = {
+            "interface": capture.iface,
+            "packets": capture.packets,
+            "kernel_packets": k.packets,
+            "kernel_drops": k.drops,
+            "complete": k.drops == 0,
+        }
+        return [Event(ts, None, EventKind.STATS, info)]
+
+    def summary(self) -> list[str]:
+        """Packets captured, the kernel's counters, and what the dissector made of them."""
+        capture = self.capture
+        if capture is None:
+            return []
+        k = capture.kernel_stats()
+        lines = [
+            f"{capture.packets} packets captured; kernel: {k.packets} matched the filter, "
+            f"{k.drops} dropped" + (" (capture INCOMPLETE)" if k.drops else "")
+        ]
+        if self.dissector is not None:
+            s = self.dissector.stats()
+            lines.append(
+                f"{s.get('modbus_packets', 0)} Modbus packets, {s.get('streams', 0)} streams, "
+                f"{s.get('gaps', 0)} TCP gaps"
+            )
+        return lines
+
+    def detected(self) -> list[tuple[str, int, str, int]]:
+        """What port detection found (see ``Dissector.detected``)."""
+        return self.dissector.detected() if self.dissector is not None else []

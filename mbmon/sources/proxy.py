@@ -1,0 +1,141 @@
+"""The proxy as a live source of the hub: what it forwards, observed.
+
+:class:`ProxySource` implements the source contract (:mod:`mbmon.sources.base`)
+over the proxy's public API (:mod:`mbmon.proxy`): the forwarding engine runs in a
+thread of its own (:class:`~mbmon.proxy.engine.ProxyThread`, with the serial
+variants' factories) or in a child process
+(:class:`~mbmon.proxy.remote.ProxyProcess`: its own GIL, observation never takes
+CPU time from forwarding), and its observations reach the hub's thread-safe
+queue in batches. The proxy forwards first and observes second: nothing here can
+stall or alter traffic. When the engine's loop ends, the hub is stopped.
+
+:meth:`ProxySource.open` binds the listening socket (or opens the serial port),
+so a proxy that cannot listen fails before any log is opened:
+:class:`ProxyStartError` carries the system's error for the command's words.
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import TYPE_CHECKING, Any
+
+from mbmon.model import Event
+from mbmon.sources.base import BaseSource, SourceError, SourceMode
+
+if TYPE_CHECKING:
+    from mbmon.hub import Hub
+
+__all__ = ["SWITCH_INTERVAL", "ProxySource", "ProxyStartError"]
+
+#: The interpreter's thread switch interval while an engine thread forwards (default
+#: 5 ms): the engine's thread must get the GIL back quickly when a packet arrives
+#: while the hub's thread decodes and writes.
+SWITCH_INTERVAL = 0.0002
+
+
+class ProxyStartError(SourceError):
+    """The proxy cannot listen (or open its serial port): the system's ``error``."""
+
+    def __init__(self, error: OSError) -> None:
+        super().__init__(error.strerror or str(error))
+        self.error = error
+
+
+class ProxySource(BaseSource):
+    """The traffic a proxy forwards for ``config`` (a :class:`~mbmon.proxy.engine.ProxyConfig`).
+
+    ``process=True`` runs the engine in a child process (TCP only, POSIX);
+    ``factories`` (``upstream=``, ``front=``) plug in the serial variants, which
+    run in a thread. After :meth:`open`: :attr:`engine` (its ``stats`` and
+    ``figures()``), :attr:`runner` (the thread or process) and :attr:`address`
+    (where it listens).
+    """
+
+    mode: SourceMode = "live"
+
+    def __init__(
+        self,
+        config: Any,
+        *,
+        process: bool = False,
+        factories: dict[str, Any] | None = None,
+        name: str = "proxy",
+    ) -> None:
+        super().__init__()
+        if process and factories:
+            raise ValueError("the serial variants run the engine in a thread")
+        self.config = config
+        self.process = process
+        self.factories = dict(factories or {})
+        self.name = name
+        self.engine: Any = None
+        self.runner: Any = None
+        self.observer: Any = None
+        self.address: tuple[str, int] | None = None
+
+    def open(self, hub: Hub) -> None:
+        """Make the engine, wire its observations to ``hub`` and start it: it listens
+        when this returns (:class:`ProxyStartError` when it cannot)."""
+        super().open(hub)
+        self.engine, self.runner, self.observer = attach_engine(
+            hub, self.config, process=self.process, **self.factories
+        )
+        try:
+            self.address = self.runner.start()
+        except OSError as exc:
+            self.runner.stop()
+            raise ProxyStartError(exc) from None
+
+    def stop(self) -> None:
+        """Stop the engine (its last events reach the hub) and wait for it (5 s at most)."""
+        if self.runner is not None:
+            self.runner.stop()
+            self.runner.join(5.0)
+
+    def stats(self) -> dict[str, Any]:
+        """The engine's figures for the screen (clients, refusals, upstream state)."""
+        return dict(self.engine.figures()) if self.engine is not None else {}
+
+    def closing(self, ts: float) -> list[Event]:
+        """Nothing: the engine's own events already closed its streams."""
+        return []
+
+    @property
+    def ended_unexpectedly(self) -> bool:
+        """The forwarding process died: its last counters are all there is."""
+        return self.engine is not None and getattr(self.engine, "final", True) is False
+
+    def summary(self) -> list[str]:
+        """The engine's counters (what it forwarded, refused, answered itself), with
+        the observations the hub could not take counted as not observed."""
+        if self.engine is None:
+            return []
+        stats = self.engine.stats
+        stats.not_observed = self.observer.skipped
+        return list(stats.summary().splitlines())
+
+
+def attach_engine(
+    hub: Hub, config: Any, *, process: bool = False, **factories: Any
+) -> tuple[Any, Any, Any]:
+    """The proxy's engine for ``config`` wired to ``hub``: ``(engine, runner, observer)``.
+
+    The same wiring as the proxy's own ``attach_engine`` (``mbmon proxy``, ``demo``):
+    observations go to the hub's queue in batches (the hub's count of what it has
+    taken bounds the backlog) and the runner stops the hub when the engine's loop
+    ends; ``runner.start()`` binds. In a child process (``process``) the engine is
+    a ``RemoteEngine`` and the observer the process (its ``skipped``).
+    """
+    if process:
+        if factories:
+            raise ValueError("the serial variants run the engine in a thread")
+        from mbmon.proxy.remote import ProxyProcess
+
+        proc = ProxyProcess(config, hub, on_exit=hub.stop)
+        return proc.engine, proc, proc
+    from mbmon.proxy.engine import Observer, ProxyEngine, ProxyThread
+
+    observer = Observer(hub.put, hub.new_stream, meter=hub, max_backlog=config.max_backlog)
+    engine = ProxyEngine(config, observer, submit=hub.submit, **factories)
+    sys.setswitchinterval(SWITCH_INTERVAL)
+    return engine, ProxyThread(engine, on_exit=hub.stop), observer
