@@ -219,8 +219,9 @@ def run(args: argparse.Namespace) -> int:
     from mbmon.format import View
     from mbmon.hub import Hub
     from mbmon.pipeline import Pipeline, PipelineConfig
-    from mbmon.proxy.engine import ProxyConfig, endpoint
+    from mbmon.proxy.config import ProxyConfig, endpoint
     from mbmon.proxy.guard import ClientFilter, Guard, GuardSpecError
+    from mbmon.proxy.runner import attach_engine, unresolved
     from mbmon.sinks.base import SinkContext, SinkError
 
     if (args.upstream is None) == (args.upstream_serial is None):
@@ -401,70 +402,3 @@ def run(args: argparse.Namespace) -> int:
     if any(name != "stdout" or why != "broken pipe" for name, why in hub.failures):
         return EXIT_BAD_INPUT
     return EXIT_OK
-
-
-def unresolved(host: str, port: int, wait: float = 2.0) -> str | None:
-    """Why ``host`` does not resolve (``None`` when it does, or is an address): the
-    lookup runs in a thread, so a slow resolver delays the start by ``wait`` at most."""
-    import ipaddress
-    import socket
-    import threading
-
-    try:
-        ipaddress.ip_address(host.split("%", 1)[0])
-        return None
-    except ValueError:
-        pass
-    result: list[str | None] = []
-
-    def lookup() -> None:
-        try:
-            socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
-            result.append(None)
-        except (OSError, UnicodeError) as exc:
-            result.append(getattr(exc, "strerror", None) or str(exc) or type(exc).__name__)
-
-    thread = threading.Thread(target=lookup, name="mbmon-resolve", daemon=True)
-    thread.start()
-    thread.join(wait)
-    if not result:
-        return f"no answer from the resolver in {wait:g} s"
-    return result[0]
-
-
-def attach_engine(
-    hub: Any, config: Any, *, process: bool = False, **factories: Any
-) -> tuple[Any, Any, Any]:
-    """A :class:`~mbmon.proxy.engine.ProxyEngine` for ``config`` wired to ``hub``: the
-    one way a command runs a proxy (``proxy``, ``demo``).
-
-    Its observations go to the hub's queue in batches (the hub's count of what it
-    has taken, :attr:`~mbmon.hub.Hub.seen`, bounds the backlog), and its
-    :class:`~mbmon.proxy.engine.ProxyThread` stops the hub when the engine's loop
-    ends. Returns ``(engine, thread, observer)``;
-    ``thread.start()`` binds the listening socket. ``factories`` (``upstream=``,
-    ``front=``) plug in the serial variants (:mod:`mbmon.proxy.serial`).
-
-    ``process``: the engine runs in a child process instead of a thread
-    (:class:`~mbmon.proxy.remote.ProxyProcess`, the same calls; no factories);
-    ``engine`` is then a :class:`~mbmon.proxy.remote.RemoteEngine` and ``observer``
-    the process (its ``skipped``).
-    """
-    if process:
-        if factories:
-            raise ValueError("the serial variants run the engine in a thread")
-        from mbmon.proxy.remote import ProxyProcess
-
-        proc = ProxyProcess(config, hub, on_exit=hub.stop)
-        return proc.engine, proc, proc
-
-    from mbmon.proxy.engine import Observer, ProxyEngine, ProxyThread
-
-    observer = Observer(hub.put, hub.new_stream, meter=hub, max_backlog=config.max_backlog)
-    engine = ProxyEngine(config, observer, submit=hub.submit, **factories)
-    # The engine's thread must get the GIL back quickly when a packet arrives while
-    # the hub's thread decodes and writes: the default 5 ms switch interval would add
-    # up to 5 ms to a forwarded answer whenever the hub is busy.
-    sys.setswitchinterval(SWITCH_INTERVAL)
-    thread = ProxyThread(engine, on_exit=hub.stop)
-    return engine, thread, observer

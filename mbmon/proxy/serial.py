@@ -53,13 +53,11 @@ from typing import Any
 from mbmon.model import Direction, EventKind, Frame, Stream, Transport
 from mbmon.protocol.mbap import encode_adu
 from mbmon.protocol.rtu import RtuDecoder, encode_rtu, t35
-from mbmon.proxy.engine import (
-    GATEWAY_PATH_UNAVAILABLE,
-    ProxyEngine,
-    _Client,
-    _Link,
-    _Pending,
-)
+from mbmon.proxy.client import Client
+from mbmon.proxy.config import GATEWAY_PATH_UNAVAILABLE, GATEWAY_TARGET_FAILED
+from mbmon.proxy.engine import ProxyEngine
+from mbmon.proxy.link import Pending
+from mbmon.proxy.upstream import TcpLink
 from mbmon.sources.serial import SerialSettings, open_port
 
 __all__ = ["RtuFront", "RtuLink", "SerialLine", "SerialOpenError", "rtu_front", "rtu_upstream"]
@@ -253,7 +251,7 @@ class _Job:
 
     __slots__ = ("adu", "entry", "fc", "unit")
 
-    def __init__(self, entry: _Pending) -> None:
+    def __init__(self, entry: Pending) -> None:
         self.entry = entry
         self.unit = entry.unit
         self.fc = entry.fc
@@ -262,9 +260,9 @@ class _Job:
 
 class RtuLink:
     """The upstream is an RTU slave bus: the link every client shares (see the module
-    text). It speaks the engine's link protocol (``submit``, ``_forget``, ``close``...)
-    so the engine's clients -- TCP clients or an :class:`RtuFront` -- use it as
-    they use a TCP upstream."""
+    text). It speaks the engine's link protocol (:class:`~mbmon.proxy.link.Link`:
+    ``submit``, ``forget``, ``close``...) so the engine's clients -- TCP clients or
+    an :class:`RtuFront` -- use it as they use a TCP upstream."""
 
     owner = None
     remap = False
@@ -286,7 +284,7 @@ class RtuLink:
         self.stream: Stream = engine.observer.new_stream(Transport.RTU, port, port)
         self.decoder = RtuDecoder(self.stream, _S2C, settings.baudrate, silence=SETTLE)
         self.queues: OrderedDict[Any, deque[_Job]] = OrderedDict()
-        self.jobs: dict[_Pending, _Job] = {}
+        self.jobs: dict[Pending, _Job] = {}
         self.current: _Job | None = None
         self.late: tuple[int, int] | None = None  # (unit, fc) answered 0x0B already
         self._timer: asyncio.TimerHandle | None = None
@@ -313,7 +311,7 @@ class RtuLink:
     def write(self, data: bytes) -> None:
         """Unused: :meth:`submit` puts requests on the bus itself."""
 
-    def submit(self, entry: _Pending) -> bytes | None:
+    def submit(self, entry: Pending) -> bytes | None:
         """Queue ``entry`` for the bus (0x0A at once when the port is unavailable)."""
         if self.line.state != "up":
             self.engine.answer_exception(entry, GATEWAY_PATH_UNAVAILABLE)
@@ -331,7 +329,7 @@ class RtuLink:
             self._start()
         return None
 
-    def _forget(self, entry: _Pending, why: str | None = None) -> None:
+    def forget(self, entry: Pending, why: str | None = None) -> None:
         """Stop waiting for ``entry`` (its client left): out of the queue, or its
         answer, when it comes, is dropped."""
         job = self.jobs.pop(entry, None)
@@ -435,7 +433,7 @@ class RtuLink:
                 + ("" if client.silent else ": answered 0x0B"),
                 {"tid": entry.tid, "fc": job.fc, "unit": job.unit},
             )
-        self.engine.answer_exception(entry, 0x0B)
+        self.engine.answer_exception(entry, GATEWAY_TARGET_FAILED)
         self._next_soon()
 
     def _give_up(self, job: _Job, why: str) -> None:
@@ -531,11 +529,12 @@ class RtuLink:
 # --------------------------------------------------------------------------- the master side
 
 
-class RtuFront(_Client):
+class RtuFront(Client):
     """The client side is an RTU master on a serial port; the proxy answers as its
     RTU slave (see the module text). One engine client, silent to gateway failures."""
 
     silent = True
+    streams_answers = False  # whole answers, made into RTU frames by :meth:`send`
 
     def __init__(self, engine: ProxyEngine, port: str, settings: SerialSettings) -> None:
         super().__init__(engine)
@@ -565,7 +564,7 @@ class RtuFront(_Client):
             self.link = engine.shared
         else:
             self.tcp = observer.new_stream(Transport.TCP, port, engine.config.upstream)
-            self.link = _Link(engine, self)
+            self.link = TcpLink(engine, self)
             self.link.connect()
 
     # -------------------------------------------------------------- requests
@@ -593,7 +592,7 @@ class RtuFront(_Client):
             assert link is not None
             for old in list(self.outstanding):  # the master gave up on it
                 self.outstanding.discard(old)
-                link._forget(old, "the RTU master sent its next request")
+                link.forget(old, "the RTU master sent its next request")
             # the request as Modbus/TCP: the engine's clients, links and guard speak it
             self._tid = tid = (self._tid + 1) & 0xFFFF
             raw = item.raw
@@ -603,7 +602,7 @@ class RtuFront(_Client):
                 if verdict is not None:
                     self._refusing = True
                     try:
-                        self._refuse(mbap, verdict.message, verdict.info, ts)
+                        self.refuse(mbap, verdict.message, verdict.info, ts)
                     finally:
                         self._refusing = False
                     continue
@@ -635,7 +634,7 @@ class RtuFront(_Client):
     def _sent(self, frame: bytes, ts: float) -> None:
         self.engine.observer.chunk(self.bus, _BUS, frame, ts)
 
-    def unanswered(self, entry: _Pending, code: int) -> None:
+    def unanswered(self, entry: Pending, code: int) -> None:
         why = "upstream unavailable" if code == GATEWAY_PATH_UNAVAILABLE else "no answer in time"
         self.engine.stats.unanswered += 1
         self.notice(
@@ -664,7 +663,7 @@ class RtuFront(_Client):
         link = self.link
         if link is not None:
             for entry in list(self.outstanding):
-                link._forget(entry)
+                link.forget(entry)
             if link.owner is self:
                 link.close()
         self.outstanding.clear()
