@@ -28,12 +28,17 @@ from mbmon.proxy.link import Link, LinkEngine, Pending
 from mbmon.proxy.reader import Reader
 from mbmon.proxy.upstream import TcpLink
 
-__all__ = ["CLIENT_SNDBUF", "Client", "ClientEngine"]
+__all__ = ["CLIENT_SNDBUF", "MADE_BY_PROXY", "Client", "ClientEngine"]
 
 #: The kernel send buffer of a client socket (the kernel doubles it): Modbus answers
 #: are at most 260 bytes, so this holds hundreds; a client that leaves more unread
 #: than this and the loop's 64 KiB is not reading, and is dropped after ``timeout``.
 CLIENT_SNDBUF = 64 * 1024
+
+#: The note on an answer the proxy made itself (0x0A, 0x0B, a guard refusal): the
+#: pipeline puts it on every answer of the proxy's own stream (the client's CONNECT
+#: names that stream, ``answers_on``, and the note).
+MADE_BY_PROXY = "made by the proxy"
 
 _C2S = Direction.C2S
 _S2C = Direction.S2C
@@ -116,9 +121,14 @@ class Client(Reader):
             keepalive(sock)
         engine.stats.clients += 1
         engine.clients.add(self)
-        self.stream = engine.observer.new_stream(Transport.TCP, self.peer, engine.config.upstream)
+        observer = engine.observer
+        self.stream = observer.new_stream(Transport.TCP, self.peer, engine.config.upstream)
+        self.own = observer.new_stream(Transport.TCP, self.peer, engine.name)
         self.decoder = MbapDecoder(self.stream, _C2S)
-        engine.observer.event(self.stream, EventKind.CONNECT, {})
+        # the proxy's own answers to this client go on a stream of their own (their
+        # source is the proxy) and pair with the requests of this one
+        info = {"answers_on": self.own.id, "note": MADE_BY_PROXY}
+        observer.event(self.stream, EventKind.CONNECT, info)
         if engine.shared is not None:
             self.link = engine.shared
             if self.link.state == "down" and engine.loop.time() >= self.link.next_attempt:
@@ -213,7 +223,7 @@ class Client(Reader):
         engine.stats.guard_refusals += 1
         adu = encode_adu((raw[0] << 8) | raw[1], raw[6], encode_exception(raw[7], code))
         if self.streams_answers and self.transport is not None and not self.closed:
-            engine.observer.chunk(self._own_stream(), _C2S, raw, ts)
+            engine.observer.chunk(self._own_stream(ts), _C2S, raw, ts)
         self.send_own(adu, ts)
         engine.observer.event(
             self.stream,
@@ -303,16 +313,18 @@ class Client(Reader):
         transport.write(data)
         engine = self.engine
         engine.stats.bytes_to_clients += len(data)
-        engine.observer.chunk(self._own_stream(), _S2C, data, ts)
+        engine.observer.chunk(self._own_stream(ts), _S2C, data, ts)
         if self.half_closed and not self.outstanding:
             self.closed = True
             self.drop_reason = None
             transport.close()
             self._finish_half_closed()
 
-    def _own_stream(self) -> Stream:
+    def _own_stream(self, ts: float) -> Stream:
+        """The stream of the proxy's own answers to this client (made at its CONNECT,
+        :meth:`connection_made`; ``ts`` is unused there)."""
         own = self.own
-        if own is None:
+        if own is None:  # a client that never connected through a socket
             engine = self.engine
             own = self.own = engine.observer.new_stream(Transport.TCP, self.peer, engine.name)
         return own
@@ -323,7 +335,8 @@ class Client(Reader):
         link = self.link
         if link is not None and link.owner is self:
             link.close()
-        engine.observer.event(self.stream, EventKind.DISCONNECT, {"how": "fin", "by": "client"})
+        info = {"how": "fin", "by": "client"}
+        engine.observer.event(self.stream, EventKind.DISCONNECT, info)
 
     def notice(self, message: str, info: dict[str, Any]) -> None:
         self.engine.observer.event(self.stream, EventKind.NOTICE, {"message": message, **info})

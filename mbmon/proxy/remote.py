@@ -277,6 +277,8 @@ def decode_records(
             streams[sid] = new_stream(Transport(transport), client, server)
         elif what == "event":
             _, ts, sid, kind, info = record
+            if "answers_on" in info:  # a stream id of the child's: the hub's instead
+                info = {**info, "answers_on": streams[info["answers_on"]].id}
             items.append(Event(ts, None if sid < 0 else streams[sid], EventKind(kind), info))
         else:
             others.append(record)
