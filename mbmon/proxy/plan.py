@@ -143,7 +143,7 @@ class ProxyPlan:
         """Why the engine could not start: a serial port that does not open says so
         itself; else ``listen_error`` words the listening socket's failure."""
         if self.serial:
-            from mbmon.proxy.serial import SerialOpenError
+            from mbmon.proxy.serial_line import SerialOpenError
 
             if isinstance(exc, SerialOpenError):
                 return exc.strerror or str(exc)
