@@ -217,7 +217,7 @@ class Client(Reader):
     def refuse(self, raw: bytes, message: str, info: Any, ts: float) -> None:
         """Answer the request ADU ``raw`` with the guard's exception, and audit it. A
         socket client's refused request and its answer are observed on the proxy's
-        own stream (:meth:`send_own`), where they paired: the upstream never saw it."""
+        own stream (:meth:`send_own`): the upstream never saw it."""
         engine = self.engine
         code = engine.config.guard.exception_code
         engine.stats.guard_refusals += 1

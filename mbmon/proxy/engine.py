@@ -12,11 +12,15 @@ the hub's thread-safe queue): nothing the hub, the pipeline or a listener does
 can delay or change the traffic.
 
 What the hub sees, per client connection, is one stream
-``client endpoint -> upstream endpoint`` carrying exactly the bytes the client
-sent (C2S) and exactly the bytes the client received (S2C), including the
-exception responses the proxy made itself, plus events: CONNECT/DISCONNECT
-(``how`` fin/rst, ``by`` client/proxy, ``reason``), NOTICE (upstream lost and
-back, answers dropped, clients dropped) and GUARD (refused writes and clients).
+``client endpoint -> upstream endpoint`` carrying the bytes the client sent to
+the upstream (C2S) and the upstream's answers it received (S2C), and one stream
+``client endpoint -> the proxy's listening endpoint`` with what the proxy answered
+itself (0x0A, 0x0B, guard refusals, and the refused requests): together exactly
+what the client sent and received. The client's CONNECT names the second
+(``answers_on``) so the pipeline pairs its answers with the first's requests,
+marked ``made by the proxy``. Events: CONNECT/DISCONNECT (``how`` fin/rst, ``by``
+client/proxy, ``reason``), NOTICE (upstream lost and back, answers dropped,
+clients dropped) and GUARD (refused writes and clients).
 
 Gateway rules:
 
