@@ -10,7 +10,7 @@ from typing import Protocol
 __all__ = ["READ_BUFFER", "HasReadBuffer", "Reader"]
 
 #: How many bytes one read of a socket takes at most. The engine reads into one
-#: buffer of its own (:class:`_Reader`): asyncio's plain protocols get a new
+#: buffer of its own (:class:`Reader`): asyncio's plain protocols get a new
 #: 256 KiB ``bytes`` per read, which glibc serves above its mmap threshold, so
 #: every 12-byte request cost an mmap, page faults, an mremap and a munmap (a TLB
 #: shootdown across the process's threads): half the engine's CPU per request
