@@ -63,7 +63,9 @@ import orjson
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from mbmon.model import Chunk, Direction, Stream, Transport
 from mbmon.protocol.pdu import decode_pdu
-from mbmon.proxy.engine import Observer, ProxyConfig, ProxyEngine, ProxyStats
+from mbmon.proxy.config import ProxyConfig, ProxyStats
+from mbmon.proxy.engine import ProxyEngine
+from mbmon.proxy.observer import Observer
 from mbmon.proxy.remote import ProxyProcess, run_loop
 
 STAGES = ("copies", "decode", "log")

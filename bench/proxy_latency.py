@@ -72,7 +72,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 sys.path.insert(0, str(ROOT))
-from mbmon.proxy.engine import MAX_BACKLOG  # noqa: E402
+from mbmon.proxy.config import MAX_BACKLOG  # noqa: E402
 from mbmon.proxy.remote import _CHUNK, PIPE_SIZE  # noqa: E402
 
 UPSTREAM = r"""

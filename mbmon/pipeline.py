@@ -23,9 +23,9 @@ bounded per stream and in total.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Hashable, Iterable, Sequence
+from collections.abc import Callable, Hashable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 from mbmon.model import (
     Annotation,
@@ -149,6 +149,7 @@ _KIND_OF_PDU = {
 # about 70 ns, a global 10 ns) and a Record constructor about twice as fast as the class.
 _EXCEPTION = Kind.EXCEPTION
 _PENDING, _TIMEOUT = TxStatus.PENDING, TxStatus.TIMEOUT
+_S2C = Direction.S2C
 _new_record = fast_constructor(Record)
 
 
@@ -176,6 +177,10 @@ class Pipeline:
         self._next_sweep = float("-inf")
         self._last_ts = 0.0
         self._damage_ts = float("-inf")  # last source damage (ERROR without a stream)
+        # streams whose answers pair with another stream's requests (named by that
+        # stream's CONNECT, info ``answers_on``): the note their answers carry
+        self._joined_notes: dict[int, tuple[str, ...]] = {}
+        self._answers_on: dict[int, int] = {}  # stream id -> the stream joined to it
         self.counts: dict[str, int] = {
             "chunks": 0,
             "bytes": 0,
@@ -235,10 +240,35 @@ class Pipeline:
             decoder = self._decoders.get((stream.id, direction))
             if decoder is not None:
                 self._emit_decoded(decoder.reset(item.ts), out)
+        if item.kind is EventKind.CONNECT and stream is not None:
+            self._join(stream, item.info)
         out.append(self._event_record(item))
         if item.kind is EventKind.DISCONNECT and stream is not None:
             self._close_stream(stream, item.ts, out)
+            if self._answers_on:
+                self._part(stream, item.ts, out)
         return out
+
+    def _join(self, stream: Stream, info: Mapping[str, Any]) -> None:
+        """A stream whose requests may be answered on another (``answers_on``: its id;
+        a proxy's own answers to a client), and the note those answers carry."""
+        other = info.get("answers_on")
+        if type(other) is int and other != stream.id:
+            self.pairer.join(other, stream.id)
+            self._answers_on[stream.id] = other
+            note = info.get("note")
+            self._joined_notes[other] = (note,) if isinstance(note, str) and note else ()
+
+    def _part(self, stream: Stream, ts: float, out: list[Record]) -> None:
+        """``stream`` ended: so does the stream its requests were answered on."""
+        other = self._answers_on.pop(stream.id, None)
+        if other is None:
+            return
+        self.pairer.part(other)
+        self._joined_notes.pop(other, None)
+        joined = self._streams.get(other)
+        if joined is not None:
+            self._close_stream(joined, ts, out)
 
     def tick(self, now: float) -> list[Record]:
         """Time is ``now``: every stage reports what time alone completes.
@@ -395,6 +425,9 @@ class Pipeline:
             kind = frame.pdu.kind
             if kind is _EXCEPTION:
                 self.counts["exceptions"] += 1
+            notes = annotation.notes if annotation is not None else ()
+            if self._joined_notes and frame.direction is _S2C:
+                notes = notes + self._joined_notes.get(frame.stream.id, ())
             out.append(
                 _new_record(
                     index,
@@ -408,7 +441,7 @@ class Pipeline:
                     None,  # noise
                     None,  # event
                     None,  # command
-                    annotation.notes if annotation is not None else (),
+                    notes,
                     annotation.state if annotation is not None else None,
                 )
             )

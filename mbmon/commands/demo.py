@@ -2,7 +2,7 @@
 
 Wiring only, around the one flow. It starts the simulated HRSS controller
 (:class:`~mbmon.sim.server.SimServer`, "the robot") on a free loopback port and
-the proxy engine in front of it (:func:`mbmon.commands.proxy.attach_engine`, the
+the proxy engine in front of it (:func:`mbmon.proxy.runner.attach_engine`, the
 same wiring as ``mbmon proxy``) with a write guard that refuses writes to the
 robot's system inputs SI1..SI256 (coils 0-255). A client thread runs the
 manual's §5.4.5.2 program plus LIN, Set/Get PR and JOG
@@ -335,13 +335,13 @@ def run(args: argparse.Namespace) -> int:
         profile_sources,
         run_live,
     )
-    from mbmon.commands.proxy import attach_engine
     from mbmon.format import View
     from mbmon.hub import Hub
     from mbmon.model import Event, EventKind
     from mbmon.pipeline import Pipeline, PipelineConfig
-    from mbmon.proxy.engine import ProxyConfig, endpoint
+    from mbmon.proxy.config import ProxyConfig, endpoint
     from mbmon.proxy.guard import Guard
+    from mbmon.proxy.runner import attach_engine
     from mbmon.sim.server import SimServer
     from mbmon.sinks.base import SinkContext, SinkError, open_sink
 

@@ -3,63 +3,23 @@ robot) that forwards every request and answer, answers like a gateway when the
 robot does not, can refuse writes, and shows and logs what passes through the one
 hub. Either side may be an RS485 port (Modbus RTU): :mod:`mbmon.proxy.serial`.
 
-Wiring only. The :class:`~mbmon.proxy.engine.ProxyEngine` runs on its own asyncio
-loop in a thread (:class:`~mbmon.proxy.engine.ProxyThread`) and hands copies of
-the traffic to the hub's thread-safe queue; the main thread runs ``hub.run``
-(pipeline, console, ``-w`` logs). Ctrl-C or SIGTERM stops the engine first (its
-last events reach the hub), then the hub finishes and closes every listener,
-and a summary goes to stderr.
+Wiring only: the options are checked into a :class:`~mbmon.proxy.plan.ProxyPlan`,
+and :func:`~mbmon.proxy.runner.attach_engine` runs the
+:class:`~mbmon.proxy.engine.ProxyEngine` on its own asyncio loop (in a child
+process for a TCP proxy, else in a thread), which hands copies of the traffic to
+the hub's thread-safe queue; the main thread runs ``hub.run`` (pipeline, console,
+``-w`` logs). Ctrl-C or SIGTERM stops the engine first (its last events reach the
+hub), then the hub finishes and closes every listener, and a summary goes to
+stderr.
 """
 
 from __future__ import annotations
 
 import argparse
-import os
 import signal
 import sys
 import time
 from typing import Any
-
-_EPILOG = """\
-examples:
-  mbmon proxy --upstream 192.168.0.10:502
-      listen on 127.0.0.1:1502, forward to the robot, print every ADU with the
-      robot's labels (the upstream is the robot unless --robot says otherwise)
-  mbmon proxy --upstream robot:502 --listen 0.0.0.0:502 -w cell.mcap --profile hrss
-      take the robot's place on the cell network (all interfaces, port 502: both
-      only because they are asked for) and log to MCAP with HRSS meaning
-  mbmon proxy --upstream robot:502 --read-only --allow-write hr:200-251 -q -w audit.mcap
-      refuse every write except R200..R251 (exception 01), audit refusals in the log
-  mbmon proxy --upstream robot:502 --share-upstream --allow-from 10.0.0.0/24
-      many clients over one robot connection; only clients of 10.0.0.0/24
-  mbmon proxy --upstream-serial /dev/ttyUSB0 --baud 19200 --parity E
-      Modbus/TCP clients reach an RTU slave on RS485 (one request at a time)
-  mbmon proxy --listen-serial /dev/ttyUSB0 --upstream-serial /dev/ttyUSB1 -w rs485.mcap
-      in the middle of an RS485 link (master on USB0, slave on USB1)
-
-listening: 127.0.0.1:1502 by default. Other interfaces and port 502 are used only
-when --listen names them explicitly (e.g. --listen 0.0.0.0:502).
-gateway rules: upstream down -> exception 0x0A; no answer in --timeout -> 0x0B
-(then, with one upstream connection per client, that connection is renewed so its
-late answer can never reach a later request); the client stays connected; late
-answers are dropped and logged; answers go on as their bytes arrive, unchanged
-(an unknown transaction id too; --share-upstream drops what it cannot route); an
-RTU master (--listen-serial) gets silence instead, as from an RTU slave (docs/proxy.md).
-screen: the live monitor on a terminal; --plain, --json or a pipe: one line per record.
-write specs: hr:100  hr:200-251  coil:0-7  unit:2  unit:2,hr:100-110 ; --deny-write
-always wins; with --read-only or any --allow-write only allowed writes pass; with any
-guard option a write whose byte count, quantity and length disagree (or whose range
-runs past 0xFFFF) is refused as malformed. --read-only is an allow-list of known
-reads; --allow-fc CODE[/SUB] opens one more (e.g. --allow-fc 8/1 --allow-fc 65-72).
-forwarding: a TCP proxy forwards in a process of its own, on uvloop when installed
-(MBMON_EVENT_LOOP=asyncio: asyncio's own loop); TCP keepalive finds vanished peers.
-exit status: 0 ok, 1 cannot listen or an output failed, 2 usage
-"""
-
-DEFAULT_LISTEN = ("127.0.0.1", 1502)
-
-#: The interpreter's thread switch interval while the proxy runs (default 5 ms).
-SWITCH_INTERVAL = 0.0002
 
 
 def register(sub: Any) -> None:
@@ -73,6 +33,7 @@ def register(sub: Any) -> None:
         positive_int,
     )
     from mbmon.commands.common import positive as _positive
+    from mbmon.proxy.options import EPILOG, add_proxy_options
     from mbmon.sources import DEFAULT_BAUD
 
     p = sub.add_parser(
@@ -83,108 +44,13 @@ def register(sub: Any) -> None:
         "shows and logs what passes as the robot's Modbus Monitor does. When the upstream "
         "is down or silent it answers like a Modbus gateway (exceptions 0x0A/0x0B); it can "
         "refuse writes (--read-only, --allow-write, --deny-write) and clients (--allow-from).",
-        epilog=_EPILOG,
+        epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    net = p.add_argument_group("network")
-    net.add_argument(
-        "--upstream",
-        metavar="HOST:PORT",
-        help="the Modbus/TCP server to forward to (the robot), e.g. 192.168.0.10:502 "
-        "(or --upstream-serial)",
-    )
-    net.add_argument(
-        "--listen",
-        metavar="ADDR:PORT",
-        help="where clients connect (default 127.0.0.1:1502, loopback only); other "
-        "interfaces or port 502 only when named here, e.g. 0.0.0.0:502; a bare PORT "
-        "means 127.0.0.1:PORT; port 0 picks a free port (printed)",
-    )
-    net.add_argument(
-        "--timeout",
-        type=_positive,
-        default=3.0,
-        metavar="S",
-        help="answer 0x0B when the upstream has not answered in S seconds; also how long "
-        "a client may stay half-way through a request or not read (default 3)",
-    )
-    net.add_argument(
-        "--share-upstream",
-        action="store_true",
-        help="all clients over one upstream connection, transaction ids remapped (for "
-        "servers that accept few connections); default: one upstream connection per "
-        "client, transaction ids untouched",
-    )
-    ser = p.add_argument_group("serial (RS485, Modbus RTU; docs/proxy.md)")
-    ser.add_argument(
-        "--upstream-serial",
-        metavar="PORT",
-        help="the upstream is an RTU slave on this serial port (TCP->RTU, or RTU<->RTU "
-        "with --listen-serial): one request at a time on the bus, clients served in turn",
-    )
-    ser.add_argument(
-        "--listen-serial",
-        metavar="PORT",
-        help="the client is an RTU master on this serial port; the proxy answers as its "
-        "slave (RTU->TCP, or RTU<->RTU with --upstream-serial); it gets silence, not "
-        "0x0A/0x0B, when the upstream cannot answer",
-    )
-    ser.add_argument(
-        "--baud",
-        type=positive_int,
-        default=DEFAULT_BAUD,
-        metavar="N",
-        help=f"baud rate ({DEFAULT_BAUD})",
-    )
-    ser.add_argument("--parity", choices=("N", "E", "O"), default="N", help="parity (N)")
-    ser.add_argument("--stopbits", type=int, choices=(1, 2), default=1, help="stop bits (1)")
-    guard = p.add_argument_group("guard")
-    guard.add_argument(
-        "--read-only",
-        action="store_true",
-        help="only what is known to be a read passes: FC 01-04 07 0B 0C 11 14 18, 2B/0E "
-        "and Diagnostics 08 sub-functions 00, 02, 0B-12 (counters); every write (05 06 0F "
-        "10 15 16, the write of 17) except what --allow-write allows and every other code "
-        "(08/01 restart, 08/04 listen-only, user-defined 0x41-0x48, 0x64-0x6E...) is refused "
-        "and audited unless --allow-fc opens it",
-    )
-    guard.add_argument(
-        "--allow-fc",
-        action="append",
-        default=[],
-        metavar="CODE[/SUB]",
-        help="with --read-only: let a code that does not write through (repeatable): "
-        "65, 65-72, 0x41, 8/1 (a Diagnostics sub-function), 0x2B/0x0D (an MEI type); "
-        "decimal or 0x hex",
-    )
-    guard.add_argument(
-        "--allow-write",
-        action="append",
-        default=[],
-        metavar="SPEC",
-        help="writes allowed (hr:100, hr:200-251, coil:0-7, unit:2, unit:2,hr:0-9); with "
-        "any --allow-write, writes not covered are refused (repeatable)",
-    )
-    guard.add_argument(
-        "--deny-write",
-        action="append",
-        default=[],
-        metavar="SPEC",
-        help="writes refused whatever else allows them (repeatable)",
-    )
-    guard.add_argument(
-        "--guard-exception",
-        type=exception_code,
-        default=0x01,
-        metavar="N",
-        help="exception code a refused write is answered with (default 1, Illegal Function)",
-    )
-    guard.add_argument(
-        "--allow-from",
-        action="append",
-        default=[],
-        metavar="CIDR",
-        help="accept clients only from these networks (repeatable; default: any)",
+    add_proxy_options(
+        p,
+        {"positive": _positive, "positive_int": positive_int, "exception_code": exception_code},
+        DEFAULT_BAUD,
     )
     screen = p.add_argument_group("screen")
     add_live_options(screen)
@@ -204,99 +70,68 @@ def run(args: argparse.Namespace) -> int:
     """Start the engine, run the hub until Ctrl-C/SIGTERM, print the summary."""
     from mbmon.commands.common import (
         EXIT_BAD_INPUT,
-        EXIT_OK,
-        Figures,
         UsageError,
         check_rotation,
+        listen_error,
         make_annotator,
-        open_console,
-        open_foxglove,
-        open_log,
         parse_address,
         profile_sources,
-        run_live,
     )
     from mbmon.format import View
     from mbmon.hub import Hub
     from mbmon.pipeline import Pipeline, PipelineConfig
-    from mbmon.proxy.engine import ProxyConfig, endpoint
-    from mbmon.proxy.guard import ClientFilter, Guard, GuardSpecError
-    from mbmon.sinks.base import SinkContext, SinkError
+    from mbmon.proxy.plan import PlanError, ProxyPlan
+    from mbmon.proxy.runner import attach_engine
+    from mbmon.sinks.base import SinkContext
 
-    if (args.upstream is None) == (args.upstream_serial is None):
-        raise UsageError("give the upstream once: --upstream HOST:PORT or --upstream-serial PORT")
-    if args.listen is not None and args.listen_serial is not None:
-        raise UsageError("listen either on --listen ADDR:PORT or on --listen-serial PORT")
-    if args.allow_from and args.listen_serial is not None:
-        raise UsageError("--allow-from is for TCP clients, not --listen-serial")
     check_rotation(args)
-    if args.trigger is not None:
-        raise UsageError("--trigger works with read and sniff; the proxy logs everything")
-    if args.upstream is not None:
-        up_host, up_port = parse_address(args.upstream, "--upstream")
-        upstream = endpoint(up_host, up_port)
-    else:
-        up_host, up_port = "", 0
-        upstream = args.upstream_serial
-    serial = args.upstream_serial is not None or args.listen_serial is not None
-    if args.listen is None:
-        listen_host, listen_port = DEFAULT_LISTEN
-    else:
-        listen_host, listen_port = parse_address(
-            args.listen, "--listen", default_host="127.0.0.1", lowest=0
-        )
+    upstream = None if args.upstream is None else parse_address(args.upstream, "--upstream")
+    listen = None
+    if args.listen is not None:
+        listen = parse_address(args.listen, "--listen", default_host="127.0.0.1", lowest=0)
     try:
-        guard = Guard.from_options(
-            args.read_only,
-            args.allow_write,
-            args.deny_write,
-            args.guard_exception,
-            allow_fc=args.allow_fc,
-        )
-        clients = ClientFilter(args.allow_from)
-    except GuardSpecError as exc:
+        plan = ProxyPlan.from_options(args, upstream, listen)
+    except PlanError as exc:
         raise UsageError(str(exc)) from None
     robot = None if args.robot in ("none", "") else args.robot
-    if robot == "upstream":
-        robot = upstream
-    view = View(robot=robot, robot_is_client=args.robot_client)
+    view = View(robot=plan.upstream if robot == "upstream" else robot,
+                robot_is_client=args.robot_client)  # fmt: skip
     annotator = make_annotator(args.profile)
     # the proxy answers 0x0B at --timeout itself: the pipeline waits a little
     # longer, so that answer pairs with its request instead of racing it
     pipe_timeout = args.timeout + 1.0
-    baud = args.baud if serial else None
-    pipeline = Pipeline(annotator, PipelineConfig(timeout=pipe_timeout, baudrate=baud))
-    config = ProxyConfig(
-        upstream_host=up_host,
-        upstream_port=up_port,
-        listen_host=listen_host,
-        listen_port=listen_port,
-        timeout=args.timeout,
-        share_upstream=args.share_upstream or args.upstream_serial is not None,
-        upstream_name=args.upstream_serial,
-        guard=guard,
-        clients=clients,
-    )
+    baud = args.baud if plan.serial else None
+    hub = Hub(Pipeline(annotator, PipelineConfig(timeout=pipe_timeout, baudrate=baud)))
     ctx = SinkContext(
         view=view,
         command_line=["mbmon", *sys.argv[1:]],
-        source=f"proxy {args.listen_serial or endpoint(listen_host, listen_port)} -> {upstream}",
+        source=plan.source(),
         profiles=profile_sources(annotator),
         profile_specs=list(args.profile),
         timeout=pipe_timeout,
         baud=baud,
     )
-    factories: dict[str, Any] = {}
-    if serial:
-        from mbmon.proxy.serial import rtu_front, rtu_upstream
-        from mbmon.sources.serial import SerialSettings
+    if not _open_logs(hub, args, ctx):
+        return EXIT_BAD_INPUT
+    engine, thread, observer = attach_engine(
+        hub, plan.config, process=plan.process, **plan.factories
+    )
+    try:
+        address = thread.start()
+    except OSError as exc:
+        print(f"mbmon: {plan.start_error(exc, listen_error)}", file=sys.stderr)
+        hub.run(until_idle=True)
+        hub.close()
+        return EXIT_BAD_INPUT
+    return _serve(args, plan, hub, (engine, thread, observer), address, ctx, annotator)
 
-        settings = SerialSettings(args.baud, args.parity, args.stopbits)
-        if args.upstream_serial is not None:
-            factories["upstream"] = rtu_upstream(args.upstream_serial, settings)
-        if args.listen_serial is not None:
-            factories["front"] = rtu_front(args.listen_serial, settings)
-    hub = Hub(pipeline)
+
+def _open_logs(hub: Any, args: argparse.Namespace, ctx: Any) -> bool:
+    """The Foxglove feed and the ``-w`` logs on ``hub`` (logs first: DESIGN rule 7);
+    ``False`` (said on stderr, the hub closed) when one cannot be opened."""
+    from mbmon.commands.common import open_foxglove, open_log
+    from mbmon.sinks.base import SinkError
+
     try:
         feed = open_foxglove(args, ctx)  # before any file: a missing SDK leaves nothing behind
         if feed is not None:
@@ -306,27 +141,24 @@ def run(args: argparse.Namespace) -> int:
     except SinkError as exc:
         print(f"mbmon: {exc}", file=sys.stderr)
         hub.close()
-        return EXIT_BAD_INPUT
-    # the TCP proxy forwards in a process of its own (its own GIL: observation never
-    # takes CPU time from forwarding); the serial variants are bound by the bus; the
-    # child's pipes need POSIX (pass_fds, the loop's readers on pipes)
-    process = not serial and os.name == "posix"
-    engine, thread, observer = attach_engine(hub, config, process=process, **factories)
-    try:
-        address = thread.start()
-    except OSError as exc:
-        from mbmon.commands.common import listen_error
+        return False
+    return True
 
-        text = listen_error(endpoint(listen_host, listen_port), exc, listen_port)
-        if serial:
-            from mbmon.proxy.serial import SerialOpenError
 
-            if isinstance(exc, SerialOpenError):
-                text = exc.strerror or str(exc)
-        print(f"mbmon: {text}", file=sys.stderr)
-        hub.run(until_idle=True)
-        hub.close()
-        return EXIT_BAD_INPUT
+def _serve(
+    args: argparse.Namespace,
+    plan: Any,
+    hub: Any,
+    parts: tuple[Any, Any, Any],
+    address: tuple[str, int],
+    ctx: Any,
+    annotator: Any,
+) -> int:
+    """The started engine's run: signals, the start-up line, the screen, ``hub.run``
+    until Ctrl-C/SIGTERM, then the summary and the exit status."""
+    from mbmon.commands.common import EXIT_BAD_INPUT, EXIT_OK, Figures, open_console, run_live
+
+    engine, thread, observer = parts
     # Ctrl-C and SIGTERM stop the engine from now on: before the start-up line, which
     # is what a supervisor (or a test) waits for before it may signal
     signals = [0]
@@ -338,44 +170,18 @@ def run(args: argparse.Namespace) -> int:
             hub.stop()  # asked twice: do not wait for the engine
 
     old = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)}
-    if args.upstream_serial is not None:
-        mode = f"RTU slave bus {settings.text()}, one request at a time"
-    elif args.share_upstream:
-        mode = "shared upstream connection"
-    else:
-        mode = "one upstream connection per client"
-    if args.listen_serial is not None:
-        where = f"{args.listen_serial} (RTU master side, {settings.text()})"
-    else:
-        where = endpoint(*address)
-    print(
-        f"mbmon proxy: listening on {where} -> upstream {upstream} "
-        f"({mode}, timeout {args.timeout:g} s, guard {guard.describe()})",
-        file=sys.stderr,
-        flush=True,
-    )
+    print(f"mbmon proxy: {plan.startup_line(address)}", file=sys.stderr, flush=True)
     if args.upstream is not None:
-        why = unresolved(up_host, up_port)
-        if why is not None:
-            # the host may come later (DNS, /etc/hosts): keep running, answer 0x0A
-            warning = (
-                f"upstream host {up_host!r} does not resolve ({why}): clients get "
-                "exception 0x0A until it does; the proxy keeps trying"
-            )
-            print(f"mbmon proxy: warning: {warning}", file=sys.stderr, flush=True)
-            from mbmon.model import Event, EventKind
-
-            hub.put(Event(time.time(), None, EventKind.NOTICE, {"message": warning}))
+        _warn_unresolved(hub, plan.config.upstream_host, plan.config.upstream_port)
     # the screen last: the logs are open, and the start-up line is on the terminal
     # before the live monitor takes it
     console, monitor = open_console(
-        args, view, title=f"mbmon proxy -> {upstream}", annotator=annotator
+        args, ctx.view, title=f"mbmon proxy -> {plan.upstream}", annotator=annotator
     )
     if console is not None:
         hub.add_listener(console)
     if monitor is not None:
         hub.add_listener(Figures(monitor, engine.figures))
-
     try:
         try:
             run_live(
@@ -403,68 +209,18 @@ def run(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def unresolved(host: str, port: int, wait: float = 2.0) -> str | None:
-    """Why ``host`` does not resolve (``None`` when it does, or is an address): the
-    lookup runs in a thread, so a slow resolver delays the start by ``wait`` at most."""
-    import ipaddress
-    import socket
-    import threading
+def _warn_unresolved(hub: Any, host: str, port: int) -> None:
+    """An upstream host that does not resolve: a warning on stderr and in the log; the
+    proxy keeps running and answers 0x0A (the host may come: DNS, /etc/hosts)."""
+    from mbmon.model import Event, EventKind
+    from mbmon.proxy.runner import unresolved
 
-    try:
-        ipaddress.ip_address(host.split("%", 1)[0])
-        return None
-    except ValueError:
-        pass
-    result: list[str | None] = []
-
-    def lookup() -> None:
-        try:
-            socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
-            result.append(None)
-        except (OSError, UnicodeError) as exc:
-            result.append(getattr(exc, "strerror", None) or str(exc) or type(exc).__name__)
-
-    thread = threading.Thread(target=lookup, name="mbmon-resolve", daemon=True)
-    thread.start()
-    thread.join(wait)
-    if not result:
-        return f"no answer from the resolver in {wait:g} s"
-    return result[0]
-
-
-def attach_engine(
-    hub: Any, config: Any, *, process: bool = False, **factories: Any
-) -> tuple[Any, Any, Any]:
-    """A :class:`~mbmon.proxy.engine.ProxyEngine` for ``config`` wired to ``hub``: the
-    one way a command runs a proxy (``proxy``, ``demo``).
-
-    Its observations go to the hub's queue in batches (the hub's count of what it
-    has taken, :attr:`~mbmon.hub.Hub.seen`, bounds the backlog), and its
-    :class:`~mbmon.proxy.engine.ProxyThread` stops the hub when the engine's loop
-    ends. Returns ``(engine, thread, observer)``;
-    ``thread.start()`` binds the listening socket. ``factories`` (``upstream=``,
-    ``front=``) plug in the serial variants (:mod:`mbmon.proxy.serial`).
-
-    ``process``: the engine runs in a child process instead of a thread
-    (:class:`~mbmon.proxy.remote.ProxyProcess`, the same calls; no factories);
-    ``engine`` is then a :class:`~mbmon.proxy.remote.RemoteEngine` and ``observer``
-    the process (its ``skipped``).
-    """
-    if process:
-        if factories:
-            raise ValueError("the serial variants run the engine in a thread")
-        from mbmon.proxy.remote import ProxyProcess
-
-        proc = ProxyProcess(config, hub, on_exit=hub.stop)
-        return proc.engine, proc, proc
-
-    from mbmon.proxy.engine import Observer, ProxyEngine, ProxyThread
-
-    observer = Observer(hub.put, hub.new_stream, meter=hub, max_backlog=config.max_backlog)
-    engine = ProxyEngine(config, observer, submit=hub.submit, **factories)
-    # The engine's thread must get the GIL back quickly when a packet arrives while
-    # the hub's thread decodes and writes: the default 5 ms switch interval would add
-    # up to 5 ms to a forwarded answer whenever the hub is busy.
-    sys.setswitchinterval(SWITCH_INTERVAL)
-    thread = ProxyThread(engine, on_exit=hub.stop)
-    return engine, thread, observer
+    why = unresolved(host, port)
+    if why is None:
+        return
+    warning = (
+        f"upstream host {host!r} does not resolve ({why}): clients get "
+        "exception 0x0A until it does; the proxy keeps trying"
+    )
+    print(f"mbmon proxy: warning: {warning}", file=sys.stderr, flush=True)
+    hub.put(Event(time.time(), None, EventKind.NOTICE, {"message": warning}))

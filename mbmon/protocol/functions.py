@@ -14,7 +14,9 @@ annotation):
   takes its address from the request;
 * :mod:`mbmon.semantics.annotate` -- the profile table a code addresses
   (:data:`PROFILE_TABLE`);
-* the proxy's write guard -- :func:`is_write` and :func:`write_spans`.
+* the proxy's guard (:mod:`mbmon.proxy.guard`) -- what writes and where
+  (``writes``, ``table``, ``shape``), what is known to only read (``read``,
+  ``only_reads``) and where a sub-function sits (``sub_bytes``).
 
 A new function code is one :class:`FunctionCode` entry here -- or one
 :func:`register` call for a user-defined code -- plus its field decoder in
@@ -111,6 +113,11 @@ class FunctionCode:
     ``"read_write"`` (0x17), or ``None`` (a layout of its own, decoded by its
     code). ``max_count`` is the spec's quantity limit of its count (the read
     part of 0x17), ``max_write_count`` that of 0x17's write part.
+
+    ``only_reads`` says a request of it never changes server data when that is not
+    already plain (a ``read`` that does not write is a read): ``True`` for every
+    request, or the sub-functions that only read. ``sub_bytes`` is how many bytes
+    after the code name a sub-function (0x08: 2; 0x2B: 1, its MEI type).
     """
 
     code: int
@@ -124,6 +131,8 @@ class FunctionCode:
     shape: str | None = None
     max_count: int | None = None
     max_write_count: int | None = None
+    only_reads: bool | frozenset[int] = False
+    sub_bytes: int = 0
 
 
 #: The field layouts a :class:`FunctionCode` may name as its ``shape``.
@@ -135,6 +144,9 @@ _WRITE_BITS: Final = 1968
 _WRITE_WORDS: Final = 123
 _RW_WRITE_WORDS: Final = 121
 MAX_READ_WORDS: Final = _READ_WORDS
+#: Diagnostics (0x08) sub-functions that only read: Return Query Data, the
+#: diagnostic register and the counters (0x0B-0x12).
+_DIAGNOSTIC_READS: Final = frozenset({0x00, 0x02, *range(0x0B, 0x13)})
 """Most registers one read may ask for (the spec's limit for 0x03/0x04): the widest
 field a device profile may declare."""
 
@@ -165,10 +177,13 @@ FUNCTIONS: Final[dict[int, FunctionCode]] = {
             0x06, "Write Single Register", 5, 5, "holding_register", writes=True,
             shape="write_single",
         ),
-        FunctionCode(0x07, "Read Exception Status", 1, 2),
-        FunctionCode(0x08, "Diagnostics", _diag_request, _diag_response),
-        FunctionCode(0x0B, "Get Comm Event Counter", 1, 5),
-        FunctionCode(0x0C, "Get Comm Event Log", 1, (1, 2)),
+        FunctionCode(0x07, "Read Exception Status", 1, 2, only_reads=True),
+        FunctionCode(
+            0x08, "Diagnostics", _diag_request, _diag_response, sub_bytes=2,
+            only_reads=_DIAGNOSTIC_READS,
+        ),
+        FunctionCode(0x0B, "Get Comm Event Counter", 1, 5, only_reads=True),
+        FunctionCode(0x0C, "Get Comm Event Log", 1, (1, 2), only_reads=True),
         FunctionCode(
             0x0F, "Write Multiple Coils", (5, 6), 5, "coil", writes=True, bits=True,
             shape="write_multiple", max_count=_WRITE_BITS,
@@ -177,8 +192,8 @@ FUNCTIONS: Final[dict[int, FunctionCode]] = {
             0x10, "Write Multiple Registers", (5, 6), 5, "holding_register", writes=True,
             shape="write_multiple", max_count=_WRITE_WORDS,
         ),
-        FunctionCode(0x11, "Report Server ID", 1, (1, 2)),
-        FunctionCode(0x14, "Read File Record", (1, 2), (1, 2)),
+        FunctionCode(0x11, "Report Server ID", 1, (1, 2), only_reads=True),
+        FunctionCode(0x14, "Read File Record", (1, 2), (1, 2), only_reads=True),
         FunctionCode(0x15, "Write File Record", (1, 2), (1, 2), writes=True),
         FunctionCode(
             0x16, "Mask Write Register", 7, 7, "holding_register", writes=True,
@@ -189,8 +204,11 @@ FUNCTIONS: Final[dict[int, FunctionCode]] = {
             writes=True, read=True, shape="read_write",
             max_count=_READ_WORDS, max_write_count=_RW_WRITE_WORDS,
         ),
-        FunctionCode(0x18, "Read FIFO Queue", 3, _fifo_response),
-        FunctionCode(0x2B, "Encapsulated Interface Transport", _mei_request, None),
+        FunctionCode(0x18, "Read FIFO Queue", 3, _fifo_response, only_reads=True),
+        FunctionCode(
+            0x2B, "Encapsulated Interface Transport", _mei_request, None, sub_bytes=1,
+            only_reads=frozenset({0x0E}),  # Read Device Identification
+        ),
     )
 }  # fmt: skip
 

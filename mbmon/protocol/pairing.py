@@ -89,7 +89,7 @@ class Pairer:
     first and stops at the first that has not expired.
     """
 
-    __slots__ = ("_pending", "_total", "max_pending", "max_total", "timeout")
+    __slots__ = ("_joined", "_pending", "_total", "max_pending", "max_total", "timeout")
 
     def __init__(
         self,
@@ -104,6 +104,19 @@ class Pairer:
         self._pending: dict[int, dict[_Key, Frame]] = {}
         # how many requests _pending holds (kept by every writer of _pending)
         self._total = 0
+        # stream id -> the stream whose requests its frames pair with (:meth:`join`)
+        self._joined: dict[int, int] = {}
+
+    def join(self, sid: int, into: int) -> None:
+        """Frames of stream ``sid`` pair as if they were on stream ``into`` (a proxy's
+        own answers to a client, on a stream of their own, answer the requests the
+        client sent on its stream to the server)."""
+        if sid != into:
+            self._joined[sid] = self._joined.get(into, into)
+
+    def part(self, sid: int) -> None:
+        """Stream ``sid`` pairs on its own again (it ended)."""
+        self._joined.pop(sid, None)
 
     @property
     def pending_count(self) -> int:
@@ -158,6 +171,8 @@ class Pairer:
     def _request(self, req: Frame) -> list[Transaction]:
         out: list[Transaction] = []
         sid = req.stream.id
+        if self._joined:
+            sid = self._joined.get(sid, sid)
         pend = self._pending.get(sid)
         if req.stream.transport in RTU_TRANSPORTS:
             if pend:
@@ -218,6 +233,8 @@ class Pairer:
 
     def _response(self, resp: Frame) -> Transaction:
         sid = resp.stream.id
+        if self._joined:
+            sid = self._joined.get(sid, sid)
         pend = self._pending.get(sid)
         key = (0, 0) if resp.stream.transport in RTU_TRANSPORTS else (resp.tid or 0, resp.unit)
         req = pend.get(key) if pend is not None else None

@@ -63,7 +63,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from mbmon.model import Pdu
-from mbmon.protocol.functions import FUNCTIONS
+from mbmon.protocol.functions import FUNCTIONS, derived
 from mbmon.protocol.pdu import decode_pdu
 
 __all__ = [
@@ -88,33 +88,46 @@ COIL = "coil"
 
 #: Function codes that write, and the table they write (``None``: file records), from
 #: the one function-code table (:mod:`mbmon.protocol.functions`).
-_WRITE_TABLE: dict[int, str | None] = {
-    code: (COIL if spec.table == "coil" else None if spec.table is None else HOLDING)
-    for code, spec in FUNCTIONS.items()
-    if spec.writes
-}
+_WRITE_TABLE: dict[int, str | None] = {}
 
-#: Function codes known to only read, that ``--read-only`` lets through: code ->
-#: the sub-functions that read (``None``: all). 08: Return Query Data, the diagnostic
-#: register and the counters (0B-12); 2B: Read Device Identification (0E).
-KNOWN_READS: dict[int, frozenset[int] | None] = {
-    0x01: None,
-    0x02: None,
-    0x03: None,
-    0x04: None,
-    0x07: None,
-    0x08: frozenset({0x00, 0x02, *range(0x0B, 0x13)}),
-    0x0B: None,
-    0x0C: None,
-    0x11: None,
-    0x14: None,
-    0x18: None,
-    0x2B: frozenset({0x0E}),
-}
+#: Function codes known to only read, that ``--read-only`` lets through: code -> the
+#: sub-functions that read (``None``: all). From the table: a ``read`` that does not
+#: write, or a code whose ``only_reads`` says so (0x08: Return Query Data, the
+#: diagnostic register and the counters; 0x2B: Read Device Identification).
+KNOWN_READS: dict[int, frozenset[int] | None] = {}
 
 #: Codes that always pass unchecked while no write spec or ``--read-only`` restricts
 #: anything but reads: the guard's fast path decodes nothing for them.
-_PLAIN_READS = frozenset(code for code, subs in KNOWN_READS.items() if subs is None)
+_PLAIN_READS: set[int] = set()
+
+#: Codes with a sub-function (08) or MEI type (2B): how many bytes it takes.
+_SUB_BYTES: dict[int, int] = {}
+
+#: Shapes whose request writes one item at its address (05, 06, 16).
+_ONE_ITEM = frozenset({"write_single", "mask_write"})
+
+
+@derived
+def _from_table() -> None:
+    """The guard's view of the function-code table (again whenever a code is
+    registered)."""
+    _WRITE_TABLE.clear()
+    KNOWN_READS.clear()
+    _SUB_BYTES.clear()
+    for code, spec in FUNCTIONS.items():
+        if spec.writes:
+            _WRITE_TABLE[code] = (
+                None if spec.table is None else COIL if spec.table == "coil" else HOLDING
+            )
+        elif spec.only_reads is True or spec.read:
+            KNOWN_READS[code] = None
+        elif spec.only_reads:
+            KNOWN_READS[code] = frozenset(spec.only_reads)
+        if spec.sub_bytes:
+            _SUB_BYTES[code] = spec.sub_bytes
+    _PLAIN_READS.clear()
+    _PLAIN_READS.update(code for code, subs in KNOWN_READS.items() if subs is None)
+
 
 #: Spec table names and their aliases.
 _TABLE_NAMES = {
@@ -131,7 +144,8 @@ class GuardSpecError(ValueError):
 
 
 def is_write(fc: int) -> bool:
-    """Whether function code ``fc`` writes (05, 06, 0F, 10, 15, 16, 17)."""
+    """Whether function code ``fc`` writes (the table's ``writes``: 05, 06, 0F, 10, 15,
+    16, 17 and any registered code that writes)."""
     return fc in _WRITE_TABLE
 
 
@@ -153,19 +167,23 @@ class WriteTarget:
 
 
 def write_target(pdu: Pdu) -> WriteTarget | None:
-    """What the request ``pdu`` writes, or ``None`` when it does not write."""
+    """What the request ``pdu`` writes, or ``None`` when it does not write. Where it
+    writes comes from its row of the function-code table: file records (no table)
+    have no range, a read/write (0x17) writes its write part, a single write or
+    mask write one item, the others ``count`` items."""
     fc = pdu.fc
     if fc not in _WRITE_TABLE:
         return None
     table = _WRITE_TABLE[fc]
-    if fc == 0x17:
+    shape = FUNCTIONS[fc].shape
+    if table is None:
+        return WriteTarget(fc, None, None, None)
+    if shape == "read_write":
         address = pdu.fields.get("write_address")
         count = pdu.fields.get("write_count")
-    elif fc == 0x15:
-        return WriteTarget(fc, None, None, None)
     else:
         address = pdu.address
-        count = 1 if fc in (0x05, 0x06, 0x16) else pdu.count
+        count = 1 if shape in _ONE_ITEM else pdu.count
     if not isinstance(address, int) or not isinstance(count, int) or count < 1:
         # truncated or malformed: an unknown range is judged as if it touched the
         # whole table (deny specs hit it, allow specs must cover everything)
@@ -305,12 +323,13 @@ def parse_fc(text: str) -> FcRule:
         raise GuardSpecError(f"--allow-fc {spec!r}: there is no function code 0")
     sub = None
     if sep:
-        if last != first or first not in (0x08, 0x2B):
+        width = _SUB_BYTES.get(first, 0)
+        if last != first or not width:
             raise GuardSpecError(
                 f"--allow-fc {spec!r}: CODE/SUB names a Diagnostics (8/SUB) sub-function "
                 "or an MEI type (0x2B/TYPE)"
             )
-        sub = _code(sub_text, "sub-function", spec, 0xFFFF if first == 0x08 else 0xFF)
+        sub = _code(sub_text, "sub-function", spec, (1 << 8 * width) - 1)
     for fc in range(first, last + 1):
         if fc in _WRITE_TABLE:
             raise GuardSpecError(
@@ -320,14 +339,13 @@ def parse_fc(text: str) -> FcRule:
 
 
 def sub_function(pdu: bytes | bytearray | memoryview) -> int | None:
-    """The sub-function (08) or MEI type (2B) of a request PDU (function code first);
-    ``None`` for other codes or when the PDU is too short to have it."""
-    fc = pdu[0] if pdu else 0
-    if fc == 0x08:
-        return (pdu[1] << 8) | pdu[2] if len(pdu) >= 3 else None
-    if fc == 0x2B:
-        return pdu[1] if len(pdu) >= 2 else None
-    return None
+    """The sub-function (08) or MEI type (2B) of a request PDU (function code first),
+    as wide as the function-code table says (``sub_bytes``); ``None`` for codes
+    without one or when the PDU is too short to have it."""
+    width = _SUB_BYTES.get(pdu[0], 0) if pdu else 0
+    if not width or len(pdu) < 1 + width:
+        return None
+    return int.from_bytes(pdu[1 : 1 + width], "big")
 
 
 @dataclass(frozen=True, slots=True)
@@ -407,8 +425,9 @@ class Guard:
         return ", ".join(parts) if parts else "off"
 
     def check_raw(self, unit: int, pdu: bytes) -> Verdict | None:
-        """:meth:`check` for the request PDU bytes ``pdu``: the common reads (01-04,
-        07, 0B, 0C, 11, 14, 18) pass without being decoded."""
+        """:meth:`check` for the request PDU bytes ``pdu``: the codes known to read
+        whatever their sub-function (01-04, 07, 0B, 0C, 11, 14, 18 and registered
+        reads) pass without being decoded."""
         if pdu and pdu[0] in _PLAIN_READS:
             return None
         return self.check(unit, decode_pdu(pdu, False))

@@ -13,12 +13,12 @@ hub in one process) come to the parent's hub through a pipe:
   other records pickled; no objects in between), and the engine's handover
   commits the batch: :class:`PipeOut` writes it to the pipe without ever
   blocking: a full pipe waits in the buffer, written when the loop sees the
-  pipe writable. It is the :class:`~mbmon.proxy.engine.Observer`'s backlog
+  pipe writable. It is the :class:`~mbmon.proxy.observer.Observer`'s backlog
   meter: what is still in the buffer counts as not yet seen, so past
   ``max_backlog`` items chunks are forwarded but not observed (counted and
   reported), exactly as in one process.
 * parent: :class:`ProxyProcess` (the interface of
-  :class:`~mbmon.proxy.engine.ProxyThread`) starts the child, reads the pipe in
+  :class:`~mbmon.proxy.runner.ProxyThread`) starts the child, reads the pipe in
   a thread, rebuilds the chunks and events (streams get the hub's own ids from
   ``hub.new_stream``) and hands them to ``hub.submit``. While the hub is more
   than ``max_backlog`` items behind it stops reading, so the pipe and then the
@@ -57,7 +57,9 @@ from pathlib import Path
 from typing import Any
 
 from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport, fast_constructor
-from mbmon.proxy.engine import Observer, ProxyConfig, ProxyEngine, ProxyStats
+from mbmon.proxy.config import ProxyConfig, ProxyStats
+from mbmon.proxy.engine import ProxyEngine
+from mbmon.proxy.observer import Observer
 
 __all__ = [
     "PipeObserver",
@@ -192,8 +194,8 @@ class PipeObserver(Observer):
     """The child's observer: each chunk and event is encoded into the pipe's buffer
     as it comes (no :class:`~mbmon.model.Chunk` object, no batch list: two a
     request), and the engine's handover (a ``call_later`` of
-    :attr:`~mbmon.proxy.engine.ProxyConfig.handover`) commits what waits there to
-    the pipe. The backlog rule is :class:`~mbmon.proxy.engine.Observer`'s."""
+    :attr:`~mbmon.proxy.config.ProxyConfig.handover`) commits what waits there to
+    the pipe. The backlog rule is :class:`~mbmon.proxy.observer.Observer`'s."""
 
     def __init__(
         self,
@@ -275,6 +277,8 @@ def decode_records(
             streams[sid] = new_stream(Transport(transport), client, server)
         elif what == "event":
             _, ts, sid, kind, info = record
+            if "answers_on" in info:  # a stream id of the child's: the hub's instead
+                info = {**info, "answers_on": streams[info["answers_on"]].id}
             items.append(Event(ts, None if sid < 0 else streams[sid], EventKind(kind), info))
         else:
             others.append(record)
@@ -405,7 +409,7 @@ class RemoteEngine:
 
 class ProxyProcess:
     """Runs a :class:`~mbmon.proxy.engine.ProxyEngine` in a child process; the same
-    calls as :class:`~mbmon.proxy.engine.ProxyThread` (``start``, ``stop``,
+    calls as :class:`~mbmon.proxy.runner.ProxyThread` (``start``, ``stop``,
     ``join``, ``engine``). ``hub`` gets the observations (``submit``,
     ``new_stream``) and bounds their backlog (``hub.seen``: what it has taken);
     ``on_exit`` runs when the child's pipe has ended."""

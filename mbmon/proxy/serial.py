@@ -37,13 +37,13 @@ requests and answers exchanged with it as one TCP stream; guard decisions and
 every gateway decision (silence, late or stray answers, port lost and back) as
 events.
 
-pyserial is imported when a port is opened (:func:`mbmon.sources.serial.open_port`).
+Each port is a :class:`~mbmon.proxy.serial_line.SerialLine`; pyserial is imported
+when a port is opened (:func:`mbmon.sources.serial.open_port`).
 """
 
 from __future__ import annotations
 
 import asyncio
-import os
 import struct
 import time
 from collections import OrderedDict, deque
@@ -52,197 +52,20 @@ from typing import Any
 
 from mbmon.model import Direction, EventKind, Frame, Stream, Transport
 from mbmon.protocol.mbap import encode_adu
-from mbmon.protocol.rtu import RtuDecoder, encode_rtu, t35
-from mbmon.proxy.engine import (
-    GATEWAY_PATH_UNAVAILABLE,
-    ProxyEngine,
-    _Client,
-    _Link,
-    _Pending,
-)
-from mbmon.sources.serial import SerialSettings, open_port
+from mbmon.protocol.rtu import RtuDecoder, encode_rtu
+from mbmon.proxy.client import Client
+from mbmon.proxy.config import GATEWAY_PATH_UNAVAILABLE, GATEWAY_TARGET_FAILED
+from mbmon.proxy.engine import ProxyEngine
+from mbmon.proxy.link import Pending
+from mbmon.proxy.serial_line import SETTLE, SerialLine, settle_later
+from mbmon.proxy.upstream import TcpLink
+from mbmon.sources.serial import SerialSettings
 
-__all__ = ["RtuFront", "RtuLink", "SerialLine", "SerialOpenError", "rtu_front", "rtu_upstream"]
+__all__ = ["RtuFront", "RtuLink", "rtu_front", "rtu_upstream"]
 
 _BUS = Direction.BUS
 _C2S = Direction.C2S
 _S2C = Direction.S2C
-
-#: Seconds after the last byte at which a decoder decides what it holds (a
-#: partial frame becomes noise), whatever the baud rate.
-SETTLE = 0.05
-
-
-class SerialOpenError(OSError):
-    """A serial port of the proxy could not be opened at start (the message names it)."""
-
-
-class SerialLine:
-    """One serial port on the engine's loop: opened by pyserial (line settings), read
-    through the loop's reader on its file descriptor, written frame by frame with
-    the RTU silence before each. A lost port is reported through ``on_state`` and
-    reopened every ``retry`` seconds until :meth:`close`.
-
-    ``on_data(data, ts)`` gets every read, stamped when it returned;
-    ``on_state(up, why)`` every change of availability.
-    """
-
-    def __init__(
-        self,
-        loop: asyncio.AbstractEventLoop,
-        port: str,
-        settings: SerialSettings,
-        on_data: Callable[[bytes, float], None],
-        on_state: Callable[[bool, str], None],
-        *,
-        retry: float = 0.5,
-    ) -> None:
-        self.loop = loop
-        self.port = port
-        self.settings = settings
-        self._on_data = on_data
-        self._on_state = on_state
-        self.retry = retry
-        self.state = "down"  # up | down | closed
-        self._serial: Any = None
-        self._fd = -1
-        #: frames to write: [frame, bytes of it written, on_sent]
-        self._out: deque[list[Any]] = deque()
-        self._quiet_at = 0.0  # loop time from which the line has been silent t3.5
-        self._t35 = t35(settings.baudrate)
-        self._char = settings.char_time()
-        self._pump_handle: asyncio.TimerHandle | None = None
-        self._writer = False
-        self._retry_handle: asyncio.TimerHandle | None = None
-
-    def open(self) -> None:
-        """Open the port now; ``OSError`` with the system's reason when it cannot be."""
-        try:
-            self._serial = open_port(self.port, self.settings)
-        except OSError as exc:
-            why = exc.strerror or str(exc)
-            raise SerialOpenError(
-                exc.errno or 0, f"cannot open serial port {self.port}: {why}"
-            ) from None
-        self._fd = self._serial.fileno()
-        os.set_blocking(self._fd, False)
-        self.state = "up"
-        self._quiet_at = self.loop.time() + self._t35
-        self.loop.add_reader(self._fd, self._readable)
-
-    def write(self, frame: bytes, on_sent: Callable[[bytes, float], None] | None = None) -> None:
-        """Send ``frame`` once the line has been silent t3.5; ``on_sent(frame, ts)``
-        when it has been written. Dropped (and ``on_sent`` never called) while down."""
-        if self.state != "up":
-            return
-        self._out.append([frame, 0, on_sent])
-        if len(self._out) == 1 and self._pump_handle is None and not self._writer:
-            self._pump()
-
-    def _pump(self) -> None:
-        self._pump_handle = None
-        loop = self.loop
-        while self._out and self.state == "up":
-            wait = self._quiet_at - loop.time()
-            if wait > 0:
-                self._pump_handle = loop.call_later(wait, self._pump)
-                return
-            item = self._out[0]
-            frame, done, on_sent = item
-            try:
-                n = os.write(self._fd, frame[done:] if done else frame)
-            except BlockingIOError:
-                n = 0
-            except OSError as exc:
-                self._lost(exc)
-                return
-            if done + n < len(frame):  # the driver's buffer is full: the rest when it drains
-                item[1] = done + n
-                if not self._writer:
-                    self._writer = True
-                    loop.add_writer(self._fd, self._writable)
-                return
-            self._out.popleft()
-            self._quiet_at = loop.time() + len(frame) * self._char + self._t35
-            if on_sent is not None:
-                on_sent(frame, time.time())
-
-    def _writable(self) -> None:
-        self._writer = False
-        self.loop.remove_writer(self._fd)
-        self._pump()
-
-    def _readable(self) -> None:
-        try:
-            data = os.read(self._fd, 4096)
-        except BlockingIOError:
-            return
-        except OSError as exc:
-            self._lost(exc)
-            return
-        if not data:
-            self._lost(OSError("end of file"))
-            return
-        self._quiet_at = self.loop.time() + self._t35
-        self._on_data(data, time.time())
-
-    def _detach(self) -> None:
-        if self._fd >= 0:
-            self.loop.remove_reader(self._fd)
-            if self._writer:
-                self.loop.remove_writer(self._fd)
-                self._writer = False
-        if self._pump_handle is not None:
-            self._pump_handle.cancel()
-            self._pump_handle = None
-        self._out.clear()
-        if self._serial is not None:
-            try:
-                self._serial.close()
-            except Exception:
-                pass
-        self._serial = None
-        self._fd = -1
-
-    def _lost(self, exc: BaseException) -> None:
-        self._detach()
-        self.state = "down"
-        why = getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
-        self._on_state(False, f"serial port {self.port} lost ({why})")
-        self._retry_handle = self.loop.call_later(self.retry, self._reopen)
-
-    def _reopen(self) -> None:
-        self._retry_handle = None
-        if self.state != "down":
-            return
-        try:
-            self.open()
-        except OSError:
-            self._retry_handle = self.loop.call_later(self.retry, self._reopen)
-            return
-        self._on_state(True, f"serial port {self.port} is back")
-
-    def close(self) -> None:
-        self._detach()
-        self.state = "closed"
-        if self._retry_handle is not None:
-            self._retry_handle.cancel()
-            self._retry_handle = None
-
-
-def _settle_later(
-    loop: asyncio.AbstractEventLoop,
-    decoder: RtuDecoder,
-    handle: asyncio.TimerHandle | None,
-    tick: Callable[[], None],
-) -> asyncio.TimerHandle | None:
-    """(Re)arm the timer that lets ``decoder`` decide the bytes it holds."""
-    if handle is not None:
-        handle.cancel()
-    deadline = decoder.next_deadline()
-    if deadline is None:
-        return None
-    return loop.call_later(max(0.0, deadline - time.time()), tick)
 
 
 # --------------------------------------------------------------------------- upstream
@@ -253,7 +76,7 @@ class _Job:
 
     __slots__ = ("adu", "entry", "fc", "unit")
 
-    def __init__(self, entry: _Pending) -> None:
+    def __init__(self, entry: Pending) -> None:
         self.entry = entry
         self.unit = entry.unit
         self.fc = entry.fc
@@ -262,9 +85,9 @@ class _Job:
 
 class RtuLink:
     """The upstream is an RTU slave bus: the link every client shares (see the module
-    text). It speaks the engine's link protocol (``submit``, ``_forget``, ``close``...)
-    so the engine's clients -- TCP clients or an :class:`RtuFront` -- use it as
-    they use a TCP upstream."""
+    text). It speaks the engine's link protocol (:class:`~mbmon.proxy.link.Link`:
+    ``submit``, ``forget``, ``close``...) so the engine's clients -- TCP clients or
+    an :class:`RtuFront` -- use it as they use a TCP upstream."""
 
     owner = None
     remap = False
@@ -286,7 +109,7 @@ class RtuLink:
         self.stream: Stream = engine.observer.new_stream(Transport.RTU, port, port)
         self.decoder = RtuDecoder(self.stream, _S2C, settings.baudrate, silence=SETTLE)
         self.queues: OrderedDict[Any, deque[_Job]] = OrderedDict()
-        self.jobs: dict[_Pending, _Job] = {}
+        self.jobs: dict[Pending, _Job] = {}
         self.current: _Job | None = None
         self.late: tuple[int, int] | None = None  # (unit, fc) answered 0x0B already
         self._timer: asyncio.TimerHandle | None = None
@@ -313,7 +136,7 @@ class RtuLink:
     def write(self, data: bytes) -> None:
         """Unused: :meth:`submit` puts requests on the bus itself."""
 
-    def submit(self, entry: _Pending) -> bytes | None:
+    def submit(self, entry: Pending) -> bytes | None:
         """Queue ``entry`` for the bus (0x0A at once when the port is unavailable)."""
         if self.line.state != "up":
             self.engine.answer_exception(entry, GATEWAY_PATH_UNAVAILABLE)
@@ -331,7 +154,7 @@ class RtuLink:
             self._start()
         return None
 
-    def _forget(self, entry: _Pending, why: str | None = None) -> None:
+    def forget(self, entry: Pending, why: str | None = None) -> None:
         """Stop waiting for ``entry`` (its client left): out of the queue, or its
         answer, when it comes, is dropped."""
         job = self.jobs.pop(entry, None)
@@ -435,7 +258,7 @@ class RtuLink:
                 + ("" if client.silent else ": answered 0x0B"),
                 {"tid": entry.tid, "fc": job.fc, "unit": job.unit},
             )
-        self.engine.answer_exception(entry, 0x0B)
+        self.engine.answer_exception(entry, GATEWAY_TARGET_FAILED)
         self._next_soon()
 
     def _give_up(self, job: _Job, why: str) -> None:
@@ -447,12 +270,12 @@ class RtuLink:
     def _data(self, data: bytes, ts: float) -> None:
         self.engine.observer.chunk(self.stream, _BUS, data, ts)
         self._decoded(self.decoder.feed(data, ts))
-        self._settle = _settle_later(self.engine.loop, self.decoder, self._settle, self._tick)
+        self._settle = settle_later(self.engine.loop, self.decoder, self._settle, self._tick)
 
     def _tick(self) -> None:
         self._settle = None
         self._decoded(self.decoder.tick(time.time()))
-        self._settle = _settle_later(self.engine.loop, self.decoder, self._settle, self._tick)
+        self._settle = settle_later(self.engine.loop, self.decoder, self._settle, self._tick)
 
     def _decoded(self, items: list[Any]) -> None:
         for item in items:
@@ -531,11 +354,12 @@ class RtuLink:
 # --------------------------------------------------------------------------- the master side
 
 
-class RtuFront(_Client):
+class RtuFront(Client):
     """The client side is an RTU master on a serial port; the proxy answers as its
     RTU slave (see the module text). One engine client, silent to gateway failures."""
 
     silent = True
+    streams_answers = False  # whole answers, made into RTU frames by :meth:`send`
 
     def __init__(self, engine: ProxyEngine, port: str, settings: SerialSettings) -> None:
         super().__init__(engine)
@@ -565,7 +389,7 @@ class RtuFront(_Client):
             self.link = engine.shared
         else:
             self.tcp = observer.new_stream(Transport.TCP, port, engine.config.upstream)
-            self.link = _Link(engine, self)
+            self.link = TcpLink(engine, self)
             self.link.connect()
 
     # -------------------------------------------------------------- requests
@@ -575,12 +399,12 @@ class RtuFront(_Client):
         engine.observer.chunk(self.bus, _BUS, data, ts)
         engine.stats.bytes_from_clients += len(data)
         self._decoded(self.rtu.feed(data, ts), ts)
-        self._settle = _settle_later(engine.loop, self.rtu, self._settle, self._tick)
+        self._settle = settle_later(engine.loop, self.rtu, self._settle, self._tick)
 
     def _tick(self) -> None:
         self._settle = None
         self._decoded(self.rtu.tick(time.time()), time.time())
-        self._settle = _settle_later(self.engine.loop, self.rtu, self._settle, self._tick)
+        self._settle = settle_later(self.engine.loop, self.rtu, self._settle, self._tick)
 
     def _decoded(self, items: list[Any], ts: float) -> None:
         engine = self.engine
@@ -593,7 +417,7 @@ class RtuFront(_Client):
             assert link is not None
             for old in list(self.outstanding):  # the master gave up on it
                 self.outstanding.discard(old)
-                link._forget(old, "the RTU master sent its next request")
+                link.forget(old, "the RTU master sent its next request")
             # the request as Modbus/TCP: the engine's clients, links and guard speak it
             self._tid = tid = (self._tid + 1) & 0xFFFF
             raw = item.raw
@@ -603,7 +427,7 @@ class RtuFront(_Client):
                 if verdict is not None:
                     self._refusing = True
                     try:
-                        self._refuse(mbap, verdict.message, verdict.info, ts)
+                        self.refuse(mbap, verdict.message, verdict.info, ts)
                     finally:
                         self._refusing = False
                     continue
@@ -635,7 +459,7 @@ class RtuFront(_Client):
     def _sent(self, frame: bytes, ts: float) -> None:
         self.engine.observer.chunk(self.bus, _BUS, frame, ts)
 
-    def unanswered(self, entry: _Pending, code: int) -> None:
+    def unanswered(self, entry: Pending, code: int) -> None:
         why = "upstream unavailable" if code == GATEWAY_PATH_UNAVAILABLE else "no answer in time"
         self.engine.stats.unanswered += 1
         self.notice(
@@ -664,7 +488,7 @@ class RtuFront(_Client):
         link = self.link
         if link is not None:
             for entry in list(self.outstanding):
-                link._forget(entry)
+                link.forget(entry)
             if link.owner is self:
                 link.close()
         self.outstanding.clear()

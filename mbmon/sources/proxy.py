@@ -2,7 +2,7 @@
 
 :class:`ProxySource` implements the source contract (:mod:`mbmon.sources.base`)
 over the proxy's public API (:mod:`mbmon.proxy`): the forwarding engine runs in a
-thread of its own (:class:`~mbmon.proxy.engine.ProxyThread`, with the serial
+thread of its own (:class:`~mbmon.proxy.runner.ProxyThread`, with the serial
 variants' factories) or in a child process
 (:class:`~mbmon.proxy.remote.ProxyProcess`: its own GIL, observation never takes
 CPU time from forwarding), and its observations reach the hub's thread-safe
@@ -16,21 +16,16 @@ so a proxy that cannot listen fails before any log is opened:
 
 from __future__ import annotations
 
-import sys
 from typing import TYPE_CHECKING, Any
 
 from mbmon.model import Event
+from mbmon.proxy.runner import attach_engine
 from mbmon.sources.base import BaseSource, SourceError, SourceMode
 
 if TYPE_CHECKING:
     from mbmon.hub import Hub
 
-__all__ = ["SWITCH_INTERVAL", "ProxySource", "ProxyStartError"]
-
-#: The interpreter's thread switch interval while an engine thread forwards (default
-#: 5 ms): the engine's thread must get the GIL back quickly when a packet arrives
-#: while the hub's thread decodes and writes.
-SWITCH_INTERVAL = 0.0002
+__all__ = ["ProxySource", "ProxyStartError"]
 
 
 class ProxyStartError(SourceError):
@@ -42,7 +37,7 @@ class ProxyStartError(SourceError):
 
 
 class ProxySource(BaseSource):
-    """The traffic a proxy forwards for ``config`` (a :class:`~mbmon.proxy.engine.ProxyConfig`).
+    """The traffic a proxy forwards for ``config`` (a :class:`~mbmon.proxy.config.ProxyConfig`).
 
     ``process=True`` runs the engine in a child process (TCP only, POSIX);
     ``factories`` (``upstream=``, ``front=``) plug in the serial variants, which
@@ -113,29 +108,3 @@ class ProxySource(BaseSource):
         stats = self.engine.stats
         stats.not_observed = self.observer.skipped
         return list(stats.summary().splitlines())
-
-
-def attach_engine(
-    hub: Hub, config: Any, *, process: bool = False, **factories: Any
-) -> tuple[Any, Any, Any]:
-    """The proxy's engine for ``config`` wired to ``hub``: ``(engine, runner, observer)``.
-
-    The same wiring as the proxy's own ``attach_engine`` (``mbmon proxy``, ``demo``):
-    observations go to the hub's queue in batches (the hub's count of what it has
-    taken bounds the backlog) and the runner stops the hub when the engine's loop
-    ends; ``runner.start()`` binds. In a child process (``process``) the engine is
-    a ``RemoteEngine`` and the observer the process (its ``skipped``).
-    """
-    if process:
-        if factories:
-            raise ValueError("the serial variants run the engine in a thread")
-        from mbmon.proxy.remote import ProxyProcess
-
-        proc = ProxyProcess(config, hub, on_exit=hub.stop)
-        return proc.engine, proc, proc
-    from mbmon.proxy.engine import Observer, ProxyEngine, ProxyThread
-
-    observer = Observer(hub.put, hub.new_stream, meter=hub, max_backlog=config.max_backlog)
-    engine = ProxyEngine(config, observer, submit=hub.submit, **factories)
-    sys.setswitchinterval(SWITCH_INTERVAL)
-    return engine, ProxyThread(engine, on_exit=hub.stop), observer

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import pytest
 
+from mbmon.protocol.functions import FUNCTIONS, FunctionCode, register, unregister
 from mbmon.protocol.pdu import (
     decode_pdu,
     encode_read_request,
@@ -11,10 +14,12 @@ from mbmon.protocol.pdu import (
     encode_write_single,
 )
 from mbmon.proxy.guard import (
+    KNOWN_READS,
     ClientFilter,
     Guard,
     GuardSpecError,
     WriteSpec,
+    WriteTarget,
     is_write,
     parse_spec,
     write_target,
@@ -392,3 +397,67 @@ def test_allow_fc_never_opens_writes() -> None:
 def test_bad_allow_fc_says_why(values: list[str], read_only: bool, words: str) -> None:
     with pytest.raises(GuardSpecError, match=words):
         Guard.from_options(read_only, [], [], allow_fc=values)
+
+
+# --------------------------------------------------------------------------- the table decides
+
+#: A user-defined read, registered the way tests/protocol/test_new_function_code.py
+#: does it: 0x41 reads holding registers like 0x03.
+TOY_READ = FunctionCode(
+    0x41, "Toy Read", 5, (1, 2), "holding_register", read=True, shape="read", max_count=125
+)
+#: A user-defined write: 0x42 writes holding registers like 0x10.
+TOY_WRITE = FunctionCode(
+    0x42, "Toy Write", (5, 6), 5, "holding_register", writes=True, shape="write_multiple",
+    max_count=123,
+)  # fmt: skip
+
+
+@pytest.fixture
+def toy_codes() -> Iterator[None]:
+    assert 0x41 not in FUNCTIONS and 0x42 not in FUNCTIONS
+    register(TOY_READ)
+    register(TOY_WRITE)
+    try:
+        yield
+    finally:
+        unregister(0x41)
+        unregister(0x42)
+
+
+def test_read_only_refuses_an_unregistered_user_code() -> None:
+    """Before the table knows 0x41, ``--read-only`` refuses it (not a known read)."""
+    guard = Guard.from_options(True, [], [])
+    verdict = guard.check_raw(1, bytes.fromhex("41 00 10 00 02"))
+    assert verdict is not None and verdict.rule == "read-only"
+    assert 0x41 not in KNOWN_READS
+
+
+def test_a_code_registered_as_a_read_passes_read_only(toy_codes: None) -> None:
+    """Registered as a read in the function-code table, 0x41 is a known read to the
+    guard: ``--read-only`` forwards it, on the fast path and decoded alike."""
+    guard = Guard.from_options(True, [], [])
+    assert KNOWN_READS[0x41] is None
+    assert guard.check_raw(1, bytes.fromhex("41 00 10 00 02")) is None
+    assert guard.check(1, req("41 00 10 00 02")) is None
+    assert not is_write(0x41) and write_target(req("41 00 10 00 02")) is None
+
+
+def test_a_code_registered_as_a_write_is_judged_as_a_write(toy_codes: None) -> None:
+    """Registered as a holding-register write, 0x42 is judged by the write specs from
+    its row (table, shape: ``count`` registers from its address), and ``--allow-fc``
+    cannot open it."""
+    pdu = req("42 00 10 00 02 04 00 01 00 02")
+    assert is_write(0x42)
+    assert write_target(pdu) == WriteTarget(0x42, "hr", 16, 17)
+    allow = Guard.from_options(True, ["hr:16-17"], [])
+    assert allow.check(1, pdu) is None
+    narrow = Guard.from_options(True, ["hr:16"], [])
+    verdict = narrow.check(1, pdu)
+    assert verdict is not None and verdict.rule == "read-only"
+    assert (verdict.info["address"], verdict.info["count"]) == (16, 2)
+    with pytest.raises(GuardSpecError, match="0x42 writes"):
+        Guard.from_options(True, [], [], allow_fc=["0x42"])
+    # unregistered again, the same bytes are an unknown code: not a write
+    unregister(0x42)
+    assert not is_write(0x42) and write_target(pdu) is None

@@ -27,8 +27,11 @@ from mbmon.hub import Hub
 from mbmon.monitor.app import render_text
 from mbmon.monitor.feed import MonitorFeed
 from mbmon.pipeline import Pipeline, PipelineConfig
-from mbmon.proxy.engine import Observer, ProxyConfig, ProxyEngine, ProxyThread, endpoint
+from mbmon.proxy.config import ProxyConfig, endpoint
+from mbmon.proxy.engine import ProxyEngine
 from mbmon.proxy.guard import Guard
+from mbmon.proxy.observer import Observer
+from mbmon.proxy.runner import ProxyThread
 from mbmon.sim.server import SimServer
 
 ROOT = Path(__file__).resolve().parents[2]

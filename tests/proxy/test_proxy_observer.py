@@ -5,7 +5,8 @@ from __future__ import annotations
 from typing import Any
 
 from mbmon.model import Direction, Event, EventKind, Stream, Transport
-from mbmon.proxy.engine import Observer, ProxyStats, endpoint
+from mbmon.proxy.config import ProxyStats, endpoint
+from mbmon.proxy.observer import Observer
 
 STREAM = Stream(0, Transport.TCP, "127.0.0.1:40000", "10.0.0.1:502")
 

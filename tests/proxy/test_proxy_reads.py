@@ -1,5 +1,5 @@
 """The engine's socket reads: every connection reads into the engine's one buffer
-(:data:`mbmon.proxy.engine.READ_BUFFER`), so bursts larger than it, and several
+(:data:`mbmon.proxy.reader.READ_BUFFER`), so bursts larger than it, and several
 clients whose reads alternate on it, must come through whole, in order, unmixed —
 forwarded and observed byte for byte.
 
@@ -20,7 +20,11 @@ from typing import Any
 from mbmon.hub import Hub
 from mbmon.model import Chunk, Direction
 from mbmon.pipeline import Pipeline
-from mbmon.proxy.engine import READ_BUFFER, Observer, ProxyConfig, ProxyEngine, ProxyThread
+from mbmon.proxy.config import ProxyConfig
+from mbmon.proxy.engine import ProxyEngine
+from mbmon.proxy.observer import Observer
+from mbmon.proxy.reader import READ_BUFFER
+from mbmon.proxy.runner import ProxyThread
 
 
 class _Upstream(asyncio.Protocol):

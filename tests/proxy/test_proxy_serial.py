@@ -443,7 +443,10 @@ def test_live_monitor_with_an_rtu_master_shows_its_bus_and_the_silences() -> Non
     from mbmon.monitor.app import render_text
     from mbmon.monitor.feed import MonitorFeed
     from mbmon.pipeline import Pipeline, PipelineConfig
-    from mbmon.proxy.engine import Observer, ProxyConfig, ProxyEngine, ProxyThread
+    from mbmon.proxy.config import ProxyConfig
+    from mbmon.proxy.engine import ProxyEngine
+    from mbmon.proxy.observer import Observer
+    from mbmon.proxy.runner import ProxyThread
     from mbmon.proxy.serial import rtu_front
     from mbmon.sources.serial import SerialSettings
 
