@@ -1,0 +1,208 @@
+"""How a run ends: the exit codes, the one signal handler and the one exit-status decision.
+
+Every command ends through here (re-exported by :mod:`mbmon.commands.common`):
+
+- :func:`install_signal_handlers` (``mbmon.cli.main`` calls it once): SIGINT and
+  SIGTERM raise :class:`Interrupted`, a ``KeyboardInterrupt``, in the main thread.
+  A command that reads until its input ends (``read``, ``replay``, ``export``,
+  ``report``) catches ``KeyboardInterrupt`` around its hub loop, lets the
+  listeners close, prints its summary and returns :func:`exit_status`.
+- :func:`stop_on_signals` (a ``with`` block): a command that runs until it is
+  stopped (``sniff``, ``proxy``, ``demo``, ``sim``, the servers of ``replay``)
+  gets a call instead of an exception: it stops its sources, the hub drains and
+  closes, nothing is cut in the middle. The raising handler comes back when the
+  block ends.
+- :func:`exit_status`: one decision for every command, from the hub's failures
+  and errors, the signal that came (if one did) and the command's own verdict.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Any
+
+EXIT_OK = 0
+EXIT_BAD_INPUT = 1  # bad or damaged input, or an output that failed
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+
+
+class UsageError(Exception):
+    """Bad command-line values; printed with the command's usage, exit status 2."""
+
+
+def err(message: str) -> None:
+    """One line on stderr, prefixed like every mbmon message."""
+    print(f"mbmon: {message}", file=sys.stderr, flush=True)
+
+
+#: the signals that end a run, alike
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+class Interrupted(KeyboardInterrupt):
+    """The run was stopped by SIGINT (Ctrl-C) or SIGTERM: ``signum`` says which.
+
+    A ``KeyboardInterrupt``, so every ``except KeyboardInterrupt`` that finishes a
+    run (logs closed, summary, "interrupted; LOG was finished") treats both
+    signals alike."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+#: every SIGINT/SIGTERM that reached one of mbmon's handlers in this run, in order
+_received: list[int] = []
+
+#: a signal that came while the import system ran, to be raised a moment later
+_deferred: list[int] = []
+
+
+def _importing(frame: Any) -> bool:
+    """Whether ``frame`` runs inside an import (the import system is on its stack)."""
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib"):
+            return True
+        frame = frame.f_back
+    return False
+
+
+#: how many 5-ms retries a deferred signal waits for an import to end (then it is raised)
+_MAX_RETRIES = 40
+_retries: list[int] = [0]
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    if _importing(frame) and _retries[0] < _MAX_RETRIES:
+        _retries[0] += 1
+        # raised inside an import, the exception can be swallowed by the import
+        # system ("Exception ignored in ... _get_module_lock") or crash an extension
+        # module's initialisation: raise it once the import is over (retried every 5 ms)
+        _deferred.append(signum)
+        signal.setitimer(signal.ITIMER_REAL, 0.005)
+        return
+    _received.append(signum)
+    signal.setitimer(signal.ITIMER_REAL, 0)  # a deferred retry still pending is this one
+    _deferred.clear()
+    raise Interrupted(signum)
+
+
+def _retry(signum: int, frame: Any) -> None:
+    if _deferred:
+        _interrupt(_deferred.pop(0), frame)
+
+
+def install_signal_handlers() -> None:
+    """SIGINT and SIGTERM end the run the same way, through one handler: it raises
+    :class:`Interrupted` (a ``KeyboardInterrupt``), so every listener's close() runs
+    and the command's own Ctrl-C ending (summary, message) follows either signal.
+    A signal that comes during an import is raised when the import is over
+    (retried every 5 ms through SIGALRM); an ignored signal stays ignored.
+    Forgets the signals of an earlier run in this process."""
+    _received.clear()
+    _deferred.clear()
+    for sig in STOP_SIGNALS:
+        if signal.getsignal(sig) is not signal.SIG_IGN:  # nohup, a background job: kept
+            signal.signal(sig, _interrupt)
+    signal.signal(signal.SIGALRM, _retry)
+
+
+def received_signal() -> int | None:
+    """The first SIGINT/SIGTERM that reached mbmon's handlers in this run, or ``None``."""
+    return _received[0] if _received else None
+
+
+def interrupted_status() -> int:
+    """The exit status of a run a signal ended: 128 + its number (130 Ctrl-C, 143 SIGTERM)."""
+    return 128 + (_received[0] if _received else signal.SIGINT)
+
+
+class SignalStop:
+    """What :func:`stop_on_signals` hands its block: the signals that came during it."""
+
+    def __init__(self) -> None:
+        self.received: list[int] = []
+
+    @property
+    def count(self) -> int:
+        """How many SIGINT/SIGTERM came (a second one: stop waiting for anything)."""
+        return len(self.received)
+
+    @property
+    def signum(self) -> int | None:
+        """The first signal that came, or ``None``."""
+        return self.received[0] if self.received else None
+
+
+@contextmanager
+def stop_on_signals(stop: Callable[[int], None]) -> Iterator[SignalStop]:
+    """For a command that runs until it is stopped: inside the block SIGINT and SIGTERM
+    call ``stop(n)`` (``n`` = how many signals came so far: 1, then 2 for a second
+    Ctrl-C, which should stop waiting for anything) instead of raising; the signal
+    is recorded for :func:`exit_status`. ``stop`` runs in the main thread between
+    two bytecodes: it must only ask (set an event, ``hub.stop()``, an engine's
+    ``stop()``), never block or raise. The previous handlers (the raising ones of
+    :func:`install_signal_handlers`) come back when the block ends, so a signal
+    during the closing summary still ends the run. An ignored signal stays
+    ignored; outside the main thread this installs nothing."""
+    state = SignalStop()
+    if threading.current_thread() is not threading.main_thread():
+        yield state
+        return
+
+    def on_signal(signum: int, frame: object) -> None:
+        state.received.append(signum)
+        _received.append(signum)
+        stop(len(state.received))
+
+    old = {}
+    for sig in STOP_SIGNALS:
+        if signal.getsignal(sig) is not signal.SIG_IGN:
+            old[sig] = signal.signal(sig, on_signal)
+    try:
+        yield state
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+
+def output_failed(hub: Any) -> bool:
+    """Whether a listener of ``hub`` failed and was detached for any reason but a
+    reader of stdout that went away (``| head``: a broken pipe is no failure)."""
+    failures = getattr(hub, "failures", None) or []
+    return any(why != "broken pipe" for _name, why in failures)
+
+
+def exit_status(
+    hub: Any = None,
+    *,
+    interrupted: bool = False,
+    failed: bool = False,
+    until_signal: bool = False,
+) -> int:
+    """The one exit status of a run, in this order:
+
+    1. ``1`` (:data:`EXIT_BAD_INPUT`) when an output failed (:func:`output_failed`):
+       a record may be missing from a log, whatever else happened;
+    2. ``128 + signal`` (130 Ctrl-C, 143 SIGTERM) when a signal stopped the run
+       (``interrupted``: the command caught ``KeyboardInterrupt``; or one reached a
+       handler of :func:`install_signal_handlers` / :func:`stop_on_signals`), unless
+       ``until_signal``: the command runs until it is stopped (``sniff``, ``proxy``,
+       the servers), so a signal is its normal end;
+    3. ``1`` when the input was bad (``failed``: the command's own verdict, or an
+       error the hub recorded in ``hub.errors``);
+    4. ``0``.
+
+    It prints nothing: the command says why before it returns the status."""
+    if hub is not None and output_failed(hub):
+        return EXIT_BAD_INPUT
+    if (interrupted or _received) and not until_signal:
+        return interrupted_status()
+    if failed or (hub is not None and getattr(hub, "errors", None)):
+        return EXIT_BAD_INPUT
+    return EXIT_OK
