@@ -165,14 +165,34 @@ def test_summary_on_stderr_and_q_silences_it(tmp_path: Path) -> None:
     assert "robot commands: " in hrss.stderr and "success" in hrss.stderr
 
 
-def test_count_stops_after_n_records(tmp_path: Path) -> None:
+def test_count_stops_after_n_frames_events_do_not_count(tmp_path: Path) -> None:
+    """``-c N`` counts frames (as ``sniff``'s does): the Connect event before them is
+    shown but not counted."""
     cap = tmp_path / "poll.pcap"
     polling_pcap(cap, 50)
     res = run("read", str(cap), "-c", "7", "--json")
     assert res.returncode == 0
-    assert len(res.stdout.splitlines()) == 7
-    assert [json.loads(x)["index"] for x in res.stdout.splitlines()] == list(range(7))
+    lines = [json.loads(x) for x in res.stdout.splitlines()]
+    assert [x["kind"] for x in lines] == ["event"] + ["request", "response"] * 3 + ["request"]
+    assert [x["index"] for x in lines] == list(range(8))
+    assert "7 frames (4 requests" in res.stderr
     assert run("read", str(cap), "-c", "0").returncode == 2
+
+
+def test_count_counts_what_the_filters_let_through_and_logs_end_there(tmp_path: Path) -> None:
+    """With filters, ``-c N`` counts the frames they let through; the screen shows those,
+    and every ``-w`` log ends at the same (N-th counted) frame."""
+    cap = tmp_path / "poll.pcap"
+    polling_pcap(cap, 50, exc_every=10)
+    log = tmp_path / "log.jsonl"
+    res = run("read", str(cap), "-c", "2", "--grep", "exception", "--json", "-w", str(log))
+    assert res.returncode == 0, res.stderr
+    shown = [json.loads(x) for x in res.stdout.splitlines()]
+    assert [x["exception_code"] for x in shown] == [2, 2]
+    logged = [json.loads(x) for x in log.read_text().splitlines()]
+    # everything up to the second exception answer (tid 20), nothing after it
+    assert logged[-1]["index"] == shown[-1]["index"] and logged[-1]["tid"] == 20
+    assert sum(1 for x in logged if x["kind"] != "event") == 40
 
 
 def test_no_modbus_names_the_busiest_ports(tmp_path: Path) -> None:
