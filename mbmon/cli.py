@@ -111,6 +111,7 @@ def _run(argv: list[str] | None, noted: list[int]) -> int:
         UsageError,
         install_signal_handlers,
         interrupted_status,
+        pending_signal,
     )
     from mbmon.sinks.base import SinkError
 
@@ -147,6 +148,10 @@ def _run(argv: list[str] | None, noted: list[int]) -> int:
         print(f"mbmon: {where}{exc.strerror or exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     if status == EXIT_INTERRUPTED:  # a command that caught the signal and finished up
+        return interrupted_status()
+    if status == EXIT_OK and pending_signal() is not None:
+        # the signal came in an import as the run ended, deferred past it: the run was
+        # interrupted all the same (the retry timer is cancelled on the way out)
         return interrupted_status()
     return status
 

@@ -57,6 +57,7 @@ from mbmon.commands.ending import (
     install_signal_handlers,
     interrupted_status,
     output_failed,
+    pending_signal,
     received_signal,
     stop_on_signals,
 )
@@ -149,6 +150,7 @@ __all__ = [
     "open_trigger",
     "output_failed",
     "parse_address",
+    "pending_signal",
     "port",
     "positive",
     "positive_int",

@@ -21,6 +21,7 @@ from __future__ import annotations
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
@@ -59,8 +60,16 @@ class Interrupted(KeyboardInterrupt):
 #: every SIGINT/SIGTERM that reached one of mbmon's handlers in this run, in order
 _received: list[int] = []
 
-#: a signal that came while the import system ran, to be raised a moment later
+#: a signal received but not raised yet: it came while the import system ran, or its
+#: exception was swallowed where Python ignores exceptions; raised a moment later
 _deferred: list[int] = []
+
+#: how often a deferred signal looks again whether it can be raised (SIGALRM), seconds
+RETRY_EVERY = 0.005
+#: how long a signal waits at most for an import to end before it is raised inside it
+MAX_DEFER = 5.0
+#: when the signal now deferred first came (``time.monotonic()``)
+_deferred_since: list[float] = []
 
 
 def _importing(frame: Any) -> bool:
@@ -72,49 +81,92 @@ def _importing(frame: Any) -> bool:
     return False
 
 
-#: how many 5-ms retries a deferred signal waits for an import to end (then it is raised)
-_MAX_RETRIES = 40
-_retries: list[int] = [0]
+def _defer(signum: int) -> None:
+    """Raise ``signum``'s :class:`Interrupted` :data:`RETRY_EVERY` from now (SIGALRM)."""
+    if not _deferred:
+        _deferred.append(signum)
+    if not _deferred_since:
+        _deferred_since.append(time.monotonic())
+    signal.setitimer(signal.ITIMER_REAL, RETRY_EVERY)
 
 
 def _interrupt(signum: int, frame: Any) -> None:
-    if _importing(frame) and _retries[0] < _MAX_RETRIES:
-        _retries[0] += 1
+    """The one handler of SIGINT and SIGTERM (:func:`install_signal_handlers`)."""
+    _received.append(signum)  # recorded first: whatever happens next, the run knows
+    _raise(signum, frame)
+
+
+def _raise(signum: int, frame: Any) -> None:
+    waited = time.monotonic() - _deferred_since[0] if _deferred_since else 0.0
+    if _importing(frame) and waited < MAX_DEFER:
         # raised inside an import, the exception can be swallowed by the import
         # system ("Exception ignored in ... _get_module_lock") or crash an extension
-        # module's initialisation: raise it once the import is over (retried every 5 ms)
-        _deferred.append(signum)
-        signal.setitimer(signal.ITIMER_REAL, 0.005)
+        # module's initialisation: raise it once the import is over
+        _defer(signum)
         return
-    _received.append(signum)
     signal.setitimer(signal.ITIMER_REAL, 0)  # a deferred retry still pending is this one
     _deferred.clear()
+    _deferred_since.clear()
     raise Interrupted(signum)
 
 
 def _retry(signum: int, frame: Any) -> None:
     if _deferred:
-        _interrupt(_deferred.pop(0), frame)
+        _raise(_deferred.pop(0), frame)
+
+
+def _unraisable(args: Any) -> None:
+    """``sys.unraisablehook`` while the handlers are installed: an :class:`Interrupted`
+    raised where Python ignores exceptions (a finalizer, a weakref callback, a
+    generator closed by the garbage collector) would be printed ("Exception ignored
+    in ...") and lost, and the run would go on as if no signal came: it is raised
+    again a moment later, in the code that runs then. Anything else goes to the
+    hook that was there before."""
+    if isinstance(args.exc_value, Interrupted):
+        _defer(args.exc_value.signum)
+        return
+    _previous_unraisablehook[0](args)
+
+
+_previous_unraisablehook: list[Callable[[Any], Any]] = [sys.unraisablehook]
 
 
 def install_signal_handlers() -> None:
     """SIGINT and SIGTERM end the run the same way, through one handler: it raises
-    :class:`Interrupted` (a ``KeyboardInterrupt``), so every listener's close() runs
-    and the command's own Ctrl-C ending (summary, message) follows either signal.
-    A signal that comes during an import is raised when the import is over
-    (retried every 5 ms through SIGALRM); an ignored signal stays ignored.
+    :class:`Interrupted` (a ``KeyboardInterrupt``) in the main thread, so every
+    listener's close() runs and the command's own Ctrl-C ending (summary, message)
+    follows either signal.
+
+    A signal is never lost: it is recorded the moment it comes (:func:`exit_status`
+    answers 128 + its number even if a command never saw the exception); one that
+    comes during an import is raised when the import is over (looked at again
+    every :data:`RETRY_EVERY` s through SIGALRM, for :data:`MAX_DEFER` s at most);
+    one whose exception Python swallowed (raised inside a finalizer or a weakref
+    callback) is raised again a moment later. An ignored signal stays ignored.
     Forgets the signals of an earlier run in this process."""
     _received.clear()
     _deferred.clear()
+    _deferred_since.clear()
     for sig in STOP_SIGNALS:
         if signal.getsignal(sig) is not signal.SIG_IGN:  # nohup, a background job: kept
             signal.signal(sig, _interrupt)
     signal.signal(signal.SIGALRM, _retry)
+    if sys.unraisablehook is not _unraisable:
+        _previous_unraisablehook[0] = sys.unraisablehook
+        sys.unraisablehook = _unraisable
 
 
 def received_signal() -> int | None:
     """The first SIGINT/SIGTERM that reached mbmon's handlers in this run, or ``None``."""
     return _received[0] if _received else None
+
+
+def pending_signal() -> int | None:
+    """A signal that came but whose :class:`Interrupted` was not raised yet (it came
+    during an import, or Python swallowed it): ``mbmon.cli.main`` asks when a command
+    returns, so a signal that came as the run ended still ends it with 128 + its
+    number instead of being dropped with the retry timer."""
+    return _deferred[0] if _deferred else None
 
 
 def interrupted_status() -> int:
