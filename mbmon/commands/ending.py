@@ -223,6 +223,39 @@ def stop_on_signals(stop: Callable[[int], None]) -> Iterator[SignalStop]:
             signal.signal(sig, handler)
 
 
+@contextmanager
+def loop_stops_on_signals(loop: Any, stop: Callable[[int], None]) -> Iterator[SignalStop]:
+    """:func:`stop_on_signals` for a command whose main thread runs an asyncio ``loop``
+    (``sim``, ``replay --serve``): the loop's own signal handlers (woken through its
+    self-pipe, whichever thread the signal reached) call ``stop(n)`` in the loop and
+    record the signal; the handlers that were there before come back when the
+    block ends. An ignored signal stays ignored; a loop that cannot take signal
+    handlers (not the main thread) gets none."""
+    state = SignalStop()
+
+    def on_signal(signum: int) -> None:
+        state.received.append(signum)
+        _received.append(signum)
+        stop(len(state.received))
+
+    old: dict[int, Any] = {}
+    for sig in STOP_SIGNALS:
+        previous = signal.getsignal(sig)
+        if previous is signal.SIG_IGN:
+            continue
+        try:
+            loop.add_signal_handler(sig, on_signal, sig)
+        except (NotImplementedError, RuntimeError, ValueError):
+            continue
+        old[sig] = previous
+    try:
+        yield state
+    finally:
+        for signum, handler in old.items():
+            loop.remove_signal_handler(signum)
+            signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
+
+
 def output_failed(hub: Any) -> bool:
     """Whether a listener of ``hub`` failed and was detached for any reason but a
     reader of stdout that went away (``| head``: a broken pipe is no failure)."""
