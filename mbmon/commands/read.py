@@ -33,7 +33,7 @@ from mbmon.commands.common import (
     profile_sources,
     view_and_filter,
 )
-from mbmon.commands.read_summary import report
+from mbmon.commands.read_summary import detected_lines, report
 from mbmon.filters import EXPRESSION_HELP, TIMES_HELP, add_filter_options
 from mbmon.timefmt import add_time_option
 
@@ -66,6 +66,9 @@ an output that failed, 2 usage, 130/143 stopped by Ctrl-C/SIGTERM (logs finished
 
 #: The first bytes of an MCAP file (mbmon's logs).
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+#: ``detected_lines`` stays importable from here (``sniff`` says what port detection found)
+__all__ = ["MCAP_MAGIC", "detected_lines", "register", "run"]
 
 
 def register(sub: Any) -> None:
