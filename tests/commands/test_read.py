@@ -339,3 +339,65 @@ def test_no_response_is_printed_at_the_request_time_plus_the_timeout(tmp_path: P
     assert timeouts[0]["time"] == pytest.approx(t0 + 1.0, abs=1e-3)
     times = [r["time"] for r in records]
     assert times == sorted(times)
+
+
+def _rtu_bus() -> bytes:
+    """A bus: noise, reads and writes of unit 1, the writes of R10..R14 answered."""
+    from mbmon.protocol.pdu import encode_read_request, encode_read_response
+
+    frames = [b"\x00\xff\x13"]  # noise first: it never counts
+    for n in range(5):
+        frames.append(encode_rtu(1, encode_read_request(3, 0, 1)))
+        frames.append(encode_rtu(1, encode_read_response(3, [n])))
+        write = bytes([6, 0, 10 + n, 0, n])
+        frames += [encode_rtu(1, write), encode_rtu(1, write)]
+    return b"".join(frames)
+
+
+def _frames(stdout: str) -> list[tuple[object, ...]]:
+    out = []
+    for line in stdout.splitlines():
+        obj = json.loads(line)
+        if obj["fc"] is not None:
+            out.append((obj["kind"], obj["fc"], obj["address"], obj["values"]))
+    return out
+
+
+def test_read_and_sniff_count_the_same_frames(tmp_path: Path) -> None:
+    """One -c: the same bus through ``read --rtu-raw`` and ``sniff --serial`` (a socat pty
+    pair) with ``--fc 6 -c 3``: both show the same three writes, noise and reads not
+    counted, and both end there by themselves."""
+    import shutil
+
+    if shutil.which("socat") is None:
+        pytest.skip("socat is not installed (sniff --serial needs a pty pair)")
+    from socat_ptys import pty_pair
+
+    bus = tmp_path / "bus.bin"
+    bus.write_bytes(_rtu_bus())
+    args = ("--fc", "6", "-c", "3", "--json")
+    read = run("read", "--rtu-raw", str(bus), *args)
+    assert read.returncode == 0, read.stderr
+    expected = [("request", 6, 10, [0]), ("response", 6, 10, [0]), ("request", 6, 11, [1])]
+    assert _frames(read.stdout) == expected
+    with pty_pair() as (writer, reader):
+        sniff = subprocess.Popen(
+            [*MBMON, "sniff", "--serial", reader, *args],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=REPO,
+        )
+        try:
+            deadline = time.monotonic() + 60
+            while sniff.poll() is None and time.monotonic() < deadline:
+                with open(writer, "wb", buffering=0) as port:
+                    port.write(_rtu_bus())  # again until it has seen three writes
+                time.sleep(0.5)
+            out, err = sniff.communicate(timeout=60)
+        finally:
+            if sniff.poll() is None:
+                sniff.kill()
+                sniff.communicate()
+    assert sniff.returncode == 0, err
+    assert _frames(out) == expected, out
