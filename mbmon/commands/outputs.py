@@ -107,6 +107,21 @@ def open_log(target: str, ctx: Any, args: argparse.Namespace) -> Any:
     return RotatingSink(target, ctx, every=every, max_bytes=size, keep=args.keep)
 
 
+def open_logs(targets: Iterable[str], ctx: Any, args: argparse.Namespace) -> list[Any]:
+    """One listener per ``-w`` target (:func:`open_log`), in order. When one cannot be
+    opened (:class:`~mbmon.sinks.base.SinkError`), or a signal comes meanwhile, those
+    opened before it are closed (none is left half written) and the exception goes on."""
+    logs: list[Any] = []
+    try:
+        for target in targets:
+            logs.append(open_log(target, ctx, args))
+    except BaseException:
+        for sink in logs:
+            sink.close()
+        raise
+    return logs
+
+
 def check_rotation(args: argparse.Namespace) -> tuple[float | None, int | None] | None:
     """``--rotate`` as ``(seconds, bytes)``, or ``None`` without it; bad values, and
     ``--keep`` or ``--rotate`` without ``-w``/``--keep`` without ``--rotate``, are

@@ -26,7 +26,7 @@ from mbmon.commands.common import (
     err,
     exit_status,
     make_annotator,
-    open_log,
+    open_logs,
     open_trigger,
     positive,
     positive_int,
@@ -211,18 +211,19 @@ def _read_with_pipeline(
     the logs finished, the summary so far, 128 + the signal."""
     from mbmon.hub import Hub
     from mbmon.pipeline import Pipeline, PipelineConfig
+    from mbmon.sinks.base import SinkError
     from mbmon.sinks.summary import Summary
     from mbmon.sources.pcapfile import CaptureError
 
     hub = Hub(Pipeline(annotator, PipelineConfig(timeout=args.timeout, baudrate=args.baud)))
     summary = None if args.quiet else Summary(view if args.robot else None)
     capture_stats: dict[str, Any] = {}
+    gate = open_trigger(args)  # --trigger: the logs and the screen see only its windows
     logs: list[Any] = []
-    interrupted = False
+    interrupted = attached = False
     try:
         items = _open_items(args, path, progress, capture_stats)
-        logs = _open_logs(args, path, view, annotator)
-        gate = open_trigger(args)  # --trigger: the logs and the screen see only its windows
+        logs = open_logs(args.write, _context(args, path, view, annotator), args)
         attach_outputs(
             hub,
             logs=logs,
@@ -231,19 +232,22 @@ def _read_with_pipeline(
             budget=FrameBudget(args.count, hub.enough, flt, view) if args.count else None,
             gate=gate,
         )
+        attached = True
         if live:  # a pipe may stall: the hub ticks meanwhile, so logs reach the disk
             from mbmon.sources.pipe import feed_pipe
 
             feed_pipe(hub, items)
         else:
             hub.run_items(items)
-    except (CaptureError, _LogError) as exc:
+    except (CaptureError, SinkError) as exc:
         err(str(exc))
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         interrupted = True
     finally:
         hub.close()
+        for sink in () if attached else logs:  # a signal came before the hub had them
+            sink.close()
     if summary is not None:
         report(summary, capture_stats, args, timed=not args.rtu_raw)
     if interrupted:
@@ -257,16 +261,11 @@ def _read_with_pipeline(
     return exit_status(hub, interrupted=interrupted)
 
 
-class _LogError(Exception):
-    """A ``-w`` log that cannot be opened (its :class:`SinkError`'s words)."""
+def _context(args: argparse.Namespace, path: str, view: Any, annotator: Any) -> Any:
+    """What the ``-w`` logs store besides the records (view, source, settings)."""
+    from mbmon.sinks.base import SinkContext
 
-
-def _open_logs(args: argparse.Namespace, path: str, view: Any, annotator: Any) -> list[Any]:
-    """One listener per ``-w`` target; :class:`_LogError` when one cannot be opened
-    (those opened before it are closed)."""
-    from mbmon.sinks.base import SinkContext, SinkError
-
-    ctx = SinkContext(
+    return SinkContext(
         view=view,
         command_line=["mbmon", *sys.argv[1:]],
         source=str(path),
@@ -275,15 +274,6 @@ def _open_logs(args: argparse.Namespace, path: str, view: Any, annotator: Any) -
         timeout=args.timeout,
         baud=args.baud,
     )
-    logs: list[Any] = []
-    try:
-        for target in args.write:
-            logs.append(open_log(target, ctx, args))
-    except SinkError as exc:
-        for sink in logs:
-            sink.close()
-        raise _LogError(str(exc)) from None
-    return logs
 
 
 def _screen(args: argparse.Namespace, view: Any, flt: Any, live: bool) -> Any:

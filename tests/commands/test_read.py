@@ -401,3 +401,18 @@ def test_read_and_sniff_count_the_same_frames(tmp_path: Path) -> None:
                 sniff.communicate()
     assert sniff.returncode == 0, err
     assert _frames(out) == expected, out
+
+
+def test_a_bad_trigger_or_a_log_that_cannot_open_leaves_no_log_half_written(
+    tmp_path: Path,
+) -> None:
+    cap = tmp_path / "poll.pcap"
+    polling_pcap(cap, 5)
+    log = tmp_path / "x.mcap"
+    bad = run("read", str(cap), "-w", str(log), "--trigger", "fc ((")
+    assert bad.returncode == 2 and "--trigger" in bad.stderr
+    assert not log.exists()  # checked before any output is opened
+    first = tmp_path / "x.jsonl"
+    res = run("read", str(cap), "-w", str(first), "-w", str(tmp_path / "no" / "such.jsonl"))
+    assert res.returncode == 1 and "such.jsonl" in res.stderr and "Traceback" not in res.stderr
+    assert first.exists() and first.read_text() == ""  # closed before anything was read
