@@ -4,7 +4,9 @@ import sys
 
 try:
     from mbmon.cli import main
-except KeyboardInterrupt:  # before main() could take over
-    sys.exit(130)
 
-sys.exit(main())
+    status = main()
+except KeyboardInterrupt:  # before main() could take over, or as it hands back
+    status = 130
+
+sys.exit(status)

@@ -83,21 +83,24 @@ def main(argv: list[str] | None = None) -> int:
     def note(signum: int, frame: object) -> None:
         noted.append(signum)
 
+    alarm = signal.getsignal(signal.SIGALRM)  # the deferred signals' retries use SIGALRM
     previous = {}
     for sig in (signal.SIGINT, signal.SIGTERM):
         if signal.getsignal(sig) is not signal.SIG_IGN:  # nohup, a background job: kept
             previous[sig] = signal.signal(sig, note)
     try:
-        return _run(argv, noted)
-    except KeyboardInterrupt as exc:  # not caught by the command
+        try:
+            return _run(argv, noted)
+        finally:
+            # a deferred signal's retry must not outlive the run: at exit Python puts
+            # SIGALRM back to its default action, which would kill the process (-14)
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            signal.signal(signal.SIGALRM, alarm if alarm is not None else signal.SIG_DFL)
+            for sig, handler in previous.items():  # still noting (--help, usage): undo
+                if signal.getsignal(sig) is note:
+                    signal.signal(sig, handler)
+    except KeyboardInterrupt as exc:  # not caught by the command, or as it ended
         return 128 + getattr(exc, "signum", signal.SIGINT)
-    finally:
-        # a deferred signal's retry timer must not outlive the run: at exit Python puts
-        # SIGALRM back to its default action, which would kill the process (-14)
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        for sig, handler in previous.items():  # still noting (--help, a usage error): undo
-            if signal.getsignal(sig) is note:
-                signal.signal(sig, handler)
 
 
 def _run(argv: list[str] | None, noted: list[int]) -> int:
@@ -111,6 +114,7 @@ def _run(argv: list[str] | None, noted: list[int]) -> int:
         UsageError,
         install_signal_handlers,
         interrupted_status,
+        pending_signal,
     )
     from mbmon.sinks.base import SinkError
 
@@ -147,6 +151,10 @@ def _run(argv: list[str] | None, noted: list[int]) -> int:
         print(f"mbmon: {where}{exc.strerror or exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     if status == EXIT_INTERRUPTED:  # a command that caught the signal and finished up
+        return interrupted_status()
+    if status == EXIT_OK and pending_signal() is not None:
+        # the signal came in an import as the run ended, deferred past it: the run was
+        # interrupted all the same (the retry timer is cancelled on the way out)
         return interrupted_status()
     return status
 

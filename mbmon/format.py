@@ -377,7 +377,7 @@ def frame_details(
     if frame.tid is not None and at >= 7:
         out.append((f"transaction id: {frame.tid}", (0, 2)))
     if frame.crc_ok is not None:
-        verdict = crc if crc is not None else ("ok" if frame.crc_ok else "BAD")
+        verdict = crc if crc is not None else ("ok" if frame.crc_ok else _bad_crc(raw, rtu))
         out.append((f"CRC: {verdict}", (len(raw) - 2, len(raw)) if rtu else None))
     out.append((f"kind: {pdu.kind.value}", (at, at + 1)))
     out.append((f"meaning: {generic_note(pdu, request)}", (at, end)))
@@ -404,6 +404,29 @@ def frame_details(
         out.append((f"malformed: {pdu.malformed}", (at, end)))
     out.extend((f"note: {n}", None) for n in notes)
     return out
+
+
+def _bad_crc(raw: bytes, rtu: bool) -> str:
+    """The verdict on a CRC that failed: the CRC the RTU frame has, and the one it should."""
+    if not rtu or len(raw) < 4:
+        return "BAD"
+    from mbmon.protocol.crc import crc_bytes
+
+    expected = monitor_hex(crc_bytes(raw[:-2]))
+    return f"BAD (the frame has {monitor_hex(raw[-2:])}, expected {expected})"
+
+
+def frame_text(
+    frame: Frame,
+    notes: tuple[str, ...] | list[str] = (),
+    *,
+    framing: str | None = None,
+    request: Pdu | None = None,
+) -> list[str]:
+    """``mbmon decode``'s lines for one frame: its PDU as the robot's Modbus Monitor
+    shows it (:func:`monitor_hex`), then each field of :func:`frame_details`, indented."""
+    details = frame_details(frame, notes, framing=framing, request=request)
+    return [monitor_hex(frame.pdu.raw), *("  " + text for text, _span in details)]
 
 
 # --------------------------------------------------------------------------- lines

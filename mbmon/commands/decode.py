@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from typing import Any
 
-from mbmon.commands.common import EXIT_OK, UsageError, make_annotator
+from mbmon.commands.common import UsageError, err, exit_status, make_annotator
 
 EPILOG = """\
 examples:
@@ -67,97 +66,112 @@ def _parse_hex(words: list[str]) -> bytes:
 
 
 def run(args: argparse.Namespace) -> int:
-    """``mbmon decode``: one frame typed by hand, its fields and meaning."""
-    from mbmon.format import View, frame_details, monitor_hex, record_to_json
-    from mbmon.model import (
-        Direction,
-        Frame,
-        Kind,
-        Record,
-        RecordKind,
-        Stream,
-        Transaction,
-        Transport,
-        TxStatus,
-    )
-    from mbmon.protocol.crc import check_crc, crc_bytes
-    from mbmon.protocol.pdu import decode_pdu
+    """``mbmon decode``: one frame typed by hand, its fields and meaning, in
+    :mod:`mbmon.format`'s words (:func:`~mbmon.format.frame_text`, or the one JSON
+    record of :func:`~mbmon.format.record_to_json` with the framing added)."""
+    from mbmon.format import frame_text
 
     data = _parse_hex(args.hex)
-    mode = args.mode
-    guessed_bad_crc = False
-    if mode is None:
-        if len(data) >= 4 and check_crc(data):
-            mode = "rtu"
-        elif len(data) >= 8 and data[2:4] == b"\0\0" and int.from_bytes(data[4:6]) == len(data) - 6:
-            mode = "tcp"
-        elif _rtu_with_bad_crc(data, args.response):
-            mode, guessed_bad_crc = "rtu", True
-        else:
-            mode = "pdu"
+    mode, guessed_bad_crc = _framing(data, args.mode, args.response)
+    frame = _frame(data, mode, args.response)
+    notes = _notes(frame, make_annotator(args.profile))
+    if args.json:
+        print(json.dumps(_json(frame, notes, mode, guessed_bad_crc), ensure_ascii=False))
+        return exit_status()
+    framing = _FRAMINGS[mode]
+    if guessed_bad_crc:
+        framing += (
+            " with a bad CRC (guessed: unit, function code and length make an RTU frame, "
+            "but the CRC does not match; --pdu reads the bytes as a bare PDU)"
+        )
+    print("\n".join(frame_text(frame, notes, framing=framing)))
+    return exit_status()
+
+
+#: how ``decode`` names each framing (``framing:`` line)
+_FRAMINGS = {"rtu": "RTU ADU", "tcp": "Modbus/TCP ADU", "pdu": "PDU"}
+
+
+def _framing(data: bytes, mode: str | None, response: bool) -> tuple[str, bool]:
+    """``rtu``, ``tcp`` or ``pdu`` (``mode`` when given, else guessed: a valid CRC means
+    RTU, a consistent MBAP header TCP, bytes that frame as RTU but for their CRC RTU
+    too), and whether the guess is an RTU frame with a bad CRC."""
+    from mbmon.protocol.crc import check_crc
+
+    if mode is not None:
+        return mode, False
+    if len(data) >= 4 and check_crc(data):
+        return "rtu", False
+    if len(data) >= 8 and data[2:4] == b"\0\0" and int.from_bytes(data[4:6]) == len(data) - 6:
+        return "tcp", False
+    if _rtu_with_bad_crc(data, response):
+        return "rtu", True
+    return "pdu", False
+
+
+def _frame(data: bytes, mode: str, response: bool) -> Any:
+    """The :class:`~mbmon.model.Frame` of the typed bytes in ``mode``'s framing (unit,
+    transaction id, CRC verdict); too few bytes for the framing is a usage error."""
+    from mbmon.model import Direction, Frame, Stream, Transport
+    from mbmon.protocol.crc import check_crc
+    from mbmon.protocol.pdu import decode_pdu
+
     unit: int | None = None
     tid: int | None = None
     crc_ok: bool | None = None
-    crc_note = "ok"
+    body = data
     if mode == "rtu":
         if len(data) < 4:
             raise UsageError("an RTU ADU needs at least 4 bytes (unit, function code, CRC)")
         unit, body, crc_ok = data[0], data[1:-2], check_crc(data)
-        if not crc_ok:
-            expected = crc_bytes(data[:-2]).hex(" ").upper()
-            crc_note = f"BAD (the frame has {data[-2:].hex(' ').upper()}, expected {expected})"
     elif mode == "tcp":
         if len(data) < 8:
             raise UsageError("a Modbus/TCP ADU needs at least 8 bytes (7-byte MBAP header + fc)")
         tid, unit, body = int.from_bytes(data[0:2]), data[6], data[7:]
         length = int.from_bytes(data[4:6])
         if length != len(data) - 6:
-            print(
-                f"mbmon: warning: MBAP length field says {length}, {len(data) - 6} bytes follow",
-                file=sys.stderr,
-            )
-    else:
-        body = data
-    response = args.response or bool(body and body[0] & 0x80)
-    pdu = decode_pdu(body, response)
-    transport = {"rtu": Transport.RTU, "tcp": Transport.TCP}.get(mode, Transport.TCP)
+            err(f"warning: MBAP length field says {length}, {len(data) - 6} bytes follow")
+    response = response or bool(body and body[0] & 0x80)
+    transport = Transport.RTU if mode == "rtu" else Transport.TCP
     stream = Stream(0, transport, "client", "server")
     direction = Direction.S2C if response else Direction.C2S
-    frame = Frame(0.0, stream, direction, unit if unit is not None else 0, tid, pdu, data, crc_ok)
-    notes: tuple[str, ...] = ()
-    annotator = make_annotator(args.profile)
-    if annotator is not None:
-        if response:
-            tx = Transaction(0.0, TxStatus.UNSOLICITED, None, frame)
-        else:
-            tx = Transaction(0.0, TxStatus.PENDING, frame, None)
-        notes = annotator.annotate(tx).notes
-    kind = {Kind.REQUEST: RecordKind.REQUEST, Kind.RESPONSE: RecordKind.RESPONSE}.get(
-        pdu.kind, RecordKind.EXCEPTION
-    )
-    record = Record(0, 0.0, kind, stream, frame=frame, notes=notes)
-    if args.json:
-        obj = record_to_json(record, View())
-        obj["framing"] = mode
-        if guessed_bad_crc:
-            obj["framing_note"] = "guessed: an RTU frame with a bad CRC"
-        if mode == "pdu":
-            obj["transport"] = "pdu"
-            obj["unit"] = None
-        for key in ("index", "time", "stream", "src", "dst", "line", "request_index"):
-            obj.pop(key, None)
-        print(json.dumps(obj, ensure_ascii=False))
-        return EXIT_OK
-    print(monitor_hex(pdu.raw))
-    framing = {"rtu": "RTU ADU", "tcp": "Modbus/TCP ADU", "pdu": "PDU"}[mode]
-    if guessed_bad_crc:
-        framing += (
-            " with a bad CRC (guessed: unit, function code and length make an RTU frame, "
-            "but the CRC does not match; --pdu reads the bytes as a bare PDU)"
-        )
-    details = frame_details(frame, notes, framing=framing, crc=crc_note)
-    print("\n".join("  " + text for text, _span in details))
-    return EXIT_OK
+    pdu = decode_pdu(body, response)
+    return Frame(0.0, stream, direction, unit if unit is not None else 0, tid, pdu, data, crc_ok)
+
+
+def _notes(frame: Any, annotator: Any) -> tuple[str, ...]:
+    """The profiles' notes on the frame, read alone (a request pending, or an answer
+    nothing asked for)."""
+    if annotator is None:
+        return ()
+    from mbmon.model import Direction, Transaction, TxStatus
+
+    if frame.direction is Direction.S2C:
+        tx = Transaction(0.0, TxStatus.UNSOLICITED, None, frame)
+    else:
+        tx = Transaction(0.0, TxStatus.PENDING, frame, None)
+    notes: tuple[str, ...] = annotator.annotate(tx).notes
+    return notes
+
+
+def _json(frame: Any, notes: tuple[str, ...], mode: str, guessed: bool) -> dict[str, Any]:
+    """The one JSON record of the frame, with its framing and without what a frame typed
+    alone has not (index, time, stream, endpoints, line)."""
+    from mbmon.format import View, record_to_json
+    from mbmon.model import Kind, Record, RecordKind
+
+    kinds = {Kind.REQUEST: RecordKind.REQUEST, Kind.RESPONSE: RecordKind.RESPONSE}
+    kind = kinds.get(frame.pdu.kind, RecordKind.EXCEPTION)
+    obj = record_to_json(Record(0, 0.0, kind, frame.stream, frame=frame, notes=notes), View())
+    obj["framing"] = mode
+    if guessed:
+        obj["framing_note"] = "guessed: an RTU frame with a bad CRC"
+    if mode == "pdu":
+        obj["transport"] = "pdu"
+        obj["unit"] = None
+    for key in ("index", "time", "stream", "src", "dst", "line", "request_index"):
+        obj.pop(key, None)
+    return obj
 
 
 def _rtu_with_bad_crc(data: bytes, response: bool) -> bool:

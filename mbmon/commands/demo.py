@@ -23,29 +23,19 @@ log is always closed.
 from __future__ import annotations
 
 import argparse
-import struct
 import sys
 import threading
 import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["DEFAULT_LOG", "GUARD_SPEC", "register", "run"]
+from mbmon.commands.demo_client import GUARD_SPEC, PROXY_TIMEOUT, DemoClient, closing
+from mbmon.commands.demo_log import SOURCE_PREFIX, check_log_path, is_demo_log
+
+__all__ = ["DEFAULT_LOG", "GUARD_SPEC", "is_demo_log", "register", "run"]
 
 #: The log the demo writes in the current directory unless ``-w`` says otherwise.
 DEFAULT_LOG = "mbmon-demo.mcap"
-#: The write the demo's guard refuses: the robot's system inputs SI1..SI256 (Table 12).
-GUARD_SPEC = "coil:0-255"
-#: ``source`` of a demo log's metadata; a log whose source starts so may be overwritten.
-SOURCE_PREFIX = "mbmon demo"
-#: Pauses (seconds) so that a human can follow the live screen: after each request
-#: (not the polls of a running motion), and at the start of each part.
-STEP_PAUSE = 0.12
-PART_PAUSE = 0.9
-#: The proxy's gateway timeout in the demo (the pipeline waits one second longer).
-PROXY_TIMEOUT = 3.0
-
-_MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 _DESCRIPTION = """\
 A robot cell on this machine, in under 30 seconds, with nothing to configure and
@@ -130,242 +120,56 @@ def register(sub: Any) -> None:
     p.set_defaults(func=run, quiet=False, json=False, profile=["hrss"])
 
 
-# --------------------------------------------------------------------------- the log file
-
-
-def is_demo_log(path: Path) -> bool:
-    """Whether ``path`` is an MCAP log an earlier ``mbmon demo`` wrote (so it may be overwritten).
-
-    The file must start with the MCAP magic and a header written by mbmon, and
-    its ``mbmon`` metadata must name the demo as its source.
-    """
-    try:
-        with path.open("rb") as f:
-            head = f.read(64)
-    except OSError:
-        return False
-    if not head.startswith(_MCAP_MAGIC) or len(head) < 8 + 9 + 4:
-        return False
-    if head[8] != 0x01:  # the Header record
-        return False
-    pos = 8 + 9
-    (n,) = struct.unpack_from("<I", head, pos)  # profile
-    pos += 4 + n
-    if pos + 4 > len(head):
-        return False
-    (n,) = struct.unpack_from("<I", head, pos)  # library
-    if not head[pos + 4 : pos + 4 + n].startswith(b"mbmon"):
-        return False
-    from mbmon.io.mcap.layout import METADATA_NAME
-    from mbmon.io.mcap.reader import LogError, McapLog
-
-    try:
-        with McapLog(path) as log:
-            source = log.metadata.get(METADATA_NAME, {}).get("source", "")
-    except (LogError, OSError, ValueError):
-        return False
-    return source.startswith(SOURCE_PREFIX)
-
-
-def check_log_path(text: str) -> Path:
-    """The ``-w`` path, or a :class:`UsageError` when it is not a .mcap name or would
-    overwrite anything but an earlier demo's log."""
-    from mbmon.commands.common import UsageError
-
-    path = Path(text)
-    if path.suffix.lower() != ".mcap":
-        raise UsageError(
-            f"{text}: the demo writes an MCAP log: use a name ending in .mcap "
-            "(mbmon export converts it to .csv, .jsonl, .txt or .pcap afterwards)"
-        )
-    if path.is_dir():
-        raise UsageError(f"{text}: is a directory")
-    if path.exists() and not is_demo_log(path):
-        raise UsageError(
-            f"{text}: exists and is not the log of an earlier demo; refusing to overwrite "
-            "it (choose another name with -w)"
-        )
-    return path
-
-
-# --------------------------------------------------------------------------- the client
-
-
-class _Stopped(Exception):
-    """Ctrl-C or SIGTERM while the client runs."""
-
-
-class DemoClient:
-    """The client side of the demo: the program, the guarded write, the narration.
-
-    Runs in its own thread (:meth:`run`). Narration goes into the hub as NOTICE
-    events through ``say``; ``pause`` paces the steps. Results are kept for the
-    closing summary: ``result`` (the program's), ``refused`` (the guard's answer
-    code), ``error`` (why a step failed).
-    """
-
-    def __init__(
-        self,
-        host: str,
-        port: int,
-        say: Any,
-        *,
-        fast: bool,
-        stop: threading.Event,
-    ) -> None:
-        self.host, self.port = host, port
-        self.say = say
-        self.fast = fast
-        self.stop = stop
-        self.result: Any = None
-        self.refused: int | None = None
-        self.ptp_status: int | None = None
-        self.requests = 0
-        self.finished: float | None = None  # time.monotonic() when the client was done
-        self.error: str | None = None
-        self._client: Any = None
-
-    def pause(self, seconds: float) -> None:
-        if self.stop.wait(0 if self.fast else seconds):
-            raise _Stopped
-
-    def on_part(self, part: str) -> None:
-        """Before a part's first request: narrate it, give the eye time to read it."""
-        text = _PARTS.get(part)
-        if text is not None:
-            self.say(text)
-            self.pause(PART_PAUSE)
-
-    def on_step(self, step: Any) -> None:
-        """After each answered request: pace the step."""
-        self.requests += 1
-        polling = step.function == 4 and step.address == 524 and step.result == (2,)
-        self.pause(0 if polling else STEP_PAUSE)
-        if step.part == "5.4.5.2" and (step.function, step.address, step.values) == (16, 200, (1,)):
-            self._ptp_status()
-
-    def _ptp_status(self) -> None:
-        """The one request the demo adds to §5.4.5.2: IR200 after the PTP's R200 = 1, so
-        the PTP's outcome (accepted: 1 Success) is on the wire and in the log."""
-        self.say(_PTP_STATUS)
-        from mbmon.sim.program import ProgramError
-
-        rr = self._client.read_input_registers(200, count=1, device_id=1)
-        self.requests += 1
-        if rr.isError():
-            raise ProgramError(f"IR200 after the PTP: {rr}")
-        self.ptp_status = int(rr.registers[0])
-        self.pause(STEP_PAUSE)
-
-    def run(self) -> None:
-        from pymodbus.client import ModbusTcpClient
-
-        from mbmon.sim.program import ProgramError, run_program
-
-        client = ModbusTcpClient(self.host, port=self.port, timeout=PROXY_TIMEOUT + 1, retries=0)
-        self._client = client
-        try:
-            if not client.connect():
-                self.error = f"cannot connect to the proxy at {self.host}:{self.port}"
-                return
-            self.say(_INTRO)
-            self.pause(PART_PAUSE)
-            self.result = run_program(
-                self.host,
-                self.port,
-                client=client,
-                on_step=self.on_step,
-                on_part=self.on_part,
-                poll=0.1,
-                timeout=20.0,
-            )
-            self.say(_GUARD)
-            self.pause(PART_PAUSE)
-            rr = client.write_coil(0, True, device_id=1)
-            self.requests += 1
-            self.refused = getattr(rr, "exception_code", None) if rr.isError() else 0
-            self.pause(STEP_PAUSE)
-            if self.refused != 1:
-                self.error = f"the guarded write of SI1 was not refused (answer {rr})"
-        except _Stopped:
-            self.error = "interrupted"
-        except ProgramError as exc:
-            self.error = str(exc)
-        except Exception as exc:  # pymodbus raises its own exceptions on a lost connection
-            self.error = f"{type(exc).__name__}: {exc}"
-        finally:
-            client.close()
-            self.finished = time.monotonic()
-
-
-#: The narration, one NOTICE per part (short: a live screen row is about 100 characters).
-_INTRO = (
-    "demo §5.4.5.2: read speed IR100, R100 = 90 %, read DI[1..8], write DO[1..5], "
-    "PTP {A1 90} via R200/R201.., poll IR524 until Idle"
-)
-_PTP_STATUS = "demo: one read the program leaves out: IR200, the PTP's status (1 Success, 2 Fail)"
-_GUARD = (
-    f"demo guard: the proxy refuses writes to SI1..SI256 ({GUARD_SPEC}); "
-    "the client writes SI1 Start = ON"
-)
-_PARTS = {
-    "LIN": "demo LIN {X -300, Y 300, Z 400, A 180, B 0, C 90} Vel=1000mm/s: R200 = 0, "
-    "R201.., R200 = 1, IR200, IR524, X..C in IR400..IR411",
-    "Set PR": "demo Set PR: $PR[2] = {X 90, Y 0, Z 0, A 0, B 0, C 0} (command 100), IR200",
-    "Get PR": "demo Get PR[2] (command 200): the robot returns PR[2] in IR202..IR215",
-    "JOG": "demo JOG A1 +: moves while R200 stays 1; R200 = 0 stops it",
-}
-
-
 # --------------------------------------------------------------------------- run
 
 
 def run(args: argparse.Namespace) -> int:
     """Start sim and proxy, run the client through the hub, print what to do next."""
-    import signal
-
-    from mbmon.commands.common import (
-        EXIT_BAD_INPUT,
-        EXIT_INTERRUPTED,
-        EXIT_OK,
-        err,
-        make_annotator,
-        open_console,
-        open_foxglove,
-        profile_sources,
-        run_live,
-    )
+    from mbmon.commands.common import EXIT_BAD_INPUT, err, make_annotator
     from mbmon.format import View
-    from mbmon.hub import Hub
-    from mbmon.model import Event, EventKind
-    from mbmon.pipeline import Pipeline, PipelineConfig
-    from mbmon.proxy.config import ProxyConfig, endpoint
-    from mbmon.proxy.guard import Guard
-    from mbmon.proxy.runner import attach_engine
+    from mbmon.proxy.config import endpoint
     from mbmon.sim.server import SimServer
-    from mbmon.sinks.base import SinkContext, SinkError, open_sink
 
     log_path = check_log_path(args.write)
-
     sim = SimServer(host="127.0.0.1", port=0, unit=1)
     try:
         sim.start()
     except OSError as exc:
         err(f"cannot start the simulated robot: {exc}")
         return EXIT_BAD_INPUT
-    sim_host, sim_port = sim.host, sim.port
-    robot = endpoint(sim_host, sim_port)
-    guard = Guard.from_options(False, [], [GUARD_SPEC])
-    config = ProxyConfig(
-        upstream_host=sim_host,
-        upstream_port=sim_port,
-        listen_host="127.0.0.1",
-        listen_port=0,
-        timeout=PROXY_TIMEOUT,
-        guard=guard,
+    try:
+        robot = endpoint(sim.host, sim.port)
+        view = View(robot=robot, robot_is_client=False)
+        return _run_cell(args, log_path, sim, view, make_annotator(args.profile))
+    finally:
+        sim.stop()
+
+
+def _run_cell(args: argparse.Namespace, log_path: Path, sim: Any, view: Any, annotator: Any) -> int:
+    """The proxy in front of the running ``sim``, the hub with its outputs (the log,
+    then Foxglove, then the screen), the client; then the one exit status."""
+    from mbmon.commands.common import (
+        EXIT_BAD_INPUT,
+        attach_outputs,
+        err,
+        exit_status,
+        open_console,
+        open_foxglove,
+        output_failed,
+        profile_sources,
+        run_live,
+        stop_on_signals,
     )
-    view = View(robot=robot, robot_is_client=False)
-    annotator = make_annotator(args.profile)
+    from mbmon.hub import Hub
+    from mbmon.model import Event, EventKind
+    from mbmon.pipeline import Pipeline, PipelineConfig
+    from mbmon.proxy.config import ProxyConfig, endpoint
+    from mbmon.proxy.guard import Guard
+    from mbmon.proxy.runner import attach_engine
+    from mbmon.sinks.base import SinkContext, SinkError, open_sink
+
+    robot = view.robot
+    guard = Guard.from_options(False, [], [GUARD_SPEC])
     pipe_timeout = PROXY_TIMEOUT + 1.0  # the proxy answers 0x0B itself at its timeout
     hub = Hub(Pipeline(annotator, PipelineConfig(timeout=pipe_timeout)))
     ctx = SinkContext(
@@ -379,23 +183,23 @@ def run(args: argparse.Namespace) -> int:
     feed = None
     try:
         feed = open_foxglove(args, ctx)  # before any file: a missing SDK leaves nothing behind
-        hub.add_listener(open_sink(str(log_path), ctx))  # the log first: all is logged
+        log = open_sink(str(log_path), ctx)
     except SinkError as exc:
         about_log = str(exc).startswith(f"{log_path}:")
         err(f"{exc} (log elsewhere: mbmon demo -w DIR/{DEFAULT_LOG})" if about_log else str(exc))
         if feed is not None:
             feed.close()
-        hub.close()
-        sim.stop()
         return EXIT_BAD_INPUT
-    except SystemExit:
-        sim.stop()
-        raise
-    if feed is not None:
-        hub.add_listener(feed)
     console, monitor = open_console(args, view, title="mbmon demo", annotator=annotator)
-    if console is not None:
-        hub.add_listener(console)
+    attach_outputs(hub, logs=[log, feed], screen=console)  # the log first: all is logged
+    config = ProxyConfig(
+        upstream_host=sim.host,
+        upstream_port=sim.port,
+        listen_host="127.0.0.1",
+        listen_port=0,
+        timeout=PROXY_TIMEOUT,
+        guard=guard,
+    )
     engine, thread, observer = attach_engine(hub, config)
     try:
         proxy_host, proxy_port = thread.start()
@@ -403,7 +207,6 @@ def run(args: argparse.Namespace) -> int:
         err(f"cannot start the proxy: {exc.strerror or exc}")
         hub.run(until_idle=True)
         hub.close()
-        sim.stop()
         return EXIT_BAD_INPUT
     proxy = endpoint(proxy_host, proxy_port)
     if monitor is not None:
@@ -413,15 +216,15 @@ def run(args: argparse.Namespace) -> int:
         hub.put(Event(time.time(), None, EventKind.NOTICE, {"message": message}))
 
     stop = threading.Event()
-    signals = [0]
+    stops = [0]  # Ctrl-C, SIGTERM or the screen's quit
     keeping = threading.Event()  # set once the demo is done and the cell is left running
 
-    def _stop(signum: int, frame: object) -> None:
-        signals[0] += 1
+    def _stop(_count: int = 1) -> None:
+        stops[0] += 1
         stop.set()
         thread.stop()  # the engine's last events reach the hub, then it stops the hub
-        if signals[0] > 1:
-            hub.stop()
+        if stops[0] > 1:
+            hub.stop()  # asked twice: do not wait for the engine
 
     client = DemoClient(proxy_host, proxy_port, say, fast=args.fast, stop=stop)
 
@@ -444,15 +247,14 @@ def run(args: argparse.Namespace) -> int:
                 thread.stop()
 
     worker = threading.Thread(target=client_main, name="mbmon-demo-client", daemon=True)
-    old = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)}
     started = time.monotonic()
-    try:
+    with stop_on_signals(_stop):  # a late Ctrl-C must not cut the log's close short
         try:
             worker.start()
             run_live(
                 monitor,
                 hub.run,
-                lambda: _stop(signal.SIGINT, None),
+                _stop,
                 ctx=ctx,
                 submit=hub.submit,
                 after=hub.close,  # the log is finished as the demo ends; the screen stays
@@ -463,26 +265,28 @@ def run(args: argparse.Namespace) -> int:
             thread.stop()
             thread.join(5.0)
             worker.join(5.0)
-            sim.stop()
             hub.close()
         engine.stats.not_observed = observer.skipped
-    finally:  # a late Ctrl-C must not cut the log's close short
-        for s, handler in old.items():
-            signal.signal(s, handler)
     elapsed = (client.finished or time.monotonic()) - started  # not the --keep-running time
-    failed_outputs = [f"{name}: {why}" for name, why in hub.failures if name != "stdout"]
-    if failed_outputs:
-        for line in failed_outputs:
-            err(line)
-        return EXIT_BAD_INPUT
-    if client.error == "interrupted" or (signals[0] and not keeping.is_set()):
+    for name, why in hub.failures:
+        if why != "broken pipe":
+            err(f"{name}: {why}")
+    interrupted = client.error == "interrupted" or (stops[0] > 0 and not keeping.is_set())
+    status = exit_status(
+        hub,
+        interrupted=interrupted,
+        failed=client.error is not None,
+        until_signal=keeping.is_set(),  # --keep-running: Ctrl-C is how it ends
+    )
+    if output_failed(hub):
+        pass  # said above, output by output
+    elif status >= 128:
         err(f"demo interrupted; what was recorded is in {log_path}")
-        return EXIT_INTERRUPTED
-    if client.error is not None:
+    elif client.error is not None:
         err(f"demo failed: {client.error}; what was recorded is in {log_path}")
-        return EXIT_BAD_INPUT
-    _closing(log_path, client, elapsed, quiet=args.quiet)
-    return EXIT_OK
+    else:
+        closing(log_path, client, elapsed, quiet=args.quiet)
+    return status
 
 
 def _wait_until(done: Any, timeout: float) -> bool:
@@ -493,32 +297,3 @@ def _wait_until(done: Any, timeout: float) -> bool:
             return False
         time.sleep(0.01)
     return True
-
-
-def _closing(log: Path, client: DemoClient, elapsed: float, *, quiet: bool) -> None:
-    """What the demo did and how to look at the log again (stdout, after the live screen)."""
-    result = client.result
-    status = result.statuses
-    name = str(log)
-    if any(c.isspace() for c in name):
-        name = repr(name)
-    lines = [
-        "",
-        f"mbmon demo: done in {elapsed:.1f} s, {client.requests} requests through the proxy",
-        f"  PTP {{A1 90}}: status {client.ptp_status}, A1 = {result.joints[0]:g}°; "
-        f"LIN status {status.get('LIN')}, X Y Z = {' '.join(f'{v:g}' for v in result.pose[:3])}",
-        f"  Set PR {status.get('Set PR')}, Get PR {status.get('Get PR')} (1 = success); "
-        f"JOG moved A1 {result.jog_moved:.2f}° ({result.jog_from:g} → {result.jog_to:g}°)",
-        f"  the write of SI1 Start was refused by the guard (exception {client.refused:02X})",
-        f"  log: {name}",
-        "",
-        "next:",
-        f"  mbmon replay {name}                 the run again, as it was shown",
-        f"  mbmon replay {name} --grep Guard    the refused write in the audit",
-        f"  mbmon info {name}                   what the log holds",
-        f"  mbmon replay {name} --serve         the recorded robot on 127.0.0.1:1502, for a client",
-        f"  Foxglove: open {name} in https://app.foxglove.dev (or Foxglove desktop):",
-        "    Log panel on /modbus/monitor, Plot on /hrss/state.a1, Raw Messages on /hrss/commands",
-    ]
-    if not quiet:
-        print("\n".join(lines), flush=True)

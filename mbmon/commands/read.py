@@ -8,29 +8,32 @@ import os
 import stat
 import sys
 import textwrap
-from collections.abc import Iterable
-from contextlib import ExitStack
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 from mbmon.commands.common import (
     EXIT_BAD_INPUT,
-    EXIT_OK,
+    FrameBudget,
     UsageError,
+    add_count_option,
     add_output_options,
     add_port_options,
     add_view_options,
+    attach_outputs,
     check_outputs,
     check_rotation,
     err,
+    exit_status,
     make_annotator,
-    open_log,
+    open_logs,
     open_trigger,
     positive,
     positive_int,
     profile_sources,
     view_and_filter,
 )
+from mbmon.commands.read_summary import detected_lines, report
 from mbmon.filters import EXPRESSION_HELP, TIMES_HELP, add_filter_options
 from mbmon.timefmt import add_time_option
 
@@ -47,7 +50,7 @@ examples:
   mbmon read bus.pcap --rtu-port 4001          RTU frames carried in TCP/UDP port 4001
   mbmon read --rtu-raw bus.bin                 a raw byte dump of an RS485 bus
   cat /dev/ttyUSB0 | mbmon read --rtu-raw -    the same, as the bytes arrive
-  mbmon read cell.pcap -c 20                   the first 20 records only
+  mbmon read cell.pcap -c 20                   the first 20 frames only
   mbmon read cell.pcap --fc 6,16 --address 200-251 -t r
       only writes touching R200..R251, times relative to the first record
   mbmon read cell.pcap -w cell.mcap            also record an MCAP log (Foxglove)
@@ -56,12 +59,16 @@ examples:
 
 output lines: TIME  LABEL  [uUNIT tTID]  FUNCTION-CODE + DATA (hex)  | meaning
 a summary goes to stderr at the end (-q: none)
-exit status: 0 ok, 1 bad or damaged input (everything before the damage is printed), 2 usage
+exit status: 0 ok, 1 bad or damaged input (everything before the damage is printed) or
+an output that failed, 2 usage, 130/143 stopped by Ctrl-C/SIGTERM (logs finished, summary)
 
 """
 
 #: The first bytes of an MCAP file (mbmon's logs).
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+#: ``detected_lines`` stays importable from here (``sniff`` says what port detection found)
+__all__ = ["MCAP_MAGIC", "detected_lines", "register", "run"]
 
 
 def register(sub: Any) -> None:
@@ -104,13 +111,7 @@ def register(sub: Any) -> None:
         help="say on stderr whether the compiled core or the Python pipeline read the "
         "input, and why (see docs/architecture.md)",
     )
-    src.add_argument(
-        "-c",
-        "--count",
-        type=positive_int,
-        metavar="N",
-        help="stop after N records (like tshark -c)",
-    )
+    add_count_option(src)
     add_view_options(read)
     add_output_options(read)
     add_time_option(read)
@@ -136,69 +137,135 @@ def _looks_like_mcap(path: str) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
-    """``mbmon read``: every record of the input to the console, the logs and the summary."""
-    from mbmon.hub import Hub
-    from mbmon.pipeline import Pipeline, PipelineConfig
-    from mbmon.sinks.base import SinkContext, SinkError
-    from mbmon.sinks.console import ConsoleListener
-    from mbmon.sinks.select import Selection
-    from mbmon.sinks.summary import Summary
+    """``mbmon read``: every record of the input to the logs, the console and the summary."""
+    from mbmon.commands.common import Progress
 
-    if args.rtu_raw and args.file:
-        raise UsageError("give either FILE or --rtu-raw FILE, not both")
-    if not args.rtu_raw and not args.file:
-        raise UsageError("read needs a FILE (pcap/pcapng) or --rtu-raw FILE")
-    path = args.rtu_raw or args.file
-    if path == "-":
-        path = "/dev/stdin"  # a pipe: the readers never seek
+    path = _input_path(args)
     check_outputs(args.write, [path])
     check_rotation(args)
     view, flt = view_and_filter(args)
     annotator = make_annotator(args.profile)
-    pipeline = Pipeline(annotator, PipelineConfig(timeout=args.timeout, baudrate=args.baud))
-    from mbmon.commands.common import Progress
-
-    progress = Progress(f"reading {Path(path).name}")
-    live = _is_stream_input(path)
-    capture_stats: dict[str, Any] = {}
-
     if not os.path.exists(path):
         err(f"{path}: no such file")
         return EXIT_BAD_INPUT
-    if not args.rtu_raw and not (not live and _looks_like_mcap(path)):
-        done = _read_with_core(path, args, view, flt, live=live, progress=progress)
-        if done is not None:
-            progress.close()
-            return done
+    live = _is_stream_input(path)
+    if not live and not args.rtu_raw and _looks_like_mcap(path):
+        err(f"{path} is an MCAP log, not a capture: try 'mbmon replay {args.file}'")
+        return EXIT_BAD_INPUT
+    progress = Progress(f"reading {Path(path).name}")
+    try:
+        if not args.rtu_raw:
+            from mbmon.commands.read_core import read_with_core
+
+            done = read_with_core(path, args, view, flt, live=live, progress=progress)
+            if done is not None:
+                return done
+        return _read_with_pipeline(args, path, view, flt, annotator, live, progress)
+    finally:
+        progress.close()
+
+
+def _input_path(args: argparse.Namespace) -> str:
+    """The one input of ``read`` (``FILE`` or ``--rtu-raw FILE``; ``-`` is stdin)."""
+    if args.rtu_raw and args.file:
+        raise UsageError("give either FILE or --rtu-raw FILE, not both")
+    if not args.rtu_raw and not args.file:
+        raise UsageError("read needs a FILE (pcap/pcapng) or --rtu-raw FILE")
+    path: str = args.rtu_raw or args.file
+    return "/dev/stdin" if path == "-" else path  # a pipe: the readers never seek
+
+
+def _open_items(
+    args: argparse.Namespace, path: str, progress: Any, stats: dict[str, Any]
+) -> Iterator[Any]:
+    """The input's chunks and events; :class:`~mbmon.sources.pcapfile.CaptureError`
+    when it cannot be opened or its first record cannot be read (before any output
+    is opened)."""
     if args.rtu_raw:
-        from mbmon.sources.pcapfile import CaptureError
         from mbmon.sources.rawfile import read_rtu_raw
 
-        try:
-            items: Iterable[Any] = read_rtu_raw(path)
-        except CaptureError as exc:
-            err(str(exc))
-            return EXIT_BAD_INPUT
-    else:
-        from mbmon.sources.pcapfile import CaptureConfig, CaptureError, read_capture
+        return read_rtu_raw(path)
+    from mbmon.sources.pcapfile import CaptureConfig, read_capture
 
-        if not live and _looks_like_mcap(path):
-            err(f"{path} is an MCAP log, not a capture: try 'mbmon replay {args.file}'")
-            return EXIT_BAD_INPUT
-        config = CaptureConfig(
-            tcp_ports=frozenset({502, *args.port}),
-            rtu_ports=frozenset(args.rtu_port),
-            detect=not args.no_detect,
+    config = CaptureConfig(
+        tcp_ports=frozenset({502, *args.port}),
+        rtu_ports=frozenset(args.rtu_port),
+        detect=not args.no_detect,
+    )
+    items = read_capture(path, config, progress=progress, stats=stats)
+    first = next(items, None)  # a capture damaged at once fails here, before any output
+    return items if first is None else itertools.chain((first,), items)
+
+
+def _read_with_pipeline(
+    args: argparse.Namespace,
+    path: str,
+    view: Any,
+    flt: Any,
+    annotator: Any,
+    live: bool,
+    progress: Any,
+) -> int:
+    """``read`` by the reference pipeline through the hub: logs, then the screen, then
+    the summary; ``-c`` behind the filters. A signal at any instant ends it alike:
+    the logs finished, the summary so far, 128 + the signal."""
+    from mbmon.hub import Hub
+    from mbmon.pipeline import Pipeline, PipelineConfig
+    from mbmon.sinks.base import SinkError
+    from mbmon.sinks.summary import Summary
+    from mbmon.sources.pcapfile import CaptureError
+
+    hub = Hub(Pipeline(annotator, PipelineConfig(timeout=args.timeout, baudrate=args.baud)))
+    summary = None if args.quiet else Summary(view if args.robot else None)
+    capture_stats: dict[str, Any] = {}
+    gate = open_trigger(args)  # --trigger: the logs and the screen see only its windows
+    logs: list[Any] = []
+    interrupted = attached = False
+    try:
+        items = _open_items(args, path, progress, capture_stats)
+        logs = open_logs(args.write, _context(args, path, view, annotator), args)
+        attach_outputs(
+            hub,
+            logs=logs,
+            screen=_screen(args, view, flt, live),
+            summary=summary,
+            budget=FrameBudget(args.count, hub.enough, flt, view) if args.count else None,
+            gate=gate,
         )
-        try:
-            items = read_capture(path, config, progress=progress, stats=capture_stats)
-            first = next(iter_items := iter(items), None)
-        except CaptureError as exc:
-            err(str(exc))
-            return EXIT_BAD_INPUT
-        items = itertools.chain(() if first is None else (first,), iter_items)
+        attached = True
+        if live:  # a pipe may stall: the hub ticks meanwhile, so logs reach the disk
+            from mbmon.sources.pipe import feed_pipe
 
-    ctx = SinkContext(
+            feed_pipe(hub, items)
+        else:
+            hub.run_items(items)
+    except (CaptureError, SinkError) as exc:
+        err(str(exc))
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        hub.close()
+        for sink in () if attached else logs:  # a signal came before the hub had them
+            sink.close()
+    if summary is not None:
+        report(summary, capture_stats, args, timed=not args.rtu_raw)
+    if interrupted:
+        failed = {name for name, _why in hub.failures}
+        for sink in logs:
+            name = getattr(sink, "path", None)
+            if name is not None and str(name) not in failed:
+                err(f"interrupted; {name} was finished and is complete up to here")
+    elif hub.errors:
+        err(hub.errors[-1])
+    return exit_status(hub, interrupted=interrupted)
+
+
+def _context(args: argparse.Namespace, path: str, view: Any, annotator: Any) -> Any:
+    """What the ``-w`` logs store besides the records (view, source, settings)."""
+    from mbmon.sinks.base import SinkContext
+
+    return SinkContext(
         view=view,
         command_line=["mbmon", *sys.argv[1:]],
         source=str(path),
@@ -207,163 +274,17 @@ def run(args: argparse.Namespace) -> int:
         timeout=args.timeout,
         baud=args.baud,
     )
-    hub = Hub(pipeline)
-    summary = Summary(view if args.robot else None)
-    gate = open_trigger(args)  # --trigger: the logs and the screen see only its windows
-    attach = hub.add_listener if gate is None else gate.add
-    logs: list[Any] = []
-    interrupted = False
-    with ExitStack() as stack:
-        stack.callback(hub.close)
-        stack.callback(progress.close)
-        # logs first: a record printed on stdout has reached them when a signal stops the run
-        for target in args.write:
-            try:
-                sink = open_log(target, ctx, args)
-            except SinkError as exc:
-                err(str(exc))
-                return EXIT_BAD_INPUT
-            logs.append(sink)
-            attach(sink)
-        shown = (
-            [] if args.quiet else [ConsoleListener(sys.stdout, view, as_json=args.json, live=live)]
-        )
-        if shown or args.count:
-            attach(Selection(shown, view, flt, args.count, on_full=hub.enough))
-        if gate is not None:
-            hub.add_listener(gate)
-        if not args.quiet:
-            hub.add_listener(summary)
-        try:
-            if live:  # a pipe may stall: the hub ticks meanwhile, so logs reach the disk
-                from mbmon.sources.pipe import feed_pipe
-
-                feed_pipe(hub, items)
-            else:
-                hub.run_items(items)
-        except KeyboardInterrupt:
-            interrupted = True
-    if not args.quiet:
-        _report(summary, capture_stats, args, timed=not args.rtu_raw)
-    if interrupted:
-        for sink in logs:
-            if sink in hub.listeners or (gate is not None and gate in hub.listeners):
-                err(f"interrupted; {getattr(sink, 'path', 'the log')} was finished and is complete "
-                    "up to here")  # fmt: skip
-        return 130
-    if hub.errors:
-        err(hub.errors[-1])
-        return EXIT_BAD_INPUT
-    if any(why != "broken pipe" for _name, why in hub.failures):
-        return EXIT_BAD_INPUT
-    return EXIT_OK
 
 
-def _read_with_core(
-    path: str, args: argparse.Namespace, view: Any, flt: Any, *, live: bool, progress: Any
-) -> int | None:
-    """``read`` by the compiled core when it covers the options and the input: its exit
-    status; ``None`` when it declined (before writing anything: the Python pipeline
-    then reads the input). ``--debug-core`` says which path ran and why."""
-    from mbmon import core
-
-    why = core.decline_for_options(args, live=live, flt=flt)
-    write = None
-    broken: list[bool] = []
-    if why is None and not args.quiet:
-        from mbmon.sinks.console import utf8_buffer
-
-        buffer = utf8_buffer(sys.stdout)
-        if buffer is None:
-            why = "stdout is not UTF-8"
-        else:
-
-            def write(data: bytes) -> None:
-                if broken:
-                    return
-                try:
-                    buffer.write(data)
-                except BrokenPipeError:  # the reader went away (| head), as the hub does
-                    from mbmon.hub import _quiet_stdout
-
-                    broken.append(True)
-                    _quiet_stdout()
-
-    if why is None:
-        run = core.read_file(
-            path,
-            ports=frozenset({502, *args.port}),
-            timeout=args.timeout,
-            view=view,
-            as_json=args.json,
-            write=write,
-            progress=progress,
-            detect=not args.no_detect,
-        )
-        progress.close()
-        why = run.declined
-    if why is not None:
-        if args.debug_core:
-            err(f"core: declined ({why}); the Python pipeline reads the input")
+def _screen(args: argparse.Namespace, view: Any, flt: Any, live: bool) -> Any:
+    """The console behind the display filter (``None`` with ``-q``)."""
+    if args.quiet:
         return None
-    if write is not None and not broken:
-        try:
-            sys.stdout.flush()
-        except BrokenPipeError:
-            from mbmon.hub import _quiet_stdout
+    from mbmon.sinks.console import ConsoleListener
 
-            _quiet_stdout()
-    if args.debug_core:
-        err("core: the compiled core read the input")
-    if not args.quiet:
-        from mbmon.sinks.summary import Summary
+    console = ConsoleListener(sys.stdout, view, as_json=args.json, live=live)
+    if flt is None or not flt.active:
+        return console
+    from mbmon.sinks.select import Selection
 
-        summary = Summary(None)
-        core.fill_summary(summary, run.counts)
-        _report(summary, {}, args, timed=True)
-    return EXIT_OK
-
-
-def _report(
-    summary: Any, capture_stats: dict[str, Any], args: argparse.Namespace, *, timed: bool
-) -> None:
-    """The summary and the hints a user needs after a read, on stderr."""
-    try:
-        print(summary.text(timed=timed), file=sys.stderr, flush=True)
-    except (OSError, ValueError):
-        return
-    for line in detected_lines(capture_stats.get("detected") or []):
-        err(line)
-    if summary.frames == 0 and not args.rtu_raw:
-        busiest = capture_stats.get("busiest_ports") or []
-        ports = ", ".join(f"{proto}/{p} ({n} packets)" for proto, p, n in busiest[:5])
-        asked = ", ".join(str(p) for p in sorted({502, *args.port, *args.rtu_port}))
-        hint = f"no Modbus found on port {asked}"
-        if not args.no_detect:
-            hint += " nor by its structure on any other TCP port"
-        if ports:
-            first = busiest[0][1]
-            hint += f"; busiest ports: {ports}; try --port {first} (or --rtu-port {first})"
-        err(hint)
-    if args.robot and summary.streams and not summary.robot_seen:
-        err(f"warning: the robot {args.robot} (--robot) appears in no stream of this capture")
-
-
-def detected_lines(found: list[tuple[str, int, str, int]]) -> list[str]:
-    """One line per port that port detection found (the dissector's
-    ``detected()``): the transport, the port, its servers and connections."""
-    ports: dict[tuple[str, int], list[tuple[str, int]]] = {}
-    for transport, number, server, streams in found:
-        ports.setdefault((transport, number), []).append((server, streams))
-    lines = []
-    for (transport, number), servers in ports.items():
-        what = "RTU over TCP" if transport == "rtu-over-tcp" else "Modbus/TCP"
-        names = ", ".join(server for server, _ in servers[:3])
-        if len(servers) > 3:
-            names += f" and {len(servers) - 3} more"
-        streams = sum(n for _, n in servers)
-        lines.append(
-            f"found {what} on port {number} by its structure: {streams} connection"
-            f"{'s' if streams != 1 else ''} to {names} (--no-detect turns this off)"
-        )
-    return lines
+    return Selection([console], view, flt)

@@ -22,13 +22,13 @@ from typing import Any
 
 from mbmon.commands.common import (
     EXIT_BAD_INPUT,
-    EXIT_INTERRUPTED,
     EXIT_OK,
     EXIT_USAGE,
     UsageError,
     err,
     exception_code,
-    install_signal_handlers,
+    exit_status,
+    loop_stops_on_signals,
     positive,
 )
 
@@ -186,7 +186,6 @@ def run(
 
 def _serve(args: argparse.Namespace, log: Any, keep: Any, host: str, port: int) -> int:
     import asyncio
-    import signal
 
     from mbmon.io.emulate import TABLE_NAMES, EmulatorServer, RegisterImage
     from mbmon.io.exchanges import recorded_exchanges
@@ -219,10 +218,8 @@ def _serve(args: argparse.Namespace, log: Any, keep: Any, host: str, port: int) 
 
     async def main() -> None:
         stop = asyncio.Event()
-        loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, stop.set)
-        await server.serve(stop, ready)
+        with loop_stops_on_signals(asyncio.get_running_loop(), lambda _n: stop.set()):
+            await server.serve(stop, ready)
 
     try:
         asyncio.run(main())
@@ -238,7 +235,7 @@ def _serve(args: argparse.Namespace, log: Any, keep: Any, host: str, port: int) 
         for line in misses:
             print(f"  {line}", file=sys.stderr)
     sys.stderr.flush()
-    return EXIT_OK
+    return exit_status(until_signal=True)  # Ctrl-C or SIGTERM is how it ends: 0
 
 
 def _resend(args: argparse.Namespace, log: Any, keep: Any, host: str, port: int) -> int:
@@ -253,11 +250,10 @@ def _resend(args: argparse.Namespace, log: Any, keep: Any, host: str, port: int)
     except LiveError as exc:
         err(f"error: {exc}")
         return EXIT_BAD_INPUT
-    install_signal_handlers()  # SIGTERM ends it like Ctrl-C: the summary still prints
     if args.writes:
         err(f"warning: --writes: the recorded writes are sent to {target}")
     report = ResendReport()
-    status = EXIT_OK
+    failed = interrupted = False
     out = sys.stdout
     try:
         report = resend(
@@ -270,17 +266,18 @@ def _resend(args: argparse.Namespace, log: Any, keep: Any, host: str, port: int)
         )
     except LogError as exc:
         err(str(exc))
-        status = EXIT_BAD_INPUT
+        failed = True
     except LiveError as exc:
         err(f"error: {exc}")
-        status = EXIT_BAD_INPUT
-    except (KeyboardInterrupt, SystemExit):  # Ctrl-C, or SIGTERM (install_signal_handlers)
-        status = EXIT_INTERRUPTED
+        failed = True
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the summary still prints
+        interrupted = True
     finally:
         client.close()
     for line in report.summary(target, args.writes):
         out.write(line + "\n")
     out.flush()
+    status = exit_status(interrupted=interrupted, failed=failed)
     if status == EXIT_OK and not log.status.finished:
         err(f"note: {log.path}: {log.status.describe()}")
     if status == EXIT_OK and report.different:

@@ -77,7 +77,7 @@ def _capture_objects(args: argparse.Namespace) -> list[dict[str, Any]]:
 def run(args: argparse.Namespace) -> int:
     """``mbmon report``: tables on stdout, or the HTML page / PNG files asked for."""
     from mbmon.analysis.report import MissingExtra, analyse, render_html, render_png, text_tables
-    from mbmon.commands.common import EXIT_BAD_INPUT, EXIT_OK, UsageError, err
+    from mbmon.commands.common import EXIT_BAD_INPUT, UsageError, err, exit_status
     from mbmon.commands.read import MCAP_MAGIC
 
     path = Path(args.input)
@@ -105,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
     figures = analyse(objs, source=path.name, baud=baud)
     if not args.output and not args.png:
         print(text_tables(figures))
-        return EXIT_OK
+        return exit_status()
     try:
         pictures = render_png(figures)
     except MissingExtra as exc:
@@ -124,4 +124,4 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_BAD_INPUT
     where = " and ".join(x for x in (args.output, args.png) if x)
     print(f"mbmon: report of {path.name}: {len(pictures)} pictures in {where}", file=sys.stderr)
-    return EXIT_OK
+    return exit_status()

@@ -82,11 +82,10 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 def run(args: argparse.Namespace) -> int:
     """Serve until Ctrl-C or SIGTERM; print the address, then one line per command and motion."""
     import asyncio
-    import contextlib
     import logging
-    import signal
     import time
 
+    from mbmon.commands.common import EXIT_BAD_INPUT, exit_status, loop_stops_on_signals
     from mbmon.sim.robot import SimEvent
     from mbmon.sim.server import SimServer
 
@@ -127,11 +126,8 @@ def run(args: argparse.Namespace) -> int:
 
     async def main() -> None:
         stop = asyncio.Event()
-        loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            with contextlib.suppress(NotImplementedError, RuntimeError):
-                loop.add_signal_handler(sig, stop.set)
-        await server.serve(stop, ready)
+        with loop_stops_on_signals(asyncio.get_running_loop(), lambda _n: stop.set()):
+            await server.serve(stop, ready)
 
     # pymodbus logs through the "pymodbus" logger; without a handler Python's last-resort
     # handler would print its warnings (a failed open) next to our own message
@@ -146,6 +142,6 @@ def run(args: argparse.Namespace) -> int:
         else:
             text = listen_error(server.address, exc, port)
         print(f"mbmon sim: {text}", file=sys.stderr)
-        return 1
+        return EXIT_BAD_INPUT
     print("mbmon sim: stopped", file=out, flush=True)
-    return 0
+    return exit_status(until_signal=True)  # Ctrl-C or SIGTERM is how it ends: 0

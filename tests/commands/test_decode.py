@@ -70,3 +70,55 @@ def test_bytes_with_a_bad_crc_that_frame_as_rtu_are_said_to_be_an_rtu_frame() ->
     assert "framing: PDU" in decode("--pdu", "01 03 00 00 00 0A C5 CE").stdout
     # an exception answer with a bad CRC too
     assert "framing: RTU ADU with a bad CRC" in decode("11 83 02 00 00").stdout
+
+
+def _frames_of(adu: bytes, transport: str) -> list[object]:
+    """The frames the pipeline's own stream decoder makes of ``adu`` (a request)."""
+    from mbmon.model import Direction, Frame, Stream, Transport
+    from mbmon.protocol.mbap import MbapDecoder
+    from mbmon.protocol.rtu import RtuDecoder
+
+    if transport == "rtu":
+        stream = Stream(0, Transport.RTU, "client", "server")
+        decoder: object = RtuDecoder(stream, Direction.C2S)
+    else:
+        stream = Stream(0, Transport.TCP, "client", "server")
+        decoder = MbapDecoder(stream, Direction.C2S)
+    out = [*decoder.feed(adu, 0.0), *decoder.flush(0.0)]  # type: ignore[attr-defined]
+    return [x for x in out if isinstance(x, Frame)]
+
+
+def test_decode_prints_format_py_lines_of_the_frame_the_pipeline_makes() -> None:
+    """decode's text is :func:`mbmon.format.frame_text` of the frame the stream decoders
+    make from the same bytes: one text for a frame, typed or captured."""
+    from mbmon.format import frame_text
+
+    for adu, transport in (
+        ("01 03 00 00 00 0A C5 CD", "rtu"),
+        ("00 01 00 00 00 06 01 03 00 00 00 01", "tcp"),
+        ("11 10 00 C9 00 03 06 00 03 00 00 00 01 4F 46", "rtu"),
+    ):
+        raw = bytes.fromhex(adu)
+        if transport == "rtu":
+            from mbmon.protocol.crc import add_crc
+
+            raw = add_crc(raw[:-2])
+        (frame,) = _frames_of(raw, transport)
+        out = decode(raw.hex(" ")).stdout
+        assert out.splitlines() == frame_text(frame), (adu, out)  # type: ignore[arg-type]
+
+
+def test_the_details_of_a_bad_crc_name_the_expected_crc() -> None:
+    """format.py's CRC line (decode's and the monitor's details pane): a bad CRC says
+    which CRC the frame has and which it should have."""
+    from dataclasses import replace
+
+    from mbmon.format import frame_details
+    from mbmon.protocol.crc import add_crc
+
+    (good,) = _frames_of(add_crc(bytes.fromhex("0103000A0001")), "rtu")
+    bad = replace(good, raw=good.raw[:-2] + b"\xab\xcd", crc_ok=False)  # type: ignore[type-var]
+    texts = [text for text, _span in frame_details(bad)]
+    expected = add_crc(bytes.fromhex("0103000A0001"))[-2:].hex(" ").upper()
+    assert f"CRC: BAD (the frame has AB CD, expected {expected})" in texts
+    assert "CRC: ok" in [text for text, _span in frame_details(good)]  # type: ignore[arg-type]

@@ -165,14 +165,34 @@ def test_summary_on_stderr_and_q_silences_it(tmp_path: Path) -> None:
     assert "robot commands: " in hrss.stderr and "success" in hrss.stderr
 
 
-def test_count_stops_after_n_records(tmp_path: Path) -> None:
+def test_count_stops_after_n_frames_events_do_not_count(tmp_path: Path) -> None:
+    """``-c N`` counts frames (as ``sniff``'s does): the Connect event before them is
+    shown but not counted."""
     cap = tmp_path / "poll.pcap"
     polling_pcap(cap, 50)
     res = run("read", str(cap), "-c", "7", "--json")
     assert res.returncode == 0
-    assert len(res.stdout.splitlines()) == 7
-    assert [json.loads(x)["index"] for x in res.stdout.splitlines()] == list(range(7))
+    lines = [json.loads(x) for x in res.stdout.splitlines()]
+    assert [x["kind"] for x in lines] == ["event"] + ["request", "response"] * 3 + ["request"]
+    assert [x["index"] for x in lines] == list(range(8))
+    assert "7 frames (4 requests" in res.stderr
     assert run("read", str(cap), "-c", "0").returncode == 2
+
+
+def test_count_counts_what_the_filters_let_through_and_logs_end_there(tmp_path: Path) -> None:
+    """With filters, ``-c N`` counts the frames they let through; the screen shows those,
+    and every ``-w`` log ends at the same (N-th counted) frame."""
+    cap = tmp_path / "poll.pcap"
+    polling_pcap(cap, 50, exc_every=10)
+    log = tmp_path / "log.jsonl"
+    res = run("read", str(cap), "-c", "2", "--grep", "exception", "--json", "-w", str(log))
+    assert res.returncode == 0, res.stderr
+    shown = [json.loads(x) for x in res.stdout.splitlines()]
+    assert [x["exception_code"] for x in shown] == [2, 2]
+    logged = [json.loads(x) for x in log.read_text().splitlines()]
+    # everything up to the second exception answer (tid 20), nothing after it
+    assert logged[-1]["index"] == shown[-1]["index"] and logged[-1]["tid"] == 20
+    assert sum(1 for x in logged if x["kind"] != "event") == 40
 
 
 def test_no_modbus_names_the_busiest_ports(tmp_path: Path) -> None:
@@ -319,3 +339,80 @@ def test_no_response_is_printed_at_the_request_time_plus_the_timeout(tmp_path: P
     assert timeouts[0]["time"] == pytest.approx(t0 + 1.0, abs=1e-3)
     times = [r["time"] for r in records]
     assert times == sorted(times)
+
+
+def _rtu_bus() -> bytes:
+    """A bus: noise, reads and writes of unit 1, the writes of R10..R14 answered."""
+    from mbmon.protocol.pdu import encode_read_request, encode_read_response
+
+    frames = [b"\x00\xff\x13"]  # noise first: it never counts
+    for n in range(5):
+        frames.append(encode_rtu(1, encode_read_request(3, 0, 1)))
+        frames.append(encode_rtu(1, encode_read_response(3, [n])))
+        write = bytes([6, 0, 10 + n, 0, n])
+        frames += [encode_rtu(1, write), encode_rtu(1, write)]
+    return b"".join(frames)
+
+
+def _frames(stdout: str) -> list[tuple[object, ...]]:
+    out = []
+    for line in stdout.splitlines():
+        obj = json.loads(line)
+        if obj["fc"] is not None:
+            out.append((obj["kind"], obj["fc"], obj["address"], obj["values"]))
+    return out
+
+
+def test_read_and_sniff_count_the_same_frames(tmp_path: Path) -> None:
+    """One -c: the same bus through ``read --rtu-raw`` and ``sniff --serial`` (a socat pty
+    pair) with ``--fc 6 -c 3``: both show the same three writes, noise and reads not
+    counted, and both end there by themselves."""
+    import shutil
+
+    if shutil.which("socat") is None:
+        pytest.skip("socat is not installed (sniff --serial needs a pty pair)")
+    from socat_ptys import pty_pair
+
+    bus = tmp_path / "bus.bin"
+    bus.write_bytes(_rtu_bus())
+    args = ("--fc", "6", "-c", "3", "--json")
+    read = run("read", "--rtu-raw", str(bus), *args)
+    assert read.returncode == 0, read.stderr
+    expected = [("request", 6, 10, [0]), ("response", 6, 10, [0]), ("request", 6, 11, [1])]
+    assert _frames(read.stdout) == expected
+    with pty_pair() as (writer, reader):
+        sniff = subprocess.Popen(
+            [*MBMON, "sniff", "--serial", reader, *args],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=REPO,
+        )
+        try:
+            deadline = time.monotonic() + 60
+            while sniff.poll() is None and time.monotonic() < deadline:
+                with open(writer, "wb", buffering=0) as port:
+                    port.write(_rtu_bus())  # again until it has seen three writes
+                time.sleep(0.5)
+            out, err = sniff.communicate(timeout=60)
+        finally:
+            if sniff.poll() is None:
+                sniff.kill()
+                sniff.communicate()
+    assert sniff.returncode == 0, err
+    assert _frames(out) == expected, out
+
+
+def test_a_bad_trigger_or_a_log_that_cannot_open_leaves_no_log_half_written(
+    tmp_path: Path,
+) -> None:
+    cap = tmp_path / "poll.pcap"
+    polling_pcap(cap, 5)
+    log = tmp_path / "x.mcap"
+    bad = run("read", str(cap), "-w", str(log), "--trigger", "fc ((")
+    assert bad.returncode == 2 and "--trigger" in bad.stderr
+    assert not log.exists()  # checked before any output is opened
+    first = tmp_path / "x.jsonl"
+    res = run("read", str(cap), "-w", str(first), "-w", str(tmp_path / "no" / "such.jsonl"))
+    assert res.returncode == 1 and "such.jsonl" in res.stderr and "Traceback" not in res.stderr
+    assert first.exists() and first.read_text() == ""  # closed before anything was read

@@ -117,3 +117,149 @@ def _wall(argv: list[str]) -> float:
         subprocess.run(argv, capture_output=True, env=ENV, timeout=120)
         times.append(time.monotonic() - started)
     return sorted(times)[1]
+
+
+# --------------------------------------------------------------------------- no lost signal
+
+#: when SIGINT comes, after the interpreter is up: 0.02 .. 0.4 s in 12 steps
+SWEEP = [round(0.02 + 0.38 * k / 11, 3) for k in range(12)]
+
+
+def _before_mbmon(proc: subprocess.Popen[str], err: str) -> bool:
+    """Whether the signal came while the interpreter itself started (``site``, ``.pth``
+    files, or Python's handler not installed yet), before a line of mbmon ran."""
+    return (
+        "init_import_site" in err
+        or proc.returncode == -signal.SIGINT
+        or ("Traceback" in err and "/mbmon/" not in err)
+    )
+
+
+def _interrupt_read(kind: str, capture: Path, delay: float) -> tuple[int, str] | None:
+    """Start ``read -`` fed by a pipe that stays open (the capture's first 32 KiB in
+    it), or ``read FILE``; SIGINT after ``delay`` s; its exit status and stderr, or
+    ``None`` when the signal came before mbmon's code ran."""
+    if kind == "pipe":
+        read_end, write_end = os.pipe()
+        argv = [sys.executable, "-m", "mbmon", "read", "-"]
+    else:
+        read_end, write_end = -1, -1
+        argv = [sys.executable, "-m", "mbmon", "read", str(capture), "-t", "r"]  # no core
+    try:
+        proc = subprocess.Popen(
+            argv,
+            stdin=read_end if kind == "pipe" else subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=ENV,
+        )
+        if kind == "pipe":
+            os.close(read_end)
+            with open(capture, "rb") as f:
+                os.write(write_end, f.read(32 * 1024))  # fits the pipe: never blocks
+        time.sleep(delay)
+        assert proc.poll() is None, f"read ended before the signal: {proc.communicate()}"
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if write_end >= 0:
+            os.close(write_end)
+    return None if _before_mbmon(proc, err) else (proc.returncode, err)
+
+
+@pytest.mark.parametrize("kind", ["pipe", "file"])
+def test_ctrl_c_at_any_instant_of_read_exits_130_without_a_traceback(
+    long_capture: Path, kind: str
+) -> None:
+    """A SIGINT 0.02 .. 0.4 s after the interpreter is up (while mbmon imports, builds
+    its parser, opens the input, reads it) ends ``read -`` (a pipe that stays open)
+    and ``read FILE`` with 130 and no traceback, every time. A signal that lands in
+    the interpreter's own start is tried again a little later (not mbmon's code)."""
+    python_up = _wall([sys.executable, "-c", "pass"])
+    for delay in SWEEP:
+        outcome = None
+        for attempt in range(6):
+            outcome = _interrupt_read(kind, long_capture, python_up * (1 + attempt / 2) + delay)
+            if outcome is not None:
+                break
+        assert outcome is not None, f"{kind} {delay}: every signal came before mbmon started"
+        status, err = outcome
+        what = f"{kind}, SIGINT {delay} s after start: exit {status}, stderr:\n{err}"
+        assert status == 130, what
+        assert "Traceback" not in err and "Exception ignored" not in err, what
+
+
+_LATE_IMPORT = """\
+import os, sys
+from pathlib import Path
+import mbmon.commands.read as read
+Path(sys.argv[1], "late_module.py").write_text(
+    "import os, signal\\nos.kill(os.getpid(), signal.SIGINT)\\nfor _ in range(10000): pass\\n"
+)
+sys.path.insert(0, sys.argv[1])
+def run(args):
+    import late_module  # a lazy import as the run ends; the signal comes inside it
+    return 0
+read.run = run
+from mbmon.cli import main
+sys.exit(main(["read", "x.pcap"]))
+"""
+
+
+def test_a_signal_deferred_past_the_last_import_of_a_run_still_ends_it_130(
+    tmp_path: Path,
+) -> None:
+    """A signal that comes inside an import is raised once the import is over; when the
+    command returns first, the signal was dropped with its retry timer and the run
+    exited 0. It is recorded when it comes: 130."""
+    proc = subprocess.run(
+        [sys.executable, "-c", _LATE_IMPORT, str(tmp_path)],
+        capture_output=True,
+        text=True,
+        env=ENV,
+        timeout=120,
+    )
+    assert proc.returncode == 130, proc.stderr
+    assert "Traceback" not in proc.stderr, proc.stderr
+
+
+_SWALLOWED = """\
+import os, signal, sys, time, weakref
+from mbmon.commands.common import install_signal_handlers
+install_signal_handlers()
+class Finalized:
+    def __del__(self):
+        os.kill(os.getpid(), signal.SIGINT)  # the handler runs here, in the finalizer
+        for _ in range(1000): pass
+class Referent:
+    pass
+def callback(ref):
+    os.kill(os.getpid(), signal.SIGINT)  # as in the import system's module-lock cleanup
+    for _ in range(1000): pass
+try:
+    if sys.argv[1] == "finalizer":
+        Finalized()
+    else:
+        referent = Referent(); ref = weakref.ref(referent, callback); del referent
+    time.sleep(5)
+    print("lost")
+except KeyboardInterrupt as exc:
+    print("interrupted", exc.signum)
+"""
+
+
+@pytest.mark.parametrize("where", ["finalizer", "weakref callback"])
+def test_a_signal_whose_exception_python_swallows_is_raised_again(where: str) -> None:
+    """The handler raises where the main thread is; in a finalizer or a weakref callback
+    Python prints "Exception ignored" and drops the exception: the run went on as if
+    no signal came. It is raised again a moment later, quietly."""
+    proc = subprocess.run(
+        [sys.executable, "-c", _SWALLOWED, where.split()[0]],
+        capture_output=True,
+        text=True,
+        env=ENV,
+        timeout=120,
+    )
+    assert proc.stdout == "interrupted 2\n", proc.stdout + proc.stderr
+    assert "Exception ignored" not in proc.stderr, proc.stderr

@@ -61,7 +61,7 @@ def test_declines_are_visible_and_change_nothing() -> None:
         assert alone.stdout == b""
     count = _mbmon("read", str(DEMO), "-c", "3", "--debug-core")
     assert b"core: declined (-c is not covered" in count.stderr
-    assert len(count.stdout.splitlines()) == 3
+    assert len(count.stdout.splitlines()) == 4  # the Connect, then 3 frames (-c counts frames)
 
 
 def _two_ports(path: Path, other_port: int) -> Path:
