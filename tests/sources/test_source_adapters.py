@@ -286,7 +286,7 @@ def read_through(port: int, tid: int) -> bytes:
 
 @pytest.mark.parametrize("process", [False, True], ids=["thread", "process"])
 def test_proxy_source_observes_what_it_forwards(process: bool) -> None:
-    from mbmon.proxy.engine import ProxyConfig
+    from mbmon.proxy.config import ProxyConfig
     from mbmon.sources.proxy import ProxySource
 
     with sim_server() as up:
@@ -317,7 +317,7 @@ def test_proxy_source_observes_what_it_forwards(process: bool) -> None:
 
 
 def test_a_proxy_that_cannot_listen_is_one_line() -> None:
-    from mbmon.proxy.engine import ProxyConfig
+    from mbmon.proxy.config import ProxyConfig
     from mbmon.sources.proxy import ProxySource, ProxyStartError
 
     with socket.socket() as taken:
