@@ -112,3 +112,17 @@ def report_skipped(log: Any) -> bool:
         for line in lines[1:]:
             print(line, file=sys.stderr)
     return bool(lines)
+
+
+def replay_view(log: Any, args: argparse.Namespace, fmt: Any = None) -> Any:
+    """The view of a re-decode: ``--robot`` if given, else the recording's."""
+    from mbmon.format import View
+    from mbmon.io.replay import recorded_options
+
+    opts = recorded_options(log)
+    robot, is_client = (
+        (args.robot, args.robot_client) if args.robot else (opts.robot, opts.robot_is_client)
+    )
+    if fmt is None:
+        return View(robot=robot, robot_is_client=is_client)
+    return View(robot=robot, robot_is_client=is_client, time_format=fmt)

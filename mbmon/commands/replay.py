@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Iterator
 from typing import Any
 
 from mbmon.commands import replay_servers
@@ -25,8 +24,8 @@ from mbmon.commands.logfile import (
     note_status,
     open_log,
     progress,
+    replay_view,
     report_skipped,
-    retimed,
 )
 from mbmon.filters import add_filter_options
 from mbmon.io.livefeed import ReplayFeed
@@ -125,12 +124,47 @@ def _speed(text: str) -> float:
 
 
 def run_replay(args: argparse.Namespace) -> int:
-    """``mbmon replay``: stored lines (or --json objects, or a re-decode), filtered and paced."""
-    from mbmon.filters import FilterError, Pacer
+    """``mbmon replay``: the log's stored lines (or --json objects, or a re-decode),
+    filtered and paced by its source, printed by the console listener ``read`` uses."""
+    from mbmon.filters import FilterError
     from mbmon.io.mcap.reader import LogError
     from mbmon.sinks.base import SinkError
-    from mbmon.sinks.jsonl import dumps_line
 
+    status = _other_mode(args)
+    if status is not None:
+        return status
+    log, status = open_log(args.log, "replay")
+    if log is None:
+        return status
+    bar = progress(log)
+    with log:
+        try:
+            fmt, flt = log_times(args, log)
+        except FilterError as exc:
+            return filter_failed(log, exc)
+        try:
+            feed = _open_feed(args, log, flt.active)
+        except (SinkError, LogError) as exc:
+            err(str(exc))
+            return EXIT_BAD_INPUT
+        try:
+            _replay(args, log, fmt, flt, feed)
+        except LogError as exc:
+            bar.close()  # before the message: the bar shares stderr
+            err(str(exc))
+            report_skipped(log)
+            return EXIT_BAD_INPUT
+        finally:
+            bar.close()
+        note_status(log)
+        if report_skipped(log):
+            return EXIT_BAD_INPUT
+    return EXIT_OK
+
+
+def _other_mode(args: argparse.Namespace) -> int | None:
+    """Run ``--serve``/``--to`` or ``--browse`` and give their status, or say what is
+    wrong with the options (2); ``None`` when replay prints the log."""
     if replay_servers.wanted(args):  # against servers: emulate (--serve) or re-send (--to)
         if args.quiet:
             err("error: -q silences the printed log; --serve and --to print only their report")
@@ -142,218 +176,58 @@ def run_replay(args: argparse.Namespace) -> int:
         err(f"error: {exc}")
         return EXIT_USAGE
     if getattr(args, "browse", False):
+        from mbmon.commands.browse import run_browse
+
         return run_browse(args)
     if (args.robot or args.robot_client) and not args.redecode:
         err("error: --robot relabels lines only with --redecode (stored lines are as recorded)")
         return EXIT_USAGE
-    log, status = open_log(args.log, "replay")
-    if log is None:
-        return status
-    out = sys.stdout
-    bar = progress(log)
-    with log:
-        try:
-            fmt, flt = log_times(args, log)
-        except FilterError as exc:
-            return filter_failed(log, exc)
-        pacer = Pacer(args.speed) if args.speed else None
-        try:
-            feed = _open_feed(args, log, flt.active)
-        except (SinkError, LogError) as exc:
-            err(str(exc))
-            return EXIT_BAD_INPUT
-        try:
-            if args.redecode:
-                rows = _redecoded(log, args, fmt, feed)
-            else:
-                rows = ((*retimed(r.obj, r.text, r.time, fmt), r.time, r) for r in _stored(log))
-            for obj, line, ts, made in rows:
-                if not flt.matches(obj, line, ts):
-                    continue
-                if pacer is not None:
-                    pacer.wait(ts)
-                if feed is not None:
-                    feed.serve(made)
-                if args.quiet:
-                    continue
-                if args.json:
-                    if obj is None:
-                        continue
-                    out.write(dumps_line(obj) + "\n")
-                else:
-                    out.write(line + "\n")
-                if pacer is not None:
-                    out.flush()
+    return None
+
+
+def _replay(
+    args: argparse.Namespace, log: Any, fmt: Any, flt: Any, feed: ReplayFeed | None
+) -> None:
+    """One run: the log as a paced source into the hub, the console (and ``feed``) out.
+
+    Stored records are filtered by the source and pass the hub as they are; a
+    re-decode's raw items go through the pipeline and its records are filtered
+    in front of the screen, as ``read`` filters them. The console (and the live
+    feed) sees only what passes; the feed is closed with the hub, also on damage.
+    """
+    from mbmon.filters import Pacer
+    from mbmon.format import View
+    from mbmon.hub import Hub
+    from mbmon.io.logsource import LogSource, StoredPipeline, run_stored
+    from mbmon.sinks.console import ConsoleListener
+    from mbmon.sinks.select import Selection
+
+    pacer = Pacer(args.speed) if args.speed else None
+    source = LogSource(log, fmt, flt, pacer=pacer, raw=args.redecode, need_json=args.json)
+    view = replay_view(log, args, fmt) if args.redecode else View(time_format=fmt)
+    shown: list[Any] = [] if feed is None else [feed]
+    if not args.quiet:  # paced: every line out as it is due
+        shown.append(ConsoleListener(sys.stdout, view, as_json=args.json, live=pacer is not None))
+    if not args.redecode:
+        with Hub(StoredPipeline(), [Selection(shown, view)]) as hub:
+            run_stored(hub, source)
             if feed is not None:
                 feed.finish()
-        except LogError as exc:
-            out.flush()
-            bar.close()  # before the message: the bar shares stderr
-            err(str(exc))
-            report_skipped(log)
-            return EXIT_BAD_INPUT
-        finally:
-            bar.close()
-            if feed is not None:
-                feed.close()
-        out.flush()
-        note_status(log)
-        if report_skipped(log):
-            return EXIT_BAD_INPUT
-    return EXIT_OK
-
-
-#: Records ``replay --browse`` keeps (the live monitor keeps the last 10,000).
-BROWSE_KEEP = 200_000
-
-
-def run_browse(args: argparse.Namespace) -> int:
-    """``mbmon replay --browse``: the log in the interactive monitor, its raw bytes
-    decoded again through the one flow (as ``--redecode``: the lines ``read`` prints),
-    the command-line filters as the screen's first display filter."""
-    from mbmon.commands.common import filter_text
-    from mbmon.filters import FilterError
-    from mbmon.hub import Hub
-    from mbmon.io.mcap.layout import METADATA_NAME, TOPIC_RAW
-    from mbmon.io.mcap.reader import LogError
-    from mbmon.io.replay import raw_items, recorded_annotator, recorded_options
-    from mbmon.monitor import run_screen
-    from mbmon.monitor.feed import MonitorFeed
-    from mbmon.pipeline import Pipeline, PipelineConfig
-    from mbmon.sinks.base import SinkContext
-
-    if args.json or args.speed or getattr(args, "foxglove", None) is not None:
-        err("error: --browse shows the log on the screen: no --json, --speed or --foxglove")
-        return EXIT_USAGE
-    if not (sys.stdout.isatty() and sys.stdin.isatty()):
-        err("error: --browse needs a terminal (stdin and stdout); without one, replay prints")
-        return EXIT_USAGE
-    log, status = open_log(args.log, "replay")
-    if log is None:
-        return status
-    with log:
-        if TOPIC_RAW not in log.topics:
-            err(f"error: {args.log} has no {TOPIC_RAW} (raw bytes) to browse; "
-                 "mbmon replay prints its stored lines")  # fmt: skip
-            return EXIT_BAD_INPUT
-        try:
-            fmt, _flt = log_times(args, log)
-            opts = recorded_options(log)
-            annotator = recorded_annotator(log, opts)
-        except (FilterError, LogError) as exc:
-            err(f"error: {exc}")
-            return EXIT_USAGE if isinstance(exc, FilterError) else EXIT_BAD_INPUT
-        view = _replay_view(log, args, fmt)
-        feed = MonitorFeed(
-            view,
-            title=f"mbmon replay {log.path.name}",
-            keep=BROWSE_KEEP,
-            annotator=annotator,
-            profile=any("hrss" in spec for spec in opts.profile_specs),
-        )
-        pipeline = Pipeline(annotator, PipelineConfig(timeout=opts.timeout, baudrate=opts.baud))
-        hub = Hub(pipeline, [feed])
-        ctx = SinkContext(
-            view=view,
-            command_line=["mbmon", *sys.argv[1:]],
-            source=log.metadata.get(METADATA_NAME, {}).get("source", str(log.path)),
-            profiles=log.profiles(),
-            profile_specs=opts.profile_specs,
-            timeout=opts.timeout,
-            baud=opts.baud,
-        )
-        failed: list[str] = []
-
-        def work() -> None:
-            try:
-                hub.run_items(_browse_items(log, raw_items, lambda: hub.records))
-            except LogError as exc:
-                failed.append(str(exc))
-            hub.tick(hub.now)  # the run's end: the rate and the robot panel's registers
-            hub.close()
-
-        run_screen(
-            feed,
-            work,
-            hub.enough,
-            ctx=ctx,
-            ended_note="end of the log; q quits",
-            display_filter=filter_text(args),
-        )
-        for message in failed:
-            err(message)
-        note_status(log)
-    return EXIT_BAD_INPUT if failed else EXIT_OK
-
-
-#: Events a log holds only as records (not on /modbus/raw): ``--browse`` feeds them
-#: again, in their place, so its list has the lines ``replay`` prints.
-_RECORD_ONLY_EVENTS = ("notice", "guard")
-
-
-def _browse_items(log: Any, raw_items: Any, made: Any) -> Iterator[Any]:
-    """The log's raw chunks and source events, with its notices and guard decisions
-    (kept only as records) fed again where the recording had them: before the raw
-    item that made the record of the same number (``made()``: records made so far)."""
-    from collections import deque
-
-    from mbmon.io.replay import logged_records
-    from mbmon.model import Event, EventKind
-
-    stored = deque(
-        (int(r.obj.get("index") or 0),
-         Event(r.time, None, EventKind(r.obj["event"]), dict(r.obj.get("info") or {})))
-        for r in logged_records(log)
-        if r.obj is not None
-        and r.obj.get("kind") == "event"
-        and r.obj.get("event") in _RECORD_ONLY_EVENTS
-    )  # fmt: skip
-    for item in raw_items(log):
-        while stored and stored[0][0] <= made():
-            yield stored.popleft()[1]
-        yield item
-    for _index, event in stored:
-        yield event
-
-
-def _stored(log: Any) -> Iterator[Any]:
-    from mbmon.io.replay import logged_records
-
-    return logged_records(log)
-
-
-def _replay_view(log: Any, args: argparse.Namespace, fmt: Any = None) -> Any:
-    """The view of a re-decode: ``--robot`` if given, else the recording's."""
-    from mbmon.format import View
-    from mbmon.io.replay import recorded_options
-
-    opts = recorded_options(log)
-    robot, is_client = (
-        (args.robot, args.robot_client) if args.robot else (opts.robot, opts.robot_is_client)
-    )
-    if fmt is None:
-        return View(robot=robot, robot_is_client=is_client)
-    return View(robot=robot, robot_is_client=is_client, time_format=fmt)
-
-
-def _redecoded(
-    log: Any, args: argparse.Namespace, fmt: Any, feed: ReplayFeed | None = None
-) -> Iterator[tuple[dict[str, Any], str, float, Any]]:
-    from mbmon.format import record_to_json
-    from mbmon.hub import Hub
-    from mbmon.io.replay import raw_items, recorded_annotator, recorded_options
+        return
+    from mbmon.io.replay import recorded_annotator, recorded_options
     from mbmon.pipeline import Pipeline, PipelineConfig
 
-    opts = recorded_options(log)
-    view = _replay_view(log, args, fmt)
-    annotator = recorded_annotator(log, opts)
-    pipeline = Pipeline(annotator, PipelineConfig(timeout=opts.timeout, baudrate=opts.baud))
-    with Hub(pipeline) as hub:  # the one loop every command runs, as `read` does
+    with Hub() as hub:  # closes the feed and the console whatever happens next
         if feed is not None:
             hub.add_listener(feed.chunks)
-        for record in hub.iter_records(raw_items(log)):
-            obj = record_to_json(record, view)
-            yield obj, obj["line"], record.ts, record
+        hub.add_listener(Selection(shown, view, flt))
+        opts = recorded_options(log)
+        hub.pipeline = Pipeline(
+            recorded_annotator(log, opts), PipelineConfig(timeout=opts.timeout, baudrate=opts.baud)
+        )
+        hub.run_items(source.items())
+        if feed is not None:
+            feed.finish()
 
 
 def _open_feed(args: argparse.Namespace, log: Any, filtered: bool) -> ReplayFeed | None:
@@ -368,7 +242,7 @@ def _open_feed(args: argparse.Namespace, log: Any, filtered: bool) -> ReplayFeed
     opts = recorded_options(log)
     profiles = log.profiles()
     ctx = SinkContext(
-        view=_replay_view(log, args),
+        view=replay_view(log, args),
         source=log.metadata.get(METADATA_NAME, {}).get("source", str(log.path)),
         profiles=profiles,
         profile_specs=opts.profile_specs if (profiles or TOPIC_STATE in log.topics) else [],

@@ -45,6 +45,13 @@ class ReplayFeed:
 
         return _Chunks()
 
+    name = "foxglove"
+
+    def on_records(self, records: list[Any]) -> None:
+        """Listener hook: serve each record replay prints (after its filters)."""
+        for record in records:
+            self.serve(record)
+
     def serve(self, made: Any) -> None:
         """Serve one printed row: a re-decoded record, or a stored record's messages."""
         if self._messages is None:

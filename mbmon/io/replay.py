@@ -51,6 +51,7 @@ from mbmon.io.mcap.layout import (
 )
 from mbmon.io.mcap.reader import LogError, LogMessage, McapLog
 from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport
+from mbmon.stored import StoredRecord, kind_of
 
 FRAME_KINDS = frozenset({"request", "response", "exception"})
 
@@ -77,6 +78,11 @@ class LoggedRecord:
         if self.obj is not None:
             return str(self.obj.get("line") or "")
         return ""
+
+    def stored(self) -> StoredRecord:
+        """This record as the listeners take it (:class:`~mbmon.stored.StoredRecord`)."""
+        return StoredRecord(self.index, self.time, kind_of(self.obj), None, obj=self.obj,
+                            line=self.text)  # fmt: skip
 
 
 def payload(log: McapLog, msg: LogMessage) -> dict[str, Any] | None:
