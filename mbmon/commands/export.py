@@ -15,7 +15,6 @@ from mbmon.commands.logfile import (
     open_log,
     progress,
     report_skipped,
-    retimed,
 )
 from mbmon.filters import add_filter_options
 from mbmon.io.mcapcopy import copy_log
@@ -99,14 +98,11 @@ def _port(text: str) -> int:
 def run_export(args: argparse.Namespace) -> int:
     """``mbmon export``: the log converted by the suffix of ``-o``."""
     from mbmon.commands.common import check_outputs
-    from mbmon.filters import FilterError, RecordFilter
-    from mbmon.format import View
+    from mbmon.filters import FilterError
     from mbmon.io.mcap.reader import LogError
-    from mbmon.io.replay import recorded_options
-    from mbmon.sinks.base import SinkContext, SinkError, open_sink
+    from mbmon.sinks.base import SinkError
 
     target = Path(args.output)
-    suffix = target.suffix.lower()
     # the one check of read -w too: a known format, and never the input (device, inode)
     check_outputs([str(target)], [args.log])
     log, status = open_log(args.log, "export")
@@ -117,53 +113,12 @@ def run_export(args: argparse.Namespace) -> int:
             fmt, flt = log_times(args, log)
         except FilterError as exc:
             return filter_failed(log, exc)
-        if suffix in (".pcap", ".pcapng", ".mcap") and (
-            flt.units is not None
-            or flt.fcs is not None
-            or flt.address is not None
-            or flt.grep
-            or flt.where is not None
-        ):
-            err(f"error: {suffix} export takes only --since/--until (it copies raw bytes)")
-            return EXIT_USAGE
-        if not log.finished and _recovers_nothing(log):
-            # an output with no message in it would look like a repaired or converted
-            # log and hide that nothing came back: say so and write no file
-            err(f"{log.path}: nothing to export, no file written: {log.status.describe()}")
-            return EXIT_BAD_INPUT
-        opts = recorded_options(log)
-        ctx = SinkContext(
-            view=View(robot=opts.robot, robot_is_client=opts.robot_is_client, time_format=fmt),
-            command_line=opts.command_line,
-            source=str(log.path),
-            profiles=log.profiles(),
-            profile_specs=opts.profile_specs,
-            timeout=opts.timeout,
-            baud=opts.baud,
-        )
+        status = _refused(log, target.suffix.lower(), flt)
+        if status is not None:
+            return status
         bar = progress(log)
         try:
-            if suffix == ".mcap":
-                copy_log(log, target, RecordFilter(since=flt.since, until=flt.until))
-            elif suffix in (".pcap", ".pcapng"):
-                _export_pcap(
-                    log,
-                    target,
-                    ctx,
-                    flt,
-                    pcapng=suffix == ".pcapng",
-                    keep_segments=args.keep_segments,
-                    server_port=None if args.keep_port else args.server_port,
-                )
-            else:
-                from mbmon.io.replay import logged_records
-
-                with open_sink(target, ctx) as sink:
-                    assert hasattr(sink, "write_logged")  # .txt .jsonl .csv .parquet
-                    for rec in logged_records(log):
-                        obj, line = retimed(rec.obj, rec.text, rec.time, fmt)
-                        if flt.matches(obj, line, rec.time):
-                            sink.write_logged(obj, line)
+            written = _export(args, log, target, fmt, flt)
         except SinkError as exc:
             err(str(exc))
             return EXIT_BAD_INPUT
@@ -178,9 +133,86 @@ def run_export(args: argparse.Namespace) -> int:
         finally:
             bar.close()
         note_status(log)
-        if report_skipped(log):
+        if report_skipped(log) or not written:
             return EXIT_BAD_INPUT
     return EXIT_OK
+
+
+def _refused(log: Any, suffix: str, flt: Any) -> int | None:
+    """The exit status when the export cannot be made (a usage error, or a log that
+    gives nothing back: then no file is written), after saying why; else ``None``."""
+    if suffix in _RAW_FORMATS and (
+        flt.units is not None
+        or flt.fcs is not None
+        or flt.address is not None
+        or flt.grep
+        or flt.where is not None
+    ):
+        err(f"error: {suffix} export takes only --since/--until (it copies raw bytes)")
+        return EXIT_USAGE
+    if not log.finished and _recovers_nothing(log):
+        # an output with no message in it would look like a repaired or converted
+        # log and hide that nothing came back: say so and write no file
+        err(f"{log.path}: nothing to export, no file written: {log.status.describe()}")
+        return EXIT_BAD_INPUT
+    return None
+
+
+#: formats made of the log's raw bytes (the filters of records do not apply)
+_RAW_FORMATS = (".pcap", ".pcapng", ".mcap")
+
+
+def _export(args: argparse.Namespace, log: Any, target: Path, fmt: Any, flt: Any) -> bool:
+    """Write ``target`` by its suffix; whether its writer took everything (a sink that
+    failed on the way was reported by the hub and detached)."""
+    from mbmon.filters import RecordFilter
+    from mbmon.format import View
+    from mbmon.io.replay import recorded_options
+    from mbmon.sinks.base import SinkContext, open_sink
+
+    suffix = target.suffix.lower()
+    if suffix == ".mcap":
+        copy_log(log, target, RecordFilter(since=flt.since, until=flt.until))
+        return True
+    opts = recorded_options(log)
+    ctx = SinkContext(
+        view=View(robot=opts.robot, robot_is_client=opts.robot_is_client, time_format=fmt),
+        command_line=opts.command_line,
+        source=str(log.path),
+        profiles=log.profiles(),
+        profile_specs=opts.profile_specs,
+        timeout=opts.timeout,
+        baud=opts.baud,
+    )
+    if suffix in (".pcap", ".pcapng"):
+        _export_pcap(
+            log,
+            target,
+            ctx,
+            flt,
+            pcapng=suffix == ".pcapng",
+            keep_segments=args.keep_segments,
+            server_port=None if args.keep_port else args.server_port,
+        )
+        return True
+    return write_records(log, open_sink(target, ctx), fmt, flt)
+
+
+def write_records(log: Any, sink: Any, fmt: Any, flt: Any) -> bool:
+    """The log's stored records, filtered, into ``sink`` through the hub, as ``read -w``
+    hands a sink its records (the one listener contract): whether the sink took them
+    all (a sink that raised was reported by the hub, closed and detached)."""
+    from mbmon.format import View
+    from mbmon.hub import Hub
+    from mbmon.io.logsource import LogSource, StoredPipeline, run_stored
+    from mbmon.sinks.select import Selection
+
+    view = View(time_format=fmt)
+    # records only: a sink's on_chunk/on_event are for a run's input, which a stored
+    # record is not (the selection passes on the record hooks alone)
+    with Hub(StoredPipeline(), [Selection([sink], view)]) as hub:
+        run_stored(hub, LogSource(log, fmt, flt))
+    return not hub.failures
 
 
 def _recovers_nothing(log: Any) -> bool:
