@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections import Counter
 from typing import Any
 
-from mbmon.model import EventKind, Phase, Record, RecordKind
+from mbmon.model import EventKind, Phase, Record, RecordKind, Stream
 from mbmon.timefmt import human_span
 
 _REQUEST, _RESPONSE, _EXCEPTION = RecordKind.REQUEST, RecordKind.RESPONSE, RecordKind.EXCEPTION
@@ -73,40 +73,53 @@ class Summary:
                 self.exceptions += 1
                 if record.request is None:
                     self.unsolicited += 1
-            elif kind is _NOISE:
-                noise = record.noise
-                self.noise_records += 1
-                if noise is not None:
-                    self.noise_bytes += len(noise.raw)
-                    if "CRC" in noise.reason:
-                        self.crc_errors += 1
-            elif kind is _EVENT:
-                event = record.event
-                if event is not None:
-                    self.events[event.kind.value] += 1
-                    if event.kind is EventKind.TIMEOUT:
-                        self.timeouts += 1
-                    elif event.kind is EventKind.STATS:
-                        continue  # the source's own counters, stamped when it stopped:
-                        # not traffic, so not part of the time span
-            elif kind is _COMMAND:
-                command = record.command
-                if command is not None:
-                    self._command(command.stream.id, command.unit, command.phase)
+            elif not self._other(record):
+                continue  # the source's own counters, stamped when it stopped:
+                # not traffic, so not part of the time span
             frame = record.frame
             if frame is not None and frame.pdu.malformed:
                 self.malformed += 1
             stream = record.stream
             if stream is not None and stream.id > self.max_stream:
-                self.max_stream = stream.id
-                view = self.view
-                if view is not None and not self.robot_seen:
-                    self.robot_seen = view.robot_role(stream) is not None
+                self._new_stream(stream)
             ts = record.ts
             if self.first is None or ts < self.first:
                 self.first = ts
             if self.last is None or ts > self.last:
                 self.last = ts
+
+    def _other(self, record: Record) -> bool:
+        """Count a noise run, an event or a command step; ``False`` for a source's
+        closing statistics (no part of the traffic)."""
+        kind = record.kind
+        if kind is _NOISE:
+            noise = record.noise
+            self.noise_records += 1
+            if noise is not None:
+                self.noise_bytes += len(noise.raw)
+                if "CRC" in noise.reason:
+                    self.crc_errors += 1
+        elif kind is _EVENT:
+            event = record.event
+            if event is not None:
+                self.events[event.kind.value] += 1
+                if event.kind is EventKind.TIMEOUT:
+                    self.timeouts += 1
+                elif event.kind is EventKind.STATS:
+                    return False
+        elif kind is _COMMAND:
+            command = record.command
+            if command is not None:
+                self._command(command.stream.id, command.unit, command.phase)
+        return True
+
+    def _new_stream(self, stream: Stream) -> None:
+        """A stream with a higher id than any so far: the count, and whether the robot
+        ``--robot`` names is one of its ends."""
+        self.max_stream = stream.id
+        view = self.view
+        if view is not None and not self.robot_seen:
+            self.robot_seen = view.robot_role(stream) is not None
 
     def _command(self, sid: int, unit: int, phase: Phase) -> None:
         """One step of a command's life (written, executing, success/fail, returned):
