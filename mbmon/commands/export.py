@@ -113,9 +113,9 @@ def run_export(args: argparse.Namespace) -> int:
             fmt, flt = log_times(args, log)
         except FilterError as exc:
             return filter_failed(log, exc)
-        status = _refused(log, target.suffix.lower(), flt)
-        if status is not None:
-            return status
+        refused = _refused(log, target.suffix.lower(), flt)
+        if refused is not None:
+            return refused
         bar = progress(log)
         try:
             written = _export(args, log, target, fmt, flt)

@@ -34,8 +34,9 @@ class StoredPipeline(Pipeline):
     makes no record."""
 
     def feed(self, item: Chunk | Event) -> list[Record]:
-        if type(item) is StoredRecord:
-            return [item]
+        fed: object = item  # a stored record, handed in as the hub's input (run_stored)
+        if type(fed) is StoredRecord:
+            return [fed]
         return []
 
     def tick(self, now: float) -> list[Record]:

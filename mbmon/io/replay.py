@@ -191,7 +191,7 @@ def _raw_item(data: dict[str, Any], streams: dict[int, Stream]) -> Chunk | Event
 
 
 #: the fields of a source event's info the decoders and writers read, and their types
-_SOURCE_INFO: dict[str, type | tuple[type, ...]] = {
+_SOURCE_INFO: dict[str, type[Any]] = {
     "how": str, "by": str, "message": str, "direction": str, "bytes": int, "half_closed": bool,
 }  # fmt: skip
 
@@ -200,11 +200,12 @@ def _source_info(info: dict[str, Any]) -> dict[str, Any]:
     """A source event's info as the pipeline may trust it: the fields it reads have their
     types (else ``ValueError``); other fields only plain values (the rest dropped)."""
     out: dict[str, Any] = {}
+    value: Any
     for key, value in info.items():
         wanted = _SOURCE_INFO.get(key)
         if wanted is not None:
             if type(value) is not wanted:
-                raise ValueError(f"info.{key} is not a {wanted.__name__}")  # type: ignore[union-attr]
+                raise ValueError(f"info.{key} is not a {wanted.__name__}")
             if key == "direction":
                 Direction(value)
             elif key == "bytes" and not 0 <= value < 1 << 32:
