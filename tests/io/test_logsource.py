@@ -104,10 +104,7 @@ def test_a_redecode_is_paced_only_inside_since_until(session_log: Path) -> None:
         since = times[len(times) // 2]
         clock = FakeClock()
         pacer = Pacer(1.0, clock=clock.clock, sleep=clock.sleep)
-        paced = list(
-            LogSource(
-                log, TimeFormat("a"), RecordFilter(since=since), pacer=pacer, raw=True
-            ).items()
-        )
+        source = LogSource(log, TimeFormat("a"), RecordFilter(since=since), pacer=pacer, raw=True)
+        paced = list(source.items())
     assert paced == items
     assert sum(clock.sleeps) == pytest.approx(times[-1] - since, abs=1e-6)
