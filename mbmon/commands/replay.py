@@ -208,8 +208,11 @@ def _replay(
     shown: list[Any] = [] if feed is None else [feed]
     if not args.quiet:  # paced: every line out as it is due
         shown.append(ConsoleListener(sys.stdout, view, as_json=args.json, live=pacer is not None))
+    # each behind its own selection: a closed stdout (| head) does not stop the feed
+    selected = flt if args.redecode else None  # stored records: the source filtered them
+    listeners = [Selection([listener], view, selected) for listener in shown]
     if not args.redecode:
-        with Hub(StoredPipeline(), [Selection(shown, view)]) as hub:
+        with Hub(StoredPipeline(), listeners) as hub:
             run_stored(hub, source)
             if feed is not None:
                 feed.finish()
@@ -217,10 +220,11 @@ def _replay(
     from mbmon.io.replay import recorded_annotator, recorded_options
     from mbmon.pipeline import Pipeline, PipelineConfig
 
-    with Hub() as hub:  # closes the feed and the console whatever happens next
-        if feed is not None:
-            hub.add_listener(feed.chunks)
-        hub.add_listener(Selection(shown, view, flt))
+    # the hub first, so that it closes the feed and the console whatever happens next
+    # (the recorded profiles may not load: a damaged log)
+    with Hub(listeners=[] if feed is None else [feed.chunks]) as hub:
+        for listener in listeners:
+            hub.add_listener(listener)
         opts = recorded_options(log)
         hub.pipeline = Pipeline(
             recorded_annotator(log, opts), PipelineConfig(timeout=opts.timeout, baudrate=opts.baud)
