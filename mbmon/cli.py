@@ -1,8 +1,9 @@
 """Command-line entry point: parser assembly, ``main()``, and what ends a run.
 
 Every command is a module of :mod:`mbmon.commands` (``register`` adds its
-parser, ``run`` wires sources, hub and listeners); the log commands are in
-:mod:`mbmon.commands.logs`. Exit codes are defined once, in
+parser, ``run`` wires sources, hub and listeners); the log commands are
+:mod:`~mbmon.commands.replay`, :mod:`~mbmon.commands.info` and
+:mod:`~mbmon.commands.export`. Exit codes are defined once, in
 :mod:`mbmon.commands.common`.
 
 Importing this module imports nothing else of mbmon and nothing heavy: the
@@ -52,12 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=_version())
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMANDS[:2]:  # read, decode
-        importlib.import_module(f"mbmon.commands.{name}").register(sub)
-    from mbmon.commands import logs
-
-    logs.add_subcommands(sub)
-    for name in COMMANDS[2:]:
+    for name in COMMANDS:
         importlib.import_module(f"mbmon.commands.{name}").register(sub)
     return parser
 

@@ -28,6 +28,7 @@ from mbmon.model import (
     Transport,
 )
 from mbmon.protocol.functions import FUNCTIONS, SHAPE
+from mbmon.stored import StoredRecord
 from mbmon.timefmt import TimeFormat
 
 #: Function code names (Modbus Application Protocol v1.1b); kept here so that
@@ -522,6 +523,8 @@ def record_line(record: Record, view: View, notes: tuple[str, ...] | None = None
             monitor_hex(frame.pdu.raw),
             "; ".join(notes) + _latency_text(record, frame),
         )
+    if type(record) is StoredRecord:  # read back from a log: its line, as recorded
+        return record.text(view.time_format)
     if kind is RecordKind.NOISE and record.noise is not None:
         noise = record.noise
         shown = monitor_hex(noise.raw[:_MAX_NOISE_HEX]) + (
@@ -672,6 +675,8 @@ def record_to_json(record: Record, view: View, *, line: bool = True) -> dict[str
         if pdu.fields:
             obj["fields"] = _jsonable(pdu.fields)
         return obj
+    if type(record) is StoredRecord:  # read back from a log: its object, as recorded
+        return record.json(view.time_format)
     out: dict[str, Any] = dict.fromkeys(_JSON_KEYS)
     out["index"] = record.index
     out["time"] = record.ts if record.stream is None or record.stream.timed else None

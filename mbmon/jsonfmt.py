@@ -30,6 +30,7 @@ from mbmon.format import (
     View,
     generic_note,
     json_bytes,
+    json_line,
     monitor_hex,
     record_to_json,
     values_text,
@@ -37,6 +38,7 @@ from mbmon.format import (
 from mbmon.jsoncache import JsonLineCache
 from mbmon.model import Direction, Frame, Pdu, Record, RecordKind, Stream
 from mbmon.protocol.functions import FUNCTIONS, derived
+from mbmon.stored import StoredRecord
 from mbmon.timefmt import TimeFormat
 
 #: Stands for a per-record value while the fixed parts of a JSON line are cut out.
@@ -68,6 +70,8 @@ def record_json_bytes(record: Record, view: View) -> bytes:
     """
     frame = record.frame
     if frame is None:
+        if type(record) is StoredRecord:  # a log's object: careful with what damage left
+            return json_line(record.json(view.time_format)).encode()
         return json_bytes(record_to_json(record, view))
     cache = view.json_cache
     stream = frame.stream

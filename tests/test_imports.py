@@ -32,7 +32,16 @@ def test_no_heavy_imports(module: str) -> None:
     assert out.stdout.strip() == "", f"{module} imports {out.stdout.strip()}"
 
 
-@pytest.mark.parametrize("module", ["mbmon.monitor", "mbmon.monitor.feed", "mbmon.commands.logs"])
+@pytest.mark.parametrize(
+    "module",
+    [
+        "mbmon.monitor",
+        "mbmon.monitor.feed",
+        "mbmon.commands.replay",
+        "mbmon.commands.export",
+        "mbmon.commands.info",
+    ],
+)
 def test_the_monitor_imports_textual_only_when_a_screen_runs(module: str) -> None:
     code = f"import sys, {module}; print('textual' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

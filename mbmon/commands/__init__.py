@@ -12,6 +12,9 @@ from __future__ import annotations
 COMMANDS: list[str] = [
     "read",
     "decode",
+    "replay",
+    "info",
+    "export",
     "sniff",
     "proxy",
     "sim",

@@ -1,7 +1,7 @@
 """``mbmon replay LOG --serve`` and ``--to``: replay against servers (options and wiring).
 
 :func:`add_options` adds the option group to the ``replay`` parser and
-:func:`run` runs either mode; :mod:`mbmon.commands.logs` calls :func:`run` when
+:func:`run` runs either mode; :mod:`mbmon.commands.replay` calls :func:`run` when
 :func:`wanted` says one was asked for. The work itself lives in
 :mod:`mbmon.io.exchanges` (the log as requests and answers),
 :mod:`mbmon.io.emulate` (the register image and the emulating server) and

@@ -51,6 +51,7 @@ from mbmon.io.mcap.layout import (
 )
 from mbmon.io.mcap.reader import LogError, LogMessage, McapLog
 from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport
+from mbmon.stored import StoredRecord, kind_of
 
 FRAME_KINDS = frozenset({"request", "response", "exception"})
 
@@ -77,6 +78,11 @@ class LoggedRecord:
         if self.obj is not None:
             return str(self.obj.get("line") or "")
         return ""
+
+    def stored(self) -> StoredRecord:
+        """This record as the listeners take it (:class:`~mbmon.stored.StoredRecord`)."""
+        return StoredRecord(self.index, self.time, kind_of(self.obj), None, obj=self.obj,
+                            line=self.text)  # fmt: skip
 
 
 def payload(log: McapLog, msg: LogMessage) -> dict[str, Any] | None:
@@ -185,7 +191,7 @@ def _raw_item(data: dict[str, Any], streams: dict[int, Stream]) -> Chunk | Event
 
 
 #: the fields of a source event's info the decoders and writers read, and their types
-_SOURCE_INFO: dict[str, type | tuple[type, ...]] = {
+_SOURCE_INFO: dict[str, type[Any]] = {
     "how": str, "by": str, "message": str, "direction": str, "bytes": int, "half_closed": bool,
 }  # fmt: skip
 
@@ -194,11 +200,12 @@ def _source_info(info: dict[str, Any]) -> dict[str, Any]:
     """A source event's info as the pipeline may trust it: the fields it reads have their
     types (else ``ValueError``); other fields only plain values (the rest dropped)."""
     out: dict[str, Any] = {}
+    value: Any
     for key, value in info.items():
         wanted = _SOURCE_INFO.get(key)
         if wanted is not None:
             if type(value) is not wanted:
-                raise ValueError(f"info.{key} is not a {wanted.__name__}")  # type: ignore[union-attr]
+                raise ValueError(f"info.{key} is not a {wanted.__name__}")
             if key == "direction":
                 Direction(value)
             elif key == "bytes" and not 0 <= value < 1 << 32:

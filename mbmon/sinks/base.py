@@ -3,7 +3,12 @@
 The listener contract (its hooks, every one optional, ``close`` included) is
 :data:`mbmon.hub.HOOKS`, in :mod:`mbmon.hub` only; the hub calls only the hooks
 a listener defines. A sink is a listener that writes a file, opened by
-:func:`open_sink` from the suffix of ``-w FILE``; sink modules are imported only when used.
+:func:`open_sink` from the suffix of ``-w FILE`` or ``export -o FILE``; sink
+modules are imported only when used. There is one contract for both: ``read``
+hands a sink the records it decodes, ``export`` the records a log stored
+(:class:`~mbmon.stored.StoredRecord`, whose line and JSON object
+:mod:`mbmon.format` gives as they were recorded), through the same hooks, so a
+suffix registered once in :data:`SINKS` serves both.
 """
 
 from __future__ import annotations

@@ -28,7 +28,7 @@ def utf8_buffer(out: IO[str]) -> IO[bytes] | None:
     """The binary buffer under the text stream ``out`` when writing UTF-8 bytes there
     is the same as writing their text to ``out`` (UTF-8 encoding, no newline
     translation), after flushing ``out``; else ``None``."""
-    buffer = getattr(out, "buffer", None)
+    buffer: IO[bytes] | None = getattr(out, "buffer", None)
     encoding = getattr(out, "encoding", None)
     if buffer is None or not isinstance(encoding, str) or os.linesep != "\n":
         return None
@@ -51,6 +51,8 @@ class ConsoleListener:
         self.live = live
         buffer = utf8_buffer(out) if as_json else None
         self._encode: Callable[[Record, View], Any]
+        self._newline: Any  # str, or bytes when the lines go to stdout's binary buffer
+        self._target: IO[Any]
         if buffer is not None:
             self._encode, self._newline, self._target = record_json_bytes, b"\n", buffer
         elif as_json:

@@ -26,7 +26,6 @@ COLUMNS = (
 )  # fmt: skip
 
 #: record kinds that become rows
-ROW_KINDS = frozenset({"request", "response", "exception", "noise"})
 _ROW_RECORDS = frozenset(
     {RecordKind.REQUEST, RecordKind.RESPONSE, RecordKind.EXCEPTION, RecordKind.NOISE}
 )
@@ -78,15 +77,6 @@ class CsvSink(TextFileSink):
         if record.kind in _ROW_RECORDS:
             try:
                 self._csv.writerow(csv_row(record_to_json(record, self.view)))
-            except OSError as exc:
-                raise self._named(exc) from exc
-            self._tick()
-
-    def write_obj(self, obj: Mapping[str, Any]) -> None:
-        """Write the row of an already-made ``read --json`` object if it is a frame or noise."""
-        if obj.get("kind") in ROW_KINDS:
-            try:
-                self._csv.writerow(csv_row(obj))
             except OSError as exc:
                 raise self._named(exc) from exc
             self._tick()

@@ -2,9 +2,9 @@
 
 Records go through the same fast encoder as ``read --json`` to stdout
 (:func:`mbmon.jsonfmt.record_json_bytes`, UTF-8 bytes written to a binary file:
-no text layer, no encode step); already-made objects (``mbmon export``) through
-:func:`mbmon.format.json_line`, which gives the same bytes, as ``replay --json``
-does, so that all four agree byte for byte.
+no text layer, no encode step); records read back from a log (``mbmon export``,
+:class:`~mbmon.stored.StoredRecord`) give their stored object through the same
+function, as ``replay --json`` prints it, so that all four agree byte for byte.
 
 Also owns :class:`TextFileSink`, the base of the line-oriented sinks (file
 opening, the flush that puts every line on disk within a second — on each
@@ -16,7 +16,6 @@ stalls never holds lines back —, and write errors that name the file:
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
 from pathlib import Path
 from typing import IO, Any
 
@@ -24,6 +23,7 @@ from mbmon.format import json_line
 from mbmon.jsonfmt import record_json_bytes
 from mbmon.model import Record
 from mbmon.sinks.base import SinkBase, SinkContext
+from mbmon.stored import json_less
 
 #: the encoder of ``read --json`` lines (mbmon.format.json_line: compact, non-ASCII kept)
 dumps_line = json_line
@@ -71,16 +71,6 @@ class TextFileSink(SinkBase):
         if not self._closed:
             self._flush()
 
-    def write_obj(self, obj: Mapping[str, Any]) -> None:
-        """One record's ``read --json`` object, in this file's format."""
-        raise NotImplementedError
-
-    def write_logged(self, obj: Mapping[str, Any] | None, line: str) -> None:
-        """A record as a log stored it (``export``): its JSON object, when it has one,
-        and its monitor line; line-oriented formats override this."""
-        if obj is not None:
-            self.write_obj(obj)
-
     def close(self) -> None:
         if not self._closed:
             self._closed = True
@@ -97,6 +87,8 @@ class JsonlSink(TextFileSink):
         return open(self.path, "wb", buffering=BUFFER_SIZE)
 
     def on_record(self, record: Record) -> None:
+        if record.frame is None and json_less(record):
+            return  # a stored record cut by a crash: a line, no object to write
         try:
             self._f.write(record_json_bytes(record, self.view) + b"\n")
         except OSError as exc:
@@ -104,11 +96,3 @@ class JsonlSink(TextFileSink):
         now = time.monotonic()  # _tick, inlined: this runs once per record
         if now - self._last_flush >= FLUSH_EVERY:
             self._tick()
-
-    def write_obj(self, obj: Mapping[str, Any]) -> None:
-        """Write one already-made ``read --json`` object (used by ``mbmon export``)."""
-        try:
-            self._f.write((dumps_line(obj) + "\n").encode("utf-8"))
-        except OSError as exc:
-            raise self._named(exc) from exc
-        self._tick()

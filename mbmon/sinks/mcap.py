@@ -20,6 +20,7 @@ module wires one to the other for a run.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -90,7 +91,9 @@ class McapSink(SinkBase):
         )
         self._pending = self._log.pending
         assert self._layout is not None
-        self._waiting_item = self._layout.waiting_item
+        self._waiting_item: Callable[[Record], tuple[Record, bytes | dict[str, Any]]] = (
+            self._layout.waiting_item
+        )
 
     def _start(self, w: McapFileWriter) -> None:
         """Header, schemas, channels, metadata and profile attachments, on disk at once."""

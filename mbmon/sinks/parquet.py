@@ -31,6 +31,7 @@ from mbmon import __version__
 from mbmon.format import record_to_json
 from mbmon.model import Record
 from mbmon.sinks.base import SinkBase, SinkContext, SinkError
+from mbmon.stored import StoredRecord
 
 __all__ = ["COLUMNS", "FLUSH_EVERY", "ROW_GROUP", "ParquetSink"]
 
@@ -69,8 +70,8 @@ COLUMNS: tuple[tuple[str, str, str], ...] = (
 
 def _pyarrow() -> Any:
     try:
-        import pyarrow as pa
-        import pyarrow.parquet as pq
+        import pyarrow as pa  # type: ignore[import-untyped]
+        import pyarrow.parquet as pq  # type: ignore[import-untyped]
     except ImportError:
         raise SinkError("Parquet output needs pyarrow: pip install 'mbmon[parquet]'") from None
     return pa, pq
@@ -209,16 +210,15 @@ class ParquetSink(SinkBase):
             raw = record.frame.raw
         elif record.noise is not None:
             raw = bytes(record.noise.raw)
+        elif type(record) is StoredRecord:  # read back from a log (export)
+            if record.obj is None:
+                return  # cut by a crash: a line, no fields to write
+            raw = rebuilt_raw(record.obj)
         self._add(record_to_json(record, self.view), raw)
 
     def on_tick(self, now: float) -> None:
         if self._count and time.monotonic() - self._last_flush >= FLUSH_EVERY:
             self._flush()
-
-    def write_logged(self, obj: Mapping[str, Any] | None, line: str) -> None:
-        """A record as a log stored it (``export``)."""
-        if obj is not None:
-            self._add(obj, rebuilt_raw(obj))
 
     def close(self) -> None:
         if self._closed:

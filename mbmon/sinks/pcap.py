@@ -135,10 +135,10 @@ class PcapSink(SinkBase):
             )
         if writer.bus_records:
             rtu_file = self.companion if writer.linktype != LINKTYPE_USER0 else None
-            name = rtu_file or self.path
+            bus_file = rtu_file or self.path
             out.append(
-                f"{name}: RS485 bus records have link type 147 (USER0); Wireshark decodes them "
-                f"as Modbus RTU with: tshark -r {name} -o '{RTU_OPTION}' (Wireshark: "
+                f"{bus_file}: RS485 bus records have link type 147 (USER0); Wireshark decodes "
+                f"them as Modbus RTU with: tshark -r {bus_file} -o '{RTU_OPTION}' (Wireshark: "
                 "Preferences > Protocols > DLT_USER, User 0 (DLT=147), payload protocol mbrtu)"
             )
         if writer.losses:

@@ -1,13 +1,12 @@
 """Text sink (``-w FILE.txt``): the monitor lines exactly as the console prints them.
 
 One line per record, as the robot's Modbus Monitor would export them: time,
-label, function code + data in hex, then the notes.
+label, function code + data in hex, then the notes. A record read back from a
+log (``mbmon export``) has its stored line, with the time in this file's ``-t``
+format (:class:`~mbmon.stored.StoredRecord`).
 """
 
 from __future__ import annotations
-
-from collections.abc import Mapping
-from typing import Any
 
 from mbmon.format import record_line
 from mbmon.model import Record
@@ -18,15 +17,8 @@ class TextSink(TextFileSink):
     """The console's monitor line for every record."""
 
     def on_record(self, record: Record) -> None:
-        self.write_line(record_line(record, self.view))
-
-    def write_logged(self, obj: Mapping[str, Any] | None, line: str) -> None:
-        self.write_line(line)
-
-    def write_line(self, line: str) -> None:
-        """Write one already-made monitor line (used by ``mbmon export``)."""
         try:
-            self._f.write(line + "\n")
+            self._f.write(record_line(record, self.view) + "\n")
         except OSError as exc:
             raise self._named(exc) from exc
         self._tick()

@@ -12,11 +12,13 @@ from hypothesis import strategies as st
 from sink_records import feed
 
 from mbmon.format import View, json_line, record_line, record_to_json
+from mbmon.hub import hooks_of
 from mbmon.model import Chunk, Record, RecordKind
 from mbmon.sinks.base import SinkContext, SinkError, open_sink
 from mbmon.sinks.csvfile import COLUMNS, CsvSink, utc_text
 from mbmon.sinks.jsonl import JsonlSink, dumps_line
 from mbmon.sinks.text import TextSink
+from mbmon.stored import StoredRecord, kind_of
 
 CTX = SinkContext(view=View(robot="192.168.0.10"), source="x.pcap")
 
@@ -101,20 +103,21 @@ def test_csv_one_row_per_frame(tmp_path: Path, session_stream: list) -> None:
     assert read["notes"].startswith("Read Discrete Inputs 300..304")
 
 
-def test_export_helpers_write_the_same(tmp_path: Path, session_stream: list) -> None:
-    """write_obj/write_line (used by mbmon export) give the files the records give."""
+def test_stored_records_write_what_the_records_write(tmp_path: Path, session_stream: list) -> None:
+    """A record read back from a log (``mbmon export``: its stored object and line, as a
+    :class:`StoredRecord`) through the same hook gives the file the record gave."""
     recs = records_of(session_stream)
     objs = [json.loads(dumps_line(record_to_json(r, CTX.view))) for r in recs]
+    stored = [
+        StoredRecord(o["index"], r.ts, kind_of(o), None, obj=o, line=o["line"])
+        for o, r in zip(objs, recs, strict=True)
+    ]
     for suffix in (".jsonl", ".csv", ".txt"):
         direct, made = tmp_path / f"a{suffix}", tmp_path / f"b{suffix}"
         with open_sink(direct, CTX) as sink:
             feed(sink, session_stream)
         with open_sink(made, CTX) as sink:
-            for obj in objs:
-                if suffix == ".txt":
-                    sink.write_line(obj["line"])  # type: ignore[attr-defined]
-                else:
-                    sink.write_obj(obj)  # type: ignore[attr-defined]
+            hooks_of(sink).records(stored)
         assert made.read_bytes() == direct.read_bytes(), suffix
 
 
