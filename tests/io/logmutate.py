@@ -25,14 +25,18 @@ from __future__ import annotations
 import argparse
 import base64
 import contextlib
+import copy
 import io
 import json
 import random
+import signal
 import struct
 import sys
+import threading
+import time
 import traceback
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -96,32 +100,53 @@ def record_base_logs(tmp: Path, chunk_size: int = 3000) -> list[BaseLog]:
             hub.add_listener(McapSink(path, ctx, chunk_size=chunk_size))
             hub.run_items(read_capture(src))
         data = path.read_bytes()
-        summary_start = _U64.unpack_from(data, len(data) - MAGIC_LEN - 20 + 9)[0]
         with McapLog(path) as log:
             messages = [(m.topic, m.log_time, m.raw) for m in log.messages()]
             metadata = {k: dict(v) for k, v in log.metadata.items()}
             attachments = [(a.name, a.media_type, a.data, a.log_time) for a in log.attachments]
-        out.append(BaseLog(path.stem, data, data[:summary_start], messages, metadata, attachments))
+        out.append(
+            BaseLog(path.stem, data, data[: summary_start(data)], messages, metadata, attachments)
+        )
     if not out:
         raise FileNotFoundError(f"no capture of {BASE_CAPTURES} in {ROOT / 'captures'}")
     return out
+
+
+def summary_start(data: bytes | bytearray) -> int:
+    """Where the summary section of a finished log starts (the footer's first field):
+    the log cut there is what a ``kill -9`` before ``close`` leaves."""
+    return int(_U64.unpack_from(data, len(data) - MAGIC_LEN - 20)[0])
 
 
 # --------------------------------------------------------------------------- blind
 
 
 def blind(base: BaseLog, rng: random.Random) -> bytes:
-    """The zstd log (finished or unfinished) with a few random byte-level damages."""
+    """The zstd log (finished or unfinished) with a few random byte-level damages.
+
+    Half the damages land anywhere; the other half inside a top-level record picked
+    with equal odds (so the small records a reader trusts most, the footer, summary
+    offsets, chunk indexes and statistics, are hit as often as the schemas and
+    attachments that fill most of the file)."""
     data = bytearray(base.finished if rng.random() < 0.6 else base.unfinished)
+    records = walk(bytes(data))
     for _ in range(rng.choice((1, 1, 1, 2, 3, 8))):
-        _damage_bytes(data, rng, start=MAGIC_LEN if rng.random() < 0.97 else 0)
+        at = None
+        if records and rng.random() < 0.5:
+            p, _op, length = rng.choice(records)
+            at = rng.randrange(p, p + 9 + length)
+        _damage_bytes(data, rng, start=MAGIC_LEN if rng.random() < 0.97 else 0, at=at)
     return bytes(data)
 
 
-def _damage_bytes(data: bytearray, rng: random.Random, start: int = MAGIC_LEN) -> None:
+def _damage_bytes(
+    data: bytearray, rng: random.Random, start: int = MAGIC_LEN, at: int | None = None
+) -> None:
+    """One damage at ``at`` (or a random place from ``start`` on)."""
     if len(data) <= start + 1:
         return
-    at = rng.randrange(start, len(data))
+    if at is None or not start <= at < len(data):
+        at = rng.randrange(start, len(data))
     kind = rng.randrange(7)
     if kind == 0:  # one bit
         data[at] ^= 1 << rng.randrange(8)
@@ -264,8 +289,8 @@ def structured(base: BaseLog, rng: random.Random) -> bytes:
     data = bytearray(_without_crcs(buf.getvalue()))
     r = rng.random()
     if r < 0.25:  # as a kill -9 leaves it: no summary, maybe a chunk cut
-        summary_start = _U64.unpack_from(data, len(data) - MAGIC_LEN - 20 + 9)[0]
-        del data[rng.randrange(summary_start - 50, summary_start + 1) :]
+        start = summary_start(data)
+        del data[rng.randrange(start - 50, start + 1) :]
     if rng.random() < 0.3:  # damage that reaches the record parsers (no chunk CRC stops it)
         for _ in range(rng.choice((1, 2, 5))):
             _damage_bytes(data, rng)
@@ -317,7 +342,17 @@ COMMANDS: tuple[tuple[str, ...], ...] = (
 )
 EXPORT_SUFFIXES = (".jsonl", ".csv", ".txt", ".pcap", ".mcap")
 
+#: CPU seconds one command may take on one mutated log (the base logs take milliseconds:
+#: a command over this is a hang in the field)
+BUDGET = 10.0
+
 _parser: argparse.ArgumentParser | None = None
+_parsed: dict[tuple[str, ...], argparse.Namespace] = {}
+
+
+class OverBudget(BaseException):
+    """A command ran past its CPU budget (a ``BaseException``: no ``except Exception``
+    of the code under test swallows it)."""
 
 
 @dataclass(slots=True)
@@ -330,43 +365,95 @@ class Escape:
     text: str
 
 
-def run_command(argv: list[str]) -> tuple[int | None, str, str, Escape | None]:
-    """Run one log command in-process, as ``mbmon.cli.main`` does after parsing:
-    (exit status, stdout, stderr, what escaped or ``None``). Only the exceptions
-    ``main`` turns into messages are allowed (and usage errors never arise here)."""
+def parse(argv: list[str]) -> argparse.Namespace:
+    """The namespace mbmon's own parser (``mbmon.cli.build_parser``) gives ``argv``; each
+    command line is parsed once, and every call gets its own copy (a command may change
+    its namespace)."""
     global _parser
-    from mbmon.cli import build_parser
+    key = tuple(argv)
+    args = _parsed.get(key)
+    if args is None:
+        if _parser is None:
+            from mbmon.cli import build_parser
 
-    if _parser is None:
-        _parser = build_parser()
-    args = _parser.parse_args(argv)
+            _parser = build_parser()
+        args = _parsed[key] = _parser.parse_args(argv)
+    return copy.deepcopy(args)
+
+
+@contextlib.contextmanager
+def cpu_budget(seconds: float | None) -> Iterator[None]:
+    """Raise :class:`OverBudget` in the block once the process has used ``seconds`` of CPU
+    in it (``ITIMER_PROF``; only in the main thread, where signals arrive)."""
+    if not seconds or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def over(_signum: int, _frame: object) -> None:
+        raise OverBudget(f"over the budget of {seconds} CPU seconds")
+
+    old = signal.signal(signal.SIGPROF, over)
+    signal.setitimer(signal.ITIMER_PROF, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_PROF, 0)
+        signal.signal(signal.SIGPROF, old)
+
+
+def _escape(argv: list[str], exc: BaseException) -> Escape:
+    tb = traceback.extract_tb(exc.__traceback__)
+    ours = [f for f in tb if "/mbmon/" in f.filename]
+    where = f"{ours[-1].filename.split('/mbmon/', 1)[1]}:{ours[-1].lineno}" if ours else "?"
+    kind = "over budget" if isinstance(exc, OverBudget) else type(exc).__name__
+    return Escape(argv, kind, where, "".join(traceback.format_exception(exc)))
+
+
+def run_command(
+    argv: list[str], budget: float | None = BUDGET
+) -> tuple[int | None, str, str, Escape | None]:
+    """Run one log command in-process, as ``mbmon.cli.main`` runs it after parsing, with
+    stdout and stderr captured: (exit status, stdout, stderr, what escaped or ``None``).
+    A ``SystemExit`` is an exit status (its message on stderr); any other exception, and
+    a run past ``budget`` CPU seconds, escaped."""
+    args = parse(argv)
     out, err = io.StringIO(), io.StringIO()
     status: int | None = None
     escape = None
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         try:
-            status = args.func(args)
-        except Exception as exc:
-            tb = traceback.extract_tb(exc.__traceback__)
-            ours = [f for f in tb if "/mbmon/" in f.filename]
-            where = f"{ours[-1].filename.split('/mbmon/', 1)[1]}:{ours[-1].lineno}" if ours else "?"
-            text = "".join(traceback.format_exception(exc))
-            escape = Escape(argv, type(exc).__name__, where, text)
+            with cpu_budget(budget):
+                status = args.func(args)
+        except SystemExit as exc:
+            if exc.code is None or isinstance(exc.code, int):
+                status = exc.code or 0
+            else:
+                print(exc.code, file=sys.stderr)
+                status = 1
+        except (Exception, OverBudget) as exc:
+            escape = _escape(argv, exc)
     return status, out.getvalue(), err.getvalue(), escape
 
 
-def run_commands(path: Path, out_dir: Path, turn: int = 0) -> list[Escape]:
-    """Every command of :data:`COMMANDS` on the log at ``path``; what escaped them.
+def run_commands(
+    path: Path,
+    out_dir: Path,
+    turn: int = 0,
+    commands: tuple[tuple[str, ...], ...] = COMMANDS,
+    budget: float | None = BUDGET,
+) -> list[Escape]:
+    """Every command of ``commands`` on the log at ``path``; what escaped them.
 
-    Besides escapes, a run that ends in status 1 must say why on stderr."""
+    Besides escapes, a status other than 0 and 1, and a status of 1 that does not say
+    why on stderr, are findings."""
     escapes = []
-    for command in COMMANDS:
+    for command in commands:
         suffix = EXPORT_SUFFIXES[turn % len(EXPORT_SUFFIXES)]
         argv = [
             str(path) if a == "LOG" else str(out_dir / f"out{suffix}") if a == "OUT" else a
             for a in command
         ]
-        status, _out, err, escape = run_command(argv)
+        status, _out, err, escape = run_command(argv, budget)
         if escape is None and status not in (0, 1):
             escape = Escape(argv, f"status {status}", "?", err)
         elif escape is None and status == 1 and not err.strip():
@@ -379,55 +466,134 @@ def run_commands(path: Path, out_dir: Path, turn: int = 0) -> list[Escape]:
 # --------------------------------------------------------------------------- campaign
 
 
-def campaign(n: int, seed: int, work: Path, report_every: int = 10_000) -> dict[str, Any]:
-    """Run the commands on ``n`` mutated logs (seeded); count logs with any escape, by kind
-    and by place; keep one log per place in ``work/found``."""
-    import time
+def log_rng(seed: int, i: int) -> random.Random:
+    """The generator of log ``i`` of the campaign of ``seed``: any log is made again
+    from its two numbers (``--only I``)."""
+    return random.Random(seed * 10_000_019 + i)
 
+
+@dataclass(slots=True)
+class Tally:
+    """What a campaign did so far: logs by kind, command runs, CPU, findings by place."""
+
+    seed: int
+    per_log: int = len(COMMANDS)
+    logs: dict[str, int] = field(default_factory=lambda: {"blind": 0, "structured": 0})
+    failed: dict[str, int] = field(default_factory=lambda: {"blind": 0, "structured": 0})
+    runs: int = 0
+    cpu_seconds: float = 0.0
+    slowest_log: tuple[float, int] = (0.0, -1)  # CPU seconds, log number
+    places: dict[str, list[int]] = field(default_factory=dict)  # place -> [count, first log]
+
+    def line(self) -> str:
+        n = sum(self.logs.values())
+        return (
+            f"seed {self.seed}: {n} logs ({self.logs['blind']} blind, "
+            f"{self.logs['structured']} structured), {self.runs} command runs, "
+            f"{self.cpu_seconds:.0f} CPU s ({n / max(self.cpu_seconds, 1e-9):.0f} logs/CPU s); "
+            f"logs with a finding: blind {self.failed['blind']}, structured "
+            f"{self.failed['structured']}; {len(self.places)} places; slowest log "
+            f"{self.slowest_log[0] * 1000:.0f} ms (#{self.slowest_log[1]})"
+        )
+
+    def as_json(self) -> dict[str, Any]:
+        return {
+            "seed": self.seed,
+            "logs": self.logs,
+            "logs_with_a_finding": self.failed,
+            "command_runs": self.runs,
+            "per_log": self.per_log,
+            "cpu_seconds": round(self.cpu_seconds, 1),
+            "slowest_log_ms": round(self.slowest_log[0] * 1000, 1),
+            "slowest_log": self.slowest_log[1],
+            "commands": [" ".join(c) for c in COMMANDS],
+            "export_suffixes": list(EXPORT_SUFFIXES),
+            "findings": {k: {"count": c, "first_log": i} for k, (c, i) in self.places.items()},
+        }
+
+
+def campaign(
+    n: int,
+    seed: int,
+    work: Path,
+    report_every: int = 10_000,
+    start: int = 0,
+    budget: float | None = BUDGET,
+    per_log: int = len(COMMANDS),
+) -> Tally:
+    """Run commands of :data:`COMMANDS` on mutated logs ``start`` .. ``start + n - 1`` of
+    ``seed`` in-process (logs written to ``work``: put it on a tmpfs): ``per_log`` of them
+    on each log, taken in turn (with 1, log ``i`` runs command ``i % 7``; with 7, every
+    log runs all); count logs, runs and findings by place; keep each place's first log
+    and traceback in ``work/found``; ``work/tally.json`` holds the counts at every
+    report."""
     work.mkdir(parents=True, exist_ok=True)
     (work / "found").mkdir(exist_ok=True)
     bases = record_base_logs(work)
-    rng = random.Random(seed)
-    logs = {"blind": 0, "structured": 0}
-    failed = {"blind": 0, "structured": 0}
-    places: dict[str, int] = {}
-    started = time.monotonic()
+    tally = Tally(seed, per_log)
     path = work / "m.mcap"
-    for i in range(n):
-        kind, data = mutated(bases, rng)
+    for i in range(start, start + n):
+        t0 = time.process_time()
+        kind, data = mutated(bases, log_rng(seed, i))
         path.write_bytes(data)
-        logs[kind] += 1
-        escapes = run_commands(path, work, i)
+        tally.logs[kind] += 1
+        commands = tuple(COMMANDS[(i * per_log + j) % len(COMMANDS)] for j in range(per_log))
+        escapes = run_commands(path, work, i // len(COMMANDS), commands, budget)
+        tally.runs += per_log
+        took = time.process_time() - t0
+        tally.cpu_seconds += took
+        tally.slowest_log = max(tally.slowest_log, (took, i))
         if escapes:
-            failed[kind] += 1
+            tally.failed[kind] += 1
         for e in escapes:
-            key = f"{e.kind} at {e.where} ({e.argv[0]})"
-            if key not in places:
-                (work / "found" / f"{len(places):03d}.mcap").write_bytes(data)
-                (work / "found" / f"{len(places):03d}.txt").write_text(
-                    " ".join(e.argv) + "\n" + e.text
+            key = f"{e.kind} at {e.where} ({' '.join(e.argv[:1] + e.argv[2:])})"
+            if key not in tally.places:
+                stem = work / "found" / f"{len(tally.places):03d}"
+                stem.with_suffix(".mcap").write_bytes(data)
+                stem.with_suffix(".txt").write_text(
+                    f"seed {seed} log {i}\n{' '.join(e.argv)}\n{e.text}"
                 )
-            places[key] = places.get(key, 0) + 1
-        if (i + 1) % report_every == 0 or i + 1 == n:
-            took = time.monotonic() - started
-            print(
-                f"{i + 1} logs in {took:.0f} s: blind {failed['blind']}/{logs['blind']}, "
-                f"structured {failed['structured']}/{logs['structured']} with an escape; "
-                f"{len(places)} places",
-                flush=True,
-            )
-    return {"logs": logs, "failed": failed, "places": places}
+                tally.places[key] = [0, i]
+            tally.places[key][0] += 1
+        done = i + 1 - start
+        if done % report_every == 0 or done == n:
+            print(tally.line(), flush=True)
+            (work / "tally.json").write_text(json.dumps(tally.as_json(), indent=1))
+    return tally
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description="the offline campaign of hostile logs")
-    parser.add_argument("--logs", type=int, default=10_000)
+    parser.add_argument("--logs", type=int, default=10_000, help="how many mutated logs")
     parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--work", type=Path, default=Path("/tmp/logmutate"))
+    parser.add_argument("--start", type=int, default=0, help="number of the first log")
+    parser.add_argument("--only", type=int, help="make log ONLY again, run it, print findings")
+    parser.add_argument("--work", type=Path, default=Path("/dev/shm/logmutate"))
+    parser.add_argument("--budget", type=float, default=BUDGET, help="CPU s per command")
     parser.add_argument("--report-every", type=int, default=1000)
+    parser.add_argument(
+        "--per-log",
+        type=int,
+        default=len(COMMANDS),
+        choices=range(1, len(COMMANDS) + 1),
+        metavar="K",
+        help="commands run on each log, taken in turn (default: all 7)",
+    )
     args = parser.parse_args()
-    result = campaign(args.logs, args.seed, args.work / f"seed{args.seed}", args.report_every)
-    print(json.dumps(result, indent=1))
+    work = args.work / f"seed{args.seed}"
+    if args.only is not None:
+        work.mkdir(parents=True, exist_ok=True)
+        kind, data = mutated(record_base_logs(work), log_rng(args.seed, args.only))
+        (work / "only.mcap").write_bytes(data)
+        escapes = run_commands(work / "only.mcap", work, args.only, budget=args.budget)
+        print(f"{kind} log {args.only} of seed {args.seed}: {work / 'only.mcap'}")
+        for e in escapes:
+            print(" ".join(e.argv), e.text, sep="\n")
+        raise SystemExit(1 if escapes else 0)
+    tally = campaign(
+        args.logs, args.seed, work, args.report_every, args.start, args.budget, args.per_log
+    )
+    print(json.dumps(tally.as_json(), indent=1))
 
 
 if __name__ == "__main__":

@@ -19,7 +19,6 @@ from __future__ import annotations
 import io
 import json
 import random
-import struct
 from pathlib import Path
 
 import logmutate
@@ -95,7 +94,7 @@ def _rewritten(
     writer.finish()
     data = buf.getvalue()
     if not finished:
-        data = data[: struct.unpack_from("<Q", data, len(data) - 8 - 20 + 9)[0]]
+        data = data[: logmutate.summary_start(data)]
     return data
 
 
