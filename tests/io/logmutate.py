@@ -277,9 +277,10 @@ def structured(base: BaseLog, rng: random.Random) -> bytes:
     for name, media, data, t in attachments:
         writer.add_attachment(0, t, name, media, data)
     channels: dict[str, int] = {}
-    for topic, log_time, raw in base.messages:
+    for topic, log_time, raw in _reshuffled(base.messages, rng):
         if topic not in channels:
-            channels[topic] = writer.register_channel(topic, "json", 0)
+            encoding = "json" if rng.random() < 0.99 else rng.choice(("", "cbor", "JSON"))
+            channels[topic] = writer.register_channel(topic, encoding, 0)
         if rng.random() < rate:
             raw = mutate_payload(raw, rng)
         if rng.random() < 0.01:
@@ -295,6 +296,42 @@ def structured(base: BaseLog, rng: random.Random) -> bytes:
         for _ in range(rng.choice((1, 2, 5))):
             _damage_bytes(data, rng)
     return bytes(data)
+
+
+#: topics a message may be moved to: mbmon's, and some no mbmon version writes
+_TOPICS = (
+    "/modbus/raw", "/modbus/frames", "/modbus/monitor", "/hrss/state", "/hrss/commands",
+    "/mbmon/events", "/modbus/raw2", "", "/x" * 300,
+)  # fmt: skip
+
+
+def _reshuffled(
+    messages: list[tuple[str, int, bytes]], rng: random.Random
+) -> list[tuple[str, int, bytes]]:
+    """The messages, on most logs as they are; on some, a few moved to another topic
+    (a payload of the wrong schema, or an unknown topic), dropped, repeated or swapped
+    with the next (record indexes out of order, requests without their response)."""
+    rate = rng.choice((0.0, 0.0, 0.0, 0.01, 0.1))
+    if not rate:
+        return messages
+    out = list(messages)
+    i = 0
+    while i < len(out):
+        if rng.random() < rate:
+            _topic, log_time, raw = out[i]
+            what = rng.randrange(4)
+            if what == 0:
+                out[i] = (rng.choice(_TOPICS), log_time, raw)
+            elif what == 1:
+                del out[i]
+                continue
+            elif what == 2:
+                out.insert(i, out[i])
+                i += 1
+            elif i + 1 < len(out):
+                out[i], out[i + 1] = out[i + 1], out[i]
+        i += 1
+    return out
 
 
 def walk(data: bytes) -> list[tuple[int, int, int]]:
