@@ -557,16 +557,17 @@ def campaign(
     start: int = 0,
     budget: float | None = BUDGET,
     per_log: int = len(COMMANDS),
+    bases: list[BaseLog] | None = None,
 ) -> Tally:
     """Run commands of :data:`COMMANDS` on mutated logs ``start`` .. ``start + n - 1`` of
     ``seed`` in-process (logs written to ``work``: put it on a tmpfs): ``per_log`` of them
     on each log, taken in turn (with 1, log ``i`` runs command ``i % 7``; with 7, every
     log runs all); count logs, runs and findings by place; keep each place's first log
     and traceback in ``work/found``; ``work/tally.json`` holds the counts at every
-    report."""
+    report. ``bases``: the base logs, when the caller recorded them already."""
     work.mkdir(parents=True, exist_ok=True)
     (work / "found").mkdir(exist_ok=True)
-    bases = record_base_logs(work)
+    bases = bases or record_base_logs(work)
     tally = Tally(seed, per_log)
     path = work / "m.mcap"
     for i in range(start, start + n):

@@ -27,7 +27,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 SETTINGS = settings(
-    max_examples=250,
+    max_examples=500,  # of each kind, every command on each: about 30 s on an idle CI machine
     deadline=None,
     derandomize=True,
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
@@ -205,3 +205,64 @@ def test_redecode_of_damaged_raw_messages(
         assert "message on /modbus/raw at byte" in err
     status, out, err, escape = logmutate.run_command(["replay", str(path), "--redecode"])
     assert len(out.splitlines()) > 50  # the whole session but what the message held
+
+
+# --------------------------------------------------------------------------- the harness
+
+
+def test_the_harness_reports_a_planted_fault_with_its_place(
+    tmp_path: Path, bases: list[logmutate.BaseLog], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A detector that cannot fail proves nothing: with a fault planted in the reader
+    (a ``KeyError`` from the record parser, as a missed check would raise), every
+    command that reads messages reports it as an escape naming the reader's line;
+    the campaign counts the logs and keeps one."""
+    from mbmon.io.mcap.reader import McapLog
+
+    def broken(self: McapLog, data: bytes, chunk_offset: int, layout: object = None) -> None:
+        raise KeyError("planted")
+
+    path = _write(tmp_path, bases[0].finished)
+    assert not logmutate.run_commands(path, tmp_path)  # the log itself is fine
+    monkeypatch.setattr(McapLog, "_parse_records", broken)
+    escapes = logmutate.run_commands(path, tmp_path)
+    assert len(escapes) == len(logmutate.COMMANDS)
+    assert {e.kind for e in escapes} == {"KeyError"}
+    assert all(e.where.startswith("tests/") or "reader" in e.text for e in escapes)
+    tally = logmutate.campaign(3, 1, tmp_path / "campaign", report_every=10, bases=bases)
+    assert sum(tally.logs.values()) == 3 and tally.runs == 3 * len(logmutate.COMMANDS)
+    # every structured log reaches the parser (its chunks are uncompressed and whole)
+    assert tally.failed["structured"] == tally.logs["structured"] >= 1
+    assert any(k.startswith("KeyError at ") for k in tally.places)
+    assert (tmp_path / "campaign" / "found" / "000.mcap").exists()
+    tally_json = json.loads((tmp_path / "campaign" / "tally.json").read_text())
+    assert tally_json["logs"] == tally.logs and tally_json["findings"]
+
+
+def test_the_harness_stops_a_command_over_its_budget(
+    tmp_path: Path, bases: list[logmutate.BaseLog], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A reader that never ends (a loop over a length that does not advance) is a
+    finding too: the CPU budget stops the command and reports it, and the next
+    command runs."""
+    from mbmon.io.mcap.reader import McapLog
+
+    def spins(self: McapLog, data: bytes, chunk_offset: int, layout: object = None) -> None:
+        while True:
+            pass
+
+    path = _write(tmp_path, bases[0].finished)
+    monkeypatch.setattr(McapLog, "_parse_records", spins)
+    status, _out, _err, escape = logmutate.run_command(["replay", str(path)], budget=0.3)
+    assert escape is not None and escape.kind == "over budget", escape
+    monkeypatch.undo()
+    status, out, _err, escape = logmutate.run_command(["replay", str(path)], budget=0.3)
+    assert escape is None and status == 0 and out
+
+
+def test_a_system_exit_is_an_exit_status(tmp_path: Path) -> None:
+    """What ``main`` would end with: a ``SystemExit`` (here argparse's, for a missing
+    file is not one; a log that is not MCAP is a message and status 1) is a status."""
+    path = _write(tmp_path, b"not a log at all")
+    status, _out, err, escape = logmutate.run_command(["info", str(path)])
+    assert escape is None and status == 1 and "not an MCAP file" in err, err
