@@ -371,7 +371,8 @@ def mutated(bases: list[BaseLog], rng: random.Random) -> tuple[str, bytes]:
 # --------------------------------------------------------------------------- the commands
 
 #: the command lines run on every mutated log (LOG and OUT filled in); ``export`` takes
-#: one output format per log, in turn
+#: one output format per log, in turn; ``exchanges`` is what ``replay --serve`` and
+#: ``--to`` do with a log before they open a socket (:func:`serve_image`)
 COMMANDS: tuple[tuple[str, ...], ...] = (
     ("replay", "LOG"),
     ("replay", "LOG", "--json"),
@@ -380,6 +381,7 @@ COMMANDS: tuple[tuple[str, ...], ...] = (
     ("info", "LOG"),
     ("info", "LOG", "--json"),
     ("export", "LOG", "-o", "OUT"),
+    ("exchanges", "LOG"),
 )
 EXPORT_SUFFIXES = (".jsonl", ".csv", ".txt", ".pcap", ".mcap")
 
@@ -444,6 +446,32 @@ def cpu_budget(seconds: float | None) -> Iterator[None]:
         signal.signal(signal.SIGPROF, old)
 
 
+def serve_image(args: argparse.Namespace) -> int:
+    """What ``replay LOG --serve`` does before it listens (and ``--to`` before it sends):
+    the log opened, its requests and answers decoded again (:mod:`mbmon.io.exchanges`)
+    and learnt as the emulated server's register image, with the report of what it
+    cannot answer. A damaged log is a message and status 1, as in the command."""
+    from mbmon.io.emulate import RegisterImage
+    from mbmon.io.exchanges import recorded_exchanges
+    from mbmon.io.mcap.reader import LogError, McapLog
+
+    try:
+        log = McapLog(args.log)
+    except LogError as exc:
+        print(f"mbmon: {exc}", file=sys.stderr)
+        return 1
+    with log:
+        try:
+            image = RegisterImage.from_exchanges(
+                recorded_exchanges(log), miss_exception=2, state="follow"
+            )
+        except LogError as exc:
+            print(f"mbmon: {exc}", file=sys.stderr)
+            return 1
+        print(image.units, image.answered, image.miss_report())
+    return 0
+
+
 def _escape(argv: list[str], exc: BaseException) -> Escape:
     tb = traceback.extract_tb(exc.__traceback__)
     ours = [f for f in tb if "/mbmon/" in f.filename]
@@ -459,7 +487,9 @@ def run_command(
     stdout and stderr captured: (exit status, stdout, stderr, what escaped or ``None``).
     A ``SystemExit`` is an exit status (its message on stderr); any other exception, and
     a run past ``budget`` CPU seconds, escaped."""
-    args = parse(argv)
+    args = (
+        parse(argv) if argv[0] != "exchanges" else argparse.Namespace(func=serve_image, log=argv[1])
+    )
     out, err = io.StringIO(), io.StringIO()
     status: int | None = None
     escape = None
@@ -567,7 +597,7 @@ def campaign(
 ) -> Tally:
     """Run commands of :data:`COMMANDS` on mutated logs ``start`` .. ``start + n - 1`` of
     ``seed`` in-process (logs written to ``work``: put it on a tmpfs): ``per_log`` of them
-    on each log, taken in turn (with 1, log ``i`` runs command ``i % 7``; with 7, every
+    on each log, taken in turn (with 1, log ``i`` runs command ``i % 8``; with 8, every
     log runs all); count logs, runs and findings by place; keep each place's first log
     and traceback in ``work/found``; ``work/tally.json`` holds the counts at every
     report. ``bases``: the base logs, when the caller recorded them already."""
@@ -621,7 +651,7 @@ def main() -> None:
         default=len(COMMANDS),
         choices=range(1, len(COMMANDS) + 1),
         metavar="K",
-        help="commands run on each log, taken in turn (default: all 7)",
+        help=f"commands run on each log, taken in turn (default: all {len(COMMANDS)})",
     )
     args = parser.parse_args()
     work = args.work / f"seed{args.seed}"

@@ -1,5 +1,6 @@
 """Hostile logs through the log commands: ``replay`` (stored, ``--json``, ``--redecode``,
-with ``--since``), ``info`` (text and ``--json``) and ``export`` (every format).
+with ``--since``), ``info`` (text and ``--json``), ``export`` (every format) and what
+``replay --serve`` / ``--to`` do with a log before they open a socket.
 
 Two kinds of mutated logs (tests/io/logmutate.py, shared with the offline
 campaign): blind byte damage of real zstd-compressed logs (finished, and cut as
