@@ -211,6 +211,21 @@ def test_redecode_of_damaged_raw_messages(
 # --------------------------------------------------------------------------- the harness
 
 
+def test_base_logs_are_finished_and_cut(tmp_path: Path, bases: list[logmutate.BaseLog]) -> None:
+    """The unfinished base logs are the finished ones cut where their summary starts
+    (the footer's first field): a reader sees no footer and recovers every message.
+    (The footer was once read 9 bytes off and every 'unfinished' log was whole.)"""
+    from mbmon.io.mcap.reader import McapLog
+
+    for base in bases:
+        assert len(base.unfinished) < len(base.finished), base.name
+        assert base.finished.startswith(base.unfinished)
+        with McapLog(_write(tmp_path, base.unfinished)) as log:
+            assert not log.finished
+            assert [(m.topic, m.log_time, m.raw) for m in log.messages()] == base.messages
+            assert log.status.messages == len(base.messages)
+
+
 def test_the_harness_reports_a_planted_fault_with_its_place(
     tmp_path: Path, bases: list[logmutate.BaseLog], monkeypatch: pytest.MonkeyPatch
 ) -> None:
