@@ -26,6 +26,7 @@ import argparse
 import base64
 import contextlib
 import io
+import itertools
 import json
 import random
 import signal
@@ -69,9 +70,10 @@ class BaseLog:
     attachments: list[tuple[str, str, bytes, int]]  # name, media type, data, log time
 
 
-def record_base_logs(tmp: Path, chunk_size: int = 3000) -> list[BaseLog]:
+def record_base_logs(tmp: Path, chunk_size: int = 3000, items: int | None = None) -> list[BaseLog]:
     """Record every capture of :data:`BASE_CAPTURES` with the MCAP sink (small chunks,
-    zstd as ``read -w`` writes) and keep each log's bytes and messages."""
+    zstd as ``read -w`` writes) and keep each log's bytes and messages; ``items``: only
+    the first so many packets and events of each capture (shorter logs, read faster)."""
     from mbmon.commands.common import make_annotator, profile_sources
     from mbmon.format import View
     from mbmon.hub import Hub
@@ -97,7 +99,7 @@ def record_base_logs(tmp: Path, chunk_size: int = 3000) -> list[BaseLog]:
         )
         with Hub(Pipeline(annotator)) as hub:
             hub.add_listener(McapSink(path, ctx, chunk_size=chunk_size))
-            hub.run_items(read_capture(src))
+            hub.run_items(itertools.islice(read_capture(src), items))
         data = path.read_bytes()
         with McapLog(path) as log:
             messages = [(m.topic, m.log_time, m.raw) for m in log.messages()]
@@ -551,6 +553,7 @@ class Tally:
 
     seed: int
     per_log: int = len(COMMANDS)
+    items: int | None = None  # packets of each capture in the base logs (None: all)
     logs: dict[str, int] = field(default_factory=lambda: {"blind": 0, "structured": 0})
     failed: dict[str, int] = field(default_factory=lambda: {"blind": 0, "structured": 0})
     runs: int = 0
@@ -576,6 +579,7 @@ class Tally:
             "logs_with_a_finding": self.failed,
             "command_runs": self.runs,
             "per_log": self.per_log,
+            "base_items": self.items,
             "cpu_seconds": round(self.cpu_seconds, 1),
             "slowest_log_ms": round(self.slowest_log[0] * 1000, 1),
             "slowest_log": self.slowest_log[1],
@@ -594,17 +598,19 @@ def campaign(
     budget: float | None = BUDGET,
     per_log: int = len(COMMANDS),
     bases: list[BaseLog] | None = None,
+    items: int | None = None,
 ) -> Tally:
     """Run commands of :data:`COMMANDS` on mutated logs ``start`` .. ``start + n - 1`` of
     ``seed`` in-process (logs written to ``work``: put it on a tmpfs): ``per_log`` of them
     on each log, taken in turn (with 1, log ``i`` runs command ``i % 8``; with 8, every
     log runs all); count logs, runs and findings by place; keep each place's first log
     and traceback in ``work/found``; ``work/tally.json`` holds the counts at every
-    report. ``bases``: the base logs, when the caller recorded them already."""
+    report. ``bases``: the base logs, when the caller recorded them already; else
+    recorded here, of the first ``items`` packets of each capture (all: ``None``)."""
     work.mkdir(parents=True, exist_ok=True)
     (work / "found").mkdir(exist_ok=True)
-    bases = bases or record_base_logs(work)
-    tally = Tally(seed, per_log)
+    bases = bases or record_base_logs(work, items=items)
+    tally = Tally(seed, per_log, items)
     path = work / "m.mcap"
     for i in range(start, start + n):
         t0 = time.process_time()
@@ -646,6 +652,9 @@ def main() -> None:
     parser.add_argument("--budget", type=float, default=BUDGET, help="CPU s per command")
     parser.add_argument("--report-every", type=int, default=1000)
     parser.add_argument(
+        "--items", type=int, help="base logs of the first ITEMS packets of each capture"
+    )
+    parser.add_argument(
         "--per-log",
         type=int,
         default=len(COMMANDS),
@@ -657,7 +666,9 @@ def main() -> None:
     work = args.work / f"seed{args.seed}"
     if args.only is not None:
         work.mkdir(parents=True, exist_ok=True)
-        kind, data = mutated(record_base_logs(work), log_rng(args.seed, args.only))
+        kind, data = mutated(
+            record_base_logs(work, items=args.items), log_rng(args.seed, args.only)
+        )
         (work / "only.mcap").write_bytes(data)
         escapes = run_commands(work / "only.mcap", work, args.only, budget=args.budget)
         print(f"{kind} log {args.only} of seed {args.seed}: {work / 'only.mcap'}")
@@ -665,7 +676,14 @@ def main() -> None:
             print(" ".join(e.argv), e.text, sep="\n")
         raise SystemExit(1 if escapes else 0)
     tally = campaign(
-        args.logs, args.seed, work, args.report_every, args.start, args.budget, args.per_log
+        args.logs,
+        args.seed,
+        work,
+        args.report_every,
+        args.start,
+        args.budget,
+        args.per_log,
+        items=args.items,
     )
     print(json.dumps(tally.as_json(), indent=1))
 
