@@ -47,8 +47,8 @@ from mbmon.io.mcap.layout import (
     SOURCE_EVENTS,
     TOPIC_MONITOR,
     TOPIC_RAW,
-    payload_problem,
 )
+from mbmon.io.mcap.payloads import payload_problem
 from mbmon.io.mcap.reader import LogError, LogMessage, McapLog
 from mbmon.model import Chunk, Direction, Event, EventKind, Stream, Transport
 from mbmon.stored import StoredRecord, kind_of
@@ -88,7 +88,7 @@ class LoggedRecord:
 def payload(log: McapLog, msg: LogMessage) -> dict[str, Any] | None:
     """The payload of ``msg`` when it can be trusted, else ``None``: every reader of a
     log asks here. A payload that is not JSON or does not match its topic's schema
-    (:func:`~mbmon.io.mcap.layout.payload_problem`) is left out and recorded with
+    (:func:`~mbmon.io.mcap.payloads.payload_problem`) is left out and recorded with
     where it is (:meth:`McapLog.skip`); the commands report it and exit 1."""
     data, why = msg.decode()
     if why is None:

@@ -26,13 +26,17 @@ import argparse
 import base64
 import contextlib
 import io
+import itertools
 import json
 import random
+import signal
 import struct
 import sys
+import threading
+import time
 import traceback
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -66,9 +70,10 @@ class BaseLog:
     attachments: list[tuple[str, str, bytes, int]]  # name, media type, data, log time
 
 
-def record_base_logs(tmp: Path, chunk_size: int = 3000) -> list[BaseLog]:
+def record_base_logs(tmp: Path, chunk_size: int = 3000, items: int | None = None) -> list[BaseLog]:
     """Record every capture of :data:`BASE_CAPTURES` with the MCAP sink (small chunks,
-    zstd as ``read -w`` writes) and keep each log's bytes and messages."""
+    zstd as ``read -w`` writes) and keep each log's bytes and messages; ``items``: only
+    the first so many packets and events of each capture (shorter logs, read faster)."""
     from mbmon.commands.common import make_annotator, profile_sources
     from mbmon.format import View
     from mbmon.hub import Hub
@@ -94,34 +99,55 @@ def record_base_logs(tmp: Path, chunk_size: int = 3000) -> list[BaseLog]:
         )
         with Hub(Pipeline(annotator)) as hub:
             hub.add_listener(McapSink(path, ctx, chunk_size=chunk_size))
-            hub.run_items(read_capture(src))
+            hub.run_items(itertools.islice(read_capture(src), items))
         data = path.read_bytes()
-        summary_start = _U64.unpack_from(data, len(data) - MAGIC_LEN - 20 + 9)[0]
         with McapLog(path) as log:
             messages = [(m.topic, m.log_time, m.raw) for m in log.messages()]
             metadata = {k: dict(v) for k, v in log.metadata.items()}
             attachments = [(a.name, a.media_type, a.data, a.log_time) for a in log.attachments]
-        out.append(BaseLog(path.stem, data, data[:summary_start], messages, metadata, attachments))
+        out.append(
+            BaseLog(path.stem, data, data[: summary_start(data)], messages, metadata, attachments)
+        )
     if not out:
         raise FileNotFoundError(f"no capture of {BASE_CAPTURES} in {ROOT / 'captures'}")
     return out
+
+
+def summary_start(data: bytes | bytearray) -> int:
+    """Where the summary section of a finished log starts (the footer's first field):
+    the log cut there is what a ``kill -9`` before ``close`` leaves."""
+    return int(_U64.unpack_from(data, len(data) - MAGIC_LEN - 20)[0])
 
 
 # --------------------------------------------------------------------------- blind
 
 
 def blind(base: BaseLog, rng: random.Random) -> bytes:
-    """The zstd log (finished or unfinished) with a few random byte-level damages."""
+    """The zstd log (finished or unfinished) with a few random byte-level damages.
+
+    Half the damages land anywhere; the other half inside a top-level record picked
+    with equal odds (so the small records a reader trusts most, the footer, summary
+    offsets, chunk indexes and statistics, are hit as often as the schemas and
+    attachments that fill most of the file)."""
     data = bytearray(base.finished if rng.random() < 0.6 else base.unfinished)
+    records = walk(bytes(data))
     for _ in range(rng.choice((1, 1, 1, 2, 3, 8))):
-        _damage_bytes(data, rng, start=MAGIC_LEN if rng.random() < 0.97 else 0)
+        at = None
+        if records and rng.random() < 0.5:
+            p, _op, length = rng.choice(records)
+            at = rng.randrange(p, p + 9 + length)
+        _damage_bytes(data, rng, start=MAGIC_LEN if rng.random() < 0.97 else 0, at=at)
     return bytes(data)
 
 
-def _damage_bytes(data: bytearray, rng: random.Random, start: int = MAGIC_LEN) -> None:
+def _damage_bytes(
+    data: bytearray, rng: random.Random, start: int = MAGIC_LEN, at: int | None = None
+) -> None:
+    """One damage at ``at`` (or a random place from ``start`` on)."""
     if len(data) <= start + 1:
         return
-    at = rng.randrange(start, len(data))
+    if at is None or not start <= at < len(data):
+        at = rng.randrange(start, len(data))
     kind = rng.randrange(7)
     if kind == 0:  # one bit
         data[at] ^= 1 << rng.randrange(8)
@@ -252,24 +278,62 @@ def structured(base: BaseLog, rng: random.Random) -> bytes:
     for name, media, data, t in attachments:
         writer.add_attachment(0, t, name, media, data)
     channels: dict[str, int] = {}
-    for topic, log_time, raw in base.messages:
+    for topic, log_time, raw in _reshuffled(base.messages, rng):
         if topic not in channels:
-            channels[topic] = writer.register_channel(topic, "json", 0)
+            encoding = "json" if rng.random() < 0.99 else rng.choice(("", "cbor", "JSON"))
+            channels[topic] = writer.register_channel(topic, encoding, 0)
         if rng.random() < rate:
             raw = mutate_payload(raw, rng)
         if rng.random() < 0.01:
             log_time = rng.choice((0, 1, 2**63, 2**64 - 1))
         writer.add_message(channels[topic], log_time, raw)
     writer.finish()
-    data = bytearray(_without_crcs(buf.getvalue()))
-    r = rng.random()
-    if r < 0.25:  # as a kill -9 leaves it: no summary, maybe a chunk cut
-        summary_start = _U64.unpack_from(data, len(data) - MAGIC_LEN - 20 + 9)[0]
-        del data[rng.randrange(summary_start - 50, summary_start + 1) :]
+    data = buf.getvalue()
+    if rng.random() < 0.25:  # as a kill -9 leaves it: no summary, maybe a chunk cut
+        start = summary_start(data)
+        data = data[: rng.randrange(start - 50, start + 1)]
     if rng.random() < 0.3:  # damage that reaches the record parsers (no chunk CRC stops it)
+        damaged = bytearray(_without_crcs(data))
         for _ in range(rng.choice((1, 2, 5))):
-            _damage_bytes(data, rng)
-    return bytes(data)
+            _damage_bytes(damaged, rng)
+        data = bytes(damaged)
+    return data
+
+
+#: topics a message may be moved to: mbmon's, and some no mbmon version writes
+_TOPICS = (
+    "/modbus/raw", "/modbus/frames", "/modbus/monitor", "/hrss/state", "/hrss/commands",
+    "/mbmon/events", "/modbus/raw2", "", "/x" * 300,
+)  # fmt: skip
+
+
+def _reshuffled(
+    messages: list[tuple[str, int, bytes]], rng: random.Random
+) -> list[tuple[str, int, bytes]]:
+    """The messages, on most logs as they are; on some, a few moved to another topic
+    (a payload of the wrong schema, or an unknown topic), dropped, repeated or swapped
+    with the next (record indexes out of order, requests without their response)."""
+    rate = rng.choice((0.0, 0.0, 0.0, 0.01, 0.1))
+    if not rate:
+        return messages
+    out = list(messages)
+    i = 0
+    while i < len(out):
+        if rng.random() < rate:
+            _topic, log_time, raw = out[i]
+            what = rng.randrange(4)
+            if what == 0:
+                out[i] = (rng.choice(_TOPICS), log_time, raw)
+            elif what == 1:
+                del out[i]
+                continue
+            elif what == 2:
+                out.insert(i, out[i])
+                i += 1
+            elif i + 1 < len(out):
+                out[i], out[i + 1] = out[i + 1], out[i]
+        i += 1
+    return out
 
 
 def walk(data: bytes) -> list[tuple[int, int, int]]:
@@ -284,9 +348,13 @@ def walk(data: bytes) -> list[tuple[int, int, int]]:
 
 
 def _without_crcs(data: bytes) -> bytes:
-    """The file with every chunk CRC and the summary CRC set to 0 (MCAP: not computed)."""
+    """The file (finished, or cut) with every chunk CRC and the summary CRC set to 0
+    (MCAP: not computed); the payloads were mutated before the CRCs were computed, so
+    only byte damage after this needs it."""
     out = bytearray(data)
-    for p, op, _length in walk(data[:-MAGIC_LEN]):
+    for p, op, length in walk(data):
+        if p + 9 + length > len(data):
+            break
         if op == 0x06:
             _U32.pack_into(out, p + 9 + 24, 0)
         elif op == 0x02:
@@ -305,7 +373,8 @@ def mutated(bases: list[BaseLog], rng: random.Random) -> tuple[str, bytes]:
 # --------------------------------------------------------------------------- the commands
 
 #: the command lines run on every mutated log (LOG and OUT filled in); ``export`` takes
-#: one output format per log, in turn
+#: one output format per log, in turn; ``exchanges`` is what ``replay --serve`` and
+#: ``--to`` do with a log before they open a socket (:func:`serve_image`)
 COMMANDS: tuple[tuple[str, ...], ...] = (
     ("replay", "LOG"),
     ("replay", "LOG", "--json"),
@@ -314,10 +383,21 @@ COMMANDS: tuple[tuple[str, ...], ...] = (
     ("info", "LOG"),
     ("info", "LOG", "--json"),
     ("export", "LOG", "-o", "OUT"),
+    ("exchanges", "LOG"),
 )
 EXPORT_SUFFIXES = (".jsonl", ".csv", ".txt", ".pcap", ".mcap")
 
+#: CPU seconds one command may take on one mutated log (the base logs take milliseconds:
+#: a command over this is a hang in the field)
+BUDGET = 10.0
+
 _parser: argparse.ArgumentParser | None = None
+_parsed: dict[tuple[str, ...], argparse.Namespace] = {}
+
+
+class OverBudget(BaseException):
+    """A command ran past its CPU budget (a ``BaseException``: no ``except Exception``
+    of the code under test swallows it)."""
 
 
 @dataclass(slots=True)
@@ -330,43 +410,125 @@ class Escape:
     text: str
 
 
-def run_command(argv: list[str]) -> tuple[int | None, str, str, Escape | None]:
-    """Run one log command in-process, as ``mbmon.cli.main`` does after parsing:
-    (exit status, stdout, stderr, what escaped or ``None``). Only the exceptions
-    ``main`` turns into messages are allowed (and usage errors never arise here)."""
+def parse(argv: list[str]) -> argparse.Namespace:
+    """The namespace mbmon's own parser (``mbmon.cli.build_parser``) gives ``argv``; each
+    command line is parsed once, and every call gets its own copy (a command may change
+    its namespace)."""
     global _parser
-    from mbmon.cli import build_parser
+    key = tuple(argv)
+    args = _parsed.get(key)
+    if args is None:
+        if _parser is None:
+            from mbmon.cli import build_parser
 
-    if _parser is None:
-        _parser = build_parser()
-    args = _parser.parse_args(argv)
+            _parser = build_parser()
+        args = _parsed[key] = _parser.parse_args(argv)
+    return argparse.Namespace(
+        **{k: list(v) if isinstance(v, list) else v for k, v in vars(args).items()}
+    )  # a tenth of deepcopy's time; options are strings, numbers and lists of them
+
+
+@contextlib.contextmanager
+def cpu_budget(seconds: float | None) -> Iterator[None]:
+    """Raise :class:`OverBudget` in the block once the process has used ``seconds`` of CPU
+    in it (``ITIMER_PROF``; only in the main thread, where signals arrive)."""
+    if not seconds or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def over(_signum: int, _frame: object) -> None:
+        raise OverBudget(f"over the budget of {seconds} CPU seconds")
+
+    old = signal.signal(signal.SIGPROF, over)
+    signal.setitimer(signal.ITIMER_PROF, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_PROF, 0)
+        signal.signal(signal.SIGPROF, old)
+
+
+def serve_image(args: argparse.Namespace) -> int:
+    """What ``replay LOG --serve`` does before it listens (and ``--to`` before it sends):
+    the log opened, its requests and answers decoded again (:mod:`mbmon.io.exchanges`)
+    and learnt as the emulated server's register image, with the report of what it
+    cannot answer. A damaged log is a message and status 1, as in the command."""
+    from mbmon.io.emulate import RegisterImage
+    from mbmon.io.exchanges import recorded_exchanges
+    from mbmon.io.mcap.reader import LogError, McapLog
+
+    try:
+        log = McapLog(args.log)
+    except LogError as exc:
+        print(f"mbmon: {exc}", file=sys.stderr)
+        return 1
+    with log:
+        try:
+            image = RegisterImage.from_exchanges(
+                recorded_exchanges(log), miss_exception=2, state="follow"
+            )
+        except LogError as exc:
+            print(f"mbmon: {exc}", file=sys.stderr)
+            return 1
+        print(image.units, image.answered, image.miss_report())
+    return 0
+
+
+def _escape(argv: list[str], exc: BaseException) -> Escape:
+    tb = traceback.extract_tb(exc.__traceback__)
+    ours = [f for f in tb if "/mbmon/" in f.filename]
+    where = f"{ours[-1].filename.split('/mbmon/', 1)[1]}:{ours[-1].lineno}" if ours else "?"
+    kind = "over budget" if isinstance(exc, OverBudget) else type(exc).__name__
+    return Escape(argv, kind, where, "".join(traceback.format_exception(exc)))
+
+
+def run_command(
+    argv: list[str], budget: float | None = BUDGET
+) -> tuple[int | None, str, str, Escape | None]:
+    """Run one log command in-process, as ``mbmon.cli.main`` runs it after parsing, with
+    stdout and stderr captured: (exit status, stdout, stderr, what escaped or ``None``).
+    A ``SystemExit`` is an exit status (its message on stderr); any other exception, and
+    a run past ``budget`` CPU seconds, escaped."""
+    args = (
+        parse(argv) if argv[0] != "exchanges" else argparse.Namespace(func=serve_image, log=argv[1])
+    )
     out, err = io.StringIO(), io.StringIO()
     status: int | None = None
     escape = None
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         try:
-            status = args.func(args)
-        except Exception as exc:
-            tb = traceback.extract_tb(exc.__traceback__)
-            ours = [f for f in tb if "/mbmon/" in f.filename]
-            where = f"{ours[-1].filename.split('/mbmon/', 1)[1]}:{ours[-1].lineno}" if ours else "?"
-            text = "".join(traceback.format_exception(exc))
-            escape = Escape(argv, type(exc).__name__, where, text)
+            with cpu_budget(budget):
+                status = args.func(args)
+        except SystemExit as exc:
+            if exc.code is None or isinstance(exc.code, int):
+                status = exc.code or 0
+            else:
+                print(exc.code, file=sys.stderr)
+                status = 1
+        except (Exception, OverBudget) as exc:
+            escape = _escape(argv, exc)
     return status, out.getvalue(), err.getvalue(), escape
 
 
-def run_commands(path: Path, out_dir: Path, turn: int = 0) -> list[Escape]:
-    """Every command of :data:`COMMANDS` on the log at ``path``; what escaped them.
+def run_commands(
+    path: Path,
+    out_dir: Path,
+    turn: int = 0,
+    commands: tuple[tuple[str, ...], ...] = COMMANDS,
+    budget: float | None = BUDGET,
+) -> list[Escape]:
+    """Every command of ``commands`` on the log at ``path``; what escaped them.
 
-    Besides escapes, a run that ends in status 1 must say why on stderr."""
+    Besides escapes, a status other than 0 and 1, and a status of 1 that does not say
+    why on stderr, are findings."""
     escapes = []
-    for command in COMMANDS:
+    for command in commands:
         suffix = EXPORT_SUFFIXES[turn % len(EXPORT_SUFFIXES)]
         argv = [
             str(path) if a == "LOG" else str(out_dir / f"out{suffix}") if a == "OUT" else a
             for a in command
         ]
-        status, _out, err, escape = run_command(argv)
+        status, _out, err, escape = run_command(argv, budget)
         if escape is None and status not in (0, 1):
             escape = Escape(argv, f"status {status}", "?", err)
         elif escape is None and status == 1 and not err.strip():
@@ -379,55 +541,151 @@ def run_commands(path: Path, out_dir: Path, turn: int = 0) -> list[Escape]:
 # --------------------------------------------------------------------------- campaign
 
 
-def campaign(n: int, seed: int, work: Path, report_every: int = 10_000) -> dict[str, Any]:
-    """Run the commands on ``n`` mutated logs (seeded); count logs with any escape, by kind
-    and by place; keep one log per place in ``work/found``."""
-    import time
+def log_rng(seed: int, i: int) -> random.Random:
+    """The generator of log ``i`` of the campaign of ``seed``: any log is made again
+    from its two numbers (``--only I``)."""
+    return random.Random(seed * 10_000_019 + i)
 
+
+@dataclass(slots=True)
+class Tally:
+    """What a campaign did so far: logs by kind, command runs, CPU, findings by place."""
+
+    seed: int
+    per_log: int = len(COMMANDS)
+    items: int | None = None  # packets of each capture in the base logs (None: all)
+    logs: dict[str, int] = field(default_factory=lambda: {"blind": 0, "structured": 0})
+    failed: dict[str, int] = field(default_factory=lambda: {"blind": 0, "structured": 0})
+    runs: int = 0
+    cpu_seconds: float = 0.0
+    slowest_log: tuple[float, int] = (0.0, -1)  # CPU seconds, log number
+    places: dict[str, list[int]] = field(default_factory=dict)  # place -> [count, first log]
+
+    def line(self) -> str:
+        n = sum(self.logs.values())
+        return (
+            f"seed {self.seed}: {n} logs ({self.logs['blind']} blind, "
+            f"{self.logs['structured']} structured), {self.runs} command runs, "
+            f"{self.cpu_seconds:.0f} CPU s ({n / max(self.cpu_seconds, 1e-9):.0f} logs/CPU s); "
+            f"logs with a finding: blind {self.failed['blind']}, structured "
+            f"{self.failed['structured']}; {len(self.places)} places; slowest log "
+            f"{self.slowest_log[0] * 1000:.0f} ms (#{self.slowest_log[1]})"
+        )
+
+    def as_json(self) -> dict[str, Any]:
+        return {
+            "seed": self.seed,
+            "logs": self.logs,
+            "logs_with_a_finding": self.failed,
+            "command_runs": self.runs,
+            "per_log": self.per_log,
+            "base_items": self.items,
+            "cpu_seconds": round(self.cpu_seconds, 1),
+            "slowest_log_ms": round(self.slowest_log[0] * 1000, 1),
+            "slowest_log": self.slowest_log[1],
+            "commands": [" ".join(c) for c in COMMANDS],
+            "export_suffixes": list(EXPORT_SUFFIXES),
+            "findings": {k: {"count": c, "first_log": i} for k, (c, i) in self.places.items()},
+        }
+
+
+def campaign(
+    n: int,
+    seed: int,
+    work: Path,
+    report_every: int = 10_000,
+    start: int = 0,
+    budget: float | None = BUDGET,
+    per_log: int = len(COMMANDS),
+    bases: list[BaseLog] | None = None,
+    items: int | None = None,
+) -> Tally:
+    """Run commands of :data:`COMMANDS` on mutated logs ``start`` .. ``start + n - 1`` of
+    ``seed`` in-process (logs written to ``work``: put it on a tmpfs): ``per_log`` of them
+    on each log, taken in turn (with 1, log ``i`` runs command ``i % 8``; with 8, every
+    log runs all); count logs, runs and findings by place; keep each place's first log
+    and traceback in ``work/found``; ``work/tally.json`` holds the counts at every
+    report. ``bases``: the base logs, when the caller recorded them already; else
+    recorded here, of the first ``items`` packets of each capture (all: ``None``)."""
     work.mkdir(parents=True, exist_ok=True)
     (work / "found").mkdir(exist_ok=True)
-    bases = record_base_logs(work)
-    rng = random.Random(seed)
-    logs = {"blind": 0, "structured": 0}
-    failed = {"blind": 0, "structured": 0}
-    places: dict[str, int] = {}
-    started = time.monotonic()
+    bases = bases or record_base_logs(work, items=items)
+    tally = Tally(seed, per_log, items)
     path = work / "m.mcap"
-    for i in range(n):
-        kind, data = mutated(bases, rng)
+    for i in range(start, start + n):
+        t0 = time.process_time()
+        kind, data = mutated(bases, log_rng(seed, i))
         path.write_bytes(data)
-        logs[kind] += 1
-        escapes = run_commands(path, work, i)
+        tally.logs[kind] += 1
+        commands = tuple(COMMANDS[(i * per_log + j) % len(COMMANDS)] for j in range(per_log))
+        escapes = run_commands(path, work, i // len(COMMANDS), commands, budget)
+        tally.runs += per_log
+        took = time.process_time() - t0
+        tally.cpu_seconds += took
+        tally.slowest_log = max(tally.slowest_log, (took, i))
         if escapes:
-            failed[kind] += 1
+            tally.failed[kind] += 1
         for e in escapes:
-            key = f"{e.kind} at {e.where} ({e.argv[0]})"
-            if key not in places:
-                (work / "found" / f"{len(places):03d}.mcap").write_bytes(data)
-                (work / "found" / f"{len(places):03d}.txt").write_text(
-                    " ".join(e.argv) + "\n" + e.text
+            key = f"{e.kind} at {e.where} ({' '.join(e.argv[:1] + e.argv[2:])})"
+            if key not in tally.places:
+                stem = work / "found" / f"{len(tally.places):03d}"
+                stem.with_suffix(".mcap").write_bytes(data)
+                stem.with_suffix(".txt").write_text(
+                    f"seed {seed} log {i}\n{' '.join(e.argv)}\n{e.text}"
                 )
-            places[key] = places.get(key, 0) + 1
-        if (i + 1) % report_every == 0 or i + 1 == n:
-            took = time.monotonic() - started
-            print(
-                f"{i + 1} logs in {took:.0f} s: blind {failed['blind']}/{logs['blind']}, "
-                f"structured {failed['structured']}/{logs['structured']} with an escape; "
-                f"{len(places)} places",
-                flush=True,
-            )
-    return {"logs": logs, "failed": failed, "places": places}
+                tally.places[key] = [0, i]
+            tally.places[key][0] += 1
+        done = i + 1 - start
+        if done % report_every == 0 or done == n:
+            print(tally.line(), flush=True)
+            (work / "tally.json").write_text(json.dumps(tally.as_json(), indent=1))
+    return tally
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description="the offline campaign of hostile logs")
-    parser.add_argument("--logs", type=int, default=10_000)
+    parser.add_argument("--logs", type=int, default=10_000, help="how many mutated logs")
     parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--work", type=Path, default=Path("/tmp/logmutate"))
+    parser.add_argument("--start", type=int, default=0, help="number of the first log")
+    parser.add_argument("--only", type=int, help="make log ONLY again, run it, print findings")
+    parser.add_argument("--work", type=Path, default=Path("/dev/shm/logmutate"))
+    parser.add_argument("--budget", type=float, default=BUDGET, help="CPU s per command")
     parser.add_argument("--report-every", type=int, default=1000)
+    parser.add_argument(
+        "--items", type=int, help="base logs of the first ITEMS packets of each capture"
+    )
+    parser.add_argument(
+        "--per-log",
+        type=int,
+        default=len(COMMANDS),
+        choices=range(1, len(COMMANDS) + 1),
+        metavar="K",
+        help=f"commands run on each log, taken in turn (default: all {len(COMMANDS)})",
+    )
     args = parser.parse_args()
-    result = campaign(args.logs, args.seed, args.work / f"seed{args.seed}", args.report_every)
-    print(json.dumps(result, indent=1))
+    work = args.work / f"seed{args.seed}"
+    if args.only is not None:
+        work.mkdir(parents=True, exist_ok=True)
+        kind, data = mutated(
+            record_base_logs(work, items=args.items), log_rng(args.seed, args.only)
+        )
+        (work / "only.mcap").write_bytes(data)
+        escapes = run_commands(work / "only.mcap", work, args.only, budget=args.budget)
+        print(f"{kind} log {args.only} of seed {args.seed}: {work / 'only.mcap'}")
+        for e in escapes:
+            print(" ".join(e.argv), e.text, sep="\n")
+        raise SystemExit(1 if escapes else 0)
+    tally = campaign(
+        args.logs,
+        args.seed,
+        work,
+        args.report_every,
+        args.start,
+        args.budget,
+        args.per_log,
+        items=args.items,
+    )
+    print(json.dumps(tally.as_json(), indent=1))
 
 
 if __name__ == "__main__":

@@ -1,5 +1,6 @@
 """Hostile logs through the log commands: ``replay`` (stored, ``--json``, ``--redecode``,
-with ``--since``), ``info`` (text and ``--json``) and ``export`` (every format).
+with ``--since``), ``info`` (text and ``--json``), ``export`` (every format) and what
+``replay --serve`` / ``--to`` do with a log before they open a socket.
 
 Two kinds of mutated logs (tests/io/logmutate.py, shared with the offline
 campaign): blind byte damage of real zstd-compressed logs (finished, and cut as
@@ -19,7 +20,6 @@ from __future__ import annotations
 import io
 import json
 import random
-import struct
 from pathlib import Path
 
 import logmutate
@@ -28,7 +28,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 SETTINGS = settings(
-    max_examples=250,
+    max_examples=500,  # of each kind, every command on each: about 20 s on an idle CI machine
     deadline=None,
     derandomize=True,
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
@@ -43,6 +43,16 @@ def bases(tmp_path_factory: pytest.TempPathFactory) -> list[logmutate.BaseLog]:
         pytest.skip(str(exc))
 
 
+@pytest.fixture(scope="module")
+def short_bases(tmp_path_factory: pytest.TempPathFactory) -> list[logmutate.BaseLog]:
+    """The base logs of the first 24 packets of each capture (every topic still there),
+    as the campaign's ``--items 24`` records them: twice the logs in the same CI time."""
+    try:
+        return logmutate.record_base_logs(tmp_path_factory.mktemp("short"), items=24)
+    except FileNotFoundError as exc:
+        pytest.skip(str(exc))
+
+
 def _no_escape(data: bytes, tmp: Path, turn: int) -> None:
     path = tmp / "hostile.mcap"
     path.write_bytes(data)
@@ -53,19 +63,19 @@ def _no_escape(data: bytes, tmp: Path, turn: int) -> None:
 @SETTINGS
 @given(seed=st.integers(0, 2**64), turn=st.integers(0, 4))
 def test_blind_damage_of_zstd_logs(
-    tmp_path: Path, bases: list[logmutate.BaseLog], seed: int, turn: int
+    tmp_path: Path, short_bases: list[logmutate.BaseLog], seed: int, turn: int
 ) -> None:
     rng = random.Random(seed)  # a structured log takes hundreds of draws: one seed
-    _no_escape(logmutate.blind(rng.choice(bases), rng), tmp_path, turn)
+    _no_escape(logmutate.blind(rng.choice(short_bases), rng), tmp_path, turn)
 
 
 @SETTINGS
 @given(seed=st.integers(0, 2**64), turn=st.integers(0, 4))
 def test_structure_aware_damage(
-    tmp_path: Path, bases: list[logmutate.BaseLog], seed: int, turn: int
+    tmp_path: Path, short_bases: list[logmutate.BaseLog], seed: int, turn: int
 ) -> None:
     rng = random.Random(seed)
-    _no_escape(logmutate.structured(rng.choice(bases), rng), tmp_path, turn)
+    _no_escape(logmutate.structured(rng.choice(short_bases), rng), tmp_path, turn)
 
 
 # --------------------------------------------------------------------------- pinned cases
@@ -95,7 +105,7 @@ def _rewritten(
     writer.finish()
     data = buf.getvalue()
     if not finished:
-        data = data[: struct.unpack_from("<Q", data, len(data) - 8 - 20 + 9)[0]]
+        data = data[: logmutate.summary_start(data)]
     return data
 
 
@@ -206,3 +216,79 @@ def test_redecode_of_damaged_raw_messages(
         assert "message on /modbus/raw at byte" in err
     status, out, err, escape = logmutate.run_command(["replay", str(path), "--redecode"])
     assert len(out.splitlines()) > 50  # the whole session but what the message held
+
+
+# --------------------------------------------------------------------------- the harness
+
+
+def test_base_logs_are_finished_and_cut(tmp_path: Path, bases: list[logmutate.BaseLog]) -> None:
+    """The unfinished base logs are the finished ones cut where their summary starts
+    (the footer's first field): a reader sees no footer and recovers every message.
+    (The footer was once read 9 bytes off and every 'unfinished' log was whole.)"""
+    from mbmon.io.mcap.reader import McapLog
+
+    for base in bases:
+        assert len(base.unfinished) < len(base.finished), base.name
+        assert base.finished.startswith(base.unfinished)
+        with McapLog(_write(tmp_path, base.unfinished)) as log:
+            assert not log.finished
+            assert [(m.topic, m.log_time, m.raw) for m in log.messages()] == base.messages
+            assert log.status.messages == len(base.messages)
+
+
+def test_the_harness_reports_a_planted_fault_with_its_place(
+    tmp_path: Path, bases: list[logmutate.BaseLog], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A detector that cannot fail proves nothing: with a fault planted in the reader
+    (a ``KeyError`` from the record parser, as a missed check would raise), every
+    command that reads messages reports it as an escape naming the reader's line;
+    the campaign counts the logs and keeps one."""
+    from mbmon.io.mcap.reader import McapLog
+
+    def broken(self: McapLog, data: bytes, chunk_offset: int, layout: object = None) -> None:
+        raise KeyError("planted")
+
+    path = _write(tmp_path, bases[0].finished)
+    assert not logmutate.run_commands(path, tmp_path)  # the log itself is fine
+    monkeypatch.setattr(McapLog, "_parse_records", broken)
+    escapes = logmutate.run_commands(path, tmp_path)
+    assert len(escapes) == len(logmutate.COMMANDS)
+    assert {e.kind for e in escapes} == {"KeyError"}
+    assert all(e.where.startswith("tests/") or "reader" in e.text for e in escapes)
+    tally = logmutate.campaign(3, 1, tmp_path / "campaign", report_every=10, bases=bases)
+    assert sum(tally.logs.values()) == 3 and tally.runs == 3 * len(logmutate.COMMANDS)
+    # every structured log reaches the parser (its chunks are uncompressed and whole)
+    assert tally.failed["structured"] == tally.logs["structured"] >= 1
+    assert any(k.startswith("KeyError at ") for k in tally.places)
+    assert (tmp_path / "campaign" / "found" / "000.mcap").exists()
+    tally_json = json.loads((tmp_path / "campaign" / "tally.json").read_text())
+    assert tally_json["logs"] == tally.logs and tally_json["findings"]
+
+
+def test_the_harness_stops_a_command_over_its_budget(
+    tmp_path: Path, bases: list[logmutate.BaseLog], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A reader that never ends (a loop over a length that does not advance) is a
+    finding too: the CPU budget stops the command and reports it, and the next
+    command runs."""
+    from mbmon.io.mcap.reader import McapLog
+
+    def spins(self: McapLog, data: bytes, chunk_offset: int, layout: object = None) -> None:
+        while True:
+            pass
+
+    path = _write(tmp_path, bases[0].finished)
+    monkeypatch.setattr(McapLog, "_parse_records", spins)
+    status, _out, _err, escape = logmutate.run_command(["replay", str(path)], budget=0.3)
+    assert escape is not None and escape.kind == "over budget", escape
+    monkeypatch.undo()
+    status, out, _err, escape = logmutate.run_command(["replay", str(path)], budget=0.3)
+    assert escape is None and status == 0 and out
+
+
+def test_a_system_exit_is_an_exit_status(tmp_path: Path) -> None:
+    """What ``main`` would end with: a ``SystemExit`` (here argparse's, for a missing
+    file is not one; a log that is not MCAP is a message and status 1) is a status."""
+    path = _write(tmp_path, b"not a log at all")
+    status, _out, err, escape = logmutate.run_command(["info", str(path)])
+    assert escape is None and status == 1 and "not an MCAP file" in err, err

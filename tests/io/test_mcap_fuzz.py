@@ -36,10 +36,12 @@ _U32 = struct.Struct("<I")
 class Log:
     """A log as bytes with what a mutation needs: messages, chunk ends, field positions."""
 
-    def __init__(self, data: bytes, tmp: Path) -> None:
+    def __init__(self, data: bytes, tmp: Path, finished: bytes | None = None) -> None:
+        """``data``, and for a log cut before its summary the ``finished`` log it was cut
+        from (the ``mcap`` package reads the reference messages from that one)."""
         self.data = data
         ref = tmp / "ref.mcap"
-        ref.write_bytes(data)
+        ref.write_bytes(finished or data)
         with open(ref, "rb") as f:
             self.messages = [
                 (m.log_time, bytes(m.data))
@@ -47,6 +49,7 @@ class Log:
                     log_time_order=False
                 )
             ]
+        ref.write_bytes(data)
         self.records = list(walk(data))
         #: (end offset of a chunk, messages in the file up to and including it)
         self.chunk_ends: list[tuple[int, int]] = []
@@ -136,8 +139,8 @@ def logs(tmp_path_factory: pytest.TempPathFactory, session_stream: list) -> list
     with McapSink(path, CTX, chunk_size=300) as sink:
         records.feed(sink, session_stream)
     data = path.read_bytes()
-    summary_start = _U64.unpack_from(data, len(data) - 8 - 20 + 9)[0]
-    return [Log(data, tmp), Log(data[:summary_start], tmp)]
+    summary_start = _U64.unpack_from(data, len(data) - 8 - 20)[0]
+    return [Log(data, tmp), Log(data[:summary_start], tmp, data)]
 
 
 def check(log: Log, damaged: bytes, damage_at: int, tmp: Path, what: str) -> None:

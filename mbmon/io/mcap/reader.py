@@ -308,6 +308,17 @@ class McapLog:
 
     def _read_index(self) -> _Layout | None:
         """Read the summary of a finished file; ``None`` if there is none usable."""
+        summary_start = self._summary_start()
+        if summary_start is None:
+            return None
+        try:
+            return self._summary_layout(summary_start)
+        except Exception:  # a damaged summary: fall back to the linear read
+            return None
+
+    def _summary_start(self) -> int | None:
+        """Where the summary starts, from a footer that is whole and whose summary passes
+        its CRC (when it has one); ``None`` when the file has no such footer."""
         f = self._f
         if self.size < 2 * len(MAGIC) + _FOOTER_RECORD:
             return None
@@ -330,46 +341,47 @@ class McapLog:
             crc = zlib.crc32(foot[: 1 + 8 + 8 + 8], crc)
             if crc != summary_crc:
                 return None
-        try:
-            from mcap.reader import SeekingReader
+        return summary_start
 
-            f.seek(0)
-            reader = SeekingReader(f, validate_crcs=True)
-            summary = reader.get_summary()
-            if summary is None or not summary.chunk_indexes:
-                return None
-            layout = _Layout()
-            for ch in summary.channels.values():
-                layout.channels[ch.id] = _Channel(
-                    ch.id, ch.topic, ch.schema_id, ch.message_encoding
-                )
-            for sc in summary.schemas.values():
-                layout.schemas[sc.id] = (sc.name, sc.encoding, sc.data)
-            for ci in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
-                if not self._is_record(ci.chunk_start_offset, ci.chunk_length, summary_start,
-                                       _OP_CHUNK):  # fmt: skip
-                    return None  # an index that does not match the file
-                ids = frozenset(ci.message_index_offsets) if ci.message_index_offsets else None
-                layout.chunks.append(_Span(ci.chunk_start_offset, ci.chunk_length, ids))
-            for ai in summary.attachment_indexes:
-                if not self._is_record(ai.offset, ai.length, summary_start, _OP_ATTACHMENT):
-                    return None
-            for mi in summary.metadata_indexes:
-                if not self._is_record(mi.offset, mi.length, summary_start, _OP_METADATA):
-                    return None
-            if summary.statistics is not None:
-                st = summary.statistics
-                layout.stats_counts = dict(st.channel_message_counts)
-                if st.message_count:
-                    layout.stats_span = (st.message_start_time, st.message_end_time)
-            for md in reader.iter_metadata():
-                layout.metadata[md.name] = dict(md.metadata)
-            for att in reader.iter_attachments():
-                layout.attachments.append(
-                    LogAttachment(att.name, att.media_type, bytes(att.data), att.log_time)
-                )
-        except Exception:  # a damaged summary: fall back to the linear read
+    def _summary_layout(self, summary_start: int) -> _Layout | None:
+        """The layout the summary gives, ``None`` when it does not match the file; any
+        exception means a damaged summary (the ``mcap`` package parses it)."""
+        from mcap.reader import SeekingReader
+
+        f = self._f
+        f.seek(0)
+        reader = SeekingReader(f, validate_crcs=True)
+        summary = reader.get_summary()
+        if summary is None or not summary.chunk_indexes:
             return None
+        layout = _Layout()
+        for ch in summary.channels.values():
+            layout.channels[ch.id] = _Channel(ch.id, ch.topic, ch.schema_id, ch.message_encoding)
+        for sc in summary.schemas.values():
+            layout.schemas[sc.id] = (sc.name, sc.encoding, sc.data)
+        for ci in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+            if not self._is_record(ci.chunk_start_offset, ci.chunk_length, summary_start,
+                                   _OP_CHUNK):  # fmt: skip
+                return None  # an index that does not match the file
+            ids = frozenset(ci.message_index_offsets) if ci.message_index_offsets else None
+            layout.chunks.append(_Span(ci.chunk_start_offset, ci.chunk_length, ids))
+        for ai in summary.attachment_indexes:
+            if not self._is_record(ai.offset, ai.length, summary_start, _OP_ATTACHMENT):
+                return None
+        for mi in summary.metadata_indexes:
+            if not self._is_record(mi.offset, mi.length, summary_start, _OP_METADATA):
+                return None
+        if summary.statistics is not None:
+            st = summary.statistics
+            layout.stats_counts = dict(st.channel_message_counts)
+            if st.message_count:
+                layout.stats_span = (st.message_start_time, st.message_end_time)
+        for md in reader.iter_metadata():
+            layout.metadata[md.name] = dict(md.metadata)
+        for att in reader.iter_attachments():
+            layout.attachments.append(
+                LogAttachment(att.name, att.media_type, bytes(att.data), att.log_time)
+            )
         return layout
 
     def _is_record(self, offset: int, length: int, end: int, opcode: int) -> bool:
@@ -499,7 +511,7 @@ class McapLog:
 
                 data = zstandard.ZstdDecompressor().decompress(comp, max_output_size=usize)
             elif compression == "lz4":
-                import lz4.frame  # type: ignore[import-not-found]
+                import lz4.frame  # type: ignore[import-not-found, import-untyped, unused-ignore]
 
                 data = lz4.frame.decompress(comp)
             elif compression == "":

@@ -79,7 +79,7 @@ def _pick_compression() -> tuple[str, Callable[[bytes], bytes] | None]:
     except ImportError:
         pass
     try:
-        import lz4.frame  # type: ignore[import-not-found]
+        import lz4.frame  # type: ignore[import-not-found, import-untyped, unused-ignore]
 
         return "lz4", lz4.frame.compress
     except ImportError:
@@ -359,7 +359,7 @@ class McapFileWriter:
             message_end_time=self._end_time,
             channel_message_counts=dict(self._counts),
         )
-        groups = (
+        groups: tuple[tuple[int, list[Any]], ...] = (
             (Opcode.SCHEMA, self._schemas),
             (Opcode.CHANNEL, self._channels),
             (Opcode.STATISTICS, [stats]),
@@ -565,7 +565,7 @@ def _signals_deferred() -> Iterator[None]:
         yield
         return
     caught: list[int] = []
-    old: dict[int, Any] = {}
+    old: dict[signal.Signals, Any] = {}
     try:
         for sig in _SIGNALS:
             old[sig] = signal.signal(sig, lambda signum, frame: caught.append(signum))
