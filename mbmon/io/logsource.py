@@ -21,6 +21,7 @@ from mbmon.io.mcap.reader import McapLog
 from mbmon.io.replay import logged_records, raw_items
 from mbmon.model import Chunk, Event, Record
 from mbmon.pipeline import Pipeline
+from mbmon.sources.base import BaseSource
 from mbmon.stored import StoredRecord
 from mbmon.timefmt import TimeFormat
 
@@ -49,7 +50,7 @@ class StoredPipeline(Pipeline):
         return []
 
 
-class LogSource:
+class LogSource(BaseSource):
     """The records of a log (or, with ``raw``, its raw chunks and source events),
     filtered and paced (see the module docstring).
 
@@ -72,6 +73,7 @@ class LogSource:
         raw: bool = False,
         need_json: bool = False,
     ) -> None:
+        super().__init__()
         self.log = log
         self.name = str(log.path)
         #: how the hub takes it (the source contract's modes): paced input waits
