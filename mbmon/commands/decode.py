@@ -67,9 +67,9 @@ def _parse_hex(words: list[str]) -> bytes:
 
 def run(args: argparse.Namespace) -> int:
     """``mbmon decode``: one frame typed by hand, its fields and meaning, in
-    :mod:`mbmon.format`'s words (:func:`~mbmon.format.frame_text`, or the one JSON
+    :mod:`mbmon.format`'s words (:func:`~mbmon.details.frame_text`, or the one JSON
     record of :func:`~mbmon.format.record_to_json` with the framing added)."""
-    from mbmon.format import frame_text
+    from mbmon.details import frame_text
 
     data = _parse_hex(args.hex)
     mode, guessed_bad_crc = _framing(data, args.mode, args.response)

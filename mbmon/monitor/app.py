@@ -3,7 +3,7 @@
 :class:`MonitorApp` shows a :class:`~mbmon.monitor.feed.MonitorFeed`: a header
 with counts and rates, the monitor list (the lines ``read`` prints, newest at
 the bottom), a details pane for the selected line (the fields ``decode``
-prints, from :func:`mbmon.format.frame_details`, the paired request or
+prints, from :func:`mbmon.details.frame_details`, the paired request or
 answer, latency, notes, the raw bytes with the field under the cursor
 highlighted), and, when there is room or on ``r``, the robot panel and the
 register image. Keys are listed in :data:`mbmon.monitor.widgets.HELP` (``?`` on the

@@ -1,5 +1,5 @@
 """The monitor's details pane: the fields of the selected line as ``decode`` prints
-them (:func:`mbmon.format.frame_details`), its paired request or answer, and the raw
+them (:func:`mbmon.details.frame_details`), its paired request or answer, and the raw
 bytes with the field under the cursor highlighted.
 """
 
@@ -11,7 +11,7 @@ from rich.cells import cell_len
 from rich.text import Text
 from textual.binding import Binding
 
-from mbmon.format import frame_details
+from mbmon.details import frame_details
 from mbmon.model import Kind
 from mbmon.monitor.feed import Entry, FeedView
 from mbmon.monitor.widgets import TextPane
@@ -21,7 +21,7 @@ def entry_details(entry: Entry, snap: FeedView | None, field: int = 0) -> tuple[
     """The details pane's text for one kept line and the number of field lines it has.
 
     The line itself (whole, wrapped), every field as ``decode`` prints it
-    (:func:`mbmon.format.frame_details`; the one numbered ``field`` is
+    (:func:`mbmon.details.frame_details`; the one numbered ``field`` is
     selected), the paired request or answer with the latency, and the raw
     bytes in hex with the selected field's bytes highlighted.
     """

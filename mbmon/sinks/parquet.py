@@ -70,8 +70,8 @@ COLUMNS: tuple[tuple[str, str, str], ...] = (
 
 def _pyarrow() -> Any:
     try:
-        import pyarrow as pa  # type: ignore[import-untyped]
-        import pyarrow.parquet as pq  # type: ignore[import-untyped]
+        import pyarrow as pa
+        import pyarrow.parquet as pq
     except ImportError:
         raise SinkError("Parquet output needs pyarrow: pip install 'mbmon[parquet]'") from None
     return pa, pq

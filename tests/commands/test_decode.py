@@ -89,9 +89,9 @@ def _frames_of(adu: bytes, transport: str) -> list[object]:
 
 
 def test_decode_prints_format_py_lines_of_the_frame_the_pipeline_makes() -> None:
-    """decode's text is :func:`mbmon.format.frame_text` of the frame the stream decoders
+    """decode's text is :func:`mbmon.details.frame_text` of the frame the stream decoders
     make from the same bytes: one text for a frame, typed or captured."""
-    from mbmon.format import frame_text
+    from mbmon.details import frame_text
 
     for adu, transport in (
         ("01 03 00 00 00 0A C5 CD", "rtu"),
@@ -113,7 +113,7 @@ def test_the_details_of_a_bad_crc_name_the_expected_crc() -> None:
     which CRC the frame has and which it should have."""
     from dataclasses import replace
 
-    from mbmon.format import frame_details
+    from mbmon.details import frame_details
     from mbmon.protocol.crc import add_crc
 
     (good,) = _frames_of(add_crc(bytes.fromhex("0103000A0001")), "rtu")

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from mbmon.format import frame_details
+from mbmon.details import frame_details
 from mbmon.model import Direction, Frame, Stream, Transport
 from mbmon.protocol.crc import add_crc
 from mbmon.protocol.pdu import decode_pdu
