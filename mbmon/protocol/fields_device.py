@@ -115,7 +115,7 @@ def _read_file_resp(o: Out, request: Pdu | None) -> None:
     data = o.counted(1)
     if o.byte_count == 0:  # as the request (7..245) and both 0x15 frames (9..251)
         o.bad.append("byte count 0")
-    records = []
+    records: list[dict[str, Any]] = []
     i = 0
     while i < len(data):
         length = data[i]
@@ -154,7 +154,7 @@ def _write_file(o: Out, request: Pdu | None) -> None:
     bc = o.byte_count or 0
     if not 0x09 <= bc <= 0xFB:
         o.bad.append(f"byte count {bc} outside 9..251")
-    records = []
+    records: list[dict[str, Any]] = []
     i = 0
     while i < len(data):
         if i + 7 > len(data):
@@ -214,7 +214,7 @@ def _mei(o: Out, request: Pdu | None) -> None:
         return
     if d[4] not in (0x00, 0xFF):
         o.bad.append(f"more follows 0x{d[4]:02X} is not 0x00/0xFF")
-    objects = []
+    objects: list[tuple[int, str]] = []
     i = 7
     while i < len(d):
         if i + 2 > len(d) or i + 2 + d[i + 1] > len(d):

@@ -87,7 +87,7 @@ def _adu_rules(response: bool) -> dict[int, int | tuple[int, int]]:
     """``simple_length_rules`` as ADU sizes: fixed ADU length, or ``(i, base)``
     with the ADU ``base + adu[i]`` long (unit id and CRC counted in)."""
     return {
-        fc: rule + 3 if type(rule) is int else (rule[0] + 1, rule[1] + 3)
+        fc: rule + 3 if isinstance(rule, int) else (rule[0] + 1, rule[1] + 3)
         for fc, rule in simple_length_rules(response).items()
     }
 
@@ -433,7 +433,7 @@ class RtuDecoder(StreamDecoder):
                     is_resp = pending is not None and pending[0] == unit and pending[1] == fc
                 rule = (resp_rules if is_resp else req_rules).get(fc)
                 if rule is not None:
-                    if type(rule) is int:
+                    if isinstance(rule, int):
                         end = pos + rule
                     else:
                         at = pos + rule[0]
@@ -782,7 +782,7 @@ class RtuDecoder(StreamDecoder):
             if fc & 0x80 and not is_resp:
                 continue
             rule = (_RESP_RULES if is_resp else _REQ_RULES).get(fc)
-            if type(rule) is int:  # the simple rules as the framing loop reads them
+            if isinstance(rule, int):  # the simple rules as the framing loop reads them
                 total = rule
             elif rule is not None:
                 at = k + rule[0]
