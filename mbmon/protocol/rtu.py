@@ -173,6 +173,7 @@ class RtuDecoder(StreamDecoder):
     __slots__ = (
         "_allow_req",
         "_allow_resp",
+        "_at_mark",
         "_bursty",
         "_char",
         "_chunks",
@@ -223,6 +224,7 @@ class RtuDecoder(StreamDecoder):
         #: (state 1), cannot be told at k (-1), or do not before k (0)
         self._lined: tuple[int, int, int, int] | None = None
         self._tails: list[int] | None = None  # within one pass: see _ends_at_silence
+        self._at_mark: int | None = None  # within one pass: see _scanned_at_mark
         self.stats: dict[str, int] = {
             "frames": 0,
             "noise_bytes": 0,
@@ -419,7 +421,7 @@ class RtuDecoder(StreamDecoder):
         pending = self._pending
         frames = 0
         last = n - 1
-        self._near = self._lined = self._tails = None
+        self._near = self._lined = self._tails = self._at_mark = None
         mark = self._mark if mode == _STREAM else 0
         while pos < n:
             if pos < last:
@@ -561,7 +563,9 @@ class RtuDecoder(StreamDecoder):
         if incomplete and mode != _FINAL:
             # USB adapters bunch bytes: a frame may go on after a silence, so wait;
             # but not for bytes that frame on their own at the bus's boundaries
-            if self._lined_up(buf, pos, n, mode, far) != 1:
+            if self._lined_up(buf, pos, n, mode, far) != 1 and not self._scanned_at_mark(
+                buf, pos, n, far
+            ):
                 return _WAITING
             cut = True
         elif unpredictable:
@@ -581,12 +585,14 @@ class RtuDecoder(StreamDecoder):
                 # after it and no later than the silence, or one lines up.
                 mark = n if mode == _SILENCE else self._mark
                 if (
-                    pos >= mark or self._frame_within(buf, pos + 1, mark, n, mode) != 1
-                ) and self._lined_up(buf, pos, n, mode, pos + MAX_ADU) != 1:
+                    (pos >= mark or self._frame_within(buf, pos + 1, mark, n, mode) != 1)
+                    and self._lined_up(buf, pos, n, mode, pos + MAX_ADU) != 1
+                    and not self._scanned_at_mark(buf, pos, n, pos + MAX_ADU)
+                ):
                     return _WAIT, False, ""
         if crc_failed or cut:
             found = self._boundary(buf, pos, n, mode)
-            if found < 0:
+            if found < 0 or (not found and self._may_go_on(buf, pos, n, mode)):
                 return _WAITING
             if found:
                 # the reading whose length it has, if any (a reading missing bytes
@@ -723,8 +729,36 @@ class RtuDecoder(StreamDecoder):
             if end - pos >= MIN_ADU and _crc_ok(buf, pos, end):
                 return end - pos
         if not length and mode == _STREAM and k >= n:
-            return -1
+            # a frame found by a scan right at the silence is a boundary in sight
+            return 0 if self._scanned_at_mark(buf, pos, n, n) else -1
         return 0
+
+    def _scanned_at_mark(self, buf: bytes | bytearray, pos: int, n: int, far: int) -> bool:
+        """Whether a CRC-valid ADU (found by a scan: any function code) starts right
+        at the latest silence, after ``pos`` and before ``far``: a frame starts at a
+        silence, so the bytes before it are no frame going on across it. The scan
+        is done once per decoding pass."""
+        mark = self._mark
+        if not pos < mark < far or mark > n - MIN_ADU:
+            return False
+        found = self._at_mark
+        if found is None:
+            found = self._at_mark = _scan(buf, mark, min(MAX_ADU, n - mark))
+        return found > 0
+
+    def _may_go_on(self, buf: bytes | bytearray, pos: int, n: int, mode: int) -> bool:
+        """At a silence, whether the bytes from ``pos`` whose readings failed may be
+        one frame going on after it: nothing of its own starts after ``pos``, no
+        CRC validates at the silence from a later offset, and fewer than
+        ``MAX_ADU`` bytes are there. A USB adapter's latency looks like a
+        silence, and a frame whose fields disagree with its length (its CRC at its
+        true end) can be cut there; its CRC at a boundary the next bytes mark then
+        decides it. Noise held so is reported with those bytes, or at the end of
+        the stream (``silence``); it never holds back a frame after it."""
+        if mode != _SILENCE or n - pos >= MAX_ADU or self._next_frame(buf, pos, n, mode)[1]:
+            return False
+        # a CRC that validates right at the silence after pos marks a frame there
+        return not any(j > pos for j in self._ends_at_silence(buf, n))
 
     def _crosses_frames(
         self, buf: bytes | bytearray, start: int, end: int, n: int, mode: int
