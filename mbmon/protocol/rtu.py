@@ -177,6 +177,7 @@ class RtuDecoder(StreamDecoder):
         "_bursty",
         "_char",
         "_chunks",
+        "_in_scan",
         "_lined",
         "_mark",
         "_near",
@@ -225,6 +226,7 @@ class RtuDecoder(StreamDecoder):
         self._lined: tuple[int, int, int, int] | None = None
         self._tails: list[int] | None = None  # within one pass: see _ends_at_silence
         self._at_mark: int | None = None  # within one pass: see _scanned_at_mark
+        self._in_scan: tuple[int, int] | None = None  # within one pass: see _scanned_within
         self.stats: dict[str, int] = {
             "frames": 0,
             "noise_bytes": 0,
@@ -421,7 +423,7 @@ class RtuDecoder(StreamDecoder):
         pending = self._pending
         frames = 0
         last = n - 1
-        self._near = self._lined = self._tails = self._at_mark = None
+        self._near = self._lined = self._tails = self._at_mark = self._in_scan = None
         mark = self._mark if mode == _STREAM else 0
         while pos < n:
             if pos < last:
@@ -563,8 +565,8 @@ class RtuDecoder(StreamDecoder):
         if incomplete and mode != _FINAL:
             # USB adapters bunch bytes: a frame may go on after a silence, so wait;
             # but not for bytes that frame on their own at the bus's boundaries
-            if self._lined_up(buf, pos, n, mode, far) != 1 and not self._scanned_at_mark(
-                buf, pos, n, far
+            if self._lined_up(buf, pos, n, mode, far) != 1 and not self._scanned(
+                buf, pos, n, mode, far
             ):
                 return _WAITING
             cut = True
@@ -587,7 +589,7 @@ class RtuDecoder(StreamDecoder):
                 if (
                     (pos >= mark or self._frame_within(buf, pos + 1, mark, n, mode) != 1)
                     and self._lined_up(buf, pos, n, mode, pos + MAX_ADU) != 1
-                    and not self._scanned_at_mark(buf, pos, n, pos + MAX_ADU)
+                    and not self._scanned(buf, pos, n, mode, pos + MAX_ADU)
                 ):
                     return _WAIT, False, ""
         if crc_failed or cut:
@@ -733,6 +735,31 @@ class RtuDecoder(StreamDecoder):
             return 0 if self._scanned_at_mark(buf, pos, n, n) else -1
         return 0
 
+    def _scanned(self, buf: bytes | bytearray, pos: int, n: int, mode: int, far: int) -> bool:
+        """Whether a frame found by a CRC scan (any function code) after ``pos`` and
+        before ``far`` says the bytes at ``pos`` are no frame going on: one starts
+        right at the latest silence (:meth:`_scanned_at_mark`), or, at a silence
+        on a line whose silences have been real so far (not bursty), one lies
+        whole in the bytes before it (:meth:`_scanned_within`)."""
+        if self._scanned_at_mark(buf, pos, n, far):
+            return True
+        return mode == _SILENCE and not self._bursty and 0 < self._scanned_within(buf, pos, n) < far
+
+    def _scanned_within(self, buf: bytes | bytearray, pos: int, n: int) -> int:
+        """The first offset after ``pos`` where a CRC scan finds an ADU that ends by
+        ``n``, or 0. Remembered within one decoding pass (``_in_scan``: offsets
+        ``lo..k-1`` have none before ``k``), so a run of noise scans each offset once."""
+        memo = self._in_scan
+        if memo is not None and memo[0] <= pos < memo[1]:
+            return memo[1] if memo[1] < n else 0
+        j = pos + 1
+        while j <= n - MIN_ADU and not _scan(buf, j, min(MAX_ADU, n - j)):
+            j += 1
+        if j > n - MIN_ADU:
+            j = n
+        self._in_scan = (pos, j)
+        return j if j < n else 0
+
     def _scanned_at_mark(self, buf: bytes | bytearray, pos: int, n: int, far: int) -> bool:
         """Whether a CRC-valid ADU (found by a scan: any function code) starts right
         at the latest silence, after ``pos`` and before ``far``: a frame starts at a
@@ -749,13 +776,16 @@ class RtuDecoder(StreamDecoder):
     def _may_go_on(self, buf: bytes | bytearray, pos: int, n: int, mode: int) -> bool:
         """At a silence, whether the bytes from ``pos`` whose readings failed may be
         one frame going on after it: nothing of its own starts after ``pos``, no
-        CRC validates at the silence from a later offset, and fewer than
-        ``MAX_ADU`` bytes are there. A USB adapter's latency looks like a
+        CRC validates at the silence from a later offset, no frame found by a
+        scan says otherwise (:meth:`_scanned`), and fewer than ``MAX_ADU`` bytes
+        are there. A USB adapter's latency looks like a
         silence, and a frame whose fields disagree with its length (its CRC at its
         true end) can be cut there; its CRC at a boundary the next bytes mark then
         decides it. Noise held so is reported with those bytes, or at the end of
         the stream (``silence``); it never holds back a frame after it."""
         if mode != _SILENCE or n - pos >= MAX_ADU or self._next_frame(buf, pos, n, mode)[1]:
+            return False
+        if self._scanned(buf, pos, n, mode, n):
             return False
         # a CRC that validates right at the silence after pos marks a frame there
         return not any(j > pos for j in self._ends_at_silence(buf, n))
