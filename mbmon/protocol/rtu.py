@@ -293,6 +293,8 @@ class RtuDecoder(StreamDecoder):
         if self._silence is not None and self._settled != last and now >= last + self._silence:
             self._settled = last
             out.extend(self._settle(last))
+        if self._silence is not None and self._chunks and now >= self._chunks[0][1] + self._silence:
+            self._settle_old(now, self._silence, out)
         return out
 
     def next_deadline(self) -> float | None:
@@ -303,9 +305,13 @@ class RtuDecoder(StreamDecoder):
         deadline: float | None = None
         if self._char is not None and self._ticked != last:
             deadline = last + self._t35 + 1e-6  # tick settles strictly after t3.5
-        if self._silence is not None and self._settled != last:
-            at = last + self._silence
-            deadline = at if deadline is None else min(deadline, at)
+        if self._silence is not None:
+            if self._settled != last:
+                at = last + self._silence
+                deadline = at if deadline is None else min(deadline, at)
+            if self._chunks:  # the oldest byte held has waited ``silence``
+                at = self._chunks[0][1] + self._silence
+                deadline = at if deadline is None else min(deadline, at)
         return deadline
 
     # ------------------------------------------------------------------ internals
@@ -324,6 +330,23 @@ class RtuDecoder(StreamDecoder):
             run = self._take_noise()
             if run is not None:
                 out.append(run)
+
+    def _settle_old(self, now: float, silence: float, out: list[Frame | Noise]) -> None:
+        """Decide, as at the end of the stream, what starts in the bytes held that
+        arrived ``silence`` or more before ``now``: more bytes came after them, yet
+        a frame starting there would be complete by now (a frame lasts at most
+        ``MAX_ADU`` characters; ``silence`` is above any adapter's latency). So
+        bytes that keep coming never hold back a frame, or the noise before it,
+        more than ``silence`` past its own arrival. The newer bytes wait on."""
+        stop = 0
+        for end, ts in self._chunks:
+            if ts + silence > now:  # the very sum next_deadline gave: no rounding apart
+                break
+            stop = end
+        if stop:
+            pos = self._decode(self._buf, self._last_ts or 0.0, out, len(self._buf), _FINAL, stop)
+            self._drop(pos)
+            self._mark = max(0, self._mark - pos)
 
     def _keep(self, buf: bytes | bytearray, pos: int, old: int, ts: float) -> None:
         """Keep ``buf[pos:]`` (see :class:`StreamDecoder`) and when each kept byte arrived."""
@@ -392,9 +415,16 @@ class RtuDecoder(StreamDecoder):
             self._noise_ts = ts
 
     def _decode(
-        self, buf: bytes | bytearray, ts: float, out: list[Frame | Noise], old: int, mode: int
+        self,
+        buf: bytes | bytearray,
+        ts: float,
+        out: list[Frame | Noise],
+        old: int,
+        mode: int,
+        stop: int | None = None,
     ) -> int:
         """Frame ADUs from ``buf``; return the offset of the first undecided byte.
+        With ``stop``, decide only what starts before that offset.
 
         ``buf[:old]`` is what ``_buf`` held (its chunks' times in ``_chunks``),
         the rest arrived at ``ts``: noise is stamped when its first byte
@@ -425,7 +455,8 @@ class RtuDecoder(StreamDecoder):
         last = n - 1
         self._near = self._lined = self._tails = self._at_mark = self._in_scan = None
         mark = self._mark if mode == _STREAM else 0
-        while pos < n:
+        end_at = n if stop is None else stop
+        while pos < end_at:
             if pos < last:
                 unit = buf[pos]
                 fc = buf[pos + 1]
@@ -507,113 +538,134 @@ class RtuDecoder(StreamDecoder):
         """
         avail = n - pos
         if avail < 2:
-            if mode == _FINAL:
-                return _SKIP, False, _TRUNCATED
-            return _WAIT, False, ""
-        unit = buf[pos]
+            return (_SKIP, False, _TRUNCATED) if mode == _FINAL else _WAITING
         fc = buf[pos + 1]
-        # Candidate readings in order of preference: True = response.
-        if fc & 0x80:
-            readings: tuple[bool, ...] = (True,) if self._allow_resp else ()
-        elif not self._allow_resp:
-            readings = (False,)
-        elif not self._allow_req:
-            readings = (True,)
-        else:
-            pending = self._pending
-            if pending is not None and pending[0] == unit and pending[1] == fc:
-                readings = (True, False)
-            else:
-                readings = (False, True)
+        readings = self._readings(buf[pos], fc)
         if not readings or fc == 0 or fc == 0x80:
             return _SKIP, False, f"no valid frame (function code 0x{fc:02X})"
-
-        peek = buf[pos + 1 : pos + 1 + _PEEK]
-        incomplete = False
-        far = 0  # where the longest reading still missing bytes would end
-        crc_failed = False
+        total, is_resp, crc_failed, far, unpredictable = self._try_readings(
+            buf, pos, avail, readings, mode
+        )
+        if total:
+            return total, is_resp, ""
         cut = False  # a reading missing bytes would swallow a frame lined up with the bus
+        if far and mode != _FINAL:
+            # USB adapters bunch bytes: a frame may go on after a silence, so wait;
+            # but not for bytes that frame on their own at the bus's boundaries
+            if not self._lines_up(buf, pos, n, mode, far):
+                return _WAITING
+            cut = True
+        elif unpredictable:
+            decided = self._decide_scan(buf, pos, n, mode, unpredictable[0])
+            if decided is not None:
+                return decided
+        if crc_failed or cut:
+            decided = self._decide_boundary(buf, pos, n, mode, readings)
+            if decided is not None:
+                return decided
+        return _SKIP, False, _reason(fc, crc_failed, cut, far > 0, bool(unpredictable))
+
+    def _readings(self, unit: int, fc: int) -> tuple[bool, ...]:
+        """The readings of a frame from ``unit`` with ``fc`` in order of preference
+        (True: response): the answer to the pending request first, else the request."""
+        if fc & 0x80:
+            return (True,) if self._allow_resp else ()
+        if not self._allow_resp:
+            return (False,)
+        if not self._allow_req:
+            return (True,)
+        pending = self._pending
+        if pending is not None and pending[0] == unit and pending[1] == fc:
+            return (True, False)
+        return (False, True)
+
+    def _try_readings(
+        self, buf: bytes | bytearray, pos: int, avail: int, readings: tuple[bool, ...], mode: int
+    ) -> tuple[int, bool, bool, int, list[bool] | None]:
+        """Try each reading's predicted length and CRC at ``pos``, in order.
+
+        Returns ``(ADU length, is response, crc failed, far, unpredictable)``: a
+        length > 0 when a reading's CRC passes; else ``far`` > 0 is where the
+        longest reading still missing bytes would end (in ``_STREAM`` mode the
+        first one stops the others being tried: a later reading must not be
+        taken before it is known), and ``unpredictable`` the readings of no
+        predictable length (for a CRC scan).
+        """
+        peek = buf[pos + 1 : pos + 1 + _PEEK]
+        far = 0
+        crc_failed = False
         unpredictable: list[bool] | None = None
         for is_resp in readings:
             plen = pdu_length(peek, is_resp)
             if plen == NEED_MORE and avail - 1 > _PEEK:
                 plen = pdu_length(buf[pos + 1 : pos + MAX_ADU], is_resp)
             if plen is None:
-                if unpredictable is None:
-                    unpredictable = [is_resp]
-                else:
-                    unpredictable.append(is_resp)
+                unpredictable = [is_resp] if unpredictable is None else [*unpredictable, is_resp]
                 continue
-            if plen == NEED_MORE:
-                incomplete = True
-                far = max(far, pos + MAX_ADU)
-                if mode == _STREAM:
-                    break  # a later reading must not be taken before this one is known
+            total = MAX_ADU if plen == NEED_MORE else plen + 3
+            if plen != NEED_MORE and (total > MAX_ADU or plen < 1):
                 continue
-            total = plen + 3
-            if total > MAX_ADU or plen < 1:
-                continue
-            if total > avail:
-                incomplete = True
+            if plen == NEED_MORE or total > avail:
                 far = max(far, pos + total)
                 if mode == _STREAM:
                     break
                 continue
             if _crc_ok(buf, pos, pos + total):
-                return total, is_resp, ""
+                return total, is_resp, False, 0, None
             crc_failed = True
-        if incomplete and mode != _FINAL:
-            # USB adapters bunch bytes: a frame may go on after a silence, so wait;
-            # but not for bytes that frame on their own at the bus's boundaries
-            if self._lined_up(buf, pos, n, mode, far) != 1 and not self._scanned(
-                buf, pos, n, mode, far
-            ):
+        return 0, False, crc_failed, far, unpredictable
+
+    def _lines_up(self, buf: bytes | bytearray, pos: int, n: int, mode: int, far: int) -> bool:
+        """Whether frames after ``pos`` and before ``far`` line up with the bus: of
+        their own (:meth:`_lined_up`) or found by a scan (:meth:`_scanned`)."""
+        return self._lined_up(buf, pos, n, mode, far) == 1 or self._scanned(buf, pos, n, mode, far)
+
+    def _decide_scan(
+        self, buf: bytes | bytearray, pos: int, n: int, mode: int, is_resp: bool
+    ) -> tuple[int, bool, str] | None:
+        """The decision for bytes of no predictable length at ``pos``: the shortest
+        CRC match (unless it swallows frames), or wait; ``None`` when neither (the
+        caller goes on to noise)."""
+        avail = n - pos
+        limit = min(MAX_ADU, avail)
+        found = _scan(buf, pos, limit) if limit >= MIN_ADU else 0
+        if found:
+            crossed = self._crosses_frames(buf, pos, pos + found, n, mode)
+            if crossed < 0:
                 return _WAITING
-            cut = True
-        elif unpredictable:
-            limit = min(MAX_ADU, avail)
-            found = _scan(buf, pos, limit) if limit >= MIN_ADU else 0
-            if found:
-                crossed = self._crosses_frames(buf, pos, pos + found, n, mode)
-                if crossed < 0:
-                    return _WAIT, False, ""
-                if not crossed:
-                    return found, unpredictable[0], ""
-                return _SKIP, False, _CROSSED
-            if avail < MAX_ADU and mode != _FINAL:
-                # No CRC match yet: the frame may go on in bytes still to come,
-                # also after a silence (USB adapters bunch bytes). Before a
-                # silence it is noise only when a frame of its own starts
-                # after it and no later than the silence, or one lines up.
-                mark = n if mode == _SILENCE else self._mark
-                if (
-                    (pos >= mark or self._frame_within(buf, pos + 1, mark, n, mode) != 1)
-                    and self._lined_up(buf, pos, n, mode, pos + MAX_ADU) != 1
-                    and not self._scanned(buf, pos, n, mode, pos + MAX_ADU)
-                ):
-                    return _WAIT, False, ""
-        if crc_failed or cut:
-            found = self._boundary(buf, pos, n, mode)
-            if found < 0 or (not found and self._may_go_on(buf, pos, n, mode)):
+            if not crossed:
+                return found, is_resp, ""
+            return _SKIP, False, _CROSSED
+        if avail < MAX_ADU and mode != _FINAL:
+            # No CRC match yet: the frame may go on in bytes still to come, also
+            # after a silence (USB adapters bunch bytes). Before a silence it is
+            # noise only when a frame of its own starts after it and no later
+            # than the silence, or frames line up.
+            mark = n if mode == _SILENCE else self._mark
+            if (
+                pos >= mark or self._frame_within(buf, pos + 1, mark, n, mode) != 1
+            ) and not self._lines_up(buf, pos, n, mode, pos + MAX_ADU):
                 return _WAITING
-            if found:
-                # the reading whose length it has, if any (a reading missing bytes
-                # stopped the others being tried): the direction any chunking gives
-                whole = buf[pos + 1 : pos + found]
-                for is_resp in readings:
-                    plen = pdu_length(whole, is_resp)
-                    if plen is not None and plen != NEED_MORE and plen + 3 == found:
-                        return found, is_resp, ""
-                return found, readings[0], ""
-        if crc_failed:
-            return _SKIP, False, _BAD_CRC
-        if cut:
-            return _SKIP, False, _CUT
-        if incomplete:
-            return _SKIP, False, _TRUNCATED
-        if unpredictable:
-            return _SKIP, False, f"no valid frame (unknown function code 0x{fc:02X})"
-        return _SKIP, False, f"no valid frame (function code 0x{fc:02X})"
+        return None
+
+    def _decide_boundary(
+        self, buf: bytes | bytearray, pos: int, n: int, mode: int, readings: tuple[bool, ...]
+    ) -> tuple[int, bool, str] | None:
+        """Where the readings failed: a CRC that validates at a boundary the bus marks
+        is a frame whatever its fields say, or wait for one; ``None`` for noise."""
+        found = self._boundary(buf, pos, n, mode)
+        if found < 0 or (not found and self._may_go_on(buf, pos, n, mode)):
+            return _WAITING
+        if not found:
+            return None
+        # the reading whose length it has, if any (a reading missing bytes stopped
+        # the others being tried): the direction any chunking gives
+        whole = buf[pos + 1 : pos + found]
+        for is_resp in readings:
+            plen = pdu_length(whole, is_resp)
+            if plen is not None and plen != NEED_MORE and plen + 3 == found:
+                return found, is_resp, ""
+        return found, readings[0], ""
 
     def _next_frame(self, buf: bytes | bytearray, pos: int, n: int, mode: int) -> tuple[int, int]:
         """The first offset ``k`` after ``pos`` (at most ``MAX_ADU`` on) where a frame
@@ -873,6 +925,19 @@ class RtuDecoder(StreamDecoder):
             elif _crc_ok(buf, k, k + total):
                 return total
         return -1 if short and mode == _STREAM else 0
+
+
+def _reason(fc: int, crc_failed: bool, cut: bool, incomplete: bool, unpredictable: bool) -> str:
+    """Why the byte at an offset is noise, from what its readings found."""
+    if crc_failed:
+        return _BAD_CRC
+    if cut:
+        return _CUT
+    if incomplete:
+        return _TRUNCATED
+    if unpredictable:
+        return f"no valid frame (unknown function code 0x{fc:02X})"
+    return f"no valid frame (function code 0x{fc:02X})"
 
 
 _CROSSED = "no valid frame (a CRC match by scanning would swallow valid frames)"

@@ -243,6 +243,32 @@ def test_scanned_frame_glued_between_noise_out_at_the_silence() -> None:
     assert f.ts == 1.0 and at <= 1.0 + T35 + 1e-5
 
 
+def test_usb_frame_between_noise_waits_at_most_the_timeout_past_its_arrival() -> None:
+    # In bursts (a frame went on across a burst first: silences may be latency) a
+    # frame with noise on both sides waits for frames to line up. Noise keeps
+    # coming 16 ms later, ending in a bad request: the frame is out `silence` after
+    # its own arrival, not `silence` after the last byte (it once was 16 ms late)
+    frame = h("11 8F 03 05 F4")
+    reads = [
+        Delivered(0.5, GOOD[:4]),
+        Delivered(0.516, GOOD[4:]),
+        Delivered(1.0, h("00") + frame + h("10 10 01")),
+        Delivered(1.016, h("60 00 00 00 02 2B 00 01 00 64 8C 88") + BAD_REQUESTS[0][0]),
+    ]
+    dec = RtuDecoder(BUS, baudrate=BAUD, silence=1.0)
+    out = drive(dec, reads)
+    assert dec._bursty
+    assert frames([x for _, x in out]) == [
+        (Direction.C2S, GOOD),
+        (Direction.S2C, frame),
+        (Direction.C2S, BAD_REQUESTS[0][0]),
+    ]
+    at = {x.raw: (t, x.ts) for t, x in out if isinstance(x, Frame)}
+    assert at[frame] == (2.0, 1.0)  # `silence` after its own read, no later
+    assert at[BAD_REQUESTS[0][0]] == (2.016, 1.016)
+    assert sum(len(x.raw) for _, x in out) == sum(len(r.data) for r in reads)
+
+
 def h(text: str) -> bytes:
     return bytes.fromhex(text)
 
