@@ -56,13 +56,19 @@ their latency. Timing is a hint only. That holds for a scanned reading too:
 bytes of unpredictable length with no CRC match yet become noise
 at a silence only when a frame of predictable length with a valid CRC starts
 after them, before the silence or right at its end (so the next bytes
-decide); otherwise they may be a frame split by the adapter and wait.
+decide), or a frame found by a CRC scan starts right at the latest silence
+(or, on a line whose silences have been real, lies whole before the silence);
+otherwise they may be a frame split by the adapter and wait. Bytes whose
+readings fail their CRC wait across a silence too when nothing that frames on
+its own starts after them: a frame whose fields disagree may be cut there.
 
 Time moves on with :meth:`RtuDecoder.tick` too: t3.5 after the last byte (with
 ``baudrate``) the bytes held are settled as at a silence seen by the next
 chunk, and ``silence`` seconds after it (without or with ``baudrate``) they are
 settled as at the end of the stream, so a quiet bus reports its last frame or
-noise without waiting for another byte. Noise is stamped when its bytes arrived.
+noise without waiting for another byte; bytes held ``silence`` seconds are
+decided so even while newer ones keep coming (a frame starting in them would
+be complete by then). Noise is stamped when its bytes arrived.
 
 Pure: no I/O, no clocks; time is the ``ts`` given with each chunk or tick.
 """
