@@ -7,7 +7,8 @@ annotation):
 * :mod:`mbmon.protocol.pdu` -- names (``FUNCTION_NAMES``), PDU lengths for RTU
   framing and MBAP resync (:func:`~mbmon.protocol.pdu.pdu_length`), the data
   table of a code (:func:`~mbmon.protocol.pdu.table_of`); its field decoders
-  stay in ``pdu._DECODERS`` (checked against this table);
+  (:mod:`mbmon.protocol.fields_access` by shape, :mod:`mbmon.protocol.fields_device`
+  by code) are picked by this table;
 * :mod:`mbmon.protocol.pairing` -- which responses are decoded again with their
   request (:data:`PAIR_ALWAYS`, :data:`PAIR_ON_COUNT`);
 * :mod:`mbmon.format` -- names, bit or register values, reads whose response
@@ -20,7 +21,8 @@ annotation):
 
 A new function code is one :class:`FunctionCode` entry here -- or one
 :func:`register` call for a user-defined code -- plus its field decoder in
-``pdu.py`` only when its fields have a layout of their own (no ``shape``).
+``protocol/fields_device.py`` only when its fields have a layout of their own
+(no ``shape``).
 Quantity limits, the data table, read/write nature and the mask-write rule live
 here only; modules that copy something out of the table do it in a
 :func:`derived` function, so that a registered code reaches them too. Pure data
@@ -106,7 +108,7 @@ class FunctionCode:
     address and count from the request.
 
     ``shape`` is the layout of its fields, which picks the field decoder in
-    ``pdu.py`` and says how every layer reads it (:data:`SHAPES`): ``"read"``
+    ``protocol/fields_access.py`` and says how every layer reads it (:data:`SHAPES`): ``"read"``
     (address + count, answered by a byte count and values), ``"write_single"``
     (address + one value, echoed), ``"write_multiple"`` (address + count + byte
     count + values, answered by address + count), ``"mask_write"``,

@@ -215,7 +215,7 @@ class MbapDecoder(StreamDecoder):
         does with a read that :meth:`split_clean` declined (a split ADU, garbage)."""
         raws: list[bytes] = []
         for item in self.feed(data, ts):
-            if type(item) is not Frame:
+            if not isinstance(item, Frame):
                 return raws, item
             raws.append(item.raw)
         return raws, None

@@ -56,13 +56,19 @@ their latency. Timing is a hint only. That holds for a scanned reading too:
 bytes of unpredictable length with no CRC match yet become noise
 at a silence only when a frame of predictable length with a valid CRC starts
 after them, before the silence or right at its end (so the next bytes
-decide); otherwise they may be a frame split by the adapter and wait.
+decide), or a frame found by a CRC scan starts right at the latest silence
+(or, on a line whose silences have been real, lies whole before the silence);
+otherwise they may be a frame split by the adapter and wait. Bytes whose
+readings fail their CRC wait across a silence too when nothing that frames on
+its own starts after them: a frame whose fields disagree may be cut there.
 
 Time moves on with :meth:`RtuDecoder.tick` too: t3.5 after the last byte (with
 ``baudrate``) the bytes held are settled as at a silence seen by the next
 chunk, and ``silence`` seconds after it (without or with ``baudrate``) they are
 settled as at the end of the stream, so a quiet bus reports its last frame or
-noise without waiting for another byte. Noise is stamped when its bytes arrived.
+noise without waiting for another byte; bytes held ``silence`` seconds are
+decided so even while newer ones keep coming (a frame starting in them would
+be complete by then). Noise is stamped when its bytes arrived.
 
 Pure: no I/O, no clocks; time is the ``ts`` given with each chunk or tick.
 """
@@ -87,7 +93,7 @@ def _adu_rules(response: bool) -> dict[int, int | tuple[int, int]]:
     """``simple_length_rules`` as ADU sizes: fixed ADU length, or ``(i, base)``
     with the ADU ``base + adu[i]`` long (unit id and CRC counted in)."""
     return {
-        fc: rule + 3 if type(rule) is int else (rule[0] + 1, rule[1] + 3)
+        fc: rule + 3 if isinstance(rule, int) else (rule[0] + 1, rule[1] + 3)
         for fc, rule in simple_length_rules(response).items()
     }
 
@@ -173,9 +179,11 @@ class RtuDecoder(StreamDecoder):
     __slots__ = (
         "_allow_req",
         "_allow_resp",
+        "_at_mark",
         "_bursty",
         "_char",
         "_chunks",
+        "_in_scan",
         "_lined",
         "_mark",
         "_near",
@@ -223,6 +231,8 @@ class RtuDecoder(StreamDecoder):
         #: (state 1), cannot be told at k (-1), or do not before k (0)
         self._lined: tuple[int, int, int, int] | None = None
         self._tails: list[int] | None = None  # within one pass: see _ends_at_silence
+        self._at_mark: int | None = None  # within one pass: see _scanned_at_mark
+        self._in_scan: tuple[int, int] | None = None  # within one pass: see _scanned_within
         self.stats: dict[str, int] = {
             "frames": 0,
             "noise_bytes": 0,
@@ -289,6 +299,8 @@ class RtuDecoder(StreamDecoder):
         if self._silence is not None and self._settled != last and now >= last + self._silence:
             self._settled = last
             out.extend(self._settle(last))
+        if self._silence is not None and self._chunks and now >= self._chunks[0][1] + self._silence:
+            self._settle_old(now, self._silence, out)
         return out
 
     def next_deadline(self) -> float | None:
@@ -299,9 +311,13 @@ class RtuDecoder(StreamDecoder):
         deadline: float | None = None
         if self._char is not None and self._ticked != last:
             deadline = last + self._t35 + 1e-6  # tick settles strictly after t3.5
-        if self._silence is not None and self._settled != last:
-            at = last + self._silence
-            deadline = at if deadline is None else min(deadline, at)
+        if self._silence is not None:
+            if self._settled != last:
+                at = last + self._silence
+                deadline = at if deadline is None else min(deadline, at)
+            if self._chunks:  # the oldest byte held has waited ``silence``
+                at = self._chunks[0][1] + self._silence
+                deadline = at if deadline is None else min(deadline, at)
         return deadline
 
     # ------------------------------------------------------------------ internals
@@ -320,6 +336,23 @@ class RtuDecoder(StreamDecoder):
             run = self._take_noise()
             if run is not None:
                 out.append(run)
+
+    def _settle_old(self, now: float, silence: float, out: list[Frame | Noise]) -> None:
+        """Decide, as at the end of the stream, what starts in the bytes held that
+        arrived ``silence`` or more before ``now``: more bytes came after them, yet
+        a frame starting there would be complete by now (a frame lasts at most
+        ``MAX_ADU`` characters; ``silence`` is above any adapter's latency). So
+        bytes that keep coming never hold back a frame, or the noise before it,
+        more than ``silence`` past its own arrival. The newer bytes wait on."""
+        stop = 0
+        for end, ts in self._chunks:
+            if ts + silence > now:  # the very sum next_deadline gave: no rounding apart
+                break
+            stop = end
+        if stop:
+            pos = self._decode(self._buf, self._last_ts or 0.0, out, len(self._buf), _FINAL, stop)
+            self._drop(pos)
+            self._mark = max(0, self._mark - pos)
 
     def _keep(self, buf: bytes | bytearray, pos: int, old: int, ts: float) -> None:
         """Keep ``buf[pos:]`` (see :class:`StreamDecoder`) and when each kept byte arrived."""
@@ -388,9 +421,16 @@ class RtuDecoder(StreamDecoder):
             self._noise_ts = ts
 
     def _decode(
-        self, buf: bytes | bytearray, ts: float, out: list[Frame | Noise], old: int, mode: int
+        self,
+        buf: bytes | bytearray,
+        ts: float,
+        out: list[Frame | Noise],
+        old: int,
+        mode: int,
+        stop: int | None = None,
     ) -> int:
         """Frame ADUs from ``buf``; return the offset of the first undecided byte.
+        With ``stop``, decide only what starts before that offset.
 
         ``buf[:old]`` is what ``_buf`` held (its chunks' times in ``_chunks``),
         the rest arrived at ``ts``: noise is stamped when its first byte
@@ -419,9 +459,10 @@ class RtuDecoder(StreamDecoder):
         pending = self._pending
         frames = 0
         last = n - 1
-        self._near = self._lined = self._tails = None
+        self._near = self._lined = self._tails = self._at_mark = self._in_scan = None
         mark = self._mark if mode == _STREAM else 0
-        while pos < n:
+        end_at = n if stop is None else stop
+        while pos < end_at:
             if pos < last:
                 unit = buf[pos]
                 fc = buf[pos + 1]
@@ -433,7 +474,7 @@ class RtuDecoder(StreamDecoder):
                     is_resp = pending is not None and pending[0] == unit and pending[1] == fc
                 rule = (resp_rules if is_resp else req_rules).get(fc)
                 if rule is not None:
-                    if type(rule) is int:
+                    if isinstance(rule, int):
                         end = pos + rule
                     else:
                         at = pos + rule[0]
@@ -503,109 +544,134 @@ class RtuDecoder(StreamDecoder):
         """
         avail = n - pos
         if avail < 2:
-            if mode == _FINAL:
-                return _SKIP, False, _TRUNCATED
-            return _WAIT, False, ""
-        unit = buf[pos]
+            return (_SKIP, False, _TRUNCATED) if mode == _FINAL else _WAITING
         fc = buf[pos + 1]
-        # Candidate readings in order of preference: True = response.
-        if fc & 0x80:
-            readings: tuple[bool, ...] = (True,) if self._allow_resp else ()
-        elif not self._allow_resp:
-            readings = (False,)
-        elif not self._allow_req:
-            readings = (True,)
-        else:
-            pending = self._pending
-            if pending is not None and pending[0] == unit and pending[1] == fc:
-                readings = (True, False)
-            else:
-                readings = (False, True)
+        readings = self._readings(buf[pos], fc)
         if not readings or fc == 0 or fc == 0x80:
             return _SKIP, False, f"no valid frame (function code 0x{fc:02X})"
-
-        peek = buf[pos + 1 : pos + 1 + _PEEK]
-        incomplete = False
-        far = 0  # where the longest reading still missing bytes would end
-        crc_failed = False
+        total, is_resp, crc_failed, far, unpredictable = self._try_readings(
+            buf, pos, avail, readings, mode
+        )
+        if total:
+            return total, is_resp, ""
         cut = False  # a reading missing bytes would swallow a frame lined up with the bus
+        if far and mode != _FINAL:
+            # USB adapters bunch bytes: a frame may go on after a silence, so wait;
+            # but not for bytes that frame on their own at the bus's boundaries
+            if not self._lines_up(buf, pos, n, mode, far):
+                return _WAITING
+            cut = True
+        elif unpredictable:
+            decided = self._decide_scan(buf, pos, n, mode, unpredictable[0])
+            if decided is not None:
+                return decided
+        if crc_failed or cut:
+            decided = self._decide_boundary(buf, pos, n, mode, readings)
+            if decided is not None:
+                return decided
+        return _SKIP, False, _reason(fc, crc_failed, cut, far > 0, bool(unpredictable))
+
+    def _readings(self, unit: int, fc: int) -> tuple[bool, ...]:
+        """The readings of a frame from ``unit`` with ``fc`` in order of preference
+        (True: response): the answer to the pending request first, else the request."""
+        if fc & 0x80:
+            return (True,) if self._allow_resp else ()
+        if not self._allow_resp:
+            return (False,)
+        if not self._allow_req:
+            return (True,)
+        pending = self._pending
+        if pending is not None and pending[0] == unit and pending[1] == fc:
+            return (True, False)
+        return (False, True)
+
+    def _try_readings(
+        self, buf: bytes | bytearray, pos: int, avail: int, readings: tuple[bool, ...], mode: int
+    ) -> tuple[int, bool, bool, int, list[bool] | None]:
+        """Try each reading's predicted length and CRC at ``pos``, in order.
+
+        Returns ``(ADU length, is response, crc failed, far, unpredictable)``: a
+        length > 0 when a reading's CRC passes; else ``far`` > 0 is where the
+        longest reading still missing bytes would end (in ``_STREAM`` mode the
+        first one stops the others being tried: a later reading must not be
+        taken before it is known), and ``unpredictable`` the readings of no
+        predictable length (for a CRC scan).
+        """
+        peek = buf[pos + 1 : pos + 1 + _PEEK]
+        far = 0
+        crc_failed = False
         unpredictable: list[bool] | None = None
         for is_resp in readings:
             plen = pdu_length(peek, is_resp)
             if plen == NEED_MORE and avail - 1 > _PEEK:
                 plen = pdu_length(buf[pos + 1 : pos + MAX_ADU], is_resp)
             if plen is None:
-                if unpredictable is None:
-                    unpredictable = [is_resp]
-                else:
-                    unpredictable.append(is_resp)
+                unpredictable = [is_resp] if unpredictable is None else [*unpredictable, is_resp]
                 continue
-            if plen == NEED_MORE:
-                incomplete = True
-                far = max(far, pos + MAX_ADU)
-                if mode == _STREAM:
-                    break  # a later reading must not be taken before this one is known
+            total = MAX_ADU if plen == NEED_MORE else plen + 3
+            if plen != NEED_MORE and (total > MAX_ADU or plen < 1):
                 continue
-            total = plen + 3
-            if total > MAX_ADU or plen < 1:
-                continue
-            if total > avail:
-                incomplete = True
+            if plen == NEED_MORE or total > avail:
                 far = max(far, pos + total)
                 if mode == _STREAM:
                     break
                 continue
             if _crc_ok(buf, pos, pos + total):
-                return total, is_resp, ""
+                return total, is_resp, False, 0, None
             crc_failed = True
-        if incomplete and mode != _FINAL:
-            # USB adapters bunch bytes: a frame may go on after a silence, so wait;
-            # but not for bytes that frame on their own at the bus's boundaries
-            if self._lined_up(buf, pos, n, mode, far) != 1:
+        return 0, False, crc_failed, far, unpredictable
+
+    def _lines_up(self, buf: bytes | bytearray, pos: int, n: int, mode: int, far: int) -> bool:
+        """Whether frames after ``pos`` and before ``far`` line up with the bus: of
+        their own (:meth:`_lined_up`) or found by a scan (:meth:`_scanned`)."""
+        return self._lined_up(buf, pos, n, mode, far) == 1 or self._scanned(buf, pos, n, mode, far)
+
+    def _decide_scan(
+        self, buf: bytes | bytearray, pos: int, n: int, mode: int, is_resp: bool
+    ) -> tuple[int, bool, str] | None:
+        """The decision for bytes of no predictable length at ``pos``: the shortest
+        CRC match (unless it swallows frames), or wait; ``None`` when neither (the
+        caller goes on to noise)."""
+        avail = n - pos
+        limit = min(MAX_ADU, avail)
+        found = _scan(buf, pos, limit) if limit >= MIN_ADU else 0
+        if found:
+            crossed = self._crosses_frames(buf, pos, pos + found, n, mode)
+            if crossed < 0:
                 return _WAITING
-            cut = True
-        elif unpredictable:
-            limit = min(MAX_ADU, avail)
-            found = _scan(buf, pos, limit) if limit >= MIN_ADU else 0
-            if found:
-                crossed = self._crosses_frames(buf, pos, pos + found, n, mode)
-                if crossed < 0:
-                    return _WAIT, False, ""
-                if not crossed:
-                    return found, unpredictable[0], ""
-                return _SKIP, False, _CROSSED
-            if avail < MAX_ADU and mode != _FINAL:
-                # No CRC match yet: the frame may go on in bytes still to come,
-                # also after a silence (USB adapters bunch bytes). Before a
-                # silence it is noise only when a frame of its own starts
-                # after it and no later than the silence, or one lines up.
-                mark = n if mode == _SILENCE else self._mark
-                if (
-                    pos >= mark or self._frame_within(buf, pos + 1, mark, n, mode) != 1
-                ) and self._lined_up(buf, pos, n, mode, pos + MAX_ADU) != 1:
-                    return _WAIT, False, ""
-        if crc_failed or cut:
-            found = self._boundary(buf, pos, n, mode)
-            if found < 0:
+            if not crossed:
+                return found, is_resp, ""
+            return _SKIP, False, _CROSSED
+        if avail < MAX_ADU and mode != _FINAL:
+            # No CRC match yet: the frame may go on in bytes still to come, also
+            # after a silence (USB adapters bunch bytes). Before a silence it is
+            # noise only when a frame of its own starts after it and no later
+            # than the silence, or frames line up.
+            mark = n if mode == _SILENCE else self._mark
+            if (
+                pos >= mark or self._frame_within(buf, pos + 1, mark, n, mode) != 1
+            ) and not self._lines_up(buf, pos, n, mode, pos + MAX_ADU):
                 return _WAITING
-            if found:
-                # the reading whose length it has, if any (a reading missing bytes
-                # stopped the others being tried): the direction any chunking gives
-                whole = buf[pos + 1 : pos + found]
-                for is_resp in readings:
-                    plen = pdu_length(whole, is_resp)
-                    if plen is not None and plen != NEED_MORE and plen + 3 == found:
-                        return found, is_resp, ""
-                return found, readings[0], ""
-        if crc_failed:
-            return _SKIP, False, _BAD_CRC
-        if cut:
-            return _SKIP, False, _CUT
-        if incomplete:
-            return _SKIP, False, _TRUNCATED
-        if unpredictable:
-            return _SKIP, False, f"no valid frame (unknown function code 0x{fc:02X})"
-        return _SKIP, False, f"no valid frame (function code 0x{fc:02X})"
+        return None
+
+    def _decide_boundary(
+        self, buf: bytes | bytearray, pos: int, n: int, mode: int, readings: tuple[bool, ...]
+    ) -> tuple[int, bool, str] | None:
+        """Where the readings failed: a CRC that validates at a boundary the bus marks
+        is a frame whatever its fields say, or wait for one; ``None`` for noise."""
+        found = self._boundary(buf, pos, n, mode)
+        if found < 0 or (not found and self._may_go_on(buf, pos, n, mode)):
+            return _WAITING
+        if not found:
+            return None
+        # the reading whose length it has, if any (a reading missing bytes stopped
+        # the others being tried): the direction any chunking gives
+        whole = buf[pos + 1 : pos + found]
+        for is_resp in readings:
+            plen = pdu_length(whole, is_resp)
+            if plen is not None and plen != NEED_MORE and plen + 3 == found:
+                return found, is_resp, ""
+        return found, readings[0], ""
 
     def _next_frame(self, buf: bytes | bytearray, pos: int, n: int, mode: int) -> tuple[int, int]:
         """The first offset ``k`` after ``pos`` (at most ``MAX_ADU`` on) where a frame
@@ -723,8 +789,64 @@ class RtuDecoder(StreamDecoder):
             if end - pos >= MIN_ADU and _crc_ok(buf, pos, end):
                 return end - pos
         if not length and mode == _STREAM and k >= n:
-            return -1
+            # a frame found by a scan right at the silence is a boundary in sight
+            return 0 if self._scanned_at_mark(buf, pos, n, n) else -1
         return 0
+
+    def _scanned(self, buf: bytes | bytearray, pos: int, n: int, mode: int, far: int) -> bool:
+        """Whether a frame found by a CRC scan (any function code) after ``pos`` and
+        before ``far`` says the bytes at ``pos`` are no frame going on: one starts
+        right at the latest silence (:meth:`_scanned_at_mark`), or, at a silence
+        on a line whose silences have been real so far (not bursty), one lies
+        whole in the bytes before it (:meth:`_scanned_within`)."""
+        if self._scanned_at_mark(buf, pos, n, far):
+            return True
+        return mode == _SILENCE and not self._bursty and 0 < self._scanned_within(buf, pos, n) < far
+
+    def _scanned_within(self, buf: bytes | bytearray, pos: int, n: int) -> int:
+        """The first offset after ``pos`` where a CRC scan finds an ADU that ends by
+        ``n``, or 0. Remembered within one decoding pass (``_in_scan``: offsets
+        ``lo..k-1`` have none before ``k``), so a run of noise scans each offset once."""
+        memo = self._in_scan
+        if memo is not None and memo[0] <= pos < memo[1]:
+            return memo[1] if memo[1] < n else 0
+        j = pos + 1
+        while j <= n - MIN_ADU and not _scan(buf, j, min(MAX_ADU, n - j)):
+            j += 1
+        if j > n - MIN_ADU:
+            j = n
+        self._in_scan = (pos, j)
+        return j if j < n else 0
+
+    def _scanned_at_mark(self, buf: bytes | bytearray, pos: int, n: int, far: int) -> bool:
+        """Whether a CRC-valid ADU (found by a scan: any function code) starts right
+        at the latest silence, after ``pos`` and before ``far``: a frame starts at a
+        silence, so the bytes before it are no frame going on across it. The scan
+        is done once per decoding pass."""
+        mark = self._mark
+        if not pos < mark < far or mark > n - MIN_ADU:
+            return False
+        found = self._at_mark
+        if found is None:
+            found = self._at_mark = _scan(buf, mark, min(MAX_ADU, n - mark))
+        return found > 0
+
+    def _may_go_on(self, buf: bytes | bytearray, pos: int, n: int, mode: int) -> bool:
+        """At a silence, whether the bytes from ``pos`` whose readings failed may be
+        one frame going on after it: nothing of its own starts after ``pos``, no
+        CRC validates at the silence from a later offset, no frame found by a
+        scan says otherwise (:meth:`_scanned`), and fewer than ``MAX_ADU`` bytes
+        are there. A USB adapter's latency looks like a
+        silence, and a frame whose fields disagree with its length (its CRC at its
+        true end) can be cut there; its CRC at a boundary the next bytes mark then
+        decides it. Noise held so is reported with those bytes, or at the end of
+        the stream (``silence``); it never holds back a frame after it."""
+        if mode != _SILENCE or n - pos >= MAX_ADU or self._next_frame(buf, pos, n, mode)[1]:
+            return False
+        if self._scanned(buf, pos, n, mode, n):
+            return False
+        # a CRC that validates right at the silence after pos marks a frame there
+        return not any(j > pos for j in self._ends_at_silence(buf, n))
 
     def _crosses_frames(
         self, buf: bytes | bytearray, start: int, end: int, n: int, mode: int
@@ -782,7 +904,7 @@ class RtuDecoder(StreamDecoder):
             if fc & 0x80 and not is_resp:
                 continue
             rule = (_RESP_RULES if is_resp else _REQ_RULES).get(fc)
-            if type(rule) is int:  # the simple rules as the framing loop reads them
+            if isinstance(rule, int):  # the simple rules as the framing loop reads them
                 total = rule
             elif rule is not None:
                 at = k + rule[0]
@@ -809,6 +931,19 @@ class RtuDecoder(StreamDecoder):
             elif _crc_ok(buf, k, k + total):
                 return total
         return -1 if short and mode == _STREAM else 0
+
+
+def _reason(fc: int, crc_failed: bool, cut: bool, incomplete: bool, unpredictable: bool) -> str:
+    """Why the byte at an offset is noise, from what its readings found."""
+    if crc_failed:
+        return _BAD_CRC
+    if cut:
+        return _CUT
+    if incomplete:
+        return _TRUNCATED
+    if unpredictable:
+        return f"no valid frame (unknown function code 0x{fc:02X})"
+    return f"no valid frame (function code 0x{fc:02X})"
 
 
 _CROSSED = "no valid frame (a CRC match by scanning would swallow valid frames)"
