@@ -18,6 +18,8 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 
@@ -27,9 +29,9 @@ def register(sub: Any) -> None:
         add_foxglove_option,
         add_live_options,
         add_output_options,
+        add_serial_line_options,
         add_view_options,
         exception_code,
-        positive_int,
     )
     from mbmon.commands.common import positive as _positive
     from mbmon.proxy.options import EPILOG, add_proxy_options
@@ -46,11 +48,12 @@ def register(sub: Any) -> None:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    add_proxy_options(
-        p,
-        {"positive": _positive, "positive_int": positive_int, "exception_code": exception_code},
-        DEFAULT_BAUD,
-    )
+    convert: dict[str, Callable[..., Any]] = {
+        "positive": _positive,
+        "exception_code": exception_code,
+        "serial_line": partial(add_serial_line_options, baud_default=DEFAULT_BAUD),
+    }
+    add_proxy_options(p, convert)
     screen = p.add_argument_group("screen")
     add_live_options(screen)
     add_foxglove_option(screen)

@@ -131,3 +131,25 @@ def test_serial_line_options_come_from_the_one_builder() -> None:
             else:
                 raise AssertionError(f"{bad} was accepted")
     assert "must be > 0: 0" in err.getvalue() and "not a whole number: 'fast'" in err.getvalue()
+
+
+def test_sniff_proxy_and_sim_share_the_serial_line_options() -> None:
+    """One home for ``--baud --parity --stopbits``: the same checks, choices and
+    defaults in the three commands that open a serial line (only sniff's ``--baud``
+    stays unset when not given: an interface run refuses it)."""
+    from mbmon.commands.options import positive_int
+
+    commands = build_parser()._subparsers._group_actions[0].choices  # type: ignore[union-attr]
+
+    def line(name: str) -> list[tuple[object, ...]]:
+        actions = commands[name]._option_string_actions
+        return [
+            (flag, actions[flag].type, actions[flag].choices, actions[flag].metavar)
+            for flag in ("--baud", "--parity", "--stopbits")
+        ]
+
+    assert line("sniff") == line("proxy") == line("sim")
+    assert line("sniff")[0][1] is positive_int
+    for name in ("proxy", "sim"):
+        args = build_parser().parse_args([name])
+        assert (args.baud, args.parity, args.stopbits) == (115200, "N", 1), name
