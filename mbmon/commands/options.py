@@ -332,14 +332,15 @@ def add_serial_tap_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def add_capture_run_options(parser: argparse.ArgumentParser) -> Any:
-    """The ``run`` group of a live capture (``sniff``): ``-c N`` (the one ``-c``:
-    :func:`~mbmon.commands.listeners.add_count_option`), ``--timeout S`` and
-    ``--plain``. Returns the group, for the command's own options."""
-    from mbmon.commands.listeners import add_count_option
-
+def add_capture_run_options(
+    parser: argparse.ArgumentParser, add_count: Callable[[Any], None]
+) -> Any:
+    """The ``run`` group of a live capture (``sniff``): ``-c N`` (``add_count``: the one
+    ``-c``, :func:`~mbmon.commands.listeners.add_count_option`, handed in because
+    the listeners import this module), ``--timeout S`` and ``--plain``. Returns the
+    group, for the command's own options."""
     group = parser.add_argument_group("run")
-    add_count_option(group)
+    add_count(group)
     group.add_argument(
         "--timeout",
         type=positive,

@@ -53,6 +53,7 @@ def register(sub: Any) -> None:
 
     from mbmon.commands.common import (
         add_capture_run_options,
+        add_count_option,
         add_foxglove_option,
         add_interface_options,
         add_output_options,
@@ -74,7 +75,7 @@ def register(sub: Any) -> None:
     p.add_argument("iface", nargs="?", metavar="IFACE", help="network interface (e.g. eth0, lo)")
     add_interface_options(p)
     add_serial_tap_options(p)
-    run = add_capture_run_options(p)
+    run = add_capture_run_options(p, add_count_option)
     add_foxglove_option(run)
     add_view_options(p)
     add_output_options(p)
