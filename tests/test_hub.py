@@ -328,7 +328,7 @@ def test_every_hook_is_optional_for_the_hub_and_for_every_wrapper() -> None:
     """One contract: a listener with no hook at all, or with ``on_record`` only, works
     behind the hub and behind each wrapper that composes hooks with ``hooks_of``."""
     from mbmon.analysis.trigger import TriggerGate
-    from mbmon.commands.sniff import _Budget, _Limited
+    from mbmon.commands.common import FrameBudget, Limited
     from mbmon.filters import parse_expression
     from mbmon.hub import HOOKS, hooks_of
     from mbmon.sinks.select import Selection
@@ -351,13 +351,13 @@ def test_every_hook_is_optional_for_the_hub_and_for_every_wrapper() -> None:
     gate = TriggerGate(parse_expression("fc 3"), before=10.0, after=10.0)
     gate.add(Bare())
     gate.add(behind_gate)
-    budget = _Budget(100, lambda: None, None, View())
+    budget = FrameBudget(100, lambda: None, None, View())
     wrappers = [
         Selection([Bare(), behind_selection], View()),
         gate,
         budget,
-        _Limited(Bare(), budget),
-        _Limited(behind_budget, budget),
+        Limited(Bare(), budget),
+        Limited(behind_budget, budget),
         Bare(),
     ]
     hub = Hub(Pipeline(), wrappers)

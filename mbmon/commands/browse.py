@@ -19,7 +19,7 @@ def run_browse(args: argparse.Namespace) -> int:
     """``mbmon replay --browse``: the log in the interactive monitor, its raw bytes
     decoded again through the one flow (as ``--redecode``: the lines ``read`` prints),
     the command-line filters as the screen's first display filter."""
-    from mbmon.commands.common import filter_text
+    from mbmon.commands.common import filter_text, wants_state_panel
     from mbmon.filters import FilterError
     from mbmon.hub import Hub
     from mbmon.io.mcap.layout import METADATA_NAME, TOPIC_RAW
@@ -57,7 +57,7 @@ def run_browse(args: argparse.Namespace) -> int:
             title=f"mbmon replay {log.path.name}",
             keep=BROWSE_KEEP,
             annotator=annotator,
-            profile=any("hrss" in spec for spec in opts.profile_specs),
+            profile=wants_state_panel(annotator),
         )
         pipeline = Pipeline(annotator, PipelineConfig(timeout=opts.timeout, baudrate=opts.baud))
         hub = Hub(pipeline, [feed])

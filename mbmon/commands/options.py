@@ -263,3 +263,90 @@ def add_live_options(group: Any) -> None:
         help="one line per record instead of the interactive monitor (the default when "
         "stdout or stdin is not a terminal)",
     )
+
+
+def add_serial_line_options(
+    group: Any, *, baud_default: int | None, bytesize: bool = False, prefix: str = ""
+) -> None:
+    """``--baud``, ``--parity``, ``--stopbits`` (and ``--bytesize``): the serial line's
+    settings, the one home of their spelling and defaults (``sniff``, ``proxy``,
+    ``sim``). ``baud_default`` ``None`` leaves ``--baud`` unset when not given (the
+    command applies :data:`~mbmon.sources.DEFAULT_BAUD` and can tell "not given");
+    ``prefix`` starts the helps (``"RTU "``)."""
+    from mbmon.sources import DEFAULT_BAUD
+
+    group.add_argument(
+        "--baud",
+        type=positive_int,
+        default=baud_default,
+        metavar="N",
+        help=f"{prefix}baud rate ({DEFAULT_BAUD})",
+    )
+    group.add_argument("--parity", choices=("N", "E", "O"), default="N", help=f"{prefix}parity (N)")
+    group.add_argument(
+        "--stopbits", type=int, choices=(1, 2), default=1, help=f"{prefix}stop bits (1)"
+    )
+    if bytesize:
+        group.add_argument(
+            "--bytesize", type=int, choices=(5, 6, 7, 8), default=8, help=f"{prefix}data bits (8)"
+        )
+
+
+def add_interface_options(parser: argparse.ArgumentParser) -> None:
+    """The ``network`` group of ``sniff``: ``-i IFACE``, ``--list``, ``-f BPF`` and the
+    Modbus ports (:func:`add_port_options`)."""
+    group = parser.add_argument_group("network")
+    group.add_argument("-i", "--interface", dest="interface", metavar="IFACE", help="as IFACE")
+    group.add_argument("--list", action="store_true", help="list the network interfaces and exit")
+    group.add_argument(
+        "-f",
+        "--filter",
+        metavar="BPF",
+        help="kernel capture filter (tcpdump syntax) instead of the default: 'tcp or "
+        "udp port 502' while Modbus is looked for on every TCP port (no --port, "
+        "--rtu-port or --no-detect), else 'tcp port 502 or udp port 502' plus those ports",
+    )
+    add_port_options(group)
+
+
+def add_serial_tap_options(parser: argparse.ArgumentParser) -> None:
+    """The ``serial`` group of ``sniff``: one or two ``--serial`` taps, the line's
+    settings (:func:`add_serial_line_options`, ``--baud`` unset when not given) and
+    the two taps' ``--merge-window``."""
+    group = parser.add_argument_group("serial (RS485, Modbus RTU)")
+    group.add_argument(
+        "--serial",
+        action="append",
+        default=[],
+        metavar="PORT",
+        help="serial port of a passive RS485 tap; give it twice for two one-direction "
+        "taps merged by timestamp",
+    )
+    add_serial_line_options(group, baud_default=None, bytesize=True)
+    group.add_argument(
+        "--merge-window",
+        type=positive,
+        default=0.05,
+        metavar="S",
+        help="with two taps: hold reads S seconds to merge them in time order (0.05)",
+    )
+
+
+def add_capture_run_options(
+    parser: argparse.ArgumentParser, add_count: Callable[[Any], None]
+) -> Any:
+    """The ``run`` group of a live capture (``sniff``): ``-c N`` (``add_count``: the one
+    ``-c``, :func:`~mbmon.commands.listeners.add_count_option`, handed in because
+    the listeners import this module), ``--timeout S`` and ``--plain``. Returns the
+    group, for the command's own options."""
+    group = parser.add_argument_group("run")
+    add_count(group)
+    group.add_argument(
+        "--timeout",
+        type=positive,
+        default=1.0,
+        metavar="S",
+        help="report a request unanswered after S seconds (default 1.0)",
+    )
+    add_live_options(group)
+    return group

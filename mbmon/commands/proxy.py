@@ -16,9 +16,10 @@ stderr.
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
 import time
+from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 
@@ -28,9 +29,9 @@ def register(sub: Any) -> None:
         add_foxglove_option,
         add_live_options,
         add_output_options,
+        add_serial_line_options,
         add_view_options,
         exception_code,
-        positive_int,
     )
     from mbmon.commands.common import positive as _positive
     from mbmon.proxy.options import EPILOG, add_proxy_options
@@ -47,11 +48,12 @@ def register(sub: Any) -> None:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    add_proxy_options(
-        p,
-        {"positive": _positive, "positive_int": positive_int, "exception_code": exception_code},
-        DEFAULT_BAUD,
-    )
+    convert: dict[str, Callable[..., Any]] = {
+        "positive": _positive,
+        "exception_code": exception_code,
+        "serial_line": partial(add_serial_line_options, baud_default=DEFAULT_BAUD),
+    }
+    add_proxy_options(p, convert)
     screen = p.add_argument_group("screen")
     add_live_options(screen)
     add_foxglove_option(screen)
@@ -71,7 +73,10 @@ def run(args: argparse.Namespace) -> int:
     from mbmon.commands.common import (
         EXIT_BAD_INPUT,
         UsageError,
+        attach_outputs,
         check_rotation,
+        err,
+        exit_status,
         listen_error,
         make_annotator,
         parse_address,
@@ -111,7 +116,8 @@ def run(args: argparse.Namespace) -> int:
         timeout=pipe_timeout,
         baud=baud,
     )
-    if not _open_logs(hub, args, ctx):
+    logs = _open_logs(hub, args, ctx)
+    if logs is None:
         return EXIT_BAD_INPUT
     engine, thread, observer = attach_engine(
         hub, plan.config, process=plan.process, **plan.factories
@@ -119,30 +125,35 @@ def run(args: argparse.Namespace) -> int:
     try:
         address = thread.start()
     except OSError as exc:
-        print(f"mbmon: {plan.start_error(exc, listen_error)}", file=sys.stderr)
+        err(plan.start_error(exc, listen_error))
+        attach_outputs(hub, logs=logs)  # what the engine said reaches the logs
         hub.run(until_idle=True)
         hub.close()
-        return EXIT_BAD_INPUT
-    return _serve(args, plan, hub, (engine, thread, observer), address, ctx, annotator)
+        return exit_status(hub, failed=True, until_signal=True)
+    return _serve(args, plan, hub, (engine, thread, observer), address, ctx, annotator, logs)
 
 
-def _open_logs(hub: Any, args: argparse.Namespace, ctx: Any) -> bool:
-    """The Foxglove feed and the ``-w`` logs on ``hub`` (logs first: DESIGN rule 7);
-    ``False`` (said on stderr, the hub closed) when one cannot be opened."""
-    from mbmon.commands.common import open_foxglove, open_log
+def _open_logs(hub: Any, args: argparse.Namespace, ctx: Any) -> list[Any] | None:
+    """The Foxglove feed and the ``-w`` logs, opened (not attached: the command hands
+    them to :func:`~mbmon.commands.listeners.attach_outputs`, logs first); ``None``
+    (said on stderr, the hub closed) when one cannot be opened."""
+    from mbmon.commands.common import err, open_foxglove, open_logs
     from mbmon.sinks.base import SinkError
 
+    logs: list[Any] = []
     try:
         feed = open_foxglove(args, ctx)  # before any file: a missing SDK leaves nothing behind
-        if feed is not None:
-            hub.add_listener(feed)
-        for target in args.write:
-            hub.add_listener(open_log(target, ctx, args))
-    except SinkError as exc:
-        print(f"mbmon: {exc}", file=sys.stderr)
+        logs += [feed] if feed is not None else []
+        logs += open_logs(args.write, ctx, args)  # closes its own on failure
+    except (SinkError, SystemExit) as exc:
+        for out in logs:
+            out.close()
         hub.close()
-        return False
-    return True
+        if isinstance(exc, SystemExit):
+            raise
+        err(str(exc))
+        return None
+    return logs
 
 
 def _serve(
@@ -153,60 +164,64 @@ def _serve(
     address: tuple[str, int],
     ctx: Any,
     annotator: Any,
+    logs: list[Any],
 ) -> int:
-    """The started engine's run: signals, the start-up line, the screen, ``hub.run``
-    until Ctrl-C/SIGTERM, then the summary and the exit status."""
-    from mbmon.commands.common import EXIT_BAD_INPUT, EXIT_OK, Figures, open_console, run_live
+    """The started engine's run: signals, the start-up line, the outputs (the opened
+    ``logs``, then the screen), ``hub.run`` until Ctrl-C/SIGTERM, then the summary
+    and the exit status."""
+    from mbmon.commands.common import (
+        Figures,
+        attach_outputs,
+        err,
+        exit_status,
+        open_console,
+        run_live,
+        stop_on_signals,
+    )
 
     engine, thread, observer = parts
-    # Ctrl-C and SIGTERM stop the engine from now on: before the start-up line, which
-    # is what a supervisor (or a test) waits for before it may signal
-    signals = [0]
+    from_screen = [0]  # the monitor's quit key asks as a signal does
 
-    def _stop(signum: int, frame: object) -> None:
-        signals[0] += 1
+    def stop(count: int) -> None:
         thread.stop()  # the engine's last events reach the hub, then it stops the hub
-        if signals[0] > 1:
+        if count > 1:
             hub.stop()  # asked twice: do not wait for the engine
 
-    old = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)}
-    print(f"mbmon proxy: {plan.startup_line(address)}", file=sys.stderr, flush=True)
-    if args.upstream is not None:
-        _warn_unresolved(hub, plan.config.upstream_host, plan.config.upstream_port)
-    # the screen last: the logs are open, and the start-up line is on the terminal
-    # before the live monitor takes it
-    console, monitor = open_console(
-        args, ctx.view, title=f"mbmon proxy -> {plan.upstream}", annotator=annotator
-    )
-    if console is not None:
-        hub.add_listener(console)
-    if monitor is not None:
-        hub.add_listener(Figures(monitor, engine.figures))
-    try:
+    def quit_key() -> None:
+        from_screen[0] += 1
+        stop(signals.count + from_screen[0])
+
+    # Ctrl-C and SIGTERM stop the engine from now on: before the start-up line, which
+    # is what a supervisor (or a test) waits for before it may signal; and until the
+    # summary is out (a late Ctrl-C must not cut the logs' close or the summary short)
+    with stop_on_signals(stop) as signals:
+        print(f"mbmon proxy: {plan.startup_line(address)}", file=sys.stderr, flush=True)
+        if args.upstream is not None:
+            _warn_unresolved(hub, plan.config.upstream_host, plan.config.upstream_port)
+        # the screen last: the logs are open, and the start-up line is on the terminal
+        # before the live monitor takes it
+        console, monitor = open_console(
+            args, ctx.view, title=f"mbmon proxy -> {plan.upstream}", annotator=annotator
+        )
+        attach_outputs(hub, logs=logs, screen=console)
+        if monitor is not None:
+            hub.add_listener(Figures(monitor, engine.figures))
         try:
-            run_live(
-                monitor, hub.run, lambda: _stop(signal.SIGINT, None), ctx=ctx, submit=hub.submit
-            )
+            run_live(monitor, hub.run, quit_key, ctx=ctx, submit=hub.submit)
         finally:
             thread.stop()
             thread.join(5.0)
             hub.close()
         engine.stats.not_observed = observer.skipped
         print("mbmon proxy: " + engine.stats.summary().replace("\n", "\n  "), file=sys.stderr)
-        if getattr(engine, "final", True) is False:
+        lost = getattr(engine, "final", True) is False
+        if lost:
             status = getattr(thread, "returncode", None)
-            print(
-                f"mbmon: the proxy's forwarding process ended unexpectedly (status {status}); "
-                "the counters above are the last it sent",
-                file=sys.stderr,
+            err(
+                f"the proxy's forwarding process ended unexpectedly (status {status}); "
+                "the counters above are the last it sent"
             )
-            return EXIT_BAD_INPUT
-    finally:  # a late Ctrl-C must not cut the logs' close or the summary short
-        for s, handler in old.items():
-            signal.signal(s, handler)
-    if any(name != "stdout" or why != "broken pipe" for name, why in hub.failures):
-        return EXIT_BAD_INPUT
-    return EXIT_OK
+    return exit_status(hub, failed=lost, until_signal=True)
 
 
 def _warn_unresolved(hub: Any, host: str, port: int) -> None:

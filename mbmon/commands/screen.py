@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Iterable
 from typing import Any
 
 
@@ -60,9 +59,13 @@ class Progress:
             self._bar = None
 
 
-def wants_state_panel(profile_specs: Iterable[str]) -> bool:
-    """Whether the live monitor shows the HRSS state panel: an ``hrss`` profile is in use."""
-    return any("hrss" in spec for spec in profile_specs)
+def wants_state_panel(annotator: Any) -> bool:
+    """Whether the live monitor shows the state panel: the run's annotator (``None``
+    without ``--profile``) has a profile that names a device session
+    (:attr:`~mbmon.semantics.annotate.Annotator.has_sessions`): the annotator
+    decides, not the spelling of ``--profile`` (a copy of the HRSS map in a file of
+    any name gets the panel; a file in an ``hrss`` folder without a session does not)."""
+    return bool(annotator is not None and annotator.has_sessions)
 
 
 class Figures:
@@ -103,9 +106,8 @@ def open_console(
         return ConsoleListener(sys.stdout, view, as_json=args.json, live=True), None
     from mbmon.monitor.feed import MonitorFeed
 
-    profiles = getattr(args, "profile", []) or []
     monitor = MonitorFeed(
-        view, title=title, profile=wants_state_panel(profiles), annotator=annotator
+        view, title=title, profile=wants_state_panel(annotator), annotator=annotator
     )
     return monitor, monitor
 

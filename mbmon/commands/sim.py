@@ -44,7 +44,7 @@ exit status: 0 stopped by Ctrl-C or SIGTERM, 1 cannot listen or open the port, 2
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     """Add the ``sim`` subparser."""
-    from mbmon.commands.common import listen_address, positive_int, unit_id
+    from mbmon.commands.common import add_serial_line_options, listen_address, unit_id
     from mbmon.sources import DEFAULT_BAUD
 
     p = sub.add_parser(
@@ -63,16 +63,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     )
     p.add_argument("--unit", type=unit_id, default=1, help="unit id the robot answers (default 1)")
     p.add_argument("--serial", metavar="PORT", help="serve Modbus RTU on this serial port instead")
-    p.add_argument(
-        "--baud",
-        type=positive_int,
-        default=DEFAULT_BAUD,
-        help=f"RTU baud rate (default {DEFAULT_BAUD}, as sniff and proxy)",
-    )
-    p.add_argument("--parity", choices=("N", "E", "O"), default="N", help="RTU parity (default N)")
-    p.add_argument(
-        "--stopbits", type=int, choices=(1, 2), default=1, help="RTU stop bits (default 1)"
-    )
+    add_serial_line_options(p, baud_default=DEFAULT_BAUD, prefix="RTU ")  # as sniff and proxy
     p.add_argument(
         "-q", "--quiet", action="store_true", help="do not print executed commands and motions"
     )

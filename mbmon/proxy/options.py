@@ -47,16 +47,13 @@ exit status: 0 ok, 1 cannot listen or an output failed, 2 usage
 """
 
 
-def add_proxy_options(
-    p: Any, convert: Mapping[str, Callable[[str], Any]], default_baud: int
-) -> None:
+def add_proxy_options(p: Any, convert: Mapping[str, Callable[..., Any]]) -> None:
     """Add the network, serial and guard option groups to the parser ``p``. ``convert``
-    holds the command line's value checks by name: ``positive`` (seconds),
-    ``positive_int`` and ``exception_code``."""
+    holds the command line's value checks by name, ``positive`` (seconds) and
+    ``exception_code``, and ``serial_line``, which adds the serial line's ``--baud
+    --parity --stopbits`` to a group (the commands' one builder)."""
     _positive = convert["positive"]
-    positive_int = convert["positive_int"]
     exception_code = convert["exception_code"]
-    DEFAULT_BAUD = default_baud
     net = p.add_argument_group("network")
     net.add_argument(
         "--upstream",
@@ -100,15 +97,7 @@ def add_proxy_options(
         "slave (RTU->TCP, or RTU<->RTU with --upstream-serial); it gets silence, not "
         "0x0A/0x0B, when the upstream cannot answer",
     )
-    ser.add_argument(
-        "--baud",
-        type=positive_int,
-        default=DEFAULT_BAUD,
-        metavar="N",
-        help=f"baud rate ({DEFAULT_BAUD})",
-    )
-    ser.add_argument("--parity", choices=("N", "E", "O"), default="N", help="parity (N)")
-    ser.add_argument("--stopbits", type=int, choices=(1, 2), default=1, help="stop bits (1)")
+    convert["serial_line"](ser)  # --baud --parity --stopbits: the commands' one builder
     guard = p.add_argument_group("guard")
     guard.add_argument(
         "--read-only",

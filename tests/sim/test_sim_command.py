@@ -147,7 +147,5 @@ def test_sim_sniff_and_proxy_default_to_one_baud_rate() -> None:
     proxy = parser.parse_args(["proxy", "--upstream-serial", "/dev/ttyX"])
     assert sim.baud == proxy.baud == SerialSettings().baudrate == DEFAULT_BAUD == 115200
     assert SimServer(serial="/dev/ttyX").baudrate == DEFAULT_BAUD
-    for command in ("sim", "sniff", "proxy"):
-        assert f"({'default ' if command == 'sim' else ''}{DEFAULT_BAUD}" in mbmon(
-            command, "--help"
-        ).stdout.replace("\n", " ")
+    for command in ("sim", "sniff", "proxy"):  # one builder: one help
+        assert f"baud rate ({DEFAULT_BAUD})" in mbmon(command, "--help").stdout
