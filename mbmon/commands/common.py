@@ -17,7 +17,8 @@ all re-exported here (``from mbmon.commands.common import X``):
   printed record has always been logged); and the one ``-c N``
   (:func:`add_count_option`, :class:`FrameBudget`): frames that pass the filters,
   Connect/Disconnect events do not count, every output ends at the N-th.
-- :mod:`~mbmon.commands.options` — argparse value types and option groups.
+- :mod:`~mbmon.commands.values` — argparse value types;
+  :mod:`~mbmon.commands.options` — option groups.
 - :mod:`~mbmon.commands.outputs` — annotator, view and filter, ``-w`` logs,
   rotation, triggers, Foxglove, and the words for an endpoint that cannot open.
 - :mod:`~mbmon.commands.screen` — the console or live monitor, figures, progress.
@@ -78,16 +79,6 @@ from mbmon.commands.options import (
     add_serial_line_options,
     add_serial_tap_options,
     add_view_options,
-    endpoint,
-    exception_code,
-    listen_address,
-    parse_address,
-    port,
-    positive,
-    positive_int,
-    split_host_port,
-    unit_id,
-    whole_number,
 )
 from mbmon.commands.outputs import (
     FOXGLOVE_DEFAULT,
@@ -113,6 +104,18 @@ from mbmon.commands.screen import (
     open_console,
     run_live,
     wants_state_panel,
+)
+from mbmon.commands.values import (
+    endpoint,
+    exception_code,
+    listen_address,
+    parse_address,
+    port,
+    positive,
+    positive_int,
+    split_host_port,
+    unit_id,
+    whole_number,
 )
 
 __all__ = [

@@ -28,7 +28,7 @@ COUNT_HELP = (
 
 def add_count_option(group: Any) -> None:
     """``-c N`` / ``--count N``: the one ``-c`` (:class:`FrameBudget` reads it)."""
-    from mbmon.commands.options import positive_int
+    from mbmon.commands.values import positive_int
 
     group.add_argument("-c", "--count", type=positive_int, metavar="N", help=COUNT_HELP)
 

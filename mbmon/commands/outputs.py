@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from mbmon.commands.ending import EXIT_USAGE, UsageError, err
-from mbmon.commands.options import split_host_port
+from mbmon.commands.values import split_host_port
 
 
 def make_annotator(specs: list[str]) -> Any:

@@ -137,7 +137,7 @@ def test_sniff_proxy_and_sim_share_the_serial_line_options() -> None:
     """One home for ``--baud --parity --stopbits``: the same checks, choices and
     defaults in the three commands that open a serial line (only sniff's ``--baud``
     stays unset when not given: an interface run refuses it)."""
-    from mbmon.commands.options import positive_int
+    from mbmon.commands.values import positive_int
 
     commands = build_parser()._subparsers._group_actions[0].choices  # type: ignore[union-attr]
 
