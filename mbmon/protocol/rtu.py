@@ -70,16 +70,31 @@ noise without waiting for another byte; bytes held ``silence`` seconds are
 decided so even while newer ones keep coming (a frame starting in them would
 be complete by then). Noise is stamped when its bytes arrived.
 
+The heuristics that look around the bytes at an offset (frames of their own,
+lining up with the bus, boundaries, scans across a silence) are
+:class:`~mbmon.protocol.rtu_bounds.RtuBounds`, which the decoder owns.
+
 Pure: no I/O, no clocks; time is the ``ts`` given with each chunk or tick.
 """
 
 from __future__ import annotations
 
 from mbmon.model import Direction, Frame, Noise, Stream, fast_constructor
-from mbmon.protocol.crc import CRC_TABLE, add_crc
+from mbmon.protocol.crc import add_crc
 from mbmon.protocol.crc import crc_ok_at as _crc_ok
-from mbmon.protocol.functions import derived
-from mbmon.protocol.pdu import NEED_MORE, decode_pdu, pdu_length, simple_length_rules
+from mbmon.protocol.pdu import NEED_MORE, decode_pdu, pdu_length
+from mbmon.protocol.rtu_bounds import (
+    FINAL,
+    MAX_ADU,
+    MIN_ADU,
+    PEEK,
+    SILENCE,
+    STREAM,
+    RtuBounds,
+)
+from mbmon.protocol.rtu_bounds import REQ_RULES as _REQ_RULES
+from mbmon.protocol.rtu_bounds import RESP_RULES as _RESP_RULES
+from mbmon.protocol.rtu_bounds import scan_crc as _scan
 from mbmon.protocol.stream import StreamDecoder
 
 __all__ = ["MAX_ADU", "NOISE_CAP", "RtuDecoder", "encode_rtu", "t35"]
@@ -89,45 +104,10 @@ _S2C = Direction.S2C
 _new_frame = fast_constructor(Frame)  # one per ADU: about twice as fast as Frame(...)
 
 
-def _adu_rules(response: bool) -> dict[int, int | tuple[int, int]]:
-    """``simple_length_rules`` as ADU sizes: fixed ADU length, or ``(i, base)``
-    with the ADU ``base + adu[i]`` long (unit id and CRC counted in)."""
-    return {
-        fc: rule + 3 if isinstance(rule, int) else (rule[0] + 1, rule[1] + 3)
-        for fc, rule in simple_length_rules(response).items()
-    }
-
-
-_REQ_RULES: dict[int, int | tuple[int, int]] = {}
-_RESP_RULES: dict[int, int | tuple[int, int]] = {}
-
-
-@derived
-def _rules_from_table() -> None:
-    """Fill the ADU rules in place, again when a function code is registered."""
-    for rules, response in ((_REQ_RULES, False), (_RESP_RULES, True)):
-        rules.clear()
-        rules.update(_adu_rules(response))
-
-
 _NO_RULES: dict[int, int | tuple[int, int]] = {}
-
-MAX_ADU = 256
-"""Largest RTU ADU: unit id + 253-byte PDU + CRC (spec limit); also the scan limit."""
-
-MIN_ADU = 4
-"""Smallest RTU ADU: unit id + function code + CRC."""
 
 NOISE_CAP = 65536
 """A noise run longer than this is reported in pieces of this size."""
-
-_PEEK = 16
-"""Bytes handed to ``pdu_length`` first; every fixed rule reads at most index 9."""
-
-# Modes of one decoding pass.
-_STREAM = 0  # more bytes will come: wait whenever a decision needs them
-_SILENCE = 1  # a silence follows: settle noise, wait for predicted lengths and open scans
-_FINAL = 2  # end of stream: decide everything with the bytes present
 
 # Outcomes of the decision at one offset (lengths > 0 accept a frame).
 _WAIT = -1
@@ -149,21 +129,6 @@ def encode_rtu(unit: int, pdu: bytes) -> bytes:
     return add_crc(bytes((unit,)) + bytes(pdu))
 
 
-def _scan(buf: bytes | bytearray, start: int, limit: int) -> int:
-    """Shortest length L in MIN_ADU..limit with a valid CRC at ``buf[start:start+L]``, else 0."""
-    table = CRC_TABLE
-    crc = 0xFFFF
-    crc = (crc >> 8) ^ table[(crc ^ buf[start]) & 0xFF]
-    crc = (crc >> 8) ^ table[(crc ^ buf[start + 1]) & 0xFF]
-    for length in range(MIN_ADU, limit + 1):
-        i = start + length - 2
-        lo = buf[i]
-        if lo == (crc & 0xFF) and buf[i + 1] == (crc >> 8):
-            return length
-        crc = (crc >> 8) ^ table[(crc ^ lo) & 0xFF]
-    return 0
-
-
 class RtuDecoder(StreamDecoder):
     """Sans-I/O decoder of one RTU byte stream.
 
@@ -179,19 +144,13 @@ class RtuDecoder(StreamDecoder):
     __slots__ = (
         "_allow_req",
         "_allow_resp",
-        "_at_mark",
-        "_bursty",
+        "_bounds",
         "_char",
         "_chunks",
-        "_in_scan",
-        "_lined",
-        "_mark",
-        "_near",
         "_pending",
         "_settled",
         "_silence",
         "_t35",
-        "_tails",
         "_ticked",
         "baudrate",
         "stats",
@@ -218,21 +177,10 @@ class RtuDecoder(StreamDecoder):
             self._char = None
             self._t35 = 0.0
         self._pending: tuple[int, int] | None = None
-        self._mark = 0  # bytes of _buf that came before the latest silence
-        #: a frame went on across a silence: silences may be a USB adapter's latency
-        self._bursty = False
+        #: the line-up heuristics, with the latest silence (``mark``) and ``bursty``
+        self._bounds = RtuBounds(self._allow_req, self._allow_resp)
         #: (end offset in _buf, arrival time) of each chunk whose bytes _buf holds
         self._chunks: list[tuple[int, float]] = []
-        #: within one decoding pass: (lo, k, s), no frame of its own starts in (lo, k),
-        #: at k one of length s (-1: cannot tell yet; 0: k is where the search stopped)
-        self._near: tuple[int, int, int] | None = None
-        #: within one decoding pass: (lo, first, k, state), for offsets lo..first-1
-        #: (first: the next frame of its own) frames line up with the bus at k
-        #: (state 1), cannot be told at k (-1), or do not before k (0)
-        self._lined: tuple[int, int, int, int] | None = None
-        self._tails: list[int] | None = None  # within one pass: see _ends_at_silence
-        self._at_mark: int | None = None  # within one pass: see _scanned_at_mark
-        self._in_scan: tuple[int, int] | None = None  # within one pass: see _scanned_within
         self.stats: dict[str, int] = {
             "frames": 0,
             "noise_bytes": 0,
@@ -257,10 +205,11 @@ class RtuDecoder(StreamDecoder):
             buf: bytes | bytearray = self._buf
         else:
             buf = data  # fast path: decode straight from the chunk, no copy
-        pos = self._decode(buf, ts, out, old, _STREAM)
+        pos = self._decode(buf, ts, out, old, STREAM)
         self._keep(buf, pos, old, ts)
-        if self._mark:
-            self._mark = max(0, self._mark - pos)
+        bounds = self._bounds
+        if bounds.mark:
+            bounds.mark = max(0, bounds.mark - pos)
         return out
 
     def flush(self, ts: float) -> list[Frame | Noise]:
@@ -275,7 +224,7 @@ class RtuDecoder(StreamDecoder):
         self.stats["noise_bytes"] += len(self._buf)
         out = self._discard(ts)
         self._chunks = []
-        self._mark = 0
+        self._bounds.mark = 0
         self._pending = None
         self._last_ts = None
         return out
@@ -329,9 +278,9 @@ class RtuDecoder(StreamDecoder):
         silence (those may still join it: one run of noise is one record).
         """
         if self._buf:
-            pos = self._decode(self._buf, self._last_ts or 0.0, out, len(self._buf), _SILENCE)
+            pos = self._decode(self._buf, self._last_ts or 0.0, out, len(self._buf), SILENCE)
             self._drop(pos)
-        self._mark = len(self._buf)
+        self._bounds.mark = len(self._buf)
         if not self._buf:
             run = self._take_noise()
             if run is not None:
@@ -350,9 +299,9 @@ class RtuDecoder(StreamDecoder):
                 break
             stop = end
         if stop:
-            pos = self._decode(self._buf, self._last_ts or 0.0, out, len(self._buf), _FINAL, stop)
+            pos = self._decode(self._buf, self._last_ts or 0.0, out, len(self._buf), FINAL, stop)
             self._drop(pos)
-            self._mark = max(0, self._mark - pos)
+            self._bounds.mark = max(0, self._bounds.mark - pos)
 
     def _keep(self, buf: bytes | bytearray, pos: int, old: int, ts: float) -> None:
         """Keep ``buf[pos:]`` (see :class:`StreamDecoder`) and when each kept byte arrived."""
@@ -390,10 +339,10 @@ class RtuDecoder(StreamDecoder):
         """Decide every byte held (frames stamped ``ts``, noise when it arrived)."""
         out: list[Frame | Noise] = []
         if self._buf:
-            self._decode(self._buf, ts, out, len(self._buf), _FINAL)
+            self._decode(self._buf, ts, out, len(self._buf), FINAL)
             self._buf = bytearray()
             self._chunks = []
-        self._mark = 0
+        self._bounds.mark = 0
         run = self._take_noise()
         if run is not None:
             out.append(run)
@@ -459,8 +408,9 @@ class RtuDecoder(StreamDecoder):
         pending = self._pending
         frames = 0
         last = n - 1
-        self._near = self._lined = self._tails = self._at_mark = self._in_scan = None
-        mark = self._mark if mode == _STREAM else 0
+        bounds = self._bounds
+        bounds.new_pass()
+        mark = bounds.mark if mode == STREAM else 0
         end_at = n if stop is None else stop
         while pos < end_at:
             if pos < last:
@@ -481,7 +431,7 @@ class RtuDecoder(StreamDecoder):
                         end = pos + rule[1] + buf[at] if at < n else n + 1
                     if end <= n and end - pos <= MAX_ADU and crc_ok(buf, pos, end):
                         if mark and pos < mark < end:
-                            self._bursty = True
+                            bounds.bursty = True
                         if self._noise:
                             append(self._flush_noise_run())
                         raw = bytes(buf[pos:end]) if copy else buf[pos:end]
@@ -504,7 +454,7 @@ class RtuDecoder(StreamDecoder):
                     append(self._flush_noise_run())
                 end = pos + length
                 if mark and pos < mark < end:
-                    self._bursty = True
+                    bounds.bursty = True
                 raw = bytes(buf[pos:end]) if copy else buf[pos:end]
                 unit = raw[0]
                 pdu = decode(raw[1:-2], is_resp)
@@ -537,14 +487,14 @@ class RtuDecoder(StreamDecoder):
         In order: a reading whose predicted length is there with a valid CRC; a
         reading still missing bytes waits, unless a frame that frames on its
         own starts inside it, lined up with a boundary of the bus
-        (:meth:`_lined_up`); a reading of unpredictable length is scanned for
+        (:meth:`RtuBounds.lines_up`); a reading of unpredictable length is scanned for
         its CRC; where the readings fail, a CRC that validates at a boundary the
-        bus marks is a frame whatever its fields say (:meth:`_boundary`; the
+        bus marks is a frame whatever its fields say (:meth:`RtuBounds.boundary`; the
         PDU decoder flags them malformed); the rest is noise.
         """
         avail = n - pos
         if avail < 2:
-            return (_SKIP, False, _TRUNCATED) if mode == _FINAL else _WAITING
+            return (_SKIP, False, _TRUNCATED) if mode == FINAL else _WAITING
         fc = buf[pos + 1]
         readings = self._readings(buf[pos], fc)
         if not readings or fc == 0 or fc == 0x80:
@@ -555,10 +505,10 @@ class RtuDecoder(StreamDecoder):
         if total:
             return total, is_resp, ""
         cut = False  # a reading missing bytes would swallow a frame lined up with the bus
-        if far and mode != _FINAL:
+        if far and mode != FINAL:
             # USB adapters bunch bytes: a frame may go on after a silence, so wait;
             # but not for bytes that frame on their own at the bus's boundaries
-            if not self._lines_up(buf, pos, n, mode, far):
+            if not self._bounds.lines_up(buf, pos, n, mode, far):
                 return _WAITING
             cut = True
         elif unpredictable:
@@ -592,18 +542,18 @@ class RtuDecoder(StreamDecoder):
 
         Returns ``(ADU length, is response, crc failed, far, unpredictable)``: a
         length > 0 when a reading's CRC passes; else ``far`` > 0 is where the
-        longest reading still missing bytes would end (in ``_STREAM`` mode the
+        longest reading still missing bytes would end (in ``STREAM`` mode the
         first one stops the others being tried: a later reading must not be
         taken before it is known), and ``unpredictable`` the readings of no
         predictable length (for a CRC scan).
         """
-        peek = buf[pos + 1 : pos + 1 + _PEEK]
+        peek = buf[pos + 1 : pos + 1 + PEEK]
         far = 0
         crc_failed = False
         unpredictable: list[bool] | None = None
         for is_resp in readings:
             plen = pdu_length(peek, is_resp)
-            if plen == NEED_MORE and avail - 1 > _PEEK:
+            if plen == NEED_MORE and avail - 1 > PEEK:
                 plen = pdu_length(buf[pos + 1 : pos + MAX_ADU], is_resp)
             if plen is None:
                 unpredictable = [is_resp] if unpredictable is None else [*unpredictable, is_resp]
@@ -613,18 +563,13 @@ class RtuDecoder(StreamDecoder):
                 continue
             if plen == NEED_MORE or total > avail:
                 far = max(far, pos + total)
-                if mode == _STREAM:
+                if mode == STREAM:
                     break
                 continue
             if _crc_ok(buf, pos, pos + total):
                 return total, is_resp, False, 0, None
             crc_failed = True
         return 0, False, crc_failed, far, unpredictable
-
-    def _lines_up(self, buf: bytes | bytearray, pos: int, n: int, mode: int, far: int) -> bool:
-        """Whether frames after ``pos`` and before ``far`` line up with the bus: of
-        their own (:meth:`_lined_up`) or found by a scan (:meth:`_scanned`)."""
-        return self._lined_up(buf, pos, n, mode, far) == 1 or self._scanned(buf, pos, n, mode, far)
 
     def _decide_scan(
         self, buf: bytes | bytearray, pos: int, n: int, mode: int, is_resp: bool
@@ -636,21 +581,21 @@ class RtuDecoder(StreamDecoder):
         limit = min(MAX_ADU, avail)
         found = _scan(buf, pos, limit) if limit >= MIN_ADU else 0
         if found:
-            crossed = self._crosses_frames(buf, pos, pos + found, n, mode)
+            crossed = self._bounds.crosses_frames(buf, pos, pos + found, n, mode)
             if crossed < 0:
                 return _WAITING
             if not crossed:
                 return found, is_resp, ""
             return _SKIP, False, _CROSSED
-        if avail < MAX_ADU and mode != _FINAL:
+        if avail < MAX_ADU and mode != FINAL:
             # No CRC match yet: the frame may go on in bytes still to come, also
             # after a silence (USB adapters bunch bytes). Before a silence it is
             # noise only when a frame of its own starts after it and no later
             # than the silence, or frames line up.
-            mark = n if mode == _SILENCE else self._mark
+            mark = n if mode == SILENCE else self._bounds.mark
             if (
-                pos >= mark or self._frame_within(buf, pos + 1, mark, n, mode) != 1
-            ) and not self._lines_up(buf, pos, n, mode, pos + MAX_ADU):
+                pos >= mark or self._bounds.frame_within(buf, pos + 1, mark, n, mode) != 1
+            ) and not self._bounds.lines_up(buf, pos, n, mode, pos + MAX_ADU):
                 return _WAITING
         return None
 
@@ -659,8 +604,8 @@ class RtuDecoder(StreamDecoder):
     ) -> tuple[int, bool, str] | None:
         """Where the readings failed: a CRC that validates at a boundary the bus marks
         is a frame whatever its fields say, or wait for one; ``None`` for noise."""
-        found = self._boundary(buf, pos, n, mode)
-        if found < 0 or (not found and self._may_go_on(buf, pos, n, mode)):
+        found = self._bounds.boundary(buf, pos, n, mode)
+        if found < 0 or (not found and self._bounds.may_go_on(buf, pos, n, mode)):
             return _WAITING
         if not found:
             return None
@@ -672,265 +617,6 @@ class RtuDecoder(StreamDecoder):
             if plen is not None and plen != NEED_MORE and plen + 3 == found:
                 return found, is_resp, ""
         return found, readings[0], ""
-
-    def _next_frame(self, buf: bytes | bytearray, pos: int, n: int, mode: int) -> tuple[int, int]:
-        """The first offset ``k`` after ``pos`` (at most ``MAX_ADU`` on) where a frame
-        of predictable length with a valid CRC starts: ``(k, its length)``, or
-        ``(where the search stopped, 0)`` when there is none. An offset whose
-        frame would need bytes still to come is passed over: such a frame
-        would run past the frames found after it, and they frame on their own.
-        Remembered within one decoding pass, so a run of noise costs one look
-        at each offset."""
-        stop = min(n, pos + MAX_ADU + 1)
-        start = pos + 1
-        near = self._near
-        if near is not None and near[0] <= pos < near[1]:
-            if near[2]:
-                return near[1], near[2]
-            start = near[1]
-            lo = near[0]
-        else:
-            lo = pos
-        k = start
-        found = 0
-        while k < stop:
-            found = self._standalone(buf, k, n, mode)
-            if found > 0:
-                break
-            k += 1
-        else:
-            found = 0
-        self._near = (lo, k, found)
-        return k, found
-
-    def _lined_up(self, buf: bytes | bytearray, pos: int, n: int, mode: int, far: int) -> int:
-        """Whether frames of their own after ``pos`` and before ``far`` line up with the
-        bus: one starts or ends at the latest silence, ends the bytes before a
-        silence or the stream, or is followed by another (right after it or
-        later: two CRCs a guess would swallow). 1 yes, 0 no, -1 cannot tell yet.
-        Remembered within one decoding pass (``_lined``) like :meth:`_next_frame`."""
-        lined = self._lined
-        if lined is not None and lined[0] <= pos < lined[1]:
-            k, state = lined[2], lined[3]
-            if state:
-                return state if k < far else 0
-            if far <= k:
-                return 0
-        k, length = self._next_frame(buf, pos, n, mode)
-        first = k
-        mark = self._mark
-        stop = min(far, n)
-        state = 0
-        seen = False
-        unsure = -1  # where a frame's follower could not be told yet (bytes to come)
-        while length and k < stop:
-            end = k + length
-            if (
-                seen
-                or (mark and (k == mark or end == mark))
-                or (mode != _STREAM and end == n)
-                or (not self._bursty and (mode == _SILENCE or end <= mark))
-            ):
-                state = 1
-                break
-            after = self._standalone(buf, end, n, mode)
-            if after > 0:
-                state = 1
-                break
-            if after and unsure < 0:
-                # a follower cannot be told yet, but a later frame (at the silence,
-                # or a second one) may line up for sure: look on
-                unsure = k
-            seen = True
-            k += 1
-            length = 0
-            while k < stop:
-                length = self._standalone(buf, k, n, mode)
-                if length > 0:
-                    break
-                length = 0
-                k += 1
-        else:
-            k = stop
-            if mode == _SILENCE and not self._bursty:
-                # a frame whose fields disagree ends at the silence: its CRC there
-                # lines it up as well (what follows is settled by the silence)
-                for j in self._ends_at_silence(buf, n):
-                    if pos < j < stop:
-                        k, state = j, 1
-                        break
-        if not state and unsure >= 0:
-            k, state = unsure, -1
-        self._lined = (pos, first, k, state)
-        return state if k < far else 0
-
-    def _ends_at_silence(self, buf: bytes | bytearray, n: int) -> list[int]:
-        """Offsets ``j`` (ascending, the last ``MAX_ADU`` bytes) where a CRC-valid ADU
-        ``buf[j:n]`` ends right at the silence; computed once per decoding pass."""
-        tails = self._tails
-        if tails is None:
-            tails = [j for j in range(max(0, n - MAX_ADU), n - MIN_ADU + 1) if _crc_ok(buf, j, n)]
-            self._tails = tails
-        return tails
-
-    def _boundary(self, buf: bytes | bytearray, pos: int, n: int, mode: int) -> int:
-        """Length of a CRC-valid ADU at ``pos`` that ends at a boundary the bus marks:
-        the latest silence, the end of the bytes before a silence (or of the
-        stream), or where the next frame of its own starts; never past that
-        frame. 0 none, -1 cannot tell yet (no boundary in sight, more bytes to come)."""
-        k, length = self._next_frame(buf, pos, n, mode)
-        mark = self._mark
-        ends = [k] if length else []
-        if pos < mark <= k:
-            ends.append(mark)
-        if mode != _STREAM and n <= k:
-            ends.append(n)
-        for end in sorted(ends):
-            if end - pos >= MIN_ADU and _crc_ok(buf, pos, end):
-                return end - pos
-        if not length and mode == _STREAM and k >= n:
-            # a frame found by a scan right at the silence is a boundary in sight
-            return 0 if self._scanned_at_mark(buf, pos, n, n) else -1
-        return 0
-
-    def _scanned(self, buf: bytes | bytearray, pos: int, n: int, mode: int, far: int) -> bool:
-        """Whether a frame found by a CRC scan (any function code) after ``pos`` and
-        before ``far`` says the bytes at ``pos`` are no frame going on: one starts
-        right at the latest silence (:meth:`_scanned_at_mark`), or, at a silence
-        on a line whose silences have been real so far (not bursty), one lies
-        whole in the bytes before it (:meth:`_scanned_within`)."""
-        if self._scanned_at_mark(buf, pos, n, far):
-            return True
-        return mode == _SILENCE and not self._bursty and 0 < self._scanned_within(buf, pos, n) < far
-
-    def _scanned_within(self, buf: bytes | bytearray, pos: int, n: int) -> int:
-        """The first offset after ``pos`` where a CRC scan finds an ADU that ends by
-        ``n``, or 0. Remembered within one decoding pass (``_in_scan``: offsets
-        ``lo..k-1`` have none before ``k``), so a run of noise scans each offset once."""
-        memo = self._in_scan
-        if memo is not None and memo[0] <= pos < memo[1]:
-            return memo[1] if memo[1] < n else 0
-        j = pos + 1
-        while j <= n - MIN_ADU and not _scan(buf, j, min(MAX_ADU, n - j)):
-            j += 1
-        if j > n - MIN_ADU:
-            j = n
-        self._in_scan = (pos, j)
-        return j if j < n else 0
-
-    def _scanned_at_mark(self, buf: bytes | bytearray, pos: int, n: int, far: int) -> bool:
-        """Whether a CRC-valid ADU (found by a scan: any function code) starts right
-        at the latest silence, after ``pos`` and before ``far``: a frame starts at a
-        silence, so the bytes before it are no frame going on across it. The scan
-        is done once per decoding pass."""
-        mark = self._mark
-        if not pos < mark < far or mark > n - MIN_ADU:
-            return False
-        found = self._at_mark
-        if found is None:
-            found = self._at_mark = _scan(buf, mark, min(MAX_ADU, n - mark))
-        return found > 0
-
-    def _may_go_on(self, buf: bytes | bytearray, pos: int, n: int, mode: int) -> bool:
-        """At a silence, whether the bytes from ``pos`` whose readings failed may be
-        one frame going on after it: nothing of its own starts after ``pos``, no
-        CRC validates at the silence from a later offset, no frame found by a
-        scan says otherwise (:meth:`_scanned`), and fewer than ``MAX_ADU`` bytes
-        are there. A USB adapter's latency looks like a
-        silence, and a frame whose fields disagree with its length (its CRC at its
-        true end) can be cut there; its CRC at a boundary the next bytes mark then
-        decides it. Noise held so is reported with those bytes, or at the end of
-        the stream (``silence``); it never holds back a frame after it."""
-        if mode != _SILENCE or n - pos >= MAX_ADU or self._next_frame(buf, pos, n, mode)[1]:
-            return False
-        if self._scanned(buf, pos, n, mode, n):
-            return False
-        # a CRC that validates right at the silence after pos marks a frame there
-        return not any(j > pos for j in self._ends_at_silence(buf, n))
-
-    def _crosses_frames(
-        self, buf: bytes | bytearray, start: int, end: int, n: int, mode: int
-    ) -> int:
-        """Whether the scanned candidate ``buf[start:end]`` swallows frames: 1 yes, 0 no,
-        -1 cannot tell yet (bytes missing while more will come).
-
-        Yes when a frame of predictable length with a valid CRC starts inside it
-        and either reaches ``end`` (or beyond) or is followed right away by a
-        second such frame. Offsets before the latest silence are told as at the
-        silence (as :meth:`_frame_within` does): a frame there that needs more
-        bytes than all those present is none, not a reason to wait.
-        """
-        mark = self._mark if mode == _STREAM else 0
-        for j in range(start + 1, end):
-            first = self._standalone(buf, j, n, _SILENCE if j < mark else mode)
-            if first < 0:
-                return -1
-            if not first:
-                continue
-            if j + first >= end:
-                return 1
-            second = self._standalone(buf, j + first, n, _SILENCE if j + first < mark else mode)
-            if second < 0:
-                return -1
-            if second:
-                return 1
-        return 0
-
-    def _frame_within(
-        self, buf: bytes | bytearray, start: int, mark: int, n: int, mode: int
-    ) -> int:
-        """Whether a frame of predictable length with a valid CRC starts in
-        ``buf[start:mark + 1]`` (at the silence ``mark`` at the latest): 1 yes,
-        0 no, -1 the one at ``mark`` cannot be told yet."""
-        for j in range(start, min(mark, n - 1) + 1):
-            found = self._standalone(buf, j, n, mode if j == mark else _SILENCE)
-            if found:
-                return 1 if found > 0 else -1
-        return 0
-
-    def _standalone(self, buf: bytes | bytearray, k: int, n: int, mode: int) -> int:
-        """Length of a frame of predictable length with a valid CRC at ``k``, 0 when
-        there is none, -1 when the bytes to tell are still missing (``_STREAM``)."""
-        avail = n - k
-        if avail < 2:
-            return -1 if mode == _STREAM else 0
-        fc = buf[k + 1]
-        if fc == 0 or fc == 0x80:
-            return 0
-        short = False
-        for is_resp in (False, True):
-            if not (self._allow_resp if is_resp else self._allow_req):
-                continue
-            if fc & 0x80 and not is_resp:
-                continue
-            rule = (_RESP_RULES if is_resp else _REQ_RULES).get(fc)
-            if isinstance(rule, int):  # the simple rules as the framing loop reads them
-                total = rule
-            elif rule is not None:
-                at = k + rule[0]
-                if at >= n:
-                    short = True
-                    continue
-                total = rule[1] + buf[at]
-            else:
-                plen = pdu_length(buf[k + 1 : k + 1 + _PEEK], is_resp)
-                if plen == NEED_MORE and avail - 1 > _PEEK:
-                    plen = pdu_length(buf[k + 1 : k + MAX_ADU], is_resp)
-                if plen is None:
-                    continue
-                if plen == NEED_MORE:
-                    short = True
-                    continue
-                if plen < 1:
-                    continue
-                total = plen + 3
-            if total > MAX_ADU:
-                continue
-            if total > avail:
-                short = True
-            elif _crc_ok(buf, k, k + total):
-                return total
-        return -1 if short and mode == _STREAM else 0
 
 
 def _reason(fc: int, crc_failed: bool, cut: bool, incomplete: bool, unpredictable: bool) -> str:

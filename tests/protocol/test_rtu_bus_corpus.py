@@ -257,7 +257,7 @@ def test_usb_frame_between_noise_waits_at_most_the_timeout_past_its_arrival() ->
     ]
     dec = RtuDecoder(BUS, baudrate=BAUD, silence=1.0)
     out = drive(dec, reads)
-    assert dec._bursty
+    assert dec._bounds.bursty
     assert frames([x for _, x in out]) == [
         (Direction.C2S, GOOD),
         (Direction.S2C, frame),
