@@ -79,7 +79,7 @@ def test_ctrl_c_while_starting_exits_130_quietly(long_capture: Path, entry: str)
     python_up = _wall([sys.executable, "-c", "pass"])
     mbmon_up = _wall([sys.executable, *start, "read", "/nonexistent.pcap"])
     step = max(mbmon_up - python_up, 0.05) / 10
-    delays = [0.0, 0.03, 0.08, 0.15] + [python_up + k * step for k in range(-2, 14)]
+    delays = [0.0, 0.03, 0.08, 0.15] + [max(0.0, python_up + k * step) for k in range(-2, 14)]
     outcomes: list[tuple[float, int]] = []
     before: list[float] = []
     for delay in delays:
