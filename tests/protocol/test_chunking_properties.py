@@ -254,8 +254,15 @@ BURST_BUS = Stream(3, Transport.RTU, "/dev/ttyUSB0", "/dev/ttyUSB0")
 BAUD = 9600
 CHAR = 11.0 / BAUD
 
+# A fixed set of draws (derandomize): random draws reach, a few times in a thousand
+# runs, streams of unknown function codes where a 16-bit CRC matches by chance at a
+# burst's cut, the decoder's written-down limit (docs/sniffing.md, "Noise, bad frames
+# and time"; one such stream is pinned below as a strict expected failure).
 BURST_SETTINGS = settings(
-    max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow]
+    max_examples=300,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow],
+    derandomize=True,
 )
 
 
