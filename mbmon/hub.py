@@ -44,7 +44,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import IO, Any, Protocol
 
 from mbmon.model import Chunk, Event, EventKind, Record, Stream, Transport
@@ -173,6 +173,93 @@ def listener_name(listener: Any) -> str:
     return str(name) if name else type(listener).__name__
 
 
+class StreamIds:
+    """The one allocator of a run's stream ids (thread-safe): every source of the run
+    takes its ids here, so no two sources' streams share one.
+
+    :meth:`new` gives the lowest id nobody holds; :meth:`claim` keeps an id a source
+    already carries (a log's recorded ids) when it is still free, so one log replayed
+    alone keeps the ids it was recorded with, and gives a new one when another
+    source holds it.
+    """
+
+    def __init__(self) -> None:
+        self._next = 0
+        self._taken: set[int] = set()
+        self._lock = threading.Lock()
+
+    def new(self) -> int:
+        """An id no source of the run holds."""
+        with self._lock:
+            return self._take_next()
+
+    def claim(self, wanted: int) -> int:
+        """``wanted`` when no source holds it yet, else a new id."""
+        with self._lock:
+            if wanted >= 0 and wanted not in self._taken:
+                self._taken.add(wanted)
+                return wanted
+            return self._take_next()
+
+    def _take_next(self) -> int:
+        sid = self._next
+        while sid in self._taken:
+            sid += 1
+        self._taken.add(sid)
+        self._next = sid + 1
+        return sid
+
+
+class RecordedStreams:
+    """One source's own stream ids (an MCAP log's recorded ``/modbus/raw`` streams) put
+    on the run's: each id the source carries becomes one of the hub's
+    (:meth:`StreamIds.claim`), the same one for every item of the source, and an
+    event naming another stream (a proxy's ``answers_on``) names the mapped one."""
+
+    def __init__(self, ids: StreamIds) -> None:
+        self._ids = ids
+        self._map: dict[int, int] = {}
+        self._streams: dict[Stream, Stream] = {}
+
+    def stream_id(self, recorded: int) -> int:
+        """The run's id of the source's stream ``recorded``."""
+        sid = self._map.get(recorded)
+        if sid is None:
+            sid = self._map[recorded] = self._ids.claim(recorded)
+        return sid
+
+    def stream(self, stream: Stream) -> Stream:
+        """``stream`` with the run's id (the same object for every item of it)."""
+        mapped = self._streams.get(stream)
+        if mapped is None:
+            sid = self.stream_id(stream.id)
+            mapped = stream if sid == stream.id else replace(stream, id=sid)
+            self._streams[stream] = mapped
+        return mapped
+
+    def item(self, item: Item) -> Item:
+        """``item`` on the run's streams."""
+        stream = item.stream
+        if isinstance(item, Chunk):
+            assert stream is not None
+            mapped = self.stream(stream)
+            return item if mapped is stream else replace(item, stream=mapped)
+        mapped_stream = self.stream(stream) if stream is not None else None
+        info = item.info
+        other = info.get("answers_on")
+        if type(other) is int and self.stream_id(other) != other:
+            info = {**info, "answers_on": self.stream_id(other)}
+        if mapped_stream is stream and info is item.info:
+            return item
+        return replace(item, stream=mapped_stream, info=info)
+
+    def items(self, items: Iterable[Item]) -> Iterator[Item]:
+        """Every item of ``items`` on the run's streams."""
+        item_of = self.item
+        for item in items:
+            yield item_of(item)
+
+
 class Hub:
     """Drives one run: feeds the pipeline, fans records out, ticks, isolates and closes."""
 
@@ -193,8 +280,8 @@ class Hub:
         self._stderr = stderr
         self._clock = clock
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
-        self._ids = 0
-        self._id_lock = threading.Lock()
+        #: the run's stream ids: every source takes its own here (no two collide)
+        self.stream_ids = StreamIds()
         self._tickers: list[Ticking] = []
         self._closed = False
         self._finished = False
@@ -239,10 +326,12 @@ class Hub:
 
     def new_stream_id(self) -> int:
         """The next stream id of the run (thread-safe), for sources that build their own."""
-        with self._id_lock:
-            sid = self._ids
-            self._ids += 1
-            return sid
+        return self.stream_ids.new()
+
+    def recorded_streams(self) -> RecordedStreams:
+        """For a source whose items carry stream ids of their own (a log's recorded
+        ones): the map that puts them on the run's ids, one per source."""
+        return RecordedStreams(self.stream_ids)
 
     def _index_hooks(self) -> None:
         by_hook: dict[str, list[tuple[_Slot, Callable[..., Any]]]] = {h: [] for h in _INDEXED}
@@ -356,6 +445,18 @@ class Hub:
         if self._finished:
             return
         self._finished = True
+        self._finish_input()
+
+    def end_of_input(self) -> None:
+        """One source's input ended and another source's follows (file and stream
+        sources are read one after another): the stages and the pipeline report what
+        the first still holds, and the run's time starts again with the next one's,
+        so each input is decoded as it is alone (its requests time out at its own
+        end, its time never holds back the next one's ticks)."""
+        self._finish_input()
+        self.now = 0.0
+
+    def _finish_input(self) -> None:
         for stage in self._tickers:
             finish = getattr(stage, "finish", None)
             if callable(finish):

@@ -181,6 +181,10 @@ class Pipeline:
         # stream's CONNECT, info ``answers_on``): the note their answers carry
         self._joined_notes: dict[int, tuple[str, ...]] = {}
         self._answers_on: dict[int, int] = {}  # stream id -> the stream joined to it
+        # streams whose source names their decoder (use_decoder), and those whose
+        # requests are never reported unanswered (a frame typed alone)
+        self._own_decoders: dict[int, DecoderEntry] = {}
+        self._never_unanswered: set[int] = set()
         self.counts: dict[str, int] = {
             "chunks": 0,
             "bytes": 0,
@@ -192,6 +196,17 @@ class Pipeline:
             "timeouts": 0,
             "malformed": 0,
         }
+
+    def use_decoder(
+        self, stream: Stream, entry: DecoderEntry, *, report_unanswered: bool = True
+    ) -> None:
+        """Frame ``stream`` with ``entry`` instead of its transport's decoder: a source
+        that knows where its ADUs begin and end (``decode``'s typed bytes, one ADU
+        per chunk) says so. ``report_unanswered=False``: a request of the stream left
+        without its answer is no timeout (nothing after it was observed)."""
+        self._own_decoders[stream.id] = entry
+        if not report_unanswered:
+            self._never_unanswered.add(stream.id)
 
     # ------------------------------------------------------------------ input
 
@@ -317,7 +332,11 @@ class Pipeline:
         return min(known) if known else None
 
     def finish(self, ts: float | None = None) -> list[Record]:
-        """End of input: flush every decoder and report every request still unanswered."""
+        """End of input: flush every decoder and report every request still unanswered.
+
+        The pipeline is then as new but for its record numbers (and the annotator's
+        state): more input (another source's, read after this one) is decoded with
+        its own time, untouched by this input's clock, damage or joined streams."""
         when = self._last_ts if ts is None else ts
         out: list[Record] = []
         for key in list(self._decoders):
@@ -327,6 +346,12 @@ class Pipeline:
         self._datagram.clear()
         self._last_input.clear()
         self._emit_transactions(self.pairer.flush(when), out)
+        for other in self._answers_on.values():
+            self.pairer.part(other)
+        self._answers_on.clear()
+        self._joined_notes.clear()
+        self._next_tick = self._next_sweep = self._damage_ts = float("-inf")
+        self._last_ts = 0.0
         return out
 
     def run(self, items: Iterable[Chunk | Event]) -> Iterable[Record]:
@@ -341,7 +366,7 @@ class Pipeline:
         key = (stream.id, direction)
         decoder = self._decoders.get(key)
         if decoder is None:
-            entry = decoder_entry(stream.transport)
+            entry = self._own_decoders.get(stream.id) or decoder_entry(stream.transport)
             self._streams[stream.id] = stream
             decoder = entry.make(stream, direction, self.config)
             self._decoders[key] = decoder
@@ -399,6 +424,8 @@ class Pipeline:
                 req_index = pending_index.pop(id(request), None)
                 if request.ts <= self._damage_ts < request.ts + self.pairer.timeout:
                     continue  # its answer may have been lost to damage: not made up
+                if request.stream.id in self._never_unanswered:
+                    continue
                 self.counts["timeouts"] += 1
                 info = {"request_index": req_index, "unit": request.unit, "fc": request.pdu.fc}
                 if request.tid is not None:

@@ -3,12 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import itertools
 import os
-import stat
 import sys
 import textwrap
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -33,8 +30,11 @@ from mbmon.commands.common import (
     profile_sources,
     view_and_filter,
 )
-from mbmon.commands.read_summary import detected_lines, report
+from mbmon.commands.read_core import core_hand_off
+from mbmon.commands.read_summary import capture_stats, detected_lines, report
 from mbmon.filters import EXPRESSION_HELP, TIMES_HELP, add_filter_options
+from mbmon.sources.files import CaptureFileSource, RawRtuSource, is_stream_input
+from mbmon.sources.pcapfile import CaptureConfig
 from mbmon.timefmt import add_time_option
 
 EPILOG = """\
@@ -50,6 +50,7 @@ examples:
   mbmon read bus.pcap --rtu-port 4001          RTU frames carried in TCP/UDP port 4001
   mbmon read --rtu-raw bus.bin                 a raw byte dump of an RS485 bus
   cat /dev/ttyUSB0 | mbmon read --rtu-raw -    the same, as the bytes arrive
+  mbmon read mon.pcap tue.pcap -w week.mcap    several captures, one after another
   mbmon read cell.pcap -c 20                   the first 20 frames only
   mbmon read cell.pcap --fc 6,16 --address 200-251 -t r
       only writes touching R200..R251, times relative to the first record
@@ -82,7 +83,11 @@ def register(sub: Any) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     read.add_argument(
-        "file", nargs="?", metavar="FILE", help="pcap or pcapng file (gzip too; - for stdin)"
+        "file",
+        nargs="*",
+        metavar="FILE",
+        help="pcap or pcapng file (gzip too; - for stdin); several are read one after "
+        "another, each decoded as it is alone, into one output",
     )
     src = read.add_argument_group("input")
     add_port_options(src)
@@ -119,15 +124,6 @@ def register(sub: Any) -> None:
     read.set_defaults(func=run)
 
 
-def _is_stream_input(path: str) -> bool:
-    """A pipe, FIFO, socket or character device: read as it comes, print as it comes."""
-    try:
-        mode = os.stat(path).st_mode
-    except OSError:
-        return False
-    return stat.S_ISFIFO(mode) or stat.S_ISCHR(mode) or stat.S_ISSOCK(mode)
-
-
 def _looks_like_mcap(path: str) -> bool:
     try:
         with open(path, "rb") as f:
@@ -137,93 +133,89 @@ def _looks_like_mcap(path: str) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
-    """``mbmon read``: every record of the input to the logs, the console and the summary."""
+    """``mbmon read``: options → the inputs' sources (:mod:`mbmon.sources.files`) and
+    the listeners (logs, the console, the summary) → ``run_sources`` → one exit status.
+    The compiled core may take the whole input first (its hand-off, below)."""
     from mbmon.commands.common import Progress
 
-    path = _input_path(args)
-    check_outputs(args.write, [path])
+    paths = _input_paths(args)
+    check_outputs(args.write, paths)
     check_rotation(args)
     view, flt = view_and_filter(args)
     annotator = make_annotator(args.profile)
-    if not os.path.exists(path):
-        err(f"{path}: no such file")
-        return EXIT_BAD_INPUT
-    live = _is_stream_input(path)
-    if not live and not args.rtu_raw and _looks_like_mcap(path):
-        err(f"{path} is an MCAP log, not a capture: try 'mbmon replay {args.file}'")
-        return EXIT_BAD_INPUT
-    progress = Progress(f"reading {Path(path).name}")
+    for path, given in zip(paths, args.file or [args.rtu_raw], strict=True):
+        if not os.path.exists(path):
+            err(f"{path}: no such file")
+            return EXIT_BAD_INPUT
+        if not args.rtu_raw and not is_stream_input(path) and _looks_like_mcap(path):
+            err(f"{path} is an MCAP log, not a capture: try 'mbmon replay {given}'")
+            return EXIT_BAD_INPUT
+    progress = [Progress(f"reading {Path(path).name}") for path in paths]
     try:
-        if not args.rtu_raw:
-            from mbmon.commands.read_core import read_with_core
-
-            done = read_with_core(path, args, view, flt, live=live, progress=progress)
-            if done is not None:
-                return done
-        return _read_with_pipeline(args, path, view, flt, annotator, live, progress)
+        sources = _sources(args, paths, progress)
+        # ---- the compiled core's hand-off (mbmon/commands/read_core.py): it takes the
+        # whole input when it covers it (one capture file, the options it knows), or
+        # declines before writing a byte and the sources below read the input
+        done = core_hand_off(sources, args, view, flt)
+        if done is not None:
+            return done
+        return _read_with_pipeline(args, sources, view, flt, annotator)
     finally:
-        progress.close()
+        for bar in progress:
+            bar.close()
 
 
-def _input_path(args: argparse.Namespace) -> str:
-    """The one input of ``read`` (``FILE`` or ``--rtu-raw FILE``; ``-`` is stdin)."""
+def _input_paths(args: argparse.Namespace) -> list[str]:
+    """The inputs of ``read`` (``FILE ...`` or ``--rtu-raw FILE``; ``-`` is stdin)."""
     if args.rtu_raw and args.file:
         raise UsageError("give either FILE or --rtu-raw FILE, not both")
     if not args.rtu_raw and not args.file:
         raise UsageError("read needs a FILE (pcap/pcapng) or --rtu-raw FILE")
-    path: str = args.rtu_raw or args.file
-    return "/dev/stdin" if path == "-" else path  # a pipe: the readers never seek
+    given: list[str] = [args.rtu_raw] if args.rtu_raw else list(args.file)
+    if given.count("-") > 1:
+        raise UsageError("stdin (-) can be read once")
+    return ["/dev/stdin" if path == "-" else path for path in given]  # a pipe: never seeks
 
 
-def _open_items(
-    args: argparse.Namespace, path: str, progress: Any, stats: dict[str, Any]
-) -> Iterator[Any]:
-    """The input's chunks and events; :class:`~mbmon.sources.pcapfile.CaptureError`
-    when it cannot be opened or its first record cannot be read (before any output
-    is opened)."""
+def _sources(args: argparse.Namespace, paths: list[str], progress: list[Any]) -> list[Any]:
+    """One source per input, read one after another: a raw RTU dump, or a capture
+    (pcap, pcapng, gzip, 5View) through the dissector; neither is opened yet."""
     if args.rtu_raw:
-        from mbmon.sources.rawfile import read_rtu_raw
-
-        return read_rtu_raw(path)
-    from mbmon.sources.pcapfile import CaptureConfig, read_capture
-
+        return [RawRtuSource(paths[0])]
     config = CaptureConfig(
         tcp_ports=frozenset({502, *args.port}),
         rtu_ports=frozenset(args.rtu_port),
         detect=not args.no_detect,
     )
-    items = read_capture(path, config, progress=progress, stats=stats)
-    first = next(items, None)  # a capture damaged at once fails here, before any output
-    return items if first is None else itertools.chain((first,), items)
+    return [
+        CaptureFileSource(path, config, progress=bar)
+        for path, bar in zip(paths, progress, strict=True)
+    ]
 
 
 def _read_with_pipeline(
-    args: argparse.Namespace,
-    path: str,
-    view: Any,
-    flt: Any,
-    annotator: Any,
-    live: bool,
-    progress: Any,
+    args: argparse.Namespace, sources: list[Any], view: Any, flt: Any, annotator: Any
 ) -> int:
-    """``read`` by the reference pipeline through the hub: logs, then the screen, then
-    the summary; ``-c`` behind the filters. A signal at any instant ends it alike:
-    the logs finished, the summary so far, 128 + the signal."""
+    """``read`` by the reference pipeline through the hub: the sources opened (a bad
+    input is one line, before any output), then logs, the screen and the summary
+    (``-c`` behind the filters), then ``run_sources``. A signal at any instant ends
+    it alike: the logs finished, the summary so far, 128 + the signal."""
     from mbmon.hub import Hub
     from mbmon.pipeline import Pipeline, PipelineConfig
     from mbmon.sinks.base import SinkError
     from mbmon.sinks.summary import Summary
-    from mbmon.sources.pcapfile import CaptureError
+    from mbmon.sources.base import SourceError, run_sources
 
     hub = Hub(Pipeline(annotator, PipelineConfig(timeout=args.timeout, baudrate=args.baud)))
     summary = None if args.quiet else Summary(view if args.robot else None)
-    capture_stats: dict[str, Any] = {}
+    live = any(source.mode == "stream" for source in sources)
     gate = open_trigger(args)  # --trigger: the logs and the screen see only its windows
     logs: list[Any] = []
     interrupted = attached = False
     try:
-        items = _open_items(args, path, progress, capture_stats)
-        logs = open_logs(args.write, _context(args, path, view, annotator), args)
+        for source in sources:
+            source.open(hub)
+        logs = open_logs(args.write, _context(args, sources, view, annotator), args)
         attach_outputs(
             hub,
             logs=logs,
@@ -233,23 +225,20 @@ def _read_with_pipeline(
             gate=gate,
         )
         attached = True
-        if live:  # a pipe may stall: the hub ticks meanwhile, so logs reach the disk
-            from mbmon.sources.pipe import feed_pipe
-
-            feed_pipe(hub, items)
-        else:
-            hub.run_items(items)
-    except (CaptureError, SinkError) as exc:
+        run_sources(hub, sources)  # a pipe may stall: the hub ticks meanwhile
+    except (SourceError, SinkError) as exc:
         err(str(exc))
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         interrupted = True
     finally:
+        for source in sources:
+            source.stop()
         hub.close()
         for sink in () if attached else logs:  # a signal came before the hub had them
             sink.close()
     if summary is not None:
-        report(summary, capture_stats, args, timed=not args.rtu_raw)
+        report(summary, capture_stats(sources), args, timed=not args.rtu_raw)
     if interrupted:
         failed = {name for name, _why in hub.failures}
         for sink in logs:
@@ -261,14 +250,14 @@ def _read_with_pipeline(
     return exit_status(hub, interrupted=interrupted)
 
 
-def _context(args: argparse.Namespace, path: str, view: Any, annotator: Any) -> Any:
+def _context(args: argparse.Namespace, sources: list[Any], view: Any, annotator: Any) -> Any:
     """What the ``-w`` logs store besides the records (view, source, settings)."""
     from mbmon.sinks.base import SinkContext
 
     return SinkContext(
         view=view,
         command_line=["mbmon", *sys.argv[1:]],
-        source=str(path),
+        source=" ".join(source.name for source in sources),
         profiles=profile_sources(annotator),
         profile_specs=list(args.profile),
         timeout=args.timeout,

@@ -12,6 +12,21 @@ from mbmon.commands.common import EXIT_OK, err
 from mbmon.commands.read_summary import report
 
 
+def core_hand_off(sources: list[Any], args: argparse.Namespace, view: Any, flt: Any) -> int | None:
+    """The one place where ``read`` hands its run to the compiled core: its input is
+    one capture file (a :class:`~mbmon.sources.files.CaptureFileSource`, not yet
+    opened), which the core reads whole by its path when it covers it. The exit
+    status when it did; ``None`` when the sources are to be read through the hub
+    (several inputs, a raw RTU dump, or the core declined, before writing anything)."""
+    from mbmon.sources.files import CaptureFileSource
+
+    if len(sources) != 1 or not isinstance(sources[0], CaptureFileSource):
+        return None
+    source = sources[0]
+    live = source.mode == "stream"
+    return read_with_core(source.path, args, view, flt, live=live, progress=source.progress)
+
+
 def read_with_core(
     path: str, args: argparse.Namespace, view: Any, flt: Any, *, live: bool, progress: Any
 ) -> int | None:

@@ -35,6 +35,20 @@ def report(
         err(f"warning: the robot {args.robot} (--robot) appears in no stream of this capture")
 
 
+def capture_stats(sources: list[Any]) -> dict[str, Any]:
+    """The capture readers' figures of ``read``'s inputs as one (what :func:`report`
+    asks): the ports found by their structure, and the busiest other ports."""
+    found: list[Any] = []
+    ports: dict[tuple[str, int], int] = {}
+    for source in sources:
+        stats = getattr(source, "capture_stats", None) or {}
+        found.extend(stats.get("detected") or [])
+        for proto, port, packets in stats.get("busiest_ports") or []:
+            ports[(proto, port)] = ports.get((proto, port), 0) + packets
+    busiest = sorted(((p, n, c) for (p, n), c in ports.items()), key=lambda x: -x[2])
+    return {"detected": found, "busiest_ports": busiest}
+
+
 def detected_lines(found: list[tuple[str, int, str, int]]) -> list[str]:
     """One line per port that port detection found (the dissector's
     ``detected()``): the transport, the port, its servers and connections."""

@@ -106,7 +106,10 @@ class LogSource(BaseSource):
         flt, pacer = self.filter, self.pacer
         since = flt.since if flt is not None else None
         until = flt.until if flt is not None else None
-        for item in raw_items(self.log):
+        items: Iterator[Item] = raw_items(self.log)
+        if self.hub is not None:  # opened on a hub: its recorded ids become the run's
+            items = self.hub.recorded_streams().items(items)
+        for item in items:
             # every item is decoded (a request before --since pairs an answer after
             # it); only those inside the shown span are paced
             if pacer is not None and not (

@@ -195,12 +195,16 @@ def _stop_all(sources: Sequence[Source]) -> None:
 
 
 def _pull(hub: Hub, sources: Sequence[Source]) -> None:
-    """File and stream sources, in order, each to its end (or until ``hub.done``)."""
+    """File and stream sources, in order, each to its end (or until ``hub.done``); each
+    is decoded as it is alone (:meth:`~mbmon.hub.Hub.end_of_input` between two), on
+    stream ids of its own (the hub's)."""
     from mbmon.sources.pipe import feed_pipe
 
-    for source in sources:
+    for n, source in enumerate(sources):
         if hub.done:
             break
+        if n:
+            hub.end_of_input()
         if source.mode == "stream":
             feed_pipe(hub, source.items(), finish=False)
         else:

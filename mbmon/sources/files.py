@@ -73,7 +73,11 @@ class CaptureFileSource(BaseSource):
         super().open(hub)
         try:
             items = read_capture(
-                self.path, self.config, progress=self.progress, stats=self.capture_stats
+                self.path,
+                self.config,
+                progress=self.progress,
+                stats=self.capture_stats,
+                new_stream=hub.new_stream,  # several inputs of one run: ids of their own
             )
             first = next(items, None)
         except CaptureError as exc:
@@ -83,6 +87,13 @@ class CaptureFileSource(BaseSource):
     def items(self) -> Iterable[Item]:
         """The capture's chunks and events, in capture order."""
         return self._items if self._items is not None else ()
+
+    def stop(self) -> None:
+        """Close the capture (idempotent; what was not read is left unread)."""
+        items, self._items = self._items, None
+        close = getattr(items, "close", None)
+        if close is not None:
+            close()
 
     def stats(self) -> dict[str, Any]:
         """The reader's counters (complete once the items ended)."""
@@ -140,7 +151,9 @@ class RawRtuSource(BaseSource):
 
 class McapLogSource(BaseSource):
     """An mbmon MCAP log's recorded input (``/modbus/raw``: chunks and source events),
-    for a run that decodes it again. Its stream ids are the recorded ones.
+    for a run that decodes it again. Its stream ids are the recorded ones where no
+    other source of the run holds them (one log alone keeps them all), else new ones
+    of the hub's (:meth:`~mbmon.hub.Hub.recorded_streams`).
 
     :attr:`log` is the open :class:`~mbmon.io.mcap.reader.McapLog` after :meth:`open`
     (its metadata: the recorded options and profiles); :meth:`stop` closes it.
@@ -169,7 +182,9 @@ class McapLogSource(BaseSource):
             return ()
         from mbmon.io.replay import raw_items
 
-        return raw_items(self.log)
+        if self.hub is None:
+            return raw_items(self.log)
+        return self.hub.recorded_streams().items(raw_items(self.log))
 
     def stop(self) -> None:
         """Close the log (idempotent)."""

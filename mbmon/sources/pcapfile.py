@@ -40,7 +40,7 @@ from functools import partial
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from mbmon.model import Chunk, Event, EventKind
+from mbmon.model import Chunk, Event, EventKind, Stream, Transport
 from mbmon.sources.dissect import CaptureConfig, Dissector
 
 __all__ = ["CaptureConfig", "CaptureError", "read_capture"]
@@ -446,6 +446,7 @@ def read_capture(
     *,
     idle_timeout: float | None = None,
     hole_timeout: float | None = None,
+    new_stream: Callable[[Transport, str, str], Stream] | None = None,
 ) -> Iterator[Chunk | Event]:
     """Chunks and events of the Modbus traffic in a capture file, in capture order.
 
@@ -468,7 +469,8 @@ def read_capture(
     hole's retransmission (its ACKs, the hold limit or the end give a hole up);
     state stays bounded all the same: closed connections are released and more
     than :data:`~mbmon.sources.dissect.MAX_FLOWS` open ones expire the least
-    recently active.
+    recently active. ``new_stream`` allocates the streams (a hub's, so that several
+    inputs of one run never share a stream id); by default ids count from 0.
     """
     path = Path(path)
     name = str(path)
@@ -494,7 +496,13 @@ def read_capture(
     except BaseException:
         raw.close()
         raise
-    dissector = Dissector(config, path.name, idle_timeout=idle_timeout, hole_timeout=hole_timeout)
+    dissector = Dissector(
+        config,
+        path.name,
+        new_stream=new_stream,
+        idle_timeout=idle_timeout,
+        hole_timeout=hole_timeout,
+    )
     return _iterate(pump, inp, raw, name, dissector, stats)
 
 
