@@ -6,7 +6,7 @@ import argparse
 import json
 from typing import Any
 
-from mbmon.commands.common import UsageError, err, exit_status, make_annotator
+from mbmon.commands.common import UsageError, attach_outputs, err, exit_status, make_annotator
 
 EPILOG = """\
 examples:
@@ -66,30 +66,64 @@ def _parse_hex(words: list[str]) -> bytes:
 
 
 def run(args: argparse.Namespace) -> int:
-    """``mbmon decode``: one frame typed by hand, its fields and meaning, in
-    :mod:`mbmon.format`'s words (:func:`~mbmon.details.frame_text`, or the one JSON
-    record of :func:`~mbmon.format.record_to_json` with the framing added)."""
-    from mbmon.details import frame_text
+    """``mbmon decode``: options → the typed bytes as a source
+    (:class:`~mbmon.sources.typed.TypedFrameSource`) and the printer of its records
+    → ``run_sources`` → the exit status. What is printed is what the one flow made
+    of the bytes, in :mod:`mbmon.format`'s words (:func:`~mbmon.details.frame_text`,
+    or the one JSON record of :func:`~mbmon.format.record_to_json` with the framing)."""
+    from mbmon.hub import Hub
+    from mbmon.pipeline import Pipeline
+    from mbmon.sources.base import run_sources
+    from mbmon.sources.typed import TypedFrameError, TypedFrameSource
 
     data = _parse_hex(args.hex)
     mode, guessed_bad_crc = _framing(data, args.mode, args.response)
-    frame = _frame(data, mode, args.response)
-    notes = _notes(frame, make_annotator(args.profile))
-    if args.json:
-        print(json.dumps(_json(frame, notes, mode, guessed_bad_crc), ensure_ascii=False))
-        return exit_status()
-    framing = _FRAMINGS[mode]
-    if guessed_bad_crc:
-        framing += (
-            " with a bad CRC (guessed: unit, function code and length make an RTU frame, "
-            "but the CRC does not match; --pdu reads the bytes as a bare PDU)"
-        )
-    print("\n".join(frame_text(frame, notes, framing=framing)))
-    return exit_status()
+    try:
+        source = TypedFrameSource(data, mode, response=args.response)  # type: ignore[arg-type]
+    except TypedFrameError as exc:
+        raise UsageError(str(exc)) from None
+    length = int.from_bytes(data[4:6])
+    if mode == "tcp" and length != len(data) - 6:
+        err(f"warning: MBAP length field says {length}, {len(data) - 6} bytes follow")
+    hub = Hub(Pipeline(make_annotator(args.profile)))
+    source.open(hub)
+    attach_outputs(hub, screen=_Printer(mode, guessed_bad_crc, as_json=args.json))
+    try:
+        run_sources(hub, [source])
+    finally:
+        hub.close()
+    return exit_status(hub)
 
 
 #: how ``decode`` names each framing (``framing:`` line)
 _FRAMINGS = {"rtu": "RTU ADU", "tcp": "Modbus/TCP ADU", "pdu": "PDU"}
+
+
+class _Printer:
+    """``decode``'s screen: each frame record of the run as :func:`~mbmon.details.frame_text`
+    gives it (``--json``: :func:`_json`); records without a frame (a command the
+    profile's session saw written) are not shown."""
+
+    def __init__(self, mode: str, guessed_bad_crc: bool, *, as_json: bool) -> None:
+        self.mode = mode
+        self.guessed = guessed_bad_crc
+        self.as_json = as_json
+
+    def on_record(self, record: Any) -> None:
+        from mbmon.details import frame_text
+
+        if record.frame is None:
+            return
+        if self.as_json:
+            print(json.dumps(_json(record, self.mode, self.guessed), ensure_ascii=False))
+            return
+        framing = _FRAMINGS[self.mode]
+        if self.guessed:
+            framing += (
+                " with a bad CRC (guessed: unit, function code and length make an RTU frame, "
+                "but the CRC does not match; --pdu reads the bytes as a bare PDU)"
+            )
+        print("\n".join(frame_text(record.frame, record.notes, framing=framing)))
 
 
 def _framing(data: bytes, mode: str | None, response: bool) -> tuple[str, bool]:
@@ -109,60 +143,12 @@ def _framing(data: bytes, mode: str | None, response: bool) -> tuple[str, bool]:
     return "pdu", False
 
 
-def _frame(data: bytes, mode: str, response: bool) -> Any:
-    """The :class:`~mbmon.model.Frame` of the typed bytes in ``mode``'s framing (unit,
-    transaction id, CRC verdict); too few bytes for the framing is a usage error."""
-    from mbmon.model import Direction, Frame, Stream, Transport
-    from mbmon.protocol.crc import check_crc
-    from mbmon.protocol.pdu import decode_pdu
-
-    unit: int | None = None
-    tid: int | None = None
-    crc_ok: bool | None = None
-    body = data
-    if mode == "rtu":
-        if len(data) < 4:
-            raise UsageError("an RTU ADU needs at least 4 bytes (unit, function code, CRC)")
-        unit, body, crc_ok = data[0], data[1:-2], check_crc(data)
-    elif mode == "tcp":
-        if len(data) < 8:
-            raise UsageError("a Modbus/TCP ADU needs at least 8 bytes (7-byte MBAP header + fc)")
-        tid, unit, body = int.from_bytes(data[0:2]), data[6], data[7:]
-        length = int.from_bytes(data[4:6])
-        if length != len(data) - 6:
-            err(f"warning: MBAP length field says {length}, {len(data) - 6} bytes follow")
-    response = response or bool(body and body[0] & 0x80)
-    transport = Transport.RTU if mode == "rtu" else Transport.TCP
-    stream = Stream(0, transport, "client", "server")
-    direction = Direction.S2C if response else Direction.C2S
-    pdu = decode_pdu(body, response)
-    return Frame(0.0, stream, direction, unit if unit is not None else 0, tid, pdu, data, crc_ok)
-
-
-def _notes(frame: Any, annotator: Any) -> tuple[str, ...]:
-    """The profiles' notes on the frame, read alone (a request pending, or an answer
-    nothing asked for)."""
-    if annotator is None:
-        return ()
-    from mbmon.model import Direction, Transaction, TxStatus
-
-    if frame.direction is Direction.S2C:
-        tx = Transaction(0.0, TxStatus.UNSOLICITED, None, frame)
-    else:
-        tx = Transaction(0.0, TxStatus.PENDING, frame, None)
-    notes: tuple[str, ...] = annotator.annotate(tx).notes
-    return notes
-
-
-def _json(frame: Any, notes: tuple[str, ...], mode: str, guessed: bool) -> dict[str, Any]:
+def _json(record: Any, mode: str, guessed: bool) -> dict[str, Any]:
     """The one JSON record of the frame, with its framing and without what a frame typed
     alone has not (index, time, stream, endpoints, line)."""
     from mbmon.format import View, record_to_json
-    from mbmon.model import Kind, Record, RecordKind
 
-    kinds = {Kind.REQUEST: RecordKind.REQUEST, Kind.RESPONSE: RecordKind.RESPONSE}
-    kind = kinds.get(frame.pdu.kind, RecordKind.EXCEPTION)
-    obj = record_to_json(Record(0, 0.0, kind, frame.stream, frame=frame, notes=notes), View())
+    obj = record_to_json(record, View())
     obj["framing"] = mode
     if guessed:
         obj["framing_note"] = "guessed: an RTU frame with a bad CRC"

@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -122,3 +124,66 @@ def test_the_details_of_a_bad_crc_name_the_expected_crc() -> None:
     expected = add_crc(bytes.fromhex("0103000A0001"))[-2:].hex(" ").upper()
     assert f"CRC: BAD (the frame has AB CD, expected {expected})" in texts
     assert "CRC: ok" in [text for text, _span in frame_details(good)]  # type: ignore[arg-type]
+
+
+def _typed_records(data: bytes, framing: str, response: bool = False) -> list[object]:
+    """Every record the one flow makes of typed bytes: TypedFrameSource → hub → pipeline."""
+    from mbmon.hub import Hub
+    from mbmon.pipeline import Pipeline
+    from mbmon.sources.base import run_sources
+    from mbmon.sources.typed import TypedFrameSource
+
+    records: list[object] = []
+
+    class Keep:
+        def on_record(self, record: object) -> None:
+            records.append(record)
+
+    hub = Hub(Pipeline(), [Keep()])
+    source = TypedFrameSource(data, framing, response=response)  # type: ignore[arg-type]
+    source.open(hub)
+    run_sources(hub, [source])
+    hub.close()
+    return records
+
+
+# (typed hex, framing, the monitor line, the CRC line): requests typed alone, RTU frames
+# whose CRC fails, an exception answer with a bad CRC
+ONE_PATH = [
+    ("01 03 00 00 00 0A C5 CD", "rtu", "03 00 00 00 0A", "CRC: ok"),
+    ("00 01 00 00 00 06 01 03 00 00 00 01", "tcp", "03 00 00 00 01", None),
+    ("02 01 2C 00 05", "pdu", "02 01 2C 00 05", None),
+    (
+        "01 03 00 00 00 0A C5 CE",
+        "rtu",
+        "03 00 00 00 0A",
+        "CRC: BAD (the frame has C5 CE, expected C5 CD)",
+    ),
+    (
+        "01 03 00 00 00 0A C5 CC",
+        "rtu",
+        "03 00 00 00 0A",
+        "CRC: BAD (the frame has C5 CC, expected C5 CD)",
+    ),
+    ("11 83 02 00 00", "rtu", "83 02", "CRC: BAD (the frame has 00 00, expected C1 34)"),
+]
+
+
+@pytest.mark.parametrize(("typed", "framing", "line", "crc"), ONE_PATH)
+def test_decode_prints_exactly_the_records_of_the_typed_source(
+    typed: str, framing: str, line: str, crc: str | None
+) -> None:
+    """One path: a request typed alone is one record (never "no response": nothing after
+    it was observed), and an RTU frame whose CRC fails is that frame with its CRC
+    verdict (not noise, as on a bus); decode prints frame_text of those records."""
+    from mbmon.details import frame_text
+
+    data = bytes.fromhex(typed)
+    records = _typed_records(data, framing)
+    assert [r.frame.raw for r in records] == [data]  # type: ignore[attr-defined]
+    (record,) = records
+    out = decode(f"--{framing}", typed).stdout.splitlines()
+    assert out[0] == line
+    framing_text = out[1].split(": ", 1)[1]
+    assert out == frame_text(record.frame, record.notes, framing=framing_text)  # type: ignore[attr-defined]
+    assert ("  " + crc in out[2:]) if crc else not any("CRC" in x for x in out)

@@ -180,10 +180,14 @@ def test_typed_bytes_are_decoded_by_the_one_flow(
     assert first.startswith("#0 ")  # untimed: record numbers, no clock
 
 
-def test_typed_rtu_bytes_with_a_bad_crc_are_noise() -> None:
+def test_typed_rtu_bytes_with_a_bad_crc_are_that_frame() -> None:
+    """The bytes typed are one ADU: a bad CRC is that frame's verdict, not bus noise,
+    and a request typed alone is never reported unanswered."""
     data = bytes.fromhex("01 03 00 00 00 0A C5 CE")
-    text, _, _ = run(TypedFrameSource(data, "rtu"))
-    assert "noise, 8 bytes (no valid frame (bad CRC))" in text
+    text, hub, _ = run(TypedFrameSource(data, "rtu"))
+    assert "noise" not in text and "No response" not in text
+    assert text.splitlines()[0].startswith("#0 ")
+    assert "03 00 00 00 0A" in text and hub.records == 1
 
 
 # --------------------------------------------------------------------------- serial
