@@ -3,12 +3,12 @@ robot) that forwards every request and answer, answers like a gateway when the
 robot does not, can refuse writes, and shows and logs what passes through the one
 hub. Either side may be an RS485 port (Modbus RTU): :mod:`mbmon.proxy.serial`.
 
-Wiring only: the options are checked into a :class:`~mbmon.proxy.plan.ProxyPlan`,
-and :func:`~mbmon.proxy.runner.attach_engine` runs the
-:class:`~mbmon.proxy.engine.ProxyEngine` on its own asyncio loop (in a child
+Wiring only: the options are checked into a :class:`~mbmon.proxy.plan.ProxyPlan`;
+the proxy is a live source of the hub (:class:`~mbmon.sources.proxy.ProxySource`:
+the :class:`~mbmon.proxy.engine.ProxyEngine` on its own asyncio loop, in a child
 process for a TCP proxy, else in a thread), which hands copies of the traffic to
-the hub's thread-safe queue; the main thread runs ``hub.run`` (pipeline, console,
-``-w`` logs). Ctrl-C or SIGTERM stops the engine first (its last events reach the
+the hub's thread-safe queue; the main thread runs ``run_sources`` (pipeline,
+console, ``-w`` logs). Ctrl-C or SIGTERM stops the engine first (its last events reach the
 hub), then the hub finishes and closes every listener, and a summary goes to
 stderr.
 """
@@ -69,11 +69,13 @@ def register(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Start the engine, run the hub until Ctrl-C/SIGTERM, print the summary."""
+    """``mbmon proxy``: options → a plan → the proxy as a source
+    (:class:`~mbmon.sources.proxy.ProxySource`, listening before any output opens) and
+    the outputs (logs, then the screen) → ``run_sources`` until Ctrl-C/SIGTERM → the
+    summary → one exit status."""
     from mbmon.commands.common import (
         EXIT_BAD_INPUT,
         UsageError,
-        attach_outputs,
         check_rotation,
         err,
         exit_status,
@@ -86,8 +88,8 @@ def run(args: argparse.Namespace) -> int:
     from mbmon.hub import Hub
     from mbmon.pipeline import Pipeline, PipelineConfig
     from mbmon.proxy.plan import PlanError, ProxyPlan
-    from mbmon.proxy.runner import attach_engine
     from mbmon.sinks.base import SinkContext
+    from mbmon.sources.proxy import ProxySource, ProxyStartError
 
     check_rotation(args)
     upstream = None if args.upstream is None else parse_address(args.upstream, "--upstream")
@@ -107,6 +109,15 @@ def run(args: argparse.Namespace) -> int:
     pipe_timeout = args.timeout + 1.0
     baud = args.baud if plan.serial else None
     hub = Hub(Pipeline(annotator, PipelineConfig(timeout=pipe_timeout, baudrate=baud)))
+    source = ProxySource(
+        plan.config, process=plan.process, factories=plan.factories, name=plan.source()
+    )
+    try:
+        source.open(hub)  # it listens when this returns; a failure leaves no files behind
+    except ProxyStartError as exc:
+        err(plan.start_error(exc.error, listen_error))
+        hub.close()
+        return exit_status(hub, failed=True, until_signal=True)
     ctx = SinkContext(
         view=view,
         command_line=["mbmon", *sys.argv[1:]],
@@ -116,27 +127,23 @@ def run(args: argparse.Namespace) -> int:
         timeout=pipe_timeout,
         baud=baud,
     )
-    logs = _open_logs(hub, args, ctx)
-    if logs is None:
-        return EXIT_BAD_INPUT
-    engine, thread, observer = attach_engine(
-        hub, plan.config, process=plan.process, **plan.factories
-    )
     try:
-        address = thread.start()
-    except OSError as exc:
-        err(plan.start_error(exc, listen_error))
-        attach_outputs(hub, logs=logs)  # what the engine said reaches the logs
-        hub.run(until_idle=True)
+        logs = _open_logs(args, ctx)
+    except BaseException:
+        source.stop()
         hub.close()
-        return exit_status(hub, failed=True, until_signal=True)
-    return _serve(args, plan, hub, (engine, thread, observer), address, ctx, annotator, logs)
+        raise
+    if logs is None:
+        source.stop()
+        hub.close()
+        return EXIT_BAD_INPUT
+    return _serve(args, plan, hub, source, ctx, annotator, logs)
 
 
-def _open_logs(hub: Any, args: argparse.Namespace, ctx: Any) -> list[Any] | None:
+def _open_logs(args: argparse.Namespace, ctx: Any) -> list[Any] | None:
     """The Foxglove feed and the ``-w`` logs, opened (not attached: the command hands
     them to :func:`~mbmon.commands.listeners.attach_outputs`, logs first); ``None``
-    (said on stderr, the hub closed) when one cannot be opened."""
+    (said on stderr) when one cannot be opened."""
     from mbmon.commands.common import err, open_foxglove, open_logs
     from mbmon.sinks.base import SinkError
 
@@ -148,7 +155,6 @@ def _open_logs(hub: Any, args: argparse.Namespace, ctx: Any) -> list[Any] | None
     except (SinkError, SystemExit) as exc:
         for out in logs:
             out.close()
-        hub.close()
         if isinstance(exc, SystemExit):
             raise
         err(str(exc))
@@ -160,15 +166,14 @@ def _serve(
     args: argparse.Namespace,
     plan: Any,
     hub: Any,
-    parts: tuple[Any, Any, Any],
-    address: tuple[str, int],
+    source: Any,
     ctx: Any,
     annotator: Any,
     logs: list[Any],
 ) -> int:
-    """The started engine's run: signals, the start-up line, the outputs (the opened
-    ``logs``, then the screen), ``hub.run`` until Ctrl-C/SIGTERM, then the summary
-    and the exit status."""
+    """The listening proxy's run: signals, the start-up line, the outputs (the opened
+    ``logs``, then the screen), ``run_sources`` until Ctrl-C/SIGTERM, then the
+    summary and the exit status."""
     from mbmon.commands.common import (
         Figures,
         attach_outputs,
@@ -178,12 +183,12 @@ def _serve(
         run_live,
         stop_on_signals,
     )
+    from mbmon.sources.base import run_sources
 
-    engine, thread, observer = parts
     from_screen = [0]  # the monitor's quit key asks as a signal does
 
     def stop(count: int) -> None:
-        thread.stop()  # the engine's last events reach the hub, then it stops the hub
+        source.runner.stop()  # the engine's last events reach the hub, then it stops the hub
         if count > 1:
             hub.stop()  # asked twice: do not wait for the engine
 
@@ -195,7 +200,7 @@ def _serve(
     # is what a supervisor (or a test) waits for before it may signal; and until the
     # summary is out (a late Ctrl-C must not cut the logs' close or the summary short)
     with stop_on_signals(stop) as signals:
-        print(f"mbmon proxy: {plan.startup_line(address)}", file=sys.stderr, flush=True)
+        print(f"mbmon proxy: {plan.startup_line(source.address)}", file=sys.stderr, flush=True)
         if args.upstream is not None:
             _warn_unresolved(hub, plan.config.upstream_host, plan.config.upstream_port)
         # the screen last: the logs are open, and the start-up line is on the terminal
@@ -205,18 +210,18 @@ def _serve(
         )
         attach_outputs(hub, logs=logs, screen=console)
         if monitor is not None:
-            hub.add_listener(Figures(monitor, engine.figures))
+            hub.add_listener(Figures(monitor, source.stats))
         try:
-            run_live(monitor, hub.run, quit_key, ctx=ctx, submit=hub.submit)
+            run_live(
+                monitor, partial(run_sources, hub, [source]), quit_key, ctx=ctx, submit=hub.submit
+            )
         finally:
-            thread.stop()
-            thread.join(5.0)
+            source.stop()
             hub.close()
-        engine.stats.not_observed = observer.skipped
-        print("mbmon proxy: " + engine.stats.summary().replace("\n", "\n  "), file=sys.stderr)
-        lost = getattr(engine, "final", True) is False
+        print("mbmon proxy: " + "\n  ".join(source.summary()), file=sys.stderr)
+        lost = source.ended_unexpectedly
         if lost:
-            status = getattr(thread, "returncode", None)
+            status = getattr(source.runner, "returncode", None)
             err(
                 f"the proxy's forwarding process ended unexpectedly (status {status}); "
                 "the counters above are the last it sent"
