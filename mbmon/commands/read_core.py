@@ -21,6 +21,8 @@ def core_hand_off(sources: list[Any], args: argparse.Namespace, view: Any, flt: 
     from mbmon.sources.files import CaptureFileSource
 
     if len(sources) != 1 or not isinstance(sources[0], CaptureFileSource):
+        if args.debug_core and len(sources) > 1:
+            err("core: declined (several inputs); the Python pipeline reads the input")
         return None
     source = sources[0]
     live = source.mode == "stream"

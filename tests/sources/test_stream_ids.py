@@ -209,3 +209,29 @@ def test_a_recorded_answers_on_names_the_mapped_stream() -> None:
     assert chunk.stream.id == 2
     # a source's ids never taken by another are kept
     assert Hub().recorded_streams().item(connect) is connect
+
+
+def test_a_bad_input_among_several_stops_read_before_any_output(
+    captures: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """Every input is opened before any output: a missing, foreign or MCAP file among
+    several is one line, exit status 1, nothing printed and no log written."""
+    a, _b = captures
+    notes = tmp_path / "notes.txt"
+    notes.write_text("not a capture\n")
+    log = tmp_path / "x.mcap"
+    assert mbmon("read", a, "-q", "-w", log).returncode == 0
+    mcap_input = log.rename(tmp_path / "earlier.mcap")
+    for bad, words in (
+        (tmp_path / "missing.pcap", "no such file"),
+        (notes, "notes.txt"),
+        (mcap_input, "is an MCAP log, not a capture: try 'mbmon replay"),
+    ):
+        done = mbmon("read", a, bad, "-w", log)
+        assert done.returncode == 1, done.stderr
+        assert words in done.stderr and "Traceback" not in done.stderr
+        assert done.stdout == "" and not log.exists()
+    twice = mbmon("read", "-", "-")
+    assert twice.returncode == 2 and "stdin (-) can be read once" in twice.stderr
+    debug = mbmon("read", a, a, "--debug-core", "-q")
+    assert "core: declined (several inputs)" in debug.stderr
