@@ -21,7 +21,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from long_capture import write_long_capture
+from long_capture import signal_while_logging, write_long_capture
 from mcap.reader import make_reader
 
 from mbmon.io.mcap.reader import McapLog
@@ -569,21 +569,11 @@ def test_signal_statistics_count_what_the_chunks_hold(tmp_path: Path, long_captu
     for run in range(10):
         log = tmp_path / f"stop{run}.mcap"
         sig = (signal.SIGINT, signal.SIGTERM)[run % 2]
-        proc = subprocess.Popen(
-            [*MBMON, "read", str(long_capture), "-q", "-w", str(log)],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
-            text=True,
-            env=ENV,
+        delay = rng.uniform(0.1, 2.5)
+        returncode, err = signal_while_logging(
+            long_capture, log, sig, delay, args=["-q"], entry=["-m", "mbmon.cli"], timeout=60
         )
-        deadline = time.monotonic() + 60
-        while not log.exists() and proc.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.02)  # the log is open: records flow from now on
-        time.sleep(rng.uniform(0.1, 2.5))
-        assert proc.poll() is None, "the input must outlast the test"
-        proc.send_signal(sig)
-        _, err = proc.communicate(timeout=60)
-        assert proc.returncode == 128 + sig and "Traceback" not in err, err
+        assert returncode == 128 + sig and "Traceback" not in err, err
         with open(log, "rb") as f:
             reader = make_reader(f, validate_crcs=True)
             summary = reader.get_summary()

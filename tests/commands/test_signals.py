@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 import pytest
-from long_capture import write_long_capture
+from long_capture import signal_while_logging, write_long_capture
 
 from mbmon.io.mcap.reader import McapLog
 
@@ -42,22 +42,9 @@ def test_read_to_mcap_ends_alike_on_sigterm_and_sigint(
     rng = random.Random(17)
     for run in range(8):
         log = tmp_path / f"x{run}.mcap"
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "mbmon", "read", str(long_capture), "-w", str(log)],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
-            text=True,
-            env=ENV,
-        )
-        deadline = time.monotonic() + 60
-        while not log.exists() and proc.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.01)  # the log is open: records flow from now on
-        time.sleep(rng.uniform(0.05, 1.5))
-        assert proc.poll() is None, "the input must outlast the test"
-        proc.send_signal(sig)
-        _, err = proc.communicate(timeout=120)
-        what = f"run {run} ({sig.name}): exit {proc.returncode}, stderr:\n{err}"
-        assert proc.returncode == 128 + sig, what
+        returncode, err = signal_while_logging(long_capture, log, sig, rng.uniform(0.05, 1.5))
+        what = f"run {run} ({sig.name}): exit {returncode}, stderr:\n{err}"
+        assert returncode == 128 + sig, what
         assert "Traceback" not in err, what
         assert " frames (" in err and "requests" in err, what  # the summary
         assert f"interrupted; {log} was finished and is complete up to here" in err, what
