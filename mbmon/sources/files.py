@@ -66,6 +66,7 @@ class CaptureFileSource(BaseSource):
         self.progress = progress
         self.capture_stats: dict[str, Any] = {}
         self._items: Iterator[Item] | None = None
+        self._reader: Iterator[Item] | None = None  # read_capture's generator
 
     def open(self, hub: Hub) -> None:
         """Open the capture and read its first record (a file that is no capture, or
@@ -82,6 +83,7 @@ class CaptureFileSource(BaseSource):
             first = next(items, None)
         except CaptureError as exc:
             raise SourceError(str(exc)) from None
+        self._reader = items
         self._items = itertools.chain(() if first is None else (first,), items)
 
     def items(self) -> Iterable[Item]:
@@ -89,11 +91,16 @@ class CaptureFileSource(BaseSource):
         return self._items if self._items is not None else ()
 
     def stop(self) -> None:
-        """Close the capture (idempotent; what was not read is left unread)."""
-        items, self._items = self._items, None
-        close = getattr(items, "close", None)
-        if close is not None:
-            close()
+        """Close the capture (idempotent; what was not read is left unread). A reader
+        thread still inside the capture (a pipe, at Ctrl-C) keeps it: it ends with
+        the process."""
+        reader, self._reader = self._reader, None
+        close = getattr(reader, "close", None)
+        if close is not None and not getattr(reader, "gi_running", False):
+            try:
+                close()
+            except ValueError:  # it started running meanwhile: its thread keeps it
+                pass
 
     def stats(self) -> dict[str, Any]:
         """The reader's counters (complete once the items ended)."""

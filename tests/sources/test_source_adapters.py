@@ -95,6 +95,23 @@ def test_capture_file_source_open_errors_are_one_line(tmp_path: Path) -> None:
     assert "\n" not in str(info.value) and "notes.txt" in str(info.value)
 
 
+def test_capture_file_source_stop_closes_the_capture() -> None:
+    """A run that ends early (``-c``, a closed stdout) or a source given up before its
+    run leaves no capture open: ``stop`` closes it, and stopping again does nothing."""
+
+    def fds() -> int:
+        return len(os.listdir("/proc/self/fd"))
+
+    before = fds()
+    source = CaptureFileSource(CAPTURES / "sim_functions.pcap")
+    source.open(Hub())
+    assert fds() == before + 1
+    source.stop()
+    assert fds() == before
+    source.stop()
+    assert fds() == before
+
+
 def test_a_fifo_is_a_stream_source(tmp_path: Path) -> None:
     path = CAPTURES / "sim_functions.pcap"
     fifo = tmp_path / "cap.fifo"
