@@ -15,6 +15,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from mbmon_cli import mbmon
 
 from mbmon.format import View
@@ -25,6 +27,7 @@ from mbmon.pipeline import Pipeline
 from mbmon.sinks.console import ConsoleListener
 from mbmon.sources.base import run_sources
 from mbmon.sources.files import CaptureFileSource, McapLogSource
+from mbmon.stream_ids import StreamIds
 
 CLIENT, SERVER = "10.0.0.2:40000", "10.0.0.1:502"
 REQUEST = bytes.fromhex("000000060103 0064 0001")  # after the tid: read R100
@@ -235,3 +238,60 @@ def test_a_bad_input_among_several_stops_read_before_any_output(
     assert twice.returncode == 2 and "stdin (-) can be read once" in twice.stderr
     debug = mbmon("read", a, a, "--debug-core", "-q")
     assert "core: declined (several inputs)" in debug.stderr
+
+
+def test_two_logs_redecoded_through_log_sources_keep_their_streams_apart(
+    captures: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """``replay --redecode``'s source (io/logsource.LogSource, raw items) opened on a hub
+    maps its recorded ids as McapLogSource does: two logs of one run stay apart."""
+    from mbmon.io.logsource import LogSource
+    from mbmon.io.mcap.reader import McapLog
+    from mbmon.timefmt import TimeFormat
+
+    logs = []
+    for path in captures:
+        log = tmp_path / f"{path.stem}.mcap"
+        assert mbmon("read", path, "-q", "-w", log).returncode == 0
+        logs.append(McapLog(log))
+    try:
+        out = Records()
+        hub = Hub(Pipeline(), [out])
+        sources = [LogSource(log, TimeFormat(), raw=True) for log in logs]
+        for source in sources:
+            source.open(hub)
+        run_sources(hub, sources)
+        hub.close()
+    finally:
+        for log in logs:
+            log.close()
+    answers = [r for r in out.records if r.frame is not None and r.request is not None]
+    assert [(r.stream.id, r.frame.pdu.values[0]) for r in answers] == [
+        (0, 11),
+        (0, 12),
+        (0, 13),
+        (1, 21),
+        (1, 22),
+        (1, 23),
+    ]
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(
+        st.one_of(st.none(), st.integers(min_value=-1, max_value=12)),
+        max_size=40,
+    )
+)
+def test_the_allocator_never_gives_one_id_twice(asks: list[int | None]) -> None:
+    """Any mix of new ids and claimed ones (None: ``new()``): all different, a claimed
+    id kept when free, and never negative."""
+    ids = StreamIds()
+    given_out: list[int] = []
+    for ask in asks:
+        sid = ids.new() if ask is None else ids.claim(ask)
+        if ask is not None and ask >= 0 and ask not in given_out:
+            assert sid == ask
+        given_out.append(sid)
+    assert len(set(given_out)) == len(given_out)
+    assert all(sid >= 0 for sid in given_out)
