@@ -289,7 +289,15 @@ class Client(Reader):
     def resume_writing(self) -> None:
         self.paused_since = None
         if self.transport is not None and not self.closed and not self.hold_paused:
-            self.transport.resume_reading()
+            self._resume_reading()
+
+    def _resume_reading(self) -> None:
+        """Read the client again; a request it was half-way through when the proxy
+        stopped reading has its full ``timeout`` again from now."""
+        if self.partial_since is not None:
+            self.partial_since = self.engine.loop.time()
+        assert self.transport is not None
+        self.transport.resume_reading()
 
     def connection_lost(self, exc: Exception | None) -> None:
         if self.stream is None:  # refused at accept
@@ -427,7 +435,7 @@ class Client(Reader):
             if self.hold_paused and self.held_bytes <= HOLD_LIMIT // 2:
                 self.hold_paused = False
                 if self.paused_since is None:
-                    transport.resume_reading()
+                    self._resume_reading()
         if self.half_closed:
             self._close_when_done()
 

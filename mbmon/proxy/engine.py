@@ -294,7 +294,10 @@ class ProxyEngine:
                 if client.closed:
                     continue
                 since = client.partial_since
-                if since is not None and now - since > timeout:
+                # while the proxy does not read the client (answers waiting their turn,
+                # or its own unread), it is not half-way through a request by its doing
+                reading = not client.hold_paused and client.paused_since is None
+                if since is not None and reading and now - since > timeout:
                     client.drop(
                         f"request incomplete for more than {timeout:g} s "
                         f"({client.received - client.consumed} bytes waiting)"
