@@ -45,8 +45,9 @@ __all__ = ["CLIENT_SNDBUF", "HOLD_LIMIT", "MADE_BY_PROXY", "Client", "ClientEngi
 CLIENT_SNDBUF = 64 * 1024
 
 #: Bytes of answers a client may have waiting for their turn (:meth:`Client.send_own`)
-#: before the proxy stops reading its requests until they are written: a client that
-#: pipelines refused writes behind a slow answer cannot grow the proxy's memory.
+#: before the proxy stops reading its requests, until no more than half as many wait:
+#: a client that pipelines refused writes behind a slow answer cannot grow the
+#: proxy's memory.
 HOLD_LIMIT = 64 * 1024
 
 #: The note on an answer the proxy made itself (0x0A, 0x0B, a guard refusal): the
