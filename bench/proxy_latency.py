@@ -73,7 +73,7 @@ ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 sys.path.insert(0, str(ROOT))
 from mbmon.proxy.config import MAX_BACKLOG  # noqa: E402
-from mbmon.proxy.remote import _CHUNK, PIPE_SIZE  # noqa: E402
+from mbmon.proxy.remote import CHUNK_HEAD, PIPE_SIZE  # noqa: E402
 
 UPSTREAM = r"""
 import asyncio, random, struct, sys
@@ -438,7 +438,7 @@ FLOOR_STAGES = {
 #: process keeps up to MAX_BACKLOG items (two a request) for its observer, behind what
 #: its pipe holds (PIPE_SIZE bytes, a 16-byte head and 12 bytes or more a chunk);
 #: past that it forwards without a copy. A quarter more, for certain.
-BACKLOG_FILL = (MAX_BACKLOG + PIPE_SIZE // (_CHUNK.size + len(REQUEST))) // 2 * 5 // 4
+BACKLOG_FILL = (MAX_BACKLOG + PIPE_SIZE // (CHUNK_HEAD.size + len(REQUEST))) // 2 * 5 // 4
 
 
 def stop_observer(pid: int, port: int, clients: int) -> None:

@@ -31,6 +31,9 @@ Gateway rules:
   respond); an answer that comes later is dropped and logged, never delivered;
   an upstream connection that holds half an answer at that moment is reset;
 * upstream closed or reset with requests in flight: those are answered 0x0B;
+* an answer the proxy makes (0x0A, 0x0B, a guard refusal) is never written into
+  the middle of an answer being forwarded, and keeps its request's place
+  (:meth:`~mbmon.proxy.client.Client.send_own`);
 * the client connection stays open through all of this.
 
 Clients: a client whose bytes are not Modbus/TCP (protocol id != 0, a length
@@ -187,7 +190,9 @@ class ProxyEngine:
         else:
             self.stats.exceptions_0b += 1
         client.send_own(
-            encode_adu(entry.tid, entry.unit, encode_exception(entry.fc, code)), time.time()
+            encode_adu(entry.tid, entry.unit, encode_exception(entry.fc, code)),
+            time.time(),
+            entry.seq,
         )
 
     async def start(self) -> tuple[str, int]:
@@ -289,7 +294,10 @@ class ProxyEngine:
                 if client.closed:
                     continue
                 since = client.partial_since
-                if since is not None and now - since > timeout:
+                # while the proxy does not read the client (answers waiting their turn,
+                # or its own unread), it is not half-way through a request by its doing
+                reading = not client.hold_paused and client.paused_since is None
+                if since is not None and reading and now - since > timeout:
                     client.drop(
                         f"request incomplete for more than {timeout:g} s "
                         f"({client.received - client.consumed} bytes waiting)"

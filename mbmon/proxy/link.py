@@ -42,24 +42,31 @@ _S2C = Direction.S2C
 class LinkClient(Protocol):
     """What a link asks of a client (:class:`~mbmon.proxy.client.Client` is one):
     its stream, whether it is gone, its requests in flight, whether it takes an
-    answer's bytes as they come; :meth:`send` gives it answer bytes, :meth:`send_own`
-    an answer the proxy made itself, :meth:`unanswered` tells a silent client's
-    request went unanswered, :meth:`drop` disconnects it, :meth:`notice` logs about
-    it."""
+    answer's bytes as they come and whether it has part of one (``midway``);
+    :meth:`send` gives it whole answers, :meth:`stream_part` the bytes of the
+    answers being forwarded as they come, :meth:`send_own` an answer the proxy made itself,
+    :meth:`flush` lets go the answers it holds once a request left ``outstanding``
+    with no answer written, :meth:`unanswered` tells a silent client's request went
+    unanswered, :meth:`drop` disconnects it, :meth:`notice` logs about it."""
 
     stream: Stream | None
     closed: bool
     silent: bool
     streams_answers: bool
+    midway: bool
     outstanding: set[Pending]
 
     def send(self, data: bytes, ts: float) -> None: ...
+
+    def stream_part(self, data: bytes, ts: float, midway: bool) -> None: ...
+
+    def flush(self) -> None: ...
 
     def drop(self, reason: str, count: bool = True) -> None: ...
 
     def notice(self, message: str, info: dict[str, Any]) -> None: ...
 
-    def send_own(self, data: bytes, ts: float) -> None: ...
+    def send_own(self, data: bytes, ts: float, seq: int = 0) -> None: ...
 
     def unanswered(self, entry: Pending, code: int) -> None: ...
 
@@ -128,18 +135,22 @@ class Pending:
         "fc",
         "link",
         "raw",
+        "seq",
         "tid",
         "unit",
         "utid",
     )
 
-    def __init__(self, client: LinkClient, tid: int, utid: int, unit: int, fc: int, raw: bytes):
+    def __init__(
+        self, client: LinkClient, tid: int, utid: int, unit: int, fc: int, raw: bytes, seq: int = 0
+    ):
         self.client = client
         self.tid = tid  # the client's transaction id
         self.utid = utid  # the id on the upstream connection (== tid unless shared)
         self.unit = unit
         self.fc = fc
         self.raw = raw  # the ADU as sent upstream
+        self.seq = seq  # its place among its client's requests (their answers' order)
         self.link: Link | None = None
         self.deadline: float | None = None  # loop time of its 0x0B, once armed
         self.done = False  # answered, expired or forgotten: the deadline queue skips it
@@ -275,8 +286,8 @@ class LinkBase:
             client.outstanding.discard(entry)
             self.consumed += len(first)
             self.engine.stats.responses += 1
-            client.send(first[self.streamed :], ts)
-            self.streamed = 0
+            self.streamed, done = 0, self.streamed
+            client.stream_part(first[done:], ts, False)
         if raws:
             self._route(raws, ts)
         if bad is not None or not decoder.synced:
@@ -300,11 +311,11 @@ class LinkBase:
             self.streaming = entry
             tid = entry.tid
             self.streamed = len(tail)
-            entry.client.send(bytes((tid >> 8, tid & 0xFF)) + tail[2:], ts)
+            entry.client.stream_part(bytes((tid >> 8, tid & 0xFF)) + tail[2:], ts, True)
         elif len(tail) > self.streamed:
             part = tail[self.streamed :]
             self.streamed = len(tail)
-            entry.client.send(part, ts)
+            entry.client.stream_part(part, ts, True)
 
     def _route(self, raws: list[bytes], ts: float) -> None:
         """Whole answers on a shared or retired connection: each to the client of its
@@ -359,7 +370,7 @@ class LinkBase:
         if raws is not None:
             self.consumed += len(data)
             self._answered(raws)
-            owner.send(data, ts)
+            owner.stream_part(data, ts, False)
             return
         raws, bad = decoder.feed_adus(data, ts)
         for raw in raws:
@@ -367,12 +378,12 @@ class LinkBase:
         if raws:
             self._answered(raws)
         if bad is None and decoder.synced:
-            owner.send(data, ts)
+            owner.stream_part(data, ts, self.received > self.consumed)
             return
         # up to the end of the last whole ADU, the bytes go on; the rest never does
         upto = self.consumed - (self.received - len(data))
         if upto > 0:
-            owner.send(data[:upto], ts)
+            owner.stream_part(data[:upto], ts, False)
         if bad is not None:
             self.consumed += len(bad.raw)
         self.reset(

@@ -62,6 +62,7 @@ from mbmon.proxy.engine import ProxyEngine
 from mbmon.proxy.observer import Observer
 
 __all__ = [
+    "CHUNK_HEAD",
     "PipeObserver",
     "PipeOut",
     "ProxyProcess",
@@ -70,8 +71,10 @@ __all__ = [
     "decode_records",
 ]
 
-#: chunk record: tag, stream id, timestamp, direction, length; then the bytes
-_CHUNK = struct.Struct("<cIdBH")
+#: The head of a chunk record in the observation pipe: tag, stream id, timestamp,
+#: direction, length; the chunk's bytes follow (``CHUNK_HEAD.size`` bytes a chunk
+#: on top of its own, what a benchmark needs to size the pipe's backlog).
+CHUNK_HEAD = struct.Struct("<cIdBH")
 #: other records: tag, length; then a pickle
 _OBJECT = struct.Struct("<cI")
 _C = b"C"
@@ -120,7 +123,7 @@ class PipeOut:
     def put_chunk(self, stream_id: int, direction: Direction, data: bytes, ts: float) -> None:
         """Encode one chunk into the buffer (written at the next :meth:`commit`)."""
         buf = self.buf
-        buf += _CHUNK.pack(_C, stream_id, ts, _DIRECTION_CODE[direction], len(data))
+        buf += CHUNK_HEAD.pack(_C, stream_id, ts, _DIRECTION_CODE[direction], len(data))
         buf += data
         self.items += 1
 
@@ -249,8 +252,8 @@ def decode_records(
     others: list[tuple[Any, ...]] = []
     pos = 0
     n = len(buf)
-    unpack = _CHUNK.unpack_from
-    head = _CHUNK.size
+    unpack = CHUNK_HEAD.unpack_from
+    head = CHUNK_HEAD.size
     ohead = _OBJECT.size
     directions = _DIRECTIONS
     while n - pos >= 5:

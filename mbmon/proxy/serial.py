@@ -224,6 +224,7 @@ class RtuLink:
             self.jobs.pop(job.entry, None)
             client = job.entry.client
             client.outstanding.discard(job.entry)
+            client.flush()  # an answer of the proxy's held behind it may go
             self._next = self.engine.loop.call_later(self.turnaround, self._start)
             return
         self._timer = self.engine.loop.call_later(self.engine.config.timeout, self._expire)

@@ -312,8 +312,9 @@ class TcpLink(LinkBase):
         # a client that has part of an answer already cannot be given an exception
         # after it: its stream cannot go on
         half = self.streaming.client if self.streaming is not None else None
-        if half is None and not self.remap and self.received > self.consumed:
-            half = self.owner
+        owner = self.owner
+        if half is None and owner is not None and (self.received > self.consumed or owner.midway):
+            half = owner
         held = self.received - self.consumed
         self.streaming = None
         self.tail = b""

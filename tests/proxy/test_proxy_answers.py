@@ -19,7 +19,8 @@ import json
 import random
 import struct
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
+from contextlib import asynccontextmanager
 from pathlib import Path
 
 import pytest
@@ -27,6 +28,7 @@ import pytest
 from tests.proxy.test_proxy_e2e import Proxy
 
 Handler = Callable[[asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]]
+Answer = Callable[[asyncio.StreamWriter, bytes], Awaitable[None]]
 
 
 def mbap(tid: int, unit: int, pdu: bytes) -> bytes:
@@ -38,19 +40,58 @@ async def read_adu(reader: asyncio.StreamReader) -> bytes:
     return head + await reader.readexactly(struct.unpack(">H", head[4:6])[0] - 1)
 
 
+def answering(answer: Answer, *, at_once: bool = False) -> Handler:
+    """An upstream's connection handler: ``answer(writer, request)`` for each request
+    ADU the connection brings, one after the other, or (``at_once``) each on its own
+    as soon as it is read (answers overtake). When the connection ends, so do the
+    answers still on their way."""
+
+    async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        tasks: set[asyncio.Future[None]] = set()
+        try:
+            while True:
+                req = await read_adu(reader)
+                if not at_once:
+                    await answer(writer, req)
+                    continue
+                task = asyncio.ensure_future(answer(writer, req))
+                tasks.add(task)
+                task.add_done_callback(tasks.discard)
+        except (asyncio.IncompleteReadError, ConnectionError):
+            pass
+        finally:
+            for task in tasks:
+                task.cancel()
+            writer.close()
+
+    return handle
+
+
+async def no_answer(writer: asyncio.StreamWriter, req: bytes) -> None:
+    """An upstream that reads every request and never answers."""
+
+
 async def start_upstream(handle: Handler) -> tuple[asyncio.Server, int]:
     server = await asyncio.start_server(handle, "127.0.0.1", 0, backlog=1024)
     return server, int(server.sockets[0].getsockname()[1])
 
 
-async def start_proxy(port: int, tmp: Path, *args: str) -> Proxy:
-    return await asyncio.to_thread(Proxy, port, "--quiet", *args, tmp=tmp)
-
-
-async def stop_proxy(p: Proxy) -> str:
-    _out, err = await asyncio.to_thread(p.stop)
-    assert p.returncode == 0, err
-    return err
+@asynccontextmanager
+async def through_proxy(handle: Handler, tmp: Path, *args: str) -> AsyncIterator[Proxy]:
+    """A scripted upstream (``handle``) on 127.0.0.1 and ``mbmon proxy --quiet *args``
+    in front of it (``p.port``; the upstream's is ``p.upstream_port``). On leaving,
+    the proxy is stopped as by Ctrl-C and must exit 0 (its stderr, the summary, is
+    then ``p.summary``), and the upstream is closed."""
+    server, port = await start_upstream(handle)
+    try:
+        p = await asyncio.to_thread(Proxy, port, "--quiet", *args, tmp=tmp)
+        try:
+            yield p
+        finally:
+            await asyncio.to_thread(p.stop)
+            assert p.returncode == 0, p.summary
+    finally:
+        server.close()
 
 
 async def silence(reader: asyncio.StreamReader, seconds: float) -> bytes:
@@ -94,19 +135,7 @@ def bad_tid_upstream(bad_tid: int = 0) -> Handler:
             await asyncio.sleep(0.3)
         writer.write(req[:2] + NEXT_ANSWER[2:])
 
-    async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        tasks = set()
-        try:
-            while True:
-                task = asyncio.ensure_future(answer(writer, await read_adu(reader)))
-                tasks.add(task)
-                task.add_done_callback(tasks.discard)
-        except (asyncio.IncompleteReadError, ConnectionError):
-            pass
-        finally:
-            writer.close()
-
-    return handle
+    return answering(answer, at_once=True)
 
 
 @pytest.mark.parametrize("shared", [False, True], ids=["per-client", "share-upstream"])
@@ -120,9 +149,9 @@ def test_unknown_tid_answer_is_forwarded_unchanged_and_no_0B_follows(
     extra = ["--share-upstream"] if shared else []
 
     async def main() -> str:
-        server, port = await start_upstream(bad_tid_upstream())
-        p = await start_proxy(port, tmp_path, "--timeout", "0.3", "-w", "bad-tid.jsonl", *extra)
-        try:
+        async with through_proxy(
+            bad_tid_upstream(), tmp_path, "--timeout", "0.3", "-w", "bad-tid.jsonl", *extra
+        ) as p:
             reader, writer = await asyncio.open_connection("127.0.0.1", p.port)
             writer.write(NEXT_REQUEST)
             assert await asyncio.wait_for(read_adu(reader), 5) == NEXT_ANSWER
@@ -134,10 +163,7 @@ def test_unknown_tid_answer_is_forwarded_unchanged_and_no_0B_follows(
             assert await asyncio.wait_for(read_adu(reader), 5) == NEXT_ANSWER
             assert await silence(reader, 0.5) == b""
             writer.close()
-        finally:
-            err = await stop_proxy(p)
-            server.close()
-        return err
+        return p.summary
 
     err = asyncio.run(main())
     assert "0x0B 0" in err
@@ -154,11 +180,15 @@ def test_unknown_tid_answer_is_dropped_and_said_so_when_shared_and_ambiguous(
     (never answered) gets 0x0B at the timeout, the other client its own answer."""
 
     async def main() -> str:
-        server, port = await start_upstream(bad_tid_upstream(0xBEEF))
-        p = await start_proxy(
-            port, tmp_path, "--timeout", "0.5", "--share-upstream", "-w", "shared.jsonl"
-        )
-        try:
+        async with through_proxy(
+            bad_tid_upstream(0xBEEF),
+            tmp_path,
+            "--timeout",
+            "0.5",
+            "--share-upstream",
+            "-w",
+            "shared.jsonl",
+        ) as p:
             r1, w1 = await asyncio.open_connection("127.0.0.1", p.port)
             r2, w2 = await asyncio.open_connection("127.0.0.1", p.port)
             w2.write(bytes.fromhex("00 05 00 00 00 06 FF 03 01 72 00 01"))  # 300 ms
@@ -171,10 +201,7 @@ def test_unknown_tid_answer_is_dropped_and_said_so_when_shared_and_ambiguous(
             assert got2 == b"\x00\x05" + NEXT_ANSWER[2:]
             w1.close()
             w2.close()
-        finally:
-            err = await stop_proxy(p)
-            server.close()
-        return err
+        return p.summary
 
     err = asyncio.run(main())
     assert "unmatched answers dropped 1" in err
@@ -208,26 +235,10 @@ def make_upstream(order: str, rng: random.Random) -> Handler:
                 mbap((req[0] << 8) | req[1], req[6], struct.pack(">BBH", 3, 2, _value(address)))
             )
 
-    async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        tasks = set()
-        try:
-            while True:
-                req = await read_adu(reader)
-                delay = rng.uniform(0, 2 * TIMEOUT)
-                if order == "in-order":
-                    await answer(writer, req, delay)
-                else:
-                    task = asyncio.ensure_future(answer(writer, req, delay))
-                    tasks.add(task)
-                    task.add_done_callback(tasks.discard)
-        except (asyncio.IncompleteReadError, ConnectionError):
-            pass
-        finally:
-            for task in tasks:
-                task.cancel()
-            writer.close()
+    def after_a_delay(writer: asyncio.StreamWriter, req: bytes) -> Awaitable[None]:
+        return answer(writer, req, rng.uniform(0, 2 * TIMEOUT))  # drawn as it is read
 
-    return handle
+    return answering(after_a_delay, at_once=order != "in-order")
 
 
 class Tally:
@@ -301,16 +312,13 @@ def test_late_answers_never_reach_a_later_request(
     tally = Tally()
 
     async def main() -> str:
-        server, port = await start_upstream(make_upstream(order, rng))
-        p = await start_proxy(port, tmp_path, "--timeout", str(TIMEOUT))
-        try:
+        async with through_proxy(
+            make_upstream(order, rng), tmp_path, "--timeout", str(TIMEOUT)
+        ) as p:
             await asyncio.gather(
                 *(client(p.port, 50, tids, depth, random.Random(i), tally) for i in range(50))
             )
-        finally:
-            err = await stop_proxy(p)
-            server.close()
-        return err
+        return p.summary
 
     start = time.monotonic()
     err = asyncio.run(main())
@@ -327,16 +335,17 @@ def test_late_answers_never_reach_a_later_request_shared(tmp_path: Path) -> None
     tally = Tally()
 
     async def main() -> str:
-        server, port = await start_upstream(make_upstream("out-of-order", rng))
-        p = await start_proxy(port, tmp_path, "--timeout", str(TIMEOUT), "--share-upstream")
-        try:
+        async with through_proxy(
+            make_upstream("out-of-order", rng),
+            tmp_path,
+            "--timeout",
+            str(TIMEOUT),
+            "--share-upstream",
+        ) as p:
             await asyncio.gather(
                 *(client(p.port, 40, "reused", 1, random.Random(i), tally) for i in range(50))
             )
-        finally:
-            err = await stop_proxy(p)
-            server.close()
-        return err
+        return p.summary
 
     asyncio.run(main())
     assert tally.wrong == [], f"{len(tally.wrong)} wrong: {tally.wrong[:5]}"
@@ -351,19 +360,22 @@ SLOW_REQUEST = bytes.fromhex("00 1C 00 00 00 06 FF 03 01 73 00 01")
 SLOW_ANSWER = bytes.fromhex("00 1C 00 00 00 05 FF 03 02 00 00")
 
 
-async def _byte_by_byte(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-    try:
-        while True:
-            req = await read_adu(reader)
-            answer = req[:2] + SLOW_ANSWER[2:]
-            for i in range(len(answer)):
-                writer.write(answer[i : i + 1])
-                await writer.drain()
-                await asyncio.sleep(0.005)
-    except (asyncio.IncompleteReadError, ConnectionError):
-        pass
-    finally:
-        writer.close()
+async def write_slowly(writer: asyncio.StreamWriter, data: bytes, gap: float) -> None:
+    """``data`` one byte every ``gap`` seconds."""
+    for i in range(len(data)):
+        writer.write(data[i : i + 1])
+        await writer.drain()
+        await asyncio.sleep(gap)
+
+
+def byte_by_byte(gap: float = 0.005) -> Handler:
+    """Answers every request with :data:`SLOW_ANSWER` (the request's id), one byte
+    every ``gap`` seconds, one request after the other."""
+
+    async def answer(writer: asyncio.StreamWriter, req: bytes) -> None:
+        await write_slowly(writer, req[:2] + SLOW_ANSWER[2:], gap)
+
+    return answering(answer)
 
 
 @pytest.mark.parametrize("shared", [False, True], ids=["per-client", "share-upstream"])
@@ -374,9 +386,7 @@ def test_answer_bytes_are_forwarded_as_they_arrive(tmp_path: Path, shared: bool)
     extra = ["--share-upstream"] if shared else []
 
     async def main() -> list[float]:
-        server, port = await start_upstream(_byte_by_byte)
-        p = await start_proxy(port, tmp_path, "-w", "slow.jsonl", *extra)
-        try:
+        async with through_proxy(byte_by_byte(), tmp_path, "-w", "slow.jsonl", *extra) as p:
             reader, writer = await asyncio.open_connection("127.0.0.1", p.port)
             writer.write(SLOW_REQUEST)
             got = b""
@@ -388,9 +398,6 @@ def test_answer_bytes_are_forwarded_as_they_arrive(tmp_path: Path, shared: bool)
                 times.append(time.monotonic())
             assert got == SLOW_ANSWER
             writer.close()
-        finally:
-            await stop_proxy(p)
-            server.close()
         return times
 
     times = asyncio.run(main())
@@ -416,28 +423,16 @@ def test_gateway_exception_is_logged_as_the_proxys_own_answer(tmp_path: Path) ->
 
     from tests.proxy.test_proxy_e2e import ENV
 
-    async def silent(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        try:
-            while True:
-                await read_adu(reader)
-        except (asyncio.IncompleteReadError, ConnectionError):
-            pass
-        finally:
-            writer.close()
-
     async def main() -> tuple[int, int]:
-        server, port = await start_upstream(silent)
-        p = await start_proxy(port, tmp_path, "--timeout", "0.2", "-w", "gw.jsonl", "-w", "gw.mcap")
-        try:
+        async with through_proxy(
+            answering(no_answer), tmp_path, "--timeout", "0.2", "-w", "gw.jsonl", "-w", "gw.mcap"
+        ) as p:
             reader, writer = await asyncio.open_connection("127.0.0.1", p.port)
             writer.write(NEXT_REQUEST)
             got = await asyncio.wait_for(read_adu(reader), 5)
             assert got == bytes.fromhex("00 2D 00 00 00 03 FF 83 0B")
             writer.close()
-        finally:
-            await stop_proxy(p)
-            server.close()
-        return port, p.port
+        return p.upstream_port, p.port
 
     upstream_port, proxy_port = asyncio.run(main())
     proxy_at = f"127.0.0.1:{proxy_port}"
@@ -543,24 +538,12 @@ def test_renewed_connection_drains_and_says_which_late_answer_it_dropped(
     # by register address: A's late answer (0.6 s) comes while C is in flight
     delays = {0x0A: 0.6, 0x0B: 0.2, 0x0C: 0.25}
 
-    async def upstream(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        async def answer(req: bytes) -> None:
-            address = (req[8] << 8) | req[9]
-            await asyncio.sleep(delays[address])
-            writer.write(
-                req[:2] + bytes.fromhex("00 00 00 05") + req[6:8] + b"\x02\x00" + bytes([address])
-            )
-
-        tasks = set()
-        try:
-            while True:
-                task = asyncio.ensure_future(answer(await read_adu(reader)))
-                tasks.add(task)
-                task.add_done_callback(tasks.discard)
-        except (asyncio.IncompleteReadError, ConnectionError):
-            pass
-        finally:
-            writer.close()
+    async def delayed(writer: asyncio.StreamWriter, req: bytes) -> None:
+        address = (req[8] << 8) | req[9]
+        await asyncio.sleep(delays[address])
+        writer.write(
+            req[:2] + bytes.fromhex("00 00 00 05") + req[6:8] + b"\x02\x00" + bytes([address])
+        )
 
     def read(tid: int, address: int) -> bytes:
         return mbap(tid, 1, struct.pack(">BHH", 3, address, 1))
@@ -569,9 +552,9 @@ def test_renewed_connection_drains_and_says_which_late_answer_it_dropped(
         return mbap(tid, 1, bytes([3, 2, 0, address]))
 
     async def main() -> str:
-        server, port = await start_upstream(upstream)
-        p = await start_proxy(port, tmp_path, "--timeout", "0.4", "-w", "renew.jsonl")
-        try:
+        async with through_proxy(
+            answering(delayed, at_once=True), tmp_path, "--timeout", "0.4", "-w", "renew.jsonl"
+        ) as p:
             reader, writer = await asyncio.open_connection("127.0.0.1", p.port)
             writer.write(read(7, 0x0A))  # A: 0x0B at 0.4 s, answered at 0.6 s
             await asyncio.sleep(0.3)
@@ -585,10 +568,7 @@ def test_renewed_connection_drains_and_says_which_late_answer_it_dropped(
             assert got == answer(7, 0x0C)
             assert await silence(reader, 0.5) == b""  # A's late answer never comes
             writer.close()
-        finally:
-            err = await stop_proxy(p)
-            server.close()
-        return err
+        return p.summary
 
     err = asyncio.run(main())
     assert "late answers dropped 1" in err
@@ -623,7 +603,7 @@ def test_rtu_master_gets_a_whole_frame_of_an_answer_sent_byte_by_byte(tmp_path: 
 
     def run() -> None:
         asyncio.set_event_loop(loop)
-        server, port = loop.run_until_complete(start_upstream(_byte_by_byte))
+        server, port = loop.run_until_complete(start_upstream(byte_by_byte()))
         ports.append(port)
         ready.set()
         loop.run_forever()

@@ -195,6 +195,9 @@ class Proxy:
     def __init__(
         self, upstream_port: int, *args: str, tmp: Path, env: dict[str, str] | None = None
     ) -> None:
+        self.upstream_port = upstream_port
+        #: what the proxy wrote on stderr, once :meth:`stop` ran (the summary)
+        self.summary = ""
         self.out_path = tmp / f"proxy-{upstream_port}-{time.monotonic_ns()}.out"
         self._out = self.out_path.open("w")
         self.proc = subprocess.Popen(
@@ -238,7 +241,8 @@ class Proxy:
         self.returncode = self.proc.wait(timeout=20)
         self._reader.join(5)
         self._out.close()
-        return self.out_path.read_text(), "".join(self.err)
+        self.summary = "".join(self.err)
+        return self.out_path.read_text(), self.summary
 
 
 @contextmanager

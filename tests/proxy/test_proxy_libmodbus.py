@@ -16,13 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.proxy.test_proxy_answers import (
-    read_adu,
-    silence,
-    start_proxy,
-    start_upstream,
-    stop_proxy,
-)
+from tests.proxy.test_proxy_answers import read_adu, silence, through_proxy
 
 #: (request ADU, answer ADU) in libmodbus's order (unit-test-client.c, unit-test-server.c)
 SESSION = [
@@ -145,9 +139,9 @@ def test_libmodbus_session_passes_byte_for_byte(tmp_path: Path, shared: bool) ->
     extra = ["--share-upstream"] if shared else []
 
     async def main() -> str:
-        server, port = await start_upstream(canned_upstream(errors))
-        p = await start_proxy(port, tmp_path, "--timeout", "0.3", *extra)
-        try:
+        async with through_proxy(
+            canned_upstream(errors), tmp_path, "--timeout", "0.3", *extra
+        ) as p:
             reader, writer = await asyncio.open_connection("127.0.0.1", p.port)
             for request, answer in SESSION:
                 writer.write(bytes.fromhex(request))
@@ -160,10 +154,7 @@ def test_libmodbus_session_passes_byte_for_byte(tmp_path: Path, shared: bool) ->
                         errors.append(f"after tid 0x27: {extra_bytes.hex(' ')}")
             assert await silence(reader, 0.4) == b""
             writer.close()
-        finally:
-            err = await stop_proxy(p)
-            server.close()
-        return err
+        return p.summary
 
     err = asyncio.run(main())
     assert errors == []

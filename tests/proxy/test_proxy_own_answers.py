@@ -25,22 +25,13 @@ from typing import Any
 
 import pytest
 
-from tests.proxy.test_proxy_answers import mbap, read_adu, start_upstream
+from tests.proxy.test_proxy_answers import answering, mbap, no_answer, read_adu, start_upstream
 from tests.proxy.test_proxy_e2e import ENV, Proxy
 
 MADE = "made by the proxy"
 READ = mbap(0x10, 1, bytes.fromhex("03 00 00 00 02"))  # R0..R1
 WRITE = mbap(0x11, 1, bytes.fromhex("06 00 05 00 2A"))  # R5 = 42: refused
 TIMEOUT = 0.3
-
-
-async def swallow(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-    """A real upstream that reads every request and never answers."""
-    try:
-        while await reader.read(4096):
-            pass
-    finally:
-        writer.close()
 
 
 def run_proxy(upstream_port: int, tmp: Path, client: Any) -> tuple[int, str]:
@@ -171,7 +162,7 @@ def test_a_gateway_timeout_and_a_guard_refusal_pair_with_their_requests(
     guard's exception 01. Both pair with their requests, marked as the proxy's."""
 
     async def upstream() -> tuple[asyncio.Server, int]:
-        return await start_upstream(swallow)
+        return await start_upstream(answering(no_answer))
 
     loop = asyncio.new_event_loop()
     server, port = loop.run_until_complete(upstream())

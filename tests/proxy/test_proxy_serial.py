@@ -323,6 +323,27 @@ def test_tcp_to_rtu_read_only_refuses_writes_before_the_bus() -> None:
     assert len(bus_requests) == 1 and " 03 00 05 00 01" in bus_requests[0]  # the write never
 
 
+def test_tcp_to_rtu_a_refusal_pipelined_after_a_read_comes_after_its_answer() -> None:
+    """A read and a write ``--read-only`` refuses, in one segment: the read's answer
+    comes from the bus first, then the refusal (every ADU its answer, in order),
+    each whole."""
+    with pty_pair() as (bus_proxy, bus_slave), server("rtu", bus_slave):
+        with proxy("--upstream-serial", bus_proxy, "--listen", "127.0.0.1:0",
+                   "--read-only") as p:  # fmt: skip
+            with socket.create_connection(("127.0.0.1", p.port), timeout=5) as s:
+                s.sendall(
+                    mbap(1, bytes.fromhex("0300050001")) + mbap(2, bytes.fromhex("0600050007"))
+                )
+                want = mbap(1, b"\x03\x02\x00\x05") + mbap(2, b"\x86\x01")
+                got = b""
+                while len(got) < len(want):
+                    part = s.recv(4096)
+                    assert part, got
+                    got += part
+            p.stop()
+    assert got == want
+
+
 # --------------------------------------------------------------------------- RTU <-> RTU
 
 
