@@ -439,8 +439,45 @@ class ChunkedLog:
         self._error: BaseException | None = None
         self._error_raised = False
         self._last_flush = time.monotonic()
-        self._worker = threading.Thread(target=self._work, name="mbmon-mcap-writer", daemon=True)
+        self._worker: threading.Thread | None = threading.Thread(
+            target=self._work, name="mbmon-mcap-writer", daemon=True
+        )
         self._worker.start()
+
+    def write_here(self) -> None:
+        """From now on the caller's thread compresses and writes each chunk as it is
+        closed (in :meth:`move` and :meth:`close`); the writer thread ends.
+
+        For a caller that holds the GIL for long stretches of compiled code (the
+        compiled core): a writer thread would wait for it at every step between
+        its GIL-free calls, and the two would take turns rather than overlap.
+        Each chunk is written with SIGINT/SIGTERM deferred, so an interruption
+        never leaves half a chunk in the file. Idempotent.
+        """
+        worker = self._worker
+        if worker is None:
+            return
+        with self._lock:
+            self._stopping = True
+        self._wake.set()
+        worker.join()  # it writes what was ready, then ends
+        self._worker = None
+        self._stopping = False
+
+    def _write_ready(self) -> None:
+        """Without a writer thread: write the closed chunks now, signals deferred."""
+        ready = self._ready
+        with _signals_deferred():
+            while ready and self._error is None:
+                chunk = ready.pop(0)
+                try:
+                    self.writer.write_chunk(chunk)
+                    self._file.flush()
+                except Exception as exc:  # disk full, I/O error: raised below
+                    self._error = exc
+            ready.clear()
+        if self._error is not None:
+            self._raise_error()
 
     @property
     def state(self) -> Any:
@@ -461,6 +498,10 @@ class ChunkedLog:
                 self.writer.close_chunk_into(ready)
                 self._last_flush = time.monotonic()
                 self._wake.set()
+        if self._worker is None:
+            if ready:
+                self._write_ready()
+            return
         while len(ready) > _READY_MAX and self._error is None and self._worker.is_alive():
             self._drained.wait(0.05)  # back pressure: the thread is behind
             self._drained.clear()
@@ -492,7 +533,10 @@ class ChunkedLog:
                     self.writer.close_chunk_into(self._ready)
                     self._stopping = True
                 self._wake.set()
-                self._worker.join()
+                if self._worker is not None:
+                    self._worker.join()
+                elif self._error is None:
+                    self._write_ready_at_close()
                 if self._error is None:
                     self.writer.finish()
             finally:
@@ -500,6 +544,17 @@ class ChunkedLog:
         self._raise_error()
         if failure is not None:
             raise WriteError(f"{self.path}: messages lost: {failure}") from failure
+
+    def _write_ready_at_close(self) -> None:
+        """:meth:`close` without a writer thread: the last chunks (signals are deferred
+        already); a failure is kept for :meth:`close` to raise once the file is closed."""
+        for chunk in self._ready:
+            try:
+                self.writer.write_chunk(chunk)
+            except Exception as exc:  # disk full, I/O error
+                self._error = exc
+                break
+        self._ready.clear()
 
     def _raise_error(self) -> None:
         if self._error is not None and not self._error_raised:
