@@ -7,11 +7,16 @@ reference pipeline (pure Python) runs instead. The decision is made in two
 places, both here:
 
 * by the options (:func:`decline_for_options`): anything but a plain read of a
-  capture file to the console (``--json`` allowed) is declined at once;
+  capture file to the console (``--json`` allowed) and/or one MCAP log
+  (``-w x.mcap``) is declined at once;
 * by the input (:func:`read_file`): the core's first pass reads the whole
   capture and only decides; a decline there (a gap, noise, a link type it does
   not cover, ...) comes before any output. Only when nothing declined does the
   second pass write.
+
+With a log, the writing pass makes its messages and hands them to the same
+``McapSink`` the Python pipeline uses, opened only once the first pass accepted
+the input (:func:`read_file`'s ``log``).
 
 ``MBMON_NO_EXTENSIONS=1`` (or an install without a compiler) means the core is
 never used; :func:`status` says which core is active (``mbmon --version``).

@@ -16,6 +16,10 @@ here; every other record (events, other function codes, malformed PDUs) is
 built as the reference pipeline's :class:`~mbmon.model.Record` and formatted by
 :mod:`mbmon.format` itself, so it is the same by construction.
 
+With an MCAP log (``_Pass.log_to``), the writing pass also makes the log's message
+records, byte for byte those ``mbmon.io.mcap.layout.LogLayout.convert`` makes (see
+"MCAP messages" in ``_Pass``).
+
 Memory safety: the file is a bounds-checked typed memoryview; every header is
 checked against the bytes present before it is read through a pointer.
 """
