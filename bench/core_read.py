@@ -72,16 +72,23 @@ def cpu(run: Run) -> float:
 
 def compression_cost(log: Path) -> dict[str, float]:
     """CPU seconds this process spends compressing (zstd at the writer's level, and at
-    level 1) and checksumming the uncompressed chunks of ``log``, and their size."""
+    level 1) and checksumming the uncompressed chunks of ``log``, their size, the bytes
+    of each topic's message records, and the zstd cost of the same chunks without the
+    /modbus/monitor messages (what storing the monitor line would cost)."""
+    import struct
     import time
     import zlib
 
     import zstandard
+    from mcap.reader import make_reader
     from mcap.records import Chunk
     from mcap.stream_reader import StreamReader
 
     from mbmon.io.mcap.writer import ZSTD_LEVEL
 
+    with open(log, "rb") as f:
+        summary = make_reader(f).get_summary()
+        topic_of = {cid: ch.topic for cid, ch in summary.channels.items()} if summary else {}
     chunks: list[bytes] = []
     with open(log, "rb") as f:
         for record in StreamReader(f, skip_magic=False, emit_chunks=True).records:
@@ -89,13 +96,28 @@ def compression_cost(log: Path) -> dict[str, float]:
                 chunks.append(zstandard.ZstdDecompressor().decompress(
                     record.data, max_output_size=record.uncompressed_size))  # fmt: skip
     out = {"bytes": float(sum(map(len, chunks)))}
-    for label, fn in (
-        (f"zstd {ZSTD_LEVEL}", zstandard.ZstdCompressor(level=ZSTD_LEVEL).compress),
-        ("zstd 1", zstandard.ZstdCompressor(level=1).compress),
-        ("crc32", zlib.crc32),
-    ):
+    monitor = next((c for c, t in topic_of.items() if t == "/modbus/monitor"), -1)
+    without: list[bytes] = []
+    for chunk in chunks:  # message records: opcode, length, channel, ... (writer.MESSAGE_HEAD)
+        p, keep = 0, []
+        while p < len(chunk):
+            length, channel = struct.unpack_from("<QH", chunk, p + 1)
+            end = p + 9 + length
+            key = "topic " + topic_of.get(channel, str(channel))
+            out[key] = out.get(key, 0.0) + (end - p)
+            if channel != monitor:
+                keep.append(chunk[p:end])
+            p = end
+        without.append(b"".join(keep))
+    for label, fn, data in (
+        (f"zstd {ZSTD_LEVEL}", zstandard.ZstdCompressor(level=ZSTD_LEVEL).compress, chunks),
+        ("zstd 1", zstandard.ZstdCompressor(level=1).compress, chunks),
+        ("crc32", zlib.crc32, chunks),
+        (f"zstd {ZSTD_LEVEL} without /modbus/monitor",
+         zstandard.ZstdCompressor(level=ZSTD_LEVEL).compress, without),
+    ):  # fmt: skip
         t0 = time.process_time()
-        for chunk in chunks:
+        for chunk in data:
             fn(chunk)
         out[label] = time.process_time() - t0
     return out
@@ -188,10 +210,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  read -w x.mcap (console and log) vs tshark's best case, CPU: "
               f"{cpu(ts) / cpu(runs['mcap']):.2f}x")  # fmt: skip
     mb_log = cost["bytes"] / 1e6
-    print(f"  the log's chunks: {mb_log:,.0f} MB uncompressed ({cost['bytes'] / n:,.0f} bytes"
-          f" per ADU); in this process: " + ", ".join(
-              f"{k} {v:.2f} s CPU ({v / cpu(runs['mcap-q']):.0%} of the -q -w run)"
-              for k, v in cost.items() if k != "bytes"))  # fmt: skip
+    print(f"  the log's chunks: {mb_log:,.0f} MB uncompressed, {cost['bytes'] / n:,.0f} bytes"
+          " per ADU: " + ", ".join(f"{k[6:]} {v / n:,.0f}" for k, v in cost.items()
+                                   if k.startswith("topic ")))  # fmt: skip
+    for k, v in cost.items():
+        if k != "bytes" and not k.startswith("topic "):
+            print(f"    {k}: {v:.2f} s CPU in this process ({v / cpu(runs['mcap-q']):.0%} of"
+                  " the core's -q -w run)")  # fmt: skip
     if "pure-text" in runs:
         for key in ("text", "json", "mcap-q", "mcap"):
             print(f"  core vs pure Python ({key}), CPU: "
