@@ -49,7 +49,12 @@ _CHUNK_HEAD = struct.Struct("<BQQQQII")  # opcode, length, start, end, size, crc
 _U64 = struct.Struct("<Q")
 #: the largest log time a message record holds (ns since the epoch, about the year 2554)
 MAX_LOG_TIME = (1 << 64) - 1
-ZSTD_LEVEL = 3  # chunk compression level (1 measured no faster on 1M ADUs, 14 % larger)
+#: chunk compression level. Compression is most of a log's cost once records are made
+#: fast (the compiled core: 53 % of `read -q -w x.mcap`'s CPU at level 3); on the same
+#: chunks, level 2 takes 20-23 % less CPU than 3 for 1-5 % larger files (realistic
+#: polling and HRSS captures), level 1 about 30 % less for 2-16 % larger
+#: (docs/performance.md, "Logs on the compiled core")
+ZSTD_LEVEL = 2
 FLUSH_EVERY = 0.5  # seconds of wall time between chunk flushes (at most 1 s is promised)
 CHUNK_SIZE = 1 << 20
 _READY_MAX = 4  # closed chunks waiting for the writer thread before the caller waits
