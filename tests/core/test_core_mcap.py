@@ -270,3 +270,24 @@ def test_a_killed_recording_stays_readable(tmp_path: Path) -> None:
     assert (
         len(topics) > 1000 and topics.count("/modbus/frames") >= topics.count("/modbus/monitor") - 1
     )
+
+
+def test_which_logs_the_core_writes(tmp_path: Path) -> None:
+    """One ``.mcap`` log (any case of the suffix), quiet or not: the core; two logs or
+    another format: the Python pipeline, which names the reason; a log that cannot be
+    opened: the same error and exit status either way."""
+    demo = str(ROOT / "captures" / "demo.pcap")
+    for args in (["-q", "-w", str(tmp_path / "a.mcap")], ["-w", str(tmp_path / "B.MCAP")]):
+        done = _mbmon("read", demo, *args, "--debug-core")
+        assert done.returncode == 0 and "compiled core read the input" in done.stderr, args
+    for args in (
+        ["-w", str(tmp_path / "c.jsonl")],
+        ["-w", str(tmp_path / "d.mcap"), "-w", str(tmp_path / "e.mcap")],
+    ):
+        done = _mbmon("read", demo, "-q", *args, "--debug-core")
+        assert done.returncode == 0, done.stderr
+        assert "declined (-w other than one .mcap log" in done.stderr, args
+    bad = str(tmp_path / "missing" / "x.mcap")
+    core, pure = (_mbmon("read", demo, "-q", "-w", bad, pure=p) for p in (False, True))
+    assert core.returncode == pure.returncode == 1
+    assert core.stderr == pure.stderr and "cannot write" in core.stderr
