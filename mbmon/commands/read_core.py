@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import Any
 
 from mbmon.commands.common import EXIT_BAD_INPUT, EXIT_OK, err
@@ -84,7 +85,8 @@ def read_with_core(
         core.fill_summary(summary, run.counts)
         report(summary, {}, args, timed=True)
     if run.interrupted:
-        err(f"interrupted; {args.write[0]} was finished and is complete up to here")
+        log_path = Path(args.write[0])  # as the sink names it (McapSink.path)
+        err(f"interrupted; {log_path} was finished and is complete up to here")
         return interrupted_status()
     return EXIT_OK
 
