@@ -6,9 +6,11 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import Any
 
-from mbmon.commands.common import EXIT_OK, err
+from mbmon.commands.common import EXIT_BAD_INPUT, EXIT_OK, err
+from mbmon.commands.ending import interrupted_status
 from mbmon.commands.read_summary import report
 
 
@@ -36,6 +38,7 @@ def read_with_core(
     status; ``None`` when it declined (before writing anything: the Python pipeline
     then reads the input). ``--debug-core`` says which path ran and why."""
     from mbmon import core
+    from mbmon.sinks.base import SinkError
 
     why = core.decline_for_options(args, live=live, flt=flt)
     write = None
@@ -60,16 +63,23 @@ def read_with_core(
                     _quiet_stdout()
 
     if why is None:
-        run = core.read_file(
-            path,
-            ports=frozenset({502, *args.port}),
-            timeout=args.timeout,
-            view=view,
-            as_json=args.json,
-            write=write,
-            progress=progress,
-            detect=not args.no_detect,
-        )
+        log = _log_opener(path, args, view) if args.write else None
+        try:
+            run = core.read_file(
+                path,
+                ports=frozenset({502, *args.port}),
+                timeout=args.timeout,
+                view=view,
+                as_json=args.json,
+                write=write,
+                progress=progress,
+                detect=not args.no_detect,
+                log=log,
+            )
+        except SinkError as exc:  # the log could not be opened or written (it was closed)
+            progress.close()
+            err(str(exc))
+            return EXIT_BAD_INPUT
         progress.close()
         why = run.declined
     if why is not None:
@@ -91,4 +101,21 @@ def read_with_core(
         summary = Summary(None)
         core.fill_summary(summary, run.counts)
         report(summary, {}, args, timed=True)
+    if run.interrupted:
+        log_path = Path(args.write[0])  # as the sink names it (McapSink.path)
+        err(f"interrupted; {log_path} was finished and is complete up to here")
+        return interrupted_status()
     return EXIT_OK
+
+
+def _log_opener(path: str, args: argparse.Namespace, view: Any) -> Any:
+    """Opens ``-w``'s one MCAP log (the core calls it once nothing declined, so a
+    declined input never touches the file), as the Python pipeline opens it."""
+
+    def open_log() -> Any:
+        from mbmon.commands.common import open_logs
+        from mbmon.commands.read import _context
+
+        return open_logs(args.write, _context(args, path, view, None), args)[0]
+
+    return open_log

@@ -7,11 +7,16 @@ reference pipeline (pure Python) runs instead. The decision is made in two
 places, both here:
 
 * by the options (:func:`decline_for_options`): anything but a plain read of a
-  capture file to the console (``--json`` allowed) is declined at once;
+  capture file to the console (``--json`` allowed) and/or one MCAP log
+  (``-w x.mcap``) is declined at once;
 * by the input (:func:`read_file`): the core's first pass reads the whole
   capture and only decides; a decline there (a gap, noise, a link type it does
   not cover, ...) comes before any output. Only when nothing declined does the
   second pass write.
+
+With a log, the writing pass makes its messages and hands them to the same
+``McapSink`` the Python pipeline uses, opened only once the first pass accepted
+the input (:func:`read_file`'s ``log``).
 
 ``MBMON_NO_EXTENSIONS=1`` (or an install without a compiler) means the core is
 never used; :func:`status` says which core is active (``mbmon --version``).
@@ -75,7 +80,7 @@ def decline_for_options(args: Any, *, live: bool, flt: Any) -> str | None:
     checks = (
         (args.rtu_raw, "--rtu-raw (RTU)"),
         (args.rtu_port, "--rtu-port (RTU over TCP/UDP)"),
-        (args.write, "-w (logs)"),
+        (not _one_mcap_log(args.write), "-w other than one .mcap log"),
         (getattr(args, "trigger", None), "--trigger"),
         (getattr(args, "rotate", None), "--rotate"),
         # without --trigger, a window is a usage error the Python path reports
@@ -95,12 +100,21 @@ def decline_for_options(args: Any, *, live: bool, flt: Any) -> str | None:
     return None if why is None else f"the compiled core is unavailable: {why}"
 
 
+def _one_mcap_log(targets: Any) -> bool:
+    """Whether ``-w`` asks for no log, or for one MCAP log (the one log the core writes)."""
+    targets = list(targets or [])
+    return not targets or (len(targets) == 1 and str(targets[0]).lower().endswith(".mcap"))
+
+
 @dataclass
 class CoreRun:
     """What the core did: ``declined`` says why it did not run (nothing was written)."""
 
     declined: str | None = None
     counts: dict[str, Any] = field(default_factory=dict)
+    #: a signal (``KeyboardInterrupt``) cut the writing pass short: the counts are so far's
+    #: and the log was finished with what came before it
+    interrupted: bool = False
 
 
 def _regular_file(path: str) -> bool:
@@ -120,10 +134,14 @@ def read_file(
     write: Any | None,
     progress: Any | None = None,
     detect: bool = False,
+    log: Any | None = None,
 ) -> CoreRun:
     """Run the core on the capture at ``path``: a deciding pass, then (unless it
-    declined, and when ``write`` is given) a writing pass that hands its output,
-    in blocks of about 1 MiB of UTF-8, to ``write``. The counts are the summary's.
+    declined, and when ``write`` or ``log`` is given) a writing pass that hands its
+    output, in blocks of about 1 MiB of UTF-8, to ``write`` (``None``: no console).
+    ``log()`` opens the MCAP log (an ``McapSink``) once nothing declined: the writing
+    pass makes its messages, and the log is closed (finished) whatever happens. The
+    counts are the summary's.
     With ``detect`` (the reference's port detection is on) the first pass feeds the
     reference's port detector every TCP segment on other ports and declines when it
     finds Modbus there."""
@@ -151,6 +169,7 @@ def read_file(
                 release=_releaser(mapped),
                 progress=progress,
                 detect=detect,
+                log=log,
             )
         finally:
             data.release()
@@ -169,6 +188,7 @@ def read_buffer(
     release: Any | None = None,
     progress: Any | None = None,
     detect: bool = False,
+    log: Any | None = None,
 ) -> CoreRun:
     """:func:`read_file` on a capture already in memory (``data``: bytes or a buffer);
     ``progress(done, total)`` is called about once per MiB (each pass is half)."""
@@ -183,7 +203,7 @@ def read_buffer(
         return CoreRun(declined=str(exc))
     if first.frames == 0:
         return CoreRun(declined="no Modbus frames (the reference reader gives the hints)")
-    if write is None:
+    if write is None and log is None:
         return CoreRun(counts=_counts(first))
     # the first pass fed port detection every other-port segment and found no Modbus
     # there: the writing pass need not look again
@@ -191,8 +211,31 @@ def read_buffer(
     second.release = release
     second.progress = progress
     second.progress_base = len(data) // 2
-    second.run(data)  # the same decisions as the first pass: it cannot decline
-    return CoreRun(counts=_counts(second))
+    if log is None:
+        second.run(data)  # the same decisions as the first pass: it cannot decline
+        return CoreRun(counts=_counts(second))
+    interrupted = _run_logged(second, data, log())
+    return CoreRun(counts=_counts(second), interrupted=interrupted)
+
+
+def _run_logged(second: Any, data: Any, sink: Any) -> bool:
+    """The writing pass with an MCAP log: its messages go to ``sink``, which is finished
+    (summary, index, footer) however the pass ends; one cut short (a signal, a failing
+    log) leaves the whole items before it in the log. True when a signal cut it short."""
+    complete = interrupted = False
+    try:
+        sink.write_here()  # no writer thread waiting for the GIL the core holds
+        second.log_to(sink)
+        second.run(data)
+        complete = True
+    except KeyboardInterrupt:  # SIGINT/SIGTERM: the log is finished, the caller says so
+        interrupted = True
+    finally:
+        try:
+            second.finish_log(complete)
+        finally:
+            sink.close()
+    return interrupted
 
 
 def _releaser(mapped: Any) -> Any:

@@ -16,6 +16,10 @@ here; every other record (events, other function codes, malformed PDUs) is
 built as the reference pipeline's :class:`~mbmon.model.Record` and formatted by
 :mod:`mbmon.format` itself, so it is the same by construction.
 
+With an MCAP log (``_Pass.log_to``), the writing pass also makes the log's message
+records, byte for byte those ``mbmon.io.mcap.layout.LogLayout.convert`` makes (see
+"MCAP messages" in ``_Pass``).
+
 Memory safety: the file is a bounds-checked typed memoryview; every header is
 checked against the bytes present before it is read through a pointer.
 """
@@ -23,6 +27,7 @@ checked against the bytes present before it is read through a pointer.
 from libc.stdlib cimport malloc, realloc, free
 from libc.string cimport memcmp, memcpy, memmove, memset
 from libc.math cimport floor, isfinite, fabs, nextafter, INFINITY
+from libc.math cimport rint
 from libc.stdlib cimport strtod
 from libc.stdint cimport uint8_t, uint32_t, uint64_t, int64_t
 
@@ -43,6 +48,7 @@ from mbmon.jsonfmt import record_json_bytes
 from mbmon.model import (
     Direction, Event, EventKind, Frame, Record, RecordKind, Stream, Transport,
 )
+from mbmon.model import Chunk
 from mbmon.protocol.pairing import _needs_request
 from mbmon.protocol.pdu import decode_pdu
 
@@ -315,6 +321,67 @@ cdef double py_round3(double v) except? -1.0:
     return r
 
 
+
+# --------------------------------------------------------------------------- MCAP
+
+
+#: capture times (s) whose log time a message record holds (``layout._MAX_TS``, from
+#: ``writer.MAX_LOG_TIME``: 2**64 - 1 ns)
+cdef double MAX_TS = ((1 << 64) - 1) // 1000 / 1_000_000 - 1.0
+cdef const char* B64 = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/"
+
+
+cdef inline void put_le(char* p, uint64_t v, int n):
+    cdef int i
+    for i in range(n):
+        p[i] = <char>(v & 255)
+        v >>= 8
+
+
+cdef inline void put_head(char* p, Py_ssize_t size, int channel, uint64_t log_time):
+    """An MCAP message record's head (``writer.MESSAGE_HEAD``: opcode 5, its length,
+    channel, sequence 0, log and publish time) for ``size`` bytes of data."""
+    p[0] = 5
+    put_le(p + 1, <uint64_t>(22 + size), 8)
+    put_le(p + 9, <uint64_t>channel, 2)
+    put_le(p + 11, 0, 4)
+    put_le(p + 15, log_time, 8)
+    put_le(p + 23, log_time, 8)
+
+
+cdef int put_b64(Buf* b, const uint8_t* p, Py_ssize_t n) except -1:
+    """``binascii.b2a_base64(p[:n], newline=False)``: standard alphabet, ``=`` padded."""
+    cdef Py_ssize_t i = 0
+    cdef char* o
+    cdef uint32_t v
+    buf_need(b, (n + 2) // 3 * 4)
+    o = b.p + b.n
+    while n - i >= 3:
+        v = (<uint32_t>p[i] << 16) | (<uint32_t>p[i + 1] << 8) | p[i + 2]
+        o[0] = B64[v >> 18]
+        o[1] = B64[(v >> 12) & 63]
+        o[2] = B64[(v >> 6) & 63]
+        o[3] = B64[v & 63]
+        o += 4
+        i += 3
+    if n - i == 1:
+        v = <uint32_t>p[i] << 16
+        o[0] = B64[v >> 18]
+        o[1] = B64[(v >> 12) & 63]
+        o[2] = 61
+        o[3] = 61
+        o += 4
+    elif n - i == 2:
+        v = (<uint32_t>p[i] << 16) | (<uint32_t>p[i + 1] << 8)
+        o[0] = B64[v >> 18]
+        o[1] = B64[(v >> 12) & 63]
+        o[2] = B64[(v >> 6) & 63]
+        o[3] = 61
+        o += 4
+    b.n = o - b.p
+    return 0
+
+
 # --------------------------------------------------------------------------- state
 
 
@@ -442,6 +509,22 @@ cdef class _Pass:
     cdef list enames
     cdef list _sid_conn         # stream id -> connection index
     cdef double pl_last         # the pipeline's _last_ts (chunks set it, events raise it)
+    # the MCAP log (-w x.mcap): message records made here, see "MCAP messages" below
+    cdef object mcap            # the McapSink the blocks go to; None: no log
+    cdef object mlayout         # its LogLayout
+    cdef object totals          # the log's counters as of the last slow item (a Totals)
+    cdef Buf mc                 # message records not handed over yet
+    cdef Py_ssize_t mc_done     # mc's length at the end of the last whole item
+    cdef uint64_t mc_first, mc_last
+    cdef bint mc_any
+    cdef bint swapped           # out and mc exchanged (see swap_bufs)
+    cdef int ch_raw, ch_frames, ch_monitor
+    cdef int64_t d_req, d_resp, d_exc, d_chunks, d_bytes  # counted here since the last sync
+    cdef double rec_ts          # the last fast record's time (the counters' last_ts)
+    cdef bint rec_any
+    cdef double next_stats      # capture time of the next stats event (the totals')
+    cdef list mprefix           # stream * 2 + direction -> its /modbus/raw prefix
+    cdef list mtails            # stream -> its /modbus/monitor tail
 
     def __cinit__(self):
         self.conns = NULL
@@ -451,6 +534,9 @@ cdef class _Pass:
         self.out.p = NULL
         self.out.n = 0
         self.out.cap = 0
+        self.mc.p = NULL
+        self.mc.n = 0
+        self.mc.cap = 0
 
     def __dealloc__(self):
         cdef int i, d
@@ -464,6 +550,7 @@ cdef class _Pass:
         free(self.table)
         free(self.sp)
         free(self.out.p)
+        free(self.mc.p)
 
     def __init__(self, bint emit, bint as_json, double timeout, ports, view, write,
                  bint detect=False):
@@ -529,7 +616,8 @@ cdef class _Pass:
 
     cdef int flush_out(self) except -1:
         if self.out.n:
-            self.write(PyBytes_FromStringAndSize(self.out.p, self.out.n))
+            if self.write is not None:  # None: a -q run writing only its log
+                self.write(PyBytes_FromStringAndSize(self.out.p, self.out.n))
             self.out.n = 0
         return 0
 
@@ -605,6 +693,10 @@ cdef class _Pass:
         return self.put_record(rec)
 
     cdef int put_record(self, object rec) except -1:
+        if self.mcap is not None:
+            self.mcap_items([self.mlayout.waiting_item(rec)])
+            if self.write is None:
+                return 0
         if self.as_json:
             put_bytes(&self.out, record_json_bytes(rec, self.view))
         else:
@@ -648,6 +740,8 @@ cdef class _Pass:
             native = False
         if native and nat.exc >= 0 and self.enames[nat.exc] is None:
             native = False
+        if native and self.mcap is not None and not self.mcap_fast(ts):
+            native = False  # a stats event is due, or a time MCAP clamps: the layout's way
         if not native:
             return self.python_frame(index, sid, d, ts, adu, alen, req, latency)
         if req != NULL and nat.kind != 0 and not nat.has_addr and rnat.has_addr:
@@ -665,12 +759,20 @@ cdef class _Pass:
                 _inner(_orjson.dumps({"stream": sid, "src": stream.client, "dst": stream.server})),
                 _inner(_orjson.dumps({"stream": sid, "src": stream.server, "dst": stream.client})),
             )
+        cdef bint mc = self.mcap is not None
+        cdef bint js = self.as_json or mc   # a log's /modbus/frames message is the JSON line
+        if mc:  # the JSON line goes into the log's buffer (put_time, put_note write to out)
+            self.swap_bufs()
         cdef Buf* o = &self.out
-        cdef Py_ssize_t note_at, note_end, line_at
+        cdef Py_ssize_t note_at, note_end, line_at, line_end, head_at = 0
+        if mc:
+            head_at = o.n
+            buf_need(o, 31)
+            o.n += 31
         cdef bytes label = self.labels[sid][d]
         cdef int tid = (adu[0] << 8) | adu[1]
         cdef int unit = adu[6]
-        if self.as_json:
+        if js:
             put(o, b'{"index":', 9)
             put_i(o, index)
             put(o, b',"time":', 8)
@@ -728,7 +830,8 @@ cdef class _Pass:
             put(o, b" ms)", 4)
         elif d == 1:
             put(o, b" (no matching request)", 22)
-        if self.as_json:
+        line_end = o.n
+        if js:
             put(o, b'","notes":["', 12)
             buf_need(o, note_end - note_at)
             memcpy(o.p + o.n, o.p + note_at, note_end - note_at)
@@ -746,6 +849,9 @@ cdef class _Pass:
             else:
                 put(o, b"null", 4)
             put_c(o, 125)
+        if mc:
+            return self.mcap_frame(head_at, line_at, line_end, index, sid, ts, nat.kind,
+                                   d == 1 and req == NULL)
         put_c(o, 10)
         if o.n >= FLUSH_AT:
             self.flush_out()
@@ -826,6 +932,217 @@ cdef class _Pass:
         kind = _RECORD_KIND[pdu.kind]
         rec = Record(index, ts, kind, stream, frame, request if d else None, req_index, lat)
         return self.put_record(rec)
+
+    # ------------------------------------------------------------------ MCAP messages
+    #
+    # With a log (``-w x.mcap``), the writing pass makes its message records here, byte
+    # for byte what ``LogLayout.convert`` makes of the same chunks and records: the
+    # common frame record (its /modbus/frames message is the JSON line, its
+    # /modbus/monitor message the line cut out of it) and every captured chunk (its
+    # /modbus/raw message) without a Python object; every other record (events, frames
+    # the reference formats, a frame at which a stats event is due, a time MCAP clamps)
+    # goes through the layout itself with the log's counters brought up to date. The
+    # records go to the sink in blocks of about 1 MiB with the counters as of their end.
+
+    def log_to(self, sink):
+        """Make this (writing) pass write ``sink``'s messages (an open ``McapSink``)."""
+        from mbmon.io.mcap.layout import TOPIC_FRAMES, TOPIC_MONITOR, TOPIC_RAW
+
+        self.mcap = sink
+        self.mlayout = sink.layout
+        channels = self.mlayout.channels
+        self.ch_raw = channels[TOPIC_RAW]
+        self.ch_frames = channels[TOPIC_FRAMES]
+        self.ch_monitor = channels[TOPIC_MONITOR]
+        self.totals = self.mlayout.new_totals()
+        self.next_stats = self.totals.next_stats
+        self.mprefix = []
+        self.mtails = []
+        self.mc_any = False
+
+    def finish_log(self, bint complete=True):
+        """Hand the last message records over (after the run, or after it was cut short:
+        then only whole items')."""
+        if self.mcap is None:
+            return
+        if self.swapped:  # cut short while a line was being written
+            self.swap_bufs()
+        if not complete:
+            self.mc.n = self.mc_done
+        self.flush_mcap()
+
+    cdef inline void swap_bufs(self):
+        """Exchange ``out`` and ``mc`` (``frame_record`` writes a log's line as ``out``)."""
+        cdef Buf t = self.out
+        self.out = self.mc
+        self.mc = t
+        self.swapped = not self.swapped
+
+    cdef inline bint mcap_fast(self, double ts):
+        """Whether a frame record at ``ts`` is made here: no stats event due, a time
+        whose log time MCAP holds (the layout's inline ``log_time_ns``)."""
+        return 0.0 < ts < MAX_TS and ts < self.next_stats
+
+    cdef inline int mc_span(self, uint64_t lt):
+        if not self.mc_any:
+            self.mc_first = lt
+            self.mc_last = lt
+            self.mc_any = True
+        elif lt < self.mc_first:
+            self.mc_first = lt
+        elif lt > self.mc_last:
+            self.mc_last = lt
+        return 0
+
+    cdef int sync_totals(self) except -1:
+        """Add what was counted here since the last sync to the log's counters."""
+        t = self.totals
+        if self.d_req or self.d_resp or self.d_exc:
+            kinds = t.kinds
+            kinds[RecordKind.REQUEST] += self.d_req
+            kinds[RecordKind.RESPONSE] += self.d_resp
+            kinds[RecordKind.EXCEPTION] += self.d_exc
+            self.d_req = self.d_resp = self.d_exc = 0
+        if self.d_chunks:
+            counts = t.counts
+            counts["chunks"] += self.d_chunks
+            counts["bytes"] += self.d_bytes
+            self.d_chunks = self.d_bytes = 0
+        if self.rec_any:
+            t.last_ts = self.rec_ts
+            self.rec_any = False
+        return 0
+
+    cdef int flush_mcap(self) except -1:
+        """The message records so far to the sink, with the counters as of their end."""
+        if self.mc.n == 0:
+            return 0
+        self.sync_totals()
+        data = PyBytes_FromStringAndSize(self.mc.p, self.mc.n)
+        self.mc.n = 0
+        self.mc_done = 0
+        self.mc_any = False
+        self.mcap.put_packed(data, self.mc_first, self.mc_last, self.totals.copy())
+        return 0
+
+    cdef int mcap_items(self, list items) except -1:
+        """Chunks and waiting records the layout makes into messages (and counts)."""
+        self.sync_totals()
+        records, first, last, totals = self.mlayout.convert(items, self.totals)
+        for r in records:
+            put_bytes(&self.mc, r)
+        if first >= 0:
+            self.mc_span(first)
+            self.mc_span(last)
+        self.totals = totals
+        self.next_stats = totals.next_stats
+        self.mc_done = self.mc.n
+        if self.mc.n >= FLUSH_AT:
+            self.flush_mcap()
+        return 0
+
+    cdef bytes raw_prefix(self, int sid, int d):
+        """A stream direction's /modbus/raw message up to its ``ts`` value (the layout's)."""
+        cdef int k = sid * 2 + d
+        while len(self.mprefix) <= k:
+            self.mprefix.append(None)
+        prefix = self.mprefix[k]
+        if prefix is None:
+            chunk = Chunk(0.0, self.stream_obj(sid), Direction.S2C if d else Direction.C2S, b"")
+            prefix = self.mlayout._raw_prefix_of(chunk)
+            self.mprefix[k] = prefix
+        return prefix
+
+    cdef bytes monitor_tail(self, int sid):
+        """A stream's /modbus/monitor tail (name, file, "line" key: the layout's)."""
+        while len(self.mtails) <= sid:
+            self.mtails.append(None)
+        tail = self.mtails[sid]
+        if tail is None:
+            tail = self.mlayout._tail(self.stream_obj(sid))
+            self.mtails[sid] = tail
+        return tail
+
+    cdef int mcap_chunk(self, int sid, int d, double ts, const uint8_t* p,
+                        Py_ssize_t n) except -1:
+        """A captured chunk's /modbus/raw message (``LogLayout.convert``'s chunk branch)."""
+        cdef Buf* m = &self.mc
+        cdef Py_ssize_t at
+        cdef uint64_t lt
+        if not (0.0 < ts < MAX_TS):
+            return self.mcap_items([Chunk(ts, self.stream_obj(sid),
+                                          Direction.S2C if d else Direction.C2S,
+                                          PyBytes_FromStringAndSize(<const char*>p, n))])
+        prefix = self.raw_prefix(sid, d)
+        lt = <uint64_t>rint(ts * 1e6) * 1000
+        at = m.n
+        buf_need(m, 31)
+        m.n += 31
+        put_bytes(m, prefix)
+        put_json_time(m, ts)
+        put(m, b',"data":"', 9)
+        put_b64(m, p, n)
+        put(m, b'","event":null,"info":null}', 27)
+        put_head(m.p + at, m.n - at - 31, self.ch_raw, lt)
+        self.d_chunks += 1
+        self.d_bytes += n
+        self.mc_span(lt)
+        self.mc_done = m.n
+        if m.n >= FLUSH_AT:
+            self.flush_mcap()
+        return 0
+
+    cdef int mcap_frame(self, Py_ssize_t head_at, Py_ssize_t line_at, Py_ssize_t line_end,
+                        int64_t index, int sid, double ts, int kind,
+                        bint unsolicited) except -1:
+        """A frame record whose JSON line was just written into ``mc`` after a head's room
+        (at ``head_at``): its /modbus/frames message, its /modbus/monitor message, the
+        console's line or JSON, its counts (the layout's fast path for frame records)."""
+        self.swap_bufs()  # back: the line was written into mc as out
+        cdef Buf* m = &self.mc
+        cdef Py_ssize_t n = m.n - head_at - 31, at
+        cdef uint64_t lt = <uint64_t>rint(ts * 1e6) * 1000
+        cdef bint warning = kind == 2 or unsolicited
+        put_head(m.p + head_at, n, self.ch_frames, lt)
+        if self.write is not None:
+            if self.as_json:
+                put(&self.out, m.p + head_at + 31, n)
+            else:
+                put(&self.out, m.p + line_at, line_end - line_at)
+            put_c(&self.out, 10)
+            if self.out.n >= FLUSH_AT:
+                self.flush_out()
+        at = m.n
+        buf_need(m, 31)
+        m.n += 31
+        put(m, b'{"timestamp":{"sec":', 20)
+        put_u(m, lt // 1000000000)
+        put(m, b',"nsec":', 8)
+        put_u(m, lt % 1000000000)
+        put(m, b'},"level":', 10)
+        put_c(m, 51 if warning else 50)  # foxglove.LogLevel WARNING 3, INFO 2
+        put(m, b',"message":"', 12)
+        buf_need(m, line_end - line_at)
+        memcpy(m.p + m.n, m.p + line_at, line_end - line_at)
+        m.n += line_end - line_at
+        put_c(m, 34)
+        put_bytes(m, self.monitor_tail(sid))
+        put_i(m, index)
+        put_c(m, 125)
+        put_head(m.p + at, m.n - at - 31, self.ch_monitor, lt)
+        if kind == 0:
+            self.d_req += 1
+        elif kind == 1:
+            self.d_resp += 1
+        else:
+            self.d_exc += 1
+        self.mc_span(lt)
+        self.rec_ts = ts
+        self.rec_any = True
+        self.mc_done = m.n
+        if m.n >= FLUSH_AT:
+            self.flush_mcap()
+        return 0
 
     # ------------------------------------------------------------------ pairing
 
@@ -1259,6 +1576,8 @@ cdef class _Pass:
 
     cdef int deliver(self, int ci, int d, double ts, const uint8_t* p, Py_ssize_t n) except -1:
         self.conns[ci].h[d].nxt = (self.conns[ci].h[d].nxt + n) & MASK
+        if self.mcap is not None:  # the chunk on /modbus/raw, before the records it makes
+            self.mcap_chunk(self.conns[ci].sid, d, ts, p, n)
         return self.on_chunk(ci, d, ts, p, n)
 
     cdef int data(self, int ci, int d, double ts, int64_t seq, const uint8_t* p,

@@ -14,13 +14,19 @@ module wires one to the other for a run.
   interruption it can say where the log is (:attr:`McapSink.path`) and how
   much it holds (:attr:`McapSink.messages_written`);
 - a write error (disk full) in the writer thread is raised as ``SinkError``
-  by a later ``on_record`` (the next batch) or by ``close()``.
+  by a later ``on_record`` (the next batch) or by ``close()``;
+- the compiled core (``read -w x.mcap`` on :mod:`mbmon.core`) makes the message
+  records itself, byte for byte those :meth:`LogLayout.convert` makes, and hands
+  them over in blocks (:meth:`McapSink.put_packed`, about 1 MiB each) with the
+  log's counters as of the block's end; the file around them (header, schemas,
+  channels, metadata, chunks, summary) is this sink's either way.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +45,7 @@ from mbmon.io.mcap.layout import (
     TOPIC_SCHEMAS,
     TOPIC_STATE,
     LogLayout,
+    Totals,
     log_level,
     metadata,
     profile_attachment_name,
@@ -66,6 +73,27 @@ __all__ = [
 ]
 
 _BATCH = 128  # records (and raw chunks) moved into the open chunk at once, at most
+
+
+@dataclass(frozen=True, slots=True)
+class PackedMessages:
+    """Message records the compiled core made (packed heads and data, in log order),
+    their first and last log time, and the log's counters as of the last of them."""
+
+    data: bytes
+    first: int
+    last: int
+    totals: Totals
+
+
+def _packed(items: list[Any]) -> tuple[list[bytes], int, int, Totals]:
+    """The converter's form of :class:`PackedMessages` blocks: their records as they are."""
+    first, last = items[0].first, items[0].last
+    for item in items:
+        if type(item) is not PackedMessages:  # a sink the core feeds takes nothing else
+            raise TypeError(f"a record or chunk among the core's message blocks: {item!r}")
+        first, last = min(first, item.first), max(last, item.last)
+    return [item.data for item in items], first, last, items[-1].totals
 
 
 class McapSink(SinkBase):
@@ -131,7 +159,30 @@ class McapSink(SinkBase):
 
     def _convert(self, items: list[Any], totals: Any) -> tuple[list[bytes], int, int, Any]:
         assert self._layout is not None
+        if type(items[0]) is PackedMessages:
+            return _packed(items)
         return self._layout.convert(items, totals)
+
+    @property
+    def layout(self) -> LogLayout:
+        """What this log's messages hold (topics, channels, per-stream pieces)."""
+        assert self._layout is not None
+        return self._layout
+
+    def write_here(self) -> None:
+        """Compress and write chunks in the caller's thread from now on (the compiled
+        core holds the GIL between its blocks: see ``ChunkedLog.write_here``)."""
+        self._log.write_here()
+
+    def put_packed(self, data: bytes, first: int, last: int, totals: Totals) -> None:
+        """Message records made elsewhere (the compiled core), byte for byte what
+        :meth:`LogLayout.convert` makes of the same records and chunks, with ``first``
+        and ``last`` their log-time range and ``totals`` the log's counters once they
+        are in (a copy the caller no longer changes). They enter the open chunk as one
+        piece, counters with them, as a batch of :meth:`on_record` does."""
+        if data:
+            self._pending.append(PackedMessages(data, first, last, totals))
+            self._move()
 
     # ------------------------------------------------------------------ listener hooks
 

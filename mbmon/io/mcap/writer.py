@@ -49,7 +49,12 @@ _CHUNK_HEAD = struct.Struct("<BQQQQII")  # opcode, length, start, end, size, crc
 _U64 = struct.Struct("<Q")
 #: the largest log time a message record holds (ns since the epoch, about the year 2554)
 MAX_LOG_TIME = (1 << 64) - 1
-ZSTD_LEVEL = 3  # chunk compression level (1 measured no faster on 1M ADUs, 14 % larger)
+#: chunk compression level. Compression is most of a log's cost once records are made
+#: fast (the compiled core: 53 % of `read -q -w x.mcap`'s CPU at level 3); on the same
+#: chunks, level 2 takes 20-23 % less CPU than 3 for 1-5 % larger files (realistic
+#: polling and HRSS captures), level 1 about 30 % less for 2-16 % larger
+#: (docs/performance.md, "Logs on the compiled core")
+ZSTD_LEVEL = 2
 FLUSH_EVERY = 0.5  # seconds of wall time between chunk flushes (at most 1 s is promised)
 CHUNK_SIZE = 1 << 20
 _READY_MAX = 4  # closed chunks waiting for the writer thread before the caller waits
@@ -439,8 +444,45 @@ class ChunkedLog:
         self._error: BaseException | None = None
         self._error_raised = False
         self._last_flush = time.monotonic()
-        self._worker = threading.Thread(target=self._work, name="mbmon-mcap-writer", daemon=True)
+        self._worker: threading.Thread | None = threading.Thread(
+            target=self._work, name="mbmon-mcap-writer", daemon=True
+        )
         self._worker.start()
+
+    def write_here(self) -> None:
+        """From now on the caller's thread compresses and writes each chunk as it is
+        closed (in :meth:`move` and :meth:`close`); the writer thread ends.
+
+        For a caller that holds the GIL for long stretches of compiled code (the
+        compiled core): a writer thread would wait for it at every step between
+        its GIL-free calls, and the two would take turns rather than overlap.
+        Each chunk is written with SIGINT/SIGTERM deferred, so an interruption
+        never leaves half a chunk in the file. Idempotent.
+        """
+        worker = self._worker
+        if worker is None:
+            return
+        with self._lock:
+            self._stopping = True
+        self._wake.set()
+        worker.join()  # it writes what was ready, then ends
+        self._worker = None
+        self._stopping = False
+
+    def _write_ready(self) -> None:
+        """Without a writer thread: write the closed chunks now, signals deferred."""
+        ready = self._ready
+        with _signals_deferred():
+            while ready and self._error is None:
+                chunk = ready.pop(0)
+                try:
+                    self.writer.write_chunk(chunk)
+                    self._file.flush()
+                except Exception as exc:  # disk full, I/O error: raised below
+                    self._error = exc
+            ready.clear()
+        if self._error is not None:
+            self._raise_error()
 
     @property
     def state(self) -> Any:
@@ -461,6 +503,10 @@ class ChunkedLog:
                 self.writer.close_chunk_into(ready)
                 self._last_flush = time.monotonic()
                 self._wake.set()
+        if self._worker is None:
+            if ready:
+                self._write_ready()
+            return
         while len(ready) > _READY_MAX and self._error is None and self._worker.is_alive():
             self._drained.wait(0.05)  # back pressure: the thread is behind
             self._drained.clear()
@@ -492,7 +538,10 @@ class ChunkedLog:
                     self.writer.close_chunk_into(self._ready)
                     self._stopping = True
                 self._wake.set()
-                self._worker.join()
+                if self._worker is not None:
+                    self._worker.join()
+                elif self._error is None:
+                    self._write_ready_at_close()
                 if self._error is None:
                     self.writer.finish()
             finally:
@@ -500,6 +549,17 @@ class ChunkedLog:
         self._raise_error()
         if failure is not None:
             raise WriteError(f"{self.path}: messages lost: {failure}") from failure
+
+    def _write_ready_at_close(self) -> None:
+        """:meth:`close` without a writer thread: the last chunks (signals are deferred
+        already); a failure is kept for :meth:`close` to raise once the file is closed."""
+        for chunk in self._ready:
+            try:
+                self.writer.write_chunk(chunk)
+            except Exception as exc:  # disk full, I/O error
+                self._error = exc
+                break
+        self._ready.clear()
 
     def _raise_error(self) -> None:
         if self._error is not None and not self._error_raised:
