@@ -8,6 +8,7 @@ import random
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import pytest
 from core_diff import require_core
 from gen import every_function_pair
 from rtu_corpus import BAD_CRC, BAD_REQUESTS, GOOD, RESPONSE_SHAPED, session
@@ -28,8 +29,6 @@ def make_core(direction: Direction = Direction.BUS, silence: float | None = None
     require_core()
     framer = core.rtu_decoder(STREAM, direction, silence=silence)
     if framer is None:
-        import pytest
-
         why = core.rtu_decline(None)
         if core.available():
             pytest.fail(f"the reader is built but the RTU framer is not: {why}")
@@ -61,7 +60,14 @@ def same(steps: Sequence[Step], direction: Direction = Direction.BUS, silence: f
     got = run(make_core(direction, silence), steps)
     if got != ref:
         for i, (a, b) in enumerate(zip(ref, got, strict=True)):
-            assert b == a, f"step {i} {steps[i][0]}: core {b} != reference {a}"
+            if a != b:
+                pairs = enumerate(zip(a, b, strict=False))
+                j = next((k for k, (x, y) in pairs if x != y), min(len(a), len(b)))
+                pytest.fail(
+                    f"step {i} ({steps[i][0]}), item {j}: core "
+                    f"{b[j] if j < len(b) else 'nothing'!r} != reference "
+                    f"{a[j] if j < len(a) else 'nothing'!r} ({len(b)} and {len(a)} items)"
+                )
     return ref
 
 
