@@ -160,6 +160,12 @@ def run(args: argparse.Namespace) -> int:
             done = read_with_core(path, args, view, flt, live=live, progress=progress)
             if done is not None:
                 return done
+        if args.debug_core and (args.rtu_raw or args.rtu_port):
+            from mbmon import core
+
+            if args.rtu_raw:
+                err("core: declined (--rtu-raw); the Python pipeline reads the input")
+            err(f"core: {core.rtu_status(args.baud)}")
         return _read_with_pipeline(args, path, view, flt, annotator, live, progress)
     finally:
         progress.close()

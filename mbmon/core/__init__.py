@@ -287,3 +287,11 @@ def rtu_decoder(
     if rtu_decline(baudrate) is not None:
         return None
     return _rtu.RtuCore(stream, direction, baudrate, silence)
+
+
+def rtu_status(baudrate: int | None) -> str:
+    """Which decoder frames RTU streams with this baud rate, for ``--debug-core``."""
+    why = rtu_decline(baudrate)
+    if why is None:
+        return "RTU framing: the compiled framer (mbmon.core._rtu)"
+    return f"RTU framing: the reference decoder ({why})"

@@ -286,3 +286,18 @@ def test_read_on_a_generated_dump_is_byte_identical_forced_pure(tmp_path) -> Non
         pure = _mbmon(args, pure=True)
         assert with_core.stdout and with_core.stdout == pure.stdout
         assert with_core.stderr == pure.stderr
+
+
+def test_debug_core_says_which_decoder_frames_rtu() -> None:
+    make_core()
+    args = ["read", "--rtu-raw", "captures/sim_rtu.bin", "--debug-core"]
+    fast = _mbmon(args, pure=False)
+    assert b"core: declined (--rtu-raw); the Python pipeline reads the input" in fast.stderr
+    assert b"core: RTU framing: the compiled framer (mbmon.core._rtu)" in fast.stderr
+    timed = _mbmon([*args, "--baud", "9600"], pure=False)
+    assert b"RTU framing: the reference decoder (a baud rate" in timed.stderr
+    pure = _mbmon(args, pure=True)
+    assert b"RTU framing: the reference decoder (the compiled RTU framer is unavailable" in (
+        pure.stderr
+    )
+    assert fast.stdout == timed.stdout == pure.stdout
