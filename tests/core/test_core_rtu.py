@@ -222,6 +222,38 @@ def test_random_bytes_in_random_reads(raw: bytes, data: st.DataObject) -> None:
     same(chunked(raw, cuts), Direction.S2C)
 
 
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    pieces=PIECES,
+    events=st.lists(
+        st.tuples(st.sampled_from(("feed", "feed", "feed", "tick", "reset")), st.floats(0, 1)),
+        min_size=1,
+        max_size=30,
+    ),
+    direction=st.sampled_from([Direction.BUS, Direction.C2S]),
+)
+def test_random_reads_ticks_and_resets(
+    pieces: list[bytes], events: list[tuple[str, float]], direction: Direction
+) -> None:
+    """Reads at random times, ticks (``silence`` 0.3 s) and resets between them."""
+    stream = b"".join(pieces)
+    steps: list[tuple[object, ...]] = []
+    t = 50.0
+    pos = 0
+    for how, x in events:
+        t += x
+        if how == "feed" and pos < len(stream):
+            n = 1 + int(x * 40)
+            steps.append(("feed", stream[pos : pos + n], t))
+            pos += n
+        elif how == "tick":
+            steps.append(("tick", t))
+        elif how == "reset":
+            steps.append(("reset", t))
+    steps.append(("flush", t + 1))
+    same(steps, direction, silence=0.3)
+
+
 # ---------------------------------------------------------------- declines, wiring
 
 
