@@ -282,6 +282,8 @@ cdef class RtuCore:
         cdef Py_ssize_t length = end - pos
         cdef Py_ssize_t cap
         cdef unsigned char* grown
+        if self.nraw + length > 0xFFFFFFFF:  # a record's offset is 32 bits
+            raise OverflowError("more than 4 GiB of frames framed without take() or clear()")
         if self.nraw + length > self.capraw:
             cap = 65536 if self.capraw == 0 else 2 * self.capraw
             while cap < self.nraw + length:
