@@ -44,6 +44,7 @@ from mbmon.protocol.pdu import decode_pdu
 from mbmon.protocol.rtu_bounds import FINAL as _PY_FINAL, MAX_ADU as _PY_MAX_ADU
 from mbmon.protocol.rtu_bounds import MIN_ADU as _PY_MIN_ADU, PEEK as _PY_PEEK
 from mbmon.protocol.rtu_bounds import REQ_RULES, RESP_RULES, STREAM as _PY_STREAM
+from mbmon.protocol.rtu_bounds import RtuBounds as _RefBounds
 
 _new_frame = fast_constructor(Frame)
 _C2S = Direction.C2S
@@ -80,6 +81,29 @@ PACKED = struct.Struct("<BBHId")  # one record of take(): kind, pad, length, off
 cdef unsigned short CRC[256]
 for _i in range(256):
     CRC[_i] = CRC_TABLE[_i]
+
+
+def _reference_rules() -> tuple:
+    """Two rules of the reference's line-up heuristics that are changing while this
+    module is merged, read off the reference itself so the framer follows whichever
+    it has: whether an exception answer with exception code 0 is a frame of its own
+    (asked of ``RtuBounds._standalone``), and whether ``RtuBounds._lined_up``
+    remembers its answer per ``(fits, within)``."""
+    import inspect
+
+    exc0 = bytes((0x11, 0x83, 0x00))
+    crc = 0xFFFF
+    for b in exc0:
+        crc = (crc >> 8) ^ CRC_TABLE[(crc ^ b) & 0xFF]
+    adu = exc0 + bytes((crc & 0xFF, crc >> 8))
+    standalone = _RefBounds(True, True)._standalone(adu, 0, len(adu), _PY_FINAL) > 0
+    keyed = "within" in inspect.signature(_RefBounds._lined_up).parameters
+    return standalone, keyed
+
+
+_EXC0_STANDALONE, _MEMO_KEYED = _reference_rules()
+cdef bint EXC0_STANDALONE = _EXC0_STANDALONE
+cdef bint MEMO_KEYED = _MEMO_KEYED
 
 # Length tables, [response][function code], copied out of the reference's tables by
 # _rebuild (again when a function code is registered). ADU rules as the framing loop
@@ -211,6 +235,7 @@ cdef class RtuCore:
     cdef bint has_near, has_lined
     cdef Py_ssize_t near_lo, near_k, near_found
     cdef Py_ssize_t lined_lo, lined_first, lined_k, lined_state
+    cdef bint lined_fits, lined_within
     # the decision's side results (_decide): is response, reason
     cdef bint d_resp
     cdef object d_reason
@@ -601,7 +626,7 @@ cdef class RtuCore:
         SKIP (``d_reason`` why the byte is noise)."""
         cdef Py_ssize_t avail = n - pos, total, far, found
         cdef int fc, nread, r0, r1, unpred
-        cdef bint crc_failed, cut = False
+        cdef bint crc_failed, cut = False, first_far
         self.d_resp = False
         if avail < 2:
             if mode == FINAL:
@@ -618,16 +643,17 @@ cdef class RtuCore:
         crc_failed = False
         unpred = -1  # the first reading of no predictable length (-1: none)
         total = self._try(p, pos, n, r0, mode, &far, &crc_failed, &unpred)
+        first_far = far > 0  # the reading preferred first still misses bytes
         if total == 0 and nread == 2 and not (mode == STREAM and far):
             total = self._try(p, pos, n, r1, mode, &far, &crc_failed, &unpred)
         if total > 0:
             return total
         if far and mode != FINAL:
-            if self._lined_up(p, pos, n, mode, far) != 1:
+            if self._lined_up(p, pos, n, mode, far, first_far and r0 == 1, not first_far) != 1:
                 return WAIT
             cut = True
         elif unpred >= 0:
-            found = self._decide_scan(p, pos, n, mode, unpred)
+            found = self._decide_scan(p, pos, n, mode, unpred, unpred == 1 and r0 == 1)
             if found != -3:
                 return found
         if crc_failed or cut:
@@ -690,7 +716,8 @@ cdef class RtuCore:
         crc_failed[0] = True
         return 0
 
-    cdef Py_ssize_t _decide_scan(self, const unsigned char* p, Py_ssize_t pos, Py_ssize_t n, int mode, int resp) except -2:
+    cdef Py_ssize_t _decide_scan(self, const unsigned char* p, Py_ssize_t pos, Py_ssize_t n, int mode, int resp,
+                                 bint awaited) except -2:
         """``RtuDecoder._decide_scan``: a length, WAIT, SKIP, or -3 (go on to noise)."""
         cdef Py_ssize_t avail = n - pos, limit, found
         cdef int crossed
@@ -707,7 +734,7 @@ cdef class RtuCore:
             return SKIP
         if avail < MAX_ADU and mode != FINAL:
             # no silence mark: pos >= mark always holds
-            if self._lined_up(p, pos, n, mode, pos + MAX_ADU) != 1:
+            if self._lined_up(p, pos, n, mode, pos + MAX_ADU, awaited, True) != 1:
                 return WAIT
         return -3
 
@@ -741,6 +768,8 @@ cdef class RtuCore:
         fc = p[k + 1]
         if fc == 0 or fc == 0x80:
             return 0
+        if not EXC0_STANDALONE and fc & 0x80 and avail > 2 and not p[k + 2]:
+            return 0  # an exception answer with exception code 0 (the reference's rule)
         for r in range(2):
             if not (self.allow_resp if r else self.allow_req):
                 continue
@@ -806,12 +835,19 @@ cdef class RtuCore:
         length[0] = found
         return k
 
-    cdef int _lined_up(self, const unsigned char* p, Py_ssize_t pos, Py_ssize_t n, int mode, Py_ssize_t far) except -2:
-        """``RtuBounds._lined_up`` without a silence mark: 1 yes, 0 no, -1 cannot tell yet."""
+    cdef int _lined_up(self, const unsigned char* p, Py_ssize_t pos, Py_ssize_t n, int mode, Py_ssize_t far,
+                       bint fits, bint within) except -2:
+        """``RtuBounds._lined_up`` without a silence mark: 1 yes, 0 no, -1 cannot tell yet.
+        ``fits`` and ``within`` change nothing without a silence but the memo's key
+        (when the reference keys it so)."""
         cdef Py_ssize_t k, length, first, stop, end, after, unsure = -1
         cdef int state = 0
         cdef bint seen = False, broke = False
-        if self.has_lined and self.lined_lo <= pos < self.lined_first:
+        if (
+            self.has_lined
+            and self.lined_lo <= pos < self.lined_first
+            and (not MEMO_KEYED or (self.lined_fits == fits and self.lined_within == within))
+        ):
             k, state = self.lined_k, self.lined_state
             if state:
                 return state if k < far else 0
@@ -849,6 +885,7 @@ cdef class RtuCore:
             k, state = unsure, -1
         self.has_lined = True
         self.lined_lo, self.lined_first, self.lined_k, self.lined_state = pos, first, k, state
+        self.lined_fits, self.lined_within = fits, within
         return state if k < far else 0
 
     cdef Py_ssize_t _boundary(self, const unsigned char* p, Py_ssize_t pos, Py_ssize_t n, int mode) except -2:

@@ -84,6 +84,18 @@ def test_libmodbus_session_cut_at_every_byte() -> None:
         same(chunked(data, [cut], ts=lambda i: 10.0 + i))
 
 
+def test_a_scan_across_an_exception_answer_of_code_zero() -> None:
+    """A CRC scan (code 0x41, no predictable length) whose match holds an exception
+    answer with exception code 0 followed by a read request: whether that answer is
+    a frame of its own decides whether the scan swallows frames. The framer follows
+    the reference's ``RtuBounds._standalone`` on it, whichever rule it has."""
+    exc0 = encode_rtu(0x11, b"\x83\x00")
+    req = encode_rtu(0x11, bytes.fromhex("0300000001"))
+    scanned = encode_rtu(0x01, b"\x41" + exc0 + req + b"\x00\x00")
+    for size in (1, 4096):
+        same(every_size(scanned + req, size))
+
+
 @pytest.mark.parametrize("size", [1, 2, 3, 7, 64, 4096])
 def test_libmodbus_session_in_reads_of_every_size(size: int) -> None:
     same(every_size(libmodbus_bus(), size))
