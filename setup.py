@@ -67,8 +67,15 @@ def _extensions() -> list:
         extra_compile_args=args,
         extra_link_args=link,
     )
+    # RTU framing (timing-free), a module of its own
+    rtu = Extension(
+        "mbmon.core._rtu",
+        ["mbmon/core/_rtu.pyx"],
+        extra_compile_args=args,
+        extra_link_args=link,
+    )
     return cythonize(
-        [ext],
+        [ext, rtu],
         language_level=3,
         compiler_directives={"boundscheck": True, "wraparound": False, "cdivision": True},
         quiet=True,

@@ -27,6 +27,7 @@ from collections.abc import Callable, Hashable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+from mbmon import core
 from mbmon.model import (
     Annotation,
     Chunk,
@@ -129,6 +130,12 @@ def _mbap(stream: Stream, direction: Direction, config: PipelineConfig) -> Strea
 
 
 def _rtu(stream: Stream, direction: Direction, config: PipelineConfig) -> StreamDecoding:
+    # the compiled framer when it covers the stream (no baud rate): the same frames
+    framer: StreamDecoding | None = core.rtu_decoder(
+        stream, direction, baudrate=config.baudrate, silence=config.settle_after
+    )
+    if framer is not None:
+        return framer
     return RtuDecoder(stream, direction, baudrate=config.baudrate, silence=config.settle_after)
 
 

@@ -22,13 +22,21 @@ def core_hand_off(sources: list[Any], args: argparse.Namespace, view: Any, flt: 
     (several inputs, a raw RTU dump, or the core declined, before writing anything)."""
     from mbmon.sources.files import CaptureFileSource
 
+    done = None
     if len(sources) != 1 or not isinstance(sources[0], CaptureFileSource):
         if args.debug_core and len(sources) > 1:
             err("core: declined (several inputs); the Python pipeline reads the input")
-        return None
-    source = sources[0]
-    live = source.mode == "stream"
-    return read_with_core(source.path, args, view, flt, live=live, progress=source.progress)
+        elif args.debug_core and args.rtu_raw:
+            err("core: declined (--rtu-raw); the Python pipeline reads the input")
+    else:
+        source = sources[0]
+        live = source.mode == "stream"
+        done = read_with_core(source.path, args, view, flt, live=live, progress=source.progress)
+    if done is None and args.debug_core and (args.rtu_raw or args.rtu_port):
+        from mbmon import core
+
+        err(f"core: {core.rtu_status(args.baud)}")
+    return done
 
 
 def read_with_core(

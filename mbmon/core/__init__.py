@@ -283,3 +283,58 @@ def _pdu_entry(data: bytes, response: bool, request: bytes | None = None) -> Any
     if _load() is not None:
         raise RuntimeError(status())
     return _reader._native_note(data, response, request)
+
+
+# ------------------------------------------------------------------ RTU framing
+# The compiled RTU framer (mbmon.core._rtu) is a module of its own, loaded on first
+# need like the reader; it frames a stream exactly as the reference RtuDecoder does
+# without a baud rate, and is not asked for the rest (the reference decoder frames it).
+
+_rtu: Any = None
+_rtu_tried = False
+#: why the compiled RTU framer cannot run at all (None: it can), once it was looked for
+_RTU_UNAVAILABLE: str | None = None
+
+
+def _load_rtu() -> str | None:
+    """Import the RTU framer on first need; why it is unavailable, or ``None``."""
+    global _rtu, _rtu_tried, _RTU_UNAVAILABLE
+    if not _rtu_tried:
+        _rtu_tried = True
+        if os.environ.get("MBMON_NO_EXTENSIONS", "") not in ("", "0"):
+            _RTU_UNAVAILABLE = "MBMON_NO_EXTENSIONS is set"
+        else:
+            try:
+                _rtu = importlib.import_module("mbmon.core._rtu")
+            except ImportError as exc:  # installed without a compiler, or not built in place
+                _RTU_UNAVAILABLE = f"not built ({exc})"
+    return _RTU_UNAVAILABLE
+
+
+def rtu_decline(baudrate: int | None) -> str | None:
+    """Why an RTU stream is framed by the reference decoder rather than the compiled
+    one, or ``None`` when the compiled framer covers it (no baud rate: the timing
+    rules of a known line speed, silences and USB bursts, are the reference's)."""
+    if baudrate is not None and baudrate > 0:
+        return "a baud rate (the RTU timing rules) is not covered by the core"
+    why = _load_rtu()
+    return None if why is None else f"the compiled RTU framer is unavailable: {why}"
+
+
+def rtu_decoder(
+    stream: Any, direction: Any, *, baudrate: int | None = None, silence: float | None = None
+) -> Any | None:
+    """The compiled RTU framer of one stream (the reference ``RtuDecoder``'s API and
+    output), or ``None`` when :func:`rtu_decline` gives a reason (build the reference
+    decoder then)."""
+    if rtu_decline(baudrate) is not None:
+        return None
+    return _rtu.RtuCore(stream, direction, baudrate, silence)
+
+
+def rtu_status(baudrate: int | None) -> str:
+    """Which decoder frames RTU streams with this baud rate, for ``--debug-core``."""
+    why = rtu_decline(baudrate)
+    if why is None:
+        return "RTU framing: the compiled framer (mbmon.core._rtu)"
+    return f"RTU framing: the reference decoder ({why})"
