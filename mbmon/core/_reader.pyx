@@ -1966,3 +1966,6 @@ def _native_note(bytes data, bint response, request=None):
         nat.exc if nat.exc >= 0 else None,
         note,
     )
+
+
+include "_live.pxi"
