@@ -64,6 +64,7 @@ class LiveCore:
         view: Any,
         as_json: bool,
         write: Callable[[bytes], Any],
+        flush: Callable[[], Any] | None = None,
         new_stream: Callable[..., Any],
         dissector: Any,
         pipeline: Any,
@@ -75,6 +76,7 @@ class LiveCore:
         self._core: Any = reader._Live(as_json, timeout, ports, view, write, new_stream)
         self.dissector = dissector
         self.pipeline = pipeline
+        self._flush = flush
         #: why the run left the core (``None``: it did not)
         self.handed: str | None = None
 
@@ -85,6 +87,8 @@ class LiveCore:
         (nothing while the core covers the traffic)."""
         if self.handed is None:
             taken = self._core.feed(batch)
+            if self._flush is not None:
+                self._flush()
             if taken == len(batch):
                 return []
             self._hand_over()
@@ -101,6 +105,8 @@ class LiveCore:
         """The hub's tick (before its pipeline's): the core's, or the reference's."""
         if self.handed is None:
             done = self._core.tick(now)
+            if self._flush is not None:
+                self._flush()
             if done == 0:
                 return []
             self._hand_over()
@@ -119,7 +125,10 @@ class LiveCore:
     def finish(self, ts: float) -> list[Any]:
         """The end of input at the hub's time ``ts``."""
         if self.handed is None:
-            if self._core.finish(ts):
+            finished = self._core.finish(ts)
+            if self._flush is not None:
+                self._flush()
+            if finished:
                 return []
             self._hand_over()
         got: list[Any] = self.dissector.finish(ts)
