@@ -470,3 +470,174 @@ cdef class _Live(_Pass):
             s = self.sp[s].anext
         return None
 
+
+
+# --------------------------------------------------------------------------- the capture side
+
+cdef extern from "<sys/uio.h>":
+    cdef struct iovec:
+        void* iov_base
+        size_t iov_len
+
+cdef extern from "<sys/socket.h>":
+    ctypedef unsigned int socklen_t
+    cdef struct msghdr:
+        void* msg_name
+        socklen_t msg_namelen
+        iovec* msg_iov
+        size_t msg_iovlen
+        void* msg_control
+        size_t msg_controllen
+        int msg_flags
+    cdef struct mmsghdr:
+        msghdr msg_hdr
+        unsigned int msg_len
+    cdef struct cmsghdr:
+        size_t cmsg_len
+        int cmsg_level
+        int cmsg_type
+    int recvmmsg(int fd, mmsghdr* vec, unsigned int vlen, int flags, void* timeout) nogil
+    cmsghdr* CMSG_FIRSTHDR(msghdr* m)
+    cmsghdr* CMSG_NXTHDR(msghdr* m, cmsghdr* c)
+    unsigned char* CMSG_DATA(cmsghdr* c)
+    size_t CMSG_LEN(size_t n)
+    int MSG_DONTWAIT
+    int SOL_SOCKET
+
+cdef extern from "<netpacket/packet.h>":
+    cdef struct sockaddr_ll:
+        unsigned short sll_family
+        unsigned short sll_protocol
+        int sll_ifindex
+        unsigned short sll_hatype
+        unsigned char sll_pkttype
+
+cdef extern from "<errno.h>":
+    int errno
+    int EAGAIN
+    int EWOULDBLOCK
+    int EINTR
+
+DEF RX_BATCH = 64
+DEF RX_SNAP = 65535        # what PacketCapture asked of recvmsg
+DEF RX_CTRL = 512
+DEF RX_SO_TIMESTAMPNS = 35
+DEF RX_SOL_PACKET = 263
+DEF RX_PACKET_AUXDATA = 8
+DEF RX_PACKET_OUTGOING = 4
+DEF RX_VLAN_VALID = 0x10
+DEF RX_VLAN_TPID_VALID = 0x40
+
+import time as _time
+
+
+cdef class _Receiver:
+    """Packets of an ``AF_PACKET`` socket, many per system call (``recvmmsg``): what
+    ``PacketCapture``'s reader took one ``recvmsg`` at a time through scapy's
+    ``_recv_raw``, the same bytes and the same times: the kernel's ``SO_TIMESTAMPNS``
+    (``sec + nsec * 1e-9``, else the clock), a VLAN tag the kernel took off put back
+    from ``PACKET_AUXDATA``, outgoing loopback copies left out."""
+
+    cdef int fd
+    cdef int linktype
+    cdef bint loopback
+    cdef char* data
+    cdef char* ctrl
+    cdef mmsghdr msgs[RX_BATCH]
+    cdef iovec iov[RX_BATCH]
+    cdef sockaddr_ll names[RX_BATCH]
+
+    def __cinit__(self, int fd, int linktype, bint loopback):
+        self.data = <char*>malloc(RX_BATCH * RX_SNAP)
+        self.ctrl = <char*>malloc(RX_BATCH * RX_CTRL)
+        if self.data == NULL or self.ctrl == NULL:
+            raise MemoryError()
+        self.fd = fd
+        self.linktype = linktype
+        self.loopback = loopback
+
+    def __dealloc__(self):
+        free(self.data)
+        free(self.ctrl)
+
+    def read(self, list batch, int room):
+        """Append up to ``room`` packets ``(ts, linktype, bytes)`` to ``batch``; the
+        number of messages the kernel gave (0: none waiting). OSError on failure."""
+        cdef int i, n, want = room if room < RX_BATCH else RX_BATCH
+        cdef msghdr* m
+        cdef cmsghdr* c
+        cdef const unsigned char* cd
+        cdef double ts
+        cdef bint stamped
+        cdef int64_t sec, nsec
+        cdef uint32_t status
+        cdef unsigned int tci, tpid, length
+        cdef char* base
+        cdef bytes pkt
+        if want <= 0:
+            return 0
+        for i in range(want):
+            self.iov[i].iov_base = self.data + i * RX_SNAP
+            self.iov[i].iov_len = RX_SNAP
+            m = &self.msgs[i].msg_hdr
+            m.msg_name = &self.names[i]
+            m.msg_namelen = sizeof(sockaddr_ll)
+            m.msg_iov = &self.iov[i]
+            m.msg_iovlen = 1
+            m.msg_control = self.ctrl + i * RX_CTRL
+            m.msg_controllen = RX_CTRL
+            m.msg_flags = 0
+            self.msgs[i].msg_len = 0
+        with nogil:
+            n = recvmmsg(self.fd, self.msgs, want, MSG_DONTWAIT, NULL)
+        if n < 0:
+            if errno == EAGAIN or errno == EWOULDBLOCK or errno == EINTR:
+                return 0
+            raise OSError(errno, os_strerror(errno))
+        for i in range(n):
+            length = self.msgs[i].msg_len
+            if self.loopback and self.names[i].sll_pkttype == RX_PACKET_OUTGOING:
+                continue  # the same packet comes back in
+            if length == 0:
+                continue
+            m = &self.msgs[i].msg_hdr
+            base = self.data + i * RX_SNAP
+            stamped = False
+            ts = 0.0
+            pkt = None
+            c = CMSG_FIRSTHDR(m)
+            while c != NULL:
+                cd = CMSG_DATA(c)
+                if c.cmsg_level == RX_SOL_PACKET and c.cmsg_type == RX_PACKET_AUXDATA:
+                    if c.cmsg_len >= CMSG_LEN(20):
+                        memcpy(&status, cd, 4)
+                        tci = (<unsigned int>cd[17] << 8) | cd[16]
+                        tpid = (<unsigned int>cd[19] << 8) | cd[18]
+                        if tci != 0 or status & RX_VLAN_VALID:
+                            if not status & RX_VLAN_TPID_VALID:
+                                tpid = 0x8100
+                            head = PyBytes_FromStringAndSize(base, 12 if length > 12 else length)
+                            tag = bytes(((tpid >> 8) & 255, tpid & 255, (tci >> 8) & 255,
+                                         tci & 255))
+                            rest = (PyBytes_FromStringAndSize(base + 12, length - 12)
+                                    if length > 12 else b"")
+                            pkt = head + tag + rest
+                elif c.cmsg_level == SOL_SOCKET and c.cmsg_type == RX_SO_TIMESTAMPNS:
+                    if c.cmsg_len == CMSG_LEN(16):
+                        memcpy(&sec, cd, 8)
+                        memcpy(&nsec, cd + 8, 8)
+                        ts = <double>sec + <double>nsec * 1e-9
+                        stamped = True
+                    elif c.cmsg_len == CMSG_LEN(8):
+                        ts = <double>(<int*>cd)[0] + <double>(<int*>cd)[1] * 1e-9
+                        stamped = True
+                c = CMSG_NXTHDR(m, c)
+            if pkt is None:
+                pkt = PyBytes_FromStringAndSize(base, length)
+            batch.append((ts if stamped else _time.time(), self.linktype, pkt))
+        return n
+
+
+cdef str os_strerror(int code):
+    import os
+    return os.strerror(code)

@@ -296,6 +296,7 @@ class PacketCapture:
         loopback = self.loopback
         deliver = self._deliver
         fd = raw.fileno()
+        receiver = _compiled_receiver(fd, linktype, loopback)
         while not stop.is_set():
             try:
                 ready, _, _ = select.select([fd], [], [], 0.2)
@@ -305,7 +306,10 @@ class PacketCapture:
                 continue
             batch: list[tuple[float, int, bytes]] = []
             try:
-                while len(batch) < BATCH:
+                if receiver is not None:  # many packets per system call
+                    while len(batch) < BATCH and receiver.read(batch, BATCH - len(batch)):
+                        pass
+                while receiver is None and len(batch) < BATCH:
                     data, addr, ts = recv(raw, 65535)
                     if loopback and addr[2] == PACKET_OUTGOING:
                         continue  # the same packet comes back in
@@ -323,6 +327,18 @@ class PacketCapture:
             if batch:
                 self.packets += len(batch)
                 deliver(batch)
+
+
+def _compiled_receiver(fd: int, linktype: int, loopback: bool) -> Any:
+    """The compiled core's reader of the socket ``fd`` (``recvmmsg``: many packets per
+    system call, the same bytes and times as scapy's ``_recv_raw`` one by one), or
+    ``None`` in a pure run (``MBMON_NO_EXTENSIONS=1``, no compiler)."""
+    from mbmon import core
+
+    if not core.available():
+        return None
+    reader: Any = core._reader
+    return reader._Receiver(fd, linktype, loopback)
 
 
 def dissect_batch(
