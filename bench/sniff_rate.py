@@ -3,6 +3,7 @@ pure (``MBMON_NO_EXTENSIONS=1``), next to tcpdump on the same traffic.
 
     sudo python bench/sniff_rate.py                       # 20k .. 300k ADU/s, 3 s each
     sudo python bench/sniff_rate.py --rates 5000 10000 --seconds 5 --paths pure
+    python bench/sniff_rate.py --callgrind 20000          # instructions per ADU (hub side)
 
 What this script owns: a bounded load generator and the figures. For each rate
 (ADUs per second, requests + responses) it starts, as child processes,
@@ -207,6 +208,81 @@ def one_rate(
     return row
 
 
+_STREAM = """
+import sys, io, os
+from mbmon.io.pcap import TcpConversation
+from mbmon.protocol.mbap import encode_adu
+from mbmon.protocol.pdu import encode_read_request, encode_read_response
+n, mode = int(sys.argv[1]), sys.argv[2]
+conv = TcpConversation("127.0.0.1:40000", "127.0.0.1:15020", linktype=1)
+frames = conv.open()
+for i in range(n // 2):
+    tid = (i + 1) & 0xFFFF
+    frames.append(conv.send(True, encode_adu(tid, 1, encode_read_request(3, 0, 3))))
+    frames.append(conv.send(False, encode_adu(tid, 1, encode_read_response(3, [1, 2, 3]))))
+frames += conv.close(True)
+packets = [(1.7e9 + i * 1e-5, 1, f) for i, f in enumerate(frames)]
+if mode == "gen":
+    sys.exit(0)
+from mbmon.format import View
+from mbmon.hub import Hub
+from mbmon.pipeline import Pipeline, PipelineConfig
+from mbmon.sinks.console import ConsoleListener
+from mbmon.sources.pcapfile import CaptureConfig
+from mbmon.sources.sniff import dissect_batch, open_dissector
+from mbmon.timefmt import TimeFormat
+out = open(os.devnull, "w")
+view = View(time_format=TimeFormat("a"))
+hub = Hub(Pipeline(None, PipelineConfig()))
+hub.add_listener(ConsoleListener(out, view, as_json=True, live=True))
+ports = frozenset({502, 15020})
+dissector = open_dissector(CaptureConfig(tcp_ports=ports), hub.new_stream)
+if mode == "core":
+    from mbmon.core.live import LiveCore
+    raw = out.buffer
+    stage = LiveCore(ports=ports, timeout=1.0, view=view, as_json=True, write=raw.write,
+                     flush=raw.flush, new_stream=hub.new_stream, dissector=dissector,
+                     pipeline=hub.pipeline)
+    feed = stage.packets
+else:
+    stage = dissector
+    feed = lambda batch: dissect_batch(dissector, batch)
+hub.add_ticker(stage)
+for at in range(0, len(packets), 256):
+    hub.feed_items(feed(packets[at:at + 256]))
+hub.finish()
+hub.close()
+assert mode != "core" or stage.handed is None
+"""
+
+
+def _instructions(n: int, mode: str) -> int:
+    out = OUT / "sniff-callgrind.out"
+    env = _env()
+    env.pop("MBMON_NO_EXTENSIONS", None)
+    subprocess.run(
+        ["valgrind", "--tool=callgrind", f"--callgrind-out-file={out}", sys.executable, "-c",
+         _STREAM, str(n), mode],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, check=True,
+    )  # fmt: skip
+    text = out.read_text(errors="replace")
+    out.unlink()
+    return int(next(ln for ln in text.splitlines() if ln.startswith("summary:")).split()[1])
+
+
+def callgrind_figures(n: int) -> None:
+    """Marginal instructions per ADU of the hub's side of ``sniff --json`` (the packets
+    of a capture in batches of 256, one ADU per segment, through the core's stage or
+    the reference dissector and pipeline, lines to /dev/null): (I(n) - I(n/5)) over
+    the 4n/5 ADUs between, the packets' making (same in both) taken off."""
+    OUT.mkdir(exist_ok=True)
+    k = n - n % 10
+    gen = _instructions(k, "gen") - _instructions(k // 5, "gen")
+    for mode in ("core", "pure"):
+        got = _instructions(k, mode) - _instructions(k // 5, mode) - gen
+        print(f"callgrind instructions per ADU, {mode}: {got / (k - k // 5):,.0f}", flush=True)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument(
@@ -217,7 +293,11 @@ def main() -> int:
     ap.add_argument("--no-tcpdump", action="store_true")
     ap.add_argument("--paths", nargs="+", choices=["core", "pure"], default=["core", "pure"])
     ap.add_argument("--text", action="store_true", help="sniff's text lines (default --json)")
+    ap.add_argument("--callgrind", type=int, metavar="N", help="only: instructions per ADU")
     args = ap.parse_args()
+    if args.callgrind:
+        callgrind_figures(args.callgrind)
+        return 0
     if os.geteuid() != 0:
         print("needs root (AF_PACKET capture)", file=sys.stderr)
         return 1
