@@ -474,6 +474,8 @@ cdef class _Live(_Pass):
 
 # --------------------------------------------------------------------------- the capture side
 
+from libc.stdint cimport uint16_t
+
 cdef extern from "<sys/uio.h>":
     cdef struct iovec:
         void* iov_base
@@ -572,6 +574,7 @@ cdef class _Receiver:
         cdef int64_t sec, nsec
         cdef uint32_t status
         cdef unsigned int tci, tpid, length
+        cdef uint16_t half16
         cdef char* base
         cdef bytes pkt
         if want <= 0:
@@ -611,8 +614,10 @@ cdef class _Receiver:
                 if c.cmsg_level == RX_SOL_PACKET and c.cmsg_type == RX_PACKET_AUXDATA:
                     if c.cmsg_len >= CMSG_LEN(20):
                         memcpy(&status, cd, 4)
-                        tci = (<unsigned int>cd[17] << 8) | cd[16]
-                        tpid = (<unsigned int>cd[19] << 8) | cd[18]
+                        memcpy(&half16, cd + 16, 2)  # tp_vlan_tci, host order
+                        tci = half16
+                        memcpy(&half16, cd + 18, 2)  # tp_vlan_tpid
+                        tpid = half16
                         if tci != 0 or status & RX_VLAN_VALID:
                             if not status & RX_VLAN_TPID_VALID:
                                 tpid = 0x8100
