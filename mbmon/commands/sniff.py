@@ -81,6 +81,11 @@ def register(sub: Any) -> None:
     add_output_options(p)
     add_time_option(p)
     add_filter_options(p)
+    p.add_argument(
+        "--debug-core",
+        action="store_true",
+        help="say on stderr whether the compiled core runs the capture, or why not",
+    )
     p.set_defaults(func=run_sniff)
 
 
@@ -107,8 +112,8 @@ def run_sniff(args: argparse.Namespace) -> int:
 
         print("".join(f"{name:16} {desc}\n" for name, desc in list_interfaces()), end="")
         return EXIT_OK
-    source = _source(args)
     view, flt = view_and_filter(args)
+    source = _source(args, _core_output(args, view, flt))
     annotator = make_annotator(args.profile)
     baud = getattr(source, "settings", None)
     config = PipelineConfig(timeout=args.timeout, baudrate=baud.baudrate if baud else None)
@@ -143,14 +148,74 @@ def run_sniff(args: argparse.Namespace) -> int:
         finally:
             source.stop()
             hub.close()
+    live = getattr(source, "live", None)
+    if live is not None and summary is not None:
+        from mbmon.core.live import add_counts
+
+        add_counts(summary, live.counts())
     if not args.quiet:
         _summary(args, summary, source, time.time() - started)
     return exit_status(hub, until_signal=True)
 
 
-def _source(args: argparse.Namespace) -> Any:
+def _core_output(args: argparse.Namespace, view: Any, flt: Any) -> Any:
+    """How the compiled core writes the run's lines (:class:`~mbmon.sources.sniff.CoreOutput`),
+    or ``None`` when the options keep the run off the core (``--debug-core`` says why)."""
+    from mbmon.commands.common import err
+    from mbmon.commands.screen import _interactive
+    from mbmon.core.live import decline_for_sniff
+
+    console = not args.quiet and (args.json or getattr(args, "plain", False) or not _interactive())
+    iface = args.interface or args.iface
+    why = decline_for_sniff(args, interface=bool(iface), console=console, flt=flt)
+    buffer = None
+    if why is None:
+        from mbmon.sinks.console import utf8_buffer
+
+        buffer = utf8_buffer(sys.stdout)
+        if buffer is None:
+            why = "stdout is not UTF-8"
+    if getattr(args, "debug_core", False):
+        err(
+            "core: "
+            + ("the compiled core runs the capture" if why is None else f"declined ({why})")
+        )
+    if why is None and buffer is not None:
+        from mbmon.sources.sniff import CoreOutput
+
+        out = buffer
+        broken: list[bool] = []
+
+        def write(data: bytes) -> None:
+            if broken:
+                return
+            try:
+                out.write(data)
+            except BrokenPipeError:  # the reader went away (| head), as the hub does
+                from mbmon.hub import _quiet_stdout
+
+                broken.append(True)
+                _quiet_stdout()
+
+        def flush() -> None:
+            if broken:
+                return
+            try:
+                out.flush()
+            except BrokenPipeError:
+                from mbmon.hub import _quiet_stdout
+
+                broken.append(True)
+                _quiet_stdout()
+
+        return CoreOutput(view, args.json, args.timeout, write, flush)
+    return None
+
+
+def _source(args: argparse.Namespace, core: Any = None) -> Any:
     """The source the options name (usage errors first, and the outputs checked
-    against it): an interface, or the serial bus of one or two taps."""
+    against it): an interface, or the serial bus of one or two taps; ``core``: how
+    the compiled core writes the lines of an interface's capture, or ``None``."""
     from mbmon.commands.common import UsageError, check_outputs, check_rotation
 
     iface = args.interface or args.iface
@@ -182,7 +247,7 @@ def _source(args: argparse.Namespace) -> Any:
         # only while no port is named (a named port keeps the kernel filter narrow)
         detect=not (args.no_detect or args.port or args.rtu_port),
     )
-    return InterfaceSource(str(iface), config, args.filter)
+    return InterfaceSource(str(iface), config, args.filter, core=core)
 
 
 def _open_source(source: Source, hub: Hub) -> bool:

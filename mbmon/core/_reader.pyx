@@ -2285,3 +2285,6 @@ def _native_note(bytes data, bint response, request=None):
         nat.exc if nat.exc >= 0 else None,
         note,
     )
+
+
+include "_live.pxi"

@@ -39,6 +39,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "CaptureSetupError",
+    "CoreOutput",
     "InterfaceSource",
     "PacketCapture",
     "PacketDissector",
@@ -295,6 +296,7 @@ class PacketCapture:
         loopback = self.loopback
         deliver = self._deliver
         fd = raw.fileno()
+        receiver = _compiled_receiver(fd, linktype, loopback)
         while not stop.is_set():
             try:
                 ready, _, _ = select.select([fd], [], [], 0.2)
@@ -304,7 +306,10 @@ class PacketCapture:
                 continue
             batch: list[tuple[float, int, bytes]] = []
             try:
-                while len(batch) < BATCH:
+                if receiver is not None:  # many packets per system call
+                    while len(batch) < BATCH and receiver.read(batch, BATCH - len(batch)):
+                        pass
+                while receiver is None and len(batch) < BATCH:
                     data, addr, ts = recv(raw, 65535)
                     if loopback and addr[2] == PACKET_OUTGOING:
                         continue  # the same packet comes back in
@@ -322,6 +327,18 @@ class PacketCapture:
             if batch:
                 self.packets += len(batch)
                 deliver(batch)
+
+
+def _compiled_receiver(fd: int, linktype: int, loopback: bool) -> Any:
+    """The compiled core's reader of the socket ``fd`` (``recvmmsg``: many packets per
+    system call, the same bytes and times as scapy's ``_recv_raw`` one by one), or
+    ``None`` in a pure run (``MBMON_NO_EXTENSIONS=1``, no compiler)."""
+    from mbmon import core
+
+    if not core.available():
+        return None
+    reader: Any = core._reader
+    return reader._Receiver(fd, linktype, loopback)
 
 
 def dissect_batch(
@@ -352,22 +369,41 @@ class InterfaceSource(BaseSource):
 
     mode: SourceMode = "live"
 
-    def __init__(self, iface: str, config: CaptureConfig, bpf: str | None = None) -> None:
+    def __init__(
+        self,
+        iface: str,
+        config: CaptureConfig,
+        bpf: str | None = None,
+        *,
+        core: CoreOutput | None = None,
+    ) -> None:
         super().__init__()
         self.name = iface
         self.config = config
         self.bpf = bpf or capture_filter(config)
         self.capture: PacketCapture | None = None
         self.dissector: PacketDissector | None = None
+        #: with ``core``: the compiled core's stage (:class:`mbmon.core.live.LiveCore`)
+        self.core = core
+        self.live: Any = None
 
     def open(self, hub: Hub) -> None:
         """Open the socket with its filter (:class:`CaptureSetupError` when it cannot)
         and register the dissector."""
         super().open(hub)
         dissector = self.dissector = open_dissector(self.config, hub.new_stream, self.name)
+        stage: Any = dissector
+        if self.core is None:
 
-        def deliver(batch: list[tuple[float, int, bytes]]) -> None:
-            hub.submit(lambda: dissect_batch(dissector, batch))
+            def deliver(batch: list[tuple[float, int, bytes]]) -> None:
+                hub.submit(lambda: dissect_batch(dissector, batch))
+
+        else:
+            stage = self.live = self.core.stage(self.config, dissector, hub)
+            packets = self.live.packets
+
+            def deliver(batch: list[tuple[float, int, bytes]]) -> None:
+                hub.submit(lambda: packets(batch))
 
         def failed(message: str) -> None:
             hub.put(Event(time.time(), None, EventKind.NOTICE, {"message": message}))
@@ -376,7 +412,7 @@ class InterfaceSource(BaseSource):
         capture = PacketCapture(self.name, self.bpf, deliver, on_error=failed)
         capture.open()
         self.capture = capture
-        hub.add_ticker(dissector)
+        hub.add_ticker(stage)
 
     def start(self) -> None:
         """Start the reader thread."""
@@ -397,7 +433,7 @@ class InterfaceSource(BaseSource):
         if self.capture is None or self.dissector is None:
             return {}
         return {
-            "open connections": self.dissector.stats()["open_connections"],
+            "open connections": self._dissector_stats()["open_connections"],
             "kernel drops": self.capture.kernel_stats().drops,
         }
 
@@ -428,13 +464,57 @@ class InterfaceSource(BaseSource):
             f"{k.drops} dropped" + (" (capture INCOMPLETE)" if k.drops else "")
         ]
         if self.dissector is not None:
-            s = self.dissector.stats()
+            s = self._dissector_stats()
             lines.append(
                 f"{s.get('modbus_packets', 0)} Modbus packets, {s.get('streams', 0)} streams, "
                 f"{s.get('gaps', 0)} TCP gaps"
+            )
+        if self.live is not None:
+            handed = self.live.handed
+            lines.append(
+                "core: the compiled core"
+                + ("" if handed is None else f", then the Python pipeline ({handed})")
             )
         return lines
 
     def detected(self) -> list[tuple[str, int, str, int]]:
         """What port detection found (see ``Dissector.detected``)."""
         return self.dissector.detected() if self.dissector is not None else []
+
+    def _dissector_stats(self) -> dict[str, int]:
+        """The dissector's figures (the core's share included when it runs)."""
+        if self.live is not None:
+            got: dict[str, int] = self.live.stats()
+            return got
+        assert self.dissector is not None
+        return self.dissector.stats()
+
+
+@dataclass
+class CoreOutput:
+    """How ``sniff`` runs on the compiled core (:mod:`mbmon.core.live`): the view and
+    JSON choice of its lines, the pairing timeout, and ``write``/``flush`` of
+    stdout's bytes."""
+
+    view: Any
+    as_json: bool
+    timeout: float
+    write: Callable[[bytes], Any]
+    flush: Callable[[], Any]
+
+    def stage(self, config: CaptureConfig, dissector: Any, hub: Hub) -> Any:
+        """The core's hub stage for ``config``'s ports, the reference's ``dissector``
+        and ``hub``'s pipeline waiting behind it."""
+        from mbmon.core.live import LiveCore
+
+        return LiveCore(
+            ports=config.tcp_ports,
+            timeout=self.timeout,
+            view=self.view,
+            as_json=self.as_json,
+            write=self.write,
+            flush=self.flush,
+            new_stream=hub.new_stream,
+            dissector=dissector,
+            pipeline=hub.pipeline,
+        )

@@ -1,0 +1,648 @@
+# The streaming entry of the core (included at the end of _reader.pyx: it extends
+# _Pass, whose state and rules it shares).
+#
+# A live capture cannot be declined "before the first byte": packets arrive while
+# lines are written. The rule here: the core takes packets one by one, and each
+# packet is taken whole or not at all. Everything that could make the core decline
+# a packet is known before the packet changes any state (link and IP headers and
+# the flow table by _Pass.packet's own order; the TCP segment by seg_check, a dry
+# run of _Pass.segment; idle flows by idle_check). The first packet (or tick, or
+# the end) the core does not cover hands the whole run over: ``export`` builds the
+# reference dissector's and pipeline's state from the core's (connections, held
+# bytes, pending requests, record numbering) and the reference takes that packet
+# and everything after it. A whole-run hand-over keeps one record numbering and
+# one pairer (timeouts of every stream in one order), so the lines are the
+# reference's, byte for byte, in the same order.
+
+DEF LIVE_IDLE = 300.0          # the live dissector's idle timeout (open_dissector)
+DEF LIVE_SWEEP_IDLE = 600.0    # PipelineConfig.idle_timeout
+DEF LIVE_SWEEP_EVERY = 60.0    # min(max(idle / 10, 0.01), 60.0) for the default
+
+
+cdef struct LiveConn:
+    double last             # TcpConnection.last: the last segment's time
+    double held_ts[2]       # when the held bytes of each direction began (_buf_ts)
+    double chunk_ts[2]      # the last chunk of each direction (the decoder's _last_ts)
+    double input_ts         # the last chunk of the stream (the pipeline's _last_input)
+
+
+cdef inline bint ack_beyond(int64_t o_nxt, bint o_done, int64_t ack):
+    """``_Pass.acked``'s test: the peer acknowledged bytes this direction never showed."""
+    cdef int64_t diff
+    if o_nxt >= 0 and not o_done:
+        diff = (ack - o_nxt) & MASK
+        return 0 < diff <= MAX_ACK_JUMP
+    return False
+
+
+cdef class _Live(_Pass):
+    """The streaming entry: batches of ``(ts, linktype, bytes)`` in, lines out (through
+    ``write``), per-flow state kept across batches; ``tick(now)`` and ``finish(ts)``
+    as the hub calls them. Each call returns where the reference must take over
+    (see the module comment above) or that the core did it all."""
+
+    cdef object new_stream          # hub.new_stream, or None (ids from 0)
+    cdef LiveConn* lc
+    cdef int caplc
+    cdef double idle_due
+    cdef double next_sweep
+    cdef double item_ts             # the latest item (chunk or source event) time
+    cdef bint in_segment            # _Pass.segment is changing state
+    cdef public str reason          # why the core handed over
+    cdef public int64_t packets     # packets taken
+    cdef public int64_t modbus_packets
+    cdef public int64_t retransmissions
+    cdef public int64_t overlaps
+
+    def __cinit__(self):
+        self.lc = NULL
+        self.caplc = 0
+
+    def __dealloc__(self):
+        free(self.lc)
+
+    def __init__(self, bint as_json, double timeout, ports, view, write, new_stream=None):
+        _Pass.__init__(self, True, as_json, timeout, ports, view, write, False)
+        self.new_stream = new_stream
+        self.idle_due = INFINITY
+        self.next_sweep = -INFINITY
+        self.item_ts = -INFINITY
+        self.in_segment = False
+        self.reason = None
+        self.packets = 0
+        self.modbus_packets = 0
+        self.retransmissions = 0
+        self.overlaps = 0
+
+    # ------------------------------------------------------------------ hooks on _Pass
+
+    cdef int new_conn(self, bytes key, const uint8_t* addrs, int sport, int dport, int flags,
+                      double ts) except -1:
+        cdef int v = _Pass.new_conn(self, key, addrs, sport, dport, flags, ts)
+        cdef int ci = v >> 1, cap
+        cdef LiveConn* p
+        cdef Conn* c = &self.conns[ci]
+        if ci >= self.caplc:
+            cap = self.caplc * 2 if self.caplc else 64
+            while cap <= ci:
+                cap *= 2
+            p = <LiveConn*>realloc(self.lc, cap * sizeof(LiveConn))
+            if p == NULL:
+                raise MemoryError()
+            self.lc = p
+            self.caplc = cap
+        memset(&self.lc[ci], 0, sizeof(LiveConn))
+        self.lc[ci].last = ts
+        if self.idle_due == INFINITY:
+            self.idle_due = ts + LIVE_IDLE
+        if self.new_stream is not None:
+            client = "%d.%d.%d.%d:%d" % (c.caddr[0], c.caddr[1], c.caddr[2], c.caddr[3], c.cport)
+            server = "%d.%d.%d.%d:%d" % (c.saddr[0], c.saddr[1], c.saddr[2], c.saddr[3], c.sport)
+            s = self.new_stream(Transport.TCP, client, server)
+            if s.id != c.sid:
+                raise RuntimeError("the core's stream ids left the hub's (%d, %d)" % (c.sid, s.id))
+            while len(self.streams) <= c.sid:
+                self.streams.append(None)
+                self.labels.append(None)
+                self.heads.append(None)
+            self.streams[c.sid] = s
+        return v
+
+    cdef int segment(self, int ci, bint from_client, double ts, int64_t seq, int64_t ack,
+                     int flags, const uint8_t* p, Py_ssize_t n) except -1:
+        why = self.seg_check(ci, from_client, seq, ack, flags, p, n)
+        if why is not None:
+            raise Declined(why)
+        self.modbus_packets += 1
+        self.lc[ci].last = ts
+        self.in_segment = True
+        _Pass.segment(self, ci, from_client, ts, seq, ack, flags, p, n)
+        self.in_segment = False
+        return 0
+
+    cdef int on_chunk(self, int ci, int d, double ts, const uint8_t* p,
+                      Py_ssize_t n) except -1:
+        cdef int old = self.conns[ci].h[d].blen
+        cdef int now_held
+        cdef LiveConn* l
+        _Pass.on_chunk(self, ci, d, ts, p, n)
+        l = &self.lc[ci]
+        l.chunk_ts[d] = ts
+        l.input_ts = ts
+        now_held = self.conns[ci].h[d].blen
+        if now_held and old + n - now_held >= old:
+            l.held_ts[d] = ts
+        if ts > self.item_ts:
+            self.item_ts = ts
+        return 0
+
+    cdef int event(self, double ts, int sid, object kind, object info) except -1:
+        if kind is not EventKind.TIMEOUT and ts > self.item_ts:
+            self.item_ts = ts
+        return _Pass.event(self, ts, sid, kind, info)
+
+    # ------------------------------------------------------------------ dry runs
+
+    cdef object chunk_check(self, int ci, int d, const uint8_t* p, Py_ssize_t n,
+                            Py_ssize_t* left):
+        """What ``on_chunk`` would decline for these bytes of direction ``d``, or None;
+        ``left``: the bytes it would then hold."""
+        cdef Half* h = &self.conns[ci].h[d]
+        cdef Py_ssize_t na = h.blen, total = h.blen + n, pos = 0, frames = 0
+        cdef const uint8_t* a = h.buf
+        cdef int length, sid = self.conns[ci].sid
+        cdef uint8_t hd[6]
+        cdef int k
+        if na and total > 1 << 24:
+            return "an ADU held over more than 16 MiB"
+        while total - pos >= 6:
+            for k in range(6):
+                hd[k] = a[pos + k] if pos + k < na else p[pos + k - na]
+            if hd[2] == 0 and hd[3] == 0:
+                length = (hd[4] << 8) | hd[5]
+                if 2 <= length <= 254:
+                    if pos + 6 + length > total:
+                        break
+                    pos += 6 + length
+                    frames += 1
+                    continue
+                if length == 255:
+                    return "an MBAP length of 255 (decoded, marked malformed)"
+            return "bytes that are no MBAP header (noise resynchronisation)"
+        if total - pos > 1 << 24:
+            return "an ADU held over more than 16 MiB"
+        if d == 0 and frames:
+            if (sid < self.capsp and self.sp[sid].count + frames >= MAX_PENDING_STREAM) or (
+                    self.total + frames >= MAX_PENDING_TOTAL):
+                return "more requests pending than the core keeps"
+        left[0] = total - pos
+        return None
+
+    cdef object seg_check(self, int ci, bint from_client, int64_t seq, int64_t ack, int flags,
+                          const uint8_t* p, Py_ssize_t n):
+        """A dry run of ``_Pass.segment``: why it would decline this segment, or None.
+        Nothing changes; the halves' fields are followed in local copies."""
+        cdef Conn* c = &self.conns[ci]
+        cdef int d = 0 if from_client else 1
+        cdef int64_t h_nxt = c.h[d].nxt, h_isn = c.h[d].isn, h_fin = c.h[d].fin
+        cdef bint h_done = c.h[d].done
+        cdef int64_t o_nxt = c.h[1 - d].nxt, o_fin = c.h[1 - d].fin
+        cdef bint o_done = c.h[1 - d].done
+        cdef Py_ssize_t h_held = c.h[d].blen, o_held = c.h[1 - d].blen, left = 0
+        cdef int64_t diff, old
+        if not flags & 0x07 and h_nxt == seq and h_fin < 0:
+            if c.closed:
+                return "payload after its connection ended" if n else None
+            if flags & ACK and ack_beyond(o_nxt, o_done, ack):
+                return "bytes the capture missed (an ACK beyond them: a gap)"
+            if n:
+                return self.chunk_check(ci, d, p, n, &left)
+            return None
+        if c.closed:
+            return "payload after its connection ended" if n else None
+        if flags & RST:
+            if (h_fin >= 0 and not h_done) or (o_fin >= 0 and not o_done):
+                return "a reset before a FIN was reached (a gap)"
+            if h_held or o_held:
+                return "an incomplete ADU when its connection ended (noise)"
+            return None
+        if flags & SYN and flags & FIN:
+            flags &= ~FIN
+        if flags & SYN:
+            if h_isn < 0 and h_nxt < 0:
+                h_isn = seq & MASK
+                h_nxt = (seq + 1) & MASK
+            seq = (seq + 1) & MASK
+        elif h_nxt < 0 and (n or flags & FIN):
+            h_nxt = seq
+        if flags & ACK and ack_beyond(o_nxt, o_done, ack):
+            return "bytes the capture missed (an ACK beyond them: a gap)"
+        if n and h_nxt >= 0:
+            if h_done:
+                return "payload after its direction's FIN"
+            diff = (seq - h_nxt) & MASK
+            if diff == 0:
+                why = self.chunk_check(ci, d, p, n, &left)
+                if why is not None:
+                    return why
+                h_held = left
+                h_nxt = (h_nxt + n) & MASK
+            elif diff & HALF:
+                old = TWO32 - diff
+                if old < n:
+                    why = self.chunk_check(ci, d, p + old, n - old, &left)
+                    if why is not None:
+                        return why
+                    h_held = left
+                    h_nxt = (h_nxt + n - old) & MASK
+            else:
+                return "out-of-order TCP segments (held behind a hole)"
+        if flags & FIN and h_fin < 0 and h_nxt >= 0:
+            h_fin = (seq + n) & MASK
+            if signed32(h_nxt - h_fin) < 0:
+                return "a FIN ahead of bytes not seen (a gap)"
+            if not h_done and o_done and (h_held or o_held):
+                return "an incomplete ADU when its connection ended (noise)"
+        return None
+
+    cdef bint idle_due_now(self, double now) except -1:
+        """The dissector's idle scan at ``now`` (``FlowTable._expire_idle``): True when a
+        connection would expire (the reference must take over first); else the next
+        scan is scheduled as the reference schedules it."""
+        cdef double limit = now - LIVE_IDLE, first = INFINITY
+        cdef int ci
+        if now < self.idle_due:
+            return False
+        for ci in self.open_order:
+            if not self.conns[ci].open_:
+                continue
+            if self.lc[ci].last <= limit:
+                return True
+            if self.lc[ci].last < first:
+                first = self.lc[ci].last
+        if first == INFINITY:
+            self.idle_due = INFINITY
+        else:
+            self.idle_due = first + LIVE_IDLE
+            if self.idle_due < now + 1.0:
+                self.idle_due = now + 1.0
+        return False
+
+    # ------------------------------------------------------------------ the entry
+
+    def feed(self, list batch):
+        """Take the packets of ``batch`` in order; return how many were taken (all:
+        ``len(batch)``; fewer: the reference must take over from that packet, whose
+        effects are none yet; ``reason`` says why)."""
+        cdef Py_ssize_t i, count = len(batch)
+        cdef double ts
+        cdef int link
+        cdef bytes data
+        try:
+            for i in range(count):
+                item = batch[i]
+                ts = item[0]
+                link = item[1]
+                data = item[2]
+                if self.idle_due_now(ts):
+                    self.reason = "a connection idle for %g s (expired)" % LIVE_IDLE
+                    return i
+                try:
+                    self.packet(ts, link, data, 0, len(data))
+                except Declined as exc:
+                    if self.in_segment:
+                        raise RuntimeError("the core declined a segment it had begun: %s"
+                                           % exc) from None
+                    self.reason = str(exc)
+                    return i
+                self.packets += 1
+            return count
+        finally:
+            self.flush_out()
+
+    def tick(self, double now):
+        """The hub's tick at ``now``: 0 the core did it; 1 the reference must take over
+        before it (its dissector's tick first); 2 the core did the dissector's part and
+        the reference's pipeline does the rest (the hub ticks it next)."""
+        cdef int ci, d
+        try:
+            if self.idle_due_now(now):
+                self.reason = "a connection idle for %g s (expired)" % LIVE_IDLE
+                return 1
+            if now >= self.due:
+                self.dissector_tick(now)
+            if now >= self.next_sweep:
+                for ci in range(self.nconns):
+                    for d in range(2):
+                        if self.conns[ci].h[d].blen and (
+                                self.lc[ci].input_ts < now - LIVE_SWEEP_IDLE):
+                            self.reason = "an incomplete ADU idle for %g s" % LIVE_SWEEP_IDLE
+                            return 2
+                self.next_sweep = now + LIVE_SWEEP_EVERY
+            self.pair_tick(now)
+            return 0
+        finally:
+            self.flush_out()
+
+    def next_deadline(self):
+        """When a tick next has something to do (the dissector's and the pairer's
+        deadlines), or None."""
+        cdef double best = self.due
+        cdef int s = self.ahead
+        if self.idle_due < best:
+            best = self.idle_due
+        while s >= 0:
+            if self.sp[s].count and self.pool[self.sp[s].head].ts + self.timeout < best:
+                best = self.pool[self.sp[s].head].ts + self.timeout
+            s = self.sp[s].anext
+        return None if best == INFINITY else best
+
+    def finish(self, double now):
+        """The end of input at the hub's time ``now``: half-closed connections end,
+        every pending request times out. False (nothing done) when the reference must
+        take over first (held bytes, a FIN not reached)."""
+        cdef int ci, s, e, nxt
+        cdef Conn* c
+        cdef double ts = now if now > self.item_ts else self.item_ts
+        for ci in range(self.nconns):
+            c = &self.conns[ci]
+            if c.h[0].blen or c.h[1].blen:
+                self.reason = "an incomplete ADU at the end (noise)"
+                return False
+            if c.open_ and not c.closed and (
+                    (c.h[0].fin >= 0 and not c.h[0].done) or (c.h[1].fin >= 0 and not c.h[1].done)):
+                self.reason = "a FIN not reached at the end (a gap)"
+                return False
+        try:
+            for ci in self.open_order:
+                c = &self.conns[ci]
+                if not c.open_ or c.closed:
+                    continue
+                if c.fin_by:
+                    self.event(ts, c.sid, EventKind.DISCONNECT,
+                               {"how": "fin", "by": "client" if c.fin_by == 1 else "server",
+                                "half_closed": True})
+                    self.closed_conn(ci, ts)
+            s = self.ahead
+            while s >= 0:
+                nxt = self.sp[s].anext
+                while self.sp[s].count:
+                    e = self.sp[s].head
+                    self.timeout_record(self.due_by(e, self.pl_last), e)
+                s = nxt
+        finally:
+            self.flush_out()
+        return True
+
+    def open_connections(self):
+        """Connections open now (the dissector's ``open_connections``)."""
+        return self.nopen
+
+    def streams_made(self):
+        """Streams made so far (the dissector's ``streams``)."""
+        return len(self._sid_conn)
+
+    # ------------------------------------------------------------------ the hand-over
+
+    cdef object py_conn(self, int ci, dissector, cls, int limit):
+        """Connection ``ci`` as the reference's ``TcpConnection``."""
+        cdef Conn* c = &self.conns[ci]
+        cdef int d
+        conn = cls(self.stream_obj(c.sid), limit=limit, stats=dissector.tcp_stats,
+                   watcher=dissector)
+        for d in range(2):
+            half = conn._s2c if d else conn._c2s
+            half.nxt = None if c.h[d].nxt < 0 else c.h[d].nxt
+            half.isn = None if c.h[d].isn < 0 else c.h[d].isn
+            half.fin = None if c.h[d].fin < 0 else c.h[d].fin
+            half.done = bool(c.h[d].done)
+        conn.connected = bool(c.connected)
+        conn.closed = bool(c.closed)
+        conn.fin_by = None if c.fin_by == 0 else ("client" if c.fin_by == 1 else "server")
+        conn.last = self.lc[ci].last
+        return conn
+
+    cdef object key_of(self, int ci):
+        """The reference's flow key of connection ``ci`` (client to server)."""
+        cdef Conn* c = &self.conns[ci]
+        return (bytes(c.caddr[:4]) + bytes(c.saddr[:4]), c.cport, c.sport)
+
+    def export(self, dissector, pipeline):
+        """Give the run to the reference: build ``dissector``'s (a fresh
+        :class:`~mbmon.sources.dissect.Dissector` with the same ``new_stream``) and
+        ``pipeline``'s (a fresh :class:`~mbmon.pipeline.Pipeline`) state from the
+        core's, as if they had read every packet the core took."""
+        from mbmon.sources.flows import _TCP_HOLD_LIMIT
+        from mbmon.sources.tcpflow import TcpConnection
+
+        cdef int ci, d, s, e
+        cdef Conn* c
+        cdef Pend* p
+        conns = {}
+        for ci in self.open_order:
+            if self.conns[ci].open_:
+                conns[ci] = self.py_conn(ci, dissector, TcpConnection, _TCP_HOLD_LIMIT)
+                dissector.connections[conns[ci]] = self.key_of(ci)
+        for ci, until in self.closed_fifo:
+            conns[ci] = self.py_conn(ci, dissector, TcpConnection, _TCP_HOLD_LIMIT)
+            dissector._closed[conns[ci]] = (self.key_of(ci), until)
+        for k, v in self.flows.items():
+            ci = v >> 1
+            if ci not in conns:
+                conns[ci] = self.py_conn(ci, dissector, TcpConnection, _TCP_HOLD_LIMIT)
+            dissector.tcp[(k[:8], (k[8] << 8) | k[9], (k[10] << 8) | k[11])] = (
+                conns[ci], bool(v & 1))
+        dissector._idle_due = self.idle_due
+        dissector._set_due()
+        dissector.next_id = len(self._sid_conn)
+        dissector.modbus_packets += self.modbus_packets
+        # the pipeline: numbering, time, held bytes, pending requests
+        pipeline._index = self.index
+        pipeline._next_tick = self.next_tick
+        pipeline._last_ts = self.pl_last
+        pipeline._next_sweep = self.next_sweep
+        for ci in range(self.nconns):
+            c = &self.conns[ci]
+            for d in range(2):
+                if c.h[d].blen:
+                    stream = self.stream_obj(c.sid)
+                    direction = Direction.S2C if d else Direction.C2S
+                    dec = pipeline._decoder(stream, direction)
+                    dec.feed(PyBytes_FromStringAndSize(<const char*>c.h[d].buf, c.h[d].blen),
+                             self.lc[ci].held_ts[d])
+                    dec._last_ts = self.lc[ci].chunk_ts[d]
+                    pipeline._waiting[(c.sid, direction)] = dec
+                    pipeline._last_input[c.sid] = self.lc[ci].input_ts
+        pending = pipeline.pairer._pending
+        s = self.ahead
+        while s >= 0:
+            e = self.sp[s].head
+            while e >= 0:
+                p = &self.pool[e]
+                stream = self.stream_obj(p.sid)
+                raw = PyBytes_FromStringAndSize(<const char*>p.raw, p.alen)
+                frame = Frame(p.ts, stream, Direction.C2S, p.unit, p.tid,
+                              decode_pdu(raw[7:], False), raw, None)
+                pending.setdefault(p.sid, {})[(p.tid, p.unit)] = frame
+                pipeline.pairer._total += 1
+                pipeline._pending_index[id(frame)] = p.index
+                e = p.next
+            s = self.sp[s].anext
+        return None
+
+
+
+# --------------------------------------------------------------------------- the capture side
+
+from libc.stdint cimport uint16_t
+
+cdef extern from "<sys/uio.h>":
+    cdef struct iovec:
+        void* iov_base
+        size_t iov_len
+
+cdef extern from "<sys/socket.h>":
+    ctypedef unsigned int socklen_t
+    cdef struct msghdr:
+        void* msg_name
+        socklen_t msg_namelen
+        iovec* msg_iov
+        size_t msg_iovlen
+        void* msg_control
+        size_t msg_controllen
+        int msg_flags
+    cdef struct mmsghdr:
+        msghdr msg_hdr
+        unsigned int msg_len
+    cdef struct cmsghdr:
+        size_t cmsg_len
+        int cmsg_level
+        int cmsg_type
+    int recvmmsg(int fd, mmsghdr* vec, unsigned int vlen, int flags, void* timeout) nogil
+    cmsghdr* CMSG_FIRSTHDR(msghdr* m)
+    cmsghdr* CMSG_NXTHDR(msghdr* m, cmsghdr* c)
+    unsigned char* CMSG_DATA(cmsghdr* c)
+    size_t CMSG_LEN(size_t n)
+    int MSG_DONTWAIT
+    int SOL_SOCKET
+
+cdef extern from "<netpacket/packet.h>":
+    cdef struct sockaddr_ll:
+        unsigned short sll_family
+        unsigned short sll_protocol
+        int sll_ifindex
+        unsigned short sll_hatype
+        unsigned char sll_pkttype
+
+cdef extern from "<errno.h>":
+    int errno
+    int EAGAIN
+    int EWOULDBLOCK
+    int EINTR
+
+DEF RX_BATCH = 64
+DEF RX_SNAP = 65535        # what PacketCapture asked of recvmsg
+DEF RX_CTRL = 512
+DEF RX_SO_TIMESTAMPNS = 35
+DEF RX_SOL_PACKET = 263
+DEF RX_PACKET_AUXDATA = 8
+DEF RX_PACKET_OUTGOING = 4
+DEF RX_VLAN_VALID = 0x10
+DEF RX_VLAN_TPID_VALID = 0x40
+
+import time as _time
+
+
+cdef class _Receiver:
+    """Packets of an ``AF_PACKET`` socket, many per system call (``recvmmsg``): what
+    ``PacketCapture``'s reader took one ``recvmsg`` at a time through scapy's
+    ``_recv_raw``, the same bytes and the same times: the kernel's ``SO_TIMESTAMPNS``
+    (``sec + nsec * 1e-9``, else the clock), a VLAN tag the kernel took off put back
+    from ``PACKET_AUXDATA``, outgoing loopback copies left out."""
+
+    cdef int fd
+    cdef int linktype
+    cdef bint loopback
+    cdef char* data
+    cdef char* ctrl
+    cdef mmsghdr msgs[RX_BATCH]
+    cdef iovec iov[RX_BATCH]
+    cdef sockaddr_ll names[RX_BATCH]
+
+    def __cinit__(self, int fd, int linktype, bint loopback):
+        self.data = <char*>malloc(RX_BATCH * RX_SNAP)
+        self.ctrl = <char*>malloc(RX_BATCH * RX_CTRL)
+        if self.data == NULL or self.ctrl == NULL:
+            raise MemoryError()
+        self.fd = fd
+        self.linktype = linktype
+        self.loopback = loopback
+
+    def __dealloc__(self):
+        free(self.data)
+        free(self.ctrl)
+
+    def read(self, list batch, int room):
+        """Append up to ``room`` packets ``(ts, linktype, bytes)`` to ``batch``; the
+        number of messages the kernel gave (0: none waiting). OSError on failure."""
+        cdef int i, n, want = room if room < RX_BATCH else RX_BATCH
+        cdef msghdr* m
+        cdef cmsghdr* c
+        cdef const unsigned char* cd
+        cdef double ts
+        cdef bint stamped
+        cdef int64_t sec, nsec
+        cdef uint32_t status
+        cdef unsigned int tci, tpid, length
+        cdef uint16_t half16
+        cdef char* base
+        cdef bytes pkt
+        if want <= 0:
+            return 0
+        for i in range(want):
+            self.iov[i].iov_base = self.data + i * RX_SNAP
+            self.iov[i].iov_len = RX_SNAP
+            m = &self.msgs[i].msg_hdr
+            m.msg_name = &self.names[i]
+            m.msg_namelen = sizeof(sockaddr_ll)
+            m.msg_iov = &self.iov[i]
+            m.msg_iovlen = 1
+            m.msg_control = self.ctrl + i * RX_CTRL
+            m.msg_controllen = RX_CTRL
+            m.msg_flags = 0
+            self.msgs[i].msg_len = 0
+        with nogil:
+            n = recvmmsg(self.fd, self.msgs, want, MSG_DONTWAIT, NULL)
+        if n < 0:
+            if errno == EAGAIN or errno == EWOULDBLOCK or errno == EINTR:
+                return 0
+            raise OSError(errno, os_strerror(errno))
+        for i in range(n):
+            length = self.msgs[i].msg_len
+            if self.loopback and self.names[i].sll_pkttype == RX_PACKET_OUTGOING:
+                continue  # the same packet comes back in
+            if length == 0:
+                continue
+            m = &self.msgs[i].msg_hdr
+            base = self.data + i * RX_SNAP
+            stamped = False
+            ts = 0.0
+            pkt = None
+            c = CMSG_FIRSTHDR(m)
+            while c != NULL:
+                cd = CMSG_DATA(c)
+                if c.cmsg_level == RX_SOL_PACKET and c.cmsg_type == RX_PACKET_AUXDATA:
+                    if c.cmsg_len >= CMSG_LEN(20):
+                        memcpy(&status, cd, 4)
+                        memcpy(&half16, cd + 16, 2)  # tp_vlan_tci, host order
+                        tci = half16
+                        memcpy(&half16, cd + 18, 2)  # tp_vlan_tpid
+                        tpid = half16
+                        if tci != 0 or status & RX_VLAN_VALID:
+                            if not status & RX_VLAN_TPID_VALID:
+                                tpid = 0x8100
+                            head = PyBytes_FromStringAndSize(base, 12 if length > 12 else length)
+                            tag = bytes(((tpid >> 8) & 255, tpid & 255, (tci >> 8) & 255,
+                                         tci & 255))
+                            rest = (PyBytes_FromStringAndSize(base + 12, length - 12)
+                                    if length > 12 else b"")
+                            pkt = head + tag + rest
+                elif c.cmsg_level == SOL_SOCKET and c.cmsg_type == RX_SO_TIMESTAMPNS:
+                    if c.cmsg_len == CMSG_LEN(16):
+                        memcpy(&sec, cd, 8)
+                        memcpy(&nsec, cd + 8, 8)
+                        ts = <double>sec + <double>nsec * 1e-9
+                        stamped = True
+                    elif c.cmsg_len == CMSG_LEN(8):
+                        ts = <double>(<int*>cd)[0] + <double>(<int*>cd)[1] * 1e-9
+                        stamped = True
+                c = CMSG_NXTHDR(m, c)
+            if pkt is None:
+                pkt = PyBytes_FromStringAndSize(base, length)
+            batch.append((ts if stamped else _time.time(), self.linktype, pkt))
+        return n
+
+
+cdef str os_strerror(int code):
+    import os
+    return os.strerror(code)
