@@ -215,7 +215,9 @@ def _read_with_pipeline(
     try:
         for source in sources:
             source.open(hub)
-        logs = open_logs(args.write, _context(args, sources, view, annotator), args)
+        logs = open_logs(
+            args.write, _context(args, [source.name for source in sources], view, annotator), args
+        )
         attach_outputs(
             hub,
             logs=logs,
@@ -250,14 +252,14 @@ def _read_with_pipeline(
     return exit_status(hub, interrupted=interrupted)
 
 
-def _context(args: argparse.Namespace, sources: list[Any], view: Any, annotator: Any) -> Any:
-    """What the ``-w`` logs store besides the records (view, source, settings)."""
+def _context(args: argparse.Namespace, names: list[str], view: Any, annotator: Any) -> Any:
+    """What the ``-w`` logs store besides the records (view, the inputs' names, settings)."""
     from mbmon.sinks.base import SinkContext
 
     return SinkContext(
         view=view,
         command_line=["mbmon", *sys.argv[1:]],
-        source=" ".join(source.name for source in sources),
+        source=" ".join(names),
         profiles=profile_sources(annotator),
         profile_specs=list(args.profile),
         timeout=args.timeout,

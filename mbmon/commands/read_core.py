@@ -124,6 +124,6 @@ def _log_opener(path: str, args: argparse.Namespace, view: Any) -> Any:
         from mbmon.commands.common import open_logs
         from mbmon.commands.read import _context
 
-        return open_logs(args.write, _context(args, path, view, None), args)[0]
+        return open_logs(args.write, _context(args, [path], view, None), args)[0]
 
     return open_log
