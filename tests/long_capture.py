@@ -53,17 +53,25 @@ def signal_while_logging(
     args: Sequence[str] = (),
     entry: Sequence[str] = ("-m", "mbmon"),
     timeout: float = 120,
+    core: bool = False,
 ) -> tuple[int, str]:
-    """Run ``mbmon read CAPTURE ARGS -w LOG`` (stdout discarded), wait until ``log``
-    exists (records flow from then on), ``delay`` seconds more, then send ``sig``;
-    the exit status and stderr once it ended. The read must still be going when the
-    signal is sent (the capture must outlast the test: an assertion says so)."""
+    """Run ``mbmon read CAPTURE ARGS -w LOG``, wait until ``log`` exists (records flow
+    from then on), ``delay`` seconds more, then send ``sig``; the exit status and
+    stderr once it ended. The read must still be going when the signal is sent (the
+    capture must outlast the test: an assertion says so).
+
+    Without ``core`` the pure pipeline reads (``MBMON_NO_EXTENSIONS=1``) and stdout
+    is discarded. With it the compiled core reads, which takes the long capture in
+    about a second: its console goes to a pipe nobody reads until the end, so the
+    run waits there, mid-capture, with the log open (``ARGS`` must not hold
+    ``-q``)."""
+    env = ENV if core else {**ENV, "MBMON_NO_EXTENSIONS": "1"}
     proc = subprocess.Popen(
         [sys.executable, *entry, "read", str(capture), *args, "-w", str(log)],
-        stdout=subprocess.DEVNULL,
+        stdout=subprocess.PIPE if core else subprocess.DEVNULL,
         stderr=subprocess.PIPE,
         text=True,
-        env=ENV,
+        env=env,
     )
     deadline = time.monotonic() + 60
     while not log.exists() and proc.poll() is None and time.monotonic() < deadline:

@@ -23,6 +23,7 @@ from pathlib import Path
 import pytest
 from long_capture import signal_while_logging, write_long_capture
 
+from mbmon import core as mbmon_core
 from mbmon.io.mcap.reader import McapLog
 
 REPO = Path(__file__).resolve().parents[2]
@@ -35,14 +36,19 @@ def long_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_long_capture(tmp_path_factory.mktemp("long") / "long.pcap", 12000)
 
 
+@pytest.mark.parametrize("core", [False, True], ids=["pure", "core"])
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
 def test_read_to_mcap_ends_alike_on_sigterm_and_sigint(
-    tmp_path: Path, long_capture: Path, sig: signal.Signals
+    tmp_path: Path, long_capture: Path, sig: signal.Signals, core: bool
 ) -> None:
+    if core and not mbmon_core.available():
+        pytest.skip("the compiled core is not built (or MBMON_NO_EXTENSIONS is set)")
     rng = random.Random(17)
     for run in range(8):
         log = tmp_path / f"x{run}.mcap"
-        returncode, err = signal_while_logging(long_capture, log, sig, rng.uniform(0.05, 1.5))
+        returncode, err = signal_while_logging(
+            long_capture, log, sig, rng.uniform(0.05, 1.5), core=core
+        )
         what = f"run {run} ({sig.name}): exit {returncode}, stderr:\n{err}"
         assert returncode == 128 + sig, what
         assert "Traceback" not in err, what
