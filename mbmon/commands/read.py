@@ -157,7 +157,9 @@ def run(args: argparse.Namespace) -> int:
         if not args.rtu_raw:
             from mbmon.commands.read_core import read_with_core
 
-            done = read_with_core(path, args, view, flt, live=live, progress=progress)
+            done = read_with_core(
+                path, args, view, flt, live=live, progress=progress, annotator=annotator
+            )
             if done is not None:
                 return done
         return _read_with_pipeline(args, path, view, flt, annotator, live, progress)

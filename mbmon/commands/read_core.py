@@ -13,14 +13,24 @@ from mbmon.commands.read_summary import report
 
 
 def read_with_core(
-    path: str, args: argparse.Namespace, view: Any, flt: Any, *, live: bool, progress: Any
+    path: str,
+    args: argparse.Namespace,
+    view: Any,
+    flt: Any,
+    *,
+    live: bool,
+    progress: Any,
+    annotator: Any = None,
 ) -> int | None:
     """``read`` by the compiled core when it covers the options and the input: its exit
     status; ``None`` when it declined (before writing anything: the Python pipeline
-    then reads the input). ``--debug-core`` says which path ran and why."""
+    then reads the input). ``--debug-core`` says which path ran and why. ``annotator``:
+    the ``--profile`` annotator (the core annotates through it)."""
     from mbmon import core
 
     why = core.decline_for_options(args, live=live, flt=flt)
+    if why is None:
+        why = core.decline_for_profile(annotator)
     write = None
     broken: list[bool] = []
     if why is None and not args.quiet:
@@ -52,6 +62,7 @@ def read_with_core(
             write=write,
             progress=progress,
             detect=not args.no_detect,
+            annotator=annotator,
         )
         progress.close()
         why = run.declined

@@ -30,6 +30,7 @@ __all__ = [
     "CoreRun",
     "available",
     "decline_for_options",
+    "decline_for_profile",
     "read_buffer",
     "read_file",
     "status",
@@ -81,7 +82,7 @@ def decline_for_options(args: Any, *, live: bool, flt: Any) -> str | None:
         # without --trigger, a window is a usage error the Python path reports
         (getattr(args, "before", None) not in (None, "30s"), "--before"),
         (getattr(args, "after", None) not in (None, "10s"), "--after"),
-        (args.profile, "--profile"),
+        (args.profile and args.write, "--profile with -w"),
         (args.robot, "--robot"),
         (args.count, "-c"),
         (flt is not None and getattr(flt, "active", False), "filters"),
@@ -93,6 +94,32 @@ def decline_for_options(args: Any, *, live: bool, flt: Any) -> str | None:
             return f"{what} is not covered by the core"
     why = _load()
     return None if why is None else f"the compiled core is unavailable: {why}"
+
+
+def decline_for_profile(annotator: Any) -> str | None:
+    """Why the profiles ``--profile`` binds keep ``read`` off the core (a profile naming a
+    device session that does not support the core), or ``None``.
+
+    The core writes the notes of read requests and their answers from the profile's
+    compiled register map (:mod:`mbmon.semantics.profile.compiled`), hands every other
+    step to the annotator, and tells a session only what its
+    :class:`~mbmon.semantics.session.CoreWatch` asks for; a session without that
+    (:attr:`~mbmon.semantics.session.Session.core_ready`) is declined here."""
+    if annotator is None:
+        return None
+    from mbmon.semantics.session import Session, UnknownSession, session_factory
+
+    for profile in annotator.binding.profiles():
+        if profile.session is None:
+            continue
+        try:
+            factory = session_factory(profile.session)
+        except UnknownSession as exc:
+            return f"--profile {profile.name}: {exc}"
+        ready = isinstance(factory, type) and issubclass(factory, Session) and factory.core_ready
+        if not ready:
+            return f"--profile {profile.name}: session {profile.session!r} has no core support"
+    return None
 
 
 @dataclass
@@ -120,6 +147,7 @@ def read_file(
     write: Any | None,
     progress: Any | None = None,
     detect: bool = False,
+    annotator: Any | None = None,
 ) -> CoreRun:
     """Run the core on the capture at ``path``: a deciding pass, then (unless it
     declined, and when ``write`` is given) a writing pass that hands its output,
@@ -151,6 +179,7 @@ def read_file(
                 release=_releaser(mapped),
                 progress=progress,
                 detect=detect,
+                annotator=annotator,
             )
         finally:
             data.release()
@@ -169,6 +198,7 @@ def read_buffer(
     release: Any | None = None,
     progress: Any | None = None,
     detect: bool = False,
+    annotator: Any | None = None,
 ) -> CoreRun:
     """:func:`read_file` on a capture already in memory (``data``: bytes or a buffer);
     ``progress(done, total)`` is called about once per MiB (each pass is half)."""
@@ -187,7 +217,8 @@ def read_buffer(
         return CoreRun(counts=_counts(first))
     # the first pass fed port detection every other-port segment and found no Modbus
     # there: the writing pass need not look again
-    second = _reader._Pass(True, as_json, timeout, ports, view, write, False)
+    # with ``annotator`` (``--profile``) the writing pass annotates; the first only decides
+    second = _reader._Pass(True, as_json, timeout, ports, view, write, False, annotator)
     second.release = release
     second.progress = progress
     second.progress_base = len(data) // 2
@@ -222,6 +253,7 @@ def _counts(done: Any) -> dict[str, Any]:
         "first": done.first if done.any_record else None,
         "last": done.last if done.any_record else None,
         "events": dict(done.events),
+        "commands": done.command_counts() if hasattr(done, "command_counts") else None,
     }
 
 
@@ -233,6 +265,10 @@ def fill_summary(summary: Any, counts: dict[str, Any]) -> None:
     summary.first = counts["first"]
     summary.last = counts["last"]
     summary.events.update(counts["events"])
+    if counts.get("commands") is not None:  # --profile: robot commands by outcome, warnings
+        commands, warnings = counts["commands"]
+        summary.commands.update(commands)
+        summary.warnings += warnings
 
 
 def _pdu_entry(data: bytes, response: bool, request: bytes | None = None) -> Any:
