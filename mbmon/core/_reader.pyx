@@ -426,6 +426,7 @@ cdef class _Bound:
     cdef object session
     cdef dict reads             # (fc << 32) | (address << 16) | count -> _CRead
     cdef double deadline
+    cdef object watch           # the CoreWatch the arrays below hold
     cdef int nw                 # watched answer ranges; -1: every answer
     cdef int wfc[64]
     cdef int wfirst[64]
@@ -446,6 +447,9 @@ cdef class _Bound:
         if self.session is None:
             return 0
         watch = self.session.core_watch()
+        if watch is self.watch:
+            return 0
+        self.watch = watch
         self.deadline = watch.deadline
         if len(watch.answers) > 64:
             self.nw = -1

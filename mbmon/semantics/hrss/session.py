@@ -134,6 +134,8 @@ class HrssSession(Session):
         # their words: the same words decode the same (see _decode); bounded
         self._decoded: dict[int | None, list[_Remembered]] = {}
         self._decoded_count = 0
+        # CoreWatch by what it was made from (see core_watch)
+        self._watches: dict[tuple[Any, ...], tuple[Exec | None, CoreWatch]] = {}
 
     # ------------------------------------------------------------------ public views
 
@@ -266,7 +268,29 @@ class HrssSession(Session):
         (the image commands are decoded from), the Get commands' returns, the command
         status while a command waits for one, the queue length crossing its limit, the
         motion state when it changes or while the command in flight is moving; and
-        the time from which a step may report a command that never completed."""
+        the time from which a step may report a command that never completed.
+
+        Made again only when what it depends on changed (it is asked after every call
+        the core makes, most of which change none of it)."""
+        a = self._active
+        key = (
+            None
+            if a is None
+            else (id(a), a.done, a.looked, a.moving, a.settled, a.warned, a.t0),
+            self._queue_over,
+            self._motion,
+            self._holding.get(self._exec_reg),
+        )
+        known = self._watches.get(key)
+        if known is not None and known[0] is a:  # (the same command, not one at its address)
+            return known[1]
+        if len(self._watches) >= 16:  # a few states recur (the motion toggling): bounded
+            self._watches.clear()
+        watch = self._core_watch()
+        self._watches[key] = (a, watch)
+        return watch
+
+    def _core_watch(self) -> CoreWatch:
         p = self._spec
         always: list[tuple[int, int, int, int, int]] = [
             (fc, 0, 0xFFFF, 1, 0) for fc in sorted(_HOLDING_READS)
