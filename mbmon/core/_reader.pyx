@@ -1115,7 +1115,7 @@ cdef class _Pass:
 
     cdef object bound_of(self, int sid, int unit):
         """The :class:`_Bound` of a stream and unit, or None when no profile applies."""
-        cdef object key = (sid << 8) | unit
+        cdef object key = (<int64_t>sid << 8) | unit
         bound = self.pb.get(key, self)
         if bound is not self:
             return bound
@@ -1136,7 +1136,7 @@ cdef class _Pass:
 
     cdef _CRead cread(self, _Bound bound, int fc, int address, int count):
         """The compiled read request shape (made on first use, kept per binding)."""
-        cdef object key = (<int64_t>fc << 32) | (address << 16) | count
+        cdef object key = (<int64_t>fc << 32) | (<int64_t>address << 16) | count
         cr = bound.reads.get(key)
         if cr is None:
             if len(bound.reads) >= 4096:

@@ -457,6 +457,18 @@ address = 50
 n = [1, 4]
 type = "u16"
 
+[[holding_registers]]
+name = "HIGH"
+address = 40001
+type = "u16"
+label = "a holding register far up"
+
+[[input_registers]]
+name = "IHIGH"
+address = 40001
+type = "s16"
+label = "an input register at the same address"
+
 [[input_registers]]
 name = "T"
 address = 0
@@ -502,7 +514,8 @@ def kinds_steps(seed: int) -> list[tuple[float, int, int, bytes | None, bytes | 
     cell = Cell()
     shapes = [(3, 0, 14), (3, 0, 40), (3, 2, 3), (3, 3, 4), (3, 14, 16), (3, 14, 12),
               (3, 30, 4), (3, 34, 6), (3, 40, 9), (3, 41, 2), (3, 50, 4), (3, 5, 30),
-              (4, 0, 2), (4, 0, 1), (4, 1, 5), (3, 100, 5), (3, 0, 125)]  # fmt: skip
+              (4, 0, 2), (4, 0, 1), (4, 1, 5), (3, 100, 5), (3, 0, 125),
+              (3, 40000, 3), (4, 40000, 3), (3, 65530, 6), (4, 65535, 1)]  # fmt: skip
     for _ in range(400):
         fc, address, count = rng.choice(shapes)
         values = [rng.choice(EDGES) if rng.random() < 0.5 else rng.randrange(65536)
@@ -531,7 +544,7 @@ def test_every_register_kind(tmp_path: Path, seed: int) -> None:
     path = write_capture(tmp_path / "kinds.pcap", kinds_steps(seed))
     text = assert_same(path, [str(profile)])
     for what in ("nan", "inf", "(out of range -400..1500)", "(unknown)", "… (+", "-1 (negative)",
-                 "0xFFFFFFFF", "V", "PR[", '"steps"'):  # fmt: skip
+                 "0xFFFFFFFF", "V", "PR[", '"steps"', "IHIGH an input"):  # fmt: skip
         assert what.encode() in text, what
 
 
