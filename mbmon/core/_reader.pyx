@@ -497,12 +497,15 @@ cdef bytes _note_bytes(str text, bint as_json):
 
 cdef _CRead _compile_read(object profile, int fc, int address, int count, bint as_json):
     """:func:`mbmon.semantics.profile.compiled.compile_read` as the core keeps it."""
-    from mbmon.semantics.profile.compiled import compile_read
+    from mbmon.semantics.profile.compiled import compile_read, compile_write_answer
 
     cdef _CRead cr = _CRead()
     cdef Op* op
     cdef int i
-    compiled = compile_read(profile, fc, address, count)
+    if fc & 0x100:  # the answer to a register write
+        compiled = compile_write_answer(profile, fc & 0xFF, address, count)
+    else:
+        compiled = compile_read(profile, fc, address, count)
     cr.req_notes = [_note_bytes(n, as_json) for n in compiled.request]
     cr.texts = []
     cr.enums = []
@@ -1169,11 +1172,7 @@ cdef class _Pass:
         cdef Native nat, rnat
         cdef bint native
         cdef _CRead cr
-        cdef int fc, i, nm, address, count
-        cdef Py_ssize_t line_at, at
-        cdef Buf* o = &self.out
-        cdef int tid = (adu[0] << 8) | adu[1]
-        cdef int unit = adu[6]
+        cdef int fc, i, address, count
         session_notes = None
         commands = None
         if d == 0:
@@ -1186,6 +1185,9 @@ cdef class _Pass:
         if native and self.fnames[nat.fc] is None:
             native = False
         fc = nat.fc if native else 0
+        if native and d == 1 and (fc == 6 or fc == 16):
+            return self.prof_write_answer(bound, index, sid, ts, adu, alen, req, latency, &nat,
+                                          &rnat)
         if not native or fc < 1 or fc > 4:
             return self.prof_python(bound, index, sid, d, ts, adu, alen, req, latency)
         if d == 0:
@@ -1212,6 +1214,22 @@ cdef class _Pass:
             nat.has_addr = 1
             nat.address = address
             nat.count = count
+        return self.prof_line(sid, d, index, ts, adu, alen, req, latency, &nat, cr,
+                              d == 0, d == 1, session_notes, commands)
+
+    cdef int prof_line(self, int sid, int d, int64_t index, double ts, const uint8_t* adu,
+                       int alen, Pend* req, double latency, Native* nat, _CRead cr,
+                       bint with_notes, bint with_ops, object session_notes,
+                       object commands) except -1:
+        """A frame's line (and JSON object) with its notes: the generic one, then the
+        compiled read's notes (``with_notes``) and its operations on the values
+        (``with_ops``), then the session's; then the step's command records."""
+        cdef int i, nm
+        cdef Py_ssize_t line_at, at
+        cdef Buf* o = &self.out
+        cdef int tid = (adu[0] << 8) | adu[1]
+        cdef int unit = adu[6]
+        cdef int fc = nat.fc
         stream = self.stream_obj(sid)
         if self.labels[sid] is None:
             self.labels[sid] = (
@@ -1241,11 +1259,17 @@ cdef class _Pass:
             else:
                 put_bytes(o, b',"kind":"response","exception_code":null')
             put(o, b',"address":', 11)
-            put_u(o, nat.address)
+            if nat.has_addr:
+                put_u(o, nat.address)
+            else:
+                put(o, b"null", 4)
             put(o, b',"count":', 9)
-            put_u(o, nat.count)
+            if nat.has_addr and nat.count >= 0:
+                put_u(o, nat.count)
+            else:
+                put(o, b"null", 4)
             put(o, b',"values":', 10)
-            put_values_json(o, &nat)
+            put_values_json(o, nat)
             put(o, b',"pdu":"', 8)
             put_hex(o, adu + 7, alen - 7)
             put(o, b'","line":"', 10)
@@ -1262,30 +1286,30 @@ cdef class _Pass:
         put(o, b"  | ", 4)
         nm = 0
         self.mark(nm, o.n)
-        self.put_note(&nat)
+        self.put_note(nat)
         self.mark(nm + 1, o.n)
         nm += 2
-        if d == 0:
+        if with_notes:
             for note in cr.req_notes:
                 put(o, b"; ", 2)
                 self.mark(nm, o.n)
                 put_bytes(o, note)
                 self.mark(nm + 1, o.n)
                 nm += 2
-        else:
+        if with_ops:
             for i in range(cr.nops):
                 put(o, b"; ", 2)
                 self.mark(nm, o.n)
                 put_op(o, cr, &cr.ops[i], nat.vdata)
                 self.mark(nm + 1, o.n)
                 nm += 2
-            if session_notes:
-                for note in session_notes:
-                    put(o, b"; ", 2)
-                    self.mark(nm, o.n)
-                    put_bytes(o, _note_bytes(note, self.as_json))
-                    self.mark(nm + 1, o.n)
-                    nm += 2
+        if session_notes:
+            for note in session_notes:
+                put(o, b"; ", 2)
+                self.mark(nm, o.n)
+                put_bytes(o, _note_bytes(note, self.as_json))
+                self.mark(nm + 1, o.n)
+                nm += 2
         if req != NULL:
             put(o, b" (", 2)
             put_double(o, latency * 1000, b'f', 1, 0)
@@ -1320,6 +1344,33 @@ cdef class _Pass:
         if o.n >= FLUSH_AT:
             self.flush_out()
         return 0
+
+    cdef int prof_write_answer(self, _Bound bound, int64_t index, int sid, double ts,
+                               const uint8_t* adu, int alen, Pend* req, double latency,
+                               Native* nat, Native* rnat) except -1:
+        """The answer to a register write (FC 06, 10) under a profile: its notes compiled
+        (a single write's echo laid out, a multiple write's span), and the session told
+        through ``core_write_answer``; the annotator takes it when either cannot."""
+        cdef _CRead cr
+        cdef int count
+        session_notes = None
+        commands = None
+        if (nat.kind != 1 or rnat.kind != 0 or rnat.fc != nat.fc or not nat.has_addr
+                or (bound.session is not None and ts >= bound.deadline)):
+            return self.prof_python(bound, index, sid, 1, ts, adu, alen, req, latency)
+        count = 1 if nat.fc == 6 else nat.count
+        cr = self.cread(bound, nat.fc | 0x100, nat.address, count)
+        if cr.nops < 0:
+            return self.prof_python(bound, index, sid, 1, ts, adu, alen, req, latency)
+        if bound.session is not None:
+            key = (req.ts, sid, req.tid, PyBytes_FromStringAndSize(<const char*>req.raw, req.alen))
+            done = bound.session.core_write_answer(key, ts, self.stream_obj(sid))
+            if done is None:
+                return self.prof_python(bound, index, sid, 1, ts, adu, alen, req, latency)
+            session_notes, commands = done
+            bound.refresh()
+        return self.prof_line(sid, 1, index, ts, adu, alen, req, latency, nat, cr, True, True,
+                              session_notes, commands)
 
     cdef int command_records(self, object commands) except -1:
         """The COMMAND records a step made, after its frame's (formatted by mbmon.format)."""

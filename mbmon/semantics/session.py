@@ -160,6 +160,15 @@ class Session:
         before them) and its command steps."""
         raise NotImplementedError(f"{type(self).__name__} does not support the compiled core")
 
+    def core_write_answer(
+        self, request: tuple[float, int, int, bytes], ts: float, stream: Stream
+    ) -> tuple[list[str], list[CommandUpdate]] | None:
+        """:meth:`follow` of the answer (not an exception) to a register write the core
+        writes itself (FC 06, 10), told by its request's ``(time, stream id, transaction
+        id, ADU)``: the session's notes and command steps, or ``None`` (the default) to
+        have the step go through the annotator and :meth:`follow` instead."""
+        return None
+
 
 def annotation(
     notes: list[str], commands: tuple[CommandUpdate, ...] = (), state: Any = None

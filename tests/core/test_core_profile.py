@@ -287,6 +287,33 @@ def test_hrss_timeout_and_bindings(tmp_path: Path) -> None:
     assert_same(path, ["10.0.0.2:502=hrss", "unit:2=xeg"])
 
 
+def test_hrss_writes_beyond_the_session_memory(tmp_path: Path) -> None:
+    """300 writes in flight before their answers: the session forgets the oldest (a
+    warning), so their answers go through the annotator again (``core_write_answer``
+    says None); the others are confirmed by the core's narrow call."""
+    cell = Cell()
+    requests = []
+    for i in range(300):  # R200 = 0 (a reset), whose echo the core notes itself
+        req = encode_write_single(6, 200, 0) if i % 3 else encode_write_single(6, 203, i)
+        requests.append(req)
+        cell.step(req, None, dt=0.001)
+    for i, req in enumerate(requests):  # the answers, in order, same transaction ids
+        cell.steps.append((cell.t + 0.001 * (i + 1), 0, 1, None, req))
+    steps = [(t, c, u, q, r) for t, c, u, q, r in cell.steps]
+    # answers carry the request's transaction id: write them as one conversation
+    path = tmp_path / "many.pcap"
+    conv = TcpConversation("10.0.0.10:40000", "10.0.0.2:502")
+    with PcapWriter(path) as w:
+        for frame in conv.open():
+            w.write(T0, frame)
+        for tid, (t, _, unit, req, _) in enumerate(steps[:300], 1):
+            w.write(T0 + t, conv.send(True, encode_adu(tid, unit, req or b"")))
+        for tid, (t, _, unit, _, resp) in enumerate(steps[300:], 1):
+            w.write(T0 + t, conv.send(False, encode_adu(tid, unit, resp or b"")))
+    text = assert_same(path, ["hrss"], timeout=100.0)
+    assert b"writes unanswered" in text
+
+
 def test_hrss_realistic_cell(tmp_path: Path) -> None:
     """bench/realistic.py's HRSS cell (state polled every cycle, commands every 25)."""
     sys.path.insert(0, str(ROOT / "bench"))

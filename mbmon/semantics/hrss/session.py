@@ -274,9 +274,7 @@ class HrssSession(Session):
         the core makes, most of which change none of it)."""
         a = self._active
         key = (
-            None
-            if a is None
-            else (id(a), a.done, a.looked, a.moving, a.settled, a.warned, a.t0),
+            None if a is None else (id(a), a.done, a.looked, a.moving, a.settled, a.warned, a.t0),
             self._queue_over,
             self._motion,
             self._holding.get(self._exec_reg),
@@ -338,6 +336,26 @@ class HrssSession(Session):
         out.commands = None
         out.state_changed = False
         self._answer_values(fc, address, values, ts, out)
+        a = self._active
+        if a is not None and ts - a.t0 > self._timeout:
+            self._check_timeout(ts, out)
+        return out.notes, out.commands or []
+
+    def core_write_answer(
+        self, request: tuple[float, int, int, bytes], ts: float, stream: Stream
+    ) -> tuple[list[str], list[CommandUpdate]] | None:
+        """:meth:`follow` of a register write's answer, for the compiled core: the
+        write is confirmed (its request was followed: ``None`` when it was not, and the
+        core hands the step to the annotator); a write's answer reads nothing."""
+        if request not in self._writes:
+            return None
+        out = self._out
+        out.ts = ts
+        out.stream = stream
+        out.notes = []
+        out.commands = None
+        out.state_changed = False
+        self._confirm(request)
         a = self._active
         if a is not None and ts - a.t0 > self._timeout:
             self._check_timeout(ts, out)

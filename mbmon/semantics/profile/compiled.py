@@ -21,8 +21,15 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from mbmon.protocol.functions import FUNCTIONS, PROFILE_TABLE
-from mbmon.semantics.notes import _MAX_RUN_WORDS, _RUN, _VALUE, layout_of, read_request_note
+from mbmon.protocol.functions import FUNCTIONS, PROFILE_TABLE, SHAPE
+from mbmon.semantics.notes import (
+    _MAX_RUN_WORDS,
+    _RUN,
+    _VALUE,
+    layout_of,
+    read_request_note,
+    span_note,
+)
 from mbmon.semantics.profile.model import BIT_TABLES, Profile
 from mbmon.semantics.values import ValueFormat
 
@@ -39,6 +46,7 @@ __all__ = [
     "TYPES",
     "CompiledRead",
     "compile_read",
+    "compile_write_answer",
 ]
 
 #: operation kinds: one value (``head`` number ``suffix``), or a run of plain words
@@ -78,6 +86,23 @@ def compile_read(profile: Profile, fc: int, address: int, count: int) -> Compile
     if table in BIT_TABLES or not count or count > limit:
         return CompiledRead(request, None)
     return CompiledRead(request, _compile_layout(layout_of(profile, table, address, count).items))
+
+
+def compile_write_answer(profile: Profile, fc: int, address: int, count: int) -> CompiledRead:
+    """The :class:`CompiledRead` of the answer to a well-formed register write (the
+    annotator's notes of that answer): a single write's echo is laid out like one
+    register read (``answer``), a multiple write's answer is the span it wrote
+    (``request``, e.g. ``R201..R221 written``). ``answer`` ``None``: not compiled."""
+    row = FUNCTIONS.get(fc)
+    table = PROFILE_TABLE[row.table] if row is not None and row.table is not None else None
+    shape = SHAPE.get(fc)
+    if table is None or table in BIT_TABLES:
+        return CompiledRead((), None)
+    if shape == "write_single":
+        return CompiledRead((), _compile_layout(layout_of(profile, table, address, 1).items))
+    if shape == "write_multiple":
+        return CompiledRead(tuple(span_note(profile, table, address, count, "written")), ())
+    return CompiledRead((), None)
 
 
 def _compile_layout(items: tuple[tuple[Any, ...], ...]) -> tuple[Op, ...] | None:
