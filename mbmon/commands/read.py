@@ -156,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
         # ---- the compiled core's hand-off (mbmon/commands/read_core.py): it takes the
         # whole input when it covers it (one capture file, the options it knows), or
         # declines before writing a byte and the sources below read the input
-        done = core_hand_off(sources, args, view, flt)
+        done = core_hand_off(sources, args, view, flt, annotator)
         if done is not None:
             return done
         return _read_with_pipeline(args, sources, view, flt, annotator)

@@ -14,7 +14,9 @@ from mbmon.commands.ending import interrupted_status
 from mbmon.commands.read_summary import report
 
 
-def core_hand_off(sources: list[Any], args: argparse.Namespace, view: Any, flt: Any) -> int | None:
+def core_hand_off(
+    sources: list[Any], args: argparse.Namespace, view: Any, flt: Any, annotator: Any = None
+) -> int | None:
     """The one place where ``read`` hands its run to the compiled core: its input is
     one capture file (a :class:`~mbmon.sources.files.CaptureFileSource`, not yet
     opened), which the core reads whole by its path when it covers it. The exit
@@ -31,7 +33,9 @@ def core_hand_off(sources: list[Any], args: argparse.Namespace, view: Any, flt: 
     else:
         source = sources[0]
         live = source.mode == "stream"
-        done = read_with_core(source.path, args, view, flt, live=live, progress=source.progress)
+        done = read_with_core(
+            source.path, args, view, flt, live=live, progress=source.progress, annotator=annotator
+        )
     if done is None and args.debug_core and (args.rtu_raw or args.rtu_port):
         from mbmon import core
 
@@ -40,15 +44,25 @@ def core_hand_off(sources: list[Any], args: argparse.Namespace, view: Any, flt: 
 
 
 def read_with_core(
-    path: str, args: argparse.Namespace, view: Any, flt: Any, *, live: bool, progress: Any
+    path: str,
+    args: argparse.Namespace,
+    view: Any,
+    flt: Any,
+    *,
+    live: bool,
+    progress: Any,
+    annotator: Any = None,
 ) -> int | None:
     """``read`` by the compiled core when it covers the options and the input: its exit
     status; ``None`` when it declined (before writing anything: the Python pipeline
-    then reads the input). ``--debug-core`` says which path ran and why."""
+    then reads the input). ``--debug-core`` says which path ran and why. ``annotator``:
+    the ``--profile`` annotator (the core annotates through it)."""
     from mbmon import core
     from mbmon.sinks.base import SinkError
 
     why = core.decline_for_options(args, live=live, flt=flt)
+    if why is None:
+        why = core.decline_for_profile(annotator)
     write = None
     broken: list[bool] = []
     if why is None and not args.quiet:
@@ -83,6 +97,7 @@ def read_with_core(
                 progress=progress,
                 detect=not args.no_detect,
                 log=log,
+                annotator=annotator,
             )
         except SinkError as exc:  # the log could not be opened or written (it was closed)
             progress.close()

@@ -35,6 +35,7 @@ __all__ = [
     "CoreRun",
     "available",
     "decline_for_options",
+    "decline_for_profile",
     "read_buffer",
     "read_file",
     "status",
@@ -86,7 +87,7 @@ def decline_for_options(args: Any, *, live: bool, flt: Any) -> str | None:
         # without --trigger, a window is a usage error the Python path reports
         (getattr(args, "before", None) not in (None, "30s"), "--before"),
         (getattr(args, "after", None) not in (None, "10s"), "--after"),
-        (args.profile, "--profile"),
+        (args.profile and args.write, "--profile with -w"),
         (args.robot, "--robot"),
         (args.count, "-c"),
         (flt is not None and getattr(flt, "active", False), "filters"),
@@ -104,6 +105,32 @@ def _one_mcap_log(targets: Any) -> bool:
     """Whether ``-w`` asks for no log, or for one MCAP log (the one log the core writes)."""
     targets = list(targets or [])
     return not targets or (len(targets) == 1 and str(targets[0]).lower().endswith(".mcap"))
+
+
+def decline_for_profile(annotator: Any) -> str | None:
+    """Why the profiles ``--profile`` binds keep ``read`` off the core (a profile naming a
+    device session that does not support the core), or ``None``.
+
+    The core writes the notes of read requests and their answers from the profile's
+    compiled register map (:mod:`mbmon.semantics.profile.compiled`), hands every other
+    step to the annotator, and tells a session only what its
+    :class:`~mbmon.semantics.session.CoreWatch` asks for; a session without that
+    (:attr:`~mbmon.semantics.session.Session.core_ready`) is declined here."""
+    if annotator is None:
+        return None
+    from mbmon.semantics.session import Session, UnknownSession, session_factory
+
+    for profile in annotator.binding.profiles():
+        if profile.session is None:
+            continue
+        try:
+            factory = session_factory(profile.session)
+        except UnknownSession as exc:
+            return f"--profile {profile.name}: {exc}"
+        ready = isinstance(factory, type) and issubclass(factory, Session) and factory.core_ready
+        if not ready:
+            return f"--profile {profile.name}: session {profile.session!r} has no core support"
+    return None
 
 
 @dataclass
@@ -135,6 +162,7 @@ def read_file(
     progress: Any | None = None,
     detect: bool = False,
     log: Any | None = None,
+    annotator: Any | None = None,
 ) -> CoreRun:
     """Run the core on the capture at ``path``: a deciding pass, then (unless it
     declined, and when ``write`` or ``log`` is given) a writing pass that hands its
@@ -170,6 +198,7 @@ def read_file(
                 progress=progress,
                 detect=detect,
                 log=log,
+                annotator=annotator,
             )
         finally:
             data.release()
@@ -189,6 +218,7 @@ def read_buffer(
     progress: Any | None = None,
     detect: bool = False,
     log: Any | None = None,
+    annotator: Any | None = None,
 ) -> CoreRun:
     """:func:`read_file` on a capture already in memory (``data``: bytes or a buffer);
     ``progress(done, total)`` is called about once per MiB (each pass is half)."""
@@ -207,7 +237,8 @@ def read_buffer(
         return CoreRun(counts=_counts(first))
     # the first pass fed port detection every other-port segment and found no Modbus
     # there: the writing pass need not look again
-    second = _reader._Pass(True, as_json, timeout, ports, view, write, False)
+    # with ``annotator`` (``--profile``) the writing pass annotates; the first only decides
+    second = _reader._Pass(True, as_json, timeout, ports, view, write, False, annotator)
     second.release = release
     second.progress = progress
     second.progress_base = len(data) // 2
@@ -265,6 +296,7 @@ def _counts(done: Any) -> dict[str, Any]:
         "first": done.first if done.any_record else None,
         "last": done.last if done.any_record else None,
         "events": dict(done.events),
+        "commands": done.command_counts() if hasattr(done, "command_counts") else None,
     }
 
 
@@ -276,6 +308,10 @@ def fill_summary(summary: Any, counts: dict[str, Any]) -> None:
     summary.first = counts["first"]
     summary.last = counts["last"]
     summary.events.update(counts["events"])
+    if counts.get("commands") is not None:  # --profile: robot commands by outcome, warnings
+        commands, warnings = counts["commands"]
+        summary.commands.update(commands)
+        summary.warnings += warnings
 
 
 def _pdu_entry(data: bytes, response: bool, request: bytes | None = None) -> Any:

@@ -49,6 +49,7 @@ from mbmon.model import (
     Direction, Event, EventKind, Frame, Record, RecordKind, Stream, Transport,
 )
 from mbmon.model import Chunk
+from mbmon.model import Kind, Transaction, TxStatus
 from mbmon.protocol.pairing import _needs_request
 from mbmon.protocol.pdu import decode_pdu
 
@@ -444,6 +445,269 @@ cdef struct Native:       # a PDU this module formats itself
     int onoff              # 05: the note says ON/OFF
 
 
+
+# --------------------------------------------------------------------------- profiles
+
+
+cdef struct Op:           # one operation of a compiled read (mbmon.semantics.profile.compiled)
+    int kind               # 0: one value, 1: a run of plain words
+    int a                  # first word
+    int b                  # end word
+    int type               # 0 u16, 1 s16, 2 u32, 3 i32, 4 f32
+    int high_low           # two-word types: the high word first
+    int fmt                # F_PLAIN .. F_FLOAT
+    int decimals
+    int64_t divisor
+    double scale
+    int has_range
+    int64_t lo
+    int64_t hi
+    int head               # texts[head]: "A1 = "
+    int suffix             # texts[suffix]: " mm"
+    int enum               # enums[enum]: value -> text, or -1
+
+
+cdef class _CRead:
+    """One read request shape of one profile, compiled: the request's notes and the
+    operations writing its answer's notes (``nops < 0``: the annotator writes them)."""
+
+    cdef list req_notes         # the request's notes, as written (UTF-8, JSON-escaped in JSON)
+    cdef Op* ops
+    cdef int nops
+    cdef list texts
+    cdef list enums             # per enum: dict value -> text as written
+
+    def __cinit__(self):
+        self.ops = NULL
+        self.nops = -1
+
+    def __dealloc__(self):
+        free(self.ops)
+
+
+cdef class _Bound:
+    """A profile bound to a server and unit, its session (or None) and what the session
+    watches (:class:`mbmon.semantics.session.CoreWatch`)."""
+
+    cdef object profile
+    cdef object session
+    cdef dict reads             # (fc << 32) | (address << 16) | count -> _CRead
+    cdef double deadline
+    cdef object watch           # the CoreWatch the arrays below hold
+    cdef int nw                 # watched answer ranges; -1: every answer
+    cdef int wfc[64]
+    cdef int wfirst[64]
+    cdef int wlast[64]
+    cdef int wlo[64]
+    cdef int whi[64]
+
+    def __init__(self, profile, session):
+        self.profile = profile
+        self.session = session
+        self.reads = {}
+        self.deadline = INFINITY
+        self.nw = 0
+
+    cdef int refresh(self) except -1:
+        """Ask the session again what it watches (after every call into it)."""
+        cdef int i = 0
+        if self.session is None:
+            return 0
+        watch = self.session.core_watch()
+        if watch is self.watch:
+            return 0
+        self.watch = watch
+        self.deadline = watch.deadline
+        if len(watch.answers) > 64:
+            self.nw = -1
+            return 0
+        for fc, first, last, lo, hi in watch.answers:
+            self.wfc[i] = fc
+            self.wfirst[i] = first
+            self.wlast[i] = last
+            self.wlo[i] = lo
+            self.whi[i] = hi
+            i += 1
+        self.nw = i
+        return 0
+
+    cdef bint watched(self, int fc, int address, int count, const uint8_t* words):
+        """Whether an answer (``count`` big-endian ``words`` read at ``address``) goes
+        to the session."""
+        cdef int i, lo, hi, r, v
+        if self.nw < 0:
+            return True
+        for i in range(self.nw):
+            if self.wfc[i] != fc:
+                continue
+            lo = self.wfirst[i] if self.wfirst[i] > address else address
+            hi = self.wlast[i] if self.wlast[i] < address + count - 1 else address + count - 1
+            if lo > hi:
+                continue
+            if self.wlo[i] > self.whi[i]:
+                return True
+            for r in range(lo, hi + 1):
+                v = <int>be16(words + 2 * (r - address))
+                if v & 0x8000:
+                    v -= 0x10000
+                if v < self.wlo[i] or v > self.whi[i]:
+                    return True
+        return False
+
+
+cdef bytes _note_bytes(str text, bint as_json):
+    """A note as the line carries it: UTF-8 (as the console writes it), JSON-escaped in JSON."""
+    if as_json:
+        return _inner(_orjson.dumps(text))
+    return text.encode("utf-8", "backslashreplace")
+
+
+cdef _CRead _compile_read(object profile, int fc, int address, int count, bint as_json):
+    """:func:`mbmon.semantics.profile.compiled.compile_read` as the core keeps it."""
+    from mbmon.semantics.profile.compiled import compile_read, compile_write_answer
+
+    cdef _CRead cr = _CRead()
+    cdef Op* op
+    cdef int i
+    if fc & 0x100:  # the answer to a register write
+        compiled = compile_write_answer(profile, fc & 0xFF, address, count)
+    else:
+        compiled = compile_read(profile, fc, address, count)
+    cr.req_notes = [_note_bytes(n, as_json) for n in compiled.request]
+    cr.texts = []
+    cr.enums = []
+    if compiled.answer is None:
+        return cr
+    cr.ops = <Op*>malloc((len(compiled.answer) + 1) * sizeof(Op))
+    if cr.ops == NULL:
+        raise MemoryError()
+    for i, item in enumerate(compiled.answer):
+        (kind, a, b, type_, high_low, fmt, decimals, divisor, scale, rng, head, suffix,
+         enum) = item
+        op = &cr.ops[i]
+        op.kind = kind
+        op.a = a
+        op.b = b
+        op.type = type_
+        op.high_low = 1 if high_low else 0
+        op.fmt = fmt
+        op.decimals = decimals
+        op.divisor = divisor
+        op.scale = scale
+        op.has_range = rng is not None
+        op.lo = rng[0] if rng is not None else 0
+        op.hi = rng[1] if rng is not None else 0
+        cr.texts.append(_note_bytes(head, as_json))
+        op.head = len(cr.texts) - 1
+        cr.texts.append(_note_bytes(suffix, as_json))
+        op.suffix = len(cr.texts) - 1
+        op.enum = -1
+        if enum is not None:
+            cr.enums.append({k: _note_bytes(v, as_json) for k, v in enum.items()})
+            op.enum = len(cr.enums) - 1
+    cr.nops = len(compiled.answer)
+    return cr
+
+
+cdef int put_hex_number(Buf* o, uint64_t v, int digits) except -1:
+    """``f"0x{v:0{digits}X}"``."""
+    cdef char tmp[20]
+    cdef int i = 20
+    put(o, b"0x", 2)
+    while v or 20 - i < digits:
+        i -= 1
+        tmp[i] = HEXD[v & 15]
+        v >>= 4
+    return put(o, tmp + i, 20 - i)
+
+
+cdef int put_op(Buf* o, _CRead cr, Op* op, const uint8_t* words) except -1:
+    """One note of a compiled answer (:func:`mbmon.semantics.values.format_value`)."""
+    cdef const uint8_t* w = words + 2 * op.a
+    cdef int64_t raw, mag
+    cdef uint32_t u, low, high
+    cdef float f
+    cdef int i, n, shown
+    cdef char tmp[24]
+    put_bytes(o, cr.texts[op.head])
+    if op.kind == 1:  # a run of plain words: at most 12, then "… (+N)"
+        n = op.b - op.a
+        shown = n if n < op.decimals else op.decimals
+        for i in range(shown):
+            if i:
+                put_c(o, 32)
+            raw = be16(w + 2 * i)
+            if op.type == 1 and raw & 0x8000:
+                raw -= 0x10000
+            put_i(o, raw)
+        if n > op.decimals:
+            put_bytes(o, b" \xe2\x80\xa6 (+")
+            put_i(o, n - op.decimals)
+            put_c(o, 41)
+        return 0
+    if op.type <= 1:
+        raw = be16(w)
+        if op.type == 1 and raw & 0x8000:
+            raw -= 0x10000
+    else:
+        if op.high_low:
+            high = be16(w)
+            low = be16(w + 2)
+        else:
+            low = be16(w)
+            high = be16(w + 2)
+        u = (high << 16) | low
+        if op.type == 4:
+            memcpy(&f, &u, 4)
+            put_double(o, <double>f * op.scale, b'g', 6, 0)
+            return put_bytes(o, cr.texts[op.suffix])
+        raw = u
+        if op.type == 3 and u & 0x80000000:
+            raw = <int64_t>u - 0x100000000
+    if op.fmt == 4 or op.fmt == 5:  # an enum
+        name = (<dict>cr.enums[op.enum]).get(raw)
+        if name is None:
+            put_i(o, raw)
+            put(o, b" (unknown)", 10)
+        elif op.fmt == 4:
+            put_bytes(o, name)
+            put(o, b" (", 2)
+            put_i(o, raw)
+            put_c(o, 41)
+        else:
+            put_i(o, raw)
+            put(o, b" (", 2)
+            put_bytes(o, name)
+            put_c(o, 41)
+    elif op.fmt == 1:
+        put_hex_number(o, <uint64_t>(raw & 0xFFFFFFFF), 4 * (op.b - op.a))
+    elif op.fmt == 0:
+        put_i(o, raw)
+        put_bytes(o, cr.texts[op.suffix])
+    elif op.fmt == 2:  # raw with a decimal point ``decimals`` digits from its end
+        mag = -raw if raw < 0 else raw
+        if raw < 0:
+            put_c(o, 45)
+        put_i(o, mag // op.divisor)
+        put_c(o, 46)
+        mag = mag % op.divisor
+        for i in range(op.decimals - 1, -1, -1):
+            tmp[i] = <char>(48 + mag % 10)
+            mag //= 10
+        put(o, tmp, op.decimals)
+        put_bytes(o, cr.texts[op.suffix])
+    else:  # F_SCALED: format(raw * scale, ".Nf")
+        put_double(o, <double>raw * op.scale, b'f', op.decimals, 0)
+        put_bytes(o, cr.texts[op.suffix])
+    if op.has_range and not (op.lo <= raw <= op.hi):
+        put(o, b" (out of range ", 15)
+        put_i(o, op.lo)
+        put(o, b"..", 2)
+        put_i(o, op.hi)
+        put_c(o, 41)
+    return 0
+
+
 cdef class _Pass:
     """One pass over a capture: every decision; with ``emit``, every line too."""
 
@@ -525,8 +789,17 @@ cdef class _Pass:
     cdef double next_stats      # capture time of the next stats event (the totals')
     cdef list mprefix           # stream * 2 + direction -> its /modbus/raw prefix
     cdef list mtails            # stream -> its /modbus/monitor tail
+    # --profile (the emitting pass only; annot None: no profile)
+    cdef object annot           # the run's Annotator (mbmon.semantics.annotate)
+    cdef dict pb                # (stream id << 8) | unit -> its _Bound, or None: no profile
+    cdef dict pb_shared         # (server, unit) -> _Bound (a session is one per server and unit)
+    cdef object cmd_summary     # a Summary fed the COMMAND records (the summary's commands)
+    cdef Py_ssize_t* marks      # where each note of the line being written starts and ends
+    cdef int capmarks
 
     def __cinit__(self):
+        self.marks = NULL
+        self.capmarks = 0
         self.conns = NULL
         self.pool = NULL
         self.table = NULL
@@ -551,10 +824,19 @@ cdef class _Pass:
         free(self.sp)
         free(self.out.p)
         free(self.mc.p)
+        free(self.marks)
 
     def __init__(self, bint emit, bint as_json, double timeout, ports, view, write,
-                 bint detect=False):
+                 bint detect=False, annotator=None):
         self.emit = emit
+        self.annot = annotator if emit else None
+        self.pb = {}
+        self.pb_shared = {}
+        self.cmd_summary = None
+        if self.annot is not None:
+            from mbmon.sinks.summary import Summary
+
+            self.cmd_summary = Summary(None)
         self.detect = detect
         self.detector = None
         if detect:
@@ -728,6 +1010,10 @@ cdef class _Pass:
             return 0
         if req != NULL:
             latency = ts - req.ts
+        if self.annot is not None:
+            bound = self.bound_of(sid, adu[6])
+            if bound is not None:
+                return self.prof_frame(<_Bound>bound, index, sid, d, ts, adu, alen, req, latency)
         # the PDUs this module formats itself; the rest goes to mbmon.format
         if d == 0:
             native = native_pdu(adu + 7, alen - 7, False, NULL, &nat)
@@ -1143,6 +1429,322 @@ cdef class _Pass:
         if m.n >= FLUSH_AT:
             self.flush_mcap()
         return 0
+
+
+    # ------------------------------------------------------------------ profiles
+
+    cdef object bound_of(self, int sid, int unit):
+        """The :class:`_Bound` of a stream and unit, or None when no profile applies."""
+        cdef object key = (<int64_t>sid << 8) | unit
+        bound = self.pb.get(key, self)
+        if bound is not self:
+            return bound
+        stream = self.stream_obj(sid)
+        profile, session = self.annot.bound(stream, unit)
+        bound = None
+        if profile is not None:
+            shared = (stream.server, unit)
+            bound = self.pb_shared.get(shared)
+            if bound is None or (<_Bound>bound).profile is not profile:
+                bound = _Bound(profile, session)
+                (<_Bound>bound).refresh()
+                self.pb_shared[shared] = bound
+        if len(self.pb) >= 65536:  # bounded: a binding is asked again at no cost to output
+            self.pb.clear()
+        self.pb[key] = bound
+        return bound
+
+    cdef _CRead cread(self, _Bound bound, int fc, int address, int count):
+        """The compiled read request shape (made on first use, kept per binding)."""
+        cdef object key = (<int64_t>fc << 32) | (<int64_t>address << 16) | count
+        cr = bound.reads.get(key)
+        if cr is None:
+            if len(bound.reads) >= 4096:
+                bound.reads.clear()
+            cr = bound.reads[key] = _compile_read(bound.profile, fc, address, count,
+                                                  self.as_json)
+        return <_CRead>cr
+
+    cdef int mark(self, int i, Py_ssize_t at) except -1:
+        """Note boundary ``i`` (start, end pairs) is at ``at`` in the output."""
+        cdef int cap
+        cdef Py_ssize_t* p
+        if i >= self.capmarks:
+            cap = self.capmarks * 2 if self.capmarks else 512
+            while cap <= i:
+                cap *= 2
+            p = <Py_ssize_t*>realloc(self.marks, cap * sizeof(Py_ssize_t))
+            if p == NULL:
+                raise MemoryError()
+            self.marks = p
+            self.capmarks = cap
+        self.marks[i] = at
+        return 0
+
+    cdef int prof_frame(self, _Bound bound, int64_t index, int sid, int d, double ts,
+                        const uint8_t* adu, int alen, Pend* req, double latency) except -1:
+        """A frame record under a profile: read requests and answers the compiled read
+        covers are written here (with what the session says when it watches the
+        answer), every other step goes through the annotator (:meth:`prof_python`)."""
+        cdef Native nat, rnat
+        cdef bint native
+        cdef _CRead cr
+        cdef int fc, i, address, count
+        session_notes = None
+        commands = None
+        if d == 0:
+            native = native_pdu(adu + 7, alen - 7, False, NULL, &nat)
+        elif req != NULL:
+            native = (native_pdu(req.raw + 7, req.alen - 7, False, NULL, &rnat)
+                      and native_pdu(adu + 7, alen - 7, True, &rnat, &nat))
+        else:
+            native = False
+        if native and self.fnames[nat.fc] is None:
+            native = False
+        fc = nat.fc if native else 0
+        if native and d == 1 and (fc == 6 or fc == 16):
+            return self.prof_write_answer(bound, index, sid, ts, adu, alen, req, latency, &nat,
+                                          &rnat)
+        if not native or fc < 1 or fc > 4:
+            return self.prof_python(bound, index, sid, d, ts, adu, alen, req, latency)
+        if d == 0:
+            if nat.kind != 0 or (bound.session is not None and ts >= bound.deadline):
+                return self.prof_python(bound, index, sid, d, ts, adu, alen, req, latency)
+            address = nat.address
+            count = nat.count
+            cr = self.cread(bound, fc, address, count)
+        else:
+            if nat.kind != 1 or rnat.kind != 0 or rnat.fc != fc or not rnat.has_addr:
+                return self.prof_python(bound, index, sid, d, ts, adu, alen, req, latency)
+            address = rnat.address
+            count = rnat.count
+            cr = self.cread(bound, fc, address, count)
+            if cr.nops < 0 or nat.bits or nat.nvalues != count:
+                return self.prof_python(bound, index, sid, d, ts, adu, alen, req, latency)
+            if bound.session is not None and (
+                    ts >= bound.deadline or bound.watched(fc, address, count, nat.vdata)):
+                values = tuple([be16(nat.vdata + 2 * i) for i in range(count)])
+                session_notes, commands = bound.session.core_answer(
+                    fc, address, values, ts, self.stream_obj(sid))
+                bound.refresh()
+            # a response's address and count are its read request's (the JSON's, the note's)
+            nat.has_addr = 1
+            nat.address = address
+            nat.count = count
+        return self.prof_line(sid, d, index, ts, adu, alen, req, latency, &nat, cr,
+                              d == 0, d == 1, session_notes, commands)
+
+    cdef int prof_line(self, int sid, int d, int64_t index, double ts, const uint8_t* adu,
+                       int alen, Pend* req, double latency, Native* nat, _CRead cr,
+                       bint with_notes, bint with_ops, object session_notes,
+                       object commands) except -1:
+        """A frame's line (and JSON object) with its notes: the generic one, then the
+        compiled read's notes (``with_notes``) and its operations on the values
+        (``with_ops``), then the session's; then the step's command records."""
+        cdef int i, nm
+        cdef Py_ssize_t line_at, at
+        cdef Buf* o = &self.out
+        cdef int tid = (adu[0] << 8) | adu[1]
+        cdef int unit = adu[6]
+        cdef int fc = nat.fc
+        stream = self.stream_obj(sid)
+        if self.labels[sid] is None:
+            self.labels[sid] = (
+                self.view.label(stream, Direction.C2S).encode("utf-8"),
+                self.view.label(stream, Direction.S2C).encode("utf-8"),
+            )
+            self.heads[sid] = (
+                _inner(_orjson.dumps({"stream": sid, "src": stream.client, "dst": stream.server})),
+                _inner(_orjson.dumps({"stream": sid, "src": stream.server, "dst": stream.client})),
+            )
+        cdef bytes label = self.labels[sid][d]
+        if self.as_json:
+            put(o, b'{"index":', 9)
+            put_i(o, index)
+            put(o, b',"time":', 8)
+            put_json_time(o, ts)
+            put_c(o, 44)
+            put_bytes(o, self.heads[sid][d])
+            put(o, b',"transport":"tcp","tid":', 25)
+            put_u(o, tid)
+            put(o, b',"unit":', 8)
+            put_u(o, unit)
+            put(o, b',"fc":', 6)
+            put_u(o, fc)
+            if nat.kind == 0:
+                put_bytes(o, b',"kind":"request","exception_code":null')
+            else:
+                put_bytes(o, b',"kind":"response","exception_code":null')
+            put(o, b',"address":', 11)
+            if nat.has_addr:
+                put_u(o, nat.address)
+            else:
+                put(o, b"null", 4)
+            put(o, b',"count":', 9)
+            if nat.has_addr and nat.count >= 0:
+                put_u(o, nat.count)
+            else:
+                put(o, b"null", 4)
+            put(o, b',"values":', 10)
+            put_values_json(o, nat)
+            put(o, b',"pdu":"', 8)
+            put_hex(o, adu + 7, alen - 7)
+            put(o, b'","line":"', 10)
+        line_at = o.n
+        self.put_time(ts)
+        put(o, b"  ", 2)
+        put_bytes(o, label)
+        put(o, b"  [u", 4)
+        put_u(o, unit)
+        put(o, b" t", 2)
+        put_u(o, tid)
+        put(o, b"]  ", 3)
+        put_hex(o, adu + 7, alen - 7)
+        put(o, b"  | ", 4)
+        nm = 0
+        self.mark(nm, o.n)
+        self.put_note(nat)
+        self.mark(nm + 1, o.n)
+        nm += 2
+        if with_notes:
+            for note in cr.req_notes:
+                put(o, b"; ", 2)
+                self.mark(nm, o.n)
+                put_bytes(o, note)
+                self.mark(nm + 1, o.n)
+                nm += 2
+        if with_ops:
+            for i in range(cr.nops):
+                put(o, b"; ", 2)
+                self.mark(nm, o.n)
+                put_op(o, cr, &cr.ops[i], nat.vdata)
+                self.mark(nm + 1, o.n)
+                nm += 2
+        if session_notes:
+            for note in session_notes:
+                put(o, b"; ", 2)
+                self.mark(nm, o.n)
+                put_bytes(o, _note_bytes(note, self.as_json))
+                self.mark(nm + 1, o.n)
+                nm += 2
+        if req != NULL:
+            put(o, b" (", 2)
+            put_double(o, latency * 1000, b'f', 1, 0)
+            put(o, b" ms)", 4)
+        if self.as_json:
+            put(o, b'","notes":[', 11)
+            for i in range(0, nm, 2):
+                put_c(o, 44 if i else 34)
+                if i:
+                    put_c(o, 34)
+                at = self.marks[i + 1] - self.marks[i]
+                buf_need(o, at)
+                memcpy(o.p + o.n, o.p + self.marks[i], at)
+                o.n += at
+                put_c(o, 34)
+            put(o, b'],"crc_ok":null,"latency_ms":', 29)
+            if req != NULL and fabs(latency) < 1e9:
+                put_json_round3(o, latency * 1000)
+            elif req != NULL:
+                put_bytes(o, _orjson.dumps(round(latency * 1000, 3)))
+            else:
+                put(o, b"null", 4)
+            put(o, b',"malformed":null,"request_index":', 34)
+            if req != NULL:
+                put_i(o, req.index)
+            else:
+                put(o, b"null", 4)
+            put_c(o, 125)
+        put_c(o, 10)
+        if commands:
+            self.command_records(commands)
+        if o.n >= FLUSH_AT:
+            self.flush_out()
+        return 0
+
+    cdef int prof_write_answer(self, _Bound bound, int64_t index, int sid, double ts,
+                               const uint8_t* adu, int alen, Pend* req, double latency,
+                               Native* nat, Native* rnat) except -1:
+        """The answer to a register write (FC 06, 10) under a profile: its notes compiled
+        (a single write's echo laid out, a multiple write's span), and the session told
+        through ``core_write_answer``; the annotator takes it when either cannot."""
+        cdef _CRead cr
+        cdef int count
+        session_notes = None
+        commands = None
+        if (nat.kind != 1 or rnat.kind != 0 or rnat.fc != nat.fc or not nat.has_addr
+                or (bound.session is not None and ts >= bound.deadline)):
+            return self.prof_python(bound, index, sid, 1, ts, adu, alen, req, latency)
+        count = 1 if nat.fc == 6 else nat.count
+        cr = self.cread(bound, nat.fc | 0x100, nat.address, count)
+        if cr.nops < 0:
+            return self.prof_python(bound, index, sid, 1, ts, adu, alen, req, latency)
+        if bound.session is not None:
+            key = (req.ts, sid, req.tid, PyBytes_FromStringAndSize(<const char*>req.raw, req.alen))
+            done = bound.session.core_write_answer(key, ts, self.stream_obj(sid))
+            if done is None:
+                return self.prof_python(bound, index, sid, 1, ts, adu, alen, req, latency)
+            session_notes, commands = done
+            bound.refresh()
+        return self.prof_line(sid, 1, index, ts, adu, alen, req, latency, nat, cr, True, True,
+                              session_notes, commands)
+
+    cdef int command_records(self, object commands) except -1:
+        """The COMMAND records a step made, after its frame's (formatted by mbmon.format)."""
+        for cmd in commands:
+            rec = Record(self.index, cmd.ts, RecordKind.COMMAND, cmd.stream, command=cmd)
+            self.count_record(cmd.ts, cmd.stream.id)
+            self.cmd_summary.on_records([rec])
+            self.put_record(rec)
+        return 0
+
+    cdef int prof_python(self, _Bound bound, int64_t index, int sid, int d, double ts,
+                         const uint8_t* adu, int alen, Pend* req, double latency) except -1:
+        """A frame record the reference way, annotated: its Frame, Transaction and the
+        annotator's Annotation, formatted by mbmon.format; then its command records."""
+        stream = self.stream_obj(sid)
+        raw = PyBytes_FromStringAndSize(<const char*>adu, alen)
+        tid = (adu[0] << 8) | adu[1]
+        pdu = decode_pdu(raw[7:], d == 1)
+        request = None
+        req_index = None
+        lat = None
+        if req != NULL:
+            req_raw = PyBytes_FromStringAndSize(<const char*>req.raw, req.alen)
+            req_pdu = decode_pdu(req_raw[7:], False)
+            request = Frame(req.ts, stream, Direction.C2S, req.unit, req.tid, req_pdu, req_raw,
+                            None)
+            if _needs_request(pdu, req_pdu):
+                pdu = decode_pdu(pdu.raw, True, request=req_pdu)
+            req_index = req.index
+            lat = latency
+        frame = Frame(ts, stream, Direction.S2C if d else Direction.C2S, adu[6], tid, pdu, raw,
+                      None)
+        if pdu.malformed:
+            self.malformed += 1
+        if d == 0:
+            tx = Transaction(ts, TxStatus.PENDING, frame, None)
+        elif req != NULL:
+            tx = Transaction(ts, TxStatus.EXCEPTION if pdu.kind is Kind.EXCEPTION
+                             else TxStatus.ANSWERED, request, frame, lat)
+        else:
+            tx = Transaction(ts, TxStatus.UNSOLICITED, None, frame)
+        annotation = self.annot.annotate(tx)
+        kind = _RECORD_KIND[pdu.kind]
+        rec = Record(index, ts, kind, stream, frame, request if d else None, req_index, lat,
+                     None, None, None, annotation.notes, annotation.state)
+        self.put_record(rec)
+        if annotation.commands:
+            self.command_records(annotation.commands)
+        if bound.session is not None:
+            bound.refresh()
+        return 0
+
+    def command_counts(self):
+        """The summary's robot commands (by outcome) and warnings, or None without a profile."""
+        if self.cmd_summary is None:
+            return None
+        return self.cmd_summary.command_counts(), self.cmd_summary.warnings
 
     # ------------------------------------------------------------------ pairing
 

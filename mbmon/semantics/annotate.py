@@ -154,6 +154,12 @@ class Annotator:
             return session.follow(tx, notes)
         return _new_annotation(tuple(notes), (), None) if notes else _EMPTY
 
+    def bound(self, stream: Stream, unit: int) -> tuple[Profile | None, Session | None]:
+        """The profile bound to a stream's server and ``unit`` and its device session
+        (made now if it is the first step there), or ``None`` for either: what the
+        compiled core asks once per stream and unit."""
+        return self._bind(stream, unit)
+
     def _bind(self, stream: Stream, unit: int) -> tuple[Profile | None, Session | None]:
         """The profile and session (or ``None``) of a stream and unit, remembered as the
         last ones: consecutive steps mostly share a stream, and a binding never changes."""

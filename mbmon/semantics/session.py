@@ -26,6 +26,7 @@ a whole one.
 from __future__ import annotations
 
 import importlib
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import metadata
@@ -35,6 +36,7 @@ from mbmon.model import Annotation, CommandUpdate, Stream, Transaction, fast_con
 
 __all__ = [
     "ENTRY_POINT_GROUP",
+    "CoreWatch",
     "Panel",
     "PanelRow",
     "Session",
@@ -68,6 +70,32 @@ class Panel:
     rows: tuple[PanelRow, ...] = ()
 
 
+@dataclass(frozen=True, slots=True)
+class CoreWatch:
+    """What a session must see of the steps the compiled core writes itself.
+
+    The core (``mbmon/core/``) writes the lines of read requests and of their
+    answers without a Python object per step; every other step (writes,
+    exceptions, anything it does not decode) goes through the annotator and
+    :meth:`Session.follow` as in the reference pipeline. A session that
+    supports the core (:attr:`Session.core_ready`) says here which of the
+    core's steps would change what it writes, and gets exactly those:
+
+    * ``deadline``: from this capture time on, any step may say something by
+      the clock alone (:meth:`Session.next_deadline`; ``inf``: never);
+    * ``answers``: ``(fc, first, last, lo, hi)``: an answer to a read of
+      function code ``fc`` that carries a register of ``first..last`` whose
+      word, read as signed 16 bits, is outside ``lo..hi`` (``lo > hi``: any
+      word) goes to :meth:`Session.core_answer`.
+
+    The core asks again (:meth:`Session.core_watch`) after every call it
+    makes into the session, so a watch only needs to be right until then.
+    """
+
+    deadline: float = math.inf
+    answers: tuple[tuple[int, int, int, int, int], ...] = ()
+
+
 class Session:
     """One device's state for one server endpoint and unit, fed pairing steps and ticks.
 
@@ -84,7 +112,15 @@ class Session:
 
     The live monitor calls :meth:`panel` about four times a second.
     Only :meth:`follow` must be written; the rest have defaults here.
+
+    The compiled core runs ``read --profile`` only for sessions with
+    :attr:`core_ready` set, which implement :meth:`core_watch` and
+    :meth:`core_answer` (see :class:`CoreWatch`); for the others it declines and
+    the reference pipeline reads the input.
     """
+
+    #: whether :meth:`core_watch` and :meth:`core_answer` are implemented exactly
+    core_ready = False
 
     def __init__(self, stream: Stream, unit: int) -> None:
         self.stream = stream
@@ -109,6 +145,28 @@ class Session:
 
     def panel(self) -> Panel | None:
         """What the live monitor shows of this session (``None``: nothing)."""
+        return None
+
+    def core_watch(self) -> CoreWatch:
+        """Which of the compiled core's steps this session must see now (:class:`CoreWatch`)."""
+        raise NotImplementedError(f"{type(self).__name__} does not support the compiled core")
+
+    def core_answer(
+        self, fc: int, address: int, values: tuple[int, ...], ts: float, stream: Stream
+    ) -> tuple[list[str], list[CommandUpdate]]:
+        """:meth:`follow` of an answered read that :meth:`core_watch` asked for, told in
+        plain numbers: the request's function code and address, the answer's values (as
+        many as asked), its time and stream. The session's own notes (the profile's come
+        before them) and its command steps."""
+        raise NotImplementedError(f"{type(self).__name__} does not support the compiled core")
+
+    def core_write_answer(
+        self, request: tuple[float, int, int, bytes], ts: float, stream: Stream
+    ) -> tuple[list[str], list[CommandUpdate]] | None:
+        """:meth:`follow` of the answer (not an exception) to a register write the core
+        writes itself (FC 06, 10), told by its request's ``(time, stream id, transaction
+        id, ADU)``: the session's notes and command steps, or ``None`` (the default) to
+        have the step go through the annotator and :meth:`follow` instead."""
         return None
 
 

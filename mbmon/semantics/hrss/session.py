@@ -43,7 +43,7 @@ from mbmon.semantics.hrss.render import (
 )
 from mbmon.semantics.hrss.spec import load_spec
 from mbmon.semantics.hrss.steps import Exec, LiveImage, StepOut, Write, pop_oldest, write_key
-from mbmon.semantics.session import Panel, Session, annotation
+from mbmon.semantics.session import CoreWatch, Panel, Session, annotation
 from mbmon.semantics.words import s16
 
 #: a decoded command with the registers its decode read and the words they held
@@ -134,6 +134,8 @@ class HrssSession(Session):
         # their words: the same words decode the same (see _decode); bounded
         self._decoded: dict[int | None, list[_Remembered]] = {}
         self._decoded_count = 0
+        # CoreWatch by what it was made from (see core_watch)
+        self._watches: dict[tuple[Any, ...], tuple[Exec | None, CoreWatch]] = {}
 
     # ------------------------------------------------------------------ public views
 
@@ -255,6 +257,109 @@ class HrssSession(Session):
         while deadline - a.t0 <= self._timeout:  # the first time _check_timeout fires
             deadline = math.nextafter(deadline, math.inf)
         return deadline
+
+    # ------------------------------------------------------------------ the compiled core
+
+    core_ready = True
+
+    def core_watch(self) -> CoreWatch:
+        """The answers whose words would change what this session says (see
+        :class:`~mbmon.semantics.session.CoreWatch`): every holding-register read
+        (the image commands are decoded from), the Get commands' returns, the command
+        status while a command waits for one, the queue length crossing its limit, the
+        motion state when it changes or while the command in flight is moving; and
+        the time from which a step may report a command that never completed.
+
+        Made again only when what it depends on changed (it is asked after every call
+        the core makes, most of which change none of it)."""
+        a = self._active
+        key = (
+            None if a is None else (id(a), a.done, a.looked, a.moving, a.settled, a.warned, a.t0),
+            self._queue_over,
+            self._motion,
+            self._holding.get(self._exec_reg),
+        )
+        known = self._watches.get(key)
+        if known is not None and known[0] is a:  # (the same command, not one at its address)
+            return known[1]
+        if len(self._watches) >= 16:  # a few states recur (the motion toggling): bounded
+            self._watches.clear()
+        watch = self._core_watch()
+        self._watches[key] = (a, watch)
+        return watch
+
+    def _core_watch(self) -> CoreWatch:
+        p = self._spec
+        always: list[tuple[int, int, int, int, int]] = [
+            (fc, 0, 0xFFFF, 1, 0) for fc in sorted(_HOLDING_READS)
+        ]
+        status, queue, motion = p.reg("status_reg"), p.reg("queue_reg"), p.reg("motion_reg")
+        limit = int(p.protocol["queue_max"])
+        a = self._active
+        for fc in sorted(_INPUT_READS):
+            always.append((fc, self._returns.start, self._returns.stop - 1, 1, 0))
+            if a is not None and not a.done:
+                always.append((fc, status, status, 1, 0))
+            if self._queue_over:
+                always.append((fc, queue, queue, limit + 1, 0x7FFF))
+            else:
+                always.append((fc, queue, queue, -0x8000, limit))
+            m = self._motion
+            if m is not None and self._motion_unchanged(m):
+                always.append((fc, motion, motion, m, m))
+            else:
+                always.append((fc, motion, motion, 1, 0))
+        deadline = self.next_deadline()
+        return CoreWatch(math.inf if deadline is None else deadline, tuple(always))
+
+    def _motion_unchanged(self, m: int) -> bool:
+        """Whether reading the motion state ``m`` again would change nothing (see
+        :meth:`_motion_read`)."""
+        a = self._active
+        if a is None or a.spec is None or not a.spec.motion:
+            return True
+        if not a.looked:
+            return False
+        if m in _MOVING:
+            return a.moving
+        return not (m == 1 and a.moving and not a.settled)
+
+    def core_answer(
+        self, fc: int, address: int, values: tuple[int, ...], ts: float, stream: Stream
+    ) -> tuple[list[str], list[CommandUpdate]]:
+        """:meth:`follow` of an answered read, for the compiled core: the session's
+        notes and command steps (the state it keeps is not asked for)."""
+        out = self._out
+        out.ts = ts
+        out.stream = stream
+        out.notes = []
+        out.commands = None
+        out.state_changed = False
+        self._answer_values(fc, address, values, ts, out)
+        a = self._active
+        if a is not None and ts - a.t0 > self._timeout:
+            self._check_timeout(ts, out)
+        return out.notes, out.commands or []
+
+    def core_write_answer(
+        self, request: tuple[float, int, int, bytes], ts: float, stream: Stream
+    ) -> tuple[list[str], list[CommandUpdate]] | None:
+        """:meth:`follow` of a register write's answer, for the compiled core: the
+        write is confirmed (its request was followed: ``None`` when it was not, and the
+        core hands the step to the annotator); a write's answer reads nothing."""
+        if request not in self._writes:
+            return None
+        out = self._out
+        out.ts = ts
+        out.stream = stream
+        out.notes = []
+        out.commands = None
+        out.state_changed = False
+        self._confirm(request)
+        a = self._active
+        if a is not None and ts - a.t0 > self._timeout:
+            self._check_timeout(ts, out)
+        return out.notes, out.commands or []
 
     # ------------------------------------------------------------------ writes
 
@@ -455,12 +560,19 @@ class HrssSession(Session):
         values = rs.values
         if rq.count is not None:
             values = values[: rq.count]
-        if rq.fc in _HOLDING_READS:
+        self._answer_values(rq.fc, rq.address, values, resp.ts, out)
+
+    def _answer_values(
+        self, fc: int, address: int, values: Sequence[int], ts: float, out: StepOut
+    ) -> None:
+        """An answered request of function code ``fc`` at ``address`` read ``values``
+        (as many as asked): the images, then what the watched registers say."""
+        if fc in _HOLDING_READS:
             for i, v in enumerate(values):
-                self._holding[rq.address + i] = v
-                self._unconfirmed.discard(rq.address + i)
-        elif rq.fc in _INPUT_READS:
-            address, n = rq.address, len(values)
+                self._holding[address + i] = v
+                self._unconfirmed.discard(address + i)
+        elif fc in _INPUT_READS:
+            n = len(values)
             plan = self._plans.get((address, n))
             if plan is None:
                 plan = self._read_plan(address, n)
@@ -470,7 +582,7 @@ class HrssSession(Session):
             answers[plan] = values
             if len(answers) > _ANSWERS_MAX:
                 self._input_image()
-            self._inputs_read(plan, values, resp.ts, out)
+            self._inputs_read(plan, values, ts, out)
 
     def _input_image(self) -> dict[int, int]:
         """The input register image, with the answers not yet applied applied (oldest first).
