@@ -27,7 +27,12 @@ Framing is length prediction + CRC (DESIGN rules 2 and 3), never timing:
   frames of their own inside what it would take line up with the bus (one
   starts or ends at the latest silence, ends the bytes before a silence, is
   followed by another, or two are there; or, as long as no frame has gone on
-  across a silence, any one before the silence).
+  across a silence, any one before the silence). A CRC match that lies whole
+  before the silence, ending at no boundary the bus marked, does not cut short
+  the reading preferred first (the answer to the pending request, else the
+  request): a frame's own predicted length beats a chance match inside it. A
+  CRC match that reads as an exception answer other than 5 bytes with a code
+  from 1 up never lines up (``FF FF 00 00``: ``FF FF`` is the CRC of nothing).
 * Where the readings fail, a CRC that validates at a boundary the bus marks
   (the latest silence, the end of the bytes before a silence or of the
   stream, or where the next frame of its own starts) is a frame whatever its
@@ -499,7 +504,7 @@ class RtuDecoder(StreamDecoder):
         readings = self._readings(buf[pos], fc)
         if not readings or fc == 0 or fc == 0x80:
             return _SKIP, False, f"no valid frame (function code 0x{fc:02X})"
-        total, is_resp, crc_failed, far, unpredictable = self._try_readings(
+        total, is_resp, crc_failed, far, unpredictable, first_far = self._try_readings(
             buf, pos, avail, readings, mode
         )
         if total:
@@ -507,8 +512,10 @@ class RtuDecoder(StreamDecoder):
         cut = False  # a reading missing bytes would swallow a frame lined up with the bus
         if far and mode != FINAL:
             # USB adapters bunch bytes: a frame may go on after a silence, so wait;
-            # but not for bytes that frame on their own at the bus's boundaries
-            if not self._bounds.lines_up(buf, pos, n, mode, far):
+            # but not for bytes that frame on their own at the bus's boundaries. A
+            # CRC match lying whole before the silence (at no boundary the bus
+            # marked) does not cut short the reading preferred first: it waits
+            if not self._bounds.lines_up(buf, pos, n, mode, far, not first_far):
                 return _WAITING
             cut = True
         elif unpredictable:
@@ -537,21 +544,23 @@ class RtuDecoder(StreamDecoder):
 
     def _try_readings(
         self, buf: bytes | bytearray, pos: int, avail: int, readings: tuple[bool, ...], mode: int
-    ) -> tuple[int, bool, bool, int, list[bool] | None]:
+    ) -> tuple[int, bool, bool, int, list[bool] | None, bool]:
         """Try each reading's predicted length and CRC at ``pos``, in order.
 
-        Returns ``(ADU length, is response, crc failed, far, unpredictable)``: a
-        length > 0 when a reading's CRC passes; else ``far`` > 0 is where the
-        longest reading still missing bytes would end (in ``STREAM`` mode the
-        first one stops the others being tried: a later reading must not be
-        taken before it is known), and ``unpredictable`` the readings of no
-        predictable length (for a CRC scan).
+        Returns ``(ADU length, is response, crc failed, far, unpredictable,
+        first far)``: a length > 0 when a reading's CRC passes; else ``far`` > 0
+        is where the longest reading still missing bytes would end (in ``STREAM``
+        mode the first one stops the others being tried: a later reading must
+        not be taken before it is known), ``unpredictable`` the readings of no
+        predictable length (for a CRC scan), and ``first far`` whether the
+        reading preferred first is one still missing bytes.
         """
         peek = buf[pos + 1 : pos + 1 + PEEK]
         far = 0
         crc_failed = False
         unpredictable: list[bool] | None = None
-        for is_resp in readings:
+        first_far = False
+        for i, is_resp in enumerate(readings):
             plen = pdu_length(peek, is_resp)
             if plen == NEED_MORE and avail - 1 > PEEK:
                 plen = pdu_length(buf[pos + 1 : pos + MAX_ADU], is_resp)
@@ -563,13 +572,14 @@ class RtuDecoder(StreamDecoder):
                 continue
             if plen == NEED_MORE or total > avail:
                 far = max(far, pos + total)
+                first_far = first_far or not i
                 if mode == STREAM:
                     break
                 continue
             if _crc_ok(buf, pos, pos + total):
-                return total, is_resp, False, 0, None
+                return total, is_resp, False, 0, None, False
             crc_failed = True
-        return 0, False, crc_failed, far, unpredictable
+        return 0, False, crc_failed, far, unpredictable, first_far
 
     def _decide_scan(
         self, buf: bytes | bytearray, pos: int, n: int, mode: int, is_resp: bool

@@ -102,6 +102,18 @@ def scan_crc(buf: bytes | bytearray, start: int, limit: int) -> int:
     return 0
 
 
+def _false_exception(buf: bytes | bytearray, start: int, end: int) -> bool:
+    """Whether the CRC-valid ADU ``buf[start:end]`` reads as an exception answer that
+    is none: an exception answer is 5 bytes with an exception code from 1 up.
+    Such a match is no frame lining up with the bus, only a CRC that matched by
+    chance or by design (``FF FF`` is the CRC of nothing: ``FF FF 00 00``, ``FF FF
+    00 00 00`` and every longer run of zeros after it pass), so it never cuts
+    short a frame still coming in. (A frame whose fields disagree with its
+    length is otherwise taken at a boundary the bus marks: libmodbus's
+    quantity-0 writes; exception answers come from the slave's stack, whole.)"""
+    return bool(buf[start + 1] & 0x80) and (end - start != 5 or not buf[start + 2])
+
+
 class RtuBounds:
     """The line-up heuristics of one :class:`~mbmon.protocol.rtu.RtuDecoder`.
 
@@ -148,10 +160,16 @@ class RtuBounds:
         """A decoding pass starts (the buffer or its offsets changed): forget the memos."""
         self._near = self._lined = self._tails = self._at_mark = self._in_scan = None
 
-    def lines_up(self, buf: bytes | bytearray, pos: int, n: int, mode: int, far: int) -> bool:
+    def lines_up(
+        self, buf: bytes | bytearray, pos: int, n: int, mode: int, far: int, within: bool = True
+    ) -> bool:
         """Whether frames after ``pos`` and before ``far`` line up with the bus: of
-        their own (:meth:`_lined_up`) or found by a scan (:meth:`_scanned`)."""
-        return self._lined_up(buf, pos, n, mode, far) == 1 or self._scanned(buf, pos, n, mode, far)
+        their own (:meth:`_lined_up`) or found by a scan (:meth:`_scanned`; one
+        lying whole before a silence, ending at no boundary the bus marked,
+        counts only with ``within``)."""
+        return self._lined_up(buf, pos, n, mode, far) == 1 or self._scanned(
+            buf, pos, n, mode, far, within
+        )
 
     def _next_frame(self, buf: bytes | bytearray, pos: int, n: int, mode: int) -> tuple[int, int]:
         """The first offset ``k`` after ``pos`` (at most ``MAX_ADU`` on) where a frame
@@ -236,7 +254,7 @@ class RtuBounds:
                 # a frame whose fields disagree ends at the silence: its CRC there
                 # lines it up as well (what follows is settled by the silence)
                 for j in self._ends_at_silence(buf, n):
-                    if pos < j < stop:
+                    if pos < j < stop and not _false_exception(buf, j, n):
                         k, state = j, 1
                         break
         if not state and unsure >= 0:
@@ -273,15 +291,23 @@ class RtuBounds:
             return 0 if self._scanned_at_mark(buf, pos, n, n) else -1
         return 0
 
-    def _scanned(self, buf: bytes | bytearray, pos: int, n: int, mode: int, far: int) -> bool:
+    def _scanned(
+        self, buf: bytes | bytearray, pos: int, n: int, mode: int, far: int, within: bool = True
+    ) -> bool:
         """Whether a frame found by a CRC scan (any function code) after ``pos`` and
         before ``far`` says the bytes at ``pos`` are no frame going on: one starts
-        right at the latest silence (:meth:`_scanned_at_mark`), or, at a silence
-        on a line whose silences have been real so far (not bursty), one lies
-        whole in the bytes before it (:meth:`_scanned_within`)."""
+        right at the latest silence (:meth:`_scanned_at_mark`), or, with
+        ``within``, at a silence on a line whose silences have been real so far
+        (not bursty), one lies whole in the bytes before it
+        (:meth:`_scanned_within`)."""
         if self._scanned_at_mark(buf, pos, n, far):
             return True
-        return mode == SILENCE and not self.bursty and 0 < self._scanned_within(buf, pos, n) < far
+        return (
+            within
+            and mode == SILENCE
+            and not self.bursty
+            and 0 < self._scanned_within(buf, pos, n) < far
+        )
 
     def _scanned_within(self, buf: bytes | bytearray, pos: int, n: int) -> int:
         """The first offset after ``pos`` where a CRC scan finds an ADU that ends by
@@ -291,7 +317,10 @@ class RtuBounds:
         if memo is not None and memo[0] <= pos < memo[1]:
             return memo[1] if memo[1] < n else 0
         j = pos + 1
-        while j <= n - MIN_ADU and not scan_crc(buf, j, min(MAX_ADU, n - j)):
+        while j <= n - MIN_ADU:
+            found = scan_crc(buf, j, min(MAX_ADU, n - j))
+            if found and not _false_exception(buf, j, j + found):
+                break
             j += 1
         if j > n - MIN_ADU:
             j = n
@@ -308,7 +337,10 @@ class RtuBounds:
             return False
         found = self._at_mark
         if found is None:
-            found = self._at_mark = scan_crc(buf, mark, min(MAX_ADU, n - mark))
+            found = scan_crc(buf, mark, min(MAX_ADU, n - mark))
+            if found and _false_exception(buf, mark, mark + found):
+                found = 0
+            self._at_mark = found
         return found > 0
 
     def may_go_on(self, buf: bytes | bytearray, pos: int, n: int, mode: int) -> bool:
@@ -375,6 +407,8 @@ class RtuBounds:
         fc = buf[k + 1]
         if fc == 0 or fc == 0x80:
             return 0
+        if fc & 0x80 and avail > 2 and not buf[k + 2]:
+            return 0  # exception code 0: see _false_exception
         short = False
         for is_resp in (False, True):
             if not (self.allow_resp if is_resp else self.allow_req):
