@@ -27,12 +27,15 @@ Framing is length prediction + CRC (DESIGN rules 2 and 3), never timing:
   frames of their own inside what it would take line up with the bus (one
   starts or ends at the latest silence, ends the bytes before a silence, is
   followed by another, or two are there; or, as long as no frame has gone on
-  across a silence, any one before the silence). A CRC match that lies whole
-  before the silence, ending at no boundary the bus marked, does not cut short
-  the reading preferred first (the answer to the pending request, else the
-  request): a frame's own predicted length beats a chance match inside it. A
-  CRC match that reads as an exception answer other than 5 bytes with a code
-  from 1 up never lines up (``FF FF 00 00``: ``FF FF`` is the CRC of nothing).
+  across a silence, any one before the silence). Chance CRC matches inside a
+  frame cut by a silence weigh less than the frame's own predicted length: a
+  match that can be no frame (function code 0 or 0x80, an exception answer
+  other than 5 bytes with a code from 1 up: ``FF FF 00 00``, ``FF FF`` being
+  the CRC of nothing) never lines up; one lying whole before the silence,
+  ending at no boundary the bus marked, does not cut short the reading
+  preferred first (the answer to the pending request, else the request); and
+  the answer the pending request awaits is cut short only by frames of their
+  own or matches whose fields agree with their length.
 * Where the readings fail, a CRC that validates at a boundary the bus marks
   (the latest silence, the end of the bytes before a silence or of the
   stream, or where the next frame of its own starts) is a frame whatever its
@@ -514,12 +517,15 @@ class RtuDecoder(StreamDecoder):
             # USB adapters bunch bytes: a frame may go on after a silence, so wait;
             # but not for bytes that frame on their own at the bus's boundaries. A
             # CRC match lying whole before the silence (at no boundary the bus
-            # marked) does not cut short the reading preferred first: it waits
-            if not self._bounds.lines_up(buf, pos, n, mode, far, not first_far):
+            # marked) does not cut short the reading preferred first, nor one whose
+            # fields disagree with its length the answer the pending request awaits
+            awaited = first_far and readings[0]
+            if not self._bounds.lines_up(buf, pos, n, mode, far, not first_far, awaited):
                 return _WAITING
             cut = True
         elif unpredictable:
-            decided = self._decide_scan(buf, pos, n, mode, unpredictable[0])
+            awaited = unpredictable[0] and readings[0]  # the answer the pending request awaits
+            decided = self._decide_scan(buf, pos, n, mode, unpredictable[0], awaited)
             if decided is not None:
                 return decided
         if crc_failed or cut:
@@ -582,11 +588,13 @@ class RtuDecoder(StreamDecoder):
         return 0, False, crc_failed, far, unpredictable, first_far
 
     def _decide_scan(
-        self, buf: bytes | bytearray, pos: int, n: int, mode: int, is_resp: bool
+        self, buf: bytes | bytearray, pos: int, n: int, mode: int, is_resp: bool, awaited: bool
     ) -> tuple[int, bool, str] | None:
         """The decision for bytes of no predictable length at ``pos``: the shortest
         CRC match (unless it swallows frames), or wait; ``None`` when neither (the
-        caller goes on to noise)."""
+        caller goes on to noise). ``awaited``: the bytes read as the answer the
+        pending request awaits (a CRC match whose fields disagree with its length
+        does not end its wait at a silence)."""
         avail = n - pos
         limit = min(MAX_ADU, avail)
         found = _scan(buf, pos, limit) if limit >= MIN_ADU else 0
@@ -605,7 +613,7 @@ class RtuDecoder(StreamDecoder):
             mark = n if mode == SILENCE else self._bounds.mark
             if (
                 pos >= mark or self._bounds.frame_within(buf, pos + 1, mark, n, mode) != 1
-            ) and not self._bounds.lines_up(buf, pos, n, mode, pos + MAX_ADU):
+            ) and not self._bounds.lines_up(buf, pos, n, mode, pos + MAX_ADU, True, awaited):
                 return _WAITING
         return None
 

@@ -437,3 +437,57 @@ def test_rtu_burst_after_ff_ff_00_00_00_inside_a_read_answer_waits_for_its_crc(
         out = decode_bursts(data, [at], [0.01], ticks)
         assert raws(out) == frames, at
         assert [x for x in out if isinstance(x, Noise)] == []
+
+
+def _cut_once(frames: list[tuple[Direction, bytes]], cut: int) -> None:
+    """The frames, cut once at ``cut`` by a 10 ms silence (ticked inside it or not),
+    decode to exactly themselves and no noise, as they do in one piece."""
+    data = b"".join(raw for _, raw in frames)
+    plain = RtuDecoder(BURST_BUS)
+    assert raws(plain.feed(data, 0.0) + plain.flush(0.0)) == frames
+    for ticks in (False, True):
+        out = decode_bursts(data, [cut], [0.01], ticks)
+        assert raws(out) == frames, (cut, ticks)
+        assert [x for x in out if isinstance(x, Noise)] == [], (cut, ticks)
+
+
+def test_rtu_burst_inside_an_awaited_answer_ignores_a_malformed_match_at_the_silence() -> None:
+    # An FC 03 answer (18 registers) cut after 15 bytes: "00 04 D5 BC 1E C4" ends
+    # right at the silence with a valid CRC, a read-input request of 6 bytes whose
+    # fields predict 8. The bytes read as the answer the pending request awaits:
+    # a match whose fields disagree with its length does not cut it short (it once
+    # became noise, a frame "00 04 D5 BC 1E C4" and noise)
+    req = bytes.fromhex("B1 03 00 00 00 12 DF F7")
+    resp = bytes.fromhex(
+        "B1 03 24 00 00 00 06 FF FF 00 04 D5 BC 1E C4 C3 D0 00 00 00 00 00 00 FF FF"
+        " 00 00 27 51 00 0F 42 9A 3F 24 00 02 00 02 CA 41"
+    )
+    _cut_once([(Direction.C2S, req), (Direction.S2C, resp)], len(req) + 15)
+
+
+def test_rtu_burst_inside_a_user_defined_answer_ignores_function_code_0() -> None:
+    # A 0x42 answer cut after 38 bytes: "53 00 D6 .. D7 F8" (function code 0, which
+    # is never a frame) has a valid CRC right at the silence (it once made the whole
+    # answer noise)
+    req = bytes.fromhex("01 42 FF FF A0 7C")
+    resp = bytes.fromhex(
+        "01 42 AF 53 00 D6 E6 02 00 00 00 06 0D 00 0D F4 00 22 16 36 6F 00 00 59 3E 00"
+        " 05 91 00 03 26 00 00 00 EF 00 D7 F8 3A A2 00 1B 4A 00 12 00 FF 00 00 00 58 06"
+        " 5E 00 B9 00 00 F3 00 06 9D AE 33"
+    )
+    _cut_once([(Direction.C2S, req), (Direction.S2C, resp)], len(req) + 38)
+
+
+def test_rtu_burst_after_a_frame_inside_an_answer_waits_for_its_crc() -> None:
+    # An FC 03 answer whose registers hold the bytes of a user-defined frame
+    # "07 41 AA BB 6F 97". Cut anywhere after that frame (not right at its end) by
+    # a silence, the answer's predicted length wins over a CRC match that ends at no
+    # boundary the bus marked (it once became noise, that frame and noise)
+    inner = encode_rtu(7, bytes([0x41, 0xAA, 0xBB]))
+    regs = bytes([9] * 6) + inner + bytes([9] * 8)
+    values = [int.from_bytes(regs[i : i + 2], "big") for i in range(0, len(regs), 2)]
+    req = encode_rtu(1, encode_read_request(3, 0, len(values)))
+    resp = encode_rtu(1, encode_read_response(3, values))
+    end = len(req) + 3 + 6 + len(inner)  # where the inner frame ends
+    for cut in range(end + 1, len(req) + len(resp)):
+        _cut_once([(Direction.C2S, req), (Direction.S2C, resp)], cut)
