@@ -31,11 +31,12 @@ Framing is length prediction + CRC (DESIGN rules 2 and 3), never timing:
   frame cut by a silence weigh less than the frame's own predicted length: a
   match that can be no frame (function code 0 or 0x80, an exception answer
   other than 5 bytes with a code from 1 up: ``FF FF 00 00``, ``FF FF`` being
-  the CRC of nothing) never lines up; one lying whole before the silence,
-  ending at no boundary the bus marked, does not cut short the reading
-  preferred first (the answer to the pending request, else the request); and
-  the answer the pending request awaits is cut short only by frames of their
-  own or matches whose fields agree with their length.
+  the CRC of nothing) never lines up; a match found by a CRC scan lying whole
+  before the silence, ending at no boundary the bus marked, does not cut short
+  the reading preferred first (the answer to the pending request, else the
+  request; a frame of its own there still does); and the answer the pending
+  request awaits is cut short only by frames of their own or matches whose
+  fields agree with their length.
 * Where the readings fail, a CRC that validates at a boundary the bus marks
   (the latest silence, the end of the bytes before a silence or of the
   stream, or where the next frame of its own starts) is a frame whatever its
