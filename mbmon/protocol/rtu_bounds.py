@@ -437,10 +437,10 @@ class RtuBounds:
 
     def _fits(self, buf: bytes | bytearray, start: int, end: int) -> bool:
         """Whether the CRC-valid ADU ``buf[start:end]`` is a frame whose fields agree
-        with its length under a reading the decoder allows: one predicting
-        exactly ``end - start`` bytes, or one of no predictable length whose
-        first CRC match is at ``end`` (as a scan frames it: an ADU followed by
-        ``00`` bytes keeps its CRC valid); never one that can be no frame."""
+        with its length under a reading the decoder allows: one whose function
+        code predicts exactly ``end - start`` bytes; never one that can be no
+        frame, nor one of no predictable length (a 4-byte run "unit, unknown
+        code, CRC" matches by chance far more often than an answer is cut)."""
         if _no_frame(buf, start, end):
             return False
         fc = buf[start + 1]
@@ -448,10 +448,7 @@ class RtuBounds:
         for is_resp in (False, True):
             if not (self.allow_resp if is_resp else self.allow_req) or (fc & 0x80 and not is_resp):
                 continue
-            plen = pdu_length(pdu, is_resp)
-            if plen == len(pdu) or (
-                plen is None and scan_crc(buf, start, end - start) == end - start
-            ):
+            if pdu_length(pdu, is_resp) == len(pdu):
                 return True
         return False
 

@@ -505,3 +505,16 @@ def test_rtu_burst_at_the_end_of_a_frame_of_its_own_inside_a_write_known_limit()
     req = bytes.fromhex("1E 10 03 E4 00 06 0C 02 15 27 4C 89 3C 65 1D 03 26 01 41 BB D3")
     resp = bytes.fromhex("1E 10 03 E4 00 06 02 17")
     _cut_once([(Direction.C2S, req), (Direction.S2C, resp)], 9)
+
+
+def test_rtu_burst_inside_an_awaited_answer_ignores_a_short_unknown_code_match() -> None:
+    # Found by the burst property test with random draws: an FC 03 answer cut right
+    # after "02 7C 01 31", a 4-byte run (unit, an unknown function code, its CRC)
+    # whose CRC matches by chance. For the answer the pending request awaits only a
+    # match of predictable length counts (it once became noise, that match a frame)
+    req = bytes.fromhex("BF 03 00 01 00 12 8F 19")
+    resp = bytes.fromhex(
+        "BF 03 24 03 ED 00 D7 03 8C 55 06 FF FE FF FF 0B 34 FF FF 94 08 01 57 AA 1B 15"
+        " DE 20 F5 02 7C 01 31 01 65 4B F1 85 0F 14 66"
+    )
+    _cut_once([(Direction.C2S, req), (Direction.S2C, resp)], len(req) + 33)
