@@ -27,7 +27,16 @@ Framing is length prediction + CRC (DESIGN rules 2 and 3), never timing:
   frames of their own inside what it would take line up with the bus (one
   starts or ends at the latest silence, ends the bytes before a silence, is
   followed by another, or two are there; or, as long as no frame has gone on
-  across a silence, any one before the silence).
+  across a silence, any one before the silence). Chance CRC matches inside a
+  frame cut by a silence weigh less than the frame's own predicted length: a
+  match that can be no frame (function code 0 or 0x80, an exception answer
+  other than 5 bytes with a code from 1 up: ``FF FF 00 00``, ``FF FF`` being
+  the CRC of nothing) never lines up; a match found by a CRC scan lying whole
+  before the silence, ending at no boundary the bus marked, does not cut short
+  the reading preferred first (the answer to the pending request, else the
+  request; a frame of its own there still does); and the answer the pending
+  request awaits is cut short only by frames of their own or matches whose
+  fields agree with their length.
 * Where the readings fail, a CRC that validates at a boundary the bus marks
   (the latest silence, the end of the bytes before a silence or of the
   stream, or where the next frame of its own starts) is a frame whatever its
@@ -499,7 +508,7 @@ class RtuDecoder(StreamDecoder):
         readings = self._readings(buf[pos], fc)
         if not readings or fc == 0 or fc == 0x80:
             return _SKIP, False, f"no valid frame (function code 0x{fc:02X})"
-        total, is_resp, crc_failed, far, unpredictable = self._try_readings(
+        total, is_resp, crc_failed, far, unpredictable, first_far = self._try_readings(
             buf, pos, avail, readings, mode
         )
         if total:
@@ -507,12 +516,17 @@ class RtuDecoder(StreamDecoder):
         cut = False  # a reading missing bytes would swallow a frame lined up with the bus
         if far and mode != FINAL:
             # USB adapters bunch bytes: a frame may go on after a silence, so wait;
-            # but not for bytes that frame on their own at the bus's boundaries
-            if not self._bounds.lines_up(buf, pos, n, mode, far):
+            # but not for bytes that frame on their own at the bus's boundaries. A
+            # CRC match lying whole before the silence (at no boundary the bus
+            # marked) does not cut short the reading preferred first, nor one whose
+            # fields disagree with its length the answer the pending request awaits
+            awaited = first_far and readings[0]
+            if not self._bounds.lines_up(buf, pos, n, mode, far, not first_far, awaited):
                 return _WAITING
             cut = True
         elif unpredictable:
-            decided = self._decide_scan(buf, pos, n, mode, unpredictable[0])
+            awaited = unpredictable[0] and readings[0]  # the answer the pending request awaits
+            decided = self._decide_scan(buf, pos, n, mode, unpredictable[0], awaited)
             if decided is not None:
                 return decided
         if crc_failed or cut:
@@ -537,21 +551,23 @@ class RtuDecoder(StreamDecoder):
 
     def _try_readings(
         self, buf: bytes | bytearray, pos: int, avail: int, readings: tuple[bool, ...], mode: int
-    ) -> tuple[int, bool, bool, int, list[bool] | None]:
+    ) -> tuple[int, bool, bool, int, list[bool] | None, bool]:
         """Try each reading's predicted length and CRC at ``pos``, in order.
 
-        Returns ``(ADU length, is response, crc failed, far, unpredictable)``: a
-        length > 0 when a reading's CRC passes; else ``far`` > 0 is where the
-        longest reading still missing bytes would end (in ``STREAM`` mode the
-        first one stops the others being tried: a later reading must not be
-        taken before it is known), and ``unpredictable`` the readings of no
-        predictable length (for a CRC scan).
+        Returns ``(ADU length, is response, crc failed, far, unpredictable,
+        first far)``: a length > 0 when a reading's CRC passes; else ``far`` > 0
+        is where the longest reading still missing bytes would end (in ``STREAM``
+        mode the first one stops the others being tried: a later reading must
+        not be taken before it is known), ``unpredictable`` the readings of no
+        predictable length (for a CRC scan), and ``first far`` whether the
+        reading preferred first is one still missing bytes.
         """
         peek = buf[pos + 1 : pos + 1 + PEEK]
         far = 0
         crc_failed = False
         unpredictable: list[bool] | None = None
-        for is_resp in readings:
+        first_far = False
+        for i, is_resp in enumerate(readings):
             plen = pdu_length(peek, is_resp)
             if plen == NEED_MORE and avail - 1 > PEEK:
                 plen = pdu_length(buf[pos + 1 : pos + MAX_ADU], is_resp)
@@ -563,20 +579,23 @@ class RtuDecoder(StreamDecoder):
                 continue
             if plen == NEED_MORE or total > avail:
                 far = max(far, pos + total)
+                first_far = first_far or not i
                 if mode == STREAM:
                     break
                 continue
             if _crc_ok(buf, pos, pos + total):
-                return total, is_resp, False, 0, None
+                return total, is_resp, False, 0, None, False
             crc_failed = True
-        return 0, False, crc_failed, far, unpredictable
+        return 0, False, crc_failed, far, unpredictable, first_far
 
     def _decide_scan(
-        self, buf: bytes | bytearray, pos: int, n: int, mode: int, is_resp: bool
+        self, buf: bytes | bytearray, pos: int, n: int, mode: int, is_resp: bool, awaited: bool
     ) -> tuple[int, bool, str] | None:
         """The decision for bytes of no predictable length at ``pos``: the shortest
         CRC match (unless it swallows frames), or wait; ``None`` when neither (the
-        caller goes on to noise)."""
+        caller goes on to noise). ``awaited``: the bytes read as the answer the
+        pending request awaits (a CRC match whose fields disagree with its length
+        does not end its wait at a silence)."""
         avail = n - pos
         limit = min(MAX_ADU, avail)
         found = _scan(buf, pos, limit) if limit >= MIN_ADU else 0
@@ -595,7 +614,7 @@ class RtuDecoder(StreamDecoder):
             mark = n if mode == SILENCE else self._bounds.mark
             if (
                 pos >= mark or self._bounds.frame_within(buf, pos + 1, mark, n, mode) != 1
-            ) and not self._bounds.lines_up(buf, pos, n, mode, pos + MAX_ADU):
+            ) and not self._bounds.lines_up(buf, pos, n, mode, pos + MAX_ADU, True, awaited):
                 return _WAITING
         return None
 

@@ -102,6 +102,22 @@ def scan_crc(buf: bytes | bytearray, start: int, limit: int) -> int:
     return 0
 
 
+def _no_frame(buf: bytes | bytearray, start: int, end: int) -> bool:
+    """Whether the CRC-valid ADU ``buf[start:end]`` can be no frame: function code 0
+    or 0x80 (the decoder never frames them), or an exception answer that is none
+    (an exception answer is 5 bytes with an exception code from 1 up). Such a
+    match is no frame lining up with the bus, only a CRC that matched by chance
+    or by design (``FF FF`` is the CRC of nothing: ``FF FF 00 00``, ``FF FF 00 00
+    00`` and every longer run of zeros after it pass), so it never cuts short a
+    frame still coming in. (A frame whose fields disagree with its length is
+    otherwise taken at a boundary the bus marks: libmodbus's quantity-0 writes;
+    exception answers come from the slave's stack, whole.)"""
+    fc = buf[start + 1]
+    if fc & 0x80:
+        return fc == 0x80 or end - start != 5 or not buf[start + 2]
+    return not fc
+
+
 class RtuBounds:
     """The line-up heuristics of one :class:`~mbmon.protocol.rtu.RtuDecoder`.
 
@@ -136,22 +152,48 @@ class RtuBounds:
         #: within one decoding pass: (lo, k, s), no frame of its own starts in (lo, k),
         #: at k one of length s (-1: cannot tell yet; 0: k is where the search stopped)
         self._near: tuple[int, int, int] | None = None
-        #: within one decoding pass: (lo, first, k, state), for offsets lo..first-1
+        #: within one decoding pass: (lo, first, k, state, fits), for offsets lo..first-1
         #: (first: the next frame of its own) frames line up with the bus at k
-        #: (state 1), cannot be told at k (-1), or do not before k (0)
-        self._lined: tuple[int, int, int, int] | None = None
+        #: (state 1), cannot be told at k (-1), or do not before k (0), with ``fits``
+        self._lined: tuple[int, int, int, int, bool] | None = None
         self._tails: list[int] | None = None  # within one pass: see _ends_at_silence
         self._at_mark: int | None = None  # within one pass: see _scanned_at_mark
-        self._in_scan: tuple[int, int] | None = None  # within one pass: see _scanned_within
+        self._in_scan: tuple[int, int, bool] | None = None  # within one pass: see _scanned_within
 
     def new_pass(self) -> None:
         """A decoding pass starts (the buffer or its offsets changed): forget the memos."""
         self._near = self._lined = self._tails = self._at_mark = self._in_scan = None
 
-    def lines_up(self, buf: bytes | bytearray, pos: int, n: int, mode: int, far: int) -> bool:
+    def lines_up(
+        self,
+        buf: bytes | bytearray,
+        pos: int,
+        n: int,
+        mode: int,
+        far: int,
+        within: bool = True,
+        fits: bool = False,
+    ) -> bool:
         """Whether frames after ``pos`` and before ``far`` line up with the bus: of
-        their own (:meth:`_lined_up`) or found by a scan (:meth:`_scanned`)."""
-        return self._lined_up(buf, pos, n, mode, far) == 1 or self._scanned(buf, pos, n, mode, far)
+        their own (:meth:`_lined_up`) or found by a scan (:meth:`_scanned`).
+
+        A CRC match that can be no frame (:func:`_no_frame`) never counts. One
+        lying whole before a silence, ending at no boundary the bus marked,
+        counts only with ``within``; with ``fits`` (the bytes at ``pos`` read as
+        the answer the pending request awaits) a match that is no frame of its
+        own counts only when its fields agree with its length (:meth:`_fits`).
+        """
+        return self._lined_up(buf, pos, n, mode, far, fits) == 1 or self._scanned(
+            buf, pos, n, mode, far, within, fits
+        )
+
+    def _counts(self, buf: bytes | bytearray, start: int, end: int, fits: bool) -> bool:
+        """Whether the CRC match ``buf[start:end]`` (no frame of its own) counts as a
+        frame lining up with the bus: never when it can be no frame, with ``fits``
+        only when its fields agree with its length."""
+        if fits:
+            return self._fits(buf, start, end)
+        return not _no_frame(buf, start, end)
 
     def _next_frame(self, buf: bytes | bytearray, pos: int, n: int, mode: int) -> tuple[int, int]:
         """The first offset ``k`` after ``pos`` (at most ``MAX_ADU`` on) where a frame
@@ -183,14 +225,19 @@ class RtuBounds:
         self._near = (lo, k, found)
         return k, found
 
-    def _lined_up(self, buf: bytes | bytearray, pos: int, n: int, mode: int, far: int) -> int:
+    def _lined_up(
+        self, buf: bytes | bytearray, pos: int, n: int, mode: int, far: int, fits: bool = False
+    ) -> int:
         """Whether frames of their own after ``pos`` and before ``far`` line up with the
         bus: one starts or ends at the latest silence, ends the bytes before a
         silence or the stream, or is followed by another (right after it or
-        later: two CRCs a guess would swallow). 1 yes, 0 no, -1 cannot tell yet.
-        Remembered within one decoding pass (``_lined``) like :meth:`_next_frame`."""
+        later: two CRCs a guess would swallow); at a silence on a line not
+        bursty, a CRC that validates right at the silence lines up too (one
+        that counts: :meth:`_counts`). 1 yes, 0 no, -1 cannot tell yet.
+        Remembered within one decoding pass (``_lined``, for one value of
+        ``fits``) like :meth:`_next_frame`."""
         lined = self._lined
-        if lined is not None and lined[0] <= pos < lined[1]:
+        if lined is not None and lined[0] <= pos < lined[1] and lined[4] == fits:
             k, state = lined[2], lined[3]
             if state:
                 return state if k < far else 0
@@ -236,12 +283,12 @@ class RtuBounds:
                 # a frame whose fields disagree ends at the silence: its CRC there
                 # lines it up as well (what follows is settled by the silence)
                 for j in self._ends_at_silence(buf, n):
-                    if pos < j < stop:
+                    if pos < j < stop and self._counts(buf, j, n, fits):
                         k, state = j, 1
                         break
         if not state and unsure >= 0:
             k, state = unsure, -1
-        self._lined = (pos, first, k, state)
+        self._lined = (pos, first, k, state, fits)
         return state if k < far else 0
 
     def _ends_at_silence(self, buf: bytes | bytearray, n: int) -> list[int]:
@@ -273,34 +320,56 @@ class RtuBounds:
             return 0 if self._scanned_at_mark(buf, pos, n, n) else -1
         return 0
 
-    def _scanned(self, buf: bytes | bytearray, pos: int, n: int, mode: int, far: int) -> bool:
-        """Whether a frame found by a CRC scan (any function code) after ``pos`` and
-        before ``far`` says the bytes at ``pos`` are no frame going on: one starts
-        right at the latest silence (:meth:`_scanned_at_mark`), or, at a silence
-        on a line whose silences have been real so far (not bursty), one lies
-        whole in the bytes before it (:meth:`_scanned_within`)."""
-        if self._scanned_at_mark(buf, pos, n, far):
+    def _scanned(
+        self,
+        buf: bytes | bytearray,
+        pos: int,
+        n: int,
+        mode: int,
+        far: int,
+        within: bool = True,
+        fits: bool = False,
+    ) -> bool:
+        """Whether a frame found by a CRC scan (any function code; one that counts:
+        :meth:`_counts`) after ``pos`` and before ``far`` says the bytes at ``pos``
+        are no frame going on: one starts right at the latest silence
+        (:meth:`_scanned_at_mark`), or, with ``within``, at a silence on a line
+        whose silences have been real so far (not bursty), one lies whole in the
+        bytes before it (:meth:`_scanned_within`)."""
+        if self._scanned_at_mark(buf, pos, n, far, fits):
             return True
-        return mode == SILENCE and not self.bursty and 0 < self._scanned_within(buf, pos, n) < far
+        return (
+            within
+            and mode == SILENCE
+            and not self.bursty
+            and 0 < self._scanned_within(buf, pos, n, fits) < far
+        )
 
-    def _scanned_within(self, buf: bytes | bytearray, pos: int, n: int) -> int:
+    def _scanned_within(self, buf: bytes | bytearray, pos: int, n: int, fits: bool = False) -> int:
         """The first offset after ``pos`` where a CRC scan finds an ADU that ends by
-        ``n``, or 0. Remembered within one decoding pass (``_in_scan``: offsets
-        ``lo..k-1`` have none before ``k``), so a run of noise scans each offset once."""
+        ``n`` and counts (:meth:`_counts`), or 0. Remembered within one decoding
+        pass (``_in_scan``: offsets ``lo..k-1`` have none before ``k``, for one
+        value of ``fits``), so a run of noise scans each offset once."""
         memo = self._in_scan
-        if memo is not None and memo[0] <= pos < memo[1]:
+        if memo is not None and memo[0] <= pos < memo[1] and memo[2] == fits:
             return memo[1] if memo[1] < n else 0
         j = pos + 1
-        while j <= n - MIN_ADU and not scan_crc(buf, j, min(MAX_ADU, n - j)):
+        while j <= n - MIN_ADU:
+            found = scan_crc(buf, j, min(MAX_ADU, n - j))
+            if found and self._counts(buf, j, j + found, fits):
+                break
             j += 1
         if j > n - MIN_ADU:
             j = n
-        self._in_scan = (pos, j)
+        self._in_scan = (pos, j, fits)
         return j if j < n else 0
 
-    def _scanned_at_mark(self, buf: bytes | bytearray, pos: int, n: int, far: int) -> bool:
-        """Whether a CRC-valid ADU (found by a scan: any function code) starts right
-        at the latest silence, after ``pos`` and before ``far``: a frame starts at a
+    def _scanned_at_mark(
+        self, buf: bytes | bytearray, pos: int, n: int, far: int, fits: bool = False
+    ) -> bool:
+        """Whether a CRC-valid ADU (found by a scan: any function code; one that
+        counts: :meth:`_counts`) starts right at the latest silence, after ``pos``
+        and before ``far``: a frame starts at a
         silence, so the bytes before it are no frame going on across it. The scan
         is done once per decoding pass."""
         mark = self.mark
@@ -309,7 +378,7 @@ class RtuBounds:
         found = self._at_mark
         if found is None:
             found = self._at_mark = scan_crc(buf, mark, min(MAX_ADU, n - mark))
-        return found > 0
+        return found > 0 and self._counts(buf, mark, mark + found, fits)
 
     def may_go_on(self, buf: bytes | bytearray, pos: int, n: int, mode: int) -> bool:
         """At a silence, whether the bytes from ``pos`` whose readings failed may be
@@ -366,6 +435,23 @@ class RtuBounds:
                 return 1 if found > 0 else -1
         return 0
 
+    def _fits(self, buf: bytes | bytearray, start: int, end: int) -> bool:
+        """Whether the CRC-valid ADU ``buf[start:end]`` is a frame whose fields agree
+        with its length under a reading the decoder allows: one whose function
+        code predicts exactly ``end - start`` bytes; never one that can be no
+        frame, nor one of no predictable length (a 4-byte run "unit, unknown
+        code, CRC" matches by chance far more often than an answer is cut)."""
+        if _no_frame(buf, start, end):
+            return False
+        fc = buf[start + 1]
+        pdu = buf[start + 1 : end - 2]
+        for is_resp in (False, True):
+            if not (self.allow_resp if is_resp else self.allow_req) or (fc & 0x80 and not is_resp):
+                continue
+            if pdu_length(pdu, is_resp) == len(pdu):
+                return True
+        return False
+
     def _standalone(self, buf: bytes | bytearray, k: int, n: int, mode: int) -> int:
         """Length of a frame of predictable length with a valid CRC at ``k``, 0 when
         there is none, -1 when the bytes to tell are still missing (``STREAM``)."""
@@ -375,6 +461,8 @@ class RtuBounds:
         fc = buf[k + 1]
         if fc == 0 or fc == 0x80:
             return 0
+        if fc & 0x80 and avail > 2 and not buf[k + 2]:
+            return 0  # exception code 0: see _no_frame
         short = False
         for is_resp in (False, True):
             if not (self.allow_resp if is_resp else self.allow_req):

@@ -254,10 +254,11 @@ BURST_BUS = Stream(3, Transport.RTU, "/dev/ttyUSB0", "/dev/ttyUSB0")
 BAUD = 9600
 CHAR = 11.0 / BAUD
 
-# A fixed set of draws (derandomize): random draws reach, a few times in a thousand
-# runs, streams of unknown function codes where a 16-bit CRC matches by chance at a
-# burst's cut, the decoder's written-down limit (docs/sniffing.md, "Noise, bad frames
-# and time"; one such stream is pinned below as a strict expected failure).
+# A fixed set of draws (derandomize): random draws still reach the decoder's
+# written-down limit (docs/sniffing.md, "Noise, bad frames and time"): on a line not
+# yet seen bursty, a frame cut by a silence is ended at a CRC match that ends right at
+# the silence and can be a frame, or at a frame of its own before it (12 of 287,363
+# random examples). The cases found and fixed are byte tests below.
 BURST_SETTINGS = settings(
     max_examples=300,
     deadline=None,
@@ -372,14 +373,13 @@ def test_user_defined_frame_split_by_a_usb_pause() -> None:
     assert [x for x in out if isinstance(x, Noise)] == []
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known: with a baud rate, two reads 10 ms apart cut at byte 31 (inside the "
-    "FC 05 request after a 0x2B exchange) split that request at 'FF FF 00 00', whose CRC "
-    "matches by chance; without a baud rate it frames them right",
-)
-def test_rtu_burst_after_a_device_id_exchange_known_chance_crc_split() -> None:
-    """Found by the burst property test: pinned so a fix shows (strict xfail)."""
+def test_rtu_burst_inside_a_write_after_a_device_id_exchange_waits_for_its_crc() -> None:
+    """Found by the burst property test: two reads 10 ms apart cut the FC 05 request
+    after a 0x2B exchange at byte 31, right after ``FF FF 00 00`` (CRC 0x0000 by design:
+    ``FF FF`` is the CRC of nothing). The request still needs its CRC; a match that
+    reads as an exception of 4 bytes (its fields predict 5) does not cut it short at
+    the silence, it waits for the request's own bytes (it once became noise ``01 05``,
+    a frame ``FF FF 00 00`` and noise ``CD EE``)."""
     zeros = b"\x00"
     frames = [
         (Direction.C2S, b"\x01+\x0e\x01\x00pw"),
@@ -399,3 +399,122 @@ def test_rtu_burst_after_a_device_id_exchange_known_chance_crc_split() -> None:
     plain = RtuDecoder(BURST_BUS)
     assert raws(plain.feed(data, 0.0) + plain.flush(0.0)) == frames
     assert raws(decode_bursts(data, [31], [0.01], False)) == frames
+
+
+def test_rtu_burst_inside_a_user_defined_answer_waits_for_its_crc() -> None:
+    # Found by the burst property test in CI: user-defined 0x41 frames (length found
+    # by the CRC), the answer cut after 5 bytes by a 10 ms silence. Its bytes
+    # "41 A1 F0 58" match a CRC as an exception of 4 bytes (its fields predict 5):
+    # that does not end the answer's scan at the silence (it once gave noise "01", a
+    # frame "41 A1 F0 58" and noise "19 E4")
+    frames = [
+        (Direction.C2S, bytes.fromhex("01 41 C0 10")),
+        (Direction.S2C, bytes.fromhex("01 41 A1 F0 58 19 E4")),
+    ]
+    data = b"".join(raw for _, raw in frames)
+    plain = RtuDecoder(BURST_BUS)
+    assert raws(plain.feed(data, 0.0) + plain.flush(0.0)) == frames
+    for ticks in (False, True):
+        out = decode_bursts(data, [9], [0.01], ticks)
+        assert raws(out) == frames
+        assert [x for x in out if isinstance(x, Noise)] == []
+
+
+@pytest.mark.parametrize("ticks", [False, True])
+def test_rtu_burst_after_ff_ff_00_00_00_inside_a_read_answer_waits_for_its_crc(
+    ticks: bool,
+) -> None:
+    # "FF FF 00 00 00" (a register 0xFFFF, then zeros) has a valid CRC at every length
+    # and reads as an exception answer with exception code 0, which does not exist:
+    # no frame of its own, so a read answer cut right after it by a silence waits
+    # for its CRC (it once became noise, a frame "FF FF 00 00 00" and noise)
+    req = encode_rtu(1, encode_read_request(3, 0, 4))
+    resp = encode_rtu(1, encode_read_response(3, [0x1234, 0xFFFF, 0x0000, 0x0042]))
+    frames = [(Direction.C2S, req), (Direction.S2C, resp)]
+    data = req + resp
+    cut = len(req) + 3 + 2 + 3  # unit, fc, byte count, 0x1234, then "FF FF 00 | 00 00 42"
+    assert data[cut - 3 : cut + 2] == bytes.fromhex("FF FF 00 00 00")
+    for at in (cut, cut + 1, cut + 2):
+        out = decode_bursts(data, [at], [0.01], ticks)
+        assert raws(out) == frames, at
+        assert [x for x in out if isinstance(x, Noise)] == []
+
+
+def _cut_once(frames: list[tuple[Direction, bytes]], cut: int) -> None:
+    """The frames, cut once at ``cut`` by a 10 ms silence (ticked inside it or not),
+    decode to exactly themselves and no noise, as they do in one piece."""
+    data = b"".join(raw for _, raw in frames)
+    plain = RtuDecoder(BURST_BUS)
+    assert raws(plain.feed(data, 0.0) + plain.flush(0.0)) == frames
+    for ticks in (False, True):
+        out = decode_bursts(data, [cut], [0.01], ticks)
+        assert raws(out) == frames, (cut, ticks)
+        assert [x for x in out if isinstance(x, Noise)] == [], (cut, ticks)
+
+
+def test_rtu_burst_inside_an_awaited_answer_ignores_a_malformed_match_at_the_silence() -> None:
+    # An FC 03 answer (18 registers) cut after 15 bytes: "00 04 D5 BC 1E C4" ends
+    # right at the silence with a valid CRC, a read-input request of 6 bytes whose
+    # fields predict 8. The bytes read as the answer the pending request awaits:
+    # a match whose fields disagree with its length does not cut it short (it once
+    # became noise, a frame "00 04 D5 BC 1E C4" and noise)
+    req = bytes.fromhex("B1 03 00 00 00 12 DF F7")
+    resp = bytes.fromhex(
+        "B1 03 24 00 00 00 06 FF FF 00 04 D5 BC 1E C4 C3 D0 00 00 00 00 00 00 FF FF"
+        " 00 00 27 51 00 0F 42 9A 3F 24 00 02 00 02 CA 41"
+    )
+    _cut_once([(Direction.C2S, req), (Direction.S2C, resp)], len(req) + 15)
+
+
+def test_rtu_burst_inside_a_user_defined_answer_ignores_function_code_0() -> None:
+    # A 0x42 answer cut after 38 bytes: "53 00 D6 .. D7 F8" (function code 0, which
+    # is never a frame) has a valid CRC right at the silence (it once made the whole
+    # answer noise)
+    req = bytes.fromhex("01 42 FF FF A0 7C")
+    resp = bytes.fromhex(
+        "01 42 AF 53 00 D6 E6 02 00 00 00 06 0D 00 0D F4 00 22 16 36 6F 00 00 59 3E 00"
+        " 05 91 00 03 26 00 00 00 EF 00 D7 F8 3A A2 00 1B 4A 00 12 00 FF 00 00 00 58 06"
+        " 5E 00 B9 00 00 F3 00 06 9D AE 33"
+    )
+    _cut_once([(Direction.C2S, req), (Direction.S2C, resp)], len(req) + 38)
+
+
+def test_rtu_burst_after_a_frame_inside_an_answer_waits_for_its_crc() -> None:
+    # An FC 03 answer whose registers hold the bytes of a user-defined frame
+    # "07 41 AA BB 6F 97". Cut anywhere after that frame (not right at its end) by
+    # a silence, the answer's predicted length wins over a CRC match that ends at no
+    # boundary the bus marked (it once became noise, that frame and noise)
+    inner = encode_rtu(7, bytes([0x41, 0xAA, 0xBB]))
+    regs = bytes([9] * 6) + inner + bytes([9] * 8)
+    values = [int.from_bytes(regs[i : i + 2], "big") for i in range(0, len(regs), 2)]
+    req = encode_rtu(1, encode_read_request(3, 0, len(values)))
+    resp = encode_rtu(1, encode_read_response(3, values))
+    end = len(req) + 3 + 6 + len(inner)  # where the inner frame ends
+    for cut in range(end + 1, len(req) + len(resp)):
+        _cut_once([(Direction.C2S, req), (Direction.S2C, resp)], cut)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="known limit (docs/sniffing.md): on a line not yet seen bursty, a frame of "
+    "its own ending right at the first silence ('06 0C 02 15', a Get Comm Event Log "
+    "request) ends the FC 10 request cut there",
+)
+def test_rtu_burst_at_the_end_of_a_frame_of_its_own_inside_a_write_known_limit() -> None:
+    """Found by the burst property test with random draws: pinned so a fix shows."""
+    req = bytes.fromhex("1E 10 03 E4 00 06 0C 02 15 27 4C 89 3C 65 1D 03 26 01 41 BB D3")
+    resp = bytes.fromhex("1E 10 03 E4 00 06 02 17")
+    _cut_once([(Direction.C2S, req), (Direction.S2C, resp)], 9)
+
+
+def test_rtu_burst_inside_an_awaited_answer_ignores_a_short_unknown_code_match() -> None:
+    # Found by the burst property test with random draws: an FC 03 answer cut right
+    # after "02 7C 01 31", a 4-byte run (unit, an unknown function code, its CRC)
+    # whose CRC matches by chance. For the answer the pending request awaits only a
+    # match of predictable length counts (it once became noise, that match a frame)
+    req = bytes.fromhex("BF 03 00 01 00 12 8F 19")
+    resp = bytes.fromhex(
+        "BF 03 24 03 ED 00 D7 03 8C 55 06 FF FE FF FF 0B 34 FF FF 94 08 01 57 AA 1B 15"
+        " DE 20 F5 02 7C 01 31 01 65 4B F1 85 0F 14 66"
+    )
+    _cut_once([(Direction.C2S, req), (Direction.S2C, resp)], len(req) + 33)
