@@ -1195,6 +1195,17 @@ cdef class _Pass:
     cdef int python_frame(self, int64_t index, int sid, int d, double ts, const uint8_t* adu,
                           int alen, Pend* req, double latency) except -1:
         """A frame record the reference way: its Frame and Record, formatted by mbmon.format."""
+        stream, frame, request, req_index, lat = self.ref_frames(sid, d, ts, adu, alen, req,
+                                                                latency)
+        kind = _RECORD_KIND[frame.pdu.kind]
+        rec = Record(index, ts, kind, stream, frame, request if d else None, req_index, lat)
+        return self.put_record(rec)
+
+    cdef tuple ref_frames(self, int sid, int d, double ts, const uint8_t* adu, int alen,
+                          Pend* req, double latency):
+        """The reference's objects of a frame: its stream, its Frame (the PDU decoded as
+        the pairer decodes it, given the request), the request's Frame, index and the
+        latency (``None`` each without a request); counts a malformed PDU."""
         stream = self.stream_obj(sid)
         raw = PyBytes_FromStringAndSize(<const char*>adu, alen)
         tid = (adu[0] << 8) | adu[1]
@@ -1215,9 +1226,7 @@ cdef class _Pass:
                       None)
         if pdu.malformed:
             self.malformed += 1
-        kind = _RECORD_KIND[pdu.kind]
-        rec = Record(index, ts, kind, stream, frame, request if d else None, req_index, lat)
-        return self.put_record(rec)
+        return stream, frame, request, req_index, lat
 
     # ------------------------------------------------------------------ MCAP messages
     #
@@ -1702,26 +1711,9 @@ cdef class _Pass:
                          const uint8_t* adu, int alen, Pend* req, double latency) except -1:
         """A frame record the reference way, annotated: its Frame, Transaction and the
         annotator's Annotation, formatted by mbmon.format; then its command records."""
-        stream = self.stream_obj(sid)
-        raw = PyBytes_FromStringAndSize(<const char*>adu, alen)
-        tid = (adu[0] << 8) | adu[1]
-        pdu = decode_pdu(raw[7:], d == 1)
-        request = None
-        req_index = None
-        lat = None
-        if req != NULL:
-            req_raw = PyBytes_FromStringAndSize(<const char*>req.raw, req.alen)
-            req_pdu = decode_pdu(req_raw[7:], False)
-            request = Frame(req.ts, stream, Direction.C2S, req.unit, req.tid, req_pdu, req_raw,
-                            None)
-            if _needs_request(pdu, req_pdu):
-                pdu = decode_pdu(pdu.raw, True, request=req_pdu)
-            req_index = req.index
-            lat = latency
-        frame = Frame(ts, stream, Direction.S2C if d else Direction.C2S, adu[6], tid, pdu, raw,
-                      None)
-        if pdu.malformed:
-            self.malformed += 1
+        stream, frame, request, req_index, lat = self.ref_frames(sid, d, ts, adu, alen, req,
+                                                                latency)
+        pdu = frame.pdu
         if d == 0:
             tx = Transaction(ts, TxStatus.PENDING, frame, None)
         elif req != NULL:
