@@ -1097,16 +1097,7 @@ cdef class _Pass:
             put_hex(o, adu + 7, alen - 7)
             put(o, b'","line":"', 10)
         line_at = o.n
-        self.put_time(ts)
-        put(o, b"  ", 2)
-        put_bytes(o, label)
-        put(o, b"  [u", 4)
-        put_u(o, unit)
-        put(o, b" t", 2)
-        put_u(o, tid)
-        put(o, b"]  ", 3)
-        put_hex(o, adu + 7, alen - 7)
-        put(o, b"  | ", 4)
+        self.put_line_head(o, ts, label, unit, tid, adu, alen)
         note_at = o.n
         self.put_note(&nat)
         note_end = o.n
@@ -1190,6 +1181,22 @@ cdef class _Pass:
                     put(o, b", \xe2\x80\xa6 (", 7)
                     put_u(o, n.nvalues)
                     put(o, b" values)", 8)
+        return 0
+
+    cdef int put_line_head(self, Buf* o, double ts, bytes label, int unit, int tid,
+                           const uint8_t* adu, int alen) except -1:
+        """A frame line up to its notes: time, the stream's label, unit, transaction id,
+        the PDU in hex and the notes' separator."""
+        self.put_time(ts)
+        put(o, b"  ", 2)
+        put_bytes(o, label)
+        put(o, b"  [u", 4)
+        put_u(o, unit)
+        put(o, b" t", 2)
+        put_u(o, tid)
+        put(o, b"]  ", 3)
+        put_hex(o, adu + 7, alen - 7)
+        put(o, b"  | ", 4)
         return 0
 
     cdef int python_frame(self, int64_t index, int sid, int d, double ts, const uint8_t* adu,
@@ -1600,16 +1607,7 @@ cdef class _Pass:
             put_hex(o, adu + 7, alen - 7)
             put(o, b'","line":"', 10)
         line_at = o.n
-        self.put_time(ts)
-        put(o, b"  ", 2)
-        put_bytes(o, label)
-        put(o, b"  [u", 4)
-        put_u(o, unit)
-        put(o, b" t", 2)
-        put_u(o, tid)
-        put(o, b"]  ", 3)
-        put_hex(o, adu + 7, alen - 7)
-        put(o, b"  | ", 4)
+        self.put_line_head(o, ts, label, unit, tid, adu, alen)
         nm = 0
         self.mark(nm, o.n)
         self.put_note(nat)
