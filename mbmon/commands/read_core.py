@@ -63,26 +63,16 @@ def read_with_core(
     why = core.decline_for_options(args, live=live, flt=flt)
     if why is None:
         why = core.decline_for_profile(annotator)
-    write = None
-    broken: list[bool] = []
+    raw = None
     if why is None and not args.quiet:
-        from mbmon.sinks.console import utf8_buffer
+        from mbmon.sinks.console import RawStdout, utf8_buffer
 
         buffer = utf8_buffer(sys.stdout)
         if buffer is None:
             why = "stdout is not UTF-8"
         else:
-
-            def write(data: bytes) -> None:
-                if broken:
-                    return
-                try:
-                    buffer.write(data)
-                except BrokenPipeError:  # the reader went away (| head), as the hub does
-                    from mbmon.hub import _quiet_stdout
-
-                    broken.append(True)
-                    _quiet_stdout()
+            raw = RawStdout(buffer)
+    write = None if raw is None else raw.write
 
     if why is None:
         log = _log_opener(path, args, view) if args.write else None
@@ -109,7 +99,7 @@ def read_with_core(
         if args.debug_core:
             err(f"core: declined ({why}); the Python pipeline reads the input")
         return None
-    if write is not None and not broken:
+    if raw is not None and not raw.broken:
         try:
             sys.stdout.flush()
         except BrokenPipeError:

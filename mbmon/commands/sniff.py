@@ -181,34 +181,11 @@ def _core_output(args: argparse.Namespace, view: Any, flt: Any) -> Any:
             + ("the compiled core runs the capture" if why is None else f"declined ({why})")
         )
     if why is None and buffer is not None:
+        from mbmon.sinks.console import RawStdout
         from mbmon.sources.sniff import CoreOutput
 
-        out = buffer
-        broken: list[bool] = []
-
-        def write(data: bytes) -> None:
-            if broken:
-                return
-            try:
-                out.write(data)
-            except BrokenPipeError:  # the reader went away (| head), as the hub does
-                from mbmon.hub import _quiet_stdout
-
-                broken.append(True)
-                _quiet_stdout()
-
-        def flush() -> None:
-            if broken:
-                return
-            try:
-                out.flush()
-            except BrokenPipeError:
-                from mbmon.hub import _quiet_stdout
-
-                broken.append(True)
-                _quiet_stdout()
-
-        return CoreOutput(view, args.json, args.timeout, write, flush)
+        raw = RawStdout(buffer)
+        return CoreOutput(view, args.json, args.timeout, raw.write, raw.flush)
     return None
 
 

@@ -24,6 +24,36 @@ from mbmon.model import Record
 BLOCK = 512
 
 
+class RawStdout:
+    """The compiled core's way to the console: its bytes go to stdout's binary buffer;
+    a reader that went away (``| head``) silences stdout once, as the hub does, and
+    every later write or flush is dropped (:attr:`broken`)."""
+
+    def __init__(self, buffer: IO[bytes]) -> None:
+        self.buffer = buffer
+        self.broken = False
+
+    def write(self, data: bytes) -> None:
+        if not self.broken:
+            try:
+                self.buffer.write(data)
+            except BrokenPipeError:
+                self._gone()
+
+    def flush(self) -> None:
+        if not self.broken:
+            try:
+                self.buffer.flush()
+            except BrokenPipeError:
+                self._gone()
+
+    def _gone(self) -> None:
+        from mbmon.hub import _quiet_stdout
+
+        self.broken = True
+        _quiet_stdout()
+
+
 def utf8_buffer(out: IO[str]) -> IO[bytes] | None:
     """The binary buffer under the text stream ``out`` when writing UTF-8 bytes there
     is the same as writing their text to ``out`` (UTF-8 encoding, no newline
