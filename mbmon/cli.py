@@ -14,8 +14,26 @@ while the commands are still being imported must meet :func:`main`'s handler
 
 from __future__ import annotations
 
-import signal
+import _signal  # type: ignore[import-not-found]  # built in, no file to read: up first
 import sys
+
+#: SIGINT/SIGTERM that came while this module was being imported (see the module's end)
+_EARLY: list[int] = []
+
+
+def _note_early(signum: int, frame: object) -> None:
+    _EARLY.append(signum)
+
+
+_BEFORE: dict[int, object] = {}
+try:
+    for _sig in (_signal.SIGINT, _signal.SIGTERM):
+        if _signal.getsignal(_sig) is not _signal.SIG_IGN:  # nohup, a background job: kept
+            _BEFORE[_sig] = _signal.signal(_sig, _note_early)
+except ValueError:  # imported outside the main thread: signals are not this module's
+    pass
+
+import signal  # noqa: E402  (a module read from disk: a Ctrl-C may come meanwhile)
 
 TYPE_CHECKING = False  # typing.TYPE_CHECKING without importing typing
 if TYPE_CHECKING:
@@ -164,6 +182,14 @@ def _subparser(parser: argparse.ArgumentParser, name: str | None) -> argparse.Ar
             return action.choices[name]
     return parser
 
+
+# the module is imported: the handlers before it are back (main() installs its own);
+# a signal that came meanwhile ends the run here, quietly, as main() would end it
+for _sig, _handler in _BEFORE.items():
+    if _signal.getsignal(_sig) is _note_early:
+        _signal.signal(_sig, _handler if _handler is not None else _signal.SIG_DFL)
+if _EARLY:
+    raise SystemExit(128 + _EARLY[0])
 
 if __name__ == "__main__":
     sys.exit(main())

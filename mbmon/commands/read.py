@@ -27,10 +27,9 @@ from mbmon.commands.common import (
     open_trigger,
     positive,
     positive_int,
-    profile_sources,
     view_and_filter,
 )
-from mbmon.commands.read_core import core_hand_off
+from mbmon.commands.read_core import core_hand_off, log_context
 from mbmon.commands.read_summary import capture_stats, detected_lines, report
 from mbmon.filters import EXPRESSION_HELP, TIMES_HELP, add_filter_options
 from mbmon.sources.files import CaptureFileSource, RawRtuSource, is_stream_input
@@ -216,7 +215,9 @@ def _read_with_pipeline(
         for source in sources:
             source.open(hub)
         logs = open_logs(
-            args.write, _context(args, [source.name for source in sources], view, annotator), args
+            args.write,
+            log_context(args, [source.name for source in sources], view, annotator),
+            args,
         )
         attach_outputs(
             hub,
@@ -250,21 +251,6 @@ def _read_with_pipeline(
     elif hub.errors:
         err(hub.errors[-1])
     return exit_status(hub, interrupted=interrupted)
-
-
-def _context(args: argparse.Namespace, names: list[str], view: Any, annotator: Any) -> Any:
-    """What the ``-w`` logs store besides the records (view, the inputs' names, settings)."""
-    from mbmon.sinks.base import SinkContext
-
-    return SinkContext(
-        view=view,
-        command_line=["mbmon", *sys.argv[1:]],
-        source=" ".join(names),
-        profiles=profile_sources(annotator),
-        profile_specs=list(args.profile),
-        timeout=args.timeout,
-        baud=args.baud,
-    )
 
 
 def _screen(args: argparse.Namespace, view: Any, flt: Any, live: bool) -> Any:

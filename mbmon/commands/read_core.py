@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from mbmon.commands.common import EXIT_BAD_INPUT, EXIT_OK, err
+from mbmon.commands.common import EXIT_BAD_INPUT, EXIT_OK, err, profile_sources
 from mbmon.commands.ending import interrupted_status
 from mbmon.commands.read_summary import report
 
@@ -127,8 +127,22 @@ def _log_opener(path: str, args: argparse.Namespace, view: Any) -> Any:
 
     def open_log() -> Any:
         from mbmon.commands.common import open_logs
-        from mbmon.commands.read import _context
 
-        return open_logs(args.write, _context(args, [path], view, None), args)[0]
+        return open_logs(args.write, log_context(args, [path], view, None), args)[0]
 
     return open_log
+
+
+def log_context(args: argparse.Namespace, names: list[str], view: Any, annotator: Any) -> Any:
+    """What the ``-w`` logs store besides the records (view, the inputs' names, settings)."""
+    from mbmon.sinks.base import SinkContext
+
+    return SinkContext(
+        view=view,
+        command_line=["mbmon", *sys.argv[1:]],
+        source=" ".join(names),
+        profiles=profile_sources(annotator),
+        profile_specs=list(args.profile),
+        timeout=args.timeout,
+        baud=args.baud,
+    )

@@ -256,3 +256,36 @@ def test_a_signal_whose_exception_python_swallows_is_raised_again(where: str) ->
     )
     assert proc.stdout == "interrupted 2\n", proc.stdout + proc.stderr
     assert "Exception ignored" not in proc.stderr, proc.stderr
+
+
+_SIGINT_WHILE_CLI_IMPORTS = """
+import os, signal as _already, sys
+
+class _Interrupting:
+    # a Ctrl-C arriving exactly while mbmon.cli reads the 'signal' module from disk
+    def find_spec(self, name, path=None, target=None):
+        if name == "signal":
+            sys.meta_path.remove(self)
+            os.kill(os.getpid(), _already.SIGINT)
+        return None
+
+del sys.modules["signal"]
+sys.meta_path.insert(0, _Interrupting())
+from mbmon.cli import main
+sys.exit(main())
+"""
+
+
+def test_ctrl_c_while_the_console_script_imports_the_cli_exits_130_quietly() -> None:
+    """The console script imports mbmon.cli before main() can install a handler: a
+    Ctrl-C during that import (here: exactly while 'signal' is imported) still ends
+    the run quietly with 130, not with a traceback."""
+    proc = subprocess.run(
+        [sys.executable, "-c", _SIGINT_WHILE_CLI_IMPORTS, "read", "/nonexistent.pcap"],
+        capture_output=True,
+        text=True,
+        env=ENV,
+        timeout=60,
+    )
+    assert proc.returncode == 130, (proc.returncode, proc.stderr)
+    assert "Traceback" not in proc.stderr and "KeyboardInterrupt" not in proc.stderr, proc.stderr
