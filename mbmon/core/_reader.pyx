@@ -1114,18 +1114,7 @@ cdef class _Pass:
             memcpy(o.p + o.n, o.p + note_at, note_end - note_at)
             o.n += note_end - note_at
             put(o, b'"],"crc_ok":null,"latency_ms":', 30)
-            if req != NULL and fabs(latency) < 1e9:
-                put_json_round3(o, latency * 1000)
-            elif req != NULL:
-                put_bytes(o, _orjson.dumps(round(latency * 1000, 3)))
-            else:
-                put(o, b"null", 4)
-            put(o, b',"malformed":null,"request_index":', 34)
-            if req != NULL:
-                put_i(o, req.index)
-            else:
-                put(o, b"null", 4)
-            put_c(o, 125)
+            self.put_json_answer_tail(o, req, latency)
         if mc:
             return self.mcap_frame(head_at, line_at, line_end, index, sid, ts, nat.kind,
                                    d == 1 and req == NULL)
@@ -1181,6 +1170,23 @@ cdef class _Pass:
                     put(o, b", \xe2\x80\xa6 (", 7)
                     put_u(o, n.nvalues)
                     put(o, b" values)", 8)
+        return 0
+
+    cdef int put_json_answer_tail(self, Buf* o, Pend* req, double latency) except -1:
+        """A JSON frame line's end after ``"latency_ms":``: the latency (rounded as the
+        reference rounds it; null without a request), ``malformed`` and the request's index."""
+        if req != NULL and fabs(latency) < 1e9:
+            put_json_round3(o, latency * 1000)
+        elif req != NULL:
+            put_bytes(o, _orjson.dumps(round(latency * 1000, 3)))
+        else:
+            put(o, b"null", 4)
+        put(o, b',"malformed":null,"request_index":', 34)
+        if req != NULL:
+            put_i(o, req.index)
+        else:
+            put(o, b"null", 4)
+        put_c(o, 125)
         return 0
 
     cdef int put_line_head(self, Buf* o, double ts, bytes label, int unit, int tid,
@@ -1650,18 +1656,7 @@ cdef class _Pass:
                 o.n += at
                 put_c(o, 34)
             put(o, b'],"crc_ok":null,"latency_ms":', 29)
-            if req != NULL and fabs(latency) < 1e9:
-                put_json_round3(o, latency * 1000)
-            elif req != NULL:
-                put_bytes(o, _orjson.dumps(round(latency * 1000, 3)))
-            else:
-                put(o, b"null", 4)
-            put(o, b',"malformed":null,"request_index":', 34)
-            if req != NULL:
-                put_i(o, req.index)
-            else:
-                put(o, b"null", 4)
-            put_c(o, 125)
+            self.put_json_answer_tail(o, req, latency)
         put_c(o, 10)
         if commands:
             self.command_records(commands)
