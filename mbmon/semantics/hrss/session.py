@@ -189,12 +189,8 @@ class HrssSession(Session):
             # a read asked for: it changes no image, only the clock can say something
             if not self.may_time_out_by(tx.ts):
                 return annotation(notes)
-        out = self._out
-        out.ts = ts = tx.ts
-        out.stream = frame.stream
-        out.notes = notes
-        out.commands = None
-        out.state_changed = False
+        ts = tx.ts
+        out = self._begin(ts, frame.stream, notes)
         if status is _ANSWERED and req is not None and tx.response is not None:
             if req.pdu.fc in _WRITE_FCS:
                 key = write_key(req)
@@ -209,10 +205,24 @@ class HrssSession(Session):
             self._rejected(req, tx.response, out)  # a write never fed as PENDING: nothing to undo
         elif tx.status is TxStatus.TIMEOUT and req is not None:
             self._writes.pop(write_key(req), None)  # values stay, still unconfirmed
+        self._late(ts, out)
+        return out.annotation()
+
+    def _begin(self, ts: float, stream: Stream, notes: list[str]) -> StepOut:
+        """The step's output, emptied, for a step at ``ts`` on ``stream`` (``notes`` first)."""
+        out = self._out
+        out.ts = ts
+        out.stream = stream
+        out.notes = notes
+        out.commands = None
+        out.state_changed = False
+        return out
+
+    def _late(self, ts: float, out: StepOut) -> None:
+        """Every step's last look: the command in flight times out by ``ts``."""
         a = self._active
         if a is not None and ts - a.t0 > self._timeout:
             self._check_timeout(ts, out)
-        return out.annotation()
 
     def wants_read_request(self, ts: float) -> bool:
         """A read asked for changes no image: :meth:`follow` needs it only when
@@ -329,16 +339,9 @@ class HrssSession(Session):
     ) -> tuple[list[str], list[CommandUpdate]]:
         """:meth:`follow` of an answered read, for the compiled core: the session's
         notes and command steps (the state it keeps is not asked for)."""
-        out = self._out
-        out.ts = ts
-        out.stream = stream
-        out.notes = []
-        out.commands = None
-        out.state_changed = False
+        out = self._begin(ts, stream, [])
         self._answer_values(fc, address, values, ts, out)
-        a = self._active
-        if a is not None and ts - a.t0 > self._timeout:
-            self._check_timeout(ts, out)
+        self._late(ts, out)
         return out.notes, out.commands or []
 
     def core_write_answer(
@@ -349,16 +352,9 @@ class HrssSession(Session):
         core hands the step to the annotator); a write's answer reads nothing."""
         if request not in self._writes:
             return None
-        out = self._out
-        out.ts = ts
-        out.stream = stream
-        out.notes = []
-        out.commands = None
-        out.state_changed = False
+        out = self._begin(ts, stream, [])
         self._confirm(request)
-        a = self._active
-        if a is not None and ts - a.t0 > self._timeout:
-            self._check_timeout(ts, out)
+        self._late(ts, out)
         return out.notes, out.commands or []
 
     # ------------------------------------------------------------------ writes
