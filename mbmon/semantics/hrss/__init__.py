@@ -4,8 +4,10 @@ Split along its seams: :mod:`~.spec` (``profiles/hrss_commands.toml`` as
 frozen data), :mod:`~.render` (register image → command in HRSS program form),
 :mod:`~.session` (:class:`HrssSession`, the device session the ``hrss``
 profile names: the handshake followed from pairing steps and ticks), with
-:mod:`~.steps` (what it keeps per write and command, what one step produces)
-and :mod:`~.reads` (what an FC 04 answer carries for it). See
+:mod:`~.steps` (what it keeps per write and command, what one step produces),
+:mod:`~.reads` (what an FC 04 answer carries for it), :mod:`~.codes` (which
+function codes touch which image) and :mod:`~.core` (what the compiled core asks
+of the session: a mixin of it). See
 ``docs/commands.md``.
 """
 

@@ -33,7 +33,9 @@ from mbmon.model import (
     Transaction,
     TxStatus,
 )
-from mbmon.protocol.functions import FUNCTIONS, SHAPE, derived, mask_write
+from mbmon.protocol.functions import SHAPE, mask_write
+from mbmon.semantics.hrss.codes import HOLDING_READS, INPUT_READS, MOVING, WRITE_FCS
+from mbmon.semantics.hrss.core import HrssCoreSupport
 from mbmon.semantics.hrss.reads import ReadPlan, read_plan, read_state
 from mbmon.semantics.hrss.render import (
     Decoded,
@@ -43,7 +45,7 @@ from mbmon.semantics.hrss.render import (
 )
 from mbmon.semantics.hrss.spec import load_spec
 from mbmon.semantics.hrss.steps import Exec, LiveImage, StepOut, Write, pop_oldest, write_key
-from mbmon.semantics.session import CoreWatch, Panel, Session, annotation
+from mbmon.semantics.session import Panel, Session, annotation
 from mbmon.semantics.words import s16
 
 #: a decoded command with the registers its decode read and the words they held
@@ -52,34 +54,10 @@ _DECODED_MAX = 128  # decoded commands a session remembers (see HrssSession._dec
 _DECODED_PER_CODE = 8  # of them with the same R201 word (the newest)
 _ANSWERS_MAX = 64  # FC 04 answers (of different shapes) kept before they go to the image
 
-_MOVING = (2, 3, 4)  # IR524 Running, Hold, Delay
-#: what _request applies to the holding image: the codes that write holding registers,
-#: from the one function-code table
-_WRITE_FCS: set[int] = set()
-#: the reads whose answer goes to the holding image, and those that go to the input image
-_HOLDING_READS: set[int] = set()
-_INPUT_READS: set[int] = set()
-
-
-@derived
-def _from_table() -> None:
-    for codes, table, writes in (
-        (_WRITE_FCS, "holding_register", True),
-        (_HOLDING_READS, "holding_register", False),
-        (_INPUT_READS, "input_register", False),
-    ):
-        codes.clear()
-        codes.update(
-            code
-            for code, f in FUNCTIONS.items()
-            if f.table == table and (f.writes if writes else f.read)
-        )
-
-
 _PENDING, _ANSWERED = TxStatus.PENDING, TxStatus.ANSWERED
 
 
-class HrssSession(Session):
+class HrssSession(HrssCoreSupport, Session):
     """Per (server endpoint, unit): the register image seen so far and the command protocol.
 
     The device session (:class:`~mbmon.semantics.session.Session`) the ``hrss``
@@ -134,8 +112,6 @@ class HrssSession(Session):
         # their words: the same words decode the same (see _decode); bounded
         self._decoded: dict[int | None, list[_Remembered]] = {}
         self._decoded_count = 0
-        # CoreWatch by what it was made from (see core_watch)
-        self._watches: dict[tuple[Any, ...], tuple[Exec | None, CoreWatch]] = {}
 
     # ------------------------------------------------------------------ public views
 
@@ -185,21 +161,21 @@ class HrssSession(Session):
         if frame is None or frame.unit != self.unit:
             return annotation(notes)
         status = tx.status
-        if status is _PENDING and req is not None and req.pdu.fc not in _WRITE_FCS:
+        if status is _PENDING and req is not None and req.pdu.fc not in WRITE_FCS:
             # a read asked for: it changes no image, only the clock can say something
             if not self.may_time_out_by(tx.ts):
                 return annotation(notes)
         ts = tx.ts
         out = self._begin(ts, frame.stream, notes)
         if status is _ANSWERED and req is not None and tx.response is not None:
-            if req.pdu.fc in _WRITE_FCS:
+            if req.pdu.fc in WRITE_FCS:
                 key = write_key(req)
                 if key not in self._writes:
                     self._request(req, out)  # the request was never fed on its own
                 self._confirm(key)
             self._answer(req, tx.response, out)
         elif status is _PENDING and req is not None:
-            if req.pdu.fc in _WRITE_FCS:  # reads change no image on request
+            if req.pdu.fc in WRITE_FCS:  # reads change no image on request
                 self._request(req, out)
         elif tx.status is TxStatus.EXCEPTION and req is not None:
             self._rejected(req, tx.response, out)  # a write never fed as PENDING: nothing to undo
@@ -268,95 +244,6 @@ class HrssSession(Session):
             deadline = math.nextafter(deadline, math.inf)
         return deadline
 
-    # ------------------------------------------------------------------ the compiled core
-
-    core_ready = True
-
-    def core_watch(self) -> CoreWatch:
-        """The answers whose words would change what this session says (see
-        :class:`~mbmon.semantics.session.CoreWatch`): every holding-register read
-        (the image commands are decoded from), the Get commands' returns, the command
-        status while a command waits for one, the queue length crossing its limit, the
-        motion state when it changes or while the command in flight is moving; and
-        the time from which a step may report a command that never completed.
-
-        Made again only when what it depends on changed (it is asked after every call
-        the core makes, most of which change none of it)."""
-        a = self._active
-        key = (
-            None if a is None else (id(a), a.done, a.looked, a.moving, a.settled, a.warned, a.t0),
-            self._queue_over,
-            self._motion,
-            self._holding.get(self._exec_reg),
-        )
-        known = self._watches.get(key)
-        if known is not None and known[0] is a:  # (the same command, not one at its address)
-            return known[1]
-        if len(self._watches) >= 16:  # a few states recur (the motion toggling): bounded
-            self._watches.clear()
-        watch = self._core_watch()
-        self._watches[key] = (a, watch)
-        return watch
-
-    def _core_watch(self) -> CoreWatch:
-        p = self._spec
-        always: list[tuple[int, int, int, int, int]] = [
-            (fc, 0, 0xFFFF, 1, 0) for fc in sorted(_HOLDING_READS)
-        ]
-        status, queue, motion = p.reg("status_reg"), p.reg("queue_reg"), p.reg("motion_reg")
-        limit = int(p.protocol["queue_max"])
-        a = self._active
-        for fc in sorted(_INPUT_READS):
-            always.append((fc, self._returns.start, self._returns.stop - 1, 1, 0))
-            if a is not None and not a.done:
-                always.append((fc, status, status, 1, 0))
-            if self._queue_over:
-                always.append((fc, queue, queue, limit + 1, 0x7FFF))
-            else:
-                always.append((fc, queue, queue, -0x8000, limit))
-            m = self._motion
-            if m is not None and self._motion_unchanged(m):
-                always.append((fc, motion, motion, m, m))
-            else:
-                always.append((fc, motion, motion, 1, 0))
-        deadline = self.next_deadline()
-        return CoreWatch(math.inf if deadline is None else deadline, tuple(always))
-
-    def _motion_unchanged(self, m: int) -> bool:
-        """Whether reading the motion state ``m`` again would change nothing (see
-        :meth:`_motion_read`)."""
-        a = self._active
-        if a is None or a.spec is None or not a.spec.motion:
-            return True
-        if not a.looked:
-            return False
-        if m in _MOVING:
-            return a.moving
-        return not (m == 1 and a.moving and not a.settled)
-
-    def core_answer(
-        self, fc: int, address: int, values: tuple[int, ...], ts: float, stream: Stream
-    ) -> tuple[list[str], list[CommandUpdate]]:
-        """:meth:`follow` of an answered read, for the compiled core: the session's
-        notes and command steps (the state it keeps is not asked for)."""
-        out = self._begin(ts, stream, [])
-        self._answer_values(fc, address, values, ts, out)
-        self._late(ts, out)
-        return out.notes, out.commands or []
-
-    def core_write_answer(
-        self, request: tuple[float, int, int, bytes], ts: float, stream: Stream
-    ) -> tuple[list[str], list[CommandUpdate]] | None:
-        """:meth:`follow` of a register write's answer, for the compiled core: the
-        write is confirmed (its request was followed: ``None`` when it was not, and the
-        core hands the step to the annotator); a write's answer reads nothing."""
-        if request not in self._writes:
-            return None
-        out = self._begin(ts, stream, [])
-        self._confirm(request)
-        self._late(ts, out)
-        return out.notes, out.commands or []
-
     # ------------------------------------------------------------------ writes
 
     def _request(self, req: Frame, out: StepOut) -> None:
@@ -364,7 +251,7 @@ class HrssSession(Session):
         if pdu.kind is not Kind.REQUEST:
             return
         writes: list[tuple[int, int | None]] = []
-        shape = SHAPE.get(pdu.fc) if pdu.fc in _WRITE_FCS else None
+        shape = SHAPE.get(pdu.fc) if pdu.fc in WRITE_FCS else None
         if shape == "write_single" and pdu.address is not None and pdu.values:
             writes = [(pdu.address, pdu.values[0])]
         elif shape == "write_multiple" and pdu.address is not None and pdu.values is not None:
@@ -563,11 +450,11 @@ class HrssSession(Session):
     ) -> None:
         """An answered request of function code ``fc`` at ``address`` read ``values``
         (as many as asked): the images, then what the watched registers say."""
-        if fc in _HOLDING_READS:
+        if fc in HOLDING_READS:
             for i, v in enumerate(values):
                 self._holding[address + i] = v
                 self._unconfirmed.discard(address + i)
-        elif fc in _INPUT_READS:
+        elif fc in INPUT_READS:
             n = len(values)
             plan = self._plans.get((address, n))
             if plan is None:
@@ -694,7 +581,7 @@ class HrssSession(Session):
         if a is None or ts < a.t0 or a.spec is None or not a.spec.motion:
             return
         a.looked = True
-        if v in _MOVING:
+        if v in MOVING:
             a.moving = True
         elif v == 1 and a.moving and not a.settled:
             a.settled = True
@@ -708,7 +595,7 @@ class HrssSession(Session):
             return False
         if a.spec is not None and a.spec.hold_to_run and self._holding.get(self._exec_reg) == 1:
             return False  # JOG / GO HOME run while R200 = 1
-        return not (a.moving and self._motion in _MOVING)  # not while still moving
+        return not (a.moving and self._motion in MOVING)  # not while still moving
 
     def _check_timeout(self, ts: float, out: StepOut) -> None:
         a = self._active
