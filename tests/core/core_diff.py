@@ -18,6 +18,7 @@ from mbmon import core
 from mbmon.format import View
 from mbmon.hub import Hub
 from mbmon.pipeline import Pipeline, PipelineConfig
+from mbmon.semantics.annotate import annotator_for
 from mbmon.sinks.console import ConsoleListener
 from mbmon.sinks.select import Selection
 from mbmon.sinks.summary import Summary
@@ -52,12 +53,15 @@ def reference(
     ports: frozenset[int] = frozenset({502}),
     timeout: float = 1.0,
     detect: bool = False,
+    specs: list[str] | None = None,
 ) -> tuple[bytes, str]:
-    """``mbmon read`` by the Python pipeline: stdout's bytes and the summary's text."""
+    """``mbmon read`` by the Python pipeline: stdout's bytes and the summary's text
+    (``specs``: the ``--profile`` values, none by default)."""
     raw = io.BytesIO()
     out = io.TextIOWrapper(raw, encoding="utf-8", errors="backslashreplace", write_through=True)
     view = View(time_format=TimeFormat("a"))
-    hub = Hub(Pipeline(None, PipelineConfig(timeout=timeout)))
+    annotator = annotator_for(specs) if specs else None
+    hub = Hub(Pipeline(annotator, PipelineConfig(timeout=timeout)))
     summary = Summary(None)
     hub.add_listener(Selection([ConsoleListener(out, view, as_json=as_json)], view))
     hub.add_listener(summary)
@@ -77,8 +81,15 @@ def with_core(
     ports: frozenset[int] = frozenset({502}),
     timeout: float = 1.0,
     detect: bool = False,
+    specs: list[str] | None = None,
 ) -> tuple[bytes, str, str | None]:
-    """``mbmon read`` by the compiled core: stdout's bytes, the summary, the decline."""
+    """``mbmon read`` by the compiled core: stdout's bytes, the summary, the decline
+    (``specs``: the ``--profile`` values; a profile the core declines is that decline)."""
+    annotator = annotator_for(specs) if specs else None
+    if annotator is not None:
+        why = core.decline_for_profile(annotator)
+        if why is not None:
+            return b"", "", why
     chunks: list[bytes] = []
     run = core.read_file(
         str(path),
@@ -88,6 +99,7 @@ def with_core(
         as_json=as_json,
         write=chunks.append,
         detect=detect,
+        annotator=annotator,
     )
     if run.declined is not None:
         assert not chunks, "a decline wrote bytes"

@@ -113,3 +113,39 @@ def write_frames(path: Path, frames: list[tuple[float, bytes]], linktype: int = 
         for ts, frame in frames:
             w.write(ts, frame)
     return path
+
+
+# ---------------------------------------------------------------- scenarios shared by suites
+
+
+def split_at_every_byte(folder: Path) -> list[Path]:
+    """Two pipelined requests cut at every byte (one file per cut, the answer to the
+    first between the two halves): the scenario the file and live suites both run."""
+    req = encode_adu(7, 1, encode_read_request(3, 10, 4))
+    resp = encode_adu(7, 1, encode_read_response(3, [1, 2, 3, 4]))
+    nxt = encode_adu(8, 1, encode_read_request(4, 0, 1))
+    both = req + nxt
+    return [
+        write_conversation(
+            folder / f"split{cut}.pcap", [(True, both[:cut]), (False, resp), (True, both[cut:])]
+        )
+        for cut in range(1, len(both))
+    ]
+
+
+def retransmission_and_overlap(folder: Path) -> Path:
+    """A request retransmitted whole, then a segment overlapping its last 3 bytes with
+    the next request; both answered, then FIN from the server."""
+    conv = TcpConversation("10.0.0.1:40000", "10.0.0.2:502")
+    frames = conv.open()
+    req = encode_adu(1, 1, encode_read_request(3, 0, 2))
+    req2 = encode_adu(2, 1, encode_read_request(3, 2, 2))
+    seq = conv.client_next
+    frames.append(conv.send(True, req))
+    frames.append(conv.segment(True, 0x18, req, seq=seq, advance=False))  # retransmitted
+    frames.append(conv.segment(True, 0x18, req[-3:] + req2, seq=seq + len(req) - 3))
+    conv.client_next = (seq + len(req) + len(req2)) & 0xFFFFFFFF
+    frames.append(conv.send(False, encode_adu(1, 1, encode_read_response(3, [1, 2]))))
+    frames.append(conv.send(False, encode_adu(2, 1, encode_read_response(3, [3, 4]))))
+    frames += conv.close(False)
+    return write_frames(folder / "rtx.pcap", [(T0 + i * 0.01, f) for i, f in enumerate(frames)])

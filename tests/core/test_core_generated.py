@@ -11,7 +11,15 @@ from pathlib import Path
 
 import pytest
 from core_diff import assert_same, require_core, with_core
-from gen import T0, adus, every_function_pair, write_conversation, write_frames
+from gen import (
+    T0,
+    adus,
+    every_function_pair,
+    retransmission_and_overlap,
+    split_at_every_byte,
+    write_conversation,
+    write_frames,
+)
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -82,33 +90,12 @@ def test_mixed_segments(tmp_path: Path) -> None:
 
 
 def test_splits_at_every_byte(tmp_path: Path) -> None:
-    req = encode_adu(7, 1, encode_read_request(3, 10, 4))
-    resp = encode_adu(7, 1, encode_read_response(3, [1, 2, 3, 4]))
-    nxt = encode_adu(8, 1, encode_read_request(4, 0, 1))
-    both = req + nxt
-    for cut in range(1, len(both)):
-        path = tmp_path / f"split{cut}.pcap"
-        segments = [(True, both[:cut]), (False, resp), (True, both[cut:])]
-        write_conversation(path, segments)
+    for path in split_at_every_byte(tmp_path):
         assert_same(path, covered=True)
 
 
 def test_retransmission_and_overlap(tmp_path: Path) -> None:
-    conv = TcpConversation("10.0.0.1:40000", "10.0.0.2:502")
-    frames = conv.open()
-    req = encode_adu(1, 1, encode_read_request(3, 0, 2))
-    req2 = encode_adu(2, 1, encode_read_request(3, 2, 2))
-    seq = conv.client_next
-    frames.append(conv.send(True, req))
-    frames.append(conv.segment(True, 0x18, req, seq=seq, advance=False))  # retransmitted
-    # an overlap: the old request's last 3 bytes and the new request
-    frames.append(conv.segment(True, 0x18, req[-3:] + req2, seq=seq + len(req) - 3))
-    conv.client_next = (seq + len(req) + len(req2)) & 0xFFFFFFFF
-    frames.append(conv.send(False, encode_adu(1, 1, encode_read_response(3, [1, 2]))))
-    frames.append(conv.send(False, encode_adu(2, 1, encode_read_response(3, [3, 4]))))
-    frames += conv.close(False)
-    path = write_frames(tmp_path / "rtx.pcap", [(T0 + i * 0.01, f) for i, f in enumerate(frames)])
-    assert_same(path, covered=True)
+    assert_same(retransmission_and_overlap(tmp_path), covered=True)
 
 
 def test_holes_and_noise_are_declined(tmp_path: Path) -> None:

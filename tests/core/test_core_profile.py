@@ -12,21 +12,17 @@ a data-only profile with every register kind at the edges of its values.
 
 from __future__ import annotations
 
-import io
 import random
 import struct
 import subprocess
 import sys
 from pathlib import Path
 
+import core_diff
 import pytest
 from core_diff import REAL, ROOT, require_core
 
-from mbmon import core
-from mbmon.format import View
-from mbmon.hub import Hub
 from mbmon.io.pcap import PcapWriter, TcpConversation
-from mbmon.pipeline import Pipeline, PipelineConfig
 from mbmon.protocol.mbap import encode_adu
 from mbmon.protocol.pdu import (
     encode_exception,
@@ -36,12 +32,6 @@ from mbmon.protocol.pdu import (
     encode_write_multiple_response,
     encode_write_single,
 )
-from mbmon.semantics.annotate import annotator_for
-from mbmon.sinks.console import ConsoleListener
-from mbmon.sinks.select import Selection
-from mbmon.sinks.summary import Summary
-from mbmon.sources.pcapfile import CaptureConfig, read_capture
-from mbmon.timefmt import TimeFormat
 
 T0 = 1_700_000_000.125
 HERE = Path(__file__).resolve().parent
@@ -57,43 +47,14 @@ def _core() -> None:
 
 def reference(path: Path, specs: list[str], *, as_json: bool, timeout: float) -> tuple[bytes, str]:
     """``mbmon read --profile ...`` by the Python pipeline: stdout's bytes, the summary."""
-    raw = io.BytesIO()
-    out = io.TextIOWrapper(raw, encoding="utf-8", errors="backslashreplace", write_through=True)
-    view = View(time_format=TimeFormat("a"))
-    hub = Hub(Pipeline(annotator_for(specs), PipelineConfig(timeout=timeout)))
-    summary = Summary(None)
-    hub.add_listener(Selection([ConsoleListener(out, view, as_json=as_json)], view))
-    hub.add_listener(summary)
-    hub.run_items(read_capture(path, CaptureConfig(tcp_ports=frozenset({502}))))
-    hub.close()
-    out.flush()
-    return raw.getvalue(), summary.text(timed=True)
+    return core_diff.reference(path, as_json=as_json, timeout=timeout, specs=specs)
 
 
 def with_core(
     path: Path, specs: list[str], *, as_json: bool, timeout: float
 ) -> tuple[bytes, str, str | None]:
     """The same by the core: stdout's bytes, the summary, why it declined (or None)."""
-    annotator = annotator_for(specs)
-    why = core.decline_for_profile(annotator)
-    if why is not None:
-        return b"", "", why
-    chunks: list[bytes] = []
-    run = core.read_file(
-        str(path),
-        ports=frozenset({502}),
-        timeout=timeout,
-        view=View(time_format=TimeFormat("a")),
-        as_json=as_json,
-        write=chunks.append,
-        annotator=annotator,
-    )
-    if run.declined is not None:
-        assert not chunks, "a decline wrote bytes"
-        return b"", "", run.declined
-    summary = Summary(None)
-    core.fill_summary(summary, run.counts)
-    return b"".join(chunks), summary.text(timed=True), None
+    return core_diff.with_core(path, as_json=as_json, timeout=timeout, specs=specs)
 
 
 def assert_same(path: Path, specs: list[str], *, timeout: float = 1.0) -> bytes:
