@@ -37,6 +37,11 @@ cdef class _RtuPass(_Pass):
     cdef bint has_pend          # the pairer holds a request (pend)
     cdef Pend pend
     cdef public int64_t noise_records, noise_bytes, crc_errors
+    # a Read/Write Multiple Registers (0x17) request written here: its write part
+    cdef bint rw
+    cdef int rw_address, rw_count, rw_bytes
+    cdef const uint8_t* rw_values
+    cdef int rw_max_read, rw_max_write
 
     def __init__(self, bint emit, bint as_json, double timeout, view, write, stream):
         from mbmon.core._rtu import PACKED, RtuCore
@@ -53,6 +58,12 @@ cdef class _RtuPass(_Pass):
         self.heads = [None] * (stream.id + 1)
         self.has_pend = False
         self.noise_records = self.noise_bytes = self.crc_errors = 0
+        from mbmon.protocol.functions import FUNCTIONS
+
+        rw = FUNCTIONS.get(0x17)
+        # the spec's limits of the row (0: no such row, the reference formats 0x17)
+        self.rw_max_read = (rw.max_count or 0) if rw is not None and rw.shape == "read_write" else 0
+        self.rw_max_write = (rw.max_write_count or 0) if self.rw_max_read else 0
 
     def run_rtu(self, data) -> None:
         """The dump ``data`` (bytes or a buffer) in the reference's reads, then its end."""
@@ -260,6 +271,8 @@ cdef class _RtuPass(_Pass):
         put(o, b"  | ", 4)
         note_at = o.n
         self.put_note(&nat)
+        if self.rw:
+            self.put_rw_note(o)
         note_end = o.n
         if req != NULL:
             if self.timed:
@@ -283,6 +296,10 @@ cdef class _RtuPass(_Pass):
                 else:
                     put(o, b"null", 4)
                 put_c(o, 125)
+            if self.rw:  # the request's write part: the JSON's "fields", as the last key
+                o.n -= 1
+                self.put_rw_fields(o)
+                put_c(o, 125)
         put_c(o, 10)
         if o.n >= FLUSH_AT:
             self.flush_out()
@@ -292,7 +309,10 @@ cdef class _RtuPass(_Pass):
                          Native* rnat) except -1:
         """Whether the core writes this frame's line itself (``frame_record``'s test)."""
         cdef bint native
-        if d == 0:
+        self.rw = False
+        if plen >= 1 and pdu[0] == 0x17 and self.rw_max_read:
+            native = self.rw_native(d, pdu, plen, req, nat)
+        elif d == 0:
             native = native_pdu(pdu, plen, False, NULL, nat)
         elif req != NULL:
             native = (native_pdu(req.raw + 1, req.alen - 3, False, NULL, rnat)
@@ -304,6 +324,103 @@ cdef class _RtuPass(_Pass):
         if native and nat.exc >= 0 and self.enames[nat.exc] is None:
             native = False
         return native
+
+    cdef bint rw_native(self, int d, const uint8_t* pdu, int plen, Pend* req, Native* nat) except -1:
+        """A well-formed Read/Write Multiple Registers (0x17) request, or its answer (the
+        read part's words: a register read's answer, its address and count the
+        request's), as ``native_pdu`` decodes the codes it knows; False for the rest
+        (malformed, a byte count its request breaks), which the reference formats."""
+        cdef int address, count, waddr, wcount, wbc, bc
+        cdef const uint8_t* rp
+        nat.fc = 0x17
+        nat.has_addr = 0
+        nat.address = 0
+        nat.count = -1
+        nat.nvalues = -1
+        nat.bits = 0
+        nat.vdata = NULL
+        nat.exc = -1
+        nat.onoff = 0
+        if d == 0:
+            if plen < 10:
+                return False
+            address = be16(pdu + 1)
+            count = be16(pdu + 3)
+            waddr = be16(pdu + 5)
+            wcount = be16(pdu + 7)
+            wbc = pdu[9]
+            if plen - 10 != wbc or wbc != 2 * wcount:
+                return False
+            if not 1 <= count <= self.rw_max_read or not 1 <= wcount <= self.rw_max_write:
+                return False
+            if address + count > 0x10000 or waddr + wcount > 0x10000:
+                return False
+            nat.kind = 0
+            nat.has_addr = 1
+            nat.address = address
+            nat.count = count
+            self.rw = True
+            self.rw_address = waddr
+            self.rw_count = wcount
+            self.rw_bytes = wbc
+            self.rw_values = pdu + 10
+            return True
+        if plen < 3:
+            return False
+        bc = pdu[1]
+        if plen != bc + 2 or bc & 1 or bc == 0:
+            return False
+        nat.kind = 1
+        nat.nvalues = bc >> 1
+        nat.vdata = pdu + 2
+        if req != NULL:
+            if req.alen - 3 < 5:
+                return False
+            rp = req.raw + 1
+            if bc != 2 * be16(rp + 3):
+                return False  # decoded again with the request: malformed
+            nat.has_addr = 1
+            nat.address = be16(rp + 1)
+            nat.count = be16(rp + 3)
+        return True
+
+    cdef int put_rw_note(self, Buf* o) except -1:
+        """The end of a 0x17 request's note: ``, write A..B = v, v, ...`` (the generic
+        note's, ``format.values_text`` for the words)."""
+        cdef int i, shown
+        put(o, b", write ", 8)
+        put_u(o, self.rw_address)
+        if self.rw_count > 1:
+            put(o, b"..", 2)
+            put_u(o, self.rw_address + self.rw_count - 1)
+        put(o, b" = ", 3)
+        shown = self.rw_count if self.rw_count < 16 else 16
+        for i in range(shown):
+            if i:
+                put(o, b", ", 2)
+            put_u16(o, be16(self.rw_values + 2 * i))
+        if self.rw_count > 16:
+            put(o, b", \xe2\x80\xa6 (", 7)
+            put_u(o, self.rw_count)
+            put(o, b" values)", 8)
+        return 0
+
+    cdef int put_rw_fields(self, Buf* o) except -1:
+        """A 0x17 request's ``"fields"`` in its JSON line (the decoder's, in its order)."""
+        cdef int i
+        put(o, b',"fields":{"write_address":', 27)
+        put_u(o, self.rw_address)
+        put(o, b',"write_count":', 15)
+        put_u(o, self.rw_count)
+        put(o, b',"write_byte_count":', 20)
+        put_u(o, self.rw_bytes)
+        put(o, b',"write_values":[', 17)
+        for i in range(self.rw_count):
+            if i:
+                put_c(o, 44)
+            put_u16(o, be16(self.rw_values + 2 * i))
+        put(o, b"]}", 2)
+        return 0
 
     cdef int rtu_python(self, int64_t index, int d, double ts, const uint8_t* adu, int alen,
                         Pend* req, double latency) except -1:

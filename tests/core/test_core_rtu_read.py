@@ -169,6 +169,42 @@ def test_random_bytes_between_frames(tmp_path, noise: bytes, picks: list[int]) -
     assert_read_same(dump)
 
 
+_EDGES = st.sampled_from([0, 1, 2, 15, 16, 17, 120, 121, 122, 125, 126, 0xFFFF])
+_ADDRESSES = st.sampled_from([0, 1, 100, 0xFF80, 0xFFFE, 0xFFFF])
+
+
+@settings(
+    max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    st.lists(
+        st.tuples(_ADDRESSES, _EDGES, _ADDRESSES, _EDGES, st.integers(-2, 2), st.integers(-2, 2)),
+        min_size=1,
+        max_size=6,
+    ),
+    st.randoms(use_true_random=False),
+)
+def test_read_write_multiple_registers_at_the_edges(tmp_path, exchanges, rng) -> None:
+    """0x17, which the core writes itself on a bus: counts and addresses at the spec's
+    limits and past them, write byte counts that disagree, answers whose byte count
+    breaks the request's read count, unpaired answers."""
+    parts = []
+    for address, count, waddr, wcount, off_write, off_read in exchanges:
+        words = rng.randbytes(2 * min(wcount, 127))
+        wbc = max(0, min(255, 2 * wcount + off_write))
+        request = bytes([0x17]) + b"".join(
+            v.to_bytes(2, "big") for v in (address, count, waddr, wcount)
+        )
+        parts.append(encode_rtu(5, request + bytes([wbc]) + words[:wbc]))
+        rbc = max(0, min(250, 2 * min(count, 125) + off_read))
+        parts.append(encode_rtu(5, bytes([0x17, rbc]) + rng.randbytes(rbc)))
+        if off_read == 2:
+            parts.append(encode_rtu(5, bytes([0x17, 4]) + rng.randbytes(4)))  # unsolicited
+    dump = tmp_path / "rw.bin"
+    dump.write_bytes(b"".join(parts))
+    assert_read_same(dump)
+
+
 # ---------------------------------------------------------------- the command
 
 
