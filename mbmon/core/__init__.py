@@ -422,7 +422,11 @@ def read_rtu_file(
 
     name = Path(path).name
     stream = Stream(0, Transport.RTU, name, name, timed=False)  # as read_rtu_raw makes it
-    with open(path, "rb") as f:
+    try:
+        f = open(path, "rb")  # closed below; an error declines
+    except OSError as exc:  # the reference pipeline says why, as for any input
+        return CoreRun(declined=f"cannot open the dump ({exc.strerror or exc})")
+    with f:
         try:
             mapped: Any = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
         except ValueError:  # an empty file cannot be mapped
