@@ -147,6 +147,7 @@ def read_rtu_with_core(
             view=view,
             as_json=args.json,
             write=None if raw is None else raw.write,
+            read_size=source.chunk_size,
         )
         why = run.declined
     if why is not None:

@@ -407,10 +407,18 @@ def decline_for_rtu(args: Any, *, live: bool, flt: Any, annotator: Any = None) -
 
 
 def read_rtu_file(
-    path: str, *, timeout: float, view: Any, as_json: bool, write: Any | None
+    path: str,
+    *,
+    timeout: float,
+    view: Any,
+    as_json: bool,
+    write: Any | None,
+    read_size: int = 4096,
 ) -> CoreRun:
-    """The raw RTU dump at ``path`` (a regular file) read by the core: its lines to
-    ``write`` (``None``: count only, ``-q``), the counts of the summary (noise too)."""
+    """The raw RTU dump at ``path`` (a regular file) read by the core, in reads of
+    ``read_size`` bytes as the reference's source reads it (``RawRtuSource.chunk_size``):
+    its lines to ``write`` (``None``: count only, ``-q``), the counts of the summary
+    (noise too)."""
     if _load() is not None:
         return CoreRun(declined=f"the compiled core is unavailable: {_UNAVAILABLE}")
     if not _regular_file(path):
@@ -433,7 +441,7 @@ def read_rtu_file(
             mapped = None
     done = _reader._RtuPass(write is not None, as_json, timeout, view, write, stream)
     try:
-        done.run_rtu(b"" if mapped is None else mapped)
+        done.run_rtu(b"" if mapped is None else mapped, read_size)
     finally:
         if mapped is not None:
             mapped.close()

@@ -1,7 +1,7 @@
 # RTU pairing and lines in the compiled core (included by _reader.pyx).
 #
 # ``_RtuPass`` runs ``mbmon read --rtu-raw FILE`` end to end: the bus's bytes in the
-# reference's reads (RawRtuSource: 4096 bytes, time 0.0) -> the compiled framer
+# reference's reads (RawRtuSource's chunk size, time 0.0) -> the compiled framer
 # (mbmon.core._rtu.RtuCore, its packed output: no Python object per frame) -> the
 # RTU pairing rules of mbmon.protocol.pairing (one pending request per bus, unit and
 # function code must agree, a new request times the pending one out, broadcasts and
@@ -22,10 +22,6 @@ cdef struct _RRec:          # one packed record of RtuCore.take() (``<BBHId``)
     unsigned short length   # frame bytes
     uint32_t offset         # frame: offset in the raw bytes; noise: index in the list
     double ts
-
-
-#: the reference's read size for a raw dump (mbmon.sources.files.RawRtuSource)
-RTU_READ = 4096
 
 
 cdef class _RtuPass(_Pass):
@@ -65,13 +61,16 @@ cdef class _RtuPass(_Pass):
         self.rw_max_read = (rw.max_count or 0) if rw is not None and rw.shape == "read_write" else 0
         self.rw_max_write = (rw.max_write_count or 0) if self.rw_max_read else 0
 
-    def run_rtu(self, data) -> None:
-        """The dump ``data`` (bytes or a buffer) in the reference's reads, then its end."""
+    def run_rtu(self, data, Py_ssize_t read_size) -> None:
+        """The dump ``data`` (bytes or a buffer) in reads of ``read_size`` bytes, as the
+        reference's source reads it (``RawRtuSource.chunk_size``), then its end."""
         cdef Py_ssize_t n = len(data), pos = 0, end
+        if read_size < 1:
+            raise ValueError("read_size must be at least 1")
         view = memoryview(data)
         try:
             while pos < n:
-                end = pos + RTU_READ if n - pos > RTU_READ else n
+                end = pos + read_size if n - pos > read_size else n
                 self.rtu_chunk(bytes(view[pos:end]), 0.0)
                 pos = end
         finally:

@@ -205,7 +205,9 @@ def _reference_rtu(stream: Stream, direction: Direction, config: Any) -> Any:
     return RtuDecoder(stream, direction, baudrate=config.baudrate, silence=config.settle_after)
 
 
-def read_reference(path: Any, *, as_json: bool, timeout: float = 1.0) -> tuple[bytes, str]:
+def read_reference(
+    path: Any, *, as_json: bool, timeout: float = 1.0, read_size: int = 4096
+) -> tuple[bytes, str]:
     """``mbmon read --rtu-raw PATH`` by the reference pipeline (the reference
     ``RtuDecoder`` too, not the compiled framer), wired as ``read`` wires it: stdout's
     bytes and the summary's text."""
@@ -233,14 +235,14 @@ def read_reference(path: Any, *, as_json: bool, timeout: float = 1.0) -> tuple[b
     summary = Summary(None)
     hub.add_listener(Selection([ConsoleListener(out, view, as_json=as_json)], view))
     hub.add_listener(summary)
-    hub.run_items(read_rtu_raw(path, 4096, stream_id=0))
+    hub.run_items(read_rtu_raw(path, read_size, stream_id=0))
     hub.close()
     out.flush()
     return raw.getvalue(), summary.text(timed=False)
 
 
 def read_with_core(
-    path: Any, *, as_json: bool, timeout: float = 1.0, quiet: bool = False
+    path: Any, *, as_json: bool, timeout: float = 1.0, quiet: bool = False, read_size: int = 4096
 ) -> tuple[bytes, str]:
     """``mbmon read --rtu-raw PATH`` by the compiled core (``quiet``: no lines, the
     counts only, as ``-q``): stdout's bytes and the summary's text."""
@@ -256,6 +258,7 @@ def read_with_core(
         view=View(time_format=TimeFormat("a")),
         as_json=as_json,
         write=None if quiet else chunks.append,
+        read_size=read_size,
     )
     assert run.declined is None, run.declined
     summary = Summary(None)
@@ -263,13 +266,15 @@ def read_with_core(
     return b"".join(chunks), summary.text(timed=False)
 
 
-def assert_read_same(path: Any, *, timeout: float = 1.0) -> bytes:
-    """The core and the reference read the dump at ``path`` alike, byte for byte, text
-    and JSON, and the summary (also of a run without lines, ``-q``); the text."""
+def assert_read_same(path: Any, *, timeout: float = 1.0, read_size: int = 4096) -> bytes:
+    """The core and the reference read the dump at ``path`` alike (in reads of
+    ``read_size`` bytes), byte for byte, text and JSON, and the summary (also of a run
+    without lines, ``-q``); the text."""
     text = b""
+    kw: dict[str, Any] = {"timeout": timeout, "read_size": read_size}
     for as_json in (False, True):
-        want, want_summary = read_reference(path, as_json=as_json, timeout=timeout)
-        got, got_summary = read_with_core(path, as_json=as_json, timeout=timeout)
+        want, want_summary = read_reference(path, as_json=as_json, **kw)
+        got, got_summary = read_with_core(path, as_json=as_json, **kw)
         if got != want:
             for i, (a, b) in enumerate(zip(got.splitlines(), want.splitlines(), strict=False)):
                 assert a == b, f"{path} json={as_json} line {i}"
@@ -278,6 +283,6 @@ def assert_read_same(path: Any, *, timeout: float = 1.0) -> bytes:
         assert got_summary == want_summary
         if not as_json:
             text = got
-            quiet, quiet_summary = read_with_core(path, as_json=False, timeout=timeout, quiet=True)
+            quiet, quiet_summary = read_with_core(path, as_json=False, quiet=True, **kw)
             assert quiet == b"" and quiet_summary == want_summary
     return text

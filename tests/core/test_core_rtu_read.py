@@ -146,11 +146,16 @@ def test_pairing_buses(tmp_path, seed: int) -> None:
 
 
 def test_a_dump_of_several_reads_and_an_empty_one(tmp_path) -> None:
-    """Frames across the reads (4096 bytes each) and a dump with nothing in it."""
+    """Frames across the reads (4096 bytes each, and reads of other sizes) and a dump
+    with nothing in it."""
     dump = tmp_path / "bus.bin"
     dump.write_bytes(paired_bus(7, 1500))
     assert dump.stat().st_size > 3 * 4096
     assert_read_same(dump)
+    short = tmp_path / "short.bin"
+    short.write_bytes(paired_bus(8, 60))
+    for size in (1, 7, 100):
+        assert_read_same(short, read_size=size)
     empty = tmp_path / "empty.bin"
     empty.write_bytes(b"")
     assert assert_read_same(empty) == b""
