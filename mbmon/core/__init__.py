@@ -429,6 +429,10 @@ def read_rtu_file(
     from mbmon.model import Stream, Transport
 
     name = Path(path).name
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:  # the lines name the bus: the reference's escaping rules
+        return CoreRun(declined="a dump whose file name is not UTF-8")
     stream = Stream(0, Transport.RTU, name, name, timed=False)  # as read_rtu_raw makes it
     try:
         f = open(path, "rb")  # closed below; an error declines

@@ -265,6 +265,21 @@ def test_what_the_core_declines_for_a_dump(tmp_path, extra: list[str], why: byte
     assert fast.stdout == _mbmon(args, pure=True).stdout
 
 
+def test_a_dump_whose_name_is_no_utf8_is_declined_and_read_alike(tmp_path) -> None:
+    """The lines name the bus after its file: a name with bytes that are no UTF-8 is
+    the reference's to escape (it is declined before a byte is written)."""
+    read_with_core(CAPTURES / "sim_rtu.bin", as_json=False)
+    odd = os.fsencode(tmp_path) + b'/bus\xff"q.bin'
+    with open(odd, "wb") as f:
+        f.write((CAPTURES / "sim_rtu.bin").read_bytes() + b"\x00\xff")  # noise names the bus
+    args = ["read", "--rtu-raw", os.fsdecode(odd), "--debug-core"]
+    fast = _mbmon(args, pure=False)
+    assert b"core: declined (a dump whose file name is not UTF-8)" in fast.stderr
+    pure = _mbmon(args, pure=True)
+    assert fast.returncode == pure.returncode == 0
+    assert fast.stdout == pure.stdout and b"bus\\udcff" in fast.stdout
+
+
 def test_a_dump_on_stdin_is_declined_and_read_alike() -> None:
     read_with_core(CAPTURES / "sim_rtu.bin", as_json=False)
     data = (CAPTURES / "sim_rtu.bin").read_bytes()
