@@ -119,7 +119,9 @@ cdef class _RtuPass(_Pass):
             if r.kind == 2:
                 self.rtu_noise(noises[r.offset])
                 continue
-            if r.length < 4 or <Py_ssize_t>r.offset + r.length > nraw:
+            # the framer's bounds (4..257 bytes, inside its raw bytes) checked here too: a
+            # request is copied into the pending slot (Pend.raw, 262 bytes)
+            if r.length < 4 or r.length > 262 or <Py_ssize_t>r.offset + r.length > nraw:
                 raise RuntimeError("the RTU framer's packed record points outside its frames")
             self.rtu_frame(r.kind, r.ts, bp + r.offset, r.length)
         return 0
