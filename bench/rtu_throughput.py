@@ -25,6 +25,17 @@ decoder and with the compiled framer. It reports CPU time (user + sys of this
 process), MB/s and frames/s by CPU, the frame and noise counts (the same for
 every decoder, checked against what was written) and the target (compiled
 framer >= 20 MB/s of CPU).
+
+``--read-cmd`` rows (``mbmon read --rtu-raw`` end to end, one child each, stdout to
+/dev/null; CPU = user + sys of the child): text, ``--json`` and ``-q``, on the
+compiled core and forced pure (``MBMON_NO_EXTENSIONS=1``), on the dump and on its
+first fifth, so that start-up cancels out: MB/s of CPU whole and marginal
+((size - size/5) / (CPU(size) - CPU(size/5))). ``--read-callgrind`` adds
+callgrind instructions per byte, marginal the same way, on the first 100 KB and
+400 KB of the dump (``--limit`` does not apply).
+
+    python bench/rtu_throughput.py --mb 10 --decoder-only --read-cmd
+    python bench/rtu_throughput.py --mb 2 --decoder-only --which core --repeat 1 --read-callgrind
 """
 
 from __future__ import annotations
@@ -193,6 +204,95 @@ def _pipeline(chunks: list[bytes], stream: Stream, pure: bool) -> tuple[int, int
     return pipe.counts["frames"], pipe.counts["noise_bytes"]
 
 
+READS = (("text", []), ("--json", ["--json"]), ("-q", ["-q"]))
+
+
+def _part(data: bytes, cache: Path, size: int) -> Path:
+    """The first ``size`` bytes of the dump as a file of its own (cached beside it)."""
+    part = cache.with_name(f"{cache.stem}_first{size}.bin")
+    if not part.exists() or part.stat().st_size != size:
+        part.write_bytes(data[:size])
+    return part
+
+
+def _read_cmd(path: Path, extra: list[str], pure: bool) -> list[str]:
+    from read_throughput import mbmon_cmd
+
+    env = ["env", "MBMON_NO_EXTENSIONS=1"] if pure else []
+    return [*env, *mbmon_cmd(), "read", "--rtu-raw", str(path), *extra]
+
+
+def read_rows(data: bytes, cache: Path) -> None:
+    """``mbmon read --rtu-raw`` end to end, core and pure, in the same run: MB/s of the
+    child's CPU, whole and marginal (start-up cancels out)."""
+    from read_throughput import measure
+
+    n = len(data)
+    small = _part(data, cache, n // 5)
+    print(f"read --rtu-raw end to end ({n / 1e6:.1f} MB and its first fifth; CPU of the child):")
+    for label, extra in READS:
+        cpus: dict[str, float] = {}
+        for path_label, pure in (("core", False), ("pure", True)):
+            big = measure("", _read_cmd(cache, extra, pure), None)
+            little = measure("", _read_cmd(small, extra, pure), None)
+            if big.rc or little.rc:
+                print(f"  {label} {path_label}: exit {big.rc} / {little.rc}")
+                continue
+            whole = big.user + big.sys
+            margin = whole - (little.user + little.sys)
+            cpus[path_label] = whole
+            rate = (n - n // 5) / margin / 1e6 if margin > 0 else float("inf")
+            print(
+                f"  read --rtu-raw {label:<7} {path_label}: {whole:6.2f} s CPU, "
+                f"{n / whole / 1e6:6.2f} MB/s whole, {rate:6.2f} MB/s marginal"
+                f"  (start-up and the first fifth {little.user + little.sys:.2f} s)"
+            )
+        if len(cpus) == 2:
+            print(
+                f"  read --rtu-raw {label:<7} core {cpus['pure'] / cpus['core']:.1f}x pure by CPU"
+            )
+
+
+def read_callgrind(data: bytes, cache: Path) -> None:
+    """Callgrind instructions per byte of ``read --rtu-raw``, marginal:
+    (I(400 KB) - I(100 KB)) / 300,000, core and pure."""
+    import os
+    import shutil
+    import subprocess
+
+    if not shutil.which("valgrind"):
+        print("  (valgrind is missing: no instruction counts)")
+        return
+    lo, hi = _part(data, cache, 100_000), _part(data, cache, 400_000)
+    out = OUT / "rtu-callgrind.out"
+    for label, extra in READS:
+        for path_label, pure in (("core", False), ("pure", True)):
+            counts = []
+            for path in (lo, hi):
+                cmd = _read_cmd(path, extra, pure)
+                if cmd[0] == "env":
+                    cmd = cmd[2:]
+                env = dict(os.environ, PYTHONHASHSEED="0")
+                if pure:
+                    env["MBMON_NO_EXTENSIONS"] = "1"
+                subprocess.run(
+                    ["valgrind", "--tool=callgrind", f"--callgrind-out-file={out}", *cmd],
+                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=False, env=env,
+                )  # fmt: skip
+                text = out.read_text(errors="replace")
+                out.unlink()
+                counts.append(
+                    int(
+                        next(ln for ln in text.splitlines() if ln.startswith("summary:")).split()[1]
+                    )
+                )
+            per = (counts[1] - counts[0]) / (400_000 - 100_000)
+            print(
+                f"  callgrind instructions per byte, read --rtu-raw {label} {path_label}: "
+                f"{per:,.0f}"
+            )
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--mb", type=float, default=10.0, help="dump size in MB (10)")
@@ -209,6 +309,17 @@ def main() -> int:
         default="all",
         help="the decoders to run (one, under callgrind): the reference RtuDecoder, the "
         "compiled framer's packed output, or its Frame/Noise objects (all)",
+    )
+    ap.add_argument(
+        "--read-cmd",
+        dest="read_rows",
+        action="store_true",
+        help="mbmon read --rtu-raw end to end, core and pure, text/--json/-q (CPU of the child)",
+    )
+    ap.add_argument(
+        "--read-callgrind",
+        action="store_true",
+        help="callgrind instructions per byte of read --rtu-raw, core and pure (marginal)",
     )
     args = ap.parse_args()
     size = int(args.mb * 1e6)
@@ -270,6 +381,10 @@ def main() -> int:
             f"compiled framer {ratio:.0f}x the reference by CPU; target >= {TARGET} MB/s "
             f"(CPU): {'met' if rate >= TARGET else 'NOT met'}"
         )
+    if args.read_rows:
+        read_rows(data, cache)
+    if args.read_callgrind:
+        read_callgrind(data, cache)
     if args.decoder_only:
         return 0
     runs = [("reference decoder", True)] + ([("compiled framer", False)] if compiled else [])

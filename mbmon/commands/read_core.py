@@ -25,11 +25,11 @@ def core_hand_off(
     from mbmon.sources.files import CaptureFileSource
 
     done = None
-    if len(sources) != 1 or not isinstance(sources[0], CaptureFileSource):
+    if len(sources) == 1 and args.rtu_raw:
+        done = read_rtu_with_core(sources[0], args, view, flt, annotator)
+    elif len(sources) != 1 or not isinstance(sources[0], CaptureFileSource):
         if args.debug_core and len(sources) > 1:
             err("core: declined (several inputs); the Python pipeline reads the input")
-        elif args.debug_core and args.rtu_raw:
-            err("core: declined (--rtu-raw); the Python pipeline reads the input")
     else:
         source = sources[0]
         live = source.mode == "stream"
@@ -118,6 +118,57 @@ def read_with_core(
         log_path = Path(args.write[0])  # as the sink names it (McapSink.path)
         err(f"interrupted; {log_path} was finished and is complete up to here")
         return interrupted_status()
+    return EXIT_OK
+
+
+def read_rtu_with_core(
+    source: Any, args: argparse.Namespace, view: Any, flt: Any, annotator: Any = None
+) -> int | None:
+    """``read --rtu-raw FILE`` by the compiled core (the framer's frames paired and
+    written by the core) when it covers the options and the input: its exit status;
+    ``None`` when it declined, before writing anything (the Python pipeline then
+    reads the dump). ``--debug-core`` says which path ran and why."""
+    from mbmon import core
+
+    why = core.decline_for_rtu(args, live=source.mode == "stream", flt=flt, annotator=annotator)
+    raw = None
+    if why is None and not args.quiet:
+        from mbmon.sinks.console import RawStdout, utf8_buffer
+
+        buffer = utf8_buffer(sys.stdout)
+        if buffer is None:
+            why = "stdout is not UTF-8"
+        else:
+            raw = RawStdout(buffer)
+    if why is None:
+        run = core.read_rtu_file(
+            source.path,
+            timeout=args.timeout,
+            view=view,
+            as_json=args.json,
+            write=None if raw is None else raw.write,
+            read_size=source.chunk_size,
+        )
+        why = run.declined
+    if why is not None:
+        if args.debug_core:
+            err(f"core: declined ({why}); the Python pipeline reads the input")
+        return None
+    if raw is not None and not raw.broken:
+        try:
+            sys.stdout.flush()
+        except BrokenPipeError:
+            from mbmon.hub import _quiet_stdout
+
+            _quiet_stdout()
+    if args.debug_core:
+        err("core: the compiled core read the input (RTU framing, pairing and lines)")
+    if not args.quiet:
+        from mbmon.sinks.summary import Summary
+
+        summary = Summary(None)
+        core.fill_rtu_summary(summary, run.counts)
+        report(summary, {}, args, timed=False)
     return EXIT_OK
 
 

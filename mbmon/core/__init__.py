@@ -374,3 +374,87 @@ def rtu_status(baudrate: int | None) -> str:
     if why is None:
         return "RTU framing: the compiled framer (mbmon.core._rtu)"
     return f"RTU framing: the reference decoder ({why})"
+
+
+# ------------------------------------------------------------------ RTU reads
+# ``read --rtu-raw FILE`` end to end on the core: the compiled framer's frames paired
+# and written by the reader's RTU pass (``_RtuPass`` in _rtu_pass.pxi), which covers
+# every byte a dump holds (frames of every code, noise, CRC errors, timeouts,
+# unsolicited answers), so it needs no deciding pass: what it does not cover is
+# declined by the options alone (:func:`decline_for_rtu`).
+
+
+def decline_for_rtu(args: Any, *, live: bool, flt: Any, annotator: Any = None) -> str | None:
+    """Why ``read --rtu-raw`` stays off the core, or ``None`` when the core reads the
+    dump: every option :func:`decline_for_options` declines (but ``--rtu-raw`` itself),
+    and for RTU also a baud rate (the reference's timing rules), ``-w`` (the core's
+    log is Modbus/TCP's) and ``--profile``."""
+    import argparse
+
+    plain = argparse.Namespace(**{**vars(args), "rtu_raw": None})
+    why = decline_for_options(plain, live=live, flt=flt)
+    if why is not None:
+        return why
+    checks = (
+        (args.baud, "--baud (the RTU timing rules)"),
+        (args.write, "-w with --rtu-raw"),
+        (annotator is not None or args.profile, "--profile with --rtu-raw"),
+    )
+    for present, what in checks:
+        if present:
+            return f"{what} is not covered by the core"
+    return rtu_decline(None)
+
+
+def read_rtu_file(
+    path: str,
+    *,
+    timeout: float,
+    view: Any,
+    as_json: bool,
+    write: Any | None,
+    read_size: int = 4096,
+) -> CoreRun:
+    """The raw RTU dump at ``path`` (a regular file) read by the core, in reads of
+    ``read_size`` bytes as the reference's source reads it (``RawRtuSource.chunk_size``):
+    its lines to ``write`` (``None``: count only, ``-q``), the counts of the summary
+    (noise too)."""
+    if _load() is not None:
+        return CoreRun(declined=f"the compiled core is unavailable: {_UNAVAILABLE}")
+    if not _regular_file(path):
+        return CoreRun(declined="not a regular file")
+    import mmap
+    from pathlib import Path
+
+    from mbmon.model import Stream, Transport
+
+    name = Path(path).name
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:  # the lines name the bus: the reference's escaping rules
+        return CoreRun(declined="a dump whose file name is not UTF-8")
+    stream = Stream(0, Transport.RTU, name, name, timed=False)  # as read_rtu_raw makes it
+    try:
+        f = open(path, "rb")  # closed below; an error declines
+    except OSError as exc:  # the reference pipeline says why, as for any input
+        return CoreRun(declined=f"cannot open the dump ({exc.strerror or exc})")
+    with f:
+        try:
+            mapped: Any = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+        except ValueError:  # an empty file cannot be mapped
+            mapped = None
+    done = _reader._RtuPass(write is not None, as_json, timeout, view, write, stream)
+    try:
+        done.run_rtu(b"" if mapped is None else mapped, read_size)
+    finally:
+        if mapped is not None:
+            mapped.close()
+    counts = _counts(done)
+    counts["noise"] = (done.noise_records, done.noise_bytes, done.crc_errors)
+    return CoreRun(counts=counts)
+
+
+def fill_rtu_summary(summary: Any, counts: dict[str, Any]) -> None:
+    """:func:`fill_summary` of an RTU read, and its noise runs, bytes and CRC errors."""
+    fill_summary(summary, counts)
+    summary.noise_records, summary.noise_bytes, summary.crc_errors = counts["noise"]

@@ -144,3 +144,145 @@ def generated_bus(seed: int, exchanges: int = 200) -> bytes:
             parts.append(encode_rtu(unit, bytes([fc, 0, 0, 0, n])))
             parts.append(encode_rtu(unit, bytes([fc, 2 * n]) + rng.randbytes(2 * n)))
     return b"".join(parts)
+
+
+# ---------------------------------------------------------------- read --rtu-raw
+
+
+def paired_bus(seed: int, exchanges: int = 200) -> bytes:
+    """A bus that tries every RTU pairing rule: answered requests of every function
+    code, exceptions, requests left unanswered (the next request times them out, the
+    last one the end), answers nobody asked for, answers from another unit or of
+    another code (unsolicited, the request stays pending), broadcasts, Diagnostics 04
+    (never answered) and 00 (echoed), and now and then noise or a broken CRC."""
+    rng = random.Random(seed)
+    pairs = [
+        (encode_rtu(unit, req), encode_rtu(unit, resp))
+        for unit in (1, 0x11, 247)
+        for req, resp in every_function_pair()
+    ]
+    parts: list[bytes] = []
+    for _ in range(exchanges):
+        req, resp = rng.choice(pairs)
+        roll = rng.random()
+        if roll < 0.5:
+            parts += [req, resp]
+        elif roll < 0.6:
+            parts.append(req)  # unanswered
+        elif roll < 0.67:
+            parts.append(resp)  # nobody asked
+        elif roll < 0.72:  # an answer from another unit, then the right one
+            other = bytearray(resp[:-2])
+            other[0] = (other[0] % 200) + 1
+            parts += [req, encode_rtu(other[0], bytes(other[1:])), resp]
+        elif roll < 0.77:
+            parts.append(encode_rtu(0, every_function_pair()[rng.randrange(8)][0]))  # broadcast
+        elif roll < 0.81:
+            listen = encode_rtu(rng.choice((1, 9)), bytes.fromhex("08 00 04 00 00"))
+            parts.append(listen)  # Force Listen Only: never answered, never pending
+        elif roll < 0.85:
+            echo = encode_rtu(5, bytes.fromhex("08 00 00 12 34"))
+            parts += [echo, echo]
+        elif roll < 0.89:
+            unit, fc = rng.randint(1, 247), rng.choice((1, 2, 3, 4, 5, 6, 15, 16))
+            parts += [req, encode_rtu(unit, bytes([fc | 0x80, rng.randint(0, 12)]))]
+        elif roll < 0.93:
+            parts.append(bytes([0]) + rng.randbytes(rng.randint(0, 5)))
+        elif roll < 0.97:
+            bad = bytearray(req)
+            bad[-1] ^= 0x5A
+            parts += [bytes(bad), resp]  # the request lost to a broken CRC
+        else:
+            n = rng.randint(1, 125)
+            unit = rng.randint(1, 247)
+            ask = encode_rtu(unit, bytes([3, 0, 0x10, 0, n]))
+            short = encode_rtu(unit, bytes([3, 2 * n - 2]) + rng.randbytes(2 * n - 2))
+            parts += [ask, short]  # a byte count that breaks its request (malformed)
+    return b"".join(parts)
+
+
+def _reference_rtu(stream: Stream, direction: Direction, config: Any) -> Any:
+    return RtuDecoder(stream, direction, baudrate=config.baudrate, silence=config.settle_after)
+
+
+def read_reference(
+    path: Any, *, as_json: bool, timeout: float = 1.0, read_size: int = 4096
+) -> tuple[bytes, str]:
+    """``mbmon read --rtu-raw PATH`` by the reference pipeline (the reference
+    ``RtuDecoder`` too, not the compiled framer), wired as ``read`` wires it: stdout's
+    bytes and the summary's text."""
+    import io
+    from pathlib import Path
+
+    from mbmon.format import View
+    from mbmon.hub import Hub
+    from mbmon.pipeline import DecoderEntry, Pipeline, PipelineConfig
+    from mbmon.sinks.console import ConsoleListener
+    from mbmon.sinks.select import Selection
+    from mbmon.sinks.summary import Summary
+    from mbmon.sources.rawfile import read_rtu_raw
+    from mbmon.timefmt import TimeFormat
+
+    raw = io.BytesIO()
+    out = io.TextIOWrapper(raw, encoding="utf-8", errors="backslashreplace", write_through=True)
+    view = View(time_format=TimeFormat("a"))
+    pipeline = Pipeline(None, PipelineConfig(timeout=timeout))
+    name = Path(path).name
+    pipeline.use_decoder(
+        Stream(0, Transport.RTU, name, name, timed=False), DecoderEntry(_reference_rtu)
+    )
+    hub = Hub(pipeline)
+    summary = Summary(None)
+    hub.add_listener(Selection([ConsoleListener(out, view, as_json=as_json)], view))
+    hub.add_listener(summary)
+    hub.run_items(read_rtu_raw(path, read_size, stream_id=0))
+    hub.close()
+    out.flush()
+    return raw.getvalue(), summary.text(timed=False)
+
+
+def read_with_core(
+    path: Any, *, as_json: bool, timeout: float = 1.0, quiet: bool = False, read_size: int = 4096
+) -> tuple[bytes, str]:
+    """``mbmon read --rtu-raw PATH`` by the compiled core (``quiet``: no lines, the
+    counts only, as ``-q``): stdout's bytes and the summary's text."""
+    from mbmon.format import View
+    from mbmon.sinks.summary import Summary
+    from mbmon.timefmt import TimeFormat
+
+    require_core()
+    chunks: list[bytes] = []
+    run = core.read_rtu_file(
+        str(path),
+        timeout=timeout,
+        view=View(time_format=TimeFormat("a")),
+        as_json=as_json,
+        write=None if quiet else chunks.append,
+        read_size=read_size,
+    )
+    assert run.declined is None, run.declined
+    summary = Summary(None)
+    core.fill_rtu_summary(summary, run.counts)
+    return b"".join(chunks), summary.text(timed=False)
+
+
+def assert_read_same(path: Any, *, timeout: float = 1.0, read_size: int = 4096) -> bytes:
+    """The core and the reference read the dump at ``path`` alike (in reads of
+    ``read_size`` bytes), byte for byte, text and JSON, and the summary (also of a run
+    without lines, ``-q``); the text."""
+    text = b""
+    kw: dict[str, Any] = {"timeout": timeout, "read_size": read_size}
+    for as_json in (False, True):
+        want, want_summary = read_reference(path, as_json=as_json, **kw)
+        got, got_summary = read_with_core(path, as_json=as_json, **kw)
+        if got != want:
+            for i, (a, b) in enumerate(zip(got.splitlines(), want.splitlines(), strict=False)):
+                assert a == b, f"{path} json={as_json} line {i}"
+            assert len(got.splitlines()) == len(want.splitlines()), f"{path}: line count"
+        assert got == want
+        assert got_summary == want_summary
+        if not as_json:
+            text = got
+            quiet, quiet_summary = read_with_core(path, as_json=False, quiet=True, **kw)
+            assert quiet == b"" and quiet_summary == want_summary
+    return text

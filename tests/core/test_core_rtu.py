@@ -336,10 +336,15 @@ def test_debug_core_says_which_decoder_frames_rtu() -> None:
     make_core()
     args = ["read", "--rtu-raw", "captures/sim_rtu.bin", "--debug-core"]
     fast = _mbmon(args, pure=False)
-    assert b"core: declined (--rtu-raw); the Python pipeline reads the input" in fast.stderr
-    assert b"core: RTU framing: the compiled framer (mbmon.core._rtu)" in fast.stderr
+    assert b"core: the compiled core read the input (RTU framing, pairing and lines)" in (
+        fast.stderr
+    )
     timed = _mbmon([*args, "--baud", "9600"], pure=False)
+    assert b"core: declined (--baud (the RTU timing rules) is not covered" in timed.stderr
     assert b"RTU framing: the reference decoder (a baud rate" in timed.stderr
+    profiled = _mbmon([*args, "--profile", "hrss"], pure=False)
+    assert b"core: declined (--profile with --rtu-raw is not covered" in profiled.stderr
+    assert b"core: RTU framing: the compiled framer (mbmon.core._rtu)" in profiled.stderr
     pure = _mbmon(args, pure=True)
     assert b"RTU framing: the reference decoder (the compiled RTU framer is unavailable" in (
         pure.stderr
