@@ -2875,3 +2875,4 @@ def _native_note(bytes data, bint response, request=None):
 
 
 include "_live.pxi"
+include "_chunks.pxi"

@@ -422,9 +422,13 @@ class ProxyProcess:
         config: ProxyConfig,
         hub: Any,
         on_exit: Callable[[], None] | None = None,
+        stage: Any = None,
     ) -> None:
         self.config = config
         self.hub = hub
+        #: the compiled core's stage (:class:`mbmon.core.chunks.ChunkCore`): the pipe's
+        #: reads go to its ``take`` instead of becoming chunks and events here
+        self.stage = stage
         self.engine = RemoteEngine()
         self._on_exit = on_exit
         self._proc: subprocess.Popen[bytes] | None = None
@@ -505,6 +509,9 @@ class ProxyProcess:
                 if not n:
                     break
                 buf += space[:n]
+                if self.stage is not None:
+                    self._to_core(buf)
+                    continue
                 items, others, used = decode_records(buf, streams, hub.new_stream)
                 del buf[:used]
                 for record in others:
@@ -530,6 +537,49 @@ class ProxyProcess:
                     self._kill()
             if self._on_exit is not None:
                 self._on_exit()
+
+    def _to_core(self, buf: bytearray) -> None:
+        """The whole records at the start of ``buf`` (taken out of it) to the core's
+        stage in the hub's thread: runs of chunk records as they are (bytes), the
+        streams (with the hub's ids) and events between them; the other records
+        (counters, ready, error) are this thread's. Waits while the hub is behind."""
+        stage = self.stage
+        hub = self.hub
+        used, chunks, objects = stage.scan(buf, len(buf))
+        if not used:
+            return
+        segments: list[Any] = []
+        pos = 0
+        events = 0
+        for start, end in objects:
+            if start - _OBJECT.size > pos:
+                segments.append(bytes(buf[pos : start - _OBJECT.size]))
+            record = pickle.loads(buf[start:end])
+            what = record[0]
+            if what == "stream":
+                _, sid, transport, client, server = record
+                segments.append(
+                    ("stream", sid, hub.new_stream(Transport(transport), client, server))
+                )
+            elif what == "event":
+                segments.append(record)
+                events += 1
+            else:
+                self._record(record)
+            pos = end
+        if used > pos:
+            segments.append(bytes(buf[pos:used]))
+        del buf[:used]
+        if not segments:
+            return
+        self.submitted += chunks + events
+        take = stage.take
+        hub.submit(lambda: take(segments))
+        limit = self.config.max_backlog
+        # the hub is behind: read no more, so the pipe and then the child's buffer
+        # fill and the child skips (bounded memory)
+        while self.submitted - (hub.seen + stage.taken) > limit and not self._stopping:
+            time.sleep(0.005)
 
     def _record(self, record: tuple[Any, ...]) -> None:
         what = record[0]
