@@ -146,6 +146,7 @@ def run(args: argparse.Namespace) -> int:
         source.stop()
         hub.close()
         return EXIT_BAD_INPUT
+    _core_log(source, logs)
     return _serve(args, plan, hub, source, ctx, annotator, logs)
 
 
@@ -160,7 +161,7 @@ def _core_output(args: argparse.Namespace, plan: Any, view: Any, timeout: float)
     console = not args.quiet and (args.json or getattr(args, "plain", False) or not _interactive())
     why = decline_for_proxy(args, process=plan.process, console=console)
     buffer = None
-    if why is None:
+    if why is None and console:
         from mbmon.sinks.console import utf8_buffer
 
         buffer = utf8_buffer(sys.stdout)
@@ -171,13 +172,29 @@ def _core_output(args: argparse.Namespace, plan: Any, view: Any, timeout: float)
             "core: "
             + ("the compiled core observes the proxy" if why is None else f"declined ({why})")
         )
+    from mbmon.sources.proxy import CoreOutput
+
+    if why is None and args.quiet:
+        return CoreOutput(view, args.json, timeout, None, None)
     if why is not None or buffer is None:
         return None
     from mbmon.sinks.console import RawStdout
-    from mbmon.sources.proxy import CoreOutput
 
     raw = RawStdout(buffer)
     return CoreOutput(view, args.json, timeout, raw.write, raw.flush)
+
+
+def _core_log(source: Any, logs: list[Any]) -> None:
+    """The core observing with a ``-w x.mcap`` log writes its messages itself (into
+    the same sink, which the hub feeds after a hand-over); before the hub's loop runs."""
+    if source.live is None or not logs:
+        return
+    from mbmon.sinks.mcap import McapSink
+
+    (sink,) = logs  # decline_for_proxy: one log at most, a .mcap
+    if not isinstance(sink, McapSink):  # pragma: no cover - declined before
+        raise RuntimeError(f"the core cannot write {type(sink).__name__}")
+    source.live.log_to(sink)
 
 
 def _open_logs(args: argparse.Namespace, ctx: Any) -> list[Any] | None:

@@ -160,6 +160,8 @@ cdef class _Chunks(_Live):
             why = self.chunk_check(ci, d, p, n, &left)
             if why is not None:
                 return why
+        if self.mcap is not None:  # the chunk on /modbus/raw, before the records it makes
+            self.mcap_chunk(self.conns[ci].sid, d, ts, p, n)
         self.on_chunk(ci, d, ts, p, n)
         self.chunks += 1
         return None
@@ -273,6 +275,16 @@ cdef class _Chunks(_Live):
         self.count_record(ts, -1)
         ev = Event(ts, None, kind, info)
         return self.put_record(Record(index, ts, RecordKind.EVENT, None, event=ev))
+
+    # ------------------------------------------------------------------ the log
+
+    def flush_log(self):
+        """The log's message records made so far to its sink (``log_to``), with the
+        counters as of their end: after each read of the pipe, each tick, and before
+        the hand-over (the sink's own counters then go on from the core's)."""
+        if self.mcap is not None:
+            self.flush_mcap()
+        return None
 
     # ------------------------------------------------------------------ the hand-over
 

@@ -34,11 +34,14 @@ Segment = bytes | tuple[Any, ...]
 def decline_for_proxy(args: Any, *, process: bool, console: bool) -> str | None:
     """Why ``proxy``'s options keep its observation off the core (the reference
     pipeline observes from the start), or ``None``: a TCP proxy (its forwarding in a
-    child process) printing lines or ``--json`` to stdout, nothing else."""
+    child process) printing lines or ``--json`` to stdout, or ``-q``, with at most one
+    ``-w x.mcap`` log, nothing else."""
+    write = list(getattr(args, "write", None) or [])
     checks = (
         (not process, "a serial side (the engine in a thread)"),
-        (not console, "the live screen or -q"),
-        (getattr(args, "write", None), "-w (logs)"),
+        (not console and not getattr(args, "quiet", False), "the live screen"),
+        (len(write) > 1, "several -w logs"),
+        (write and not str(write[0]).lower().endswith(".mcap"), "-w other than one .mcap log"),
         (getattr(args, "foxglove", None), "--foxglove"),
         (getattr(args, "trigger", None), "--trigger"),
         (getattr(args, "rotate", None), "--rotate"),
@@ -55,7 +58,8 @@ class ChunkCore:
     """The core as the stage between the proxy's pipe and the hub (see the module doc).
 
     ``pipeline`` is the hub's (empty until the hand-over); ``write(bytes)`` takes the
-    core's output (UTF-8 lines), ``flush()`` after each batch."""
+    core's output (UTF-8 lines), ``flush()`` after each batch; ``write=None`` (``-q``):
+    the lines are made and dropped, as the reference makes records nobody prints."""
 
     def __init__(
         self,
@@ -63,7 +67,7 @@ class ChunkCore:
         timeout: float,
         view: Any,
         as_json: bool,
-        write: Callable[[bytes], Any],
+        write: Callable[[bytes], Any] | None,
         flush: Callable[[], Any] | None = None,
         pipeline: Any,
     ) -> None:
@@ -79,6 +83,12 @@ class ChunkCore:
         self.streams: dict[int, Stream] = {}
         #: why the run left the core (``None``: it did not)
         self.handed: str | None = None
+
+    def log_to(self, sink: Any) -> None:
+        """Write the run's ``-w x.mcap`` messages into ``sink`` (an open
+        :class:`~mbmon.sinks.mcap.McapSink`, also the hub's listener for what the
+        reference writes after a hand-over); before the hub's loop starts."""
+        self._core.log_to(sink)
 
     @property
     def taken(self) -> int:
@@ -116,6 +126,8 @@ class ChunkCore:
                         continue
                 self._reference(seg, out)
         finally:
+            if self.handed is None:
+                core.flush_log()
             if self._flush is not None:
                 self._flush()
         return out
@@ -124,6 +136,8 @@ class ChunkCore:
         """An event of the command's own (a warning), in the hub's thread."""
         if self.handed is None:
             taken = self._core.source_event(event.ts, event.stream, event.kind, event.info)
+            if taken:
+                self._core.flush_log()
             if self._flush is not None:
                 self._flush()
             if taken:
@@ -156,6 +170,8 @@ class ChunkCore:
         pipeline's alone."""
         if self.handed is None:
             done = self._core.tick(now)
+            if not done:
+                self._core.flush_log()
             if self._flush is not None:
                 self._flush()
             if done:
@@ -173,6 +189,8 @@ class ChunkCore:
         """The end of input at the hub's time ``ts``."""
         if self.handed is None:
             finished = self._core.finish(ts)
+            if finished:
+                self._core.flush_log()
             if self._flush is not None:
                 self._flush()
             if not finished:
@@ -187,6 +205,7 @@ class ChunkCore:
 
     def _hand_over(self) -> None:
         self.handed = str(self._core.reason or "the end of what the core covers")
+        self._core.flush_log()  # the log's sink goes on from the core's counters
         self._core.export_to(self.pipeline)
 
 

@@ -143,13 +143,13 @@ class ProxySource(BaseSource):
 class CoreOutput:
     """How the proxy's observation runs on the compiled core (:mod:`mbmon.core.chunks`):
     the view and JSON choice of its lines, the pairing timeout, and ``write``/``flush``
-    of stdout's bytes."""
+    of stdout's bytes (``None`` with ``-q``)."""
 
     view: Any
     as_json: bool
     timeout: float
-    write: Callable[[bytes], Any]
-    flush: Callable[[], Any]
+    write: Callable[[bytes], Any] | None  # None: -q (lines made, dropped)
+    flush: Callable[[], Any] | None
 
     def stage(self, hub: Hub) -> Any:
         """The core's hub stage, ``hub``'s pipeline waiting behind it."""

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import io
 import pickle
+from pathlib import Path
 from typing import Any
 
 from mbmon.format import View
@@ -17,7 +18,9 @@ from mbmon.hub import Hub
 from mbmon.pipeline import Pipeline, PipelineConfig
 from mbmon.proxy.config import ProxyConfig
 from mbmon.proxy.remote import _OBJECT, CHUNK_HEAD, ProxyProcess, decode_records
+from mbmon.sinks.base import SinkContext
 from mbmon.sinks.console import ConsoleListener
+from mbmon.sinks.mcap import McapSink
 
 #: the pipe's direction codes
 C2S, S2C = 0, 1
@@ -62,23 +65,47 @@ Step = bytes | float
 
 
 def _wire(
-    as_json: bool, timeout: float, upstream: str, hub_class: type[Hub] = Hub
-) -> tuple[Hub, io.BytesIO, io.TextIOWrapper, View]:
-    """A hub printing to a console over bytes (the text wrapper must outlive the run:
-    collected, it would close the bytes)."""
+    as_json: bool | None,
+    timeout: float,
+    upstream: str,
+    log: Path | None,
+    hub_class: type[Hub] = Hub,
+) -> tuple[Hub, io.BytesIO, io.TextIOWrapper, View, Any]:
+    """A hub as ``mbmon proxy`` wires it: the ``log`` first (an MCAP sink, or none),
+    then a console over bytes (none when ``as_json`` is None: ``-q``; the text wrapper
+    must outlive the run: collected, it would close the bytes)."""
     raw = io.BytesIO()
     out = io.TextIOWrapper(raw, encoding="utf-8", errors="backslashreplace", write_through=True)
     view = View(robot=upstream)
     hub = hub_class(Pipeline(None, PipelineConfig(timeout=timeout)), clock=lambda: 0.0)
-    hub.add_listener(ConsoleListener(out, view, as_json=as_json, live=True))
-    return hub, raw, out, view
+    sink = None
+    if log is not None:
+        ctx = SinkContext(
+            view=view,
+            command_line=["mbmon", "proxy", "-w", "x.mcap"],
+            source=f"proxy -> {upstream}",
+            profiles=[],
+            profile_specs=[],
+            timeout=timeout,
+            baud=None,
+        )
+        sink = McapSink(log, ctx)
+        hub.add_listener(sink)
+    if as_json is not None:
+        hub.add_listener(ConsoleListener(out, view, as_json=as_json, live=True))
+    return hub, raw, out, view, sink
 
 
 def reference(
-    steps: list[Step], *, as_json: bool, timeout: float = 4.0, upstream: str = "127.0.0.1:502"
+    steps: list[Step],
+    *,
+    as_json: bool | None,
+    timeout: float = 4.0,
+    upstream: str = "127.0.0.1:502",
+    log: Path | None = None,
 ) -> bytes:
-    """What the parent's reference wiring prints for ``steps``."""
-    hub, raw, out, _view = _wire(as_json, timeout, upstream)
+    """What the parent's reference wiring prints for ``steps`` (and writes to ``log``)."""
+    hub, raw, out, _view, _sink = _wire(as_json, timeout, upstream, log)
     streams: dict[int, Any] = {}
     buf = bytearray()
     for step in steps:
@@ -105,15 +132,27 @@ class _Now(Hub):
 
 
 def core(
-    steps: list[Step], *, as_json: bool, timeout: float = 4.0, upstream: str = "127.0.0.1:502"
+    steps: list[Step],
+    *,
+    as_json: bool | None,
+    timeout: float = 4.0,
+    upstream: str = "127.0.0.1:502",
+    log: Path | None = None,
 ) -> tuple[bytes, str | None]:
-    """What the core's stage prints for ``steps``, and why it handed over (or None)."""
+    """What the core's stage prints for ``steps`` (and writes to ``log``), and why it
+    handed over (or None)."""
     from mbmon.core.chunks import ChunkCore
 
-    hub, raw, out, view = _wire(as_json, timeout, upstream, _Now)
+    hub, raw, out, view, sink = _wire(as_json, timeout, upstream, log, _Now)
     stage = ChunkCore(
-        timeout=timeout, view=view, as_json=as_json, write=raw.write, pipeline=hub.pipeline
+        timeout=timeout,
+        view=view,
+        as_json=bool(as_json),
+        write=None if as_json is None else raw.write,
+        pipeline=hub.pipeline,
     )
+    if sink is not None:
+        stage.log_to(sink)
     hub.add_ticker(stage)
     proc = ProxyProcess(ProxyConfig("127.0.0.1", 502), hub, stage=stage)
     buf = bytearray()

@@ -21,6 +21,7 @@ from hypothesis import strategies as st
 
 from mbmon.protocol.pdu import encode_exception, encode_read_request, encode_read_response
 from tests.core.gen import every_function_pair
+from tests.core.mcap_diff import log_contents
 from tests.proxy import core_diff as cd
 from tests.proxy.test_proxy_e2e import (
     ENV,
@@ -50,18 +51,35 @@ pytestmark = pytest.mark.skipif(
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def same(steps: list[cd.Step], *, handed: bool | str | None = False, **kw: object) -> bytes:
-    """Both wirings print the same bytes, text and JSON; ``handed``: whether the core
-    must hand over (False: it must not; a string: the reason must contain it)."""
+def same(
+    steps: list[cd.Step],
+    *,
+    handed: bool | str | None = False,
+    tmp: Path | None = None,
+    **kw: object,
+) -> bytes:
+    """Both wirings print the same bytes, text and JSON; with ``tmp``, they also write
+    the same ``-w x.mcap`` log, quiet and with each console; ``handed``: whether the
+    core must hand over (False: it must not; a string: the reason must contain it)."""
     got = b""
-    for as_json in (False, True):
-        want = cd.reference(steps, as_json=as_json, **kw)  # type: ignore[arg-type]
-        got, why = cd.core(steps, as_json=as_json, **kw)  # type: ignore[arg-type]
-        assert got == want, (as_json, why)
+    consoles: tuple[bool | None, ...] = (False, True) if tmp is None else (None, False, True)
+    for n, as_json in enumerate(consoles):
+        logs = (None, None) if tmp is None else (tmp / f"ref{n}.mcap", tmp / f"core{n}.mcap")
+        want = cd.reference(steps, as_json=as_json, log=logs[0], **kw)  # type: ignore[arg-type]
+        out, why = cd.core(steps, as_json=as_json, log=logs[1], **kw)  # type: ignore[arg-type]
+        assert out == want, (as_json, why)
+        if logs[0] is not None and logs[1] is not None:
+            want_log, got_log = log_contents(logs[0]), log_contents(logs[1])
+            pairs = zip(got_log["messages"], want_log["messages"], strict=False)
+            for i, (a, b) in enumerate(pairs):
+                assert a == b, f"message {i} ({as_json})"
+            assert got_log == want_log, as_json
+            assert len(got_log["messages"]) > 10
         if handed is False:
             assert why is None, why
         elif isinstance(handed, str):
             assert why is not None and handed in why, why
+        got = out or got
     assert got, "nothing printed"
     return got
 
@@ -81,11 +99,11 @@ def _session(t0: float = 1000.0) -> list[cd.Step]:
     return steps
 
 
-def test_every_function_code_is_the_references() -> None:
-    same(cd.with_ticks([b"".join(_session())]))
+def test_every_function_code_is_the_references(tmp_path: Path) -> None:
+    same(cd.with_ticks([b"".join(_session())]), tmp=tmp_path)
 
 
-def test_timeouts_late_answers_and_unsolicited_ones_are_the_references() -> None:
+def test_timeouts_late_answers_and_unsolicited_ones_are_the_references(tmp_path: Path) -> None:
     t = 50.0
     data = [
         cd.client(0, t, 40001),
@@ -99,7 +117,7 @@ def test_timeouts_late_answers_and_unsolicited_ones_are_the_references() -> None
         cd.event(t + 9.6, 0, "disconnect", {"how": "fin", "by": "client"}),
     ]
     steps: list[cd.Step] = [b"".join(data), t + 1.0, t + 5.15, b"".join(late), t + 20.0]
-    same(steps)
+    same(steps, tmp=tmp_path)
 
 
 @pytest.mark.parametrize("direction", [cd.C2S, cd.S2C])
@@ -122,7 +140,7 @@ def test_an_adu_cut_at_every_byte_is_the_references(direction: int) -> None:
         same([b"".join(head), t + 0.015, b"".join(parts), t + 1.0])
 
 
-def test_the_proxys_own_answers_hand_the_run_over() -> None:
+def test_the_proxys_own_answers_hand_the_run_over(tmp_path: Path) -> None:
     t = 20.0
     steps: list[cd.Step] = [
         cd.client(0, t, 40003)
@@ -137,10 +155,10 @@ def test_the_proxys_own_answers_hand_the_run_over() -> None:
         + cd.event(t + 0.6, 0, "disconnect", {"how": "fin", "by": "client"}),
         t + 10.0,
     ]
-    same(steps, handed="own answers")
+    same(steps, handed="own answers", tmp=tmp_path)
 
 
-def test_noise_hands_the_run_over_with_the_bytes_held() -> None:
+def test_noise_hands_the_run_over_with_the_bytes_held(tmp_path: Path) -> None:
     t = 30.0
     req = adu(1, 1, encode_read_request(3, 0, 1))
     steps: list[cd.Step] = [
@@ -152,10 +170,10 @@ def test_noise_hands_the_run_over_with_the_bytes_held() -> None:
         + cd.event(t + 0.7, 0, "disconnect", {"how": "fin", "by": "client"}),
         t + 10.0,
     ]
-    same(steps, handed="noise")
+    same(steps, handed="noise", tmp=tmp_path)
 
 
-def test_an_incomplete_adu_at_a_disconnect_hands_the_run_over() -> None:
+def test_an_incomplete_adu_at_a_disconnect_hands_the_run_over(tmp_path: Path) -> None:
     t = 40.0
     req = adu(1, 1, encode_read_request(3, 0, 1))
     steps: list[cd.Step] = [
@@ -167,7 +185,7 @@ def test_an_incomplete_adu_at_a_disconnect_hands_the_run_over() -> None:
         + cd.chunk(2, cd.S2C, t + 0.3, adu(1, 1, encode_read_response(3, [3]))),
         t + 10.0,
     ]
-    same(steps, handed="incomplete ADU")
+    same(steps, handed="incomplete ADU", tmp=tmp_path)
 
 
 @settings(max_examples=25, deadline=None)
@@ -197,7 +215,7 @@ def _traffic(port: int, mode: str) -> None:
 
 
 @pytest.mark.parametrize("mode", ["plain", "guard"])
-def test_a_real_proxys_pipe_is_the_references(mode: str) -> None:
+def test_a_real_proxys_pipe_is_the_references(mode: str, tmp_path: Path) -> None:
     from mbmon.proxy.guard import Guard
 
     config = {"guard": Guard(read_only=True)} if mode == "guard" else {}
@@ -206,12 +224,13 @@ def test_a_real_proxys_pipe_is_the_references(mode: str) -> None:
         time.sleep(0.3)
     reads = rec.reads
     steps = cd.with_ticks(reads)
-    text = same(steps, handed="own answers" if mode == "guard" else False, upstream=rec.upstream)
+    handed = "own answers" if mode == "guard" else False
+    text = same(steps, handed=handed, upstream=rec.upstream, tmp=tmp_path)
     assert text.count(b"Read Holding Registers") >= 80
     # the same bytes in other reads: one record at a time, and all at once
     joined = b"".join(reads)
     one = cd.with_ticks([joined])
-    same(one, handed="own answers" if mode == "guard" else False, upstream=rec.upstream)
+    same(one, handed=handed, upstream=rec.upstream)
 
 
 # --------------------------------------------------------------------------- mbmon proxy
@@ -268,7 +287,7 @@ def test_mbmon_proxy_on_the_core_prints_what_the_pure_one_prints(as_json: bool) 
 def test_the_options_the_core_does_not_cover_keep_the_reference(tmp_path: Path) -> None:
     with fake() as up:
         out, err = _run_proxy(up.port, {**ENV}, "--plain", "-w", str(tmp_path / "x.jsonl"))
-    assert "declined (-w (logs) is not covered by the core)" in err
+    assert "declined (-w other than one .mcap log is not covered by the core)" in err
     assert "observed by the compiled core" not in err
     assert out.count("Read Holding Registers") == 20
 
