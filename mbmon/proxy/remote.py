@@ -82,6 +82,7 @@ _O = b"O"
 _DIRECTIONS = list(Direction)
 _DIRECTION_CODE = {d: i for i, d in enumerate(_DIRECTIONS)}
 _new_chunk = fast_constructor(Chunk)
+_pack_head = CHUNK_HEAD.pack
 
 #: How much the kernel may hold in the pipe (Linux: F_SETPIPE_SZ; default 64 KiB).
 PIPE_SIZE = 1 << 20
@@ -217,8 +218,19 @@ class PipeObserver(Observer):
         self._due = False
 
     def chunk(self, stream: Stream, direction: Direction, data: bytes, ts: float) -> None:
-        if self._admit(ts):
-            self._out.put_chunk(stream.id, direction, data, ts)
+        # two a request, in the forwarding process: the common case (the pipe keeps
+        # up) inline, the backlog rule (Observer._admit) and the handover as calls
+        out = self._out
+        if self._skipping or self.sent - out.seen > self._max_backlog:
+            if not self._admit(ts):
+                return
+        else:
+            self.sent += 1
+        buf = out.buf
+        buf += _pack_head(_C, stream.id, ts, _DIRECTION_CODE[direction], len(data))
+        buf += data
+        out.items += 1
+        if not self._due:
             self._handover()
 
     def _emit(self, item: Chunk | Event) -> None:  # events: chunks never come here
