@@ -60,8 +60,12 @@ cdef class _Chunks(_Live):
 
     cdef int* cmap                  # the source's stream id -> connection index (-1: none)
     cdef int capcmap
+    cdef list ckey                  # connection index -> the source's stream id
+    cdef list free_conns            # connection slots of released streams, for reuse
+    cdef list closing               # streams that ended with requests pending
     cdef dict joined                # stream id -> the stream whose requests it answers
     cdef dict joins                 # stream id (a client's) -> (its answers' stream, note)
+    cdef int npeers                 # the view's robot peers when labels were last cached
     cdef public int64_t chunks      # chunks taken
     cdef public int64_t taken       # pipe records taken (chunks and events)
 
@@ -78,6 +82,10 @@ cdef class _Chunks(_Live):
         self.joins = {}
         self.chunks = 0
         self.taken = 0
+        self.ckey = []
+        self.free_conns = []
+        self.closing = []
+        self.npeers = self.peers()
 
     # ------------------------------------------------------------------ streams
 
@@ -102,22 +110,27 @@ cdef class _Chunks(_Live):
                 mp[ci] = -1
             self.cmap = mp
             self.capcmap = cap
-        if self.nconns == self.capconns:
-            cap = self.capconns * 2 if self.capconns else 64
-            nc = <Conn*>realloc(self.conns, cap * sizeof(Conn))
-            if nc == NULL:
-                raise MemoryError()
-            self.conns = nc
-            self.capconns = cap
-        if self.nconns >= self.caplc:
-            cap = self.caplc * 2 if self.caplc else 64
-            lp = <LiveConn*>realloc(self.lc, cap * sizeof(LiveConn))
-            if lp == NULL:
-                raise MemoryError()
-            self.lc = lp
-            self.caplc = cap
-        ci = self.nconns
-        self.nconns += 1
+        if self.free_conns:
+            ci = self.free_conns.pop()
+        else:
+            if self.nconns == self.capconns:
+                cap = self.capconns * 2 if self.capconns else 64
+                nc = <Conn*>realloc(self.conns, cap * sizeof(Conn))
+                if nc == NULL:
+                    raise MemoryError()
+                self.conns = nc
+                self.capconns = cap
+            if self.nconns >= self.caplc:
+                cap = self.caplc * 2 if self.caplc else 64
+                lp = <LiveConn*>realloc(self.lc, cap * sizeof(LiveConn))
+                if lp == NULL:
+                    raise MemoryError()
+                self.lc = lp
+                self.caplc = cap
+            ci = self.nconns
+            self.nconns += 1
+            self.ckey.append(-1)
+        self.ckey[ci] = key
         c = &self.conns[ci]
         memset(c, 0, sizeof(Conn))
         memset(&self.lc[ci], 0, sizeof(LiveConn))
@@ -210,6 +223,25 @@ cdef class _Chunks(_Live):
         finally:
             self.flush_out()
 
+    # ------------------------------------------------------------------ labels
+
+    cdef int peers(self) except -1:
+        peers = getattr(self.view, "_peers", None)
+        return 2 if peers is None else len(peers)
+
+    cdef int on_frame(self, int ci, int d, double ts, const uint8_t* adu, int alen) except -1:
+        """``_Pass.on_frame``; then, while the view has seen fewer than two peers of the
+        robot, whether this frame's label brought the second: the view then names the
+        peer in every label (``View._label``), so the labels cached here are made
+        again, as the reference's view makes its own again."""
+        cdef int i
+        _Pass.on_frame(self, ci, d, ts, adu, alen)
+        if self.npeers < 2 and self.peers() != self.npeers:
+            self.npeers = self.peers()
+            for i in range(len(self.labels)):
+                self.labels[i] = None
+        return 0
+
     # ------------------------------------------------------------------ events
 
     def source_event(self, double ts, stream, kind, dict info):
@@ -256,12 +288,74 @@ cdef class _Chunks(_Live):
                 self.event(ts, sid, kind, info)
             if kind is EventKind.DISCONNECT and stream is not None:
                 join = self.joins.pop(sid, None)
+                self.ended(sid)
                 if join is not None:
                     self.joined.pop(join[0], None)
+                    self.ended(join[0])
         finally:
             self.flush_out()
         self.taken += 1
         return True
+
+    # ------------------------------------------------------------------ ended streams
+
+    cdef int ended(self, int sid) except -1:
+        """Stream ``sid`` ended (its DISCONNECT): its state is released once no request
+        of it waits for an answer (now, or at a later tick), so a proxy that serves
+        connection after connection keeps no more than those still open."""
+        if sid >= len(self._sid_conn) or self._sid_conn[sid] < 0:
+            return 0
+        if sid < self.capsp and self.sp[sid].count:
+            self.closing.append(sid)
+            return 0
+        return self.drop_stream(sid)
+
+    cdef int drop_stream(self, int sid) except -1:
+        """Forget stream ``sid``: its connection slot (for reuse), held-bytes buffers,
+        stream object, labels and log pieces."""
+        cdef int ci = self._sid_conn[sid], d, key
+        cdef Conn* c = &self.conns[ci]
+        for d in range(2):
+            free(c.h[d].buf)
+            c.h[d].buf = NULL
+            c.h[d].blen = 0
+            c.h[d].bcap = 0
+        key = self.ckey[ci]
+        if 0 <= key < self.capcmap and self.cmap[key] == ci:
+            self.cmap[key] = -1
+        self._sid_conn[sid] = -1
+        self.streams[sid] = None
+        self.labels[sid] = None
+        self.heads[sid] = None
+        if self.mtails is not None and sid < len(self.mtails):
+            self.mtails[sid] = None
+        if self.mprefix is not None:
+            for d in range(2):
+                if 2 * sid + d < len(self.mprefix):
+                    self.mprefix[2 * sid + d] = None
+        self.free_conns.append(ci)
+        return 0
+
+    cdef int drop_closing(self) except -1:
+        """Release the ended streams whose last pending request was answered or timed out."""
+        cdef int sid
+        if not self.closing:
+            return 0
+        still = []
+        for sid in self.closing:
+            if sid < self.capsp and self.sp[sid].count:
+                still.append(sid)
+            else:
+                self.drop_stream(sid)
+        self.closing = still
+        return 0
+
+    def tick(self, double now):
+        """``_Live.tick``, then the ended streams with nothing pending are released."""
+        done = _Live.tick(self, now)
+        if done == 0:
+            self.drop_closing()
+        return done
 
     cdef int none_event(self, double ts, object kind, dict info) except -1:
         """An event of no stream (a notice): its record, formatted by mbmon.format."""
@@ -275,6 +369,10 @@ cdef class _Chunks(_Live):
         self.count_record(ts, -1)
         ev = Event(ts, None, kind, info)
         return self.put_record(Record(index, ts, RecordKind.EVENT, None, event=ev))
+
+    def streams_held(self):
+        """Streams whose state the core holds (not released since their DISCONNECT)."""
+        return sum(1 for ci in self._sid_conn if ci >= 0)
 
     # ------------------------------------------------------------------ the log
 

@@ -79,8 +79,10 @@ class ChunkCore:
         self.scan: Callable[[Any, int], tuple[int, int, list[tuple[int, int]]]] = reader.pipe_scan
         self.pipeline = pipeline
         self._flush = flush
-        #: the source's stream ids -> the hub's streams
+        #: the source's stream ids -> the hub's streams (a client's and its proxy
+        #: answers' are forgotten at its DISCONNECT while the core observes)
         self.streams: dict[int, Stream] = {}
+        self._own: dict[int, int] = {}  # a client stream's id -> its own answers' (source ids)
         #: why the run left the core (``None``: it did not)
         self.handed: str | None = None
 
@@ -120,6 +122,7 @@ class ChunkCore:
                     else:
                         event = self._event(seg)
                         if core.source_event(event.ts, event.stream, event.kind, event.info):
+                            self._ended(seg, event)
                             continue
                         self._hand_over()
                         out.append(event)
@@ -144,6 +147,21 @@ class ChunkCore:
                 return []
             self._hand_over()
         return [event]
+
+    def _ended(self, record: tuple[Any, ...], event: Event) -> None:
+        """A client's CONNECT joins its own answers' stream; its DISCONNECT (taken by
+        the core) ends both: their ids are forgotten (the engine sends nothing more
+        on them)."""
+        key = record[2]
+        if event.kind is EventKind.CONNECT:
+            own = record[4].get("answers_on")
+            if type(own) is int:
+                self._own[key] = own
+        elif event.kind is EventKind.DISCONNECT:
+            self.streams.pop(key, None)
+            own = self._own.pop(key, None)
+            if own is not None:
+                self.streams.pop(own, None)
 
     def _event(self, record: tuple[Any, ...]) -> Event:
         _, ts, key, kind, info = record

@@ -19,6 +19,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from mbmon.model import Transport
 from mbmon.protocol.pdu import encode_exception, encode_read_request, encode_read_response
 from tests.core.gen import every_function_pair
 from tests.core.mcap_diff import log_contents
@@ -186,6 +187,65 @@ def test_an_incomplete_adu_at_a_disconnect_hands_the_run_over(tmp_path: Path) ->
         t + 10.0,
     ]
     same(steps, handed="incomplete ADU", tmp=tmp_path)
+
+
+def test_a_second_client_makes_every_label_name_its_peer(tmp_path: Path) -> None:
+    """With the robot the upstream, labels name the client once a second one is seen,
+    those of a stream labelled before it too (the view relabels; so does the core)."""
+    t = 60.0
+    read, answer = encode_read_request(3, 0, 1), encode_read_response(3, [5])
+    data = [cd.client(0, t, 40010)]
+    for i in range(3):
+        data.append(cd.chunk(0, cd.C2S, t + 0.1 * i, adu(i, 1, read)))
+        data.append(cd.chunk(0, cd.S2C, t + 0.1 * i + 0.01, adu(i, 1, answer)))
+        if i == 0:
+            data.append(cd.client(2, t + 0.05, 40011))
+            data.append(cd.chunk(2, cd.C2S, t + 0.06, adu(9, 1, read)))
+            data.append(cd.chunk(2, cd.S2C, t + 0.07, adu(9, 1, answer)))
+    data.append(cd.event(t + 1.0, 0, "disconnect", {"how": "fin", "by": "client"}))
+    data.append(cd.event(t + 1.0, 2, "disconnect", {"how": "fin", "by": "client"}))
+    steps: list[cd.Step] = [b"".join(data), t + 10.0]
+    same(steps, tmp=tmp_path)
+    lines = cd.reference(steps, as_json=False).decode().splitlines()
+    assert "Receive from client  [u1 t0]" in lines[1]
+    assert sum("Receive from client 127.0.0.1:40010" in line for line in lines) == 2
+
+
+def test_ended_streams_are_released_once_nothing_waits() -> None:
+    """Client after client: the core keeps the state of open streams only; one that
+    ended with a request pending keeps it until the request times out."""
+    from mbmon.core.chunks import ChunkCore
+    from mbmon.format import View
+    from mbmon.hub import Hub
+    from mbmon.pipeline import Pipeline, PipelineConfig
+
+    hub = Hub(Pipeline(None, PipelineConfig(timeout=4.0)), clock=lambda: 0.0)
+    stage = ChunkCore(timeout=4.0, view=View(), as_json=False, write=None, pipeline=hub.pipeline)
+    read, answer = encode_read_request(3, 0, 1), encode_read_response(3, [5])
+    t = 1.0
+    for k in range(50):
+        sid = 2 * k
+        t += 0.01
+        got = stage.take(
+            [
+                ("stream", sid, hub.new_stream(Transport.TCP, f"c:{k}", "s:502")),
+                ("stream", sid + 1, hub.new_stream(Transport.TCP, f"c:{k}", "proxy")),
+                ("event", t, sid, "connect", {"answers_on": sid + 1}),
+                cd.chunk(sid, cd.C2S, t, adu(1, 1, read))
+                + cd.chunk(sid, cd.S2C, t, adu(1, 1, answer))
+                + cd.chunk(sid, cd.C2S, t, adu(2, 1, read) if k == 49 else b""),
+                ("event", t, sid, "disconnect", {"how": "fin", "by": "client"}),
+            ]
+        )
+        assert got == []
+    assert stage.handed is None
+    assert stage._core.streams_held() == 1  # the last: a request still pending
+    assert len(stage.streams) == 0
+    stage.tick(t + 1.0)
+    assert stage._core.streams_held() == 1
+    stage.tick(t + 5.0)  # it times out: released
+    assert stage._core.streams_held() == 0
+    assert stage.counts()["timeouts"] == 1
 
 
 @settings(max_examples=25, deadline=None)
