@@ -156,6 +156,11 @@ _KIND_OF_PDU = {
 # about 70 ns, a global 10 ns) and a Record constructor about twice as fast as the class.
 _EXCEPTION = Kind.EXCEPTION
 _PENDING, _TIMEOUT = TxStatus.PENDING, TxStatus.TIMEOUT
+_UNSOLICITED = TxStatus.UNSOLICITED
+#: the note of a proxy's own answer that came after its request was reported unanswered
+LATE_NOTE = "late: its request was reported unanswered"
+#: requests of joined streams reported unanswered, kept for a late answer (at most)
+_LATE_KEPT = 1024
 _S2C = Direction.S2C
 _new_record = fast_constructor(Record)
 
@@ -188,6 +193,10 @@ class Pipeline:
         # stream's CONNECT, info ``answers_on``): the note their answers carry
         self._joined_notes: dict[int, tuple[str, ...]] = {}
         self._answers_on: dict[int, int] = {}  # stream id -> the stream joined to it
+        # requests on a joined stream (the proxy's own answers) reported unanswered:
+        # (stream id, tid, unit) -> (request, its record index), for an answer the
+        # proxy held behind another and wrote after the pairing's timeout
+        self._late: dict[tuple[int, int | None, int], tuple[Frame, int | None]] = {}
         # streams whose source names their decoder (use_decoder), and those whose
         # requests are never reported unanswered (a frame typed alone)
         self._own_decoders: dict[int, DecoderEntry] = {}
@@ -288,6 +297,9 @@ class Pipeline:
             return
         self.pairer.part(other)
         self._joined_notes.pop(other, None)
+        if self._late:
+            for key in [k for k in self._late if k[0] == other]:
+                del self._late[key]
         joined = self._streams.get(other)
         if joined is not None:
             self._close_stream(joined, ts, out)
@@ -357,6 +369,7 @@ class Pipeline:
             self.pairer.part(other)
         self._answers_on.clear()
         self._joined_notes.clear()
+        self._late.clear()
         self._next_tick = self._next_sweep = self._damage_ts = float("-inf")
         self._last_ts = 0.0
         return out
@@ -439,7 +452,15 @@ class Pipeline:
                     info["tid"] = request.tid
                 event = Event(tx.ts, request.stream, EventKind.TIMEOUT, info)
                 out.append(self._event_record(event))
+                if request.stream.id in self._joined_notes:
+                    self._keep_late(request, req_index)
                 continue
+            late: tuple[Transaction, int | None] | None = None
+            if status is _UNSOLICITED and self._late:
+                late = self._late_answer(tx)
+                if late is not None:
+                    tx = late[0]
+                    status = tx.status
             response = tx.response
             request = tx.request
             frame = response if response is not None else request  # tx.frame
@@ -462,6 +483,9 @@ class Pipeline:
             notes = annotation.notes if annotation is not None else ()
             if self._joined_notes and frame.direction is _S2C:
                 notes = notes + self._joined_notes.get(frame.stream.id, ())
+            if late is not None:
+                request_index = late[1]
+                notes = (*notes, LATE_NOTE)
             out.append(
                 _new_record(
                     index,
@@ -482,6 +506,29 @@ class Pipeline:
             if annotation is not None and annotation.commands:
                 for cmd in annotation.commands:
                     out.append(self._record(cmd.ts, RecordKind.COMMAND, cmd.stream, command=cmd))
+
+    def _keep_late(self, request: Frame, index: int | None) -> None:
+        """A request the proxy answers itself (on a joined stream) was reported
+        unanswered: kept (a bounded number), so that its answer, held behind another
+        answer half-way to the client and written late, pairs with it."""
+        late = self._late
+        if len(late) >= _LATE_KEPT:
+            del late[next(iter(late))]
+        late[(request.stream.id, request.tid, request.unit)] = (request, index)
+
+    def _late_answer(self, tx: Transaction) -> tuple[Transaction, int | None] | None:
+        """An answer nothing waited for, on a joined stream: the proxy's own answer to
+        a request reported unanswered (:meth:`_keep_late`), as that request's answer
+        (its latency the real one) and the request's record index; else ``None``."""
+        response = tx.response
+        if response is None:
+            return None
+        kept = self._late.pop((response.stream.id, response.tid, response.unit), None)
+        if kept is None:
+            return None
+        request, index = kept
+        status = TxStatus.EXCEPTION if response.pdu.kind is _EXCEPTION else TxStatus.ANSWERED
+        return Transaction(tx.ts, status, request, response, response.ts - request.ts), index
 
     def _event_record(self, event: Event) -> Record:
         self.counts["events"] += 1

@@ -65,6 +65,11 @@ def register(sub: Any) -> None:
     quiet.help = (
         "print no records (the start-up line and the summary still go to stderr; use with -w)"
     )
+    p.add_argument(
+        "--debug-core",
+        action="store_true",
+        help="say on stderr whether the compiled core observes the traffic, or why not",
+    )
     p.set_defaults(func=run, robot="upstream")
 
 
@@ -110,7 +115,11 @@ def run(args: argparse.Namespace) -> int:
     baud = args.baud if plan.serial else None
     hub = Hub(Pipeline(annotator, PipelineConfig(timeout=pipe_timeout, baudrate=baud)))
     source = ProxySource(
-        plan.config, process=plan.process, factories=plan.factories, name=plan.source()
+        plan.config,
+        process=plan.process,
+        factories=plan.factories,
+        name=plan.source(),
+        core=_core_output(args, plan, view, pipe_timeout),
     )
     try:
         source.open(hub)  # it listens when this returns; a failure leaves no files behind
@@ -137,7 +146,55 @@ def run(args: argparse.Namespace) -> int:
         source.stop()
         hub.close()
         return EXIT_BAD_INPUT
+    _core_log(source, logs)
     return _serve(args, plan, hub, source, ctx, annotator, logs)
+
+
+def _core_output(args: argparse.Namespace, plan: Any, view: Any, timeout: float) -> Any:
+    """How the compiled core writes the observation's lines
+    (:class:`~mbmon.sources.proxy.CoreOutput`), or ``None`` when the options keep it
+    off the core (``--debug-core`` says why)."""
+    from mbmon.commands.common import err
+    from mbmon.commands.screen import _interactive
+    from mbmon.core.chunks import decline_for_proxy
+
+    console = not args.quiet and (args.json or getattr(args, "plain", False) or not _interactive())
+    why = decline_for_proxy(args, process=plan.process, console=console)
+    buffer = None
+    if why is None and console:
+        from mbmon.sinks.console import utf8_buffer
+
+        buffer = utf8_buffer(sys.stdout)
+        if buffer is None:
+            why = "stdout is not UTF-8"
+    if getattr(args, "debug_core", False):
+        err(
+            "core: "
+            + ("the compiled core observes the proxy" if why is None else f"declined ({why})")
+        )
+    from mbmon.sources.proxy import CoreOutput
+
+    if why is None and args.quiet:
+        return CoreOutput(view, args.json, timeout, None, None)
+    if why is not None or buffer is None:
+        return None
+    from mbmon.sinks.console import RawStdout
+
+    raw = RawStdout(buffer)
+    return CoreOutput(view, args.json, timeout, raw.write, raw.flush)
+
+
+def _core_log(source: Any, logs: list[Any]) -> None:
+    """The core observing with a ``-w x.mcap`` log writes its messages itself (into
+    the same sink, which the hub feeds after a hand-over); before the hub's loop runs."""
+    if source.live is None or not logs:
+        return
+    from mbmon.sinks.mcap import McapSink
+
+    (sink,) = logs  # decline_for_proxy: one log at most, a .mcap
+    if not isinstance(sink, McapSink):  # pragma: no cover - declined before
+        raise RuntimeError(f"the core cannot write {type(sink).__name__}")
+    source.live.log_to(sink)
 
 
 def _open_logs(args: argparse.Namespace, ctx: Any) -> list[Any] | None:
@@ -202,7 +259,7 @@ def _serve(
     with stop_on_signals(stop) as signals:
         print(f"mbmon proxy: {plan.startup_line(source.address)}", file=sys.stderr, flush=True)
         if args.upstream is not None:
-            _warn_unresolved(hub, plan.config.upstream_host, plan.config.upstream_port)
+            _warn_unresolved(source, plan.config.upstream_host, plan.config.upstream_port)
         # the screen last: the logs are open, and the start-up line is on the terminal
         # before the live monitor takes it
         console, monitor = open_console(
@@ -229,7 +286,7 @@ def _serve(
     return exit_status(hub, failed=lost, until_signal=True)
 
 
-def _warn_unresolved(hub: Any, host: str, port: int) -> None:
+def _warn_unresolved(source: Any, host: str, port: int) -> None:
     """An upstream host that does not resolve: a warning on stderr and in the log; the
     proxy keeps running and answers 0x0A (the host may come: DNS, /etc/hosts)."""
     from mbmon.model import Event, EventKind
@@ -243,4 +300,4 @@ def _warn_unresolved(hub: Any, host: str, port: int) -> None:
         "exception 0x0A until it does; the proxy keeps trying"
     )
     print(f"mbmon proxy: warning: {warning}", file=sys.stderr, flush=True)
-    hub.put(Event(time.time(), None, EventKind.NOTICE, {"message": warning}))
+    source.put_event(Event(time.time(), None, EventKind.NOTICE, {"message": warning}))

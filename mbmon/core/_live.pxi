@@ -415,9 +415,7 @@ cdef class _Live(_Pass):
         from mbmon.sources.flows import _TCP_HOLD_LIMIT
         from mbmon.sources.tcpflow import TcpConnection
 
-        cdef int ci, d, s, e
-        cdef Conn* c
-        cdef Pend* p
+        cdef int ci
         conns = {}
         for ci in self.open_order:
             if self.conns[ci].open_:
@@ -436,7 +434,16 @@ cdef class _Live(_Pass):
         dissector._set_due()
         dissector.next_id = len(self._sid_conn)
         dissector.modbus_packets += self.modbus_packets
-        # the pipeline: numbering, time, held bytes, pending requests
+        self.export_pipeline(pipeline)
+        return None
+
+    cdef int export_pipeline(self, pipeline) except -1:
+        """The pipeline's part of :meth:`export`: record numbering, its clocks, the
+        bytes each decoder holds with their arrival times, the pending requests with
+        their record indexes (in the pairer's order)."""
+        cdef int ci, d, s, e
+        cdef Conn* c
+        cdef Pend* p
         pipeline._index = self.index
         pipeline._next_tick = self.next_tick
         pipeline._last_ts = self.pl_last
@@ -468,7 +475,7 @@ cdef class _Live(_Pass):
                 pipeline._pending_index[id(frame)] = p.index
                 e = p.next
             s = self.sp[s].anext
-        return None
+        return 0
 
 
 

@@ -2876,3 +2876,4 @@ def _native_note(bytes data, bint response, request=None):
 
 include "_live.pxi"
 include "_rtu_pass.pxi"
+include "_chunks.pxi"

@@ -82,6 +82,7 @@ _O = b"O"
 _DIRECTIONS = list(Direction)
 _DIRECTION_CODE = {d: i for i, d in enumerate(_DIRECTIONS)}
 _new_chunk = fast_constructor(Chunk)
+_pack_head = CHUNK_HEAD.pack
 
 #: How much the kernel may hold in the pipe (Linux: F_SETPIPE_SZ; default 64 KiB).
 PIPE_SIZE = 1 << 20
@@ -217,8 +218,19 @@ class PipeObserver(Observer):
         self._due = False
 
     def chunk(self, stream: Stream, direction: Direction, data: bytes, ts: float) -> None:
-        if self._admit(ts):
-            self._out.put_chunk(stream.id, direction, data, ts)
+        # two a request, in the forwarding process: the common case (the pipe keeps
+        # up) inline, the backlog rule (Observer._admit) and the handover as calls
+        out = self._out
+        if self._skipping or self.sent - out.seen > self._max_backlog:
+            if not self._admit(ts):
+                return
+        else:
+            self.sent += 1
+        buf = out.buf
+        buf += _pack_head(_C, stream.id, ts, _DIRECTION_CODE[direction], len(data))
+        buf += data
+        out.items += 1
+        if not self._due:
             self._handover()
 
     def _emit(self, item: Chunk | Event) -> None:  # events: chunks never come here
@@ -422,9 +434,13 @@ class ProxyProcess:
         config: ProxyConfig,
         hub: Any,
         on_exit: Callable[[], None] | None = None,
+        stage: Any = None,
     ) -> None:
         self.config = config
         self.hub = hub
+        #: the compiled core's stage (:class:`mbmon.core.chunks.ChunkCore`): the pipe's
+        #: reads go to its ``take`` instead of becoming chunks and events here
+        self.stage = stage
         self.engine = RemoteEngine()
         self._on_exit = on_exit
         self._proc: subprocess.Popen[bytes] | None = None
@@ -505,6 +521,9 @@ class ProxyProcess:
                 if not n:
                     break
                 buf += space[:n]
+                if self.stage is not None:
+                    self._to_core(buf)
+                    continue
                 items, others, used = decode_records(buf, streams, hub.new_stream)
                 del buf[:used]
                 for record in others:
@@ -530,6 +549,49 @@ class ProxyProcess:
                     self._kill()
             if self._on_exit is not None:
                 self._on_exit()
+
+    def _to_core(self, buf: bytearray) -> None:
+        """The whole records at the start of ``buf`` (taken out of it) to the core's
+        stage in the hub's thread: runs of chunk records as they are (bytes), the
+        streams (with the hub's ids) and events between them; the other records
+        (counters, ready, error) are this thread's. Waits while the hub is behind."""
+        stage = self.stage
+        hub = self.hub
+        used, chunks, objects = stage.scan(buf, len(buf))
+        if not used:
+            return
+        segments: list[Any] = []
+        pos = 0
+        events = 0
+        for start, end in objects:
+            if start - _OBJECT.size > pos:
+                segments.append(bytes(buf[pos : start - _OBJECT.size]))
+            record = pickle.loads(buf[start:end])
+            what = record[0]
+            if what == "stream":
+                _, sid, transport, client, server = record
+                segments.append(
+                    ("stream", sid, hub.new_stream(Transport(transport), client, server))
+                )
+            elif what == "event":
+                segments.append(record)
+                events += 1
+            else:
+                self._record(record)
+            pos = end
+        if used > pos:
+            segments.append(bytes(buf[pos:used]))
+        del buf[:used]
+        if not segments:
+            return
+        self.submitted += chunks + events
+        take = stage.take
+        hub.submit(lambda: take(segments))
+        limit = self.config.max_backlog
+        # the hub is behind: read no more, so the pipe and then the child's buffer
+        # fill and the child skips (bounded memory)
+        while self.submitted - (hub.seen + stage.taken) > limit and not self._stopping:
+            time.sleep(0.005)
 
     def _record(self, record: tuple[Any, ...]) -> None:
         what = record[0]

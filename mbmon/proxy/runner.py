@@ -113,7 +113,7 @@ def unresolved(host: str, port: int, wait: float = 2.0) -> str | None:
 
 
 def attach_engine(
-    hub: Any, config: ProxyConfig, *, process: bool = False, **factories: Any
+    hub: Any, config: ProxyConfig, *, process: bool = False, stage: Any = None, **factories: Any
 ) -> tuple[Any, Any, Any]:
     """A :class:`~mbmon.proxy.engine.ProxyEngine` for ``config`` wired to ``hub``: the
     one way a command runs a proxy (``proxy``, ``demo``).
@@ -128,16 +128,19 @@ def attach_engine(
     ``process``: the engine runs in a child process instead of a thread
     (:class:`~mbmon.proxy.remote.ProxyProcess`, the same calls; no factories);
     ``engine`` is then a :class:`~mbmon.proxy.remote.RemoteEngine` and ``observer``
-    the process (its ``skipped``).
+    the process (its ``skipped``); ``stage`` (a child process only): the compiled
+    core's stage its observations go to (:class:`~mbmon.core.chunks.ChunkCore`).
     """
     if process:
         if factories:
             raise ValueError("the serial variants run the engine in a thread")
         from mbmon.proxy.remote import ProxyProcess
 
-        proc = ProxyProcess(config, hub, on_exit=hub.stop)
+        proc = ProxyProcess(config, hub, on_exit=hub.stop, stage=stage)
         return proc.engine, proc, proc
 
+    if stage is not None:
+        raise ValueError("the compiled core observes an engine in a child process only")
     observer = Observer(hub.put, hub.new_stream, meter=hub, max_backlog=config.max_backlog)
     engine = ProxyEngine(config, observer, submit=hub.submit, **factories)
     # The engine's thread must get the GIL back quickly when a packet arrives while

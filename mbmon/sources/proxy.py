@@ -16,6 +16,8 @@ so a proxy that cannot listen fails before any log is opened:
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from mbmon.model import Event
@@ -25,7 +27,7 @@ from mbmon.sources.base import BaseSource, SourceError, SourceMode
 if TYPE_CHECKING:
     from mbmon.hub import Hub
 
-__all__ = ["ProxySource", "ProxyStartError"]
+__all__ = ["CoreOutput", "ProxySource", "ProxyStartError"]
 
 
 class ProxyStartError(SourceError):
@@ -55,6 +57,7 @@ class ProxySource(BaseSource):
         process: bool = False,
         factories: dict[str, Any] | None = None,
         name: str = "proxy",
+        core: CoreOutput | None = None,
     ) -> None:
         super().__init__()
         if process and factories:
@@ -67,19 +70,38 @@ class ProxySource(BaseSource):
         self.runner: Any = None
         self.observer: Any = None
         self.address: tuple[str, int] | None = None
+        #: with ``core`` (a child process only): how the compiled core writes the lines
+        self.core = core
+        #: its stage (:class:`~mbmon.core.chunks.ChunkCore`) once open
+        self.live: Any = None
+        self._hub: Any = None
 
     def open(self, hub: Hub) -> None:
         """Make the engine, wire its observations to ``hub`` and start it: it listens
         when this returns (:class:`ProxyStartError` when it cannot)."""
         super().open(hub)
+        if self.core is not None:
+            self.live = self.core.stage(hub)
+            hub.add_ticker(self.live)
         self.engine, self.runner, self.observer = attach_engine(
-            hub, self.config, process=self.process, **self.factories
+            hub, self.config, process=self.process, stage=self.live, **self.factories
         )
+        self._hub = hub
         try:
             self.address = self.runner.start()
         except OSError as exc:
             self.runner.stop()
             raise ProxyStartError(exc) from None
+
+    def put_event(self, event: Event) -> None:
+        """An event of the command's own (a warning) into the run, from any thread:
+        through the core's stage while it observes, else the hub's queue."""
+        live = self.live
+        if live is None or self._hub is None:
+            if self._hub is not None:
+                self._hub.put(event)
+        else:
+            self._hub.submit(lambda: live.event(event))
 
     def stop(self) -> None:
         """Stop the engine (its last events reach the hub) and wait for it (5 s at most)."""
@@ -107,4 +129,37 @@ class ProxySource(BaseSource):
             return []
         stats = self.engine.stats
         stats.not_observed = self.observer.skipped
-        return list(stats.summary().splitlines())
+        lines = list(stats.summary().splitlines())
+        if self.live is not None:
+            handed = self.live.handed
+            lines.append(
+                "observed by the compiled core"
+                + ("" if handed is None else f", then the Python pipeline ({handed})")
+            )
+        return lines
+
+
+@dataclass
+class CoreOutput:
+    """How the proxy's observation runs on the compiled core (:mod:`mbmon.core.chunks`):
+    the view and JSON choice of its lines, the pairing timeout, and ``write``/``flush``
+    of stdout's bytes (``None`` with ``-q``)."""
+
+    view: Any
+    as_json: bool
+    timeout: float
+    write: Callable[[bytes], Any] | None  # None: -q (lines made, dropped)
+    flush: Callable[[], Any] | None
+
+    def stage(self, hub: Hub) -> Any:
+        """The core's hub stage, ``hub``'s pipeline waiting behind it."""
+        from mbmon.core.chunks import ChunkCore
+
+        return ChunkCore(
+            timeout=self.timeout,
+            view=self.view,
+            as_json=self.as_json,
+            write=self.write,
+            flush=self.flush,
+            pipeline=hub.pipeline,
+        )
