@@ -350,6 +350,37 @@ cdef inline void put_head(char* p, Py_ssize_t size, int channel, uint64_t log_ti
     put_le(p + 23, log_time, 8)
 
 
+cdef inline bint _name_char(char c) nogil:
+    return (c >= 97 and c <= 122) or c == 95  # a-z, _
+
+
+cdef Py_ssize_t slim_frame(char* p, Py_ssize_t n, Py_ssize_t cut_at, Py_ssize_t cut_end):
+    """A frame's JSON line made its format-2 /modbus/frames message in place
+    (``layout.slim_frame_json``): ``p[cut_at:cut_end]`` (the line member) cut out, then
+    every member ``,"name":null`` followed by ``,`` or ``}`` left out, up to the first
+    ``,"fields":`` (the nested member keeps its own). Returns the new length."""
+    cdef Py_ssize_t i = 0, o = 0, j
+    memmove(p + cut_at, p + cut_end, n - cut_end)
+    n -= cut_end - cut_at
+    while i < n:
+        if p[i] == 44 and i + 1 < n and p[i + 1] == 34:  # ,"
+            j = i + 2
+            while j < n and _name_char(p[j]):
+                j += 1
+            if j > i + 2 and j + 1 < n and p[j] == 34 and p[j + 1] == 58:  # ":
+                if j - i - 2 == 6 and memcmp(p + i + 2, b"fields", 6) == 0:
+                    memmove(p + o, p + i, n - i)
+                    return o + n - i
+                if (j + 6 < n and memcmp(p + j + 2, b"null", 4) == 0
+                        and (p[j + 6] == 44 or p[j + 6] == 125)):
+                    i = j + 6
+                    continue
+        p[o] = p[i]
+        o += 1
+        i += 1
+    return o
+
+
 cdef int put_b64(Buf* b, const uint8_t* p, Py_ssize_t n) except -1:
     """``binascii.b2a_base64(p[:n], newline=False)``: standard alphabet, ``=`` padded."""
     cdef Py_ssize_t i = 0
@@ -1356,8 +1387,8 @@ cdef class _Pass:
             self.mprefix.append(None)
         prefix = self.mprefix[k]
         if prefix is None:
-            chunk = Chunk(0.0, self.stream_obj(sid), Direction.S2C if d else Direction.C2S, b"")
-            prefix = self.mlayout._raw_prefix_of(chunk)
+            prefix = self.mlayout.raw_prefix(
+                self.stream_obj(sid), Direction.S2C if d else Direction.C2S)
             self.mprefix[k] = prefix
         return prefix
 
@@ -1367,7 +1398,7 @@ cdef class _Pass:
             self.mtails.append(None)
         tail = self.mtails[sid]
         if tail is None:
-            tail = self.mlayout._tail(self.stream_obj(sid))
+            tail = self.mlayout.monitor_tail(self.stream_obj(sid))
             self.mtails[sid] = tail
         return tail
 
@@ -1390,7 +1421,7 @@ cdef class _Pass:
         put_json_time(m, ts)
         put(m, b',"data":"', 9)
         put_b64(m, p, n)
-        put(m, b'","event":null,"info":null}', 27)
+        put(m, b'"}', 2)
         put_head(m.p + at, m.n - at - 31, self.ch_raw, lt)
         self.d_chunks += 1
         self.d_bytes += n
@@ -1408,10 +1439,9 @@ cdef class _Pass:
         console's line or JSON, its counts (the layout's fast path for frame records)."""
         self.swap_bufs()  # back: the line was written into mc as out
         cdef Buf* m = &self.mc
-        cdef Py_ssize_t n = m.n - head_at - 31, at
+        cdef Py_ssize_t n = m.n - head_at - 31, at, slim
         cdef uint64_t lt = <uint64_t>rint(ts * 1e6) * 1000
         cdef bint warning = kind == 2 or unsolicited
-        put_head(m.p + head_at, n, self.ch_frames, lt)
         if self.write is not None:
             if self.as_json:
                 put(&self.out, m.p + head_at + 31, n)
@@ -1438,6 +1468,15 @@ cdef class _Pass:
         put_i(m, index)
         put_c(m, 125)
         put_head(m.p + at, m.n - at - 31, self.ch_monitor, lt)
+        # the /modbus/frames message (format 2): the JSON line without its line member
+        # (from ',"line":"' to the closing quote) and its null members, the monitor
+        # message moved down after it
+        slim = slim_frame(m.p + head_at + 31, n, line_at - 9 - head_at - 31,
+                          line_end + 1 - head_at - 31)
+        if slim != n:
+            memmove(m.p + head_at + 31 + slim, m.p + at, m.n - at)
+            m.n -= n - slim
+        put_head(m.p + head_at, slim, self.ch_frames, lt)
         if kind == 0:
             self.d_req += 1
         elif kind == 1:
