@@ -2937,3 +2937,14 @@ def _native_note(bytes data, bint response, request=None):
 
 
 include "_live.pxi"
+
+
+def _slim_frame_json(bytes data, Py_ssize_t start, Py_ssize_t end):
+    """Test-only entry: ``layout.slim_frame_json(data, start, end)`` as the core makes a
+    frame's format-2 message in place (``slim_frame``)."""
+    if not (8 <= start < end <= len(data)):
+        raise ValueError("the line string must lie inside the data")
+    cdef bytearray b = bytearray(data)
+    cdef char* p = b
+    cdef Py_ssize_t n = slim_frame(p, len(b), start - 8, end)
+    return bytes(b[:n])

@@ -21,6 +21,7 @@ from mbmon import __version__
 from mbmon.format import View, record_line, record_to_json
 from mbmon.io.mcap.layout import full_frame_object, slim_frame_object
 from mbmon.io.mcap.reader import McapLog
+from mbmon.io.replay import logged_records
 from mbmon.model import Chunk, Record, RecordKind
 from mbmon.sinks.base import SinkContext, open_sink
 from mbmon.sinks.mcap import TOPIC_SCHEMAS, McapSink, schema_text
@@ -406,6 +407,11 @@ def test_sigkill_loses_at_most_the_last_second(tmp_path: Path) -> None:
     assert set(got) >= old, f"lost {len(old - set(got))} records older than 1 s"
     assert got == list(range(len(got))), "recovered records must be a prefix, in order"
     assert status.messages > 0 and status.describe().startswith("log was not finished")
+    with McapLog(path) as log:  # format 2: each frame object gets its line back
+        assert log.metadata["mbmon"]["format"] == "2"
+        frames = [r for r in logged_records(log) if r.obj is not None and r.obj.get("fc")]
+    assert len(frames) > 100
+    assert all(r.obj is not None and r.obj["line"] == r.text != "" for r in frames)
 
 
 @pytest.mark.skipif(not Path("/dev/full").exists(), reason="/dev/full absent")
