@@ -379,13 +379,14 @@ cdef Py_ssize_t slim_frame(char* p, Py_ssize_t n, Py_ssize_t cut_at, Py_ssize_t 
             cut = True
             continue
         i = c - p
-        if (i + 5 < n and p[i + 1] == 110 and memcmp(p + i + 1, b"null", 4) == 0
-                and (p[i + 5] == 44 or p[i + 5] == 125)):
+        if (i + 5 < n and (cut or i + 5 <= cut_at) and p[i + 1] == 110
+                and memcmp(p + i + 1, b"null", 4) == 0 and (p[i + 5] == 44 or p[i + 5] == 125)):
             k = i - 1
-            if p[k] == 34:  # the closing quote of a name?
-                while _name_char(p[k - 1]):
+            if k > src and p[k] == 34:  # the closing quote of a name?
+                while k > src and _name_char(p[k - 1]):
                     k -= 1
-                if k < i - 1 and k >= 2 and p[k - 1] == 34 and p[k - 2] == 44:  # ,"name":
+                if (k < i - 1 and k - 2 >= src and p[k - 1] == 34
+                        and p[k - 2] == 44):  # ,"name":
                     k -= 2  # the member starts at its comma
                     if o != src:
                         memmove(p + o, p + src, k - src)

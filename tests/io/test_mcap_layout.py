@@ -207,3 +207,20 @@ try:
     from mbmon.core._reader import _slim_frame_json as _core_slim
 except ImportError:  # no compiled core (MBMON_NO_EXTENSIONS or no compiler): pure only
     _core_slim = None
+
+
+@pytest.mark.skipif(_core_slim is None, reason="no compiled core")
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=80), st.data())
+def test_core_slim_frame_stays_in_bounds_on_any_bytes(data: bytes, draw: st.DataObject) -> None:
+    """The core's in-place rule on bytes that are not a JSON line (run under ASan in CI):
+    it only ever shortens them, and leaves bytes without a colon as they are but the cut."""
+    if len(data) < 9:
+        return
+    start = draw.draw(st.integers(8, len(data) - 1))
+    end = draw.draw(st.integers(start + 1, len(data)))
+    assert _core_slim is not None
+    out = _core_slim(data, start, end)
+    assert len(out) <= len(data) - (end - start + 8)
+    if b":" not in data:
+        assert out == data[: start - 8] + data[end:]
