@@ -118,6 +118,11 @@ def test_schemas_reject_wrong_messages() -> None:
     frame = json.loads(schema_text("modbus.Frame.v1"))
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.validate({"index": 0, "time": 1.0}, frame)  # keys missing
+    frame2 = json.loads(schema_text("modbus.Frame.v2"))  # format 2: null members left out
+    jsonschema.validate({"index": 0, "kind": "request", "fc": 3}, frame2)
+    for bad in ({"index": 0, "time": 1.0}, {"index": 0, "kind": "request", "fc": "3"}):
+        with pytest.raises(jsonschema.ValidationError):
+            jsonschema.validate(bad, frame2)
     log = json.loads(schema_text("foxglove.Log"))
     good = {
         "timestamp": {"sec": 1, "nsec": 2},
