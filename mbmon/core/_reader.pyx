@@ -25,7 +25,7 @@ checked against the bytes present before it is read through a pointer.
 """
 
 from libc.stdlib cimport malloc, realloc, free
-from libc.string cimport memcmp, memcpy, memmove, memset
+from libc.string cimport memchr, memcmp, memcpy, memmove, memset
 from libc.math cimport floor, isfinite, fabs, nextafter, INFINITY
 from libc.math cimport rint
 from libc.stdlib cimport strtod
@@ -348,6 +348,61 @@ cdef inline void put_head(char* p, Py_ssize_t size, int channel, uint64_t log_ti
     put_le(p + 11, 0, 4)
     put_le(p + 15, log_time, 8)
     put_le(p + 23, log_time, 8)
+
+
+cdef inline bint _name_char(char c) nogil:
+    return (c >= 97 and c <= 122) or c == 95  # a-z, _
+
+
+cdef Py_ssize_t slim_frame(char* p, Py_ssize_t n, Py_ssize_t cut_at, Py_ssize_t cut_end):
+    """A frame's JSON line made its format-2 /modbus/frames message in place
+    (``layout.slim_frame_json``): ``p[cut_at:cut_end]`` (the line member) cut out, and
+    every member ``,"name":null`` followed by ``,`` or ``}`` left out, up to the first
+    ``,"fields":`` (the nested member keeps its own). Returns the new length.
+
+    It looks at each colon (``memchr``) outside the line: a member's name is lower-case
+    letters and ``_`` between ``,"`` and ``":``, and a string's own quotes are escaped,
+    so a colon inside a string never passes for one. Each byte kept moves once."""
+    cdef Py_ssize_t o = 0, src = 0, i = 0, k, lim
+    cdef bint cut = False
+    cdef const char* c
+    while True:
+        lim = n if cut else cut_at
+        c = <const char*>memchr(p + i, 58, lim - i)  # ':'
+        if c == NULL:
+            if cut:
+                break
+            if o != src:
+                memmove(p + o, p + src, cut_at - src)
+            o += cut_at - src
+            src = i = cut_end
+            cut = True
+            continue
+        i = c - p
+        if (i + 5 < n and (cut or i + 5 <= cut_at) and p[i + 1] == 110
+                and memcmp(p + i + 1, b"null", 4) == 0 and (p[i + 5] == 44 or p[i + 5] == 125)):
+            k = i - 1
+            if k > src and p[k] == 34:  # the closing quote of a name?
+                while k > src and _name_char(p[k - 1]):
+                    k -= 1
+                if (k < i - 1 and k - 2 >= src and p[k - 1] == 34
+                        and p[k - 2] == 44):  # ,"name":
+                    k -= 2  # the member starts at its comma
+                    if o != src:
+                        memmove(p + o, p + src, k - src)
+                    o += k - src
+                    src = i + 5
+        elif cut and p[i - 1] == 34 and memcmp(p + i - 9, b',"fields"', 9) == 0:
+            break
+        i += 1
+    if not cut:
+        if o != src:
+            memmove(p + o, p + src, cut_at - src)
+        o += cut_at - src
+        src = cut_end
+    if o != src:
+        memmove(p + o, p + src, n - src)
+    return o + n - src
 
 
 cdef int put_b64(Buf* b, const uint8_t* p, Py_ssize_t n) except -1:
@@ -1356,8 +1411,8 @@ cdef class _Pass:
             self.mprefix.append(None)
         prefix = self.mprefix[k]
         if prefix is None:
-            chunk = Chunk(0.0, self.stream_obj(sid), Direction.S2C if d else Direction.C2S, b"")
-            prefix = self.mlayout._raw_prefix_of(chunk)
+            prefix = self.mlayout.raw_prefix(
+                self.stream_obj(sid), Direction.S2C if d else Direction.C2S)
             self.mprefix[k] = prefix
         return prefix
 
@@ -1367,7 +1422,7 @@ cdef class _Pass:
             self.mtails.append(None)
         tail = self.mtails[sid]
         if tail is None:
-            tail = self.mlayout._tail(self.stream_obj(sid))
+            tail = self.mlayout.monitor_tail(self.stream_obj(sid))
             self.mtails[sid] = tail
         return tail
 
@@ -1390,7 +1445,7 @@ cdef class _Pass:
         put_json_time(m, ts)
         put(m, b',"data":"', 9)
         put_b64(m, p, n)
-        put(m, b'","event":null,"info":null}', 27)
+        put(m, b'"}', 2)
         put_head(m.p + at, m.n - at - 31, self.ch_raw, lt)
         self.d_chunks += 1
         self.d_bytes += n
@@ -1408,10 +1463,9 @@ cdef class _Pass:
         console's line or JSON, its counts (the layout's fast path for frame records)."""
         self.swap_bufs()  # back: the line was written into mc as out
         cdef Buf* m = &self.mc
-        cdef Py_ssize_t n = m.n - head_at - 31, at
+        cdef Py_ssize_t n = m.n - head_at - 31, at, slim
         cdef uint64_t lt = <uint64_t>rint(ts * 1e6) * 1000
         cdef bint warning = kind == 2 or unsolicited
-        put_head(m.p + head_at, n, self.ch_frames, lt)
         if self.write is not None:
             if self.as_json:
                 put(&self.out, m.p + head_at + 31, n)
@@ -1438,6 +1492,15 @@ cdef class _Pass:
         put_i(m, index)
         put_c(m, 125)
         put_head(m.p + at, m.n - at - 31, self.ch_monitor, lt)
+        # the /modbus/frames message (format 2): the JSON line without its line member
+        # (from ',"line":"' to the closing quote) and its null members, the monitor
+        # message moved down after it
+        slim = slim_frame(m.p + head_at + 31, n, line_at - 9 - head_at - 31,
+                          line_end + 1 - head_at - 31)
+        if slim != n:
+            memmove(m.p + head_at + 31 + slim, m.p + at, m.n - at)
+            m.n -= n - slim
+        put_head(m.p + head_at, slim, self.ch_frames, lt)
         if kind == 0:
             self.d_req += 1
         elif kind == 1:
@@ -2877,3 +2940,14 @@ def _native_note(bytes data, bint response, request=None):
 include "_live.pxi"
 include "_rtu_pass.pxi"
 include "_chunks.pxi"
+
+
+def _slim_frame_json(bytes data, Py_ssize_t start, Py_ssize_t end):
+    """Test-only entry: ``layout.slim_frame_json(data, start, end)`` as the core makes a
+    frame's format-2 message in place (``slim_frame``)."""
+    if not (8 <= start < end <= len(data)):
+        raise ValueError("the line string must lie inside the data")
+    cdef bytearray b = bytearray(data)
+    cdef char* p = b
+    cdef Py_ssize_t n = slim_frame(p, len(b), start - 8, end)
+    return bytes(b[:n])

@@ -45,8 +45,10 @@ from mbmon.io.mcap.layout import (
     METADATA_NAME,
     RECORD_TOPICS,
     SOURCE_EVENTS,
+    TOPIC_FRAMES,
     TOPIC_MONITOR,
     TOPIC_RAW,
+    full_frame_object,
 )
 from mbmon.io.mcap.payloads import payload_problem
 from mbmon.io.mcap.reader import LogError, LogMessage, McapLog
@@ -89,19 +91,35 @@ def payload(log: McapLog, msg: LogMessage) -> dict[str, Any] | None:
     """The payload of ``msg`` when it can be trusted, else ``None``: every reader of a
     log asks here. A payload that is not JSON or does not match its topic's schema
     (:func:`~mbmon.io.mcap.payloads.payload_problem`) is left out and recorded with
-    where it is (:meth:`McapLog.skip`); the commands report it and exit 1."""
+    where it is (:meth:`McapLog.skip`); the commands report it and exit 1.
+
+    A /modbus/frames object comes in format 1's shape whatever the log's format
+    (:func:`~mbmon.io.mcap.layout.full_frame_object`; its ``line`` is the monitor
+    message's, which :func:`logged_records` fills in)."""
     data, why = msg.decode()
     if why is None:
         why = payload_problem(msg.topic, data)
     if why is not None:
         log.skip(msg, why)
         return None
+    if msg.topic == TOPIC_FRAMES:
+        return full_frame_object(data)  # type: ignore[arg-type]  # an object, as below
     return data  # type: ignore[no-any-return]  # an object: payload_problem said so
 
 
 def logged_records(log: McapLog) -> Iterator[LoggedRecord]:
     """Every record of the log in record order (see the module docstring); a damaged
-    message is left out (:func:`payload`), its record shown by what else it has."""
+    message is left out (:func:`payload`), its record shown by what else it has.
+    A frames object of format 2 gets its ``line`` from the record's monitor message."""
+    for record in _merged_records(log):
+        obj = record.obj
+        if obj is not None and obj.get("line") is None and record.line is not None:
+            obj["line"] = record.line
+        yield record
+
+
+def _merged_records(log: McapLog) -> Iterator[LoggedRecord]:
+    """:func:`logged_records` before the lines of format 2's frames objects are filled in."""
     current: LoggedRecord | None = None
     for msg in log.messages((*RECORD_TOPICS, TOPIC_MONITOR)):
         data = payload(log, msg)

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 import sink_records as records
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from mcap.reader import make_reader
 
 from mbmon.format import View
@@ -17,8 +19,11 @@ from mbmon.io.mcap.layout import (
     ALL_CHANNELS,
     TOPIC_SCHEMAS,
     LogLayout,
+    full_frame_object,
     item_messages,
     log_time_ns,
+    slim_frame_json,
+    slim_frame_object,
 )
 from mbmon.io.mcap.reader import McapLog
 from mbmon.io.mcap.writer import MAX_LOG_TIME
@@ -127,3 +132,95 @@ def test_impossible_times_leave_a_readable_log(tmp_path: Path, session_stream: l
     indexes = [m.json()["line"] for m in msgs if m.topic == "/modbus/monitor"]
     tail = [r.index for r in stream[-5:] if isinstance(r, Record)]
     assert tail and indexes[-len(tail) :] == tail
+
+
+# ---------------------------------------------------------------- format 2's frame messages
+
+_KEYS = (
+    "index", "time", "stream", "src", "dst", "transport", "tid", "unit", "fc", "kind",
+    "exception_code", "address", "count", "values", "pdu", "line", "notes", "crc_ok",
+    "latency_ms", "malformed", "request_index",
+)  # fmt: skip
+
+
+def _line_json(obj: dict) -> tuple[bytes, int, int]:
+    """A --json line and where its line string (quotes included) is."""
+    data = json.dumps(obj, ensure_ascii=False, separators=(",", ":")).encode()
+    start = data.index(b',"line":"') + 8
+    return data, start, start + len(json.dumps(obj["line"], ensure_ascii=False).encode())
+
+
+def test_slim_frame_json_byte_table() -> None:
+    """The line member and the null members go; strings that look like members stay."""
+    obj = dict.fromkeys(_KEYS)
+    obj.update(index=3, time=1.5, stream=0, kind="request", fc=3, pdu="03 00 C8 00 01",
+               line='12:00  x ,"crc_ok":null, \\ "', notes=['a":null,"b', ',"fields":{'],
+               malformed=None)  # fmt: skip
+    obj["fields"] = {"x": None, "y": 1}
+    data, start, end = _line_json(obj)
+    slim = slim_frame_json(data, start, end)
+    if _core_slim is not None:
+        assert _core_slim(data, start, end) == slim
+    assert slim == (
+        b'{"index":3,"time":1.5,"stream":0,"fc":3,"kind":"request","pdu":"03 00 C8 00 01",'
+        b'"notes":["a\\":null,\\"b",",\\"fields\\":{"],"fields":{"x":null,"y":1}}'
+    )
+    assert slim == json.dumps(slim_frame_object(obj), ensure_ascii=False,
+                              separators=(",", ":")).encode()  # fmt: skip
+    full = full_frame_object(json.loads(slim))
+    assert list(full) == [*_KEYS, "fields"] and full["line"] is None
+    assert {**full, "line": obj["line"]} == obj
+
+
+_scalar = st.one_of(
+    st.none(), st.booleans(), st.integers(-(2**40), 2**40),
+    st.text(alphabet=st.sampled_from('ab:,"\\{}[]n ul°'), max_size=12),
+)  # fmt: skip
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.fixed_dictionaries({k: _scalar for k in _KEYS if k not in ("index", "line", "kind")}),
+    st.text(alphabet=st.sampled_from('ab:,"\\{}n ul'), max_size=20),
+    st.lists(st.text(alphabet=st.sampled_from('ab:,"\\{}n ul'), max_size=10), max_size=3),
+    st.one_of(st.none(), st.dictionaries(st.sampled_from(["a_b", "c"]), _scalar, max_size=2)),
+)
+def test_slim_frame_json_is_the_object_rule(
+    members: dict, line: str, notes: list, fields: dict | None
+) -> None:
+    """The writers' byte rule equals the object rule on any members, and a reader gets the
+    --json object back (the line from the monitor message)."""
+    obj = {k: members.get(k) for k in _KEYS}
+    obj.update(index=1, kind="response", line=line, notes=notes)
+    if fields:
+        obj["fields"] = fields
+    data, start, end = _line_json(obj)
+    slim = slim_frame_json(data, start, end)
+    assert slim == json.dumps(slim_frame_object(obj), ensure_ascii=False,
+                              separators=(",", ":")).encode()  # fmt: skip
+    assert {**full_frame_object(json.loads(slim)), "line": line} == obj
+    if _core_slim is not None:  # the compiled core's in-place rule: the same bytes
+        assert _core_slim(data, start, end) == slim
+
+
+try:
+    from mbmon.core._reader import _slim_frame_json as _core_slim
+except ImportError:  # no compiled core (MBMON_NO_EXTENSIONS or no compiler): pure only
+    _core_slim = None
+
+
+@pytest.mark.skipif(_core_slim is None, reason="no compiled core")
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=80), st.data())
+def test_core_slim_frame_stays_in_bounds_on_any_bytes(data: bytes, draw: st.DataObject) -> None:
+    """The core's in-place rule on bytes that are not a JSON line (run under ASan in CI):
+    it only ever shortens them, and leaves bytes without a colon as they are but the cut."""
+    if len(data) < 9:
+        return
+    start = draw.draw(st.integers(8, len(data) - 1))
+    end = draw.draw(st.integers(start + 1, len(data)))
+    assert _core_slim is not None
+    out = _core_slim(data, start, end)
+    assert len(out) <= len(data) - (end - start + 8)
+    if b":" not in data:
+        assert out == data[: start - 8] + data[end:]

@@ -19,7 +19,9 @@ from sink_records import REPO, feed, hrss_context
 
 from mbmon import __version__
 from mbmon.format import View, record_line, record_to_json
+from mbmon.io.mcap.layout import full_frame_object, slim_frame_object
 from mbmon.io.mcap.reader import McapLog
+from mbmon.io.replay import logged_records
 from mbmon.model import Chunk, Record, RecordKind
 from mbmon.sinks.base import SinkContext, open_sink
 from mbmon.sinks.mcap import TOPIC_SCHEMAS, McapSink, schema_text
@@ -116,6 +118,11 @@ def test_schemas_reject_wrong_messages() -> None:
     frame = json.loads(schema_text("modbus.Frame.v1"))
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.validate({"index": 0, "time": 1.0}, frame)  # keys missing
+    frame2 = json.loads(schema_text("modbus.Frame.v2"))  # format 2: null members left out
+    jsonschema.validate({"index": 0, "kind": "request", "fc": 3}, frame2)
+    for bad in ({"index": 0, "time": 1.0}, {"index": 0, "kind": "request", "fc": "3"}):
+        with pytest.raises(jsonschema.ValidationError):
+            jsonschema.validate(bad, frame2)
     log = json.loads(schema_text("foxglove.Log"))
     good = {
         "timestamp": {"sec": 1, "nsec": 2},
@@ -159,14 +166,20 @@ def test_foxglove_log_schema_is_foxglove_s() -> None:
 
 
 def test_messages_carry_the_records(tmp_path: Path, session_stream: list) -> None:
-    """/modbus/frames etc. hold exactly the read --json objects; monitor the console lines."""
+    """/modbus/frames etc. hold exactly the read --json objects (frames: format 2's, without
+    the line and the null members, which a reader puts back); monitor the console lines."""
     path = write_log(tmp_path / "r.mcap", session_stream)
     msgs = messages(path)
     recs = records_of(session_stream)
     view = View()
     frames = [d for t, _, d, _, _ in msgs if t == "/modbus/frames"]
     expect = [record_to_json(r, view) for r in recs if r.kind is not RecordKind.EVENT]
-    assert frames == json.loads(json.dumps(expect))
+    assert frames == json.loads(json.dumps([slim_frame_object(o) for o in expect]))
+    assert all("line" not in f and None not in f.values() for f in frames)
+    lines = {d["line"]: d["message"] for t, _, d, _, _ in msgs if t == "/modbus/monitor"}
+    full = [{**full_frame_object(f), "line": lines[f["index"]]} for f in frames]
+    assert full == json.loads(json.dumps(expect))
+    assert [list(f) for f in full] == [list(o) for o in expect]  # format 1's member order
     events = [d for t, _, d, _, _ in msgs if t == "/mbmon/events" and d["index"] is not None]
     kinds = [(d["kind"], d.get("event")) for d in events]
     assert kinds == [
@@ -179,7 +192,7 @@ def test_messages_carry_the_records(tmp_path: Path, session_stream: list) -> Non
     monitor = [d for t, _, d, _, _ in msgs if t == "/modbus/monitor"]
     assert [m["message"] for m in monitor] == [record_line(r, view) for r in recs]
     assert [m["line"] for m in monitor] == [r.index for r in recs]
-    assert [m["file"] for m in monitor] == ["x.pcap"] * len(recs)
+    assert [m["file"] for m in monitor] == [""] * len(recs)  # the source is the metadata's
     levels = {r.kind: m["level"] for r, m in zip(recs, monitor, strict=True)}
     assert levels[RecordKind.REQUEST] == 2
     assert levels[RecordKind.EXCEPTION] == 3
@@ -399,6 +412,11 @@ def test_sigkill_loses_at_most_the_last_second(tmp_path: Path) -> None:
     assert set(got) >= old, f"lost {len(old - set(got))} records older than 1 s"
     assert got == list(range(len(got))), "recovered records must be a prefix, in order"
     assert status.messages > 0 and status.describe().startswith("log was not finished")
+    with McapLog(path) as log:  # format 2: each frame object gets its line back
+        assert log.metadata["mbmon"]["format"] == "2"
+        frames = [r for r in logged_records(log) if r.obj is not None and r.obj.get("fc")]
+    assert len(frames) > 100
+    assert all(r.obj is not None and r.obj["line"] == r.text != "" for r in frames)
 
 
 @pytest.mark.skipif(not Path("/dev/full").exists(), reason="/dev/full absent")
@@ -464,13 +482,15 @@ def test_frame_messages_match_the_slow_encoding(tmp_path: Path) -> None:
             elif channel.topic == "/modbus/monitor":
                 monitor.append(json.loads(msg.data))
     frame_recs = [r for r in recs if r.frame is not None]
-    assert raw_frames == [json_line(record_to_json(r, view)).encode() for r in frame_recs]
+    assert raw_frames == [
+        json_line(slim_frame_object(record_to_json(r, view))).encode() for r in frame_recs
+    ]
     assert [m["message"] for m in monitor] == [record_line(r, view) for r in recs]
     assert [m["level"] for m in monitor] == [log_level(r, record_to_json(r, view)) for r in recs]
     assert [m["level"] for m in monitor] == [2, 2, 3, 3, 2, 3, 2, 2, 2, 3, 3]
     with_fields = [data for data in raw_frames if data.endswith(b"}}")]
     assert len(with_fields) == 2 and b"SPEED" in with_fields[0]
-    assert {m["file"] for m in monitor} == {ctx.source}
+    assert {m["file"] for m in monitor} == {""}
     assert 'speed "fast" \\ ° ","notes":["x' in monitor[0]["message"]
 
 

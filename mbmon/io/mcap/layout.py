@@ -5,9 +5,10 @@ stores it (:mod:`mbmon.io.mcap.writer`): the topics and their JSON schemas
 (``mbmon/schemas/*.json``), the metadata record and profile attachments, and
 what goes into each message:
 
-- ``/modbus/frames``: a record's ``read --json`` object (frames, noise);
+- ``/modbus/frames``: a record's ``read --json`` object (frames, noise) without
+  its ``line`` and its null members (format 2: :data:`LOG_FORMAT`);
 - ``/modbus/monitor``: its monitor line as a ``foxglove.Log`` message (the
-  record index in ``line``, the conversation in ``name``, the source in ``file``);
+  record index in ``line``, the conversation in ``name``, ``file`` empty);
 - ``/mbmon/events``: events' objects, noise and CRC errors again, and the
   writer's own stats (index null) every :data:`STATS_EVERY` seconds of capture time;
 - ``/hrss/commands``: command records' objects; ``/hrss/state``: flat robot state;
@@ -30,6 +31,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import time
 from binascii import b2a_base64
 from collections.abc import Callable, Iterable, Mapping
@@ -38,7 +40,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from mbmon.format import View, record_to_json
+from mbmon.format import _JSON_KEYS, View, record_to_json
 from mbmon.format import finite as _finite
 from mbmon.io.mcap.writer import MAX_LOG_TIME, MESSAGE_HEAD
 from mbmon.jsonfmt import record_json_bytes
@@ -47,7 +49,22 @@ from mbmon.model import Chunk, Direction, Event, EventKind, Record, RecordKind, 
 _json_str = json.encoder.encode_basestring  # C-accelerated, keeps non-ASCII
 _DIRECTIONS = {d: d.value for d in Direction}
 #: a /modbus/raw chunk message: prefix (type, stream, direction, "ts":), ts, base64 data
-_RAW_BODY = b'%b%b,"data":"%b","event":null,"info":null}'
+_RAW_BODY = b'%b%b,"data":"%b"}'
+
+#: the log format this layout writes, stored as the metadata key ``format`` (a log
+#: without the key is format 1). Format 2 (docs/logs.md, "Format versions"): a
+#: /modbus/frames message is the ``read --json`` object without ``line`` (the record's
+#: /modbus/monitor message holds it) and without its members whose value is null; a
+#: /modbus/raw chunk message has no ``event``/``info`` (null in format 1); the monitor
+#: message's ``file`` is empty (the source is the metadata's). Readers take both formats:
+#: :func:`full_frame_object` gives a stored frames object its format 1 shape.
+LOG_FORMAT = 2
+#: a member whose value is null, in an object's JSON: keys are lower-case words, and a
+#: string's own quotes are escaped, so ``,"`` opens a member name (or an array's next
+#: string, which a colon never follows)
+_NULL_MEMBER = re.compile(rb',"[a-z_]+":null(?=[,}])')
+#: the nested member of a frame's JSON (the decoder's extra fields), always the last
+_FIELDS_MEMBER = b',"fields":'
 _HEAD_SIZE = MESSAGE_HEAD.size
 
 #: one message: (topic, log time in ns, JSON bytes)
@@ -65,8 +82,8 @@ PROFILE_TOPICS = frozenset({TOPIC_STATE, TOPIC_COMMANDS})
 
 #: topic -> schema file stem in ``mbmon/schemas`` (also the MCAP schema name)
 TOPIC_SCHEMAS: dict[str, str] = {
-    TOPIC_RAW: "modbus.Raw.v1",
-    TOPIC_FRAMES: "modbus.Frame.v1",
+    TOPIC_RAW: "modbus.Raw.v2",
+    TOPIC_FRAMES: "modbus.Frame.v2",
     TOPIC_MONITOR: "foxglove.Log",
     TOPIC_STATE: "hrss.State.v1",
     TOPIC_COMMANDS: "hrss.Command.v1",
@@ -138,6 +155,40 @@ def encode(obj: Any) -> bytes:
     except ValueError:
         text = _ENCODER.encode(_finite(obj))
     return text.encode("utf-8")
+
+
+def slim_frame_json(json_line: bytes, start: int, end: int) -> bytes:
+    """A frame record's /modbus/frames message (format 2) made from its ``read --json``
+    line, whose line string (quotes included) is ``json_line[start:end]``: that member
+    cut out, and the members whose value is null left out (those before the nested
+    ``fields``, which keeps its own). The compiled core does the same in place."""
+    body = json_line[: start - 8] + json_line[end:]  # 8: ',"line":'
+    cut = body.find(_FIELDS_MEMBER)
+    if cut < 0:
+        return _NULL_MEMBER.sub(b"", body)
+    cut += 1  # the comma that ends the member before "fields" is the match's look-ahead
+    return _NULL_MEMBER.sub(b"", body[:cut]) + body[cut:]
+
+
+def slim_frame_object(obj: Mapping[str, Any]) -> dict[str, Any]:
+    """A /modbus/frames object as format 2 stores it (:func:`slim_frame_json`'s rule)."""
+    return {k: v for k, v in obj.items() if v is not None and k != "line"}
+
+
+def full_frame_object(obj: dict[str, Any]) -> dict[str, Any]:
+    """A stored /modbus/frames object in format 1's shape, the ``read --json`` object:
+    an object of format 2 (no ``line``) gets every member of the record object back in
+    its order, null where format 2 left it out, ``line`` null for the reader to fill in
+    from the record's /modbus/monitor message (:func:`mbmon.io.replay.logged_records`);
+    an object of format 1 is returned as it is."""
+    if "line" in obj:
+        return obj
+    get = obj.get
+    out = {key: get(key) for key in _JSON_KEYS}
+    for key, value in obj.items():
+        if key not in out:
+            out[key] = value
+    return out
 
 
 def stream_name(stream: Stream | None) -> str:
@@ -245,6 +296,7 @@ def metadata(
     """The ``mbmon`` metadata record: provenance and the analysis settings (docs/logs.md)."""
     return {
         "version": version,
+        "format": str(LOG_FORMAT),
         "command_line": json.dumps(list(command_line), ensure_ascii=False),
         "source": source,
         "profiles": json.dumps([name for name, _ in profiles], ensure_ascii=False),
@@ -333,7 +385,7 @@ class LogLayout:
             RecordKind.EVENT: events,
             RecordKind.COMMAND: self._ch_commands,
         }
-        self._file_json = _json_str(source).encode()
+        self._file_json = b'""'  # format 2: the source is the metadata's, not every line's
         self._raw_prefix: dict[tuple[int, Direction], bytes] = {}
         self._tails: dict[int, bytes] = {}
         self._t = Totals()  # the batch in the making (convert's working copy)
@@ -436,7 +488,7 @@ class LogLayout:
                 stream = item.stream
                 prefix = raw_prefix.get((stream.id, item.direction))
                 if prefix is None:
-                    prefix = self._raw_prefix_of(item)
+                    prefix = self.raw_prefix(stream, item.direction)
                 raw = item.data
                 body = _RAW_BODY % (prefix, _float_json(ts), b2a_base64(raw, newline=False))
                 n_chunks += 1
@@ -479,18 +531,19 @@ class LogLayout:
                     )
                     tail = tails.get(frame.stream.id)
                     if tail is None:
-                        tail = self._tail(frame.stream)
+                        tail = self.monitor_tail(frame.stream)
                     monitor %= (stamp, payload[start:end], tail, record.index)
-                    n = len(payload)
+                    slim = slim_frame_json(payload, start, end)
+                    n = len(slim)
                     out += (
                         pack(5, 22 + n, ch_frames, 0, log_time, log_time),
-                        payload,
+                        slim,
                         pack(5, 22 + len(monitor), ch_monitor, 0, log_time, log_time),
                         monitor,
                     )
                     if crc_error:
                         t.counts["crc_errors"] += 1
-                        append(self._head(self._ch_events, log_time, n) + payload)
+                        append(self._head(self._ch_events, log_time, len(payload)) + payload)
                     if record.state is not None:
                         append(self._state_message(record, log_time))
                     if ts >= next_stats:
@@ -512,11 +565,13 @@ class LogLayout:
         counts["chunks"] += chunks  # also the count of their messages (told on close)
         counts["bytes"] += size
 
-    def _raw_prefix_of(self, chunk: Chunk) -> bytes:
-        """The JSON of a chunk message up to its ``ts`` value, cached by stream direction."""
-        prefix = encode({"type": "chunk", **_stream_fields(chunk.stream)}).decode()[:-1]
-        text = f'{prefix},"direction":"{_DIRECTIONS[chunk.direction]}","ts":'.encode()
-        self._raw_prefix[(chunk.stream.id, chunk.direction)] = text
+    def raw_prefix(self, stream: Stream, direction: Direction) -> bytes:
+        """The JSON of a stream direction's chunk messages up to their ``ts`` value (type,
+        stream, its endpoints, direction), cached here by stream direction; the compiled
+        core keeps its own copy."""
+        prefix = encode({"type": "chunk", **_stream_fields(stream)}).decode()[:-1]
+        text = f'{prefix},"direction":"{_DIRECTIONS[direction]}","ts":'.encode()
+        self._raw_prefix[(stream.id, direction)] = text
         return text
 
     def _obj_messages(self, record: Record, obj: Mapping[str, Any], log_time: int) -> bytes:
@@ -531,7 +586,12 @@ class LogLayout:
         payload = encode(obj)
         head = self._head
         n = len(payload)
-        parts = [head(self._topic_of[kind], log_time, n), payload]
+        topic = self._topic_of[kind]
+        if topic == self._ch_frames:  # format 2: no line, no null members
+            slim = encode(slim_frame_object(obj))
+            parts = [head(topic, log_time, len(slim)), slim]
+        else:
+            parts = [head(topic, log_time, n), payload]
         if kind is RecordKind.NOISE:
             parts += (head(self._ch_events, log_time, n), payload)
             if record.noise is not None:
@@ -549,7 +609,7 @@ class LogLayout:
         stream = record.stream
         tail = self._tails.get(stream.id if stream is not None else -1)
         if tail is None:
-            tail = self._tail(stream)
+            tail = self.monitor_tail(stream)
         sec, nsec = divmod(log_time, 1_000_000_000)
         monitor = _MONITOR % (
             sec, nsec, log_level(record, obj), _json_str(obj["line"]).encode(), tail, record.index
@@ -561,7 +621,7 @@ class LogLayout:
             parts.append(self._due_stats(ts, log_time))
         return b"".join(parts)
 
-    def _tail(self, stream: Stream | None) -> bytes:
+    def monitor_tail(self, stream: Stream | None) -> bytes:
         """The end of a stream's monitor messages (name, file, "line" key), cached by stream id
         (a Stream hashes slowly); -1 stands for records of no stream."""
         tail = _MONITOR_TAIL % (_json_str(stream_name(stream)).encode(), self._file_json)
@@ -617,6 +677,7 @@ class LogLayout:
         return counts
 
     def _raw_event(self, event: Event) -> bytes:
+        """A source event's /modbus/raw message (every field, as in format 1)."""
         body = {
             "type": "event",
             **_stream_fields(event.stream),

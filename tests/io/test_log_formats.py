@@ -1,0 +1,182 @@
+"""Both log formats read alike: a log of format 1 (written before format 2, kept in
+tests/io/data/format1/, see its README) and a log of format 2 written now from the same
+capture give the same output to every reader: ``replay`` (text, ``--json``, a
+``--where``), ``replay --redecode``, ``info --json``, ``export`` to every suffix; and
+both print what ``read`` prints. An unfinished log (cut as SIGKILL leaves it) of either
+format replays what it recovered; every message of the format-1 logs still validates
+against the schemas stored with it and passes the readers' checks."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import jsonschema
+import logmutate
+import pytest
+
+from mbmon.io.mcap.layout import LOG_FORMAT, METADATA_NAME
+from mbmon.io.mcap.payloads import payload_problem
+from mbmon.io.mcap.reader import McapLog
+
+REPO = Path(__file__).resolve().parents[2]
+FORMAT1 = Path(__file__).resolve().parent / "data" / "format1"
+
+#: fixture name -> the read options it was recorded with (data/format1/README.md)
+LOGS = {
+    "demo": [],
+    "hrss_ptp": ["--profile", "hrss", "--robot", "192.168.0.10"],
+    "sim_rtu": [],
+}
+
+
+def run(argv: list[str]) -> str:
+    """One command in-process (mbmon's parser and run functions); its stdout. It must
+    exit 0 and let nothing escape."""
+    status, out, err, escape = logmutate.run_command(argv, budget=None)
+    assert escape is None, escape.text
+    assert status == 0, (argv, err)
+    return out
+
+
+@pytest.fixture(params=list(LOGS))
+def pair(request: pytest.FixtureRequest, tmp_path: Path) -> tuple[str, Path, Path]:
+    """(name, its format-1 log, a format-2 log written now from the same capture)."""
+    name = request.param
+    capture = REPO / "captures" / f"{name}.pcap"
+    old = FORMAT1 / f"{name}.mcap"
+    if not capture.exists() or not old.exists():
+        pytest.skip(f"{capture.name} or its format-1 log absent")
+    copy = tmp_path / f"{name}.pcap"  # the recording's source name, as in the fixture
+    shutil.copy(capture, copy)
+    new = tmp_path / f"{name}.mcap"
+    run(["read", str(copy), *LOGS[name], "-q", "-w", str(new)])
+    return name, old, new
+
+
+def test_the_format_is_in_the_metadata(pair: tuple[str, Path, Path]) -> None:
+    _, old, new = pair
+    with McapLog(old) as log:
+        assert "format" not in log.metadata[METADATA_NAME]
+    with McapLog(new) as log:
+        assert log.metadata[METADATA_NAME]["format"] == str(LOG_FORMAT) == "2"
+
+
+def test_format_2_is_smaller_in_what_it_stores(pair: tuple[str, Path, Path]) -> None:
+    """Format 2's frames lack the line and null members; its raw chunks their null keys."""
+    _, old, new = pair
+    with McapLog(old) as a, McapLog(new) as b:
+        frames = [json.loads(m.raw) for m in b.messages(["/modbus/frames"])]
+        old_frames = [json.loads(m.raw) for m in a.messages(["/modbus/frames"])]
+        chunks = [json.loads(m.raw) for m in b.messages(["/modbus/raw"])]
+    assert frames and all("line" not in f and None not in f.values() for f in frames)
+    assert all("line" in f for f in old_frames)
+    assert all("event" not in c for c in chunks if c["type"] == "chunk")
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        [],
+        ["--json"],
+        ["--redecode"],
+        ["--json", "--redecode"],
+        ["--where", "fc 3 or fc 4 or exception"],
+    ],
+    ids=["text", "json", "redecode", "json-redecode", "where"],
+)
+def test_replay_prints_the_same_from_both_formats(
+    pair: tuple[str, Path, Path], args: list[str]
+) -> None:
+    _, old, new = pair
+    a = run(["replay", str(old), *args])
+    assert a.strip()
+    assert run(["replay", str(new), *args]) == a
+
+
+def test_both_formats_replay_what_read_printed(pair: tuple[str, Path, Path]) -> None:
+    name, old, new = pair
+    capture = new.with_suffix(".pcap")
+    for extra in ([], ["--json"]):
+        printed = run(["read", str(capture), *LOGS[name], *extra])
+        assert run(["replay", str(old), *extra]) == printed
+        assert run(["replay", str(new), *extra]) == printed
+
+
+def test_info_says_the_same_of_both_formats(pair: tuple[str, Path, Path]) -> None:
+    _, old, new = pair
+    a, b = (json.loads(run(["info", str(p), "--json"])) for p in (old, new))
+    for key in ("file", "size", "command_line", "source"):  # the file and how it was made
+        a.pop(key), b.pop(key)
+    assert a == b
+    assert a["finished"] and not a["damaged_messages"]
+
+
+@pytest.mark.parametrize("suffix", [".jsonl", ".csv", ".txt", ".pcap", ".pcapng"])
+def test_export_writes_the_same_from_both_formats(
+    pair: tuple[str, Path, Path], tmp_path: Path, suffix: str
+) -> None:
+    _, old, new = pair
+    outs = []
+    for log in (old, new):
+        out = tmp_path / f"{log.parent.name}-out{suffix}"
+        run(["export", str(log), "-o", str(out)])
+        outs.append(out.read_bytes())
+    assert outs[0] and outs[0] == outs[1]
+
+
+def test_export_to_mcap_keeps_the_format(pair: tuple[str, Path, Path], tmp_path: Path) -> None:
+    """``export -o x.mcap`` copies the messages as stored: a format-1 log stays format 1
+    (no format key) and reads as before, a format-2 log stays format 2."""
+    _, old, new = pair
+    for log in (old, new):
+        out = tmp_path / f"copy-{log.parent.name}.mcap"
+        run(["export", str(log), "-o", str(out)])
+        with McapLog(log) as a, McapLog(out) as b:
+            assert b.metadata[METADATA_NAME].get("format") == a.metadata[METADATA_NAME].get(
+                "format"
+            )
+        assert run(["replay", str(out), "--json"]) == run(["replay", str(log), "--json"])
+
+
+def _cut_before_summary(path: Path, to: Path) -> Path:
+    """The log as a SIGKILL leaves it: its data section without summary and footer."""
+    with McapLog(path) as log:
+        data_end = max(span.offset + span.length for span in log._layout.chunks)
+    to.write_bytes(path.read_bytes()[:data_end])
+    return to
+
+
+def test_unfinished_logs_of_both_formats_replay_alike(
+    pair: tuple[str, Path, Path], tmp_path: Path
+) -> None:
+    _, old, new = pair
+    outs = []
+    for log in (old, new):
+        cut = _cut_before_summary(log, tmp_path / f"cut-{log.parent.name}.mcap")
+        with McapLog(cut) as read_back:
+            assert not read_back.finished
+        outs.append(run(["replay", str(cut), "--json"]))
+    assert outs[0] == outs[1] == run(["replay", str(old), "--json"])
+
+
+def test_format_1_messages_still_validate(pair: tuple[str, Path, Path]) -> None:
+    """Every message of a format-1 log against the schema stored with it (the v1 files,
+    still in mbmon/schemas) and the readers' checks (the current schemas)."""
+    _, old, _ = pair
+    from mcap.reader import make_reader
+
+    with open(old, "rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        validators: dict[str, jsonschema.protocols.Validator] = {}
+        for schema, channel, msg in reader.iter_messages():
+            assert schema is not None
+            if schema.name not in validators:
+                stored = json.loads(schema.data)
+                cls = jsonschema.validators.validator_for(stored)
+                validators[schema.name] = cls(stored)
+            data = json.loads(msg.data)
+            validators[schema.name].validate(data)
+            assert payload_problem(channel.topic, data) is None
+    assert {"modbus.Frame.v1", "modbus.Raw.v1", "foxglove.Log"} <= set(validators)
