@@ -52,6 +52,9 @@ from mbmon.model import Chunk
 from mbmon.model import Kind, Transaction, TxStatus
 from mbmon.protocol.pairing import _needs_request
 from mbmon.protocol.pdu import decode_pdu
+from mbmon.model import Noise
+from mbmon.protocol.mbap import DEFAULT_MAX_LENGTH as _MBAP_MAX, MbapDecoder
+from mbmon.protocol.pdu import with_malformed
 
 
 class Declined(Exception):
@@ -69,6 +72,10 @@ DEF TICK_EVERY = 0.1
 DEF MAX_RECORD = 1 << 26
 DEF FLUSH_AT = 1 << 20
 DEF RELEASE_EVERY = 1 << 24  # a multiple of every page size
+DEF MBAP_CLEAN = 254          # the largest clean MBAP length (mbap.DEFAULT_MAX_LENGTH)
+
+if _MBAP_MAX != MBAP_CLEAN:
+    raise ImportError("the core's MBAP length limit is not the reference's")
 
 cdef int FIN = 0x01, SYN = 0x02, RST = 0x04, ACK = 0x10
 # 32-bit sequence arithmetic as C constants (a literal above C int range is a Python int)
@@ -394,6 +401,9 @@ cdef struct Half:
     uint8_t* buf           # MBAP bytes held (an ADU not complete yet)
     int blen
     int bcap
+    double bts             # when the first byte held arrived (the decoder's _buf_ts)
+    bint dec               # the pipeline has this direction's decoder (bytes came)
+    bint ref               # the reference MbapDecoder frames it (noise: see ref_chunk)
 
 
 cdef struct Conn:
@@ -796,6 +806,11 @@ cdef class _Pass:
     cdef object cmd_summary     # a Summary fed the COMMAND records (the summary's commands)
     cdef Py_ssize_t* marks      # where each note of the line being written starts and ends
     cdef int capmarks
+    # noise: directions the reference decoder frames (see "noise (the reference)")
+    cdef bint stopped           # frames_of stopped at bytes that are no clean header
+    cdef dict mdecs             # conn * 2 + direction -> its MbapDecoder
+    cdef list dec_order         # conn * 2 + direction, in the order bytes first came
+    cdef public int64_t noise_records, noise_bytes
 
     def __cinit__(self):
         self.marks = NULL
@@ -860,6 +875,8 @@ cdef class _Pass:
         self.progress_base = 0
         self.next_progress = 0
         self.flows = {}
+        self.mdecs = {}
+        self.dec_order = []
         self.open_order = []
         self.nopen = 0
         self.closed_fifo = []
@@ -1025,6 +1042,8 @@ cdef class _Pass:
         if native and self.fnames[nat.fc] is None:
             native = False
         if native and nat.exc >= 0 and self.enames[nat.exc] is None:
+            native = False
+        if alen > 6 + MBAP_CLEAN:  # MBAP length 255: marked malformed by the framing
             native = False
         if native and self.mcap is not None and not self.mcap_fast(ts):
             native = False  # a stats event is due, or a time MCAP clamps: the layout's way
@@ -1223,12 +1242,17 @@ cdef class _Pass:
         raw = PyBytes_FromStringAndSize(<const char*>adu, alen)
         tid = (adu[0] << 8) | adu[1]
         pdu = decode_pdu(raw[7:], d == 1)
+        if alen > 6 + MBAP_CLEAN:  # the decoder's mark of an MBAP length 255
+            pdu = with_malformed(pdu, "MBAP length %d exceeds %d" % (alen - 6, MBAP_CLEAN))
         request = None
         req_index = None
         lat = None
         if req != NULL:
             req_raw = PyBytes_FromStringAndSize(<const char*>req.raw, req.alen)
             req_pdu = decode_pdu(req_raw[7:], False)
+            if req.alen > 6 + MBAP_CLEAN:
+                req_pdu = with_malformed(req_pdu, "MBAP length %d exceeds %d"
+                                         % (req.alen - 6, MBAP_CLEAN))
             request = Frame(req.ts, stream, Direction.C2S, req.unit, req.tid, req_pdu, req_raw,
                             None)
             if _needs_request(pdu, req_pdu):
@@ -1522,6 +1546,8 @@ cdef class _Pass:
         else:
             native = False
         if native and self.fnames[nat.fc] is None:
+            native = False
+        if alen > 6 + MBAP_CLEAN:  # MBAP length 255: marked malformed by the framing
             native = False
         fc = nat.fc if native else 0
         if native and d == 1 and (fc == 6 or fc == 16):
@@ -1953,9 +1979,12 @@ cdef class _Pass:
 
     cdef Py_ssize_t frames_of(self, int ci, int d, double ts, const uint8_t* p,
                               Py_ssize_t n) except -1:
-        """Frame every whole ADU of ``p[:n]``; the offset of the first byte left."""
+        """Frame every whole ADU of ``p[:n]``; the offset of the first byte left.
+        ``stopped``: framing stopped there at bytes that are no clean MBAP header
+        (noise, or length 255): the reference decoder takes the direction from there."""
         cdef Py_ssize_t pos = 0, end
         cdef int length
+        self.stopped = False
         while n - pos >= 6:
             if p[pos + 2] == 0 and p[pos + 3] == 0:
                 length = (p[pos + 4] << 8) | p[pos + 5]
@@ -1966,15 +1995,14 @@ cdef class _Pass:
                     self.on_frame(ci, d, ts, p + pos, 6 + length)
                     pos = end
                     continue
-                if length == 255:
-                    raise Declined("an MBAP length of 255 (decoded, marked malformed)")
-            raise Declined("bytes that are no MBAP header (noise resynchronisation)")
+            self.stopped = True
+            break
         return pos
 
     cdef int on_chunk(self, int ci, int d, double ts, const uint8_t* p,
                       Py_ssize_t n) except -1:
         cdef Half* h = &self.conns[ci].h[d]
-        cdef Py_ssize_t pos, rest
+        cdef Py_ssize_t pos, rest, old
         self.last_ts = ts
         self.pl_last = ts
         if ts >= self.next_tick:
@@ -1982,20 +2010,126 @@ cdef class _Pass:
             # before it are reported first, and an answer in it after the timeout is late
             self.next_tick = ts + TICK_EVERY
             self.pair_tick(ts)
+        if not h.dec:  # the pipeline makes this direction's decoder now
+            h.dec = True
+            self.dec_order.append(ci * 2 + d)
+        if h.ref:
+            return self.ref_chunk(ci, d, ts, p, n)
         if h.blen == 0:
             pos = self.frames_of(ci, d, ts, p, n)
+            if self.stopped:
+                return self.ref_chunk(ci, d, ts, p + pos, n - pos)
             rest = n - pos
             if rest:
                 self.hold(ci, d, p + pos, rest)
+                self.conns[ci].h[d].bts = ts
         else:
+            old = h.blen
             self.hold(ci, d, p, n)
             h = &self.conns[ci].h[d]
             pos = self.frames_of(ci, d, ts, h.buf, h.blen)
             h = &self.conns[ci].h[d]
+            if self.stopped:
+                # held bytes of 6 or more start a header, so framing stopped in this
+                # chunk's bytes, or at the start of fewer held ones (kept, with their time)
+                if pos < old:
+                    h.blen = <int>old
+                    return self.ref_chunk(ci, d, ts, p, n)
+                h.blen = 0
+                return self.ref_chunk(ci, d, ts, p + (pos - old), n - (pos - old))
             if pos:
                 memmove(h.buf, h.buf + pos, h.blen - pos)
                 h.blen -= <int>pos
+                if pos >= old:
+                    h.bts = ts
         return 0
+
+    # ------------------------------------------------------------------ noise (the reference)
+    #
+    # Bytes that are no clean MBAP header (noise, its resynchronisation, length 255) and
+    # an incomplete ADU at a stream's end are rare: the direction is framed by the
+    # reference's own MbapDecoder from there (made with the bytes the core held, at the
+    # time they arrived), its frames paired and written by the core, its noise records
+    # formatted by mbmon.format. Once the decoder is in sync again with no noise run
+    # open, the core frames the direction again from the bytes the decoder holds.
+
+    cdef object ref_decoder(self, int ci, int d):
+        """The reference decoder of direction ``d``: the one framing it, or a new one
+        holding the bytes the core holds (they arrived at ``bts``; nothing frames)."""
+        cdef Half* h = &self.conns[ci].h[d]
+        cdef int key = ci * 2 + d
+        if h.ref:
+            return self.mdecs[key]
+        dec = MbapDecoder(self.stream_obj(self.conns[ci].sid),
+                          Direction.S2C if d else Direction.C2S, silence=self.timeout)
+        h = &self.conns[ci].h[d]
+        if h.blen:
+            dec.feed(PyBytes_FromStringAndSize(<const char*>h.buf, h.blen), h.bts)
+            h.blen = 0
+        h.ref = True
+        self.mdecs[key] = dec
+        return dec
+
+    cdef int ref_chunk(self, int ci, int d, double ts, const uint8_t* p,
+                       Py_ssize_t n) except -1:
+        """A chunk's bytes (from the first the core did not frame) through the reference
+        decoder (made with the bytes the core holds, which came before them)."""
+        cdef Half* h
+        data = PyBytes_FromStringAndSize(<const char*>p, n)
+        dec = self.ref_decoder(ci, d)
+        items = dec.feed(data, ts)
+        if dec.synced and not dec._noise:  # in sync again: the core frames from here
+            h = &self.conns[ci].h[d]
+            h.ref = False
+            del self.mdecs[ci * 2 + d]
+            held = dec._buf
+            if len(held):
+                self.hold(ci, d, held, len(held))
+                self.conns[ci].h[d].bts = dec._buf_ts
+        return self.ref_items(ci, d, items)
+
+    cdef int ref_items(self, int ci, int d, list items) except -1:
+        """The reference decoder's frames (paired here) and noise runs, in order."""
+        cdef const uint8_t* raw
+        for item in items:
+            if isinstance(item, Frame):
+                data = item.raw
+                raw = data
+                self.on_frame(ci, d, item.ts, raw, len(data))
+            else:
+                self.noise_record(ci, item)
+        return 0
+
+    cdef int noise_record(self, int ci, object noise) except -1:
+        """A noise run's record (the pipeline's ``_record``), formatted by mbmon.format."""
+        cdef int64_t index = self.index
+        cdef int sid = self.conns[ci].sid
+        self.noise_records += 1
+        self.noise_bytes += len(noise.raw)
+        self.count_record(noise.ts, sid)
+        if not self.emit:
+            return 0
+        return self.put_record(Record(index, noise.ts, RecordKind.NOISE, noise.stream,
+                                      noise=noise))
+
+    cdef int flush_dir(self, int ci, int d, double ts) except -1:
+        """The decoder of direction ``d`` flushes (its stream ended, or the input):
+        an incomplete ADU becomes noise, a resync candidate is judged; it is gone."""
+        cdef Half* h = &self.conns[ci].h[d]
+        if not h.dec:
+            return 0
+        h.dec = False
+        if not h.ref and not h.blen:
+            return 0
+        dec = self.ref_decoder(ci, d)
+        self.conns[ci].h[d].ref = False
+        del self.mdecs[ci * 2 + d]
+        return self.ref_items(ci, d, dec.flush(ts))
+
+    cdef int close_stream(self, int ci, double ts) except -1:
+        """The pipeline's DISCONNECT: the stream's decoders flush (held bytes: noise)."""
+        self.flush_dir(ci, 0, ts)
+        return self.flush_dir(ci, 1, ts)
 
     cdef int hold(self, int ci, int d, const uint8_t* p, Py_ssize_t n) except -1:
         cdef Half* h = &self.conns[ci].h[d]
@@ -2014,12 +2148,6 @@ cdef class _Pass:
             h.bcap = cap
         memcpy(h.buf + h.blen, p, n)
         h.blen += <int>n
-        return 0
-
-    cdef int close_stream(self, int ci) except -1:
-        """The pipeline's DISCONNECT: the stream's decoders flush (held bytes: noise)."""
-        if self.conns[ci].h[0].blen or self.conns[ci].h[1].blen:
-            raise Declined("an incomplete ADU when its connection ended (noise)")
         return 0
 
     # ------------------------------------------------------------------ TCP
@@ -2063,6 +2191,9 @@ cdef class _Pass:
             c.h[d].buf = NULL
             c.h[d].blen = 0
             c.h[d].bcap = 0
+            c.h[d].bts = 0.0
+            c.h[d].dec = False
+            c.h[d].ref = False
         c.connected = False
         c.closed = False
         c.open_ = True
@@ -2207,7 +2338,7 @@ cdef class _Pass:
                 raise Declined("a reset before a FIN was reached (a gap)")
             self.event(ts, c.sid, EventKind.DISCONNECT,
                        {"how": "rst", "by": "client" if from_client else "server"})
-            self.close_stream(ci)
+            self.close_stream(ci, ts)
             self.closed_conn(ci, ts)
             return 0
         if flags & SYN and flags & FIN:
@@ -2246,7 +2377,7 @@ cdef class _Pass:
                 if other.done and not c.closed:
                     self.event(ts, c.sid, EventKind.DISCONNECT,
                                {"how": "fin", "by": "client" if c.fin_by == 1 else "server"})
-                    self.close_stream(ci)
+                    self.close_stream(ci, ts)
                     self.closed_conn(ci, ts)
         return 0
 
@@ -2660,13 +2791,13 @@ cdef class _Pass:
                 self.event(self.end_ts, c.sid, EventKind.DISCONNECT,
                            {"how": "fin", "by": "client" if c.fin_by == 1 else "server",
                             "half_closed": True})
-                self.close_stream(ci)
+                self.close_stream(ci, self.end_ts)
                 self.closed_conn(ci, self.end_ts)
-        # the pipeline's finish: decoders flush, every pending request times out
-        for ci in range(self.nconns):
-            if self.conns[ci].h[0].blen or self.conns[ci].h[1].blen:
-                raise Declined("an incomplete ADU at the end of the capture (noise)")
+        # the pipeline's finish: decoders flush (in the order they were made), every
+        # pending request times out
         when = self.pl_last
+        for key in self.dec_order:
+            self.flush_dir(key >> 1, key & 1, when)
         s = self.ahead
         while s >= 0:
             nxt = self.sp[s].anext

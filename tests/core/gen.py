@@ -113,3 +113,34 @@ def write_frames(path: Path, frames: list[tuple[float, bytes]], linktype: int = 
         for ts, frame in frames:
             w.write(ts, frame)
     return path
+
+
+def noisy_stream(seed: int) -> list[tuple[bool, bytes]]:
+    """(from client, bytes) of a conversation of every function pair with noise between
+    and inside ADUs (garbage, bad protocol ids and lengths, header-like zeros, a
+    capture begun mid-ADU) and ADUs of MBAP length 255, chosen by ``seed``."""
+    import random
+
+    rng = random.Random(seed)
+    out: list[tuple[bool, bytes]] = []
+    junk = [
+        b"\x01\x02\x03garbage!",
+        b"\x00\x00\x00\x00\x00\x00\x00",
+        b"\x12\x34\x00\x01\x00\x06\x01\x03",  # protocol id 1
+        b"\x00\x05\x00\x00\x01\x00\x01",  # length 256
+        b"\x00\x00",
+        b"\xff",
+    ]
+    for client, adu in adus(every_function_pair()):
+        roll = rng.random()
+        if roll < 0.15:
+            adu = rng.choice(junk) + adu
+        elif roll < 0.2:
+            adu = adu[rng.randrange(1, len(adu)) :]  # its start lost
+        elif roll < 0.25:
+            adu = adu + bytes(rng.randrange(256) for _ in range(rng.randrange(1, 12)))
+        elif roll < 0.3:
+            tid = rng.randrange(1 << 16)
+            adu = bytes((tid >> 8, tid & 255, 0, 0, 0, 255, 1, 0x5A)) + bytes(253) + adu
+        out.append((client, adu))
+    return out
