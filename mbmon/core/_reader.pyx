@@ -55,6 +55,8 @@ from mbmon.protocol.pdu import decode_pdu
 from mbmon.model import Noise
 from mbmon.protocol.mbap import DEFAULT_MAX_LENGTH as _MBAP_MAX, MbapDecoder
 from mbmon.protocol.pdu import with_malformed
+from mbmon.sources.flows import _TCP_HOLD_LIMIT
+from mbmon.sources.tcpflow import TcpConnection, TcpStats
 
 
 class Declined(Exception):
@@ -412,6 +414,7 @@ cdef struct Conn:
     bint connected
     bint closed
     bint open_             # in the dissector's open connections
+    bint tref              # the reference TcpConnection reassembles it (see ref_segment)
     int fin_by             # 0 none, 1 client, 2 server
     uint8_t caddr[4]
     uint8_t saddr[4]
@@ -811,6 +814,10 @@ cdef class _Pass:
     cdef dict mdecs             # conn * 2 + direction -> its MbapDecoder
     cdef list dec_order         # conn * 2 + direction, in the order bytes first came
     cdef public int64_t noise_records, noise_bytes
+    # TCP holes: connections the reference TcpConnection reassembles (see ref_segment)
+    cdef dict pyconns           # conn -> its TcpConnection
+    cdef object tcp_stats       # their TcpStats (the dissector's, not shown by read)
+    cdef public bint live       # the streaming entry: it hands such packets over instead
 
     def __cinit__(self):
         self.marks = NULL
@@ -877,6 +884,9 @@ cdef class _Pass:
         self.flows = {}
         self.mdecs = {}
         self.dec_order = []
+        self.pyconns = {}
+        self.tcp_stats = TcpStats()
+        self.live = False
         self.open_order = []
         self.nopen = 0
         self.closed_fifo = []
@@ -2197,6 +2207,7 @@ cdef class _Pass:
         c.connected = False
         c.closed = False
         c.open_ = True
+        c.tref = False
         c.fin_by = 0
         if sender_client:
             memcpy(c.caddr, addrs, 4)
@@ -2265,8 +2276,11 @@ cdef class _Pass:
         self.due = fifo[0][1] if fifo else float("inf")
         return 0
 
-    cdef bint is_new(self, int ci, bint from_client, int64_t seq, int flags, bint has_payload):
+    cdef bint is_new(self, int ci, bint from_client, int64_t seq, int flags,
+                     bint has_payload) except -1:
         cdef Conn* c = &self.conns[ci]
+        if c.tref:
+            return self.pyconns[ci].is_new(from_client, seq, flags, has_payload)
         cdef Half* half = &c.h[0 if from_client else 1]
         cdef Half* other = &c.h[1 if from_client else 0]
         cdef int syn_ack = flags & (SYN | ACK)
@@ -2282,15 +2296,160 @@ cdef class _Pass:
             return half.nxt < 0 or abs(signed32(seq - half.nxt)) > REUSE_DISTANCE
         return False
 
-    cdef int acked(self, int ci, int d, int64_t ack) except -1:
-        """The peer acknowledged bytes this direction never showed (``acked-unseen``)."""
+    cdef int acked(self, int ci, int d, double ts, int64_t ack) except -1:
+        """The peer acknowledged bytes this direction never showed (``_acked``): they
+        were lost by the capture, a GAP (``acked-unseen``) skips them. Here nothing is
+        held behind a hole and a FIN seen is reached: the GAP runs up to ``ack``."""
         cdef Half* other = &self.conns[ci].h[d]
         cdef int64_t diff
         if other.nxt >= 0 and not other.done:
             diff = (ack - other.nxt) & MASK
             if 0 < diff <= MAX_ACK_JUMP:
-                raise Declined("bytes the capture missed (an ACK beyond them: a gap)")
+                other.nxt = ack & MASK
+                self.gap(ci, d, ts, diff, "acked-unseen")
         return 0
+
+    cdef int gap(self, int ci, int d, double ts, int64_t missing, str reason) except -1:
+        """A GAP event of direction ``d``: the pipeline resets the direction's decoder
+        (what it held is noise), then the event's record."""
+        self.reset_dir(ci, d, ts)
+        return self.event(ts, self.conns[ci].sid, EventKind.GAP,
+                          {"direction": "s2c" if d else "c2s", "bytes": missing,
+                           "reason": reason})
+
+    cdef int reset_dir(self, int ci, int d, double ts) except -1:
+        """The decoder of direction ``d`` resets (a gap): held bytes and the noise run
+        become noise ("discarded after gap"); the next bytes start an ADU."""
+        cdef Half* h = &self.conns[ci].h[d]
+        if not h.dec or (not h.ref and not h.blen):
+            return 0
+        dec = self.ref_decoder(ci, d)
+        items = dec.reset(ts)
+        self.conns[ci].h[d].ref = False
+        del self.mdecs[ci * 2 + d]
+        return self.ref_items(ci, d, items)
+
+    # ------------------------------------------------------------------ TCP holes (the reference)
+    #
+    # A segment that would hold bytes behind a hole (out of order) or meet a FIN ahead
+    # of bytes not seen hands its connection to the reference's own TcpConnection
+    # (made from the core's state, as the live hand-over makes it); its chunks and
+    # events are taken here in order (chunks framed by the core, GAPs resetting the
+    # decoder, DISCONNECT closing the stream). Once nothing is held and every FIN
+    # seen is reached, the core reassembles the connection again.
+
+    cdef bint needs_ref(self, int ci, int d, int64_t seq, int flags, Py_ssize_t n):
+        """Whether ``segment``'s general path would hold this segment's bytes behind a
+        hole or set a FIN ahead of bytes not seen (an open connection, no RST)."""
+        cdef Half* half = &self.conns[ci].h[d]
+        cdef int64_t nxt = half.nxt, diff, after
+        if flags & SYN and flags & FIN:
+            flags &= ~FIN
+        if flags & SYN:
+            if half.isn < 0 and nxt < 0:
+                nxt = (seq + 1) & MASK
+            seq = (seq + 1) & MASK
+        elif nxt < 0 and (n or flags & FIN):
+            nxt = seq
+        if nxt < 0:
+            return False
+        after = nxt
+        if n and not half.done:
+            diff = (seq - nxt) & MASK
+            if diff == 0:
+                after = (nxt + n) & MASK
+            elif diff & HALF:
+                if TWO32 - diff < n:
+                    after = (seq + n) & MASK
+            else:
+                return True
+        if flags & FIN and half.fin < 0 and signed32(after - ((seq + n) & MASK)) < 0:
+            return True
+        return False
+
+    cdef object py_tcp(self, int ci):
+        """Connection ``ci`` as the reference's ``TcpConnection`` (its state the core's)."""
+        cdef Conn* c = &self.conns[ci]
+        cdef int d
+        conn = TcpConnection(self.stream_obj(c.sid), limit=_TCP_HOLD_LIMIT, stats=self.tcp_stats)
+        c = &self.conns[ci]
+        for d in range(2):
+            half = conn._s2c if d else conn._c2s
+            half.nxt = None if c.h[d].nxt < 0 else c.h[d].nxt
+            half.isn = None if c.h[d].isn < 0 else c.h[d].isn
+            half.fin = None if c.h[d].fin < 0 else c.h[d].fin
+            half.done = bool(c.h[d].done)
+        conn.connected = bool(c.connected)
+        conn.closed = bool(c.closed)
+        conn.fin_by = None if c.fin_by == 0 else ("client" if c.fin_by == 1 else "server")
+        return conn
+
+    cdef int ref_segment(self, int ci, bint from_client, double ts, int64_t seq, int64_t ack,
+                         int flags, const uint8_t* p, Py_ssize_t n) except -1:
+        """One segment of a connection the reference reassembles (made so now if not)."""
+        cdef Conn* c
+        cdef int d
+        conn = self.pyconns.get(ci)
+        if conn is None:
+            conn = self.pyconns[ci] = self.py_tcp(ci)
+            self.conns[ci].tref = True
+        out = []
+        conn.segment(ts, from_client, seq & MASK, ack & MASK, flags,
+                     PyBytes_FromStringAndSize(<const char*>p, n) if n else b"", out)
+        self.ref_out(ci, out)
+        for half in (conn._c2s, conn._s2c):
+            if half.held or (half.fin is not None and not half.done):
+                return 0
+        # nothing held, every FIN seen reached: the core reassembles it again
+        c = &self.conns[ci]
+        for d in range(2):
+            half = conn._s2c if d else conn._c2s
+            c.h[d].nxt = -1 if half.nxt is None else half.nxt
+            c.h[d].isn = -1 if half.isn is None else half.isn
+            c.h[d].fin = -1 if half.fin is None else half.fin
+            c.h[d].done = half.done
+        c.connected = conn.connected
+        c.fin_by = 0 if conn.fin_by is None else (1 if conn.fin_by == "client" else 2)
+        c.tref = False
+        del self.pyconns[ci]
+        return 0
+
+    cdef int ref_out(self, int ci, list out) except -1:
+        """The chunks and events of the reference's reassembly, as the pipeline takes
+        them (and the dissector's watcher: a DISCONNECT closes the connection)."""
+        cdef int sid = self.conns[ci].sid, d
+        cdef const uint8_t* b
+        for item in out:
+            if type(item) is Chunk:
+                d = 1 if item.direction is Direction.S2C else 0
+                data = item.data
+                b = data
+                if self.mcap is not None:
+                    self.mcap_chunk(sid, d, item.ts, b, len(data))
+                self.on_chunk(ci, d, item.ts, b, len(data))
+                continue
+            kind = item.kind
+            if kind is EventKind.GAP:
+                self.gap(ci, 1 if item.info["direction"] == "s2c" else 0, item.ts,
+                         item.info["bytes"], item.info["reason"])
+            elif kind is EventKind.DISCONNECT:
+                self.event(item.ts, sid, kind, item.info)
+                self.close_stream(ci, item.ts)
+                self.closed_conn(ci, item.ts)
+            else:
+                self.event(item.ts, sid, kind, item.info or None)
+        return 0
+
+    cdef int ref_finish(self, int ci, double ts, str reason) except -1:
+        """The reference's ``finish`` of a connection it reassembles (the end of the
+        capture, or its addresses taken by a new connection)."""
+        conn = self.pyconns.pop(ci, None)
+        if conn is None:
+            return 0
+        self.conns[ci].tref = False
+        out = []
+        conn.finish(ts, out, reason)
+        return self.ref_out(ci, out)
 
     cdef int deliver(self, int ci, int d, double ts, const uint8_t* p, Py_ssize_t n) except -1:
         self.conns[ci].h[d].nxt = (self.conns[ci].h[d].nxt + n) & MASK
@@ -2314,25 +2473,26 @@ cdef class _Pass:
 
     cdef int segment(self, int ci, bint from_client, double ts, int64_t seq, int64_t ack,
                      int flags, const uint8_t* p, Py_ssize_t n) except -1:
-        """``TcpConnection.segment`` for the cases the core covers."""
+        """``TcpConnection.segment``: the core's own reassembly while nothing is held
+        behind a hole; the reference's (``ref_segment``) from a segment that would be."""
         cdef Conn* c = &self.conns[ci]
         cdef int d = 0 if from_client else 1
         cdef Half* half = &c.h[d]
         cdef Half* other = &c.h[1 - d]
+        if c.tref:
+            return self.ref_segment(ci, from_client, ts, seq, ack, flags, p, n)
         if not flags & 0x07 and half.nxt == seq and half.fin < 0:
             if c.closed:
-                if n:
-                    raise Declined("payload after its connection ended")
-                return 0
+                return 0  # payload after the end: counted and dropped (after_close)
             if flags & ACK:
-                self.acked(ci, 1 - d, ack)
+                self.acked(ci, 1 - d, ts, ack)
             if n:
                 self.deliver(ci, d, ts, p, n)
             return 0
         if c.closed:
-            if n:
-                raise Declined("payload after its connection ended")
-            return 0
+            return 0  # payload after the end: counted and dropped
+        if not flags & RST and self.needs_ref(ci, d, seq, flags, n):
+            return self.ref_segment(ci, from_client, ts, seq, ack, flags, p, n)
         if flags & RST:
             if (half.fin >= 0 and not half.done) or (other.fin >= 0 and not other.done):
                 raise Declined("a reset before a FIN was reached (a gap)")
@@ -2354,17 +2514,16 @@ cdef class _Pass:
         elif half.nxt < 0 and (n or flags & FIN):
             half.nxt = seq
         if flags & ACK:
-            self.acked(ci, 1 - d, ack)
+            self.acked(ci, 1 - d, ts, ack)
         c = &self.conns[ci]
         half = &c.h[d]
         other = &c.h[1 - d]
         if n and half.nxt >= 0:
-            if half.done:
-                raise Declined("payload after its direction's FIN")
-            self.data(ci, d, ts, seq, p, n)
-            c = &self.conns[ci]
-            half = &c.h[d]
-            other = &c.h[1 - d]
+            if not half.done:  # else: after its direction's FIN, counted and dropped
+                self.data(ci, d, ts, seq, p, n)
+                c = &self.conns[ci]
+                half = &c.h[d]
+                other = &c.h[1 - d]
         if flags & FIN and half.fin < 0 and half.nxt >= 0:
             half.fin = (seq + n) & MASK
             if c.fin_by == 0:
@@ -2533,8 +2692,15 @@ cdef class _Pass:
         if (flags & SYN or self.conns[ci].closed) and self.is_new(ci, v & 1, seq, flags,
                                                                    has_payload):
             if not self.conns[ci].closed:
-                raise Declined("a connection replaced on the same addresses")
-            # a closed connection's addresses reused: the old one is forgotten
+                if self.live:
+                    raise Declined("a connection replaced on the same addresses")
+                # replaced while open: the reference gives its holes up ("replaced")
+                # and forgets it (no DISCONNECT; its stream's decoders live on)
+                self.ref_finish(ci, ts, "replaced")
+                if not self.conns[ci].closed and self.conns[ci].open_:
+                    self.conns[ci].open_ = False
+                    self.nopen -= 1
+            # the old connection is forgotten (a closed one's linger ends)
             for i, item in enumerate(self.closed_fifo):
                 if item[0] == ci:
                     del self.closed_fifo[i]
@@ -2784,6 +2950,9 @@ cdef class _Pass:
         for ci in self.open_order:
             c = &self.conns[ci]
             if not c.open_ or c.closed:
+                continue
+            if c.tref:  # holes given up ("end-of-capture"), a half-closed end
+                self.ref_finish(ci, self.end_ts, "end-of-capture")
                 continue
             if (c.h[0].fin >= 0 and not c.h[0].done) or (c.h[1].fin >= 0 and not c.h[1].done):
                 raise Declined("a FIN not reached at the end (a gap)")

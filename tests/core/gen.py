@@ -3,6 +3,7 @@ written segment by segment with chosen cuts, retransmissions, holes and noise.""
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 from mbmon.io.pcap import PcapngWriter, PcapWriter, TcpConversation
@@ -144,3 +145,65 @@ def noisy_stream(seed: int) -> list[tuple[bool, bytes]]:
             adu = bytes((tid >> 8, tid & 255, 0, 0, 0, 255, 1, 0x5A)) + bytes(253) + adu
         out.append((client, adu))
     return out
+
+
+def reordered_conversation(
+    path: Path,
+    seed: int,
+    *,
+    close: str | None = "fin",
+    handshake: bool = True,
+    replace: bool = False,
+) -> Path:
+    """A capture of one connection (every function pair, ADUs cut in pieces) whose
+    segments, the close among them, were reordered, lost and duplicated as ``seed``
+    picks: out-of-order segments, holes that ACKs pass or the end gives up, FINs
+    ahead of data, retransmissions; with ``replace`` a new connection on the same
+    addresses opens while this one is open."""
+    import random
+
+    from mbmon.io.pcap.packets import ACK, PSH
+
+    rng = random.Random(seed)
+    conv = TcpConversation("10.0.0.1:40000", "10.0.0.2:502")
+    head: list[bytes] = conv.open() if handshake else []
+    if not handshake:
+        conv.client_next, conv.server_next = 1001, 5001
+    body: list[bytes] = []
+    for client, adu in adus(every_function_pair()):
+        cuts = sorted(rng.sample(range(1, len(adu)), k=min(rng.randrange(3), len(adu) - 1)))
+        for a, b in itertools.pairwise([0, *cuts, len(adu)]):
+            body.append(conv.send(client, adu[a:b]))
+    if close == "fin":
+        body += conv.close(rng.random() < 0.5)
+    elif close == "rst":
+        body.append(conv.reset(rng.random() < 0.5))
+    frames: list[bytes] = []
+    i = 0
+    while i < len(body):
+        roll = rng.random()
+        if roll < 0.12 and i + 2 < len(body):
+            j = i + rng.randrange(1, 3)
+            frames += [body[j], *body[i:j]]  # one segment ahead of those before it
+            i = j + 1
+            continue
+        if roll < 0.17:
+            i += 1  # lost by the capture
+            continue
+        frames.append(body[i])
+        if roll < 0.22:
+            frames.append(body[i])  # retransmitted
+        i += 1
+    if replace:
+        at = rng.randrange(len(frames) + 1)
+        new = TcpConversation(
+            "10.0.0.1:40000", "10.0.0.2:502", client_isn=rng.randrange(1 << 32), server_isn=7
+        )
+        more = new.open() + [
+            new.segment(c, PSH | ACK, a) for c, a in adus(every_function_pair()[:4])
+        ]
+        if rng.random() < 0.5:
+            more = more[1:]  # its SYN not captured: the SYN-ACK opens it
+        frames[at:at] = more
+    stamps = [T0 + 0.002 * n for n in range(len(head) + len(frames))]
+    return write_frames(path, list(zip(stamps, head + frames, strict=True)))
