@@ -207,3 +207,38 @@ def reordered_conversation(
         frames[at:at] = more
     stamps = [T0 + 0.002 * n for n in range(len(head) + len(frames))]
     return write_frames(path, list(zip(stamps, head + frames, strict=True)))
+
+
+def perturbed_capture(src: Path, dst: Path, seed: int, *, rate: float = 0.05) -> Path:
+    """A classic pcap ``src`` with its records reordered (one ahead of up to three
+    before it), lost and duplicated at about ``rate`` each, as ``seed`` picks: a real
+    capture's holes, out-of-order segments and retransmissions. Times stay each
+    record's own (they go backwards where records moved)."""
+    import random
+
+    rng = random.Random(seed)
+    data = src.read_bytes()
+    big = data[:4] in (b"\xa1\xb2\xc3\xd4", b"\xa1\xb2\x3c\x4d")
+    records, pos = [], 24
+    while pos + 16 <= len(data):
+        caplen = int.from_bytes(data[pos + 8 : pos + 12], "big" if big else "little")
+        records.append(data[pos : pos + 16 + caplen])
+        pos += 16 + caplen
+    out: list[bytes] = []
+    i = 0
+    while i < len(records):
+        roll = rng.random()
+        if roll < rate and i + 2 < len(records):
+            j = i + rng.randrange(1, min(4, len(records) - i))
+            out += [records[j], *records[i:j]]
+            i = j + 1
+            continue
+        if roll < 2 * rate:
+            i += 1
+            continue
+        out.append(records[i])
+        if roll < 3 * rate:
+            out.append(records[i])
+        i += 1
+    dst.write_bytes(data[:24] + b"".join(out))
+    return dst

@@ -11,8 +11,15 @@ import tempfile
 from pathlib import Path
 
 import pytest
-from core_diff import REAL, assert_same, require_core, with_core
-from gen import T0, adus, every_function_pair, reordered_conversation, write_frames
+from core_diff import REAL, ROOT, assert_same, require_core, with_core
+from gen import (
+    T0,
+    adus,
+    every_function_pair,
+    perturbed_capture,
+    reordered_conversation,
+    write_frames,
+)
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from mcap_diff import assert_same_log
@@ -218,3 +225,35 @@ def test_segments_of_both_directions_held(tmp_path: Path) -> None:
     frames.append(conv.segment(True, SYN, seq=conv.client_isn, advance=False))
     path = _write(tmp_path, "both.pcap", frames)
     assert_same(path, covered=True)
+
+
+def test_noise_and_holes_under_a_profile(tmp_path: Path) -> None:
+    """The same with ``--profile hrss``: frames the reference decoder and reassembly
+    give are annotated (or noted by the core) as the reference annotates them."""
+    from test_core_profile import assert_same as assert_same_profiled
+
+    for seed in (1, 2):
+        path = reordered_conversation(tmp_path / f"p{seed}.pcap", seed, replace=True)
+        assert_same_profiled(path, ["hrss"])
+        assert_same_profiled(path, ["unit:1=hrss"], timeout=0.05)
+
+
+@pytest.mark.parametrize("name", ["demo.pcap", "hrss_ptp.pcap", "sim_functions.pcap"])
+def test_perturbed_captures(tmp_path: Path, name: str) -> None:
+    """The project's captures with records reordered, lost and duplicated; hrss_ptp's
+    under its profile too."""
+    from test_core_profile import assert_same as assert_same_profiled
+
+    for seed in range(3):
+        path = perturbed_capture(ROOT / "captures" / name, tmp_path / f"{seed}{name}", seed)
+        assert_same(path, covered=True)
+        if name == "hrss_ptp.pcap":
+            assert_same_profiled(path, ["hrss"])
+
+
+def test_perturbed_real_captures(tmp_path: Path) -> None:
+    paths = sorted(p for p in REAL.glob("tcp__*.pcap")) if REAL.is_dir() else []
+    if not paths:
+        pytest.skip(f"{REAL} absent (../shared/captures/real)")
+    for path in paths:
+        assert_same(perturbed_capture(path, tmp_path / path.name, seed=len(path.name)))
