@@ -55,7 +55,7 @@ from mbmon.protocol.pdu import decode_pdu
 from mbmon.model import Noise
 from mbmon.protocol.mbap import DEFAULT_MAX_LENGTH as _MBAP_MAX, MbapDecoder
 from mbmon.protocol.pdu import with_malformed
-from mbmon.sources.flows import _TCP_HOLD_LIMIT
+from mbmon.sources.flows import _TCP_HOLD_LIMIT, address_text
 from mbmon.sources.tcpflow import TcpConnection, TcpStats
 
 
@@ -68,6 +68,7 @@ DEF REUSE_DISTANCE = 1 << 20
 DEF CLOSED_LINGER = 60.0
 DEF MAX_CLOSED = 4096
 DEF MAX_OPEN = 9000            # the dissector evicts at 10,000 open connections
+DEF MAX_UDP = 9000             # ... and at 10,000 UDP pairs
 DEF MAX_PENDING_STREAM = 9000  # the pairer evicts at 10,000 per stream
 DEF MAX_PENDING_TOTAL = 90000  # ... and 100,000 in all
 DEF TICK_EVERY = 0.1
@@ -416,8 +417,10 @@ cdef struct Conn:
     bint open_             # in the dissector's open connections
     bint tref              # the reference TcpConnection reassembles it (see ref_segment)
     int fin_by             # 0 none, 1 client, 2 server
-    uint8_t caddr[4]
-    uint8_t saddr[4]
+    uint8_t caddr[16]      # IPv4: the first 4 bytes
+    uint8_t saddr[16]
+    int alen               # address length: 4 (IPv4) or 16 (IPv6)
+    bint udp               # a UDP pair (Modbus/UDP), not a TCP connection
     int cport
     int sport
 
@@ -818,6 +821,9 @@ cdef class _Pass:
     cdef dict pyconns           # conn -> its TcpConnection
     cdef object tcp_stats       # their TcpStats (the dissector's, not shown by read)
     cdef public bint live       # the streaming entry: it hands such packets over instead
+    # Modbus/UDP: pairs by both directions' keys (as flows), their stream ids
+    cdef dict udp_pairs
+    cdef set udp_sids
 
     def __cinit__(self):
         self.marks = NULL
@@ -885,6 +891,8 @@ cdef class _Pass:
         self.mdecs = {}
         self.dec_order = []
         self.pyconns = {}
+        self.udp_pairs = {}
+        self.udp_sids = set()
         self.tcp_stats = TcpStats()
         self.live = False
         self.open_order = []
@@ -975,9 +983,15 @@ cdef class _Pass:
         s = self.streams[sid]
         if s is None:
             c = &self.conns[self.conn_of_sid(sid)]
-            client = "%d.%d.%d.%d:%d" % (c.caddr[0], c.caddr[1], c.caddr[2], c.caddr[3], c.cport)
-            server = "%d.%d.%d.%d:%d" % (c.saddr[0], c.saddr[1], c.saddr[2], c.saddr[3], c.sport)
-            s = Stream(sid, Transport.TCP, client, server)
+            if c.alen == 4:
+                client = "%d.%d.%d.%d:%d" % (c.caddr[0], c.caddr[1], c.caddr[2], c.caddr[3],
+                                             c.cport)
+                server = "%d.%d.%d.%d:%d" % (c.saddr[0], c.saddr[1], c.saddr[2], c.saddr[3],
+                                             c.sport)
+            else:  # the flow table's own text of an IPv6 endpoint
+                client = address_text(bytes(c.caddr[:16]), c.cport)
+                server = address_text(bytes(c.saddr[:16]), c.sport)
+            s = Stream(sid, Transport.UDP if c.udp else Transport.TCP, client, server)
             self.streams[sid] = s
         return s
 
@@ -1055,6 +1069,8 @@ cdef class _Pass:
             native = False
         if alen > 6 + MBAP_CLEAN:  # MBAP length 255: marked malformed by the framing
             native = False
+        if native and self.udp_sids and sid in self.udp_sids:
+            native = False  # Modbus/UDP: the reference's lines ("transport":"udp")
         if native and self.mcap is not None and not self.mcap_fast(ts):
             native = False  # a stats event is due, or a time MCAP clamps: the layout's way
         if not native:
@@ -1559,6 +1575,8 @@ cdef class _Pass:
             native = False
         if alen > 6 + MBAP_CLEAN:  # MBAP length 255: marked malformed by the framing
             native = False
+        if native and self.udp_sids and sid in self.udp_sids:
+            native = False  # Modbus/UDP: the reference's lines ("transport":"udp")
         fc = nat.fc if native else 0
         if native and d == 1 and (fc == 6 or fc == 16):
             return self.prof_write_answer(bound, index, sid, ts, adu, alen, req, latency, &nat,
@@ -2164,23 +2182,16 @@ cdef class _Pass:
 
     cdef int new_conn(self, bytes key, const uint8_t* addrs, int sport, int dport, int flags,
                       double ts) except -1:
-        """A new connection on ``key`` (dissector ``_new_tcp``); returns flow value."""
-        cdef bint src_in = self.port_map[sport], dst_in = self.port_map[dport]
-        cdef bint sender_client
+        """A new IPv4 connection on ``key`` (dissector ``_new_tcp``); returns flow value."""
+        return self.open_conn(key, addrs, 4, sport, dport, flags, ts)
+
+    cdef int alloc_conn(self, const uint8_t* addrs, int alen, int sport, int dport,
+                        bint sender_client) except -1:
+        """A new flow's entry and stream id (``addrs``: source then destination address,
+        ``alen`` bytes each); its index."""
         cdef int ci, cap, d
         cdef Conn* c
         cdef Conn* nc
-        if src_in and dst_in:
-            if flags & (SYN | ACK) == SYN:
-                sender_client = True
-            elif flags & (SYN | ACK) == (SYN | ACK):
-                sender_client = False
-            else:
-                sender_client = dport <= sport
-        else:
-            sender_client = dst_in
-        if self.nopen >= MAX_OPEN:
-            raise Declined("more open connections than the core keeps")
         if self.nconns == self.capconns:
             cap = self.capconns * 2 if self.capconns else 64
             nc = <Conn*>realloc(self.conns, cap * sizeof(Conn))
@@ -2206,22 +2217,45 @@ cdef class _Pass:
             c.h[d].ref = False
         c.connected = False
         c.closed = False
-        c.open_ = True
+        c.open_ = False
         c.tref = False
+        c.udp = False
         c.fin_by = 0
+        c.alen = alen
         if sender_client:
-            memcpy(c.caddr, addrs, 4)
-            memcpy(c.saddr, addrs + 4, 4)
+            memcpy(c.caddr, addrs, alen)
+            memcpy(c.saddr, addrs + alen, alen)
             c.cport = sport
             c.sport = dport
         else:
-            memcpy(c.caddr, addrs + 4, 4)
-            memcpy(c.saddr, addrs, 4)
+            memcpy(c.caddr, addrs + alen, alen)
+            memcpy(c.saddr, addrs, alen)
             c.cport = dport
             c.sport = sport
+        return ci
+
+    cdef int open_conn(self, bytes key, const uint8_t* addrs, int alen, int sport, int dport,
+                       int flags, double ts) except -1:
+        """A new connection on ``key`` (dissector ``_new_tcp``); returns flow value."""
+        cdef bint src_in = self.port_map[sport], dst_in = self.port_map[dport]
+        cdef bint sender_client
+        cdef int ci
+        if src_in and dst_in:
+            if flags & (SYN | ACK) == SYN:
+                sender_client = True
+            elif flags & (SYN | ACK) == (SYN | ACK):
+                sender_client = False
+            else:
+                sender_client = dport <= sport
+        else:
+            sender_client = dst_in
+        if self.nopen >= MAX_OPEN:
+            raise Declined("more open connections than the core keeps")
+        ci = self.alloc_conn(addrs, alen, sport, dport, sender_client)
+        self.conns[ci].open_ = True
         self.open_order.append(ci)
         self.nopen += 1
-        rkey = bytes(addrs[4:8]) + bytes(addrs[0:4]) + bytes(
+        rkey = bytes(addrs[alen:2 * alen]) + bytes(addrs[0:alen]) + bytes(
             ((dport >> 8, dport & 255, sport >> 8, sport & 255)))
         self.flows[key] = ci * 2 + (1 if sender_client else 0)
         self.flows[rkey] = ci * 2 + (0 if sender_client else 1)
@@ -2237,9 +2271,9 @@ cdef class _Pass:
     cdef int forget(self, int ci) except -1:
         """Drop a connection's two keys (unless a newer connection took them)."""
         cdef Conn* c = &self.conns[ci]
-        k1 = bytes(c.caddr[:4]) + bytes(c.saddr[:4]) + bytes(
+        k1 = bytes(c.caddr[:c.alen]) + bytes(c.saddr[:c.alen]) + bytes(
             (c.cport >> 8, c.cport & 255, c.sport >> 8, c.sport & 255))
-        k2 = bytes(c.saddr[:4]) + bytes(c.caddr[:4]) + bytes(
+        k2 = bytes(c.saddr[:c.alen]) + bytes(c.caddr[:c.alen]) + bytes(
             (c.sport >> 8, c.sport & 255, c.cport >> 8, c.cport & 255))
         for k in (k1, k2):
             v = self.flows.get(k)
@@ -2629,11 +2663,13 @@ cdef class _Pass:
         proto = b[9]
         l4 = off + ihl
         if proto == 17:
-            if ip_end - l4 >= 4:
+            if ip_end - l4 >= 8:
                 sport = (buf[l4] << 8) | buf[l4 + 1]
                 dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
                 if self.port_map[sport] or self.port_map[dport]:
-                    raise Declined("Modbus over UDP")
+                    if first_fragment:
+                        raise Declined("a fragmented IP packet on a Modbus port")
+                    return self.udp_datagram(ts, &buf[off + 12], 4, buf, l4, ip_end)
             return 0
         if proto != 6:
             return 0
@@ -2684,9 +2720,12 @@ cdef class _Pass:
         return self.segment(v >> 1, from_client, ts, seq, ack, flags, NULL, 0)
 
     cdef int tcp_flow(self, bytes key, const uint8_t* addrs, int v, double ts, int64_t seq,
-                      int flags, bint has_payload, int sport, int dport) except -1:
+                      int flags, bint has_payload, int sport, int dport,
+                      int alen=4) except -1:
         cdef int ci
         if v < 0:
+            if alen != 4:
+                return self.open_conn(key, addrs, alen, sport, dport, flags, ts)
             return self.new_conn(key, addrs, sport, dport, flags, ts)
         ci = v >> 1
         if (flags & SYN or self.conns[ci].closed) and self.is_new(ci, v & 1, seq, flags,
@@ -2706,16 +2745,19 @@ cdef class _Pass:
                     del self.closed_fifo[i]
                     break
             self.forget(ci)
+            if alen != 4:
+                return self.open_conn(key, addrs, alen, sport, dport, flags, ts)
             return self.new_conn(key, addrs, sport, dport, flags, ts)
         return v
 
     cdef int ipv6(self, double ts, const uint8_t[::1] buf, Py_ssize_t off,
                   Py_ssize_t end) except -1:
-        """IPv6: declined when it carries Modbus (the ports); TCP on other ports goes to
-        port detection as the reference's general path sends it; else skipped."""
+        """IPv6 (``ipv6_header``: extension headers as the reference walks them): TCP and
+        UDP on a Modbus port are read as over IPv4 (a fragment of them declined); TCP on
+        other ports goes to port detection as the reference's general path sends it."""
         cdef Py_ssize_t ip_end, l4, plen
         cdef int proto, k, sport, dport, doff, frag
-        cdef bint short = False
+        cdef bint short = False, fragment = False
         if end - off < 40 or buf[off] >> 4 != 6:
             return 0
         plen = (buf[off + 4] << 8) | buf[off + 5]
@@ -2737,7 +2779,7 @@ cdef class _Pass:
                 if frag & 0xFFF9:
                     if frag & 0xFFF8:
                         return 0  # not the first fragment: no transport header
-                    short = True
+                    fragment = True
                 proto, l4 = buf[l4], l4 + 8
             elif proto == 51:
                 if ip_end - l4 < 8:
@@ -2745,17 +2787,101 @@ cdef class _Pass:
                 proto, l4 = buf[l4], l4 + ((buf[l4 + 1] + 2) << 2)
             else:
                 break
-        if (proto == 6 or proto == 17) and 0 <= l4 and ip_end - l4 >= 4:
+        if proto == 17 and ip_end - l4 >= 8:
             sport = (buf[l4] << 8) | buf[l4 + 1]
             dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
             if self.port_map[sport] or self.port_map[dport]:
+                if fragment:
+                    raise Declined("a fragmented IP packet on a Modbus port")
+                return self.udp_datagram(ts, &buf[off + 8], 16, buf, l4, ip_end)
+            return 0
+        if proto != 6 or ip_end - l4 < 20:
+            return 0
+        sport = (buf[l4] << 8) | buf[l4 + 1]
+        dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
+        if self.port_map[sport] or self.port_map[dport]:
+            if fragment:
+                raise Declined("a fragmented IP packet on a Modbus port")
+            if self.live:
                 raise Declined("Modbus over IPv6")
-            if self.detect and proto == 6 and ip_end - l4 >= 20 and not short:
-                doff = (buf[l4 + 12] >> 2) & 0x3C
-                if 20 <= doff <= ip_end - l4:
-                    self.detect_segment(ts, bytes(buf[off + 8:off + 40]), sport, dport,
-                                        be32(&buf[l4 + 4]), be32(&buf[l4 + 8]), buf[l4 + 13],
-                                        bytes(buf[l4 + doff:ip_end]))
+            return self.tcp6(ts, buf, off, l4, ip_end)
+        if self.detect and not short and not fragment:
+            doff = (buf[l4 + 12] >> 2) & 0x3C
+            if 20 <= doff <= ip_end - l4:
+                self.detect_segment(ts, bytes(buf[off + 8:off + 40]), sport, dport,
+                                    be32(&buf[l4 + 4]), be32(&buf[l4 + 8]), buf[l4 + 13],
+                                    bytes(buf[l4 + doff:ip_end]))
+        return 0
+
+    cdef int tcp6(self, double ts, const uint8_t[::1] buf, Py_ssize_t off, Py_ssize_t l4,
+                  Py_ssize_t ip_end) except -1:
+        """A TCP segment over IPv6 on a Modbus port (its addresses at ``off + 8``): the
+        flow table and reassembly as over IPv4 (36-byte flow keys, no cache)."""
+        cdef const uint8_t* b = &buf[l4]
+        cdef int sport = (b[0] << 8) | b[1], dport = (b[2] << 8) | b[3]
+        cdef int doff = (b[12] >> 2) & 0x3C, flags, v
+        cdef int64_t seq, ack
+        if doff < 20 or l4 + doff > ip_end:
+            return 0
+        seq = be32(b + 4)
+        ack = be32(b + 8)
+        flags = b[13]
+        key = bytes(buf[off + 8:off + 40]) + bytes(buf[l4:l4 + 4])
+        got = self.flows.get(key)
+        v = -1 if got is None else got
+        if v < 0 or flags & SYN or self.conns[v >> 1].closed:
+            v = self.tcp_flow(key, &buf[off + 8], v, ts, seq, flags, ip_end > l4 + doff,
+                              sport, dport, 16)
+        if ip_end > l4 + doff:
+            return self.segment(v >> 1, v & 1, ts, seq, ack, flags, &buf[l4 + doff],
+                                ip_end - (l4 + doff))
+        return self.segment(v >> 1, v & 1, ts, seq, ack, flags, NULL, 0)
+
+    # ------------------------------------------------------------------ UDP
+
+    cdef int udp_datagram(self, double ts, const uint8_t* addrs, int alen,
+                          const uint8_t[::1] buf, Py_ssize_t l4, Py_ssize_t ip_end) except -1:
+        """A UDP datagram on a Modbus port (``_udp_general``): one chunk of its pair's
+        stream, framed and then flushed at once (``datagram`` decoding: nothing of it
+        waits for the next one). Its frames are written the reference way."""
+        cdef int sport = (buf[l4] << 8) | buf[l4 + 1], dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
+        cdef Py_ssize_t ulen = (buf[l4 + 4] << 8) | buf[l4 + 5]
+        cdef bint sender_client
+        cdef int ci, d
+        if self.live:
+            raise Declined("Modbus over UDP")
+        if ulen < 8 or l4 + ulen > ip_end or ulen == 8:
+            return 0  # malformed, cut (half a datagram is none), or empty
+        key = bytes(addrs[:2 * alen]) + bytes(buf[l4:l4 + 4])
+        got = self.udp_pairs.get(key)
+        if got is None:
+            if len(self.udp_pairs) >= 2 * MAX_UDP:
+                raise Declined("more UDP pairs than the core keeps")
+            # _roles(key, 0): the endpoint on a Modbus port is the server (both: the
+            # lower port, else the receiver)
+            if self.port_map[sport] and self.port_map[dport]:
+                sender_client = dport <= sport
+            else:
+                sender_client = self.port_map[dport]
+            ci = self.alloc_conn(addrs, alen, sport, dport, sender_client)
+            self.conns[ci].udp = True
+            self.udp_sids.add(self.conns[ci].sid)
+            got = ci * 2 + (1 if sender_client else 0)
+            self.udp_pairs[key] = got
+            self.udp_pairs[bytes(addrs[alen:2 * alen]) + bytes(addrs[:alen]) + bytes(
+                buf[l4 + 2:l4 + 4]) + bytes(buf[l4:l4 + 2])] = ci * 2 + (
+                0 if sender_client else 1)
+        ci = got >> 1
+        d = 0 if got & 1 else 1
+        if self.mcap is not None:
+            self.mcap_chunk(self.conns[ci].sid, d, ts, &buf[l4 + 8], ulen - 8)
+        self.on_chunk(ci, d, ts, &buf[l4 + 8], ulen - 8)
+        # the datagram's end: the decoder flushes (an incomplete ADU, noise) and is as new
+        if self.conns[ci].h[d].ref or self.conns[ci].h[d].blen:
+            dec = self.ref_decoder(ci, d)
+            self.conns[ci].h[d].ref = False
+            del self.mdecs[ci * 2 + d]
+            self.ref_items(ci, d, dec.flush(ts))
         return 0
 
     cdef int detect_segment(self, double ts, bytes addrs, int sport, int dport, int64_t seq,

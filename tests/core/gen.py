@@ -242,3 +242,53 @@ def perturbed_capture(src: Path, dst: Path, seed: int, *, rate: float = 0.05) ->
         i += 1
     dst.write_bytes(data[:24] + b"".join(out))
     return dst
+
+
+def udp_exchange(
+    path: Path,
+    datagrams: list[tuple[bool, bytes]],
+    *,
+    client: str = "10.0.0.1:40000",
+    server: str = "10.0.0.2:502",
+    linktype: int = 1,
+    step: float = 0.001,
+) -> Path:
+    """A capture of Modbus/UDP: each (from client, payload) one datagram."""
+    from mbmon.io.pcap.packets import parse_endpoint, udp_frame
+
+    (cip, cport), (sip, sport) = parse_endpoint(client), parse_endpoint(server)
+    frames = []
+    for n, (from_client, payload) in enumerate(datagrams):
+        if from_client:
+            frame = udp_frame(linktype, cip, sip, cport, sport, payload)
+        else:
+            frame = udp_frame(linktype, sip, cip, sport, cport, payload)
+        frames.append((T0 + n * step, frame))
+    return write_frames(path, frames, linktype)
+
+
+def ipv6_segment(
+    conv: TcpConversation,
+    from_client: bool,
+    flags: int,
+    payload: bytes = b"",
+    *,
+    extensions: tuple[tuple[int, bytes], ...] = (),
+) -> bytes:
+    """One segment of an IPv6 ``conv`` (Ethernet) with IPv6 extension headers; the
+    conversation's numbers move on as :meth:`TcpConversation.segment` moves them."""
+    from mbmon.io.pcap.packets import ethernet_frame, ipv6_packet, tcp_header
+
+    if from_client:
+        src, sport, dst, dport = conv.client_ip, conv.client_port, conv.server_ip, conv.server_port
+        seq, ack = conv.client_next, conv.server_next
+    else:
+        src, sport, dst, dport = conv.server_ip, conv.server_port, conv.client_ip, conv.client_port
+        seq, ack = conv.server_next, conv.client_next
+    segment = tcp_header(src, dst, sport, dport, seq, ack, flags, payload)
+    end = (seq + len(payload) + (1 if flags & 0x03 else 0)) & 0xFFFFFFFF
+    if from_client:
+        conv.client_next = end
+    else:
+        conv.server_next = end
+    return ethernet_frame(ipv6_packet(src, dst, 6, segment, extensions=extensions), 0x86DD)
