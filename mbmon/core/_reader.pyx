@@ -405,8 +405,9 @@ cdef struct Half:
     int blen
     int bcap
     double bts             # when the first byte held arrived (the decoder's _buf_ts)
-    bint dec               # the pipeline has this direction's decoder (bytes came)
-    bint ref               # the reference MbapDecoder frames it (noise: see ref_chunk)
+    uint8_t dstate         # the pipeline's decoder of this direction: 0 none yet (no
+    #                        bytes came), 1 framed here, 2 by the reference MbapDecoder
+    #                        (noise: see ref_chunk)
 
 
 cdef struct Conn:
@@ -824,6 +825,7 @@ cdef class _Pass:
     # Modbus/UDP: pairs by both directions' keys (as flows), their stream ids
     cdef dict udp_pairs
     cdef set udp_sids
+    cdef bint any_udp
 
     def __cinit__(self):
         self.marks = NULL
@@ -893,6 +895,7 @@ cdef class _Pass:
         self.pyconns = {}
         self.udp_pairs = {}
         self.udp_sids = set()
+        self.any_udp = False
         self.tcp_stats = TcpStats()
         self.live = False
         self.open_order = []
@@ -1067,10 +1070,8 @@ cdef class _Pass:
             native = False
         if native and nat.exc >= 0 and self.enames[nat.exc] is None:
             native = False
-        if alen > 6 + MBAP_CLEAN:  # MBAP length 255: marked malformed by the framing
-            native = False
-        if native and self.udp_sids and sid in self.udp_sids:
-            native = False  # Modbus/UDP: the reference's lines ("transport":"udp")
+        if native and (alen > 6 + MBAP_CLEAN or self.any_udp):
+            native = self.stays_native(sid, alen)
         if native and self.mcap is not None and not self.mcap_fast(ts):
             native = False  # a stats event is due, or a time MCAP clamps: the layout's way
         if not native:
@@ -1573,10 +1574,8 @@ cdef class _Pass:
             native = False
         if native and self.fnames[nat.fc] is None:
             native = False
-        if alen > 6 + MBAP_CLEAN:  # MBAP length 255: marked malformed by the framing
-            native = False
-        if native and self.udp_sids and sid in self.udp_sids:
-            native = False  # Modbus/UDP: the reference's lines ("transport":"udp")
+        if native and (alen > 6 + MBAP_CLEAN or self.any_udp):
+            native = self.stays_native(sid, alen)
         fc = nat.fc if native else 0
         if native and d == 1 and (fc == 6 or fc == 16):
             return self.prof_write_answer(bound, index, sid, ts, adu, alen, req, latency, &nat,
@@ -2030,7 +2029,7 @@ cdef class _Pass:
     cdef int on_chunk(self, int ci, int d, double ts, const uint8_t* p,
                       Py_ssize_t n) except -1:
         cdef Half* h = &self.conns[ci].h[d]
-        cdef Py_ssize_t pos, rest, old
+        cdef Py_ssize_t pos, old
         self.last_ts = ts
         self.pl_last = ts
         if ts >= self.next_tick:
@@ -2038,19 +2037,19 @@ cdef class _Pass:
             # before it are reported first, and an answer in it after the timeout is late
             self.next_tick = ts + TICK_EVERY
             self.pair_tick(ts)
-        if not h.dec:  # the pipeline makes this direction's decoder now
-            h.dec = True
-            self.dec_order.append(ci * 2 + d)
-        if h.ref:
-            return self.ref_chunk(ci, d, ts, p, n)
+        if h.dstate != 1:
+            if h.dstate == 0:  # the pipeline makes this direction's decoder now
+                self.new_dec(ci, d)
+            else:
+                return self.ref_chunk(ci, d, ts, p, n)
         if h.blen == 0:
             pos = self.frames_of(ci, d, ts, p, n)
+            if pos == n:
+                return 0
             if self.stopped:
                 return self.ref_chunk(ci, d, ts, p + pos, n - pos)
-            rest = n - pos
-            if rest:
-                self.hold(ci, d, p + pos, rest)
-                self.conns[ci].h[d].bts = ts
+            self.hold(ci, d, p + pos, n - pos)
+            self.conns[ci].h[d].bts = ts
         else:
             old = h.blen
             self.hold(ci, d, p, n)
@@ -2072,6 +2071,13 @@ cdef class _Pass:
                     h.bts = ts
         return 0
 
+    cdef int new_dec(self, int ci, int d) except -1:
+        """The pipeline makes direction ``d``'s decoder (its first bytes): kept in order
+        (the pipeline's finish flushes its decoders in the order they were made)."""
+        self.conns[ci].h[d].dstate = 1
+        self.dec_order.append(ci * 2 + d)
+        return 0
+
     # ------------------------------------------------------------------ noise (the reference)
     #
     # Bytes that are no clean MBAP header (noise, its resynchronisation, length 255) and
@@ -2086,7 +2092,7 @@ cdef class _Pass:
         holding the bytes the core holds (they arrived at ``bts``; nothing frames)."""
         cdef Half* h = &self.conns[ci].h[d]
         cdef int key = ci * 2 + d
-        if h.ref:
+        if h.dstate == 2:
             return self.mdecs[key]
         dec = MbapDecoder(self.stream_obj(self.conns[ci].sid),
                           Direction.S2C if d else Direction.C2S, silence=self.timeout)
@@ -2094,7 +2100,7 @@ cdef class _Pass:
         if h.blen:
             dec.feed(PyBytes_FromStringAndSize(<const char*>h.buf, h.blen), h.bts)
             h.blen = 0
-        h.ref = True
+        h.dstate = 2
         self.mdecs[key] = dec
         return dec
 
@@ -2108,7 +2114,7 @@ cdef class _Pass:
         items = dec.feed(data, ts)
         if dec.synced and not dec._noise:  # in sync again: the core frames from here
             h = &self.conns[ci].h[d]
-            h.ref = False
+            h.dstate = 1
             del self.mdecs[ci * 2 + d]
             held = dec._buf
             if len(held):
@@ -2144,13 +2150,13 @@ cdef class _Pass:
         """The decoder of direction ``d`` flushes (its stream ended, or the input):
         an incomplete ADU becomes noise, a resync candidate is judged; it is gone."""
         cdef Half* h = &self.conns[ci].h[d]
-        if not h.dec:
+        if h.dstate == 0:
             return 0
-        h.dec = False
-        if not h.ref and not h.blen:
+        if h.dstate == 1 and not h.blen:
+            h.dstate = 0
             return 0
         dec = self.ref_decoder(ci, d)
-        self.conns[ci].h[d].ref = False
+        self.conns[ci].h[d].dstate = 0
         del self.mdecs[ci * 2 + d]
         return self.ref_items(ci, d, dec.flush(ts))
 
@@ -2213,8 +2219,7 @@ cdef class _Pass:
             c.h[d].blen = 0
             c.h[d].bcap = 0
             c.h[d].bts = 0.0
-            c.h[d].dec = False
-            c.h[d].ref = False
+            c.h[d].dstate = 0
         c.connected = False
         c.closed = False
         c.open_ = False
@@ -2355,11 +2360,11 @@ cdef class _Pass:
         """The decoder of direction ``d`` resets (a gap): held bytes and the noise run
         become noise ("discarded after gap"); the next bytes start an ADU."""
         cdef Half* h = &self.conns[ci].h[d]
-        if not h.dec or (not h.ref and not h.blen):
+        if h.dstate == 0 or (h.dstate == 1 and not h.blen):
             return 0
         dec = self.ref_decoder(ci, d)
         items = dec.reset(ts)
-        self.conns[ci].h[d].ref = False
+        self.conns[ci].h[d].dstate = 1
         del self.mdecs[ci * 2 + d]
         return self.ref_items(ci, d, items)
 
@@ -2427,6 +2432,10 @@ cdef class _Pass:
         if conn is None:
             conn = self.pyconns[ci] = self.py_tcp(ci)
             self.conns[ci].tref = True
+            # the reference's state is the connection's now: the core's halves say
+            # "none" (-2: no sequence number), so the core's fast path never takes it
+            self.conns[ci].h[0].nxt = -2
+            self.conns[ci].h[1].nxt = -2
         out = []
         conn.segment(ts, from_client, seq & MASK, ack & MASK, flags,
                      PyBytes_FromStringAndSize(<const char*>p, n) if n else b"", out)
@@ -2513,8 +2522,6 @@ cdef class _Pass:
         cdef int d = 0 if from_client else 1
         cdef Half* half = &c.h[d]
         cdef Half* other = &c.h[1 - d]
-        if c.tref:
-            return self.ref_segment(ci, from_client, ts, seq, ack, flags, p, n)
         if not flags & 0x07 and half.nxt == seq and half.fin < 0:
             if c.closed:
                 return 0  # payload after the end: counted and dropped (after_close)
@@ -2523,6 +2530,8 @@ cdef class _Pass:
             if n:
                 self.deliver(ci, d, ts, p, n)
             return 0
+        if c.tref:  # (its halves' nxt is -2: never the fast path above)
+            return self.ref_segment(ci, from_client, ts, seq, ack, flags, p, n)
         if c.closed:
             return 0  # payload after the end: counted and dropped
         if not flags & RST and self.needs_ref(ci, d, seq, flags, n):
@@ -2839,6 +2848,12 @@ cdef class _Pass:
 
     # ------------------------------------------------------------------ UDP
 
+    cdef bint stays_native(self, int sid, int alen) except -1:
+        """Whether a frame the core could write is written here after all: not one of
+        MBAP length 255 (the reference's way: marked malformed by the framing) nor one
+        of a Modbus/UDP stream (the reference's lines: ``"transport":"udp"``)."""
+        return alen <= 6 + MBAP_CLEAN and sid not in self.udp_sids
+
     cdef int udp_datagram(self, double ts, const uint8_t* addrs, int alen,
                           const uint8_t[::1] buf, Py_ssize_t l4, Py_ssize_t ip_end) except -1:
         """A UDP datagram on a Modbus port (``_udp_general``): one chunk of its pair's
@@ -2866,6 +2881,7 @@ cdef class _Pass:
             ci = self.alloc_conn(addrs, alen, sport, dport, sender_client)
             self.conns[ci].udp = True
             self.udp_sids.add(self.conns[ci].sid)
+            self.any_udp = True
             got = ci * 2 + (1 if sender_client else 0)
             self.udp_pairs[key] = got
             self.udp_pairs[bytes(addrs[alen:2 * alen]) + bytes(addrs[:alen]) + bytes(
@@ -2877,9 +2893,9 @@ cdef class _Pass:
             self.mcap_chunk(self.conns[ci].sid, d, ts, &buf[l4 + 8], ulen - 8)
         self.on_chunk(ci, d, ts, &buf[l4 + 8], ulen - 8)
         # the datagram's end: the decoder flushes (an incomplete ADU, noise) and is as new
-        if self.conns[ci].h[d].ref or self.conns[ci].h[d].blen:
+        if self.conns[ci].h[d].dstate == 2 or self.conns[ci].h[d].blen:
             dec = self.ref_decoder(ci, d)
-            self.conns[ci].h[d].ref = False
+            self.conns[ci].h[d].dstate = 1
             del self.mdecs[ci * 2 + d]
             self.ref_items(ci, d, dec.flush(ts))
         return 0
