@@ -824,8 +824,6 @@ cdef class _Pass:
     cdef public bint live       # the streaming entry: it hands such packets over instead
     # Modbus/UDP: pairs by both directions' keys (as flows), their stream ids
     cdef dict udp_pairs
-    cdef set udp_sids
-    cdef bint any_udp
 
     def __cinit__(self):
         self.marks = NULL
@@ -894,8 +892,6 @@ cdef class _Pass:
         self.dec_order = []
         self.pyconns = {}
         self.udp_pairs = {}
-        self.udp_sids = set()
-        self.any_udp = False
         self.tcp_stats = TcpStats()
         self.live = False
         self.open_order = []
@@ -978,25 +974,25 @@ cdef class _Pass:
         return 0
 
     cdef object stream_obj(self, int sid):
-        cdef Conn* c
         while len(self.streams) <= sid:
             self.streams.append(None)
             self.labels.append(None)
             self.heads.append(None)
         s = self.streams[sid]
         if s is None:
-            c = &self.conns[self.conn_of_sid(sid)]
-            if c.alen == 4:
-                client = "%d.%d.%d.%d:%d" % (c.caddr[0], c.caddr[1], c.caddr[2], c.caddr[3],
-                                             c.cport)
-                server = "%d.%d.%d.%d:%d" % (c.saddr[0], c.saddr[1], c.saddr[2], c.saddr[3],
-                                             c.sport)
-            else:  # the flow table's own text of an IPv6 endpoint
-                client = address_text(bytes(c.caddr[:16]), c.cport)
-                server = address_text(bytes(c.saddr[:16]), c.sport)
-            s = Stream(sid, Transport.UDP if c.udp else Transport.TCP, client, server)
-            self.streams[sid] = s
+            s = self.streams[sid] = self.make_stream(sid)
         return s
+
+    cdef object make_stream(self, int sid):
+        """The Stream of ``sid`` (its endpoints as the flow table writes them)."""
+        cdef Conn* c = &self.conns[self.conn_of_sid(sid)]
+        if c.alen == 4:
+            client = "%d.%d.%d.%d:%d" % (c.caddr[0], c.caddr[1], c.caddr[2], c.caddr[3], c.cport)
+            server = "%d.%d.%d.%d:%d" % (c.saddr[0], c.saddr[1], c.saddr[2], c.saddr[3], c.sport)
+        else:  # the flow table's own text of an IPv6 endpoint
+            client = address_text(bytes(c.caddr[:16]), c.cport)
+            server = address_text(bytes(c.saddr[:16]), c.sport)
+        return Stream(sid, Transport.UDP if c.udp else Transport.TCP, client, server)
 
     cdef int conn_of_sid(self, int sid) except -1:
         return self._sid_conn[sid]
@@ -1070,8 +1066,6 @@ cdef class _Pass:
             native = False
         if native and nat.exc >= 0 and self.enames[nat.exc] is None:
             native = False
-        if native and (alen > 6 + MBAP_CLEAN or self.any_udp):
-            native = self.stays_native(sid, alen)
         if native and self.mcap is not None and not self.mcap_fast(ts):
             native = False  # a stats event is due, or a time MCAP clamps: the layout's way
         if not native:
@@ -1574,8 +1568,6 @@ cdef class _Pass:
             native = False
         if native and self.fnames[nat.fc] is None:
             native = False
-        if native and (alen > 6 + MBAP_CLEAN or self.any_udp):
-            native = self.stays_native(sid, alen)
         fc = nat.fc if native else 0
         if native and d == 1 and (fc == 6 or fc == 16):
             return self.prof_write_answer(bound, index, sid, ts, adu, alen, req, latency, &nat,
@@ -2848,12 +2840,6 @@ cdef class _Pass:
 
     # ------------------------------------------------------------------ UDP
 
-    cdef bint stays_native(self, int sid, int alen) except -1:
-        """Whether a frame the core could write is written here after all: not one of
-        MBAP length 255 (the reference's way: marked malformed by the framing) nor one
-        of a Modbus/UDP stream (the reference's lines: ``"transport":"udp"``)."""
-        return alen <= 6 + MBAP_CLEAN and sid not in self.udp_sids
-
     cdef int udp_datagram(self, double ts, const uint8_t* addrs, int alen,
                           const uint8_t[::1] buf, Py_ssize_t l4, Py_ssize_t ip_end) except -1:
         """A UDP datagram on a Modbus port (``_udp_general``): one chunk of its pair's
@@ -2880,8 +2866,6 @@ cdef class _Pass:
                 sender_client = self.port_map[dport]
             ci = self.alloc_conn(addrs, alen, sport, dport, sender_client)
             self.conns[ci].udp = True
-            self.udp_sids.add(self.conns[ci].sid)
-            self.any_udp = True
             got = ci * 2 + (1 if sender_client else 0)
             self.udp_pairs[key] = got
             self.udp_pairs[bytes(addrs[alen:2 * alen]) + bytes(addrs[:alen]) + bytes(
@@ -2891,13 +2875,19 @@ cdef class _Pass:
         d = 0 if got & 1 else 1
         if self.mcap is not None:
             self.mcap_chunk(self.conns[ci].sid, d, ts, &buf[l4 + 8], ulen - 8)
-        self.on_chunk(ci, d, ts, &buf[l4 + 8], ulen - 8)
-        # the datagram's end: the decoder flushes (an incomplete ADU, noise) and is as new
-        if self.conns[ci].h[d].dstate == 2 or self.conns[ci].h[d].blen:
-            dec = self.ref_decoder(ci, d)
-            self.conns[ci].h[d].dstate = 1
-            del self.mdecs[ci * 2 + d]
-            self.ref_items(ci, d, dec.flush(ts))
+        global _ref_lines
+        _ref_lines = True  # its frames' lines the reference's ("transport":"udp")
+        try:
+            self.on_chunk(ci, d, ts, &buf[l4 + 8], ulen - 8)
+            # the datagram's end: the decoder flushes (an incomplete ADU, noise) and is
+            # as new
+            if self.conns[ci].h[d].dstate == 2 or self.conns[ci].h[d].blen:
+                dec = self.ref_decoder(ci, d)
+                self.conns[ci].h[d].dstate = 1
+                del self.mdecs[ci * 2 + d]
+                self.ref_items(ci, d, dec.flush(ts))
+        finally:
+            _ref_lines = False
         return 0
 
     cdef int detect_segment(self, double ts, bytes addrs, int sport, int dport, int64_t seq,
@@ -3150,12 +3140,17 @@ _init_kinds()
 # --------------------------------------------------------------------------- PDUs
 
 
+cdef bint _ref_lines = False  # the frames being paired are Modbus/UDP's (udp_datagram)
+
+
 cdef bint native_pdu(const uint8_t* d, int n, bint response, Native* req, Native* out):
     """Decode the PDUs whose line this module writes (``pdu._well_formed``'s cases,
     exceptions, answers whose request changes nothing or only trims bits); False
-    for every other PDU, which the reference decoder and formatter take."""
+    for every other PDU, which the reference decoder and formatter take: also one
+    longer than the spec's 253 bytes (MBAP length 255, marked malformed by the
+    framing) and every PDU of a Modbus/UDP stream (its lines say "transport":"udp")."""
     cdef int fc, bc, address, count, value
-    if n < 1:
+    if n < 1 or n > 253 or _ref_lines:
         return False
     fc = d[0] & 0x7F
     out.fc = fc
