@@ -10,7 +10,7 @@ places, both here:
   capture file to the console (``--json`` allowed) and/or one MCAP log
   (``-w x.mcap``) is declined at once;
 * by the input (:func:`read_file`): the core's first pass reads the whole
-  capture and only decides; a decline there (a gap, noise, a link type it does
+  capture and only decides; a decline there (a gap, a link type it does
   not cover, ...) comes before any output. Only when nothing declined does the
   second pass write.
 
@@ -297,6 +297,8 @@ def _counts(done: Any) -> dict[str, Any]:
         "last": done.last if done.any_record else None,
         "events": dict(done.events),
         "commands": done.command_counts() if hasattr(done, "command_counts") else None,
+        "noise_records": done.noise_records,
+        "noise_bytes": done.noise_bytes,
     }
 
 
@@ -308,6 +310,8 @@ def fill_summary(summary: Any, counts: dict[str, Any]) -> None:
     summary.first = counts["first"]
     summary.last = counts["last"]
     summary.events.update(counts["events"])
+    summary.noise_records += counts.get("noise_records", 0)  # MBAP noise (no CRC errors)
+    summary.noise_bytes += counts.get("noise_bytes", 0)
     if counts.get("commands") is not None:  # --profile: robot commands by outcome, warnings
         commands, warnings = counts["commands"]
         summary.commands.update(commands)

@@ -63,6 +63,7 @@ cdef class _Live(_Pass):
 
     def __init__(self, bint as_json, double timeout, ports, view, write, new_stream=None):
         _Pass.__init__(self, True, as_json, timeout, ports, view, write, False)
+        self.live = True  # a replaced connection, holes: handed over (seg_check), not taken
         self.new_stream = new_stream
         self.idle_due = INFINITY
         self.next_sweep = -INFINITY

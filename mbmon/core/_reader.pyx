@@ -52,6 +52,11 @@ from mbmon.model import Chunk
 from mbmon.model import Kind, Transaction, TxStatus
 from mbmon.protocol.pairing import _needs_request
 from mbmon.protocol.pdu import decode_pdu
+from mbmon.model import Noise
+from mbmon.protocol.mbap import DEFAULT_MAX_LENGTH as _MBAP_MAX, MbapDecoder
+from mbmon.protocol.pdu import with_malformed
+from mbmon.sources.flows import _TCP_HOLD_LIMIT, address_text
+from mbmon.sources.tcpflow import TcpConnection, TcpStats
 
 
 class Declined(Exception):
@@ -63,12 +68,17 @@ DEF REUSE_DISTANCE = 1 << 20
 DEF CLOSED_LINGER = 60.0
 DEF MAX_CLOSED = 4096
 DEF MAX_OPEN = 9000            # the dissector evicts at 10,000 open connections
+DEF MAX_UDP = 9000             # ... and at 10,000 UDP pairs
 DEF MAX_PENDING_STREAM = 9000  # the pairer evicts at 10,000 per stream
 DEF MAX_PENDING_TOTAL = 90000  # ... and 100,000 in all
 DEF TICK_EVERY = 0.1
 DEF MAX_RECORD = 1 << 26
 DEF FLUSH_AT = 1 << 20
 DEF RELEASE_EVERY = 1 << 24  # a multiple of every page size
+DEF MBAP_CLEAN = 254          # the largest clean MBAP length (mbap.DEFAULT_MAX_LENGTH)
+
+if _MBAP_MAX != MBAP_CLEAN:
+    raise ImportError("the core's MBAP length limit is not the reference's")
 
 cdef int FIN = 0x01, SYN = 0x02, RST = 0x04, ACK = 0x10
 # 32-bit sequence arithmetic as C constants (a literal above C int range is a Python int)
@@ -449,6 +459,10 @@ cdef struct Half:
     uint8_t* buf           # MBAP bytes held (an ADU not complete yet)
     int blen
     int bcap
+    double bts             # when the first byte held arrived (the decoder's _buf_ts)
+    uint8_t dstate         # the pipeline's decoder of this direction: 0 none yet (no
+    #                        bytes came), 1 framed here, 2 by the reference MbapDecoder
+    #                        (noise: see ref_chunk)
 
 
 cdef struct Conn:
@@ -457,9 +471,12 @@ cdef struct Conn:
     bint connected
     bint closed
     bint open_             # in the dissector's open connections
+    bint tref              # the reference TcpConnection reassembles it (see ref_segment)
     int fin_by             # 0 none, 1 client, 2 server
-    uint8_t caddr[4]
-    uint8_t saddr[4]
+    uint8_t caddr[16]      # IPv4: the first 4 bytes
+    uint8_t saddr[16]
+    int alen               # address length: 4 (IPv4) or 16 (IPv6)
+    bint udp               # a UDP pair (Modbus/UDP), not a TCP connection
     int cport
     int sport
 
@@ -851,6 +868,17 @@ cdef class _Pass:
     cdef object cmd_summary     # a Summary fed the COMMAND records (the summary's commands)
     cdef Py_ssize_t* marks      # where each note of the line being written starts and ends
     cdef int capmarks
+    # noise: directions the reference decoder frames (see "noise (the reference)")
+    cdef bint stopped           # frames_of stopped at bytes that are no clean header
+    cdef dict mdecs             # conn * 2 + direction -> its MbapDecoder
+    cdef list dec_order         # conn * 2 + direction, in the order bytes first came
+    cdef public int64_t noise_records, noise_bytes
+    # TCP holes: connections the reference TcpConnection reassembles (see ref_segment)
+    cdef dict pyconns           # conn -> its TcpConnection
+    cdef object tcp_stats       # their TcpStats (the dissector's, not shown by read)
+    cdef public bint live       # the streaming entry: it hands such packets over instead
+    # Modbus/UDP: pairs by both directions' keys (as flows), their stream ids
+    cdef dict udp_pairs
 
     def __cinit__(self):
         self.marks = NULL
@@ -915,6 +943,12 @@ cdef class _Pass:
         self.progress_base = 0
         self.next_progress = 0
         self.flows = {}
+        self.mdecs = {}
+        self.dec_order = []
+        self.pyconns = {}
+        self.udp_pairs = {}
+        self.tcp_stats = TcpStats()
+        self.live = False
         self.open_order = []
         self.nopen = 0
         self.closed_fifo = []
@@ -995,19 +1029,25 @@ cdef class _Pass:
         return 0
 
     cdef object stream_obj(self, int sid):
-        cdef Conn* c
         while len(self.streams) <= sid:
             self.streams.append(None)
             self.labels.append(None)
             self.heads.append(None)
         s = self.streams[sid]
         if s is None:
-            c = &self.conns[self.conn_of_sid(sid)]
+            s = self.streams[sid] = self.make_stream(sid)
+        return s
+
+    cdef object make_stream(self, int sid):
+        """The Stream of ``sid`` (its endpoints as the flow table writes them)."""
+        cdef Conn* c = &self.conns[self.conn_of_sid(sid)]
+        if c.alen == 4:
             client = "%d.%d.%d.%d:%d" % (c.caddr[0], c.caddr[1], c.caddr[2], c.caddr[3], c.cport)
             server = "%d.%d.%d.%d:%d" % (c.saddr[0], c.saddr[1], c.saddr[2], c.saddr[3], c.sport)
-            s = Stream(sid, Transport.TCP, client, server)
-            self.streams[sid] = s
-        return s
+        else:  # the flow table's own text of an IPv6 endpoint
+            client = address_text(bytes(c.caddr[:16]), c.cport)
+            server = address_text(bytes(c.saddr[:16]), c.sport)
+        return Stream(sid, Transport.UDP if c.udp else Transport.TCP, client, server)
 
     cdef int conn_of_sid(self, int sid) except -1:
         return self._sid_conn[sid]
@@ -1278,12 +1318,17 @@ cdef class _Pass:
         raw = PyBytes_FromStringAndSize(<const char*>adu, alen)
         tid = (adu[0] << 8) | adu[1]
         pdu = decode_pdu(raw[7:], d == 1)
+        if alen > 6 + MBAP_CLEAN:  # the decoder's mark of an MBAP length 255
+            pdu = with_malformed(pdu, "MBAP length %d exceeds %d" % (alen - 6, MBAP_CLEAN))
         request = None
         req_index = None
         lat = None
         if req != NULL:
             req_raw = PyBytes_FromStringAndSize(<const char*>req.raw, req.alen)
             req_pdu = decode_pdu(req_raw[7:], False)
+            if req.alen > 6 + MBAP_CLEAN:
+                req_pdu = with_malformed(req_pdu, "MBAP length %d exceeds %d"
+                                         % (req.alen - 6, MBAP_CLEAN))
             request = Frame(req.ts, stream, Direction.C2S, req.unit, req.tid, req_pdu, req_raw,
                             None)
             if _needs_request(pdu, req_pdu):
@@ -2016,9 +2061,12 @@ cdef class _Pass:
 
     cdef Py_ssize_t frames_of(self, int ci, int d, double ts, const uint8_t* p,
                               Py_ssize_t n) except -1:
-        """Frame every whole ADU of ``p[:n]``; the offset of the first byte left."""
+        """Frame every whole ADU of ``p[:n]``; the offset of the first byte left.
+        ``stopped``: framing stopped there at bytes that are no clean MBAP header
+        (noise, or length 255): the reference decoder takes the direction from there."""
         cdef Py_ssize_t pos = 0, end
         cdef int length
+        self.stopped = False
         while n - pos >= 6:
             if p[pos + 2] == 0 and p[pos + 3] == 0:
                 length = (p[pos + 4] << 8) | p[pos + 5]
@@ -2029,15 +2077,14 @@ cdef class _Pass:
                     self.on_frame(ci, d, ts, p + pos, 6 + length)
                     pos = end
                     continue
-                if length == 255:
-                    raise Declined("an MBAP length of 255 (decoded, marked malformed)")
-            raise Declined("bytes that are no MBAP header (noise resynchronisation)")
+            self.stopped = True
+            break
         return pos
 
     cdef int on_chunk(self, int ci, int d, double ts, const uint8_t* p,
                       Py_ssize_t n) except -1:
         cdef Half* h = &self.conns[ci].h[d]
-        cdef Py_ssize_t pos, rest
+        cdef Py_ssize_t pos, old
         self.last_ts = ts
         self.pl_last = ts
         if ts >= self.next_tick:
@@ -2045,20 +2092,133 @@ cdef class _Pass:
             # before it are reported first, and an answer in it after the timeout is late
             self.next_tick = ts + TICK_EVERY
             self.pair_tick(ts)
+        if h.dstate != 1:
+            if h.dstate == 0:  # the pipeline makes this direction's decoder now
+                self.new_dec(ci, d)
+            else:
+                return self.ref_chunk(ci, d, ts, p, n)
         if h.blen == 0:
             pos = self.frames_of(ci, d, ts, p, n)
-            rest = n - pos
-            if rest:
-                self.hold(ci, d, p + pos, rest)
+            if pos == n:
+                return 0
+            if self.stopped:
+                return self.ref_chunk(ci, d, ts, p + pos, n - pos)
+            self.hold(ci, d, p + pos, n - pos)
+            self.conns[ci].h[d].bts = ts
         else:
+            old = h.blen
             self.hold(ci, d, p, n)
             h = &self.conns[ci].h[d]
             pos = self.frames_of(ci, d, ts, h.buf, h.blen)
             h = &self.conns[ci].h[d]
+            if self.stopped:
+                # held bytes of 6 or more start a header, so framing stopped in this
+                # chunk's bytes, or at the start of fewer held ones (kept, with their time)
+                if pos < old:
+                    h.blen = <int>old
+                    return self.ref_chunk(ci, d, ts, p, n)
+                h.blen = 0
+                return self.ref_chunk(ci, d, ts, p + (pos - old), n - (pos - old))
             if pos:
                 memmove(h.buf, h.buf + pos, h.blen - pos)
                 h.blen -= <int>pos
+                if pos >= old:
+                    h.bts = ts
         return 0
+
+    cdef int new_dec(self, int ci, int d) except -1:
+        """The pipeline makes direction ``d``'s decoder (its first bytes): kept in order
+        (the pipeline's finish flushes its decoders in the order they were made)."""
+        self.conns[ci].h[d].dstate = 1
+        self.dec_order.append(ci * 2 + d)
+        return 0
+
+    # ------------------------------------------------------------------ noise (the reference)
+    #
+    # Bytes that are no clean MBAP header (noise, its resynchronisation, length 255) and
+    # an incomplete ADU at a stream's end are rare: the direction is framed by the
+    # reference's own MbapDecoder from there (made with the bytes the core held, at the
+    # time they arrived), its frames paired and written by the core, its noise records
+    # formatted by mbmon.format. Once the decoder is in sync again with no noise run
+    # open, the core frames the direction again from the bytes the decoder holds.
+
+    cdef object ref_decoder(self, int ci, int d):
+        """The reference decoder of direction ``d``: the one framing it, or a new one
+        holding the bytes the core holds (they arrived at ``bts``; nothing frames)."""
+        cdef Half* h = &self.conns[ci].h[d]
+        cdef int key = ci * 2 + d
+        if h.dstate == 2:
+            return self.mdecs[key]
+        dec = MbapDecoder(self.stream_obj(self.conns[ci].sid),
+                          Direction.S2C if d else Direction.C2S, silence=self.timeout)
+        h = &self.conns[ci].h[d]
+        if h.blen:
+            dec.feed(PyBytes_FromStringAndSize(<const char*>h.buf, h.blen), h.bts)
+            h.blen = 0
+        h.dstate = 2
+        self.mdecs[key] = dec
+        return dec
+
+    cdef int ref_chunk(self, int ci, int d, double ts, const uint8_t* p,
+                       Py_ssize_t n) except -1:
+        """A chunk's bytes (from the first the core did not frame) through the reference
+        decoder (made with the bytes the core holds, which came before them)."""
+        cdef Half* h
+        data = PyBytes_FromStringAndSize(<const char*>p, n)
+        dec = self.ref_decoder(ci, d)
+        items = dec.feed(data, ts)
+        if dec.synced and not dec._noise:  # in sync again: the core frames from here
+            h = &self.conns[ci].h[d]
+            h.dstate = 1
+            del self.mdecs[ci * 2 + d]
+            held = dec._buf
+            if len(held):
+                self.hold(ci, d, held, len(held))
+                self.conns[ci].h[d].bts = dec._buf_ts
+        return self.ref_items(ci, d, items)
+
+    cdef int ref_items(self, int ci, int d, list items) except -1:
+        """The reference decoder's frames (paired here) and noise runs, in order."""
+        cdef const uint8_t* raw
+        for item in items:
+            if isinstance(item, Frame):
+                data = item.raw
+                raw = data
+                self.on_frame(ci, d, item.ts, raw, len(data))
+            else:
+                self.noise_record(ci, item)
+        return 0
+
+    cdef int noise_record(self, int ci, object noise) except -1:
+        """A noise run's record (the pipeline's ``_record``), formatted by mbmon.format."""
+        cdef int64_t index = self.index
+        cdef int sid = self.conns[ci].sid
+        self.noise_records += 1
+        self.noise_bytes += len(noise.raw)
+        self.count_record(noise.ts, sid)
+        if not self.emit:
+            return 0
+        return self.put_record(Record(index, noise.ts, RecordKind.NOISE, noise.stream,
+                                      noise=noise))
+
+    cdef int flush_dir(self, int ci, int d, double ts) except -1:
+        """The decoder of direction ``d`` flushes (its stream ended, or the input):
+        an incomplete ADU becomes noise, a resync candidate is judged; it is gone."""
+        cdef Half* h = &self.conns[ci].h[d]
+        if h.dstate == 0:
+            return 0
+        if h.dstate == 1 and not h.blen:
+            h.dstate = 0
+            return 0
+        dec = self.ref_decoder(ci, d)
+        self.conns[ci].h[d].dstate = 0
+        del self.mdecs[ci * 2 + d]
+        return self.ref_items(ci, d, dec.flush(ts))
+
+    cdef int close_stream(self, int ci, double ts) except -1:
+        """The pipeline's DISCONNECT: the stream's decoders flush (held bytes: noise)."""
+        self.flush_dir(ci, 0, ts)
+        return self.flush_dir(ci, 1, ts)
 
     cdef int hold(self, int ci, int d, const uint8_t* p, Py_ssize_t n) except -1:
         cdef Half* h = &self.conns[ci].h[d]
@@ -2079,33 +2239,20 @@ cdef class _Pass:
         h.blen += <int>n
         return 0
 
-    cdef int close_stream(self, int ci) except -1:
-        """The pipeline's DISCONNECT: the stream's decoders flush (held bytes: noise)."""
-        if self.conns[ci].h[0].blen or self.conns[ci].h[1].blen:
-            raise Declined("an incomplete ADU when its connection ended (noise)")
-        return 0
-
     # ------------------------------------------------------------------ TCP
 
     cdef int new_conn(self, bytes key, const uint8_t* addrs, int sport, int dport, int flags,
                       double ts) except -1:
-        """A new connection on ``key`` (dissector ``_new_tcp``); returns flow value."""
-        cdef bint src_in = self.port_map[sport], dst_in = self.port_map[dport]
-        cdef bint sender_client
+        """A new IPv4 connection on ``key`` (dissector ``_new_tcp``); returns flow value."""
+        return self.open_conn(key, addrs, 4, sport, dport, flags, ts)
+
+    cdef int alloc_conn(self, const uint8_t* addrs, int alen, int sport, int dport,
+                        bint sender_client) except -1:
+        """A new flow's entry and stream id (``addrs``: source then destination address,
+        ``alen`` bytes each); its index."""
         cdef int ci, cap, d
         cdef Conn* c
         cdef Conn* nc
-        if src_in and dst_in:
-            if flags & (SYN | ACK) == SYN:
-                sender_client = True
-            elif flags & (SYN | ACK) == (SYN | ACK):
-                sender_client = False
-            else:
-                sender_client = dport <= sport
-        else:
-            sender_client = dst_in
-        if self.nopen >= MAX_OPEN:
-            raise Declined("more open connections than the core keeps")
         if self.nconns == self.capconns:
             cap = self.capconns * 2 if self.capconns else 64
             nc = <Conn*>realloc(self.conns, cap * sizeof(Conn))
@@ -2126,23 +2273,49 @@ cdef class _Pass:
             c.h[d].buf = NULL
             c.h[d].blen = 0
             c.h[d].bcap = 0
+            c.h[d].bts = 0.0
+            c.h[d].dstate = 0
         c.connected = False
         c.closed = False
-        c.open_ = True
+        c.open_ = False
+        c.tref = False
+        c.udp = False
         c.fin_by = 0
+        c.alen = alen
         if sender_client:
-            memcpy(c.caddr, addrs, 4)
-            memcpy(c.saddr, addrs + 4, 4)
+            memcpy(c.caddr, addrs, alen)
+            memcpy(c.saddr, addrs + alen, alen)
             c.cport = sport
             c.sport = dport
         else:
-            memcpy(c.caddr, addrs + 4, 4)
-            memcpy(c.saddr, addrs, 4)
+            memcpy(c.caddr, addrs + alen, alen)
+            memcpy(c.saddr, addrs, alen)
             c.cport = dport
             c.sport = sport
+        return ci
+
+    cdef int open_conn(self, bytes key, const uint8_t* addrs, int alen, int sport, int dport,
+                       int flags, double ts) except -1:
+        """A new connection on ``key`` (dissector ``_new_tcp``); returns flow value."""
+        cdef bint src_in = self.port_map[sport], dst_in = self.port_map[dport]
+        cdef bint sender_client
+        cdef int ci
+        if src_in and dst_in:
+            if flags & (SYN | ACK) == SYN:
+                sender_client = True
+            elif flags & (SYN | ACK) == (SYN | ACK):
+                sender_client = False
+            else:
+                sender_client = dport <= sport
+        else:
+            sender_client = dst_in
+        if self.nopen >= MAX_OPEN:
+            raise Declined("more open connections than the core keeps")
+        ci = self.alloc_conn(addrs, alen, sport, dport, sender_client)
+        self.conns[ci].open_ = True
         self.open_order.append(ci)
         self.nopen += 1
-        rkey = bytes(addrs[4:8]) + bytes(addrs[0:4]) + bytes(
+        rkey = bytes(addrs[alen:2 * alen]) + bytes(addrs[0:alen]) + bytes(
             ((dport >> 8, dport & 255, sport >> 8, sport & 255)))
         self.flows[key] = ci * 2 + (1 if sender_client else 0)
         self.flows[rkey] = ci * 2 + (0 if sender_client else 1)
@@ -2158,9 +2331,9 @@ cdef class _Pass:
     cdef int forget(self, int ci) except -1:
         """Drop a connection's two keys (unless a newer connection took them)."""
         cdef Conn* c = &self.conns[ci]
-        k1 = bytes(c.caddr[:4]) + bytes(c.saddr[:4]) + bytes(
+        k1 = bytes(c.caddr[:c.alen]) + bytes(c.saddr[:c.alen]) + bytes(
             (c.cport >> 8, c.cport & 255, c.sport >> 8, c.sport & 255))
-        k2 = bytes(c.saddr[:4]) + bytes(c.caddr[:4]) + bytes(
+        k2 = bytes(c.saddr[:c.alen]) + bytes(c.caddr[:c.alen]) + bytes(
             (c.sport >> 8, c.sport & 255, c.cport >> 8, c.cport & 255))
         for k in (k1, k2):
             v = self.flows.get(k)
@@ -2197,8 +2370,11 @@ cdef class _Pass:
         self.due = fifo[0][1] if fifo else float("inf")
         return 0
 
-    cdef bint is_new(self, int ci, bint from_client, int64_t seq, int flags, bint has_payload):
+    cdef bint is_new(self, int ci, bint from_client, int64_t seq, int flags,
+                     bint has_payload) except -1:
         cdef Conn* c = &self.conns[ci]
+        if c.tref:
+            return self.pyconns[ci].is_new(from_client, seq, flags, has_payload)
         cdef Half* half = &c.h[0 if from_client else 1]
         cdef Half* other = &c.h[1 if from_client else 0]
         cdef int syn_ack = flags & (SYN | ACK)
@@ -2214,15 +2390,164 @@ cdef class _Pass:
             return half.nxt < 0 or abs(signed32(seq - half.nxt)) > REUSE_DISTANCE
         return False
 
-    cdef int acked(self, int ci, int d, int64_t ack) except -1:
-        """The peer acknowledged bytes this direction never showed (``acked-unseen``)."""
+    cdef int acked(self, int ci, int d, double ts, int64_t ack) except -1:
+        """The peer acknowledged bytes this direction never showed (``_acked``): they
+        were lost by the capture, a GAP (``acked-unseen``) skips them. Here nothing is
+        held behind a hole and a FIN seen is reached: the GAP runs up to ``ack``."""
         cdef Half* other = &self.conns[ci].h[d]
         cdef int64_t diff
         if other.nxt >= 0 and not other.done:
             diff = (ack - other.nxt) & MASK
             if 0 < diff <= MAX_ACK_JUMP:
-                raise Declined("bytes the capture missed (an ACK beyond them: a gap)")
+                other.nxt = ack & MASK
+                self.gap(ci, d, ts, diff, "acked-unseen")
         return 0
+
+    cdef int gap(self, int ci, int d, double ts, int64_t missing, str reason) except -1:
+        """A GAP event of direction ``d``: the pipeline resets the direction's decoder
+        (what it held is noise), then the event's record."""
+        self.reset_dir(ci, d, ts)
+        return self.event(ts, self.conns[ci].sid, EventKind.GAP,
+                          {"direction": "s2c" if d else "c2s", "bytes": missing,
+                           "reason": reason})
+
+    cdef int reset_dir(self, int ci, int d, double ts) except -1:
+        """The decoder of direction ``d`` resets (a gap): held bytes and the noise run
+        become noise ("discarded after gap"); the next bytes start an ADU."""
+        cdef Half* h = &self.conns[ci].h[d]
+        if h.dstate == 0 or (h.dstate == 1 and not h.blen):
+            return 0
+        dec = self.ref_decoder(ci, d)
+        items = dec.reset(ts)
+        self.conns[ci].h[d].dstate = 1
+        del self.mdecs[ci * 2 + d]
+        return self.ref_items(ci, d, items)
+
+    # ------------------------------------------------------------------ TCP holes (the reference)
+    #
+    # A segment that would hold bytes behind a hole (out of order) or meet a FIN ahead
+    # of bytes not seen hands its connection to the reference's own TcpConnection
+    # (made from the core's state, as the live hand-over makes it); its chunks and
+    # events are taken here in order (chunks framed by the core, GAPs resetting the
+    # decoder, DISCONNECT closing the stream). Once nothing is held and every FIN
+    # seen is reached, the core reassembles the connection again.
+
+    cdef bint needs_ref(self, int ci, int d, int64_t seq, int flags, Py_ssize_t n):
+        """Whether ``segment``'s general path would hold this segment's bytes behind a
+        hole or set a FIN ahead of bytes not seen (an open connection, no RST)."""
+        cdef Half* half = &self.conns[ci].h[d]
+        cdef int64_t nxt = half.nxt, diff, after
+        if flags & SYN and flags & FIN:
+            flags &= ~FIN
+        if flags & SYN:
+            if half.isn < 0 and nxt < 0:
+                nxt = (seq + 1) & MASK
+            seq = (seq + 1) & MASK
+        elif nxt < 0 and (n or flags & FIN):
+            nxt = seq
+        if nxt < 0:
+            return False
+        after = nxt
+        if n and not half.done:
+            diff = (seq - nxt) & MASK
+            if diff == 0:
+                after = (nxt + n) & MASK
+            elif diff & HALF:
+                if TWO32 - diff < n:
+                    after = (seq + n) & MASK
+            else:
+                return True
+        if flags & FIN and half.fin < 0 and signed32(after - ((seq + n) & MASK)) < 0:
+            return True
+        return False
+
+    cdef object py_tcp(self, int ci):
+        """Connection ``ci`` as the reference's ``TcpConnection`` (its state the core's)."""
+        cdef Conn* c = &self.conns[ci]
+        cdef int d
+        conn = TcpConnection(self.stream_obj(c.sid), limit=_TCP_HOLD_LIMIT, stats=self.tcp_stats)
+        c = &self.conns[ci]
+        for d in range(2):
+            half = conn._s2c if d else conn._c2s
+            half.nxt = None if c.h[d].nxt < 0 else c.h[d].nxt
+            half.isn = None if c.h[d].isn < 0 else c.h[d].isn
+            half.fin = None if c.h[d].fin < 0 else c.h[d].fin
+            half.done = bool(c.h[d].done)
+        conn.connected = bool(c.connected)
+        conn.closed = bool(c.closed)
+        conn.fin_by = None if c.fin_by == 0 else ("client" if c.fin_by == 1 else "server")
+        return conn
+
+    cdef int ref_segment(self, int ci, bint from_client, double ts, int64_t seq, int64_t ack,
+                         int flags, const uint8_t* p, Py_ssize_t n) except -1:
+        """One segment of a connection the reference reassembles (made so now if not)."""
+        cdef Conn* c
+        cdef int d
+        conn = self.pyconns.get(ci)
+        if conn is None:
+            conn = self.pyconns[ci] = self.py_tcp(ci)
+            self.conns[ci].tref = True
+            # the reference's state is the connection's now: the core's halves say
+            # "none" (-2: no sequence number), so the core's fast path never takes it
+            self.conns[ci].h[0].nxt = -2
+            self.conns[ci].h[1].nxt = -2
+        out = []
+        conn.segment(ts, from_client, seq & MASK, ack & MASK, flags,
+                     PyBytes_FromStringAndSize(<const char*>p, n) if n else b"", out)
+        self.ref_out(ci, out)
+        for half in (conn._c2s, conn._s2c):
+            if half.held or (half.fin is not None and not half.done):
+                return 0
+        # nothing held, every FIN seen reached: the core reassembles it again
+        c = &self.conns[ci]
+        for d in range(2):
+            half = conn._s2c if d else conn._c2s
+            c.h[d].nxt = -1 if half.nxt is None else half.nxt
+            c.h[d].isn = -1 if half.isn is None else half.isn
+            c.h[d].fin = -1 if half.fin is None else half.fin
+            c.h[d].done = half.done
+        c.connected = conn.connected
+        c.fin_by = 0 if conn.fin_by is None else (1 if conn.fin_by == "client" else 2)
+        c.tref = False
+        del self.pyconns[ci]
+        return 0
+
+    cdef int ref_out(self, int ci, list out) except -1:
+        """The chunks and events of the reference's reassembly, as the pipeline takes
+        them (and the dissector's watcher: a DISCONNECT closes the connection)."""
+        cdef int sid = self.conns[ci].sid, d
+        cdef const uint8_t* b
+        for item in out:
+            if type(item) is Chunk:
+                d = 1 if item.direction is Direction.S2C else 0
+                data = item.data
+                b = data
+                if self.mcap is not None:
+                    self.mcap_chunk(sid, d, item.ts, b, len(data))
+                self.on_chunk(ci, d, item.ts, b, len(data))
+                continue
+            kind = item.kind
+            if kind is EventKind.GAP:
+                self.gap(ci, 1 if item.info["direction"] == "s2c" else 0, item.ts,
+                         item.info["bytes"], item.info["reason"])
+            elif kind is EventKind.DISCONNECT:
+                self.event(item.ts, sid, kind, item.info)
+                self.close_stream(ci, item.ts)
+                self.closed_conn(ci, item.ts)
+            else:
+                self.event(item.ts, sid, kind, item.info or None)
+        return 0
+
+    cdef int ref_finish(self, int ci, double ts, str reason) except -1:
+        """The reference's ``finish`` of a connection it reassembles (the end of the
+        capture, or its addresses taken by a new connection)."""
+        conn = self.pyconns.pop(ci, None)
+        if conn is None:
+            return 0
+        self.conns[ci].tref = False
+        out = []
+        conn.finish(ts, out, reason)
+        return self.ref_out(ci, out)
 
     cdef int deliver(self, int ci, int d, double ts, const uint8_t* p, Py_ssize_t n) except -1:
         self.conns[ci].h[d].nxt = (self.conns[ci].h[d].nxt + n) & MASK
@@ -2246,31 +2571,32 @@ cdef class _Pass:
 
     cdef int segment(self, int ci, bint from_client, double ts, int64_t seq, int64_t ack,
                      int flags, const uint8_t* p, Py_ssize_t n) except -1:
-        """``TcpConnection.segment`` for the cases the core covers."""
+        """``TcpConnection.segment``: the core's own reassembly while nothing is held
+        behind a hole; the reference's (``ref_segment``) from a segment that would be."""
         cdef Conn* c = &self.conns[ci]
         cdef int d = 0 if from_client else 1
         cdef Half* half = &c.h[d]
         cdef Half* other = &c.h[1 - d]
         if not flags & 0x07 and half.nxt == seq and half.fin < 0:
             if c.closed:
-                if n:
-                    raise Declined("payload after its connection ended")
-                return 0
+                return 0  # payload after the end: counted and dropped (after_close)
             if flags & ACK:
-                self.acked(ci, 1 - d, ack)
+                self.acked(ci, 1 - d, ts, ack)
             if n:
                 self.deliver(ci, d, ts, p, n)
             return 0
+        if c.tref:  # (its halves' nxt is -2: never the fast path above)
+            return self.ref_segment(ci, from_client, ts, seq, ack, flags, p, n)
         if c.closed:
-            if n:
-                raise Declined("payload after its connection ended")
-            return 0
+            return 0  # payload after the end: counted and dropped
+        if not flags & RST and self.needs_ref(ci, d, seq, flags, n):
+            return self.ref_segment(ci, from_client, ts, seq, ack, flags, p, n)
         if flags & RST:
             if (half.fin >= 0 and not half.done) or (other.fin >= 0 and not other.done):
                 raise Declined("a reset before a FIN was reached (a gap)")
             self.event(ts, c.sid, EventKind.DISCONNECT,
                        {"how": "rst", "by": "client" if from_client else "server"})
-            self.close_stream(ci)
+            self.close_stream(ci, ts)
             self.closed_conn(ci, ts)
             return 0
         if flags & SYN and flags & FIN:
@@ -2286,17 +2612,16 @@ cdef class _Pass:
         elif half.nxt < 0 and (n or flags & FIN):
             half.nxt = seq
         if flags & ACK:
-            self.acked(ci, 1 - d, ack)
+            self.acked(ci, 1 - d, ts, ack)
         c = &self.conns[ci]
         half = &c.h[d]
         other = &c.h[1 - d]
         if n and half.nxt >= 0:
-            if half.done:
-                raise Declined("payload after its direction's FIN")
-            self.data(ci, d, ts, seq, p, n)
-            c = &self.conns[ci]
-            half = &c.h[d]
-            other = &c.h[1 - d]
+            if not half.done:  # else: after its direction's FIN, counted and dropped
+                self.data(ci, d, ts, seq, p, n)
+                c = &self.conns[ci]
+                half = &c.h[d]
+                other = &c.h[1 - d]
         if flags & FIN and half.fin < 0 and half.nxt >= 0:
             half.fin = (seq + n) & MASK
             if c.fin_by == 0:
@@ -2309,7 +2634,7 @@ cdef class _Pass:
                 if other.done and not c.closed:
                     self.event(ts, c.sid, EventKind.DISCONNECT,
                                {"how": "fin", "by": "client" if c.fin_by == 1 else "server"})
-                    self.close_stream(ci)
+                    self.close_stream(ci, ts)
                     self.closed_conn(ci, ts)
         return 0
 
@@ -2402,11 +2727,13 @@ cdef class _Pass:
         proto = b[9]
         l4 = off + ihl
         if proto == 17:
-            if ip_end - l4 >= 4:
+            if ip_end - l4 >= 8:
                 sport = (buf[l4] << 8) | buf[l4 + 1]
                 dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
                 if self.port_map[sport] or self.port_map[dport]:
-                    raise Declined("Modbus over UDP")
+                    if first_fragment:
+                        raise Declined("a fragmented IP packet on a Modbus port")
+                    return self.udp_datagram(ts, &buf[off + 12], 4, buf, l4, ip_end)
             return 0
         if proto != 6:
             return 0
@@ -2457,31 +2784,44 @@ cdef class _Pass:
         return self.segment(v >> 1, from_client, ts, seq, ack, flags, NULL, 0)
 
     cdef int tcp_flow(self, bytes key, const uint8_t* addrs, int v, double ts, int64_t seq,
-                      int flags, bint has_payload, int sport, int dport) except -1:
+                      int flags, bint has_payload, int sport, int dport,
+                      int alen=4) except -1:
         cdef int ci
         if v < 0:
+            if alen != 4:
+                return self.open_conn(key, addrs, alen, sport, dport, flags, ts)
             return self.new_conn(key, addrs, sport, dport, flags, ts)
         ci = v >> 1
         if (flags & SYN or self.conns[ci].closed) and self.is_new(ci, v & 1, seq, flags,
                                                                    has_payload):
             if not self.conns[ci].closed:
-                raise Declined("a connection replaced on the same addresses")
-            # a closed connection's addresses reused: the old one is forgotten
+                if self.live:
+                    raise Declined("a connection replaced on the same addresses")
+                # replaced while open: the reference gives its holes up ("replaced")
+                # and forgets it (no DISCONNECT; its stream's decoders live on)
+                self.ref_finish(ci, ts, "replaced")
+                if not self.conns[ci].closed and self.conns[ci].open_:
+                    self.conns[ci].open_ = False
+                    self.nopen -= 1
+            # the old connection is forgotten (a closed one's linger ends)
             for i, item in enumerate(self.closed_fifo):
                 if item[0] == ci:
                     del self.closed_fifo[i]
                     break
             self.forget(ci)
+            if alen != 4:
+                return self.open_conn(key, addrs, alen, sport, dport, flags, ts)
             return self.new_conn(key, addrs, sport, dport, flags, ts)
         return v
 
     cdef int ipv6(self, double ts, const uint8_t[::1] buf, Py_ssize_t off,
                   Py_ssize_t end) except -1:
-        """IPv6: declined when it carries Modbus (the ports); TCP on other ports goes to
-        port detection as the reference's general path sends it; else skipped."""
+        """IPv6 (``ipv6_header``: extension headers as the reference walks them): TCP and
+        UDP on a Modbus port are read as over IPv4 (a fragment of them declined); TCP on
+        other ports goes to port detection as the reference's general path sends it."""
         cdef Py_ssize_t ip_end, l4, plen
         cdef int proto, k, sport, dport, doff, frag
-        cdef bint short = False
+        cdef bint short = False, fragment = False
         if end - off < 40 or buf[off] >> 4 != 6:
             return 0
         plen = (buf[off + 4] << 8) | buf[off + 5]
@@ -2503,7 +2843,7 @@ cdef class _Pass:
                 if frag & 0xFFF9:
                     if frag & 0xFFF8:
                         return 0  # not the first fragment: no transport header
-                    short = True
+                    fragment = True
                 proto, l4 = buf[l4], l4 + 8
             elif proto == 51:
                 if ip_end - l4 < 8:
@@ -2511,17 +2851,106 @@ cdef class _Pass:
                 proto, l4 = buf[l4], l4 + ((buf[l4 + 1] + 2) << 2)
             else:
                 break
-        if (proto == 6 or proto == 17) and 0 <= l4 and ip_end - l4 >= 4:
+        if proto == 17 and ip_end - l4 >= 8:
             sport = (buf[l4] << 8) | buf[l4 + 1]
             dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
             if self.port_map[sport] or self.port_map[dport]:
+                if fragment:
+                    raise Declined("a fragmented IP packet on a Modbus port")
+                return self.udp_datagram(ts, &buf[off + 8], 16, buf, l4, ip_end)
+            return 0
+        if proto != 6 or ip_end - l4 < 20:
+            return 0
+        sport = (buf[l4] << 8) | buf[l4 + 1]
+        dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
+        if self.port_map[sport] or self.port_map[dport]:
+            if fragment:
+                raise Declined("a fragmented IP packet on a Modbus port")
+            if self.live:
                 raise Declined("Modbus over IPv6")
-            if self.detect and proto == 6 and ip_end - l4 >= 20 and not short:
-                doff = (buf[l4 + 12] >> 2) & 0x3C
-                if 20 <= doff <= ip_end - l4:
-                    self.detect_segment(ts, bytes(buf[off + 8:off + 40]), sport, dport,
-                                        be32(&buf[l4 + 4]), be32(&buf[l4 + 8]), buf[l4 + 13],
-                                        bytes(buf[l4 + doff:ip_end]))
+            return self.tcp6(ts, buf, off, l4, ip_end)
+        if self.detect and not short and not fragment:
+            doff = (buf[l4 + 12] >> 2) & 0x3C
+            if 20 <= doff <= ip_end - l4:
+                self.detect_segment(ts, bytes(buf[off + 8:off + 40]), sport, dport,
+                                    be32(&buf[l4 + 4]), be32(&buf[l4 + 8]), buf[l4 + 13],
+                                    bytes(buf[l4 + doff:ip_end]))
+        return 0
+
+    cdef int tcp6(self, double ts, const uint8_t[::1] buf, Py_ssize_t off, Py_ssize_t l4,
+                  Py_ssize_t ip_end) except -1:
+        """A TCP segment over IPv6 on a Modbus port (its addresses at ``off + 8``): the
+        flow table and reassembly as over IPv4 (36-byte flow keys, no cache)."""
+        cdef const uint8_t* b = &buf[l4]
+        cdef int sport = (b[0] << 8) | b[1], dport = (b[2] << 8) | b[3]
+        cdef int doff = (b[12] >> 2) & 0x3C, flags, v
+        cdef int64_t seq, ack
+        if doff < 20 or l4 + doff > ip_end:
+            return 0
+        seq = be32(b + 4)
+        ack = be32(b + 8)
+        flags = b[13]
+        key = bytes(buf[off + 8:off + 40]) + bytes(buf[l4:l4 + 4])
+        got = self.flows.get(key)
+        v = -1 if got is None else got
+        if v < 0 or flags & SYN or self.conns[v >> 1].closed:
+            v = self.tcp_flow(key, &buf[off + 8], v, ts, seq, flags, ip_end > l4 + doff,
+                              sport, dport, 16)
+        if ip_end > l4 + doff:
+            return self.segment(v >> 1, v & 1, ts, seq, ack, flags, &buf[l4 + doff],
+                                ip_end - (l4 + doff))
+        return self.segment(v >> 1, v & 1, ts, seq, ack, flags, NULL, 0)
+
+    # ------------------------------------------------------------------ UDP
+
+    cdef int udp_datagram(self, double ts, const uint8_t* addrs, int alen,
+                          const uint8_t[::1] buf, Py_ssize_t l4, Py_ssize_t ip_end) except -1:
+        """A UDP datagram on a Modbus port (``_udp_general``): one chunk of its pair's
+        stream, framed and then flushed at once (``datagram`` decoding: nothing of it
+        waits for the next one). Its frames are written the reference way."""
+        cdef int sport = (buf[l4] << 8) | buf[l4 + 1], dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
+        cdef Py_ssize_t ulen = (buf[l4 + 4] << 8) | buf[l4 + 5]
+        cdef bint sender_client
+        cdef int ci, d
+        if self.live:
+            raise Declined("Modbus over UDP")
+        if ulen < 8 or l4 + ulen > ip_end or ulen == 8:
+            return 0  # malformed, cut (half a datagram is none), or empty
+        key = bytes(addrs[:2 * alen]) + bytes(buf[l4:l4 + 4])
+        got = self.udp_pairs.get(key)
+        if got is None:
+            if len(self.udp_pairs) >= 2 * MAX_UDP:
+                raise Declined("more UDP pairs than the core keeps")
+            # _roles(key, 0): the endpoint on a Modbus port is the server (both: the
+            # lower port, else the receiver)
+            if self.port_map[sport] and self.port_map[dport]:
+                sender_client = dport <= sport
+            else:
+                sender_client = self.port_map[dport]
+            ci = self.alloc_conn(addrs, alen, sport, dport, sender_client)
+            self.conns[ci].udp = True
+            got = ci * 2 + (1 if sender_client else 0)
+            self.udp_pairs[key] = got
+            self.udp_pairs[bytes(addrs[alen:2 * alen]) + bytes(addrs[:alen]) + bytes(
+                buf[l4 + 2:l4 + 4]) + bytes(buf[l4:l4 + 2])] = ci * 2 + (
+                0 if sender_client else 1)
+        ci = got >> 1
+        d = 0 if got & 1 else 1
+        if self.mcap is not None:
+            self.mcap_chunk(self.conns[ci].sid, d, ts, &buf[l4 + 8], ulen - 8)
+        global _ref_lines
+        _ref_lines = True  # its frames' lines the reference's ("transport":"udp")
+        try:
+            self.on_chunk(ci, d, ts, &buf[l4 + 8], ulen - 8)
+            # the datagram's end: the decoder flushes (an incomplete ADU, noise) and is
+            # as new
+            if self.conns[ci].h[d].dstate == 2 or self.conns[ci].h[d].blen:
+                dec = self.ref_decoder(ci, d)
+                self.conns[ci].h[d].dstate = 1
+                del self.mdecs[ci * 2 + d]
+                self.ref_items(ci, d, dec.flush(ts))
+        finally:
+            _ref_lines = False
         return 0
 
     cdef int detect_segment(self, double ts, bytes addrs, int sport, int dport, int64_t seq,
@@ -2717,19 +3146,22 @@ cdef class _Pass:
             c = &self.conns[ci]
             if not c.open_ or c.closed:
                 continue
+            if c.tref:  # holes given up ("end-of-capture"), a half-closed end
+                self.ref_finish(ci, self.end_ts, "end-of-capture")
+                continue
             if (c.h[0].fin >= 0 and not c.h[0].done) or (c.h[1].fin >= 0 and not c.h[1].done):
                 raise Declined("a FIN not reached at the end (a gap)")
             if c.fin_by:
                 self.event(self.end_ts, c.sid, EventKind.DISCONNECT,
                            {"how": "fin", "by": "client" if c.fin_by == 1 else "server",
                             "half_closed": True})
-                self.close_stream(ci)
+                self.close_stream(ci, self.end_ts)
                 self.closed_conn(ci, self.end_ts)
-        # the pipeline's finish: decoders flush, every pending request times out
-        for ci in range(self.nconns):
-            if self.conns[ci].h[0].blen or self.conns[ci].h[1].blen:
-                raise Declined("an incomplete ADU at the end of the capture (noise)")
+        # the pipeline's finish: decoders flush (in the order they were made), every
+        # pending request times out
         when = self.pl_last
+        for key in self.dec_order:
+            self.flush_dir(key >> 1, key & 1, when)
         s = self.ahead
         while s >= 0:
             nxt = self.sp[s].anext
@@ -2771,12 +3203,17 @@ _init_kinds()
 # --------------------------------------------------------------------------- PDUs
 
 
+cdef bint _ref_lines = False  # the frames being paired are Modbus/UDP's (udp_datagram)
+
+
 cdef bint native_pdu(const uint8_t* d, int n, bint response, Native* req, Native* out):
     """Decode the PDUs whose line this module writes (``pdu._well_formed``'s cases,
     exceptions, answers whose request changes nothing or only trims bits); False
-    for every other PDU, which the reference decoder and formatter take."""
+    for every other PDU, which the reference decoder and formatter take: also one
+    longer than the spec's 253 bytes (MBAP length 255, marked malformed by the
+    framing) and every PDU of a Modbus/UDP stream (its lines say "transport":"udp")."""
     cdef int fc, bc, address, count, value
-    if n < 1:
+    if n < 1 or n > 253 or _ref_lines:
         return False
     fc = d[0] & 0x7F
     out.fc = fc
