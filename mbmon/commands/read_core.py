@@ -111,7 +111,7 @@ def read_with_core(
     if not args.quiet:
         from mbmon.sinks.summary import Summary
 
-        summary = Summary(None)
+        summary = Summary(view if args.robot else None)
         core.fill_summary(summary, run.counts)
         report(summary, {}, args, timed=True)
     if run.interrupted:

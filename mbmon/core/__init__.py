@@ -88,10 +88,9 @@ def decline_for_options(args: Any, *, live: bool, flt: Any) -> str | None:
         (getattr(args, "before", None) not in (None, "30s"), "--before"),
         (getattr(args, "after", None) not in (None, "10s"), "--after"),
         (args.profile and args.write, "--profile with -w"),
-        (args.robot, "--robot"),
         (args.count, "-c"),
+        (getattr(args, "where", None), "--where"),
         (flt is not None and getattr(flt, "active", False), "filters"),
-        (args.time_format != "a", "-t other than a"),
         (live, "a pipe, FIFO or device as input"),
     )
     for present, what in checks:
@@ -293,6 +292,7 @@ def _counts(done: Any) -> dict[str, Any]:
         "unsolicited": done.unsolicited,
         "malformed": done.malformed,
         "max_stream": done.max_stream,
+        "robot_seen": done.robot_seen,
         "first": done.first if done.any_record else None,
         "last": done.last if done.any_record else None,
         "events": dict(done.events),
@@ -305,6 +305,7 @@ def fill_summary(summary: Any, counts: dict[str, Any]) -> None:
     for name in ("requests", "responses", "exceptions", "timeouts", "unsolicited", "malformed"):
         setattr(summary, name, counts[name])
     summary.max_stream = counts["max_stream"]
+    summary.robot_seen = counts.get("robot_seen", False)
     summary.first = counts["first"]
     summary.last = counts["last"]
     summary.events.update(counts["events"])

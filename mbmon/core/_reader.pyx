@@ -760,6 +760,9 @@ cdef class _Pass:
     cdef public int64_t frames
     cdef public int64_t requests, responses, exceptions, timeouts, unsolicited, malformed
     cdef public int64_t max_stream
+    cdef public bint robot_seen     # --robot: the summary's robot_seen (a new stream's role)
+    cdef bint robot_on              # --robot given: robot_seen is looked for
+    cdef bint robot_unsettled       # --robot, the view has seen fewer than two peers
     cdef public double first, last
     cdef public bint any_record
     cdef public dict events
@@ -880,6 +883,9 @@ cdef class _Pass:
         self._sid_conn = []
         self.index = 0
         self.max_stream = -1
+        self.robot_seen = False
+        self.robot_on = view is not None and view.robot is not None
+        self.robot_unsettled = self.robot_on
         self.any_record = False
         self.events = {}
         self.streams = []
@@ -936,6 +942,8 @@ cdef class _Pass:
             self.last = ts
         if sid > self.max_stream:
             self.max_stream = sid
+            if self.robot_on and not self.robot_seen:  # as Summary.on_records looks
+                self.robot_seen = self.view.robot_role(self.stream_obj(sid)) is not None
         self.index += 1
         return 0
 
@@ -953,6 +961,28 @@ cdef class _Pass:
             s = Stream(sid, Transport.TCP, client, server)
             self.streams[sid] = s
         return s
+
+    cdef int stream_labels(self, int sid) except -1:
+        """Make sure ``labels[sid]`` and ``heads[sid]`` are there (the view's labels in
+        UTF-8, the JSON heads). With ``--robot`` the view's labels name the robot's peer
+        once it has seen two (``View._label`` clears its cache then): every label made
+        before is made again."""
+        stream = self.stream_obj(sid)
+        if self.robot_unsettled and len(self.view._peers) >= 2:
+            self.robot_unsettled = False
+            for i in range(len(self.labels)):
+                self.labels[i] = None
+        if self.labels[sid] is None:
+            self.labels[sid] = (
+                self.view.label(stream, Direction.C2S).encode("utf-8"),
+                self.view.label(stream, Direction.S2C).encode("utf-8"),
+            )
+        if self.heads[sid] is None:
+            self.heads[sid] = (
+                _inner(_orjson.dumps({"stream": sid, "src": stream.client, "dst": stream.server})),
+                _inner(_orjson.dumps({"stream": sid, "src": stream.server, "dst": stream.client})),
+            )
+        return 0
 
     cdef int conn_of_sid(self, int sid) except -1:
         return self._sid_conn[sid]
@@ -1035,16 +1065,7 @@ cdef class _Pass:
             nat.has_addr = 1
             nat.address = rnat.address
             nat.count = rnat.count
-        stream = self.stream_obj(sid)
-        if self.labels[sid] is None:
-            self.labels[sid] = (
-                self.view.label(stream, Direction.C2S).encode("utf-8"),
-                self.view.label(stream, Direction.S2C).encode("utf-8"),
-            )
-            self.heads[sid] = (
-                _inner(_orjson.dumps({"stream": sid, "src": stream.client, "dst": stream.server})),
-                _inner(_orjson.dumps({"stream": sid, "src": stream.server, "dst": stream.client})),
-            )
+        self.stream_labels(sid)
         cdef bint mc = self.mcap is not None
         cdef bint js = self.as_json or mc   # a log's /modbus/frames message is the JSON line
         if mc:  # the JSON line goes into the log's buffer (put_time, put_note write to out)
@@ -1569,16 +1590,7 @@ cdef class _Pass:
         cdef int tid = (adu[0] << 8) | adu[1]
         cdef int unit = adu[6]
         cdef int fc = nat.fc
-        stream = self.stream_obj(sid)
-        if self.labels[sid] is None:
-            self.labels[sid] = (
-                self.view.label(stream, Direction.C2S).encode("utf-8"),
-                self.view.label(stream, Direction.S2C).encode("utf-8"),
-            )
-            self.heads[sid] = (
-                _inner(_orjson.dumps({"stream": sid, "src": stream.client, "dst": stream.server})),
-                _inner(_orjson.dumps({"stream": sid, "src": stream.server, "dst": stream.client})),
-            )
+        self.stream_labels(sid)
         cdef bytes label = self.labels[sid][d]
         if self.as_json:
             put(o, b'{"index":', 9)
