@@ -88,6 +88,8 @@ def read_with_core(
                 detect=not args.no_detect,
                 log=log,
                 annotator=annotator,
+                flt=flt,
+                count=args.count,
             )
         except SinkError as exc:  # the log could not be opened or written (it was closed)
             progress.close()

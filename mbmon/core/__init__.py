@@ -78,6 +78,7 @@ def status() -> str:
 
 def decline_for_options(args: Any, *, live: bool, flt: Any) -> str | None:
     """Why the options alone keep ``read`` off the core, or ``None`` when they allow it."""
+    selecting = args.count or (flt is not None and getattr(flt, "active", False))
     checks = (
         (args.rtu_raw, "--rtu-raw (RTU)"),
         (args.rtu_port, "--rtu-port (RTU over TCP/UDP)"),
@@ -88,9 +89,9 @@ def decline_for_options(args: Any, *, live: bool, flt: Any) -> str | None:
         (getattr(args, "before", None) not in (None, "30s"), "--before"),
         (getattr(args, "after", None) not in (None, "10s"), "--after"),
         (args.profile and args.write, "--profile with -w"),
-        (args.count, "-c"),
         (getattr(args, "where", None), "--where"),
-        (flt is not None and getattr(flt, "active", False), "filters"),
+        (selecting and args.write, "filters or -c with -w"),
+        (selecting and args.profile, "filters or -c with --profile"),
         (live, "a pipe, FIFO or device as input"),
     )
     for present, what in checks:
@@ -162,6 +163,8 @@ def read_file(
     detect: bool = False,
     log: Any | None = None,
     annotator: Any | None = None,
+    flt: Any | None = None,
+    count: int | None = None,
 ) -> CoreRun:
     """Run the core on the capture at ``path``: a deciding pass, then (unless it
     declined, and when ``write`` or ``log`` is given) a writing pass that hands its
@@ -198,6 +201,8 @@ def read_file(
                 detect=detect,
                 log=log,
                 annotator=annotator,
+                flt=flt,
+                count=count,
             )
         finally:
             data.release()
@@ -218,9 +223,13 @@ def read_buffer(
     detect: bool = False,
     log: Any | None = None,
     annotator: Any | None = None,
+    flt: Any | None = None,
+    count: int | None = None,
 ) -> CoreRun:
     """:func:`read_file` on a capture already in memory (``data``: bytes or a buffer);
-    ``progress(done, total)`` is called about once per MiB (each pass is half)."""
+    ``progress(done, total)`` is called about once per MiB (each pass is half).
+    ``flt`` (an active ``RecordFilter``) selects the lines ``write`` gets, ``count``
+    (``-c``) ends the run after that many frames it lets through (the counts too)."""
     if _load() is not None:
         return CoreRun(declined=f"the compiled core is unavailable: {_UNAVAILABLE}")
     first = _reader._Pass(False, as_json, timeout, ports, view, None, detect)
@@ -232,7 +241,11 @@ def read_buffer(
         return CoreRun(declined=str(exc))
     if first.frames == 0:
         return CoreRun(declined="no Modbus frames (the reference reader gives the hints)")
-    if write is None and log is None:
+    if flt is not None and not flt.active:
+        flt = None
+    if flt is not None or count is not None:
+        _start_selection(first, flt, count, view, show=write is not None)
+    elif write is None and log is None:
         return CoreRun(counts=_counts(first))
     # the first pass fed port detection every other-port segment and found no Modbus
     # there: the writing pass need not look again
@@ -241,11 +254,41 @@ def read_buffer(
     second.release = release
     second.progress = progress
     second.progress_base = len(data) // 2
+    if flt is not None or count is not None:
+        second.select(flt, count, write is not None)
     if log is None:
-        second.run(data)  # the same decisions as the first pass: it cannot decline
+        try:
+            second.run(data)  # the same decisions as the first pass: it cannot decline
+        except _reader.Enough:  # -c: the N-th frame was written (and flushed)
+            pass
         return CoreRun(counts=_counts(second))
     interrupted = _run_logged(second, data, log())
     return CoreRun(counts=_counts(second), interrupted=interrupted)
+
+
+def _start_selection(first: Any, flt: Any, count: int | None, view: Any, *, show: bool) -> None:
+    """Where the reference's filter and time format start, from the first pass: the
+    filter's ``--since``/``--until`` are resolved at the first record it is asked about
+    (the console's filter asks about every record; ``-c``'s budget, the first listener
+    of each batch, only about frames); with ``--grep`` every line is formatted, the
+    budget's first, so ``-t r``'s origin and the automatic date's first day are that
+    record's too."""
+    b1_frame = first.b1_frame_ts == first.b1_frame_ts  # not NaN: the first batch had a frame
+    if count is not None and show:
+        start = first.b1_frame_ts if b1_frame else first.rec0_ts
+    elif count is not None:
+        start = first.frame0_ts
+    else:
+        start = first.rec0_ts
+    if flt is None:
+        return
+    flt.start_at(start)
+    tf = getattr(view, "time_format", None)
+    if flt.grep is not None and count is not None and show and b1_frame and tf is not None:
+        if tf.mode == "r" and tf.origin is None:
+            tf.origin = start
+        if tf.auto_date and not tf.date and tf._day is None:
+            tf._day = tf._day_of(start)
 
 
 def _run_logged(second: Any, data: Any, sink: Any) -> bool:

@@ -40,6 +40,7 @@ cdef extern from "Python.h":
     int Py_DTSF_ADD_DOT_0
 
 from cpython.bytes cimport PyBytes_FromStringAndSize
+from cpython.unicode cimport PyUnicode_DecodeUTF8
 
 import orjson as _orjson
 
@@ -56,6 +57,11 @@ from mbmon.protocol.pdu import decode_pdu
 
 class Declined(Exception):
     """The input has something the core does not cover; the message says what."""
+
+
+class Enough(Exception):
+    """``-c N``: the N-th frame the filters let through was written; the run ends there
+    (the reference's ``FrameBudget`` cuts every output after it, the summary too)."""
 
 
 DEF MAX_ACK_JUMP = 1 << 24
@@ -761,6 +767,24 @@ cdef class _Pass:
     cdef public int64_t requests, responses, exceptions, timeouts, unsolicited, malformed
     cdef public int64_t max_stream
     cdef public bint robot_seen     # --robot: the summary's robot_seen (a new stream's role)
+    # the filters and -c (``select``): which records the console shows, where the run ends
+    cdef bint f_on                  # a filter decides which records are written
+    cdef bint f_show                # the console shows lines (not -q)
+    cdef bint f_grep                # --grep: the line is written, then tested
+    cdef object flt                 # the RecordFilter (the reference's, for Python records)
+    cdef object f_passes            # mbmon.sinks.select.passes
+    cdef object f_needle            # --grep's text, lower case
+    cdef bint f_units, f_fcs, f_addr, f_since, f_until
+    cdef uint8_t f_umap[256]
+    cdef uint8_t f_fmap[256]
+    cdef int f_alo, f_ahi
+    cdef double f_since_v, f_until_v
+    cdef int64_t left               # -c: frames still to count; -1: no -c
+    # where the filter's start is (first pass): the first record's time, the first
+    # frame's, and the first frame's of the first batch (NaN: it had none)
+    cdef int64_t batch, b1
+    cdef public double rec0_ts, frame0_ts, b1_frame_ts
+    cdef public bint any_frame
     cdef bint robot_on              # --robot given: robot_seen is looked for
     cdef bint robot_unsettled       # --robot, the view has seen fewer than two peers
     cdef public double first, last
@@ -884,6 +908,15 @@ cdef class _Pass:
         self.index = 0
         self.max_stream = -1
         self.robot_seen = False
+        self.f_on = False
+        self.f_show = True
+        self.f_grep = False
+        self.flt = None
+        self.left = -1
+        self.batch = 0
+        self.b1 = -1
+        self.rec0_ts = self.frame0_ts = self.b1_frame_ts = float("nan")
+        self.any_frame = False
         self.robot_on = view is not None and view.robot is not None
         self.robot_unsettled = self.robot_on
         self.any_record = False
@@ -934,7 +967,15 @@ cdef class _Pass:
 
     # ------------------------------------------------------------------ records
 
-    cdef int count_record(self, double ts, int sid) except -1:
+    cdef int count_record(self, double ts, int sid, bint frame=False) except -1:
+        if not self.any_record:
+            self.b1 = self.batch
+            self.rec0_ts = ts
+        if frame and not self.any_frame:
+            self.any_frame = True
+            self.frame0_ts = ts
+            if self.batch == self.b1:
+                self.b1_frame_ts = ts
         self.any_record = True
         if self.index == 0 or ts < self.first:
             self.first = ts
@@ -994,8 +1035,10 @@ cdef class _Pass:
         self.events[name] = self.events.get(name, 0) + 1
         if kind is EventKind.TIMEOUT:
             self.timeouts += 1
-        elif ts > self.pl_last:  # a source's event, fed to the pipeline
-            self.pl_last = ts
+        else:  # a source's event, fed to the pipeline: a batch of records of its own
+            self.batch += 1
+            if ts > self.pl_last:
+                self.pl_last = ts
         self.count_record(ts, sid)
         if not self.emit:
             return 0
@@ -1005,6 +1048,22 @@ cdef class _Pass:
         return self.put_record(rec)
 
     cdef int put_record(self, object rec) except -1:
+        cdef bint ok = True
+        if self.f_on or self.left >= 0:  # the filters and -c (``select``)
+            if self.f_on:
+                ok = self.f_passes(self.flt, rec, self.view)
+            if ok and self.f_show:
+                self.put_record_line(rec)
+            if ok and self.left > 0 and rec.frame is not None:
+                self.left -= 1
+                if self.left == 0:
+                    self.flush_out()
+                    raise Enough()
+            return 0
+        return self.put_record_line(rec)
+
+    cdef int put_record_line(self, object rec) except -1:
+        """A record the reference way: its line or JSON line (and log messages)."""
         if self.mcap is not None:
             self.mcap_items([self.mlayout.waiting_item(rec)])
             if self.write is None:
@@ -1035,7 +1094,7 @@ cdef class _Pass:
             self.responses += 1
         if d == 1 and req == NULL:
             self.unsolicited += 1
-        self.count_record(ts, sid)
+        self.count_record(ts, sid, True)
         if not self.emit:
             return 0
         if req != NULL:
@@ -1065,6 +1124,8 @@ cdef class _Pass:
             nat.has_addr = 1
             nat.address = rnat.address
             nat.count = rnat.count
+        if self.f_on and not self.f_grep and not self.fast_pass(ts, adu[6], &nat):
+            return 0  # not shown, not counted by -c (nothing of it formatted: no label)
         self.stream_labels(sid)
         cdef bint mc = self.mcap is not None
         cdef bint js = self.as_json or mc   # a log's /modbus/frames message is the JSON line
@@ -1072,6 +1133,7 @@ cdef class _Pass:
             self.swap_bufs()
         cdef Buf* o = &self.out
         cdef Py_ssize_t note_at, note_end, line_at, line_end, head_at = 0
+        cdef Py_ssize_t rec_at = o.n
         if mc:
             head_at = o.n
             buf_need(o, 31)
@@ -1140,6 +1202,91 @@ cdef class _Pass:
             return self.mcap_frame(head_at, line_at, line_end, index, sid, ts, nat.kind,
                                    d == 1 and req == NULL)
         put_c(o, 10)
+        if self.f_on or self.left >= 0:
+            return self.selected(rec_at, line_at, line_end, ts, adu[6], &nat)
+        if o.n >= FLUSH_AT:
+            self.flush_out()
+        return 0
+
+    # ------------------------------------------------------------------ filters and -c
+    #
+    # The reference puts the console behind the filters (``Selection``) and every
+    # output behind ``-c`` (``FrameBudget``): a native frame is tested on its fields
+    # before anything of it is formatted (``fast_pass``), or with ``--grep`` formatted
+    # first and its line tested (the reference formats every record's line then too);
+    # every other record goes through the reference's own ``passes``.
+
+    def select(self, flt, count, bint show):
+        """Make this (writing) pass show only what ``flt`` (an active ``RecordFilter``,
+        its start resolved, or ``None``) lets through when ``show``, and end after
+        ``count`` frames it lets through (``None``: no ``-c``)."""
+        from mbmon.sinks.select import passes
+
+        self.f_passes = passes
+        self.f_show = show
+        self.left = -1 if count is None else count
+        self.f_on = flt is not None and (show or count is not None)
+        if not self.f_on:
+            return
+        self.flt = flt
+        self.f_grep = flt.grep is not None
+        self.f_needle = flt.grep.lower() if self.f_grep else None
+        self.f_units = flt.units is not None
+        self.f_fcs = flt.fcs is not None
+        self.f_addr = flt.address is not None
+        self.f_since = flt.since is not None
+        self.f_until = flt.until is not None
+        memset(self.f_umap, 0, 256)
+        memset(self.f_fmap, 0, 256)
+        for unit in flt.units or ():
+            self.f_umap[<int>unit & 0xFF] = 1
+        for fc in flt.fcs or ():
+            self.f_fmap[<int>fc & 0xFF] = 1
+        if self.f_addr:
+            self.f_alo, self.f_ahi = flt.address
+        self.f_since_v = flt.since if self.f_since else 0.0
+        self.f_until_v = flt.until if self.f_until else 0.0
+
+    def flush(self):
+        """Write what the output buffer holds (a run ended by ``-c``)."""
+        self.flush_out()
+
+    cdef bint fast_pass(self, double ts, int unit, Native* n):
+        """``RecordFilter.matches_record`` of a native frame, but ``--grep``."""
+        cdef int64_t span
+        if self.f_since and not ts >= self.f_since_v:
+            return False
+        if self.f_until and not ts <= self.f_until_v:
+            return False
+        if self.f_units and not self.f_umap[unit]:
+            return False
+        if self.f_fcs and not self.f_fmap[n.fc & 0xFF]:
+            return False
+        if self.f_addr:
+            if not n.has_addr:
+                return False
+            span = n.count if n.count > 0 else 1
+            if not (n.address <= self.f_ahi and n.address + span - 1 >= self.f_alo):
+                return False
+        return True
+
+    cdef int selected(self, Py_ssize_t rec_at, Py_ssize_t line_at, Py_ssize_t line_end,
+                      double ts, int unit, Native* n) except -1:
+        """A native frame's record was written at ``rec_at`` (its line at ``line_at``):
+        with ``--grep`` its line decides (taken back when it fails); -c counts it."""
+        cdef Buf* o = &self.out
+        if self.f_grep:
+            line = PyUnicode_DecodeUTF8(o.p + line_at, line_end - line_at, NULL)
+            if not self.fast_pass(ts, unit, n) or self.f_needle not in line.lower():
+                o.n = rec_at
+                return 0
+        if not self.f_show:
+            o.n = rec_at
+        if self.left > 0:
+            self.left -= 1
+            if self.left == 0:
+                self.flush_out()
+                raise Enough()
         if o.n >= FLUSH_AT:
             self.flush_out()
         return 0
@@ -1989,6 +2136,7 @@ cdef class _Pass:
         cdef Py_ssize_t pos, rest
         self.last_ts = ts
         self.pl_last = ts
+        self.batch += 1  # the records of one chunk are one batch (the hub's)
         if ts >= self.next_tick:
             # the pipeline ticks the pairer before it decodes the chunk: requests due
             # before it are reported first, and an answer in it after the timeout is late
@@ -2675,6 +2823,7 @@ cdef class _Pass:
                 self.close_stream(ci)
                 self.closed_conn(ci, self.end_ts)
         # the pipeline's finish: decoders flush, every pending request times out
+        self.batch += 1
         for ci in range(self.nconns):
             if self.conns[ci].h[0].blen or self.conns[ci].h[1].blen:
                 raise Declined("an incomplete ADU at the end of the capture (noise)")

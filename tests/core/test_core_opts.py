@@ -5,11 +5,14 @@ warnings, the exit status), on the captures and on generated ones."""
 from __future__ import annotations
 
 import json
+import tempfile
 from pathlib import Path
 
 import pytest
 from core_diff import REAL, ROOT, require_core
 from gen import T0, adus, every_function_pair, write_conversation, write_frames
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from opts_diff import assert_same, read_run
 
 from mbmon.io.pcap import TcpConversation
@@ -109,3 +112,152 @@ def test_robot_labels_with_several_peers(tmp_path: Path, robot: str) -> None:
     elif robot == "10.0.0.2":
         text = read_run([path, "--robot", robot]).out.decode()
         assert "Receive from client  [" in text and "Receive from client 10.0.0.3:40001" in text
+
+
+# ------------------------------------------------------------------ filters and -c
+
+FILTERS = (
+    ["--fc", "3"],
+    ["--fc", "3,0x10", "--json"],
+    ["--unit", "1", "-c", "5"],
+    ["--address", "0-10", "-t", "r"],
+    ["--grep", "read", "-c", "4", "--json"],
+    ["--grep", "CONNECT"],
+    ["-c", "3"],
+    ["--since", "+0.5s", "--until", "+3s", "-c", "6", "-t", "r"],
+    ["-q", "-c", "7"],
+    ["-q", "--fc", "4", "--since", "+0.2s", "-c", "2"],
+)
+
+
+@pytest.mark.parametrize("path", OWN + PUBLIC, ids=lambda p: p.name)
+def test_filters_and_count_on_captures(path: Path) -> None:
+    """Each capture under three of the filter and ``-c`` combinations (text, JSON, -q):
+    the lines shown, where ``-c`` stops, and the summary as of that stop."""
+    i = (OWN + PUBLIC).index(path)
+    for k in range(3):
+        assert_same([path, *FILTERS[(3 * i + k) % len(FILTERS)]])
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["--fc", "4", "-c", "3"],
+        ["--grep", "write", "-c", "2", "-t", "e", "--json"],
+        ["--address", "524", "--unit", "1", "-c", "2"],
+        ["-c", "2", "--since", "+0.2s", "-t", "r"],
+        ["--until", "+0.01s", "--json"],
+        ["--grep", "no such text"],
+        ["-q", "--grep", "Write", "-c", "1"],
+    ],
+)
+def test_the_core_covers_filters_and_count(args: list[str]) -> None:
+    """Filters and ``-c`` no longer keep a covered capture off the core."""
+    assert_same([DEMO, *args], covered=True)
+
+
+def test_count_stops_where_the_reference_stops() -> None:
+    """``-c`` counts frames the filters let through (the Connect does not count) and the
+    summary is the summary of what came before the stop."""
+    run = assert_same([DEMO, "-c", "3"], covered=True)
+    assert len(run.out.splitlines()) == 4
+    assert run.err.startswith("3 frames (2 requests, 1 answered")
+    run = assert_same([DEMO, "--fc", "16", "-c", "2"], covered=True)
+    lines = run.out.decode().splitlines()
+    assert len(lines) == 2 and all("[u1 t" in line and "  10 " in line for line in lines)
+
+
+def test_filters_still_declined_where_rare(tmp_path: Path) -> None:
+    """``--where``, and filters or ``-c`` with ``-w`` or ``--profile``, stay the
+    reference's (the same bytes either way)."""
+    run = assert_same([DEMO, "--where", "fc 4"], covered=False)
+    assert run.core == ["core: declined (--where is not covered by the core); the Python "
+                        "pipeline reads the input"]  # fmt: skip
+    assert_same([DEMO, "--fc", "4", "-w", tmp_path / "a.mcap"], covered=False)
+    assert_same([ROOT / "captures" / "hrss_ptp.pcap", "-c", "5", "--profile", "hrss"],
+                covered=False)  # fmt: skip
+
+
+# ------------------------------------------------------------------ drawn combinations
+
+_PAIRS = every_function_pair()
+
+
+@st.composite
+def _capture_and_options(draw: st.DrawFn) -> tuple[dict[str, object], list[str]]:
+    """A generated conversation (function codes, units, times, handshake, end) and a
+    command line of view options, filters and ``-c`` drawn for it."""
+    picks = draw(st.lists(st.integers(0, len(_PAIRS) - 1), min_size=1, max_size=12))
+    units = draw(st.lists(st.sampled_from([1, 2, 255]), min_size=len(picks), max_size=len(picks)))
+    unanswered = draw(st.sets(st.integers(0, len(picks) - 1), max_size=3))
+    gaps = draw(st.lists(st.sampled_from([0.001, 0.4, 2.5, 90000.0]), min_size=1, max_size=4))
+    shape = {
+        "picks": picks,
+        "units": units,
+        "unanswered": sorted(unanswered),
+        "gaps": gaps,
+        "handshake": draw(st.booleans()),
+        "close": draw(st.sampled_from(["fin", "rst", None])),
+    }
+    args: list[str] = []
+    if draw(st.booleans()):
+        args += ["-t", draw(st.sampled_from(MODES))]
+    if draw(st.booleans()):
+        args.append("--json")
+    if draw(st.integers(0, 4)) == 0:
+        args.append("-q")
+    if draw(st.booleans()):
+        args += ["--fc", ",".join(map(str, draw(st.sets(st.sampled_from([1, 3, 4, 6, 16, 43, 0x41]),
+                                                          min_size=1, max_size=3))))]  # fmt: skip
+    if draw(st.integers(0, 3)) == 0:
+        args += ["--unit", str(draw(st.sampled_from([1, 2, 255])))]
+    if draw(st.integers(0, 3)) == 0:
+        lo = draw(st.integers(0, 210))
+        args += ["--address", f"{lo}-{lo + draw(st.integers(0, 30))}"]
+    if draw(st.integers(0, 3)) == 0:
+        args += ["--grep", draw(st.sampled_from(["read", "No response", "ms)", "→", "Exception",
+                                                 "connect", "[u2", "zzz"]))]  # fmt: skip
+    if draw(st.integers(0, 3)) == 0:
+        args += ["--since", draw(st.sampled_from(["+0s", "+0.002s", "+1s", "+3s"]))]
+    if draw(st.integers(0, 3)) == 0:
+        args += ["--until", draw(st.sampled_from(["+0s", "+0.01s", "+2s", "+1d"]))]
+    if draw(st.booleans()):
+        args += ["-c", str(draw(st.integers(1, 8)))]
+    if draw(st.integers(0, 3)) == 0:
+        args += ["--robot", draw(st.sampled_from(["10.0.0.2", "10.0.0.1:40000", "10.0.0.9"]))]
+    return shape, args
+
+
+def _write_shape(path: Path, shape: dict[str, object]) -> Path:
+    from mbmon.protocol.mbap import encode_adu
+
+    stream: list[tuple[bool, bytes]] = []
+    for tid, (pick, unit) in enumerate(zip(shape["picks"], shape["units"], strict=True), 1):  # type: ignore[call-overload]
+        request, answer = _PAIRS[pick]
+        stream.append((True, encode_adu(tid, unit, request)))
+        if tid - 1 not in shape["unanswered"]:  # type: ignore[operator]
+            stream.append((False, encode_adu(tid, unit, answer)))
+    gaps: list[float] = shape["gaps"]  # type: ignore[assignment]
+    count = len(stream) + 7
+    times, t = [], T0
+    for i in range(count):
+        times.append(t)
+        t += gaps[i % len(gaps)]
+    return write_conversation(
+        path,
+        stream,
+        handshake=bool(shape["handshake"]),
+        close=shape["close"],
+        times=times,  # type: ignore[arg-type]
+    )
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(_capture_and_options())
+def test_drawn_options_on_generated_captures(drawn: tuple[dict[str, object], list[str]]) -> None:
+    """Random conversations under random combinations of ``-t``, ``--json``, ``-q``,
+    ``--robot``, the filters and ``-c``: the core's bytes are the reference's."""
+    shape, args = drawn
+    with tempfile.TemporaryDirectory() as tmp:
+        path = _write_shape(Path(tmp) / "drawn.pcap", shape)
+        assert_same([path, *args])
