@@ -785,6 +785,11 @@ cdef class _Pass:
     cdef int64_t batch, b1
     cdef public double rec0_ts, frame0_ts, b1_frame_ts
     cdef public bint any_frame
+    # several inputs (``read A B``): the run's stream id of each of this pass's streams
+    # (None: the same), and (first pass) how many streams this input had made when it
+    # gave its first item (the reference's source reads it as it opens)
+    cdef list sid_ext
+    cdef public int open_streams
     cdef bint robot_on              # --robot given: robot_seen is looked for
     cdef bint robot_unsettled       # --robot, the view has seen fewer than two peers
     cdef public double first, last
@@ -917,6 +922,8 @@ cdef class _Pass:
         self.b1 = -1
         self.rec0_ts = self.frame0_ts = self.b1_frame_ts = float("nan")
         self.any_frame = False
+        self.sid_ext = None
+        self.open_streams = -1
         self.robot_on = view is not None and view.robot is not None
         self.robot_unsettled = self.robot_on
         self.any_record = False
@@ -981,10 +988,12 @@ cdef class _Pass:
             self.first = ts
         if self.index == 0 or ts > self.last:
             self.last = ts
+        if self.sid_ext is not None:
+            sid = self.sid_ext[sid]
         if sid > self.max_stream:
             self.max_stream = sid
             if self.robot_on and not self.robot_seen:  # as Summary.on_records looks
-                self.robot_seen = self.view.robot_role(self.stream_obj(sid)) is not None
+                self.robot_seen = self.view.robot_role(self.stream_by_id(sid)) is not None
         self.index += 1
         return 0
 
@@ -999,9 +1008,25 @@ cdef class _Pass:
             c = &self.conns[self.conn_of_sid(sid)]
             client = "%d.%d.%d.%d:%d" % (c.caddr[0], c.caddr[1], c.caddr[2], c.caddr[3], c.cport)
             server = "%d.%d.%d.%d:%d" % (c.saddr[0], c.saddr[1], c.saddr[2], c.saddr[3], c.sport)
-            s = Stream(sid, Transport.TCP, client, server)
+            s = Stream(sid if self.sid_ext is None else self.sid_ext[sid], Transport.TCP, client,
+                       server)
             self.streams[sid] = s
         return s
+
+    cdef object stream_by_id(self, int64_t ext):
+        """The Stream whose (run's) id is ``ext``."""
+        if self.sid_ext is None:
+            return self.stream_obj(<int>ext)
+        return self.stream_obj(self.sid_ext.index(ext))
+
+    def stream_count(self):
+        """How many streams this pass made."""
+        return len(self._sid_conn)
+
+    def stream_ids(self, list ids):
+        """The run's stream id of each stream this pass will make, in order (several
+        inputs: the hub's allocator gives ids as the reference's sources make streams)."""
+        self.sid_ext = ids
 
     cdef int stream_labels(self, int sid) except -1:
         """Make sure ``labels[sid]`` and ``heads[sid]`` are there (the view's labels in
@@ -1020,8 +1045,10 @@ cdef class _Pass:
             )
         if self.heads[sid] is None:
             self.heads[sid] = (
-                _inner(_orjson.dumps({"stream": sid, "src": stream.client, "dst": stream.server})),
-                _inner(_orjson.dumps({"stream": sid, "src": stream.server, "dst": stream.client})),
+                _inner(_orjson.dumps({"stream": stream.id, "src": stream.client,
+                                      "dst": stream.server})),
+                _inner(_orjson.dumps({"stream": stream.id, "src": stream.server,
+                                      "dst": stream.client})),
             )
         return 0
 
@@ -1037,6 +1064,8 @@ cdef class _Pass:
             self.timeouts += 1
         else:  # a source's event, fed to the pipeline: a batch of records of its own
             self.batch += 1
+            if self.open_streams < 0:
+                self.open_streams = len(self._sid_conn)
             if ts > self.pl_last:
                 self.pl_last = ts
         self.count_record(ts, sid)
@@ -1250,6 +1279,26 @@ cdef class _Pass:
     def flush(self):
         """Write what the output buffer holds (a run ended by ``-c``)."""
         self.flush_out()
+
+    def next_input(self):
+        """Another capture follows the one this pass read (``read A B``): as the
+        reference reads it, alone — a fresh dissector (no connection of the last one
+        goes on; its end already closed them and timed its requests out) and the
+        pipeline's clock started again — while the record numbers, the stream ids, the
+        counts, the view and the filters go on."""
+        self.flows = {}
+        self.open_order = []
+        self.nopen = 0
+        self.closed_fifo = []
+        self.due = float("inf")
+        self.clear_cache()
+        self.next_tick = float("-inf")
+        self.last_ts = 0.0
+        self.end_ts = 0.0
+        self.pl_last = 0.0
+        self.released = 0
+        self.next_progress = 0
+        self.batch += 1
 
     cdef bint fast_pass(self, double ts, int unit, Native* n):
         """``RecordFilter.matches_record`` of a native frame, but ``--grep``."""
@@ -2137,6 +2186,8 @@ cdef class _Pass:
         self.last_ts = ts
         self.pl_last = ts
         self.batch += 1  # the records of one chunk are one batch (the hub's)
+        if self.open_streams < 0:
+            self.open_streams = len(self._sid_conn)
         if ts >= self.next_tick:
             # the pipeline ticks the pairer before it decodes the chunk: requests due
             # before it are reported first, and an answer in it after the timeout is late
@@ -2824,6 +2875,8 @@ cdef class _Pass:
                 self.closed_conn(ci, self.end_ts)
         # the pipeline's finish: decoders flush, every pending request times out
         self.batch += 1
+        if self.open_streams < 0:
+            self.open_streams = len(self._sid_conn)
         for ci in range(self.nconns):
             if self.conns[ci].h[0].blen or self.conns[ci].h[1].blen:
                 raise Declined("an incomplete ADU at the end of the capture (noise)")
