@@ -95,7 +95,6 @@ def decline_for_options(args: Any, *, live: bool, flt: Any) -> str | None:
         (args.profile and args.write, "--profile with -w"),
         (getattr(args, "where", None), "--where"),
         (selecting and args.write, "filters or -c with -w"),
-        (selecting and args.profile, "filters or -c with --profile"),
         (live, "a pipe, FIFO or device as input"),
     )
     for present, what in checks:

@@ -1232,7 +1232,7 @@ cdef class _Pass:
                                    d == 1 and req == NULL)
         put_c(o, 10)
         if self.f_on or self.left >= 0:
-            return self.selected(rec_at, line_at, line_end, ts, adu[6], &nat)
+            return self.selected(rec_at, line_at, line_end, ts, adu[6], &nat, False)
         if o.n >= FLUSH_AT:
             self.flush_out()
         return 0
@@ -1320,12 +1320,17 @@ cdef class _Pass:
         return True
 
     cdef int selected(self, Py_ssize_t rec_at, Py_ssize_t line_at, Py_ssize_t line_end,
-                      double ts, int unit, Native* n) except -1:
-        """A native frame's record was written at ``rec_at`` (its line at ``line_at``):
-        with ``--grep`` its line decides (taken back when it fails); -c counts it."""
+                      double ts, int unit, Native* n, bint escaped) except -1:
+        """A native frame's record was written at ``rec_at`` (its line at ``line_at``,
+        JSON-escaped when ``escaped``): with ``--grep`` its line decides (taken back when
+        it fails); -c counts it."""
         cdef Buf* o = &self.out
         if self.f_grep:
-            line = PyUnicode_DecodeUTF8(o.p + line_at, line_end - line_at, NULL)
+            if escaped:
+                line = _orjson.loads(b'"' + PyBytes_FromStringAndSize(o.p + line_at,
+                                                                     line_end - line_at) + b'"')
+            else:
+                line = PyUnicode_DecodeUTF8(o.p + line_at, line_end - line_at, NULL)
             if not self.fast_pass(ts, unit, n) or self.f_needle not in line.lower():
                 o.n = rec_at
                 return 0
@@ -1781,11 +1786,16 @@ cdef class _Pass:
         compiled read's notes (``with_notes``) and its operations on the values
         (``with_ops``), then the session's; then the step's command records."""
         cdef int i, nm
-        cdef Py_ssize_t line_at, at
+        cdef Py_ssize_t line_at, at, line_end
         cdef Buf* o = &self.out
         cdef int tid = (adu[0] << 8) | adu[1]
         cdef int unit = adu[6]
         cdef int fc = nat.fc
+        cdef Py_ssize_t rec_at = o.n
+        if self.f_on and not self.f_grep and not self.fast_pass(ts, unit, nat):
+            if commands:  # the frame is not shown; its command records are asked alone
+                self.command_records(commands)
+            return 0
         self.stream_labels(sid)
         cdef bytes label = self.labels[sid][d]
         if self.as_json:
@@ -1852,6 +1862,7 @@ cdef class _Pass:
             put(o, b" (", 2)
             put_double(o, latency * 1000, b'f', 1, 0)
             put(o, b" ms)", 4)
+        line_end = o.n
         if self.as_json:
             put(o, b'","notes":[', 11)
             for i in range(0, nm, 2):
@@ -1866,6 +1877,8 @@ cdef class _Pass:
             put(o, b'],"crc_ok":null,"latency_ms":', 29)
             self.put_json_answer_tail(o, req, latency)
         put_c(o, 10)
+        if self.f_on or self.left >= 0:  # its notes are JSON-escaped in a JSON line
+            self.selected(rec_at, line_at, line_end, ts, unit, nat, self.as_json)
         if commands:
             self.command_records(commands)
         if o.n >= FLUSH_AT:

@@ -168,14 +168,12 @@ def test_count_stops_where_the_reference_stops() -> None:
 
 
 def test_filters_still_declined_where_rare(tmp_path: Path) -> None:
-    """``--where``, and filters or ``-c`` with ``-w`` or ``--profile``, stay the
-    reference's (the same bytes either way)."""
+    """``--where``, and filters or ``-c`` with ``-w``, stay the reference's (the same
+    bytes either way)."""
     run = assert_same([DEMO, "--where", "fc 4"], covered=False)
     assert run.core == ["core: declined (--where is not covered by the core); the Python "
                         "pipeline reads the input"]  # fmt: skip
     assert_same([DEMO, "--fc", "4", "-w", tmp_path / "a.mcap"], covered=False)
-    assert_same([ROOT / "captures" / "hrss_ptp.pcap", "-c", "5", "--profile", "hrss"],
-                covered=False)  # fmt: skip
 
 
 # ------------------------------------------------------------------ drawn combinations
@@ -261,3 +259,34 @@ def test_drawn_options_on_generated_captures(drawn: tuple[dict[str, object], lis
     with tempfile.TemporaryDirectory() as tmp:
         path = _write_shape(Path(tmp) / "drawn.pcap", shape)
         assert_same([path, *args])
+
+
+# ------------------------------------------------------------------ with --profile
+
+PROFILED = (
+    ["--fc", "4"],
+    ["--fc", "3,16", "--json"],
+    ["--grep", "R200"],
+    ["--grep", "°", "--json"],
+    ["-c", "30"],
+    ["--fc", "16", "-c", "3", "--json"],
+    ["--grep", "success", "-c", "1"],
+    ["--address", "200-251", "-t", "r"],
+    ["--since", "+1s", "--until", "+3s"],
+    ["-q", "-c", "40"],
+    ["--unit", "1", "--grep", "command", "--json", "-c", "5"],
+    ["--grep", "written", "--robot", "10.0.0.2"],
+)
+
+
+@pytest.mark.parametrize("args", PROFILED, ids=" ".join)
+def test_filters_and_count_with_a_profile(tmp_path: Path, args: list[str]) -> None:
+    """``--profile hrss`` with the filters and ``-c``: the lines the core notes itself
+    (their notes JSON-escaped in JSON lines: what ``--grep`` reads), the annotator's,
+    and the command records (asked about alone when their frame is not shown; cut
+    with everything else after ``-c``'s last frame, the summary's commands too)."""
+    from test_core_profile import hrss_session_steps, write_capture
+
+    session = write_capture(tmp_path / "session.pcap", hrss_session_steps())
+    for path in (session, ROOT / "captures" / "hrss_ptp.pcap"):
+        assert_same([path, "--profile", "hrss", *args], covered=True)
