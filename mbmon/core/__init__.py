@@ -82,7 +82,6 @@ def status() -> str:
 
 def decline_for_options(args: Any, *, live: bool, flt: Any) -> str | None:
     """Why the options alone keep ``read`` off the core, or ``None`` when they allow it."""
-    selecting = args.count or (flt is not None and getattr(flt, "active", False))
     checks = (
         (args.rtu_raw, "--rtu-raw (RTU)"),
         (args.rtu_port, "--rtu-port (RTU over TCP/UDP)"),
@@ -94,7 +93,6 @@ def decline_for_options(args: Any, *, live: bool, flt: Any) -> str | None:
         (getattr(args, "after", None) not in (None, "10s"), "--after"),
         (args.profile and args.write, "--profile with -w"),
         (getattr(args, "where", None), "--where"),
-        (selecting and args.write, "filters or -c with -w"),
         (live, "a pipe, FIFO or device as input"),
     )
     for present, what in checks:

@@ -1079,10 +1079,12 @@ cdef class _Pass:
     cdef int put_record(self, object rec) except -1:
         cdef bint ok = True
         if self.f_on or self.left >= 0:  # the filters and -c (``select``)
+            if self.mcap is not None:  # the log is not behind the filters
+                self.mcap_items([self.mlayout.waiting_item(rec)])
             if self.f_on:
                 ok = self.f_passes(self.flt, rec, self.view)
             if ok and self.f_show:
-                self.put_record_line(rec)
+                self.put_console_line(rec)
             if ok and self.left > 0 and rec.frame is not None:
                 self.left -= 1
                 if self.left == 0:
@@ -1097,6 +1099,10 @@ cdef class _Pass:
             self.mcap_items([self.mlayout.waiting_item(rec)])
             if self.write is None:
                 return 0
+        return self.put_console_line(rec)
+
+    cdef int put_console_line(self, object rec) except -1:
+        """A record's line or JSON line on the console, the reference way."""
         if self.as_json:
             put_bytes(&self.out, record_json_bytes(rec, self.view))
         else:
@@ -1153,7 +1159,8 @@ cdef class _Pass:
             nat.has_addr = 1
             nat.address = rnat.address
             nat.count = rnat.count
-        if self.f_on and not self.f_grep and not self.fast_pass(ts, adu[6], &nat):
+        if (self.f_on and not self.f_grep and self.mcap is None
+                and not self.fast_pass(ts, adu[6], &nat)):
             return 0  # not shown, not counted by -c (nothing of it formatted: no label)
         self.stream_labels(sid)
         cdef bint mc = self.mcap is not None
@@ -1229,7 +1236,7 @@ cdef class _Pass:
             self.put_json_answer_tail(o, req, latency)
         if mc:
             return self.mcap_frame(head_at, line_at, line_end, index, sid, ts, nat.kind,
-                                   d == 1 and req == NULL)
+                                   d == 1 and req == NULL, &nat, adu[6])
         put_c(o, 10)
         if self.f_on or self.left >= 0:
             return self.selected(rec_at, line_at, line_end, ts, adu[6], &nat, False)
@@ -1624,17 +1631,25 @@ cdef class _Pass:
 
     cdef int mcap_frame(self, Py_ssize_t head_at, Py_ssize_t line_at, Py_ssize_t line_end,
                         int64_t index, int sid, double ts, int kind,
-                        bint unsolicited) except -1:
+                        bint unsolicited, Native* nat, int unit) except -1:
         """A frame record whose JSON line was just written into ``mc`` after a head's room
         (at ``head_at``): its /modbus/frames message, its /modbus/monitor message, the
-        console's line or JSON, its counts (the layout's fast path for frame records)."""
+        console's line or JSON (when the filters let it through: the log keeps every
+        record), its counts (the layout's fast path for frame records); ``-c``'s last
+        frame ends the run once its messages are whole."""
         self.swap_bufs()  # back: the line was written into mc as out
         cdef Buf* m = &self.mc
         cdef Py_ssize_t n = m.n - head_at - 31, at
         cdef uint64_t lt = <uint64_t>rint(ts * 1e6) * 1000
         cdef bint warning = kind == 2 or unsolicited
+        cdef bint ok = True
+        if self.f_on:
+            ok = self.fast_pass(ts, unit, nat)
+            if ok and self.f_grep:
+                line = PyUnicode_DecodeUTF8(m.p + line_at, line_end - line_at, NULL)
+                ok = self.f_needle in line.lower()
         put_head(m.p + head_at, n, self.ch_frames, lt)
-        if self.write is not None:
+        if self.write is not None and ok:
             if self.as_json:
                 put(&self.out, m.p + head_at + 31, n)
             else:
@@ -1672,6 +1687,11 @@ cdef class _Pass:
         self.mc_done = m.n
         if m.n >= FLUSH_AT:
             self.flush_mcap()
+        if ok and self.left > 0:
+            self.left -= 1
+            if self.left == 0:
+                self.flush_out()
+                raise Enough()
         return 0
 
 

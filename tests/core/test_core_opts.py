@@ -13,7 +13,7 @@ from core_diff import REAL, ROOT, require_core
 from gen import T0, adus, every_function_pair, write_conversation, write_frames
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from opts_diff import assert_same, read_run
+from opts_diff import assert_same, ran_core, read_run
 
 from mbmon.io.pcap import TcpConversation
 
@@ -168,12 +168,43 @@ def test_count_stops_where_the_reference_stops() -> None:
 
 
 def test_filters_still_declined_where_rare(tmp_path: Path) -> None:
-    """``--where``, and filters or ``-c`` with ``-w``, stay the reference's (the same
-    bytes either way)."""
+    """``--where`` stays the reference's (the same bytes either way)."""
     run = assert_same([DEMO, "--where", "fc 4"], covered=False)
     assert run.core == ["core: declined (--where is not covered by the core); the Python "
                         "pipeline reads the input"]  # fmt: skip
-    assert_same([DEMO, "--fc", "4", "-w", tmp_path / "a.mcap"], covered=False)
+
+
+LOGGED = (
+    ["--fc", "4"],
+    ["-c", "5"],
+    ["--fc", "3", "-c", "3", "--json"],
+    ["--grep", "read", "-c", "4"],
+    ["--grep", "connect"],
+    ["-q", "-c", "9"],
+    ["-q", "--fc", "4", "-c", "2"],
+    ["--since", "+1s", "--until", "+2s", "-t", "r"],
+)
+
+
+@pytest.mark.parametrize("args", LOGGED, ids=" ".join)
+def test_filters_and_count_with_a_log(tmp_path: Path, args: list[str]) -> None:
+    """``-w x.mcap`` with the filters and ``-c``: the log keeps every record (it is not
+    behind the filters) up to ``-c``'s last frame, as the reference's log does; the
+    console shows what the filters let through."""
+    from mcap_diff import log_contents
+
+    paths = [DEMO, ROOT / "captures" / "sim_functions.pcap", *PUBLIC[9:10]]
+    for path in paths:
+        got, want = tmp_path / "core.mcap", tmp_path / "ref.mcap"
+        fast = read_run([path, *args, "-w", got])
+        pure = read_run([path, *args, "-w", want], pure=True)
+        if path in (DEMO,):
+            assert ran_core(fast), fast.core
+        assert (fast.out, fast.err, fast.status) == (pure.out, pure.err, pure.status), path
+        got_c, want_c = log_contents(got), log_contents(want)
+        for i, (x, y) in enumerate(zip(got_c["messages"], want_c["messages"], strict=False)):
+            assert x == y, f"{path}: message {i}"
+        assert got_c == want_c, path
 
 
 # ------------------------------------------------------------------ drawn combinations
