@@ -92,7 +92,6 @@ def decline_for_options(args: Any, *, live: bool, flt: Any) -> str | None:
         (getattr(args, "before", None) not in (None, "30s"), "--before"),
         (getattr(args, "after", None) not in (None, "10s"), "--after"),
         (args.profile and args.write, "--profile with -w"),
-        (getattr(args, "where", None), "--where"),
         (live, "a pipe, FIFO or device as input"),
     )
     for present, what in checks:

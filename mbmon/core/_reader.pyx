@@ -771,6 +771,7 @@ cdef class _Pass:
     cdef bint f_on                  # a filter decides which records are written
     cdef bint f_show                # the console shows lines (not -q)
     cdef bint f_grep                # --grep: the line is written, then tested
+    cdef bint f_slow                # --where: every frame as the reference's Record
     cdef object flt                 # the RecordFilter (the reference's, for Python records)
     cdef object f_passes            # mbmon.sinks.select.passes
     cdef object f_needle            # --grep's text, lower case
@@ -914,6 +915,7 @@ cdef class _Pass:
         self.max_stream = -1
         self.robot_seen = False
         self.f_on = False
+        self.f_slow = False
         self.f_show = True
         self.f_grep = False
         self.flt = None
@@ -1152,6 +1154,8 @@ cdef class _Pass:
             native = False
         if native and self.mcap is not None and not self.mcap_fast(ts):
             native = False  # a stats event is due, or a time MCAP clamps: the layout's way
+        if self.f_slow:
+            native = False  # --where: its test reads the reference's Record
         if not native:
             return self.python_frame(index, sid, d, ts, adu, alen, req, latency)
         if req != NULL and nat.kind != 0 and not nat.has_addr and rnat.has_addr:
@@ -1265,6 +1269,7 @@ cdef class _Pass:
         if not self.f_on:
             return
         self.flt = flt
+        self.f_slow = flt.where is not None
         self.f_grep = flt.grep is not None
         self.f_needle = flt.grep.lower() if self.f_grep else None
         self.f_units = flt.units is not None
@@ -1756,6 +1761,8 @@ cdef class _Pass:
         cdef int fc, i, address, count
         session_notes = None
         commands = None
+        if self.f_slow:  # --where: every record as the reference's Record
+            return self.prof_python(bound, index, sid, d, ts, adu, alen, req, latency)
         if d == 0:
             native = native_pdu(adu + 7, alen - 7, False, NULL, &nat)
         elif req != NULL:

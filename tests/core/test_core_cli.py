@@ -52,9 +52,6 @@ def test_declines_are_visible_and_change_nothing(tmp_path: Path) -> None:
     rtu = _mbmon("read", str(RTU), "--debug-core")
     assert b"core: declined (link type 147)" in rtu.stderr
     assert rtu.stdout == _mbmon("read", str(RTU), pure=True).stdout
-    where = _mbmon("read", str(DEMO), "--where", "fc 3", "--debug-core")
-    assert b"core: declined (--where is not covered by the core)" in where.stderr
-    assert where.stdout == _mbmon("read", str(DEMO), "--where", "fc 3", pure=True).stdout
     for window in ("--before", "--after"):  # the pipeline's usage error, not the core's lines
         alone = _mbmon("read", str(DEMO), window, "5s", "--debug-core")
         assert b"core: declined (" + window.encode() + b" is not covered" in alone.stderr

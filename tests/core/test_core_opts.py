@@ -167,15 +167,34 @@ def test_count_stops_where_the_reference_stops() -> None:
     assert len(lines) == 2 and all("[u1 t" in line and "  10 " in line for line in lines)
 
 
-def test_filters_still_declined_where_rare(tmp_path: Path) -> None:
-    """``--where`` stays the reference's (the same bytes either way)."""
-    run = assert_same([DEMO, "--where", "fc 4"], covered=False)
-    assert run.core == ["core: declined (--where is not covered by the core); the Python "
-                        "pipeline reads the input"]  # fmt: skip
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["--where", "fc 4"],
+        ["--where", "exception or latency > 5ms", "--json"],
+        ["--where", "R200 != 0", "-c", "3"],
+        ["--where", "connect or disconnect"],
+        ["--where", "not request", "--grep", "ms"],
+        ["--where", "timeout", "-q", "-c", "1"],
+        ["--where", "unit 1 and address 100-200", "-t", "r"],
+    ],
+    ids=" ".join,
+)
+def test_where(tmp_path: Path, args: list[str]) -> None:
+    """``--where`` (the display filter's expressions) on the core: every frame goes the
+    reference's way (its Record, formatted by mbmon.format) for the expression to read,
+    with and without a profile."""
+    from test_core_profile import hrss_session_steps, write_capture
+
+    session = write_capture(tmp_path / "session.pcap", hrss_session_steps())
+    assert_same([DEMO, *args], covered=True)
+    assert_same([ROOT / "captures" / "sim_exceptions.pcap", *args], covered=True)
+    assert_same([session, "--profile", "hrss", *args], covered=True)
 
 
 LOGGED = (
     ["--fc", "4"],
+    ["--where", "exception or fc 16", "-c", "3"],
     ["-c", "5"],
     ["--fc", "3", "-c", "3", "--json"],
     ["--grep", "read", "-c", "4"],
@@ -250,6 +269,9 @@ def _capture_and_options(draw: st.DrawFn) -> tuple[dict[str, object], list[str]]
         args += ["--since", draw(st.sampled_from(["+0s", "+0.002s", "+1s", "+3s"]))]
     if draw(st.integers(0, 3)) == 0:
         args += ["--until", draw(st.sampled_from(["+0s", "+0.01s", "+2s", "+1d"]))]
+    if draw(st.integers(0, 5)) == 0:
+        args += ["--where", draw(st.sampled_from(["exception", "fc 3 or timeout", "not request",
+                                                  "latency > 1ms", "R101 != 1"]))]  # fmt: skip
     if draw(st.booleans()):
         args += ["-c", str(draw(st.integers(1, 8)))]
     if draw(st.integers(0, 3)) == 0:

@@ -36,6 +36,7 @@ _OPTIONS = (
     ["-q", "--grep", "no response", "-c", "1"],
     ["--robot", "127.0.0.1", "-t", "ud"],
     ["-t", "e", "--address", "0-0"],
+    ["--where", "exception or latency > 1ms", "-c", "4"],
 )
 
 
