@@ -121,7 +121,7 @@ def test_several_inputs_into_one_log(tmp_path: Path) -> None:
     """``read A B -w x.mcap``: the same messages, schemas, channels and statistics."""
     a = _mid_connection(tmp_path / "a.pcap", T0 + 50.0, quiet_start=True, unanswered=True)
     for inputs in ([DEMO, HRSS], [a, DEMO, a]):
-        for console in ([], ["-q"], ["--json"]):
+        for console in ([], ["-q"], ["--json"], ["-c", "80"], ["--fc", "16", "-c", "5", "-q"]):
             got, want = tmp_path / "core.mcap", tmp_path / "ref.mcap"
             fast = read_run([*inputs, *console, "-w", got])
             pure = read_run([*inputs, *console, "-w", want], pure=True)
