@@ -36,6 +36,7 @@ READS = {
     "--unit 1 --address 0-10": ["--unit", "1", "--address", "0-10"],
     "--grep Holding": ["--grep", "Holding"],
     "-c 500000 --fc 3": ["-c", "500000", "--fc", "3"],
+    "--where 'fc 3'": ["--where", "fc 3"],
 }
 
 
