@@ -976,7 +976,7 @@ cdef class _Pass:
 
     # ------------------------------------------------------------------ records
 
-    cdef int count_record(self, double ts, int sid, bint frame=False) except -1:
+    cdef int count_record(self, double ts, int sid, bint frame) except -1:
         if not self.any_record:
             self.b1 = self.batch
             self.rec0_ts = ts
@@ -1030,6 +1030,10 @@ cdef class _Pass:
         inputs: the hub's allocator gives ids as the reference's sources make streams)."""
         self.sid_ext = ids
 
+    cdef inline bint labels_missing(self, int sid):
+        """Whether ``labels[sid]`` is still to be made (the common case: it is there)."""
+        return sid >= len(self.labels) or self.labels[sid] is None
+
     cdef int stream_labels(self, int sid) except -1:
         """Make sure ``labels[sid]`` and ``heads[sid]`` are there (the view's labels in
         UTF-8, the JSON heads). With ``--robot`` the view's labels name the robot's peer
@@ -1070,7 +1074,7 @@ cdef class _Pass:
                 self.open_streams = len(self._sid_conn)
             if ts > self.pl_last:
                 self.pl_last = ts
-        self.count_record(ts, sid)
+        self.count_record(ts, sid, False)
         if not self.emit:
             return 0
         stream = self.stream_obj(sid)
@@ -1166,7 +1170,8 @@ cdef class _Pass:
         if (self.f_on and not self.f_grep and self.mcap is None
                 and not self.fast_pass(ts, adu[6], &nat)):
             return 0  # not shown, not counted by -c (nothing of it formatted: no label)
-        self.stream_labels(sid)
+        if self.robot_unsettled or self.labels_missing(sid):
+            self.stream_labels(sid)
         cdef bint mc = self.mcap is not None
         cdef bint js = self.as_json or mc   # a log's /modbus/frames message is the JSON line
         if mc:  # the JSON line goes into the log's buffer (put_time, put_note write to out)
@@ -1823,7 +1828,8 @@ cdef class _Pass:
             if commands:  # the frame is not shown; its command records are asked alone
                 self.command_records(commands)
             return 0
-        self.stream_labels(sid)
+        if self.robot_unsettled or self.labels_missing(sid):
+            self.stream_labels(sid)
         cdef bytes label = self.labels[sid][d]
         if self.as_json:
             put(o, b'{"index":', 9)
@@ -1943,7 +1949,7 @@ cdef class _Pass:
         """The COMMAND records a step made, after its frame's (formatted by mbmon.format)."""
         for cmd in commands:
             rec = Record(self.index, cmd.ts, RecordKind.COMMAND, cmd.stream, command=cmd)
-            self.count_record(cmd.ts, cmd.stream.id)
+            self.count_record(cmd.ts, cmd.stream.id, False)
             self.cmd_summary.on_records([rec])
             self.put_record(rec)
         return 0
