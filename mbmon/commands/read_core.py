@@ -1,6 +1,7 @@
-"""``mbmon read`` by the compiled core: the common case (a capture file to plain lines
-or JSON, no filters) without a Python object per ADU; it declines the rest before
-writing a byte and the reference pipeline (:mod:`mbmon.commands.read`) reads then."""
+"""``mbmon read`` by the compiled core: the common case (capture files to plain lines
+or JSON, with the view options, filters and ``-c``) without a Python object per ADU;
+it declines the rest before writing a byte and the reference pipeline
+(:mod:`mbmon.commands.read`) reads then."""
 
 from __future__ import annotations
 
@@ -17,24 +18,29 @@ from mbmon.commands.read_summary import report
 def core_hand_off(
     sources: list[Any], args: argparse.Namespace, view: Any, flt: Any, annotator: Any = None
 ) -> int | None:
-    """The one place where ``read`` hands its run to the compiled core: its input is
-    one capture file (a :class:`~mbmon.sources.files.CaptureFileSource`, not yet
-    opened), which the core reads whole by its path when it covers it. The exit
-    status when it did; ``None`` when the sources are to be read through the hub
-    (several inputs, a raw RTU dump, or the core declined, before writing anything)."""
+    """The one place where ``read`` hands its run to the compiled core: its inputs are
+    capture files (:class:`~mbmon.sources.files.CaptureFileSource`, not yet opened),
+    which the core reads whole by their paths, one after another, when it covers them.
+    The exit status when it did; ``None`` when the sources are to be read through the
+    hub (a raw RTU dump, or the core declined, before writing anything)."""
     from mbmon.sources.files import CaptureFileSource
 
     done = None
     if len(sources) == 1 and args.rtu_raw:
         done = read_rtu_with_core(sources[0], args, view, flt, annotator)
-    elif len(sources) != 1 or not isinstance(sources[0], CaptureFileSource):
+    elif not sources or not all(isinstance(source, CaptureFileSource) for source in sources):
         if args.debug_core and len(sources) > 1:
-            err("core: declined (several inputs); the Python pipeline reads the input")
+            err("core: declined (several inputs of this kind); the Python pipeline reads the input")
     else:
-        source = sources[0]
-        live = source.mode == "stream"
+        live = any(source.mode == "stream" for source in sources)
         done = read_with_core(
-            source.path, args, view, flt, live=live, progress=source.progress, annotator=annotator
+            [source.path for source in sources],
+            args,
+            view,
+            flt,
+            live=live,
+            progress=[source.progress for source in sources],
+            annotator=annotator,
         )
     if done is None and args.debug_core and (args.rtu_raw or args.rtu_port):
         from mbmon import core
@@ -44,19 +50,20 @@ def core_hand_off(
 
 
 def read_with_core(
-    path: str,
+    paths: list[str],
     args: argparse.Namespace,
     view: Any,
     flt: Any,
     *,
     live: bool,
-    progress: Any,
+    progress: list[Any],
     annotator: Any = None,
 ) -> int | None:
-    """``read`` by the compiled core when it covers the options and the input: its exit
-    status; ``None`` when it declined (before writing anything: the Python pipeline
-    then reads the input). ``--debug-core`` says which path ran and why. ``annotator``:
-    the ``--profile`` annotator (the core annotates through it)."""
+    """``read`` by the compiled core when it covers the options and the inputs (read one
+    after another into one output): its exit status; ``None`` when it declined (before
+    writing anything: the Python pipeline then reads the inputs). ``--debug-core`` says
+    which path ran and why. ``annotator``: the ``--profile`` annotator (the core
+    annotates through it)."""
     from mbmon import core
     from mbmon.sinks.base import SinkError
 
@@ -75,10 +82,10 @@ def read_with_core(
     write = None if raw is None else raw.write
 
     if why is None:
-        log = _log_opener(path, args, view) if args.write else None
+        log = _log_opener(paths, args, view) if args.write else None
         try:
-            run = core.read_file(
-                path,
+            run = core.read_files(
+                paths,
                 ports=frozenset({502, *args.port}),
                 timeout=args.timeout,
                 view=view,
@@ -88,12 +95,16 @@ def read_with_core(
                 detect=not args.no_detect,
                 log=log,
                 annotator=annotator,
+                flt=flt,
+                count=args.count,
             )
         except SinkError as exc:  # the log could not be opened or written (it was closed)
-            progress.close()
+            for bar in progress:
+                bar.close()
             err(str(exc))
             return EXIT_BAD_INPUT
-        progress.close()
+        for bar in progress:
+            bar.close()
         why = run.declined
     if why is not None:
         if args.debug_core:
@@ -111,7 +122,7 @@ def read_with_core(
     if not args.quiet:
         from mbmon.sinks.summary import Summary
 
-        summary = Summary(None)
+        summary = Summary(view if args.robot else None)
         core.fill_summary(summary, run.counts)
         report(summary, {}, args, timed=True)
     if run.interrupted:
@@ -172,14 +183,14 @@ def read_rtu_with_core(
     return EXIT_OK
 
 
-def _log_opener(path: str, args: argparse.Namespace, view: Any) -> Any:
+def _log_opener(paths: list[str], args: argparse.Namespace, view: Any) -> Any:
     """Opens ``-w``'s one MCAP log (the core calls it once nothing declined, so a
     declined input never touches the file), as the Python pipeline opens it."""
 
     def open_log() -> Any:
         from mbmon.commands.common import open_logs
 
-        return open_logs(args.write, log_context(args, [path], view, None), args)[0]
+        return open_logs(args.write, log_context(args, paths, view, None), args)[0]
 
     return open_log
 

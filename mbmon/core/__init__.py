@@ -6,11 +6,11 @@ pipeline would; everything else it *declines before writing a byte* and the
 reference pipeline (pure Python) runs instead. The decision is made in two
 places, both here:
 
-* by the options (:func:`decline_for_options`): anything but a plain read of a
-  capture file to the console (``--json`` allowed) and/or one MCAP log
-  (``-w x.mcap``) is declined at once;
-* by the input (:func:`read_file`): the core's first pass reads the whole
-  capture and only decides; a decline there (a gap, a link type it does
+* by the options (:func:`decline_for_options`): anything but a read of capture
+  files to the console (``--json``, ``-t``, ``--robot``, the filters and ``-c``
+  allowed) and/or one MCAP log (``-w x.mcap``) is declined at once;
+* by the input (:func:`read_files`): the core's first pass reads each whole
+  capture and only decides; a decline there (a gap, noise, a link type it does
   not cover, ...) comes before any output. Only when nothing declined does the
   second pass write.
 
@@ -25,9 +25,12 @@ docs/architecture.md lists what the core covers and declines.
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import importlib
 import os
 import stat
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -38,6 +41,7 @@ __all__ = [
     "decline_for_profile",
     "read_buffer",
     "read_file",
+    "read_files",
     "status",
 ]
 
@@ -88,10 +92,6 @@ def decline_for_options(args: Any, *, live: bool, flt: Any) -> str | None:
         (getattr(args, "before", None) not in (None, "30s"), "--before"),
         (getattr(args, "after", None) not in (None, "10s"), "--after"),
         (args.profile and args.write, "--profile with -w"),
-        (args.robot, "--robot"),
-        (args.count, "-c"),
-        (flt is not None and getattr(flt, "active", False), "filters"),
-        (args.time_format != "a", "-t other than a"),
         (live, "a pipe, FIFO or device as input"),
     )
     for present, what in checks:
@@ -163,6 +163,8 @@ def read_file(
     detect: bool = False,
     log: Any | None = None,
     annotator: Any | None = None,
+    flt: Any | None = None,
+    count: int | None = None,
 ) -> CoreRun:
     """Run the core on the capture at ``path``: a deciding pass, then (unless it
     declined, and when ``write`` or ``log`` is given) a writing pass that hands its
@@ -173,37 +175,120 @@ def read_file(
     With ``detect`` (the reference's port detection is on) the first pass feeds the
     reference's port detector every TCP segment on other ports and declines when it
     finds Modbus there."""
+    return read_files(
+        [path],
+        ports=ports,
+        timeout=timeout,
+        view=view,
+        as_json=as_json,
+        write=write,
+        progress=[progress],
+        detect=detect,
+        log=log,
+        annotator=annotator,
+        flt=flt,
+        count=count,
+    )
+
+
+def read_files(
+    paths: list[str],
+    *,
+    ports: frozenset[int],
+    timeout: float,
+    view: Any,
+    as_json: bool,
+    write: Any | None,
+    progress: list[Any] | None = None,
+    detect: bool = False,
+    log: Any | None = None,
+    annotator: Any | None = None,
+    flt: Any | None = None,
+    count: int | None = None,
+) -> CoreRun:
+    """:func:`read_file` on several captures read one after another into one output,
+    each as it is alone (the reference's ``hub.end_of_input`` between two: its
+    connections end with it, its requests time out at its own end, the next one's
+    clock starts again), with one record numbering and one stream id allocator
+    (``progress``: one per path). A gzip-compressed capture is decompressed into
+    memory first. Declined as a whole when any input is."""
     if _load() is not None:
         return CoreRun(declined=f"the compiled core is unavailable: {_UNAVAILABLE}")
+    inputs = []
+    for path in paths:
+        why = _input_decline(path)
+        if why is not None:
+            return CoreRun(declined=why)
+        inputs.append(functools.partial(_opened, path))
+    return _read_inputs(
+        inputs,
+        ports=ports,
+        timeout=timeout,
+        view=view,
+        as_json=as_json,
+        write=write,
+        progress=progress or [None] * len(paths),
+        detect=detect,
+        log=log,
+        annotator=annotator,
+        flt=flt,
+        count=count,
+    )
+
+
+#: the first bytes of a gzip stream
+GZIP_MAGIC = b"\x1f\x8b"
+
+
+def _input_decline(path: str) -> str | None:
+    """Why the capture at ``path`` cannot be read by the core at all, or ``None``."""
     if not _regular_file(path):
-        return CoreRun(declined="not a regular file")
+        return "not a regular file"
+    try:
+        if os.path.getsize(path) == 0:
+            return "an empty file"
+    except OSError as exc:
+        return f"cannot be read ({exc.strerror or exc})"
+    return None
+
+
+@contextlib.contextmanager
+def _opened(path: str) -> Iterator[tuple[Any, Any]]:
+    """The bytes of the capture at ``path`` and its ``release(offset, length)`` (or
+    ``None``): the file mapped, or a gzip-compressed file decompressed into memory.
+    :class:`_NoInput` (a decline) when it cannot be."""
     import mmap
 
     with open(path, "rb") as f:
+        if f.read(2) == GZIP_MAGIC:
+            import gzip
+            import zlib
+
+            f.seek(0)
+            try:
+                data = gzip.GzipFile(fileobj=f, mode="rb").read()
+            except (OSError, EOFError, zlib.error) as exc:
+                raise _NoInput(f"a damaged gzip stream ({exc})") from None
+            if not data:
+                raise _NoInput("an empty gzip stream")
+            yield data, None
+            return
         try:
             mapped: Any = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
         except ValueError:  # an empty file cannot be mapped
-            return CoreRun(declined="an empty file")
+            raise _NoInput("an empty file") from None
     try:
-        data = memoryview(mapped)
+        view = memoryview(mapped)
         try:
-            return read_buffer(
-                data,
-                ports=ports,
-                timeout=timeout,
-                view=view,
-                as_json=as_json,
-                write=write,
-                release=_releaser(mapped),
-                progress=progress,
-                detect=detect,
-                log=log,
-                annotator=annotator,
-            )
+            yield view, _releaser(mapped)
         finally:
-            data.release()
+            view.release()
     finally:
         mapped.close()
+
+
+class _NoInput(Exception):
+    """An input the core cannot read at all (the message says why): a decline."""
 
 
 def read_buffer(
@@ -219,45 +304,157 @@ def read_buffer(
     detect: bool = False,
     log: Any | None = None,
     annotator: Any | None = None,
+    flt: Any | None = None,
+    count: int | None = None,
 ) -> CoreRun:
     """:func:`read_file` on a capture already in memory (``data``: bytes or a buffer);
-    ``progress(done, total)`` is called about once per MiB (each pass is half)."""
+    ``progress(done, total)`` is called about once per MiB (each pass is half).
+    ``flt`` (an active ``RecordFilter``) selects the lines ``write`` gets, ``count``
+    (``-c``) ends the run after that many frames it lets through (the counts too)."""
     if _load() is not None:
         return CoreRun(declined=f"the compiled core is unavailable: {_UNAVAILABLE}")
-    first = _reader._Pass(False, as_json, timeout, ports, view, None, detect)
-    first.release = release
-    first.progress = progress
-    try:
-        first.run(data)
-    except _reader.Declined as exc:
-        return CoreRun(declined=str(exc))
-    if first.frames == 0:
+    return _read_inputs(
+        [lambda: contextlib.nullcontext((data, release))],
+        ports=ports,
+        timeout=timeout,
+        view=view,
+        as_json=as_json,
+        write=write,
+        progress=[progress],
+        detect=detect,
+        log=log,
+        annotator=annotator,
+        flt=flt,
+        count=count,
+    )
+
+
+def _read_inputs(
+    inputs: list[Any],
+    *,
+    ports: frozenset[int],
+    timeout: float,
+    view: Any,
+    as_json: bool,
+    write: Any | None,
+    progress: list[Any],
+    detect: bool,
+    log: Any | None,
+    annotator: Any | None,
+    flt: Any | None,
+    count: int | None,
+) -> CoreRun:
+    """The two passes over ``inputs`` (each a callable giving a context of ``(data,
+    release)``): every input decided first (nothing written), then written in order
+    by one writing pass."""
+    firsts = []
+    for opened, bar in zip(inputs, progress, strict=True):
+        try:
+            with opened() as (data, release):
+                first = _reader._Pass(False, as_json, timeout, ports, view, None, detect)
+                first.release = release
+                first.progress = bar
+                first.run(data)
+        except (_reader.Declined, _NoInput) as exc:
+            return CoreRun(declined=str(exc))
+        firsts.append(first)
+    if sum(first.frames for first in firsts) == 0:
         return CoreRun(declined="no Modbus frames (the reference reader gives the hints)")
-    if write is None and log is None:
-        return CoreRun(counts=_counts(first))
+    if flt is not None and not flt.active:
+        flt = None
+    if flt is not None or count is not None:
+        _start_selection(firsts, flt, count, view, show=write is not None)
+    elif write is None and log is None and len(firsts) == 1:
+        return CoreRun(counts=_counts(firsts[0]))
     # the first pass fed port detection every other-port segment and found no Modbus
     # there: the writing pass need not look again
     # with ``annotator`` (``--profile``) the writing pass annotates; the first only decides
     second = _reader._Pass(True, as_json, timeout, ports, view, write, False, annotator)
-    second.release = release
-    second.progress = progress
-    second.progress_base = len(data) // 2
+    if len(firsts) > 1:
+        second.stream_ids(_run_stream_ids(firsts))
+    if flt is not None or count is not None:
+        second.select(flt, count, write is not None)
+
+    def run_all() -> None:
+        """Every input through the writing pass (the same decisions as the first pass:
+        it cannot decline), one after another; ``-c`` may end it early."""
+        try:
+            for k, (opened, bar) in enumerate(zip(inputs, progress, strict=True)):
+                with opened() as (data, release):
+                    if k:
+                        second.next_input()
+                    second.release = release
+                    second.progress = bar
+                    second.progress_base = len(data) // 2
+                    second.run(data)
+        except _reader.Enough:  # -c: the N-th frame was written (and flushed)
+            pass
+
     if log is None:
-        second.run(data)  # the same decisions as the first pass: it cannot decline
+        run_all()
         return CoreRun(counts=_counts(second))
-    interrupted = _run_logged(second, data, log())
+    interrupted = _run_logged(second, run_all, log())
     return CoreRun(counts=_counts(second), interrupted=interrupted)
 
 
-def _run_logged(second: Any, data: Any, sink: Any) -> bool:
-    """The writing pass with an MCAP log: its messages go to ``sink``, which is finished
-    (summary, index, footer) however the pass ends; one cut short (a signal, a failing
-    log) leaves the whole items before it in the log. True when a signal cut it short."""
+def _run_stream_ids(firsts: list[Any]) -> list[int]:
+    """The run's stream ids of the writing pass's streams over several inputs, in the
+    order it makes them: the reference opens every source before reading any, and a
+    source's opening reads its first item, so the streams each input made up to its
+    first item come first (input by input), then the rest of each input in turn."""
+    made = [first.stream_count() for first in firsts]
+    opened = [
+        min(f.open_streams if f.open_streams >= 0 else n, n)
+        for f, n in zip(firsts, made, strict=True)
+    ]
+    ids: list[int] = []
+    first_ids, rest_ids = 0, sum(opened)
+    for n, o in zip(made, opened, strict=True):
+        ids += range(first_ids, first_ids + o)
+        ids += range(rest_ids, rest_ids + n - o)
+        first_ids += o
+        rest_ids += n - o
+    return ids
+
+
+def _start_selection(
+    firsts: list[Any], flt: Any, count: int | None, view: Any, *, show: bool
+) -> None:
+    """Where the reference's filter and time format start, from the first passes (one
+    per input, in order): the filter's ``--since``/``--until`` are resolved at the first
+    record it is asked about (the console's filter asks about every record; ``-c``'s
+    budget, the first listener of each batch, only about frames); with ``--grep`` every
+    line is formatted, the budget's first, so ``-t r``'s origin and the automatic
+    date's first day are that record's too."""
+    first = next((one for one in firsts if one.any_record), firsts[0])
+    b1_frame = first.b1_frame_ts == first.b1_frame_ts  # not NaN: the first batch had a frame
+    if count is not None and show:
+        start = first.b1_frame_ts if b1_frame else first.rec0_ts
+    elif count is not None:
+        start = next((one.frame0_ts for one in firsts if one.any_frame), first.rec0_ts)
+    else:
+        start = first.rec0_ts
+    if flt is None:
+        return
+    flt.start_at(start)
+    tf = getattr(view, "time_format", None)
+    if flt.grep is not None and count is not None and show and b1_frame and tf is not None:
+        if tf.mode == "r" and tf.origin is None:
+            tf.origin = start
+        if tf.auto_date and not tf.date and tf._day is None:
+            tf._day = tf._day_of(start)
+
+
+def _run_logged(second: Any, run: Any, sink: Any) -> bool:
+    """The writing pass (``run()``) with an MCAP log: its messages go to ``sink``, which
+    is finished (summary, index, footer) however the pass ends; one cut short (a
+    signal, a failing log) leaves the whole items before it in the log. True when a
+    signal cut it short."""
     complete = interrupted = False
     try:
         sink.write_here()  # no writer thread waiting for the GIL the core holds
         second.log_to(sink)
-        second.run(data)
+        run()
         complete = True
     except KeyboardInterrupt:  # SIGINT/SIGTERM: the log is finished, the caller says so
         interrupted = True
@@ -293,6 +490,7 @@ def _counts(done: Any) -> dict[str, Any]:
         "unsolicited": done.unsolicited,
         "malformed": done.malformed,
         "max_stream": done.max_stream,
+        "robot_seen": done.robot_seen,
         "first": done.first if done.any_record else None,
         "last": done.last if done.any_record else None,
         "events": dict(done.events),
@@ -307,6 +505,7 @@ def fill_summary(summary: Any, counts: dict[str, Any]) -> None:
     for name in ("requests", "responses", "exceptions", "timeouts", "unsolicited", "malformed"):
         setattr(summary, name, counts[name])
     summary.max_stream = counts["max_stream"]
+    summary.robot_seen = counts.get("robot_seen", False)
     summary.first = counts["first"]
     summary.last = counts["last"]
     summary.events.update(counts["events"])
@@ -392,7 +591,9 @@ def decline_for_rtu(args: Any, *, live: bool, flt: Any, annotator: Any = None) -
     """Why ``read --rtu-raw`` stays off the core, or ``None`` when the core reads the
     dump: every option :func:`decline_for_options` declines (but ``--rtu-raw`` itself),
     and for RTU also a baud rate (the reference's timing rules), ``-w`` (the core's
-    log is Modbus/TCP's) and ``--profile``."""
+    log is Modbus/TCP's), ``--profile``, and the view's options the capture-file core
+    covers but the RTU pass does not: ``--robot``, ``-c``, the filters, ``-t`` other
+    than ``a``."""
     import argparse
 
     plain = argparse.Namespace(**{**vars(args), "rtu_raw": None})
@@ -403,6 +604,11 @@ def decline_for_rtu(args: Any, *, live: bool, flt: Any, annotator: Any = None) -
         (args.baud, "--baud (the RTU timing rules)"),
         (args.write, "-w with --rtu-raw"),
         (annotator is not None or args.profile, "--profile with --rtu-raw"),
+        # what the core covers for capture files but its RTU pass does not (yet)
+        (args.robot, "--robot with --rtu-raw"),
+        (args.count, "-c with --rtu-raw"),
+        (flt is not None and getattr(flt, "active", False), "filters with --rtu-raw"),
+        (args.time_format != "a", "-t other than a with --rtu-raw"),
     )
     for present, what in checks:
         if present:

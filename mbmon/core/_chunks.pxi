@@ -366,7 +366,7 @@ cdef class _Chunks(_Live):
             self.pl_last = ts
         if ts > self.item_ts:
             self.item_ts = ts
-        self.count_record(ts, -1)
+        self.count_record(ts, -1, False)
         ev = Event(ts, None, kind, info)
         return self.put_record(Record(index, ts, RecordKind.EVENT, None, event=ev))
 

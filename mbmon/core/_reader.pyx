@@ -40,6 +40,7 @@ cdef extern from "Python.h":
     int Py_DTSF_ADD_DOT_0
 
 from cpython.bytes cimport PyBytes_FromStringAndSize
+from cpython.unicode cimport PyUnicode_DecodeUTF8
 
 import orjson as _orjson
 
@@ -61,6 +62,11 @@ from mbmon.sources.tcpflow import TcpConnection, TcpStats
 
 class Declined(Exception):
     """The input has something the core does not cover; the message says what."""
+
+
+class Enough(Exception):
+    """``-c N``: the N-th frame the filters let through was written; the run ends there
+    (the reference's ``FrameBudget`` cuts every output after it, the summary too)."""
 
 
 DEF MAX_ACK_JUMP = 1 << 24
@@ -832,6 +838,33 @@ cdef class _Pass:
     cdef public int64_t frames
     cdef public int64_t requests, responses, exceptions, timeouts, unsolicited, malformed
     cdef public int64_t max_stream
+    cdef public bint robot_seen     # --robot: the summary's robot_seen (a new stream's role)
+    # the filters and -c (``select``): which records the console shows, where the run ends
+    cdef bint f_on                  # a filter decides which records are written
+    cdef bint f_show                # the console shows lines (not -q)
+    cdef bint f_grep                # --grep: the line is written, then tested
+    cdef bint f_slow                # --where: every frame as the reference's Record
+    cdef object flt                 # the RecordFilter (the reference's, for Python records)
+    cdef object f_passes            # mbmon.sinks.select.passes
+    cdef object f_needle            # --grep's text, lower case
+    cdef bint f_units, f_fcs, f_addr, f_since, f_until
+    cdef uint8_t f_umap[256]
+    cdef uint8_t f_fmap[256]
+    cdef int f_alo, f_ahi
+    cdef double f_since_v, f_until_v
+    cdef int64_t left               # -c: frames still to count; -1: no -c
+    # where the filter's start is (first pass): the first record's time, the first
+    # frame's, and the first frame's of the first batch (NaN: it had none)
+    cdef int64_t batch, b1
+    cdef public double rec0_ts, frame0_ts, b1_frame_ts
+    cdef public bint any_frame
+    # several inputs (``read A B``): the run's stream id of each of this pass's streams
+    # (None: the same), and (first pass) how many streams this input had made when it
+    # gave its first item (the reference's source reads it as it opens)
+    cdef list sid_ext
+    cdef public int open_streams
+    cdef bint robot_on              # --robot given: robot_seen is looked for
+    cdef bint robot_unsettled       # --robot, the view has seen fewer than two peers
     cdef public double first, last
     cdef public bint any_record
     cdef public dict events
@@ -969,6 +1002,21 @@ cdef class _Pass:
         self._sid_conn = []
         self.index = 0
         self.max_stream = -1
+        self.robot_seen = False
+        self.f_on = False
+        self.f_slow = False
+        self.f_show = True
+        self.f_grep = False
+        self.flt = None
+        self.left = -1
+        self.batch = 0
+        self.b1 = -1
+        self.rec0_ts = self.frame0_ts = self.b1_frame_ts = float("nan")
+        self.any_frame = False
+        self.sid_ext = None
+        self.open_streams = -1
+        self.robot_on = view is not None and view.robot is not None
+        self.robot_unsettled = self.robot_on
         self.any_record = False
         self.events = {}
         self.streams = []
@@ -1017,14 +1065,26 @@ cdef class _Pass:
 
     # ------------------------------------------------------------------ records
 
-    cdef int count_record(self, double ts, int sid) except -1:
+    cdef int count_record(self, double ts, int sid, bint frame) except -1:
+        if not self.any_record:
+            self.b1 = self.batch
+            self.rec0_ts = ts
+        if frame and not self.any_frame:
+            self.any_frame = True
+            self.frame0_ts = ts
+            if self.batch == self.b1:
+                self.b1_frame_ts = ts
         self.any_record = True
         if self.index == 0 or ts < self.first:
             self.first = ts
         if self.index == 0 or ts > self.last:
             self.last = ts
+        if self.sid_ext is not None:
+            sid = self.sid_ext[sid]
         if sid > self.max_stream:
             self.max_stream = sid
+            if self.robot_on and not self.robot_seen:  # as Summary.on_records looks
+                self.robot_seen = self.view.robot_role(self.stream_by_id(sid)) is not None
         self.index += 1
         return 0
 
@@ -1047,7 +1107,51 @@ cdef class _Pass:
         else:  # the flow table's own text of an IPv6 endpoint
             client = address_text(bytes(c.caddr[:16]), c.cport)
             server = address_text(bytes(c.saddr[:16]), c.sport)
-        return Stream(sid, Transport.UDP if c.udp else Transport.TCP, client, server)
+        return Stream(sid if self.sid_ext is None else self.sid_ext[sid],
+                      Transport.UDP if c.udp else Transport.TCP, client, server)
+
+    cdef object stream_by_id(self, int64_t ext):
+        """The Stream whose (run's) id is ``ext``."""
+        if self.sid_ext is None:
+            return self.stream_obj(<int>ext)
+        return self.stream_obj(self.sid_ext.index(ext))
+
+    def stream_count(self):
+        """How many streams this pass made."""
+        return len(self._sid_conn)
+
+    def stream_ids(self, list ids):
+        """The run's stream id of each stream this pass will make, in order (several
+        inputs: the hub's allocator gives ids as the reference's sources make streams)."""
+        self.sid_ext = ids
+
+    cdef inline bint labels_missing(self, int sid):
+        """Whether ``labels[sid]`` is still to be made (the common case: it is there)."""
+        return sid >= len(self.labels) or self.labels[sid] is None
+
+    cdef int stream_labels(self, int sid) except -1:
+        """Make sure ``labels[sid]`` and ``heads[sid]`` are there (the view's labels in
+        UTF-8, the JSON heads). With ``--robot`` the view's labels name the robot's peer
+        once it has seen two (``View._label`` clears its cache then): every label made
+        before is made again."""
+        stream = self.stream_obj(sid)
+        if self.robot_unsettled and len(self.view._peers) >= 2:
+            self.robot_unsettled = False
+            for i in range(len(self.labels)):
+                self.labels[i] = None
+        if self.labels[sid] is None:
+            self.labels[sid] = (
+                self.view.label(stream, Direction.C2S).encode("utf-8"),
+                self.view.label(stream, Direction.S2C).encode("utf-8"),
+            )
+        if self.heads[sid] is None:
+            self.heads[sid] = (
+                _inner(_orjson.dumps({"stream": stream.id, "src": stream.client,
+                                      "dst": stream.server})),
+                _inner(_orjson.dumps({"stream": stream.id, "src": stream.server,
+                                      "dst": stream.client})),
+            )
+        return 0
 
     cdef int conn_of_sid(self, int sid) except -1:
         return self._sid_conn[sid]
@@ -1059,9 +1163,13 @@ cdef class _Pass:
         self.events[name] = self.events.get(name, 0) + 1
         if kind is EventKind.TIMEOUT:
             self.timeouts += 1
-        elif ts > self.pl_last:  # a source's event, fed to the pipeline
-            self.pl_last = ts
-        self.count_record(ts, sid)
+        else:  # a source's event, fed to the pipeline: a batch of records of its own
+            self.batch += 1
+            if self.open_streams < 0:
+                self.open_streams = len(self._sid_conn)
+            if ts > self.pl_last:
+                self.pl_last = ts
+        self.count_record(ts, sid, False)
         if not self.emit:
             return 0
         stream = self.stream_obj(sid)
@@ -1070,10 +1178,32 @@ cdef class _Pass:
         return self.put_record(rec)
 
     cdef int put_record(self, object rec) except -1:
+        cdef bint ok = True
+        if self.f_on or self.left >= 0:  # the filters and -c (``select``)
+            if self.mcap is not None:  # the log is not behind the filters
+                self.mcap_items([self.mlayout.waiting_item(rec)])
+            if self.f_on:
+                ok = self.f_passes(self.flt, rec, self.view)
+            if ok and self.f_show:
+                self.put_console_line(rec)
+            if ok and self.left > 0 and rec.frame is not None:
+                self.left -= 1
+                if self.left == 0:
+                    self.flush_out()
+                    raise Enough()
+            return 0
+        return self.put_record_line(rec)
+
+    cdef int put_record_line(self, object rec) except -1:
+        """A record the reference way: its line or JSON line (and log messages)."""
         if self.mcap is not None:
             self.mcap_items([self.mlayout.waiting_item(rec)])
             if self.write is None:
                 return 0
+        return self.put_console_line(rec)
+
+    cdef int put_console_line(self, object rec) except -1:
+        """A record's line or JSON line on the console, the reference way."""
         if self.as_json:
             put_bytes(&self.out, record_json_bytes(rec, self.view))
         else:
@@ -1100,7 +1230,7 @@ cdef class _Pass:
             self.responses += 1
         if d == 1 and req == NULL:
             self.unsolicited += 1
-        self.count_record(ts, sid)
+        self.count_record(ts, sid, True)
         if not self.emit:
             return 0
         if req != NULL:
@@ -1123,6 +1253,8 @@ cdef class _Pass:
             native = False
         if native and self.mcap is not None and not self.mcap_fast(ts):
             native = False  # a stats event is due, or a time MCAP clamps: the layout's way
+        if self.f_slow:
+            native = False  # --where: its test reads the reference's Record
         if not native:
             return self.python_frame(index, sid, d, ts, adu, alen, req, latency)
         if req != NULL and nat.kind != 0 and not nat.has_addr and rnat.has_addr:
@@ -1130,22 +1262,18 @@ cdef class _Pass:
             nat.has_addr = 1
             nat.address = rnat.address
             nat.count = rnat.count
-        stream = self.stream_obj(sid)
-        if self.labels[sid] is None:
-            self.labels[sid] = (
-                self.view.label(stream, Direction.C2S).encode("utf-8"),
-                self.view.label(stream, Direction.S2C).encode("utf-8"),
-            )
-            self.heads[sid] = (
-                _inner(_orjson.dumps({"stream": sid, "src": stream.client, "dst": stream.server})),
-                _inner(_orjson.dumps({"stream": sid, "src": stream.server, "dst": stream.client})),
-            )
+        if (self.f_on and not self.f_grep and self.mcap is None
+                and not self.fast_pass(ts, adu[6], &nat)):
+            return 0  # not shown, not counted by -c (nothing of it formatted: no label)
+        if self.robot_unsettled or self.labels_missing(sid):
+            self.stream_labels(sid)
         cdef bint mc = self.mcap is not None
         cdef bint js = self.as_json or mc   # a log's /modbus/frames message is the JSON line
         if mc:  # the JSON line goes into the log's buffer (put_time, put_note write to out)
             self.swap_bufs()
         cdef Buf* o = &self.out
         cdef Py_ssize_t note_at, note_end, line_at, line_end, head_at = 0
+        cdef Py_ssize_t rec_at = o.n
         if mc:
             head_at = o.n
             buf_need(o, 31)
@@ -1212,8 +1340,119 @@ cdef class _Pass:
             self.put_json_answer_tail(o, req, latency)
         if mc:
             return self.mcap_frame(head_at, line_at, line_end, index, sid, ts, nat.kind,
-                                   d == 1 and req == NULL)
+                                   d == 1 and req == NULL, &nat, adu[6])
         put_c(o, 10)
+        if self.f_on or self.left >= 0:
+            return self.selected(rec_at, line_at, line_end, ts, adu[6], &nat, False)
+        if o.n >= FLUSH_AT:
+            self.flush_out()
+        return 0
+
+    # ------------------------------------------------------------------ filters and -c
+    #
+    # The reference puts the console behind the filters (``Selection``) and every
+    # output behind ``-c`` (``FrameBudget``): a native frame is tested on its fields
+    # before anything of it is formatted (``fast_pass``), or with ``--grep`` formatted
+    # first and its line tested (the reference formats every record's line then too);
+    # every other record goes through the reference's own ``passes``.
+
+    def select(self, flt, count, bint show):
+        """Make this (writing) pass show only what ``flt`` (an active ``RecordFilter``,
+        its start resolved, or ``None``) lets through when ``show``, and end after
+        ``count`` frames it lets through (``None``: no ``-c``)."""
+        from mbmon.sinks.select import passes
+
+        self.f_passes = passes
+        self.f_show = show
+        self.left = -1 if count is None else count
+        self.f_on = flt is not None and (show or count is not None)
+        if not self.f_on:
+            return
+        self.flt = flt
+        self.f_slow = flt.where is not None
+        self.f_grep = flt.grep is not None
+        self.f_needle = flt.grep.lower() if self.f_grep else None
+        self.f_units = flt.units is not None
+        self.f_fcs = flt.fcs is not None
+        self.f_addr = flt.address is not None
+        self.f_since = flt.since is not None
+        self.f_until = flt.until is not None
+        memset(self.f_umap, 0, 256)
+        memset(self.f_fmap, 0, 256)
+        for unit in flt.units or ():
+            self.f_umap[<int>unit & 0xFF] = 1
+        for fc in flt.fcs or ():
+            self.f_fmap[<int>fc & 0xFF] = 1
+        if self.f_addr:
+            self.f_alo, self.f_ahi = flt.address
+        self.f_since_v = flt.since if self.f_since else 0.0
+        self.f_until_v = flt.until if self.f_until else 0.0
+
+    def flush(self):
+        """Write what the output buffer holds (a run ended by ``-c``)."""
+        self.flush_out()
+
+    def next_input(self):
+        """Another capture follows the one this pass read (``read A B``): as the
+        reference reads it, alone — a fresh dissector (no connection of the last one
+        goes on; its end already closed them and timed its requests out) and the
+        pipeline's clock started again — while the record numbers, the stream ids, the
+        counts, the view and the filters go on."""
+        self.flows = {}
+        self.open_order = []
+        self.nopen = 0
+        self.closed_fifo = []
+        self.due = float("inf")
+        self.clear_cache()
+        self.next_tick = float("-inf")
+        self.last_ts = 0.0
+        self.end_ts = 0.0
+        self.pl_last = 0.0
+        self.released = 0
+        self.next_progress = 0
+        self.batch += 1
+
+    cdef bint fast_pass(self, double ts, int unit, Native* n):
+        """``RecordFilter.matches_record`` of a native frame, but ``--grep``."""
+        cdef int64_t span
+        if self.f_since and not ts >= self.f_since_v:
+            return False
+        if self.f_until and not ts <= self.f_until_v:
+            return False
+        if self.f_units and not self.f_umap[unit]:
+            return False
+        if self.f_fcs and not self.f_fmap[n.fc & 0xFF]:
+            return False
+        if self.f_addr:
+            if not n.has_addr:
+                return False
+            span = n.count if n.count > 0 else 1
+            if not (n.address <= self.f_ahi and n.address + span - 1 >= self.f_alo):
+                return False
+        return True
+
+    cdef int selected(self, Py_ssize_t rec_at, Py_ssize_t line_at, Py_ssize_t line_end,
+                      double ts, int unit, Native* n, bint escaped) except -1:
+        """A native frame's record was written at ``rec_at`` (its line at ``line_at``,
+        JSON-escaped when ``escaped``): with ``--grep`` its line decides (taken back when
+        it fails); -c counts it."""
+        cdef Buf* o = &self.out
+        if self.f_grep:
+            if escaped:
+                line = _orjson.loads(b'"' + PyBytes_FromStringAndSize(o.p + line_at,
+                                                                     line_end - line_at) + b'"')
+            else:
+                line = PyUnicode_DecodeUTF8(o.p + line_at, line_end - line_at, NULL)
+            if not self.fast_pass(ts, unit, n) or self.f_needle not in line.lower():
+                o.n = rec_at
+                return 0
+        if not self.f_show:
+            o.n = rec_at
+        if self.left > 0:
+            self.left -= 1
+            if self.left == 0:
+                self.flush_out()
+                raise Enough()
         if o.n >= FLUSH_AT:
             self.flush_out()
         return 0
@@ -1502,16 +1741,24 @@ cdef class _Pass:
 
     cdef int mcap_frame(self, Py_ssize_t head_at, Py_ssize_t line_at, Py_ssize_t line_end,
                         int64_t index, int sid, double ts, int kind,
-                        bint unsolicited) except -1:
+                        bint unsolicited, Native* nat, int unit) except -1:
         """A frame record whose JSON line was just written into ``mc`` after a head's room
         (at ``head_at``): its /modbus/frames message, its /modbus/monitor message, the
-        console's line or JSON, its counts (the layout's fast path for frame records)."""
+        console's line or JSON (when the filters let it through: the log keeps every
+        record), its counts (the layout's fast path for frame records); ``-c``'s last
+        frame ends the run once its messages are whole."""
         self.swap_bufs()  # back: the line was written into mc as out
         cdef Buf* m = &self.mc
         cdef Py_ssize_t n = m.n - head_at - 31, at, slim
         cdef uint64_t lt = <uint64_t>rint(ts * 1e6) * 1000
         cdef bint warning = kind == 2 or unsolicited
-        if self.write is not None:
+        cdef bint ok = True
+        if self.f_on:
+            ok = self.fast_pass(ts, unit, nat)
+            if ok and self.f_grep:
+                line = PyUnicode_DecodeUTF8(m.p + line_at, line_end - line_at, NULL)
+                ok = self.f_needle in line.lower()
+        if self.write is not None and ok:
             if self.as_json:
                 put(&self.out, m.p + head_at + 31, n)
             else:
@@ -1558,6 +1805,11 @@ cdef class _Pass:
         self.mc_done = m.n
         if m.n >= FLUSH_AT:
             self.flush_mcap()
+        if ok and self.left > 0:
+            self.left -= 1
+            if self.left == 0:
+                self.flush_out()
+                raise Enough()
         return 0
 
 
@@ -1622,6 +1874,8 @@ cdef class _Pass:
         cdef int fc, i, address, count
         session_notes = None
         commands = None
+        if self.f_slow:  # --where: every record as the reference's Record
+            return self.prof_python(bound, index, sid, d, ts, adu, alen, req, latency)
         if d == 0:
             native = native_pdu(adu + 7, alen - 7, False, NULL, &nat)
         elif req != NULL:
@@ -1672,21 +1926,18 @@ cdef class _Pass:
         compiled read's notes (``with_notes``) and its operations on the values
         (``with_ops``), then the session's; then the step's command records."""
         cdef int i, nm
-        cdef Py_ssize_t line_at, at
+        cdef Py_ssize_t line_at, at, line_end
         cdef Buf* o = &self.out
         cdef int tid = (adu[0] << 8) | adu[1]
         cdef int unit = adu[6]
         cdef int fc = nat.fc
-        stream = self.stream_obj(sid)
-        if self.labels[sid] is None:
-            self.labels[sid] = (
-                self.view.label(stream, Direction.C2S).encode("utf-8"),
-                self.view.label(stream, Direction.S2C).encode("utf-8"),
-            )
-            self.heads[sid] = (
-                _inner(_orjson.dumps({"stream": sid, "src": stream.client, "dst": stream.server})),
-                _inner(_orjson.dumps({"stream": sid, "src": stream.server, "dst": stream.client})),
-            )
+        cdef Py_ssize_t rec_at = o.n
+        if self.f_on and not self.f_grep and not self.fast_pass(ts, unit, nat):
+            if commands:  # the frame is not shown; its command records are asked alone
+                self.command_records(commands)
+            return 0
+        if self.robot_unsettled or self.labels_missing(sid):
+            self.stream_labels(sid)
         cdef bytes label = self.labels[sid][d]
         if self.as_json:
             put(o, b'{"index":', 9)
@@ -1752,6 +2003,7 @@ cdef class _Pass:
             put(o, b" (", 2)
             put_double(o, latency * 1000, b'f', 1, 0)
             put(o, b" ms)", 4)
+        line_end = o.n
         if self.as_json:
             put(o, b'","notes":[', 11)
             for i in range(0, nm, 2):
@@ -1766,6 +2018,8 @@ cdef class _Pass:
             put(o, b'],"crc_ok":null,"latency_ms":', 29)
             self.put_json_answer_tail(o, req, latency)
         put_c(o, 10)
+        if self.f_on or self.left >= 0:  # its notes are JSON-escaped in a JSON line
+            self.selected(rec_at, line_at, line_end, ts, unit, nat, self.as_json)
         if commands:
             self.command_records(commands)
         if o.n >= FLUSH_AT:
@@ -1803,7 +2057,7 @@ cdef class _Pass:
         """The COMMAND records a step made, after its frame's (formatted by mbmon.format)."""
         for cmd in commands:
             rec = Record(self.index, cmd.ts, RecordKind.COMMAND, cmd.stream, command=cmd)
-            self.count_record(cmd.ts, cmd.stream.id)
+            self.count_record(cmd.ts, cmd.stream.id, False)
             self.cmd_summary.on_records([rec])
             self.put_record(rec)
         return 0
@@ -2087,6 +2341,9 @@ cdef class _Pass:
         cdef Py_ssize_t pos, old
         self.last_ts = ts
         self.pl_last = ts
+        self.batch += 1  # the records of one chunk are one batch (the hub's)
+        if self.open_streams < 0:
+            self.open_streams = len(self._sid_conn)
         if ts >= self.next_tick:
             # the pipeline ticks the pairer before it decodes the chunk: requests due
             # before it are reported first, and an answer in it after the timeout is late
@@ -2195,7 +2452,7 @@ cdef class _Pass:
         cdef int sid = self.conns[ci].sid
         self.noise_records += 1
         self.noise_bytes += len(noise.raw)
-        self.count_record(noise.ts, sid)
+        self.count_record(noise.ts, sid, False)
         if not self.emit:
             return 0
         return self.put_record(Record(index, noise.ts, RecordKind.NOISE, noise.stream,
@@ -3159,6 +3416,9 @@ cdef class _Pass:
                 self.closed_conn(ci, self.end_ts)
         # the pipeline's finish: decoders flush (in the order they were made), every
         # pending request times out
+        self.batch += 1
+        if self.open_streams < 0:
+            self.open_streams = len(self._sid_conn)
         when = self.pl_last
         for key in self.dec_order:
             self.flush_dir(key >> 1, key & 1, when)

@@ -166,7 +166,7 @@ cdef class _RtuPass(_Pass):
         self.noise_bytes += len(noise.raw)
         if "CRC" in noise.reason:
             self.crc_errors += 1
-        self.count_record(noise.ts, self.rstream.id)
+        self.count_record(noise.ts, self.rstream.id, False)
         if not self.emit:
             return 0
         return self.put_record(Record(index, noise.ts, RecordKind.NOISE, noise.stream, noise=noise))
@@ -191,7 +191,7 @@ cdef class _RtuPass(_Pass):
             self.responses += 1
         if d == 1 and req == NULL:
             self.unsolicited += 1
-        self.count_record(ts, sid)
+        self.count_record(ts, sid, True)
         if req != NULL:
             latency = ts - req.ts
         if not self.emit:

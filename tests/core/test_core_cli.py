@@ -47,20 +47,18 @@ def test_read_same_bytes_either_way(fmt: list[str]) -> None:
     assert fast.stderr.splitlines()[1:] == pure.stderr.splitlines()[1:]  # the summary
 
 
-def test_declines_are_visible_and_change_nothing() -> None:
+def test_declines_are_visible_and_change_nothing(tmp_path: Path) -> None:
     require_core()
     rtu = _mbmon("read", str(RTU), "--debug-core")
     assert b"core: declined (link type 147)" in rtu.stderr
     assert rtu.stdout == _mbmon("read", str(RTU), pure=True).stdout
-    robot = _mbmon("read", str(DEMO), "--robot", "127.0.0.1:502", "--debug-core")
-    assert b"core: declined (--robot is not covered by the core)" in robot.stderr
     for window in ("--before", "--after"):  # the pipeline's usage error, not the core's lines
         alone = _mbmon("read", str(DEMO), window, "5s", "--debug-core")
         assert b"core: declined (" + window.encode() + b" is not covered" in alone.stderr
         assert alone.returncode == 2 and b"needs --trigger" in alone.stderr
         assert alone.stdout == b""
-    count = _mbmon("read", str(DEMO), "-c", "3", "--debug-core")
-    assert b"core: declined (-c is not covered" in count.stderr
+    count = _mbmon("read", str(DEMO), "-c", "3", "-w", str(tmp_path / "x.jsonl"), "--debug-core")
+    assert b"core: declined (-w other than one .mcap log is not covered" in count.stderr
     assert len(count.stdout.splitlines()) == 4  # the Connect, then 3 frames (-c counts frames)
 
 

@@ -9,6 +9,7 @@ through ``mbmon read`` like 0x03, with no other file touched.
 from __future__ import annotations
 
 import dataclasses
+import os
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -120,10 +121,10 @@ def _capture(path: Path) -> None:
 def _read(path: Path, *, with_row: bool) -> list[str]:
     """``mbmon read`` of ``path`` in a process that registers the toy row first (or not).
 
-    ``-c 100`` keeps the compiled core off, so that the test reads the same path
+    Forced pure (``MBMON_NO_EXTENSIONS=1``), so that the test reads the same path
     whether the extension is built or not (the core hands codes above 0x10 to
     ``decode_pdu`` and takes names from ``format``, but its own fast decode of
-    0x01..0x10 is compiled and does not read the table).
+    0x01..0x10 is compiled and does not read the table); ``-c 100`` bounds it.
     """
     register_row = (
         f"from mbmon.protocol.functions import FunctionCode, register; register({TOY_ROW}); "
@@ -137,6 +138,7 @@ def _read(path: Path, *, with_row: bool) -> list[str]:
         text=True,
         timeout=180,
         cwd=REPO,
+        env={**os.environ, "MBMON_NO_EXTENSIONS": "1"},
     )
     assert done.returncode == 0, done.stderr
     return [line.split("  ", 1)[1] for line in done.stdout.splitlines()]
