@@ -72,13 +72,7 @@ def read_with_core(
         why = core.decline_for_profile(annotator)
     raw = None
     if why is None and not args.quiet:
-        from mbmon.sinks.console import RawStdout, utf8_buffer
-
-        buffer = utf8_buffer(sys.stdout)
-        if buffer is None:
-            why = "stdout is not UTF-8"
-        else:
-            raw = RawStdout(buffer)
+        raw, why = _raw_stdout()
     write = None if raw is None else raw.write
 
     if why is None:
@@ -110,13 +104,7 @@ def read_with_core(
         if args.debug_core:
             err(f"core: declined ({why}); the Python pipeline reads the input")
         return None
-    if raw is not None and not raw.broken:
-        try:
-            sys.stdout.flush()
-        except BrokenPipeError:
-            from mbmon.hub import _quiet_stdout
-
-            _quiet_stdout()
+    _flush_stdout(raw)
     if args.debug_core:
         err("core: the compiled core read the input")
     if not args.quiet:
@@ -144,13 +132,7 @@ def read_rtu_with_core(
     why = core.decline_for_rtu(args, live=source.mode == "stream", flt=flt, annotator=annotator)
     raw = None
     if why is None and not args.quiet:
-        from mbmon.sinks.console import RawStdout, utf8_buffer
-
-        buffer = utf8_buffer(sys.stdout)
-        if buffer is None:
-            why = "stdout is not UTF-8"
-        else:
-            raw = RawStdout(buffer)
+        raw, why = _raw_stdout()
     if why is None:
         run = core.read_rtu_file(
             source.path,
@@ -165,13 +147,7 @@ def read_rtu_with_core(
         if args.debug_core:
             err(f"core: declined ({why}); the Python pipeline reads the input")
         return None
-    if raw is not None and not raw.broken:
-        try:
-            sys.stdout.flush()
-        except BrokenPipeError:
-            from mbmon.hub import _quiet_stdout
-
-            _quiet_stdout()
+    _flush_stdout(raw)
     if args.debug_core:
         err("core: the compiled core read the input (RTU framing, pairing and lines)")
     if not args.quiet:
@@ -181,6 +157,28 @@ def read_rtu_with_core(
         core.fill_rtu_summary(summary, run.counts)
         report(summary, {}, args, timed=False)
     return EXIT_OK
+
+
+def _raw_stdout() -> tuple[Any, str | None]:
+    """The core's way to stdout (bytes to its buffer), or why there is none (a stdout
+    that is not UTF-8 declines the core: the reference's console escapes for it)."""
+    from mbmon.sinks.console import RawStdout, utf8_buffer
+
+    buffer = utf8_buffer(sys.stdout)
+    if buffer is None:
+        return None, "stdout is not UTF-8"
+    return RawStdout(buffer), None
+
+
+def _flush_stdout(raw: Any) -> None:
+    """After a core run: stdout flushed, quietly when its reader went away."""
+    if raw is not None and not raw.broken:
+        try:
+            sys.stdout.flush()
+        except BrokenPipeError:
+            from mbmon.hub import _quiet_stdout
+
+            _quiet_stdout()
 
 
 def _log_opener(paths: list[str], args: argparse.Namespace, view: Any) -> Any:

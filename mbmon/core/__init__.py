@@ -30,7 +30,7 @@ import functools
 import importlib
 import os
 import stat
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -94,6 +94,13 @@ def decline_for_options(args: Any, *, live: bool, flt: Any) -> str | None:
         (args.profile and args.write, "--profile with -w"),
         (live, "a pipe, FIFO or device as input"),
     )
+    return first_decline(checks)
+
+
+def first_decline(checks: Iterable[tuple[Any, str]]) -> str | None:
+    """The first of ``checks`` (``(present, what)`` pairs of an entry's options) that
+    keeps a run off the core, as a decline's words; else why the core is unavailable,
+    or ``None``: the core takes the run."""
     for present, what in checks:
         if present:
             return f"{what} is not covered by the core"

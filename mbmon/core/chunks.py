@@ -47,11 +47,7 @@ def decline_for_proxy(args: Any, *, process: bool, console: bool) -> str | None:
         (getattr(args, "rotate", None), "--rotate"),
         (getattr(args, "profile", None), "--profile"),
     )
-    for present, what in checks:
-        if present:
-            return f"{what} is not covered by the core"
-    why = _load()
-    return None if why is None else f"the compiled core is unavailable: {why}"
+    return _core.first_decline(checks)
 
 
 class ChunkCore:

@@ -42,11 +42,7 @@ def decline_for_sniff(args: Any, *, interface: bool, console: bool, flt: Any) ->
         (flt is not None and getattr(flt, "active", False), "filters"),
         (getattr(args, "time_format", "a") != "a", "-t other than a"),
     )
-    for present, what in checks:
-        if present:
-            return f"{what} is not covered by the core"
-    why = _load()
-    return None if why is None else f"the compiled core is unavailable: {why}"
+    return _core.first_decline(checks)
 
 
 class LiveCore:
