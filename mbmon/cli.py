@@ -26,12 +26,31 @@ def _note_early(signum: int, frame: object) -> None:
 
 
 _BEFORE: dict[int, object] = {}
-try:
-    for _sig in (_signal.SIGINT, _signal.SIGTERM):
-        if _signal.getsignal(_sig) is not _signal.SIG_IGN:  # nohup, a background job: kept
-            _BEFORE[_sig] = _signal.signal(_sig, _note_early)
-except ValueError:  # imported outside the main thread: signals are not this module's
-    pass
+
+
+def _take_signals() -> None:
+    """The noting handler for SIGINT and SIGTERM (each once; an ignored one is kept)."""
+    for sig in (_signal.SIGINT, _signal.SIGTERM):
+        if sig in _BEFORE:
+            continue
+        was = _signal.getsignal(sig)
+        if was is _signal.SIG_IGN:  # nohup, a background job: kept
+            continue
+        if was is _note_early:  # taken, but the previous handler was not noted yet
+            was = _signal.default_int_handler if sig == _signal.SIGINT else _signal.SIG_DFL
+        else:
+            _signal.signal(sig, _note_early)
+        _BEFORE[sig] = was
+
+
+while True:
+    try:
+        _take_signals()
+        break
+    except ValueError:  # imported outside the main thread: signals are not this module's
+        break
+    except KeyboardInterrupt:  # a Ctrl-C before the noting handler was in place
+        _EARLY.append(_signal.SIGINT)
 
 import signal  # noqa: E402  (a module read from disk: a Ctrl-C may come meanwhile)
 

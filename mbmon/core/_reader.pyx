@@ -41,8 +41,10 @@ cdef extern from "Python.h":
 
 from cpython.bytes cimport PyBytes_FromStringAndSize
 from cpython.unicode cimport PyUnicode_DecodeUTF8
+from cpython.exc cimport PyErr_CheckSignals
 
 import orjson as _orjson
+import signal as _signal_mod
 
 from mbmon.format import function_name, exception_name, record_line
 from mbmon.jsonfmt import record_json_bytes
@@ -784,6 +786,24 @@ cdef int put_op(Buf* o, _CRead cr, Op* op, const uint8_t* words) except -1:
         put_i(o, op.hi)
         put_c(o, 41)
     return 0
+
+
+
+_HELD_SIGNALS = {_signal_mod.SIGINT, _signal_mod.SIGTERM}
+
+
+def _hold_signals():
+    """SIGINT/SIGTERM blocked for this thread (kept pending by the kernel); the set to
+    give back to :func:`_release_signals`, or None where that is not possible."""
+    try:
+        return _signal_mod.pthread_sigmask(_signal_mod.SIG_BLOCK, _HELD_SIGNALS)
+    except (AttributeError, OSError, ValueError):
+        return None
+
+
+def _release_signals(before):
+    if before is not None:
+        _signal_mod.pthread_sigmask(_signal_mod.SIG_SETMASK, before)
 
 
 cdef class _Pass:
@@ -1661,15 +1681,26 @@ cdef class _Pass:
         return 0
 
     cdef int flush_mcap(self) except -1:
-        """The message records so far to the sink, with the counters as of their end."""
+        """The message records so far to the sink, with the counters as of their end.
+
+        A block is handed over whole or not at all: SIGINT/SIGTERM are held back by the
+        kernel meanwhile, and one already noted is acted on first (its exception leaves
+        the block here, for :meth:`finish_log`), so a signal can never land inside the
+        sink's Python code before it took the block (a block lost, lines printed that
+        the log does not hold)."""
         if self.mc.n == 0:
             return 0
-        self.sync_totals()
-        data = PyBytes_FromStringAndSize(self.mc.p, self.mc.n)
-        self.mc.n = 0
-        self.mc_done = 0
-        self.mc_any = False
-        self.mcap.put_packed(data, self.mc_first, self.mc_last, self.totals.copy())
+        blocked = _hold_signals()
+        try:
+            PyErr_CheckSignals()
+            self.sync_totals()
+            data = PyBytes_FromStringAndSize(self.mc.p, self.mc.n)
+            self.mcap.put_packed(data, self.mc_first, self.mc_last, self.totals.copy())
+            self.mc.n = 0
+            self.mc_done = 0
+            self.mc_any = False
+        finally:
+            _release_signals(blocked)
         return 0
 
     cdef int mcap_items(self, list items) except -1:
