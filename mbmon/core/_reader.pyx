@@ -45,6 +45,7 @@ from cpython.exc cimport PyErr_CheckSignals
 
 import orjson as _orjson
 import signal as _signal_mod
+import threading as _threading
 
 from mbmon.format import function_name, exception_name, record_line
 from mbmon.jsonfmt import record_json_bytes
@@ -794,7 +795,11 @@ _HELD_SIGNALS = {_signal_mod.SIGINT, _signal_mod.SIGTERM}
 
 def _hold_signals():
     """SIGINT/SIGTERM blocked for this thread (kept pending by the kernel); the set to
-    give back to :func:`_release_signals`, or None where that is not possible."""
+    give back to :func:`_release_signals`, or None where that is not possible or not
+    needed: Python's handlers run only in the main thread, so a block handed over in
+    another (the proxy's pipe reader, after every read) cannot be cut by one."""
+    if _threading.current_thread() is not _threading.main_thread():
+        return None
     try:
         return _signal_mod.pthread_sigmask(_signal_mod.SIG_BLOCK, _HELD_SIGNALS)
     except (AttributeError, OSError, ValueError):
