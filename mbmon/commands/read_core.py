@@ -141,6 +141,8 @@ def read_rtu_with_core(
             as_json=args.json,
             write=None if raw is None else raw.write,
             read_size=source.chunk_size,
+            flt=flt,
+            count=args.count,
         )
         why = run.declined
     if why is not None:
@@ -153,7 +155,7 @@ def read_rtu_with_core(
     if not args.quiet:
         from mbmon.sinks.summary import Summary
 
-        summary = Summary(None)
+        summary = Summary(view if args.robot else None)
         core.fill_rtu_summary(summary, run.counts)
         report(summary, {}, args, timed=False)
     return EXIT_OK

@@ -597,10 +597,13 @@ def rtu_status(baudrate: int | None) -> str:
 def decline_for_rtu(args: Any, *, live: bool, flt: Any, annotator: Any = None) -> str | None:
     """Why ``read --rtu-raw`` stays off the core, or ``None`` when the core reads the
     dump: every option :func:`decline_for_options` declines (but ``--rtu-raw`` itself),
-    and for RTU also a baud rate (the reference's timing rules), ``-w`` (the core's
-    log is Modbus/TCP's), ``--profile``, and the view's options the capture-file core
-    covers but the RTU pass does not: ``--robot``, ``-c``, the filters, ``-t`` other
-    than ``a``."""
+    and for RTU also ``-w`` (the core's log is Modbus/TCP's) and ``--profile``.
+
+    ``--baud`` is covered: a dump has no capture times (every read is stamped 0.0), so
+    the reference's timing rules never fire (a silence is the time between two reads
+    less their bytes' time on the wire, never above t3.5; no tick reaches t3.5 after
+    time 0.0) and its decoder frames the dump as the framer without a baud rate does.
+    ``-t`` is covered for the same reason: an untimed bus's lines say ``#N``."""
     import argparse
 
     plain = argparse.Namespace(**{**vars(args), "rtu_raw": None})
@@ -608,14 +611,8 @@ def decline_for_rtu(args: Any, *, live: bool, flt: Any, annotator: Any = None) -
     if why is not None:
         return why
     checks = (
-        (args.baud, "--baud (the RTU timing rules)"),
         (args.write, "-w with --rtu-raw"),
         (annotator is not None or args.profile, "--profile with --rtu-raw"),
-        # what the core covers for capture files but its RTU pass does not (yet)
-        (args.robot, "--robot with --rtu-raw"),
-        (args.count, "-c with --rtu-raw"),
-        (flt is not None and getattr(flt, "active", False), "filters with --rtu-raw"),
-        (args.time_format != "a", "-t other than a with --rtu-raw"),
     )
     for present, what in checks:
         if present:
@@ -631,11 +628,15 @@ def read_rtu_file(
     as_json: bool,
     write: Any | None,
     read_size: int = 4096,
+    flt: Any | None = None,
+    count: int | None = None,
 ) -> CoreRun:
     """The raw RTU dump at ``path`` (a regular file) read by the core, in reads of
     ``read_size`` bytes as the reference's source reads it (``RawRtuSource.chunk_size``):
     its lines to ``write`` (``None``: count only, ``-q``), the counts of the summary
-    (noise too)."""
+    (noise too). ``flt`` (a ``RecordFilter``) selects the lines ``write`` gets,
+    ``count`` (``-c``) ends the run after that many frames it lets through (the counts
+    too), as for a capture (:func:`read_buffer`)."""
     if _load() is not None:
         return CoreRun(declined=f"the compiled core is unavailable: {_UNAVAILABLE}")
     if not _regular_file(path):
@@ -660,9 +661,17 @@ def read_rtu_file(
             mapped: Any = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
         except ValueError:  # an empty file cannot be mapped
             mapped = None
-    done = _reader._RtuPass(write is not None, as_json, timeout, view, write, stream)
+    if flt is not None and not flt.active:
+        flt = None
+    # -c counts the frames the filters let through also without lines (-q)
+    emit = write is not None or count is not None
+    done = _reader._RtuPass(emit, as_json, timeout, view, write, stream)
+    if flt is not None or count is not None:
+        done.select(flt, count, write is not None)
     try:
         done.run_rtu(b"" if mapped is None else mapped, read_size)
+    except _reader.Enough:  # -c: the N-th frame was written (and flushed)
+        pass
     finally:
         if mapped is not None:
             mapped.close()

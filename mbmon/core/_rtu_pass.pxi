@@ -61,6 +61,14 @@ cdef class _RtuPass(_Pass):
         self.rw_max_read = (rw.max_count or 0) if rw is not None and rw.shape == "read_write" else 0
         self.rw_max_write = (rw.max_write_count or 0) if self.rw_max_read else 0
 
+    def select(self, flt, count, bint show):
+        """``_Pass.select``; on a bus without capture times the filters ignore
+        ``--since``/``--until`` (``RecordFilter.matches_record``: every record of a raw
+        dump is at time 0.0), so the native frames' test (``fast_pass``) does too."""
+        _Pass.select(self, flt, count, show)
+        if not self.timed:
+            self.f_since = self.f_until = False
+
     def run_rtu(self, data, Py_ssize_t read_size) -> None:
         """The dump ``data`` (bytes or a buffer) in reads of ``read_size`` bytes, as the
         reference's source reads it (``RawRtuSource.chunk_size``), then its end."""
@@ -199,12 +207,14 @@ cdef class _RtuPass(_Pass):
                 self.rtu_objects(d, ts, adu, alen, req)  # counts a malformed PDU
             return 0
         native = self.rtu_native(d, pdu, plen, req, &nat, &rnat)
-        if not native:
+        if not native or self.f_slow:  # --where: its test reads the reference's Record
             return self.rtu_python(index, d, ts, adu, alen, req, latency)
         if req != NULL and nat.kind != 0 and not nat.has_addr and rnat.has_addr:
             nat.has_addr = 1
             nat.address = rnat.address
             nat.count = rnat.count
+        if self.f_on and not self.f_grep and not self.fast_pass(ts, adu[0], &nat):
+            return 0  # not shown, not counted by -c (the filters' test, _Pass.fast_pass)
         stream = self.rstream
         if self.labels[sid] is None:
             self.labels[sid] = (
@@ -216,7 +226,8 @@ cdef class _RtuPass(_Pass):
                 _inner(_orjson.dumps({"stream": sid, "src": stream.server, "dst": stream.client})),
             )
         cdef Buf* o = &self.out
-        cdef Py_ssize_t note_at, note_end
+        cdef Py_ssize_t note_at, note_end, line_at, line_end
+        cdef Py_ssize_t rec_at = o.n
         cdef bint js = self.as_json
         if js:
             put(o, b'{"index":', 9)
@@ -258,6 +269,7 @@ cdef class _RtuPass(_Pass):
             put_hex(o, pdu, plen)
             put(o, b'","line":"', 10)
         # the line: time (or "#N" on an untimed bus), label, [uUNIT], PDU hex, notes
+        line_at = o.n
         if self.timed:
             self.put_time(ts)
         else:
@@ -282,6 +294,7 @@ cdef class _RtuPass(_Pass):
                 put(o, b" ms)", 4)
         elif d == 1:
             put(o, b" (no matching request)", 22)
+        line_end = o.n
         if js:
             put(o, b'","notes":["', 12)
             buf_need(o, note_end - note_at)
@@ -302,6 +315,8 @@ cdef class _RtuPass(_Pass):
                 self.put_rw_fields(o)
                 put_c(o, 125)
         put_c(o, 10)
+        if self.f_on or self.left >= 0:  # --grep's test on the line, -c's count
+            return self.selected(rec_at, line_at, line_end, ts, adu[0], &nat, False)
         if o.n >= FLUSH_AT:
             self.flush_out()
         return 0

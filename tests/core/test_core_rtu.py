@@ -339,9 +339,13 @@ def test_debug_core_says_which_decoder_frames_rtu() -> None:
     assert b"core: the compiled core read the input (RTU framing, pairing and lines)" in (
         fast.stderr
     )
+    # a dump has no capture times: --baud changes nothing there, the core reads it
     timed = _mbmon([*args, "--baud", "9600"], pure=False)
-    assert b"core: declined (--baud (the RTU timing rules) is not covered" in timed.stderr
-    assert b"RTU framing: the reference decoder (a baud rate" in timed.stderr
+    assert b"core: the compiled core read the input (RTU framing" in timed.stderr
+    # in a capture the timing rules are the reference decoder's
+    port = ["read", "captures/sim_functions.pcap", "--rtu-port", "502", "--debug-core"]
+    in_capture = _mbmon([*port, "--baud", "9600"], pure=False)
+    assert b"RTU framing: the reference decoder (a baud rate" in in_capture.stderr
     profiled = _mbmon([*args, "--profile", "hrss"], pure=False)
     assert b"core: declined (--profile with --rtu-raw is not covered" in profiled.stderr
     assert b"core: RTU framing: the compiled framer (mbmon.core._rtu)" in profiled.stderr

@@ -247,13 +247,8 @@ def test_the_command_reads_a_dump_on_the_core_and_says_so(tmp_path) -> None:
 @pytest.mark.parametrize(
     ("extra", "why"),
     [
-        (["--baud", "9600"], b"--baud (the RTU timing rules)"),
         (["-w", "x.mcap"], b"-w with --rtu-raw"),
         (["--profile", "hrss"], b"--profile with --rtu-raw"),
-        (["--unit", "1"], b"filters"),
-        (["-c", "3"], b"-c"),
-        (["--robot", "sim_rtu.bin"], b"--robot"),
-        (["-t", "r"], b"-t other than a"),
     ],
 )
 def test_what_the_core_declines_for_a_dump(tmp_path, extra: list[str], why: bytes) -> None:
