@@ -28,6 +28,8 @@ def core_hand_off(
     done = None
     if len(sources) == 1 and args.rtu_raw:
         done = read_rtu_with_core(sources[0], args, view, flt, annotator)
+    elif len(sources) == 1 and isinstance(sources[0], CaptureFileSource) and _bus(sources[0]):
+        done = read_bus_with_core(sources[0], args, view, flt, annotator)
     elif not sources or not all(isinstance(source, CaptureFileSource) for source in sources):
         if args.debug_core and len(sources) > 1:
             err("core: declined (several inputs of this kind); the Python pipeline reads the input")
@@ -158,6 +160,53 @@ def read_rtu_with_core(
         summary = Summary(view if args.robot else None)
         core.fill_rtu_summary(summary, run.counts)
         report(summary, {}, args, timed=False)
+    return EXIT_OK
+
+
+def _bus(source: Any) -> bool:
+    """Whether ``source`` (a capture file) is a capture of an RTU bus (USER0)."""
+    from mbmon import core
+
+    return source.mode != "stream" and core.bus_capture(source.path)
+
+
+def read_bus_with_core(
+    source: Any, args: argparse.Namespace, view: Any, flt: Any, annotator: Any = None
+) -> int | None:
+    """``read`` of a capture of one RTU bus (link type 147, USER0) by the compiled core
+    (framing, pairing and lines, at the capture's times) when it covers the options
+    and the capture: its exit status; ``None`` when it declined, before writing
+    anything (the Python pipeline then reads the capture)."""
+    from mbmon import core
+
+    why = core.decline_for_bus(args, live=False, flt=flt, annotator=annotator)
+    raw = None
+    if why is None and not args.quiet:
+        raw, why = _raw_stdout()
+    if why is None:
+        run = core.read_bus_file(
+            source.path,
+            timeout=args.timeout,
+            view=view,
+            as_json=args.json,
+            write=None if raw is None else raw.write,
+            flt=flt,
+            count=args.count,
+        )
+        why = run.declined
+    if why is not None:
+        if args.debug_core:
+            err(f"core: declined ({why}); the Python pipeline reads the input")
+        return None
+    _flush_stdout(raw)
+    if args.debug_core:
+        err("core: the compiled core read the input (an RTU bus: framing, pairing and lines)")
+    if not args.quiet:
+        from mbmon.sinks.summary import Summary
+
+        summary = Summary(view if args.robot else None)
+        core.fill_rtu_summary(summary, run.counts)
+        report(summary, {}, args, timed=True)
     return EXIT_OK
 
 

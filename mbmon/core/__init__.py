@@ -32,7 +32,7 @@ import os
 import stat
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 __all__ = [
     "CoreRun",
@@ -684,3 +684,116 @@ def fill_rtu_summary(summary: Any, counts: dict[str, Any]) -> None:
     """:func:`fill_summary` of an RTU read, and its noise runs, bytes and CRC errors."""
     fill_summary(summary, counts)
     summary.noise_records, summary.noise_bytes, summary.crc_errors = counts["noise"]
+
+
+# ------------------------------------------------------------------ RTU bus captures
+# A capture of one RTU bus (pcap or pcapng whose records are link type 147, USER0)
+# read by the reader's RTU pass (``_RtuPass.run_bus``): the records' bytes framed by
+# the compiled framer at their capture times, paired and written as ``read --rtu-raw``
+# writes a dump, but timed. A deciding pass first (a damaged container, another link
+# type, a second bus or no frame declines before a byte is written), then the
+# writing pass.
+
+#: the link type of an RTU bus's records (USER0)
+LINKTYPE_RTU_BUS = 147
+
+
+def bus_capture(path: str) -> bool:
+    """Whether the capture at ``path`` (a regular file, not compressed) describes an
+    RTU bus first: a pcap of link type 147, or a pcapng whose first interface is; the
+    run then goes to :func:`read_bus_file` (which declines what else it holds)."""
+    if not _regular_file(path):
+        return False
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return False
+    if len(head) < 24:
+        return False
+    order: Literal["little", "big"]
+    for order in ("little", "big"):
+        magic = int.from_bytes(head[:4], order)
+        if magic in (0xA1B2C3D4, 0xA1B23C4D, 0xA1B2CD34):
+            return int.from_bytes(head[20:24], order) & 0x0FFFFFFF == LINKTYPE_RTU_BUS
+    if head[:4] != b"\x0a\x0d\x0d\x0a":
+        return False
+    order = "little" if head[8:12] == b"\x4d\x3c\x2b\x1a" else "big"
+    pos = int.from_bytes(head[4:8], order)  # the section header's length: the next block
+    if pos + 12 > len(head) or int.from_bytes(head[pos : pos + 4], order) != 1:
+        return False
+    return int.from_bytes(head[pos + 8 : pos + 10], order) == LINKTYPE_RTU_BUS
+
+
+def decline_for_bus(args: Any, *, live: bool, flt: Any, annotator: Any = None) -> str | None:
+    """Why ``read`` of a capture of an RTU bus stays off the core, or ``None``: every
+    option :func:`decline_for_options` declines, and a baud rate (the reference's
+    timing rules, which the bus's capture times make fire), ``-w`` and ``--profile``."""
+    checks = (
+        (args.baud, "--baud on a captured RTU bus (the timing rules)"),
+        (args.write, "-w with an RTU bus capture"),
+        (annotator is not None or args.profile, "--profile with an RTU bus capture"),
+    )
+    return decline_for_options(args, live=live, flt=flt) or first_decline(checks)
+
+
+def read_bus_file(
+    path: str,
+    *,
+    timeout: float,
+    view: Any,
+    as_json: bool,
+    write: Any | None,
+    flt: Any | None = None,
+    count: int | None = None,
+) -> CoreRun:
+    """The capture of one RTU bus at ``path`` (see :func:`bus_capture`) read by the core:
+    a deciding pass, then (with ``write``, a filter or ``-c``) the writing pass; the
+    counts of the summary (noise too), as :func:`read_rtu_file` gives them."""
+    if _load() is not None:
+        return CoreRun(declined=f"the compiled core is unavailable: {_UNAVAILABLE}")
+    why = _input_decline(path)
+    if why is not None:
+        return CoreRun(declined=why)
+    from pathlib import Path
+
+    from mbmon.model import Stream, Transport
+
+    name = Path(path).name  # the dissector's bus name
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        return CoreRun(declined="a capture whose file name is not UTF-8 (it names the bus)")
+    stream = Stream(0, Transport.RTU, name, name)  # as the dissector's first bus
+
+    def bus_pass(emit: bool) -> Any:
+        return _reader._RtuPass(emit, as_json, timeout, view, write if emit else None, stream)
+
+    try:
+        with _opened(path) as (data, _release):
+            first = bus_pass(False)
+            try:
+                first.run_bus(data)
+            except _reader.Declined as exc:
+                return CoreRun(declined=str(exc))
+            if first.frames == 0:
+                return CoreRun(declined="no Modbus frames (the reference reader gives the hints)")
+            if flt is not None and not flt.active:
+                flt = None
+            if flt is None and count is None and write is None:
+                done = first
+            else:
+                if flt is not None or count is not None:
+                    _start_selection([first], flt, count, view, show=write is not None)
+                done = bus_pass(True)
+                if flt is not None or count is not None:
+                    done.select(flt, count, write is not None)
+                try:
+                    done.run_bus(data)
+                except _reader.Enough:  # -c: the N-th frame was written (and flushed)
+                    pass
+    except _NoInput as exc:
+        return CoreRun(declined=str(exc))
+    counts = _counts(done)
+    counts["noise"] = (done.noise_records, done.noise_bytes, done.crc_errors)
+    return CoreRun(counts=counts)

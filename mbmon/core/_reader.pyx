@@ -935,6 +935,7 @@ cdef class _Pass:
     cdef dict pyconns           # conn -> its TcpConnection
     cdef object tcp_stats       # their TcpStats (the dissector's, not shown by read)
     cdef public bint live       # the streaming entry: it hands such packets over instead
+    cdef int rec_iface          # pcapng: the interface of the record being read (pcap: 0)
     # Modbus/UDP: pairs by both directions' keys (as flows), their stream ids
     cdef dict udp_pairs
 
@@ -3351,6 +3352,7 @@ cdef class _Pass:
                 if pos + 28 + caplen > end:
                     raise Declined("a damaged capture (packet length)")
                 if iface < <uint32_t>len(ifaces):
+                    self.rec_iface = iface
                     link, div, tsoff, _ = ifaces[iface]
                     if stamp > (<uint64_t>1 << 53) or not -(1 << 53) <= tsoff <= (1 << 53):
                         raise Declined("pcapng timestamps beyond 2^53 units")
@@ -3365,6 +3367,7 @@ cdef class _Pass:
                 if caplen > end - (pos + 12):
                     caplen = end - (pos + 12)
                 if ifaces:
+                    self.rec_iface = 0
                     link, _, _, snaplen = ifaces[0]
                     if snaplen and caplen > snaplen:
                         caplen = snaplen

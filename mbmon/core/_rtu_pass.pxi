@@ -38,6 +38,7 @@ cdef class _RtuPass(_Pass):
     cdef int rw_address, rw_count, rw_bytes
     cdef const uint8_t* rw_values
     cdef int rw_max_read, rw_max_write
+    cdef int bus_iface          # a capture of a bus (USER0): its interface; -1 none yet
 
     def __init__(self, bint emit, bint as_json, double timeout, view, write, stream):
         from mbmon.core._rtu import PACKED, RtuCore
@@ -53,6 +54,7 @@ cdef class _RtuPass(_Pass):
         self.labels = [None] * (stream.id + 1)
         self.heads = [None] * (stream.id + 1)
         self.has_pend = False
+        self.bus_iface = -1
         self.noise_records = self.noise_bytes = self.crc_errors = 0
         from mbmon.protocol.functions import FUNCTIONS
 
@@ -85,6 +87,32 @@ cdef class _RtuPass(_Pass):
             view.release()
         self.rtu_finish(self.pl_last)
         self.flush_out()
+
+    def run_bus(self, const uint8_t[::1] data) -> None:
+        """A capture of one RTU bus (pcap or pcapng, link type 147: USER0): every
+        record's bytes a chunk of the bus at the record's time, as the reference's
+        dissector makes them (``Dissector._bus``), then the end of input. Declines
+        (``Declined``) a damaged container, another link type, a second bus."""
+        self.run(data)  # the capture pass's container reading; records reach packet()
+        self.rtu_finish(self.pl_last)
+        self.flush_out()
+
+    cdef int packet(self, double ts, int link, const uint8_t[::1] buf, Py_ssize_t off,
+                    Py_ssize_t end) except -1:
+        """One record of a capture of a bus (``run_bus``): link type 147, its bytes a
+        chunk of the bus (an empty one makes none); a record of an interface never
+        described is skipped, as the reference skips it."""
+        if link != 147:
+            if link < 0:
+                return 0
+            raise Declined("link type %d beside an RTU bus (USER0)" % link)
+        if self.bus_iface < 0:
+            self.bus_iface = self.rec_iface
+        elif self.rec_iface != self.bus_iface:
+            raise Declined("several RTU buses (USER0 interfaces)")
+        if end > off:
+            self.rtu_chunk(PyBytes_FromStringAndSize(<const char*>&buf[off], end - off), ts)
+        return 0
 
     cdef int rtu_chunk(self, bytes data, double ts) except -1:
         """One chunk of the bus (``Pipeline.feed``): the pairer's tick before it, then

@@ -49,9 +49,9 @@ def test_read_same_bytes_either_way(fmt: list[str]) -> None:
 
 def test_declines_are_visible_and_change_nothing(tmp_path: Path) -> None:
     require_core()
-    rtu = _mbmon("read", str(RTU), "--debug-core")
-    assert b"core: declined (link type 147)" in rtu.stderr
-    assert rtu.stdout == _mbmon("read", str(RTU), pure=True).stdout
+    rtu = _mbmon("read", str(RTU), "--baud", "9600", "--debug-core")
+    assert b"core: declined (--baud on a captured RTU bus" in rtu.stderr
+    assert rtu.stdout == _mbmon("read", str(RTU), "--baud", "9600", pure=True).stdout
     for window in ("--before", "--after"):  # the pipeline's usage error, not the core's lines
         alone = _mbmon("read", str(DEMO), window, "5s", "--debug-core")
         assert b"core: declined (" + window.encode() + b" is not covered" in alone.stderr
