@@ -30,11 +30,14 @@ framer >= 20 MB/s of CPU).
 /dev/null; CPU = user + sys of the child): text, ``--json`` and ``-q``, on the
 compiled core and forced pure (``MBMON_NO_EXTENSIONS=1``), on the dump and on its
 first fifth, so that start-up cancels out: MB/s of CPU whole and marginal
-((size - size/5) / (CPU(size) - CPU(size/5))). ``--read-callgrind`` adds
+((size - size/5) / (CPU(size) - CPU(size/5))). ``--bus-cmd``: the same rows of
+``mbmon read BUS.pcap``, the dump as a capture of an RTU bus (link type 147, a record
+per read at a saturated 115200-baud line's times). ``--read-callgrind`` adds
 callgrind instructions per byte, marginal the same way, on the first 100 KB and
 400 KB of the dump (``--limit`` does not apply).
 
     python bench/rtu_throughput.py --mb 10 --decoder-only --read-cmd
+    python bench/rtu_throughput.py --mb 10 --decoder-only --which core --bus-cmd
     python bench/rtu_throughput.py --mb 2 --decoder-only --which core --repeat 1 --read-callgrind
 """
 
@@ -215,26 +218,49 @@ def _part(data: bytes, cache: Path, size: int) -> Path:
     return part
 
 
-def _read_cmd(path: Path, extra: list[str], pure: bool) -> list[str]:
+def _read_cmd(path: Path, extra: list[str], pure: bool, raw: bool = True) -> list[str]:
+    """``mbmon read --rtu-raw PATH`` (``raw``), or ``mbmon read PATH`` of a bus capture."""
     from read_throughput import mbmon_cmd
 
     env = ["env", "MBMON_NO_EXTENSIONS=1"] if pure else []
-    return [*env, *mbmon_cmd(), "read", "--rtu-raw", str(path), *extra]
+    return [*env, *mbmon_cmd(), "read", *(["--rtu-raw"] if raw else []), str(path), *extra]
 
 
-def read_rows(data: bytes, cache: Path) -> None:
+#: a saturated 115200-baud line's time per byte (11 bits), the bus capture's clock
+BYTE_TIME = 11 / 115200
+
+
+def _bus_capture(data: bytes, path: Path, step: int) -> Path:
+    """``data`` as a capture of one RTU bus (pcap, link type 147), a record per
+    ``step`` bytes at the times a saturated 115200-baud line delivers them (cached)."""
+    from mbmon.io.pcap import PcapWriter
+
+    if not path.exists():
+        with PcapWriter(path, 147) as w:
+            for i in range(0, len(data), step):
+                w.write(1_700_000_000.0 + (i + step) * BYTE_TIME, data[i : i + step])
+    return path
+
+
+def read_rows(data: bytes, cache: Path, step: int = 4096, *, bus: bool = False) -> None:
     """``mbmon read --rtu-raw`` end to end, core and pure, in the same run: MB/s of the
-    child's CPU, whole and marginal (start-up cancels out)."""
+    child's CPU, whole and marginal (start-up cancels out). ``bus``: ``mbmon read`` of
+    the dump as a capture of an RTU bus (USER0, records of ``step`` bytes) instead."""
     from read_throughput import measure
 
     n = len(data)
     small = _part(data, cache, n // 5)
-    print(f"read --rtu-raw end to end ({n / 1e6:.1f} MB and its first fifth; CPU of the child):")
+    what = "read --rtu-raw"
+    if bus:
+        small = _bus_capture(data[: n // 5], small.with_suffix(".pcap"), step)
+        cache = _bus_capture(data, cache.with_suffix(".pcap"), step)
+        what = "read BUS.pcap"
+    print(f"{what} end to end ({n / 1e6:.1f} MB and its first fifth; CPU of the child):")
     for label, extra in READS:
         cpus: dict[str, float] = {}
         for path_label, pure in (("core", False), ("pure", True)):
-            big = measure("", _read_cmd(cache, extra, pure), None)
-            little = measure("", _read_cmd(small, extra, pure), None)
+            big = measure("", _read_cmd(cache, extra, pure, not bus), None)
+            little = measure("", _read_cmd(small, extra, pure, not bus), None)
             if big.rc or little.rc:
                 print(f"  {label} {path_label}: exit {big.rc} / {little.rc}")
                 continue
@@ -243,14 +269,12 @@ def read_rows(data: bytes, cache: Path) -> None:
             cpus[path_label] = whole
             rate = (n - n // 5) / margin / 1e6 if margin > 0 else float("inf")
             print(
-                f"  read --rtu-raw {label:<7} {path_label}: {whole:6.2f} s CPU, "
+                f"  {what} {label:<7} {path_label}: {whole:6.2f} s CPU, "
                 f"{n / whole / 1e6:6.2f} MB/s whole, {rate:6.2f} MB/s marginal"
                 f"  (start-up and the first fifth {little.user + little.sys:.2f} s)"
             )
         if len(cpus) == 2:
-            print(
-                f"  read --rtu-raw {label:<7} core {cpus['pure'] / cpus['core']:.1f}x pure by CPU"
-            )
+            print(f"  {what} {label:<7} core {cpus['pure'] / cpus['core']:.1f}x pure by CPU")
 
 
 def read_callgrind(data: bytes, cache: Path) -> None:
@@ -315,6 +339,13 @@ def main() -> int:
         dest="read_rows",
         action="store_true",
         help="mbmon read --rtu-raw end to end, core and pure, text/--json/-q (CPU of the child)",
+    )
+    ap.add_argument(
+        "--bus-cmd",
+        dest="bus_rows",
+        action="store_true",
+        help="mbmon read of the dump as a capture of an RTU bus (USER0, a record per read, "
+        "a 115200-baud line's times), core and pure, text/--json/-q (CPU of the child)",
     )
     ap.add_argument(
         "--read-callgrind",
@@ -383,6 +414,8 @@ def main() -> int:
         )
     if args.read_rows:
         read_rows(data, cache)
+    if args.bus_rows:
+        read_rows(data, cache, step, bus=True)
     if args.read_callgrind:
         read_callgrind(data, cache)
     if args.decoder_only:
