@@ -699,14 +699,24 @@ LINKTYPE_RTU_BUS = 147
 
 
 def bus_capture(path: str) -> bool:
-    """Whether the capture at ``path`` (a regular file, not compressed) describes an
-    RTU bus first: a pcap of link type 147, or a pcapng whose first interface is; the
-    run then goes to :func:`read_bus_file` (which declines what else it holds)."""
+    """Whether the capture at ``path`` (a regular file, gzip-compressed or not)
+    describes an RTU bus first: a pcap of link type 147, or a pcapng whose first
+    interface is; the run then goes to :func:`read_bus_file` (which declines what else
+    it holds)."""
     if not _regular_file(path):
         return False
     try:
         with open(path, "rb") as f:
             head = f.read(4096)
+            if head[:2] == GZIP_MAGIC:  # its first bytes decompressed (a damaged one: no)
+                import gzip
+                import zlib
+
+                f.seek(0)
+                try:
+                    head = gzip.GzipFile(fileobj=f, mode="rb").read(4096)
+                except (OSError, EOFError, zlib.error):
+                    return False
     except OSError:
         return False
     if len(head) < 24:
@@ -727,14 +737,19 @@ def bus_capture(path: str) -> bool:
 
 def decline_for_bus(args: Any, *, live: bool, flt: Any, annotator: Any = None) -> str | None:
     """Why ``read`` of a capture of an RTU bus stays off the core, or ``None``: every
-    option :func:`decline_for_options` declines, and a baud rate (the reference's
-    timing rules, which the bus's capture times make fire), ``-w`` and ``--profile``."""
+    option :func:`decline_for_options` declines but ``--rtu-port`` (it names TCP and
+    UDP ports: a record of another link type declines the capture anyway), and a
+    baud rate (the reference's timing rules, which the bus's capture times make
+    fire), ``-w`` and ``--profile``."""
+    import argparse
+
+    plain = argparse.Namespace(**{**vars(args), "rtu_port": None})
     checks = (
         (args.baud, "--baud on a captured RTU bus (the timing rules)"),
         (args.write, "-w with an RTU bus capture"),
         (annotator is not None or args.profile, "--profile with an RTU bus capture"),
     )
-    return decline_for_options(args, live=live, flt=flt) or first_decline(checks)
+    return decline_for_options(plain, live=live, flt=flt) or first_decline(checks)
 
 
 def read_bus_file(

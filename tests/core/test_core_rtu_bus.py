@@ -221,6 +221,20 @@ def test_what_the_core_declines_in_a_bus_capture(tmp_path: Path) -> None:
     _declined([noise], "no Modbus frames")
 
 
+def test_a_compressed_bus_capture_and_rtu_port(tmp_path: Path) -> None:
+    """A gzip-compressed bus capture is read on the core as the plain one; ``--rtu-port``
+    (TCP and UDP ports) changes nothing in a capture of a bus."""
+    import gzip
+
+    packed = tmp_path / "sim_rtu.pcap.gz"
+    packed.write_bytes(gzip.compress((CAPTURES / "sim_rtu.pcap").read_bytes()))
+    assert_bus_same([packed, "--json"])
+    assert_bus_same([CAPTURES / "sim_rtu.pcap", "--rtu-port", "502"])
+    damaged = tmp_path / "damaged.pcap.gz"
+    damaged.write_bytes(packed.read_bytes()[:-20])
+    assert_same([damaged])
+
+
 def test_a_bus_capture_among_several_inputs_is_declined() -> None:
     require_core()
     fast, pure = read_both([CAPTURES / "demo.pcap", CAPTURES / "sim_rtu.pcap"])
