@@ -173,7 +173,7 @@ def _bus(source: Any) -> bool:
 def read_bus_with_core(
     source: Any, args: argparse.Namespace, view: Any, flt: Any, annotator: Any = None
 ) -> int | None:
-    """``read`` of a capture of one RTU bus (link type 147, USER0) by the compiled core
+    """``read`` of a capture of RTU buses (link type 147, USER0) by the compiled core
     (framing, pairing and lines, at the capture's times) when it covers the options
     and the capture: its exit status; ``None`` when it declined, before writing
     anything (the Python pipeline then reads the capture)."""

@@ -687,11 +687,11 @@ def fill_rtu_summary(summary: Any, counts: dict[str, Any]) -> None:
 
 
 # ------------------------------------------------------------------ RTU bus captures
-# A capture of one RTU bus (pcap or pcapng whose records are link type 147, USER0)
+# A capture of RTU buses (pcap or pcapng whose records are link type 147, USER0)
 # read by the reader's RTU pass (``_RtuPass.run_bus``): the records' bytes framed by
 # the compiled framer at their capture times, paired and written as ``read --rtu-raw``
 # writes a dump, but timed. A deciding pass first (a damaged container, another link
-# type, a second bus or no frame declines before a byte is written), then the
+# type, more than 64 buses or no frame declines before a byte is written), then the
 # writing pass.
 
 #: the link type of an RTU bus's records (USER0)
@@ -762,7 +762,7 @@ def read_bus_file(
     flt: Any | None = None,
     count: int | None = None,
 ) -> CoreRun:
-    """The capture of one RTU bus at ``path`` (see :func:`bus_capture`) read by the core:
+    """The capture of RTU buses at ``path`` (see :func:`bus_capture`) read by the core:
     a deciding pass, then (with ``write``, a filter or ``-c``) the writing pass; the
     counts of the summary (noise too), as :func:`read_rtu_file` gives them."""
     if _load() is not None:

@@ -6,7 +6,9 @@
 # RTU pairing rules of mbmon.protocol.pairing (one pending request per bus, unit and
 # function code must agree, a new request times the pending one out, broadcasts and
 # Diagnostics 04 never pending, unsolicited answers) -> the text or JSON line, in the
-# order and with the record numbers of mbmon.pipeline.
+# order and with the record numbers of mbmon.pipeline. It also reads a capture of
+# RTU buses (link type 147, USER0: ``run_bus``), each record a chunk of its bus at
+# the record's time, one framer and one pending request per bus (``switch_bus``).
 #
 # It is a _Pass: the line pieces (put_note, put_values_json, native_pdu, the time,
 # the JSON answer's tail, the output buffer, events and the reference records)
@@ -15,6 +17,9 @@
 # "tid":null, "crc_ok":true), the one pending slot, the reference objects of an
 # RTU frame (the PDU between the unit and the CRC) and the noise runs (formatted
 # by mbmon.format, as they come rarely).
+
+DEF MAX_BUSES = 64          # RTU buses of one capture the core keeps (USER0 interfaces)
+
 
 cdef struct _RRec:          # one packed record of RtuCore.take() (``<BBHId``)
     uint8_t kind            # 0 request, 1 response, 2 noise run
@@ -38,7 +43,17 @@ cdef class _RtuPass(_Pass):
     cdef int rw_address, rw_count, rw_bytes
     cdef const uint8_t* rw_values
     cdef int rw_max_read, rw_max_write
-    cdef int bus_iface          # a capture of a bus (USER0): its interface; -1 none yet
+    # a capture of buses (USER0): one framer, stream and pending slot per bus; the
+    # fields above are the current bus's (switch_bus saves and loads them)
+    cdef int cur                # the current bus
+    cdef list framers           # bus -> its RtuCore
+    cdef list bstreams          # bus -> its Stream
+    cdef dict bus_by_iface      # interface -> bus
+    cdef Pend* bpend            # bus -> its pending request (saved)
+    cdef uint8_t bhas[MAX_BUSES]  # bus -> whether it has one (saved)
+    cdef bint multi             # more than one bus (pend_order is kept from then on)
+    cdef list pend_order        # buses with a pending request, in the pairer's order
+    cdef list fed_order         # buses in the order of their first bytes (decoders made)
 
     def __init__(self, bint emit, bint as_json, double timeout, view, write, stream):
         from mbmon.core._rtu import PACKED, RtuCore
@@ -54,7 +69,17 @@ cdef class _RtuPass(_Pass):
         self.labels = [None] * (stream.id + 1)
         self.heads = [None] * (stream.id + 1)
         self.has_pend = False
-        self.bus_iface = -1
+        self.cur = 0
+        self.framers = [self.framer]
+        self.bstreams = [stream]
+        self.bus_by_iface = {}
+        self.multi = False
+        self.pend_order = []
+        self.fed_order = []
+        self.bpend = <Pend*>malloc(sizeof(Pend) * MAX_BUSES)
+        if self.bpend == NULL:
+            raise MemoryError()
+        memset(self.bhas, 0, MAX_BUSES)
         self.noise_records = self.noise_bytes = self.crc_errors = 0
         from mbmon.protocol.functions import FUNCTIONS
 
@@ -62,6 +87,9 @@ cdef class _RtuPass(_Pass):
         # the spec's limits of the row (0: no such row, the reference formats 0x17)
         self.rw_max_read = (rw.max_count or 0) if rw is not None and rw.shape == "read_write" else 0
         self.rw_max_write = (rw.max_write_count or 0) if self.rw_max_read else 0
+
+    def __dealloc__(self):
+        free(self.bpend)
 
     def select(self, flt, count, bint show):
         """``_Pass.select``; on a bus without capture times the filters ignore
@@ -89,10 +117,10 @@ cdef class _RtuPass(_Pass):
         self.flush_out()
 
     def run_bus(self, const uint8_t[::1] data) -> None:
-        """A capture of one RTU bus (pcap or pcapng, link type 147: USER0): every
+        """A capture of RTU buses (pcap or pcapng, link type 147: USER0): every
         record's bytes a chunk of the bus at the record's time, as the reference's
         dissector makes them (``Dissector._bus``), then the end of input. Declines
-        (``Declined``) a damaged container, another link type, a second bus."""
+        (``Declined``) a damaged container, another link type, more than MAX_BUSES buses."""
         self.run(data)  # the capture pass's container reading; records reach packet()
         self.rtu_finish(self.pl_last)
         self.flush_out()
@@ -106,33 +134,91 @@ cdef class _RtuPass(_Pass):
             if link < 0:
                 return 0
             raise Declined("link type %d beside an RTU bus (USER0)" % link)
-        if self.bus_iface < 0:
-            self.bus_iface = self.rec_iface
-        elif self.rec_iface != self.bus_iface:
-            raise Declined("several RTU buses (USER0 interfaces)")
+        cdef object b = self.bus_by_iface.get(self.rec_iface)
+        if b is None:
+            b = self.new_bus(self.rec_iface)
+        if <int>b != self.cur:
+            self.switch_bus(<int>b)
         if end > off:
             self.rtu_chunk(PyBytes_FromStringAndSize(<const char*>&buf[off], end - off), ts)
+        return 0
+
+    cdef int new_bus(self, int iface) except -1:
+        """The bus of a new interface (``Dissector._bus``): the first is the stream made
+        with the pass, the next ones ``NAME#IFACE`` on the next stream ids."""
+        cdef int b = len(self.bus_by_iface)
+        if b >= MAX_BUSES:
+            raise Declined("more RTU buses than the core keeps")
+        if b == 1:  # from now on the pairer's order of the buses' requests is kept
+            self.multi = True
+            self.pend_order = [0] if self.has_pend else []
+        if b:
+            name = self.bstreams[0].server + "#%d" % iface
+            stream = Stream(self.bstreams[0].id + b, Transport.RTU, name, name,
+                            timed=self.timed)
+            self.bstreams.append(stream)
+            self.framers.append(type(self.framer)(stream, Direction.BUS, None, self.timeout))
+            self.streams.append(stream)
+            self.labels.append(None)
+            self.heads.append(None)
+        self.bus_by_iface[iface] = b
+        return b
+
+    cdef int switch_bus(self, int b) except -1:
+        """Make bus ``b`` the current one: its framer, stream and pending request."""
+        self.bhas[self.cur] = self.has_pend
+        memcpy(&self.bpend[self.cur], &self.pend, sizeof(Pend))
+        self.cur = b
+        self.framer = self.framers[b]
+        self.rstream = self.bstreams[b]
+        self.has_pend = self.bhas[b]
+        memcpy(&self.pend, &self.bpend[b], sizeof(Pend))
         return 0
 
     cdef int rtu_chunk(self, bytes data, double ts) except -1:
         """One chunk of the bus (``Pipeline.feed``): the pairer's tick before it, then
         what the framer completes."""
+        cdef int here = self.cur, b
         self.last_ts = ts
         self.pl_last = ts
         if ts >= self.next_tick:
             self.next_tick = ts + TICK_EVERY
-            if self.has_pend and self.pend.ts <= ts - self.timeout:
-                self.rtu_timeout(min(self.pend.ts + self.timeout, ts))
+            if not self.multi:
+                if self.has_pend and self.pend.ts <= ts - self.timeout:
+                    self.rtu_timeout(min(self.pend.ts + self.timeout, ts))
+            else:  # every bus's pending request, in the pairer's order (Pairer.tick)
+                for b in list(self.pend_order):
+                    self.switch_bus(b)
+                    if self.pend.ts <= ts - self.timeout:
+                        self.rtu_timeout(min(self.pend.ts + self.timeout, ts))
+                        self.pend_order.remove(b)
+                if self.cur != here:
+                    self.switch_bus(here)
+        if self.multi and here not in self.fed_order:
+            self.fed_order.append(here)
+        elif not self.fed_order:
+            self.fed_order.append(here)
         self.framer.push(data, ts)
         return self.rtu_drain()
 
     cdef int rtu_finish(self, double ts) except -1:
         """The end of input (``Pipeline.finish``): the framer flushes, then the pending
         request times out."""
-        self.framer.push_flush(ts)
-        self.rtu_drain()
-        if self.has_pend:
+        cdef int b
+        if not self.multi:
+            self.framer.push_flush(ts)
+            self.rtu_drain()
+            if self.has_pend:
+                self.rtu_timeout(min(self.pend.ts + self.timeout, ts))
+            return 0
+        for b in self.fed_order:  # the decoders flush in the order they were made
+            self.switch_bus(b)
+            self.framer.push_flush(ts)
+            self.rtu_drain()
+        for b in self.pend_order:  # then the pairer's pending requests time out
+            self.switch_bus(b)
             self.rtu_timeout(min(self.pend.ts + self.timeout, ts))
+        self.pend_order = []
         return 0
 
     cdef int rtu_drain(self) except -1:
@@ -169,11 +255,16 @@ cdef class _RtuPass(_Pass):
         cdef int unit = adu[0]
         cdef bint hold
         self.frames += 1
+        cdef bint was = self.has_pend
         if d == 0:
-            if self.has_pend:  # one request at a time on a bus: the pending one times out
+            if was:  # one request at a time on a bus: the pending one times out
                 self.rtu_timeout(min(self.pend.ts + self.timeout, ts))
             hold = unit != 0 and (adu[1] != 0x08 or _expects_reply_rtu(adu, alen))
+            if self.multi and was and not hold:
+                self.pend_order.remove(self.cur)  # the pairer drops the bus's entry
             if hold:
+                if self.multi and not was:
+                    self.pend_order.append(self.cur)  # else the bus keeps its place
                 self.has_pend = True
                 self.pend.ts = ts
                 self.pend.index = self.index
@@ -186,6 +277,8 @@ cdef class _RtuPass(_Pass):
             return self.rtu_record(0, ts, adu, alen, NULL)
         if self.has_pend and self.pend.unit == unit and self.pend.fc == adu[1] & 0x7F:
             self.has_pend = False
+            if self.multi:
+                self.pend_order.remove(self.cur)
             return self.rtu_record(1, ts, adu, alen, &self.pend)
         return self.rtu_record(1, ts, adu, alen, NULL)
 

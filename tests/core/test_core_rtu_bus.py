@@ -4,8 +4,9 @@ reference pipeline, the same command line run in this process forced pure
 (:mod:`opts_diff`): the project's bus captures, generated ones (every function code,
 noise, broken CRCs, cut frames, timeouts by time and by the next request, late and
 unsolicited answers, records cut anywhere, silences, equal and backward times), with
-the view's options, filters and ``-c``; hypothesis-drawn cuts and gaps; and what the
-core declines (a second bus, another link type beside the bus, damage, ``--baud``)."""
+the view's options, filters and ``-c``; hypothesis-drawn cuts and gaps; several
+buses in one capture; and what the core declines (more than 64 buses, another link
+type beside the bus, damage, ``--baud``)."""
 
 from __future__ import annotations
 
@@ -185,6 +186,66 @@ def test_drawn_cuts_and_gaps(seed: int, noise: bytes, pcapng: bool) -> None:
         assert_bus_same([path, "--timeout", "0.5"])
 
 
+# ---------------------------------------------------------------- several buses
+
+
+def write_buses(path: Path, buses: list[list[tuple[float, bytes]]], *, quiet: int = -1) -> Path:
+    """A pcapng of several buses, an interface each (link type 147), their records
+    merged by time (each bus's in its own order); bus ``quiet`` gives an empty
+    record first (its stream is made before it carries bytes)."""
+    import heapq
+
+    tagged = [[(ts, i, data) for ts, data in recs] for i, recs in enumerate(buses)]
+    with PcapngWriter(path) as w:
+        for _ in buses:
+            w.add_interface(147)
+        if quiet >= 0:
+            w.write(buses[0][0][0], b"", interface=quiet)
+        for ts, i, data in heapq.merge(*tagged, key=lambda r: r[0]):
+            w.write(ts, data, interface=i)
+    return path
+
+
+def test_two_buses_as_a_byte_table(tmp_path: Path) -> None:
+    """Each bus its stream (the second named ``NAME#IFACE``), its framer and its one
+    pending request: a request on one bus is not timed out by the other's; the
+    pairer's tick and the end time them out in the order the buses got a pending
+    request (a bus whose request is replaced keeps its place: bus 0's newer request
+    times out before bus 1's older one)."""
+    ask1 = encode_rtu(1, bytes.fromhex("03 00 64 00 02"))
+    ask2 = encode_rtu(2, bytes.fromhex("04 00 0A 00 01"))
+    answer2 = encode_rtu(2, bytes.fromhex("04 02 00 2A"))
+    bus0 = [(T0 + 0.1, ask1), (T0 + 0.5, ask1), (T0 + 3.0, ask1)]
+    bus1 = [(T0, ask2[:3]), (T0 + 0.2, ask2[3:]), (T0 + 0.3, answer2), (T0 + 0.4, ask2)]
+    path = write_buses(tmp_path / "two.pcapng", [bus0, bus1], quiet=1)
+    run = assert_bus_same([path, "-t", "r"])
+    holding, inputs = "Read Holding Registers", "Read Input Registers"
+    assert run.out.decode().splitlines() == [
+        f"0.000000  master → slave  [u1]  03 00 64 00 02  | {holding} 100..101",
+        f"0.100000  master → slave  [u2]  04 00 0A 00 01  | {inputs} 10",
+        f"0.200000  slave → master  [u2]  04 02 00 2A  | {inputs} 10 = 42 (100.0 ms)",
+        f"0.300000  master → slave  [u2]  04 00 0A 00 01  | {inputs} 10",
+        f"0.400000  -- No response to {holding} (record #0)",
+        f"0.400000  master → slave  [u1]  03 00 64 00 02  | {holding} 100..101",
+        f"1.400000  -- No response to {holding} (record #5)",
+        f"1.300000  -- No response to {inputs} (record #3)",
+        f"2.900000  master → slave  [u1]  03 00 64 00 02  | {holding} 100..101",
+        f"2.900000  -- No response to {holding} (record #8)",
+    ]
+    assert "on 2 streams" in run.err
+    assert_bus_same([path, "--json"])
+
+
+@pytest.mark.parametrize("seed", [31, 32])
+def test_generated_buses_in_one_capture(tmp_path: Path, seed: int) -> None:
+    buses = [records(paired_bus(seed + i, 80), seed + i) for i in range(3)]
+    path = write_buses(tmp_path / "three.pcapng", buses, quiet=2)
+    text = assert_bus_same([path, "--timeout", "0.3"]).out
+    assert b"three.pcapng#1  !! noise" in text or b"three.pcapng#2  !! noise" in text
+    for options in (["--json"], ["--unit", "1", "-c", "40"], ["--robot", "three.pcapng#2"]):
+        assert_bus_same([path, *options])
+
+
 # ---------------------------------------------------------------- declines
 
 
@@ -197,13 +258,12 @@ def _declined(args: list[str | Path], why: str) -> None:
 def test_what_the_core_declines_in_a_bus_capture(tmp_path: Path) -> None:
     data = paired_bus(5, 60)
     recs = records(data, 5)
-    two = tmp_path / "two.pcapng"
-    with PcapngWriter(two) as w:
-        w.add_interface(147)
-        w.add_interface(147)
-        for i, (ts, chunk) in enumerate(recs):
-            w.write(ts, chunk, interface=i % 2)
-    _declined([two], "several RTU buses (USER0 interfaces)")
+    many = tmp_path / "many.pcapng"
+    with PcapngWriter(many) as w:
+        for i in range(65):
+            w.add_interface(147)
+            w.write(T0 + i, recs[i % len(recs)][1], interface=i)
+    _declined([many], "more RTU buses than the core keeps")
     mixed = tmp_path / "mixed.pcapng"
     with PcapngWriter(mixed) as w:
         w.add_interface(147)
