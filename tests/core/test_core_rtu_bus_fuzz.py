@@ -1,4 +1,4 @@
-"""Mutated captures of an RTU bus (pcap and pcapng, link type 147) read by the
+"""Mutated captures of RTU buses (pcap and pcapng, link type 147) read by the
 compiled core (``read`` of a USER0 capture: the container, the bus's records framed,
 paired and written at their times): never a crash, never an exception but a decline,
 and the reference pipeline's bytes (stdout, the summary, the exit status).
@@ -18,7 +18,7 @@ from core_diff import ROOT, require_core
 from opts_diff import read_both
 from rtu_gen import generated_bus, paired_bus
 from test_core_fuzz import mutate
-from test_core_rtu_bus import records, write_bus
+from test_core_rtu_bus import records, write_bus, write_buses
 
 from mbmon import core
 from mbmon.format import View
@@ -34,6 +34,8 @@ def _seeds(tmp_path) -> list[bytes]:
         recs = records(paired_bus(seed, 40) + generated_bus(seed, 30), seed)
         path = write_bus(tmp_path / f"seed{seed}.cap", recs, pcapng=pcapng, empty=True)
         seeds.append(path.read_bytes())
+    buses = [records(paired_bus(seed, 30), seed) for seed in (3, 4, 5)]
+    seeds.append(write_buses(tmp_path / "buses.pcapng", buses, quiet=1).read_bytes())
     return [s[:6000] for s in seeds]
 
 
@@ -44,11 +46,19 @@ def test_mutated_bus_captures_read_alike(tmp_path) -> None:
     seeds = _seeds(tmp_path)
     path = tmp_path / "bus.pcap"
     covered = 0
+    buses = [paired_bus(seed, 30) for seed in (6, 7, 8)]
     for case in range(RUNS):
-        data = mutate(rng.choice(seeds), rng)
-        if rng.random() < 0.3:
-            data = mutate(data, rng)
-        path.write_bytes(data)
+        if case % 3 == 2:  # a whole container of mutated buses: the framing and pairing
+            mutated = [mutate(bus, rng) for bus in rng.sample(buses, rng.randint(1, 3))]
+            recs = [records(bus, rng.randrange(1 << 16)) for bus in mutated if bus]
+            if not recs:
+                continue
+            write_buses(path, recs)
+        else:  # the container itself mutated
+            data = mutate(rng.choice(seeds), rng)
+            if rng.random() < 0.3:
+                data = mutate(data, rng)
+            path.write_bytes(data)
         try:
             if DIFF:
                 fast, pure = read_both([path, *(["--json"] if case % 2 else ["-t", "ad"])])
