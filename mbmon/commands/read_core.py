@@ -26,9 +26,10 @@ def core_hand_off(
     from mbmon.sources.files import CaptureFileSource
 
     done = None
+    bus = len(sources) == 1 and isinstance(sources[0], CaptureFileSource) and _bus(sources[0])
     if len(sources) == 1 and args.rtu_raw:
         done = read_rtu_with_core(sources[0], args, view, flt, annotator)
-    elif len(sources) == 1 and isinstance(sources[0], CaptureFileSource) and _bus(sources[0]):
+    elif bus:
         done = read_bus_with_core(sources[0], args, view, flt, annotator)
     elif not sources or not all(isinstance(source, CaptureFileSource) for source in sources):
         if args.debug_core and len(sources) > 1:
@@ -44,7 +45,7 @@ def core_hand_off(
             progress=[source.progress for source in sources],
             annotator=annotator,
         )
-    if done is None and args.debug_core and (args.rtu_raw or args.rtu_port):
+    if done is None and args.debug_core and (args.rtu_raw or args.rtu_port or bus):
         from mbmon import core
 
         err(f"core: {core.rtu_status(args.baud)}")

@@ -276,6 +276,9 @@ def test_what_the_core_declines_in_a_bus_capture(tmp_path: Path) -> None:
     cut.write_bytes(whole.read_bytes()[:-3])
     _declined([cut], "a damaged capture")
     _declined([whole, "--baud", "9600"], "--baud on a captured RTU bus")
+    # and --debug-core says which decoder frames the bus then
+    _declined([whole, "--baud", "9600"], "RTU framing: the reference decoder (a baud rate")
+    _declined([whole, "--profile", "hrss"], "RTU framing: the compiled framer")
     _declined([whole, "-w", tmp_path / "x.mcap"], "-w with an RTU bus capture")
     noise = write_bus(tmp_path / "noise.pcap", [(T0, b"\x00\xff\x00")])
     _declined([noise], "no Modbus frames")
