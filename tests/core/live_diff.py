@@ -11,6 +11,7 @@ from typing import Any
 
 from mbmon.format import View
 from mbmon.hub import Hub
+from mbmon.model import Event, EventKind
 from mbmon.pipeline import Pipeline, PipelineConfig
 from mbmon.sinks.console import ConsoleListener
 from mbmon.sinks.summary import Summary
@@ -71,6 +72,10 @@ def _run(hub: Hub, steps: list[Step], feed: Any) -> None:
         else:
             hub.feed_items(feed(step))
     hub.finish()
+    # the source's closing event, fed after the end as run_sources feeds it (at the
+    # clock's time: here the last step's)
+    end = max((s if isinstance(s, float) else s[-1][0] for s in steps if s), default=0.0)
+    hub.feed(Event(end, None, EventKind.STATS, {"interface": "lo", "complete": True}))
 
 
 def reference(
