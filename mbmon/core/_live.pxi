@@ -23,7 +23,6 @@ DEF MIN_ADU = 8                # the shortest ADU a byte count can hold (MBAP + 
 
 cdef struct LiveConn:
     double last             # TcpConnection.last: the last segment's time
-    double held_ts[2]       # when the held bytes of each direction began (_buf_ts)
     double chunk_ts[2]      # the last chunk of each direction (the decoder's _last_ts)
     double input_ts         # the last chunk of the stream (the pipeline's _last_input)
 
@@ -165,8 +164,6 @@ cdef class _Live(_Pass):
 
     cdef int on_chunk(self, int ci, int d, double ts, const uint8_t* p,
                       Py_ssize_t n) except -1:
-        cdef int old = self.conns[ci].h[d].blen
-        cdef int now_held
         cdef LiveConn* l
         _Pass.on_chunk(self, ci, d, ts, p, n)
         l = &self.lc[ci]
@@ -176,9 +173,6 @@ cdef class _Live(_Pass):
             l.last = ts
             if self.idle_due == INFINITY:
                 self.idle_due = ts + LIVE_IDLE
-        now_held = self.conns[ci].h[d].blen
-        if now_held and old + n - now_held >= old:
-            l.held_ts[d] = ts
         if ts > self.item_ts:
             self.item_ts = ts
         return 0

@@ -3046,8 +3046,8 @@ cdef class _Pass:
                 sport = (buf[l4] << 8) | buf[l4 + 1]
                 dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
                 if self.port_map[sport] or self.port_map[dport]:
-                    if first_fragment:
-                        raise Declined("a fragmented IP packet on a Modbus port")
+                    # a first fragment is a cut packet (the reference does not
+                    # reassemble): a datagram longer than it is none
                     return self.udp_datagram(ts, &buf[off + 12], 4, buf, l4, ip_end)
             return 0
         if proto != 6:
@@ -3066,8 +3066,8 @@ cdef class _Pass:
                                         be32(b + 4), be32(b + 8), b[13],
                                         bytes(buf[l4 + doff:ip_end]))
             return 0
-        if first_fragment:
-            raise Declined("a fragmented IP packet on a Modbus port")
+        # a first fragment is a cut packet (the reference does not reassemble): its
+        # segment carries the bytes the fragment holds, as a snap-cut one does
         doff = (b[12] >> 2) & 0x3C
         if doff < 20 or l4 + doff > ip_end:
             return 0
@@ -3130,7 +3130,7 @@ cdef class _Pass:
     cdef int ipv6(self, double ts, const uint8_t[::1] buf, Py_ssize_t off,
                   Py_ssize_t end) except -1:
         """IPv6 (``ipv6_header``: extension headers as the reference walks them): TCP and
-        UDP on a Modbus port are read as over IPv4 (a fragment of them declined); TCP on
+        UDP on a Modbus port are read as over IPv4 (a first fragment as a cut packet); TCP on
         other ports goes to port detection as the reference's general path sends it."""
         cdef Py_ssize_t ip_end, l4, plen
         cdef int proto, k, sport, dport, doff, frag
@@ -3167,18 +3167,14 @@ cdef class _Pass:
         if proto == 17 and ip_end - l4 >= 8:
             sport = (buf[l4] << 8) | buf[l4 + 1]
             dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
-            if self.port_map[sport] or self.port_map[dport]:
-                if fragment:
-                    raise Declined("a fragmented IP packet on a Modbus port")
+            if self.port_map[sport] or self.port_map[dport]:  # a first fragment: cut
                 return self.udp_datagram(ts, &buf[off + 8], 16, buf, l4, ip_end)
             return 0
         if proto != 6 or ip_end - l4 < 20:
             return 0
         sport = (buf[l4] << 8) | buf[l4 + 1]
         dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
-        if self.port_map[sport] or self.port_map[dport]:
-            if fragment:
-                raise Declined("a fragmented IP packet on a Modbus port")
+        if self.port_map[sport] or self.port_map[dport]:  # a first fragment: cut
             return self.tcp6(ts, buf, off, l4, ip_end)
         if self.detect and not short and not fragment:
             doff = (buf[l4 + 12] >> 2) & 0x3C

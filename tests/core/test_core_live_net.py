@@ -238,3 +238,20 @@ def test_perturbed_public_captures(which: int, seed: int, size: int) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         path = perturbed_capture(found[which % len(found)], Path(tmp) / "p.pcap", seed)
         assert_same(_steps(path, [size], [0.01, -1.0]), covered=None)
+
+
+# --------------------------------------------------------------------------- fragments
+
+
+def test_ip_fragments_on_a_modbus_port(tmp_path: Path) -> None:
+    """IP fragments between a conversation's packets: a first fragment is a cut
+    packet, later ones are skipped, as the live dissector does."""
+    from test_core_net_ip import _fragments
+
+    base = write_conversation(tmp_path / "b.pcap", adus(every_function_pair()[:3]), close=None)
+    packets = packets_of(base)
+    for n, (_name, frame) in enumerate(_fragments()):
+        at = 1 + n % (len(packets) - 1)
+        packets.insert(at, (packets[at - 1][0] + 0.0001, 1, frame))
+    assert_same(batches(packets, [1]))
+    assert_same([*batches(packets, [3, 5]), packets[-1][0] + 2.0])
