@@ -56,6 +56,7 @@ cdef class _Live(_Pass):
     cdef public int64_t overlaps
     cdef dict holes                 # conn -> when its oldest held segment's wait ends
     cdef list udp_order             # UDP pairs' conn indexes, in creation order
+    cdef dict waiting               # conn * 2 + direction: the pipeline's _waiting, in order
 
     def __cinit__(self):
         self.lc = NULL
@@ -69,6 +70,7 @@ cdef class _Live(_Pass):
         self.live = True
         self.holes = {}
         self.udp_order = []
+        self.waiting = {}
         self.new_stream = new_stream
         self.idle_due = INFINITY
         self.next_sweep = -INFINITY
@@ -175,6 +177,20 @@ cdef class _Live(_Pass):
                 self.idle_due = ts + LIVE_IDLE
         if ts > self.item_ts:
             self.item_ts = ts
+        if not self.conns[ci].udp and ci * 2 + d not in self.waiting and self.buffered(ci, d):
+            self.waiting[ci * 2 + d] = None  # the pipeline: a decoder holding bytes waits
+        return 0
+
+    cdef Py_ssize_t buffered(self, int ci, int d) except -1:
+        """What the direction's decoder holds (the reference decoder's ``buffered``)."""
+        if self.conns[ci].h[d].dstate == 2:
+            return self.mdecs[ci * 2 + d].buffered
+        return self.conns[ci].h[d].blen
+
+    cdef int close_stream(self, int ci, double ts) except -1:
+        _Pass.close_stream(self, ci, ts)
+        self.waiting.pop(ci * 2, None)  # the pipeline's _close_stream forgets them
+        self.waiting.pop(ci * 2 + 1, None)
         return 0
 
     cdef int event(self, double ts, int sid, object kind, object info) except -1:
@@ -422,6 +438,11 @@ cdef class _Live(_Pass):
                             self.reason = "an incomplete ADU idle for %g s" % LIVE_SWEEP_IDLE
                             return 2
                 self.next_sweep = now + LIVE_SWEEP_EVERY
+                # the pipeline forgets streams idle that long (nothing held: no record)
+                for ci in range(self.nconns):
+                    if self.lc[ci].input_ts < now - LIVE_SWEEP_IDLE and not self.conns[ci].udp and (
+                            self.conns[ci].h[0].dstate or self.conns[ci].h[1].dstate):
+                        self.close_stream(ci, self.lc[ci].input_ts)
             why = self.settle(now)
             if why is not None:
                 self.reason = why
@@ -432,29 +453,34 @@ cdef class _Live(_Pass):
             self.flush_out()
 
     cdef object settle(self, double now):
-        """The pipeline's decoders settle what they hold after a silence (``tick``):
-        only the reference decoders framing a direction after noise have anything to
-        settle. One due at a time is the core's; several (their order is the
-        pipeline's waiting list's), or one whose release could pend more requests
-        than the core keeps, is why the pipeline's part goes to the reference."""
-        cdef int key = -1, ci, d
-        for k, dec in self.mdecs.items():
-            deadline = dec.next_deadline()
-            if deadline is not None and deadline <= now:
-                if key >= 0:
-                    return "noise settling in several streams at one tick"
-                key = k
-        if key < 0:
-            return None
-        ci = key >> 1
-        d = key & 1
-        why = self.room_check(ci, 0)
-        if why is not None:
-            return why
-        dec = self.mdecs[key]
-        items = dec.tick(now)
-        self.ref_resync(ci, d, dec)
-        self.ref_items(ci, d, items)
+        """The pipeline's decoders settle what they hold after a silence (``tick``), in
+        the order of its waiting list (``waiting``: a direction joins it when its
+        decoder holds bytes after a chunk, leaves it at a tick that finds nothing
+        held and nothing due, or when its stream ends): only the reference decoders
+        framing a direction after noise have anything to settle. Why the pipeline's
+        part goes to the reference instead (nothing changed), or None."""
+        cdef int key, ci, d
+        for key in self.waiting:
+            if self.conns[key >> 1].h[key & 1].dstate == 2:
+                deadline = self.mdecs[key].next_deadline()
+                if deadline is not None and deadline <= now:
+                    why = self.room_check(key >> 1, 0)
+                    if why is not None:
+                        return why
+        for key in list(self.waiting):
+            ci = key >> 1
+            d = key & 1
+            deadline = None
+            if self.conns[ci].h[d].dstate == 2:
+                dec = self.mdecs[key]
+                deadline = dec.next_deadline()
+                if deadline is not None and deadline <= now:
+                    items = dec.tick(now)
+                    self.ref_resync(ci, d, dec)
+                    self.ref_items(ci, d, items)
+                    deadline = dec.next_deadline() if self.conns[ci].h[d].dstate == 2 else None
+            if deadline is None and not self.buffered(ci, d):
+                del self.waiting[key]
         return None
 
     def next_deadline(self):
@@ -638,22 +664,26 @@ cdef class _Live(_Pass):
             ci = key >> 1
             d = key & 1
             c = &self.conns[ci]
-            if c.h[d].dstate == 0 or (c.h[d].dstate == 1 and not c.h[d].blen):
+            if c.h[d].dstate == 0:
                 continue
             stream = self.stream_obj(c.sid)
             direction = Direction.S2C if d else Direction.C2S
             if c.h[d].dstate == 2:
-                dec = self.mdecs[key]
                 pipeline._streams[c.sid] = stream
-                pipeline._decoders[(c.sid, direction)] = dec
+                pipeline._decoders[(c.sid, direction)] = self.mdecs[key]
             else:
                 dec = pipeline._decoder(stream, direction)
-                dec.feed(PyBytes_FromStringAndSize(<const char*>c.h[d].buf, c.h[d].blen),
-                         c.h[d].bts)
+                if c.h[d].blen:
+                    dec.feed(PyBytes_FromStringAndSize(<const char*>c.h[d].buf, c.h[d].blen),
+                             c.h[d].bts)
                 dec._last_ts = self.lc[ci].chunk_ts[d]
-            if dec.buffered or dec.next_deadline() is not None:
-                pipeline._waiting[(c.sid, direction)] = dec
             pipeline._last_input[c.sid] = self.lc[ci].input_ts
+        for key in self.waiting:
+            c = &self.conns[key >> 1]
+            direction = Direction.S2C if key & 1 else Direction.C2S
+            dec = pipeline._decoders.get((c.sid, direction))
+            if dec is not None:
+                pipeline._waiting[(c.sid, direction)] = dec
         pending = pipeline.pairer._pending
         s = self.ahead
         while s >= 0:

@@ -4,8 +4,8 @@ dissector's hole timeout at a tick or a later packet), out-of-order segments, FI
 ahead of data, a connection replaced while open, IPv6 and Modbus/UDP. Each against
 ``sniff``'s reference wiring (live_diff.py), fed the same packets in the same batches
 with the same hub ticks, byte for byte, text and JSON and the summary; and the core
-must have kept the run (``covered``). The hand-overs that remain (an idle connection,
-noise settling in several streams at one tick) carry the new state across: the
+must have kept the run (``covered``). The hand-overs that remain (an idle connection
+or UDP pair) carry the new state across: the
 reference reassembly the core used, with its holes, and the reference decoder
 framing a direction after noise."""
 
@@ -106,20 +106,27 @@ def test_noise_settled_at_a_tick(tmp_path: Path) -> None:
         assert_same(_steps(path, [1], ticks))
 
 
-def test_noise_in_two_streams_settling_at_one_tick_hands_over(tmp_path: Path) -> None:
-    """Two streams' noise runs due at one tick: their order is the pipeline's waiting
-    list's, so the pipeline's part of that tick goes to the reference, with the
-    reference decoders the core used (their noise runs reported by it)."""
+def test_noise_in_two_directions_settling_at_one_tick(tmp_path: Path) -> None:
+    """Noise runs due at one tick in several directions: they settle in the order of
+    the pipeline's waiting list (when each direction's decoder began to hold bytes,
+    not when it was made), here a server's noise before its client's."""
     a = TcpConversation("10.0.0.1:40000", "10.0.0.2:502")
     b = TcpConversation("10.0.0.3:40001", "10.0.0.2:502")
     frames = a.open() + b.open()
+    frames.append(a.send(True, encode_adu(1, 1, encode_read_request(3, 0, 2))))
+    frames.append(b.send(True, encode_adu(1, 1, encode_read_request(3, 0, 2))))
+    frames.append(b.send(False, b"\x00\x05\x00\x00\x01\x00\x01"))
     frames.append(a.send(True, b"\x01\x02\x03garbage!"))
-    frames.append(b.send(True, b"\x00\x05\x00\x00\x01\x00\x01"))
+    frames.append(a.send(False, encode_adu(1, 1, encode_read_response(3, [1, 2]))))
+    frames.append(a.send(False, b"\x00\x00\x00\x00"))
     path = write_frames(tmp_path / "two.pcap", [(T0 + i * 0.01, f) for i, f in enumerate(frames)])
-    steps = _steps(path, [100])
-    steps.append(T0 + 5.0)
-    why = assert_same(steps, covered=False)
-    assert why is not None and "several" in why
+    for sizes in ([100], [1]):
+        steps = _steps(path, sizes)
+        steps.append(T0 + 5.0)
+        assert_same(steps)
+        # then idle: the hand-over carries the waiting list over in its order
+        why = assert_same([*steps, T0 + 400.0, T0 + 1200.0], covered=False)
+        assert why is not None and "idle" in why
 
 
 # --------------------------------------------------------------------------- holes
