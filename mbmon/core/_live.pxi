@@ -177,8 +177,9 @@ cdef class _Live(_Pass):
                 self.idle_due = ts + LIVE_IDLE
         if ts > self.item_ts:
             self.item_ts = ts
-        if not self.conns[ci].udp and ci * 2 + d not in self.waiting and self.buffered(ci, d):
-            self.waiting[ci * 2 + d] = None  # the pipeline: a decoder holding bytes waits
+        if (self.conns[ci].h[d].blen or self.conns[ci].h[d].dstate == 2) and (
+                not self.conns[ci].udp and self.buffered(ci, d)):
+            self.waiting.setdefault(ci * 2 + d, None)  # the pipeline: a decoder holding bytes waits
         return 0
 
     cdef Py_ssize_t buffered(self, int ci, int d) except -1:
