@@ -57,6 +57,7 @@ cdef class _Live(_Pass):
     cdef dict holes                 # conn -> when its oldest held segment's wait ends
     cdef list udp_order             # UDP pairs' conn indexes, in creation order
     cdef dict waiting               # conn * 2 + direction: the pipeline's _waiting, in order
+    cdef bint keep                  # noise and length 255 taken (the reference decoder inside)
 
     def __cinit__(self):
         self.lc = NULL
@@ -65,9 +66,11 @@ cdef class _Live(_Pass):
     def __dealloc__(self):
         free(self.lc)
 
-    def __init__(self, bint as_json, double timeout, ports, view, write, new_stream=None):
+    def __init__(self, bint as_json, double timeout, ports, view, write, new_stream=None,
+                 bint keep_noise=False):
         _Pass.__init__(self, True, as_json, timeout, ports, view, write, False)
         self.live = True
+        self.keep = keep_noise
         self.holes = {}
         self.udp_order = []
         self.waiting = {}
@@ -226,6 +229,10 @@ cdef class _Live(_Pass):
                     pos += 6 + length
                     frames += 1
                     continue
+            if not self.keep:  # (the proxy's chunk entry: the reference takes them)
+                if hd[2] == 0 and hd[3] == 0 and ((hd[4] << 8) | hd[5]) == 255:
+                    return "an MBAP length of 255 (decoded, marked malformed)"
+                return "bytes that are no MBAP header (noise resynchronisation)"
             # noise, or a length of 255: the reference decoder takes the direction
             return self.room_check(ci, n)
         if total - pos > 1 << 24:
@@ -537,7 +544,7 @@ cdef class _Live(_Pass):
                     self.close_stream(ci, ts)
                     self.closed_conn(ci, ts)
             when = self.pl_last
-            for key in self.dec_order:
+            for key in self.decoders_made():
                 self.flush_dir(key >> 1, key & 1, when)
             s = self.ahead
             while s >= 0:
@@ -645,6 +652,19 @@ cdef class _Live(_Pass):
         self.export_pipeline(pipeline)
         return None
 
+    cdef list decoders_made(self):
+        """``dec_order`` as the pipeline's decoders stand: each direction once, where its
+        latest decoder was made (a slot the chunk entry reused, a stream begun again)."""
+        cdef int key
+        seen = set()
+        order = []
+        for key in reversed(self.dec_order):
+            if key not in seen:
+                seen.add(key)
+                order.append(key)
+        order.reverse()
+        return order
+
     cdef int export_pipeline(self, pipeline) except -1:
         """The pipeline's part of :meth:`export`: record numbering, its clocks, the
         decoders in the order they were made (the bytes the core holds with their
@@ -657,15 +677,11 @@ cdef class _Live(_Pass):
         pipeline._next_tick = self.next_tick
         pipeline._last_ts = self.pl_last
         pipeline._next_sweep = self.next_sweep
-        order = []
-        for key in reversed(self.dec_order):  # a direction's latest decoder
-            if key not in order:
-                order.append(key)
-        for key in reversed(order):
+        for key in self.decoders_made():
             ci = key >> 1
             d = key & 1
             c = &self.conns[ci]
-            if c.h[d].dstate == 0:
+            if c.h[d].dstate == 0 or self._sid_conn[c.sid] != ci:  # none, or a released slot
                 continue
             stream = self.stream_obj(c.sid)
             direction = Direction.S2C if d else Direction.C2S
@@ -681,6 +697,8 @@ cdef class _Live(_Pass):
             pipeline._last_input[c.sid] = self.lc[ci].input_ts
         for key in self.waiting:
             c = &self.conns[key >> 1]
+            if self._sid_conn[c.sid] != key >> 1:
+                continue
             direction = Direction.S2C if key & 1 else Direction.C2S
             dec = pipeline._decoders.get((c.sid, direction))
             if dec is not None:

@@ -69,7 +69,9 @@ class LiveCore:
         if why is not None:
             raise RuntimeError(f"the compiled core is unavailable: {why}")
         reader: Any = _core._reader
-        self._core: Any = reader._Live(as_json, timeout, ports, view, write, new_stream)
+        self._core: Any = reader._Live(
+            as_json, timeout, ports, view, write, new_stream, keep_noise=True
+        )
         self.dissector = dissector
         self.pipeline = pipeline
         self._flush = flush
