@@ -123,8 +123,7 @@ cdef class _Live(_Pass):
                        int flags, double ts) except -1:
         cdef int v = _Pass.open_conn(self, key, addrs, alen, sport, dport, flags, ts)
         self.lc[v >> 1].last = ts
-        if self.idle_due == INFINITY:
-            self.idle_due = ts + LIVE_IDLE
+        self.idle_soon(ts + LIVE_IDLE)
         return v
 
     cdef int udp_datagram(self, double ts, const uint8_t* addrs, int alen,
@@ -176,8 +175,7 @@ cdef class _Live(_Pass):
         l.input_ts = ts
         if self.conns[ci].udp:  # a datagram of the pair (the dissector's _udp_last)
             l.last = ts
-            if self.idle_due == INFINITY:
-                self.idle_due = ts + LIVE_IDLE
+            self.idle_soon(ts + LIVE_IDLE)
         if ts > self.item_ts:
             self.item_ts = ts
         if (self.conns[ci].h[d].blen or self.conns[ci].h[d].dstate == 2) and (
@@ -329,10 +327,11 @@ cdef class _Live(_Pass):
         self.holes.pop(self._sid_conn[conn.stream.id], None)
 
     cdef int dissector_tick(self, double now) except -1:
-        """The live dissector's ``_tick``: holes waited for ``LIVE_HOLE`` s given up
-        (the reference reassembly's own ``expire_holes``), then the closed
-        connections' linger. Declined before anything changes when what the holes
-        release could pend more requests than the core keeps."""
+        """The live dissector's ``_tick``, in its order: holes waited for ``LIVE_HOLE``
+        s given up (the reference reassembly's own ``expire_holes``), flows idle for
+        ``LIVE_IDLE`` s expired (``expire_idle``), then the closed connections'
+        linger. Declined before anything changes when what the holes or the expired
+        connections release could pend more requests than the core keeps."""
         cdef int ci
         cdef double first = INFINITY
         for ci, due in self.holes.items():
@@ -340,6 +339,10 @@ cdef class _Live(_Pass):
                 why = self.room_check(ci, 0)
                 if why is not None:
                     raise Declined(why)
+        if now >= self.idle_due:
+            why = self.idle_check(now)
+            if why is not None:
+                raise Declined(why)
         for ci, due in list(self.holes.items()):
             if due > now or ci not in self.holes:
                 continue
@@ -355,41 +358,108 @@ cdef class _Live(_Pass):
             if out:
                 self.ref_out(ci, out)
                 self.ref_done(ci)
+        if now >= self.idle_due:
+            self.expire_idle(now)
         _Pass.dissector_tick(self, now)
         for due in self.holes.values():
             if due < first:
                 first = due
         if first < self.due:
             self.due = first
+        if self.idle_due < self.due:
+            self.due = self.idle_due
         return 0
 
-    cdef bint idle_due_now(self, double now) except -1:
-        """The dissector's idle scan at ``now`` (``FlowTable._expire_idle``): True when a
-        connection would expire (the reference must take over first); else the next
-        scan is scheduled as the reference schedules it."""
-        cdef double limit = now - LIVE_IDLE, first = INFINITY
+    cdef int idle_soon(self, double due) except -1:
+        """The idle scan is due at ``due`` (the first flow): the dissector's tick then."""
+        if self.idle_due == INFINITY:
+            self.idle_due = due
+            if due < self.due:
+                self.due = due
+        return 0
+
+    cdef object idle_check(self, double now):
+        """Why ``expire_idle`` at ``now`` would stop half way (nothing changes), or None."""
+        cdef double limit = now - LIVE_IDLE
         cdef int ci
-        if now < self.idle_due:
-            return False
+        cdef Conn* c
         for ci in self.open_order:
-            if not self.conns[ci].open_:
+            c = &self.conns[ci]
+            if not c.open_ or self.lc[ci].last > limit:
                 continue
-            if self.lc[ci].last <= limit:
-                return True
-            if self.lc[ci].last < first:
-                first = self.lc[ci].last
-        for ci in self.udp_order:
-            if self.lc[ci].last <= limit:
-                return True
-            if self.lc[ci].last < first:
-                first = self.lc[ci].last
+            if c.tref:
+                why = self.room_check(ci, 0)
+                if why is not None:
+                    return why
+            elif (c.h[0].fin >= 0 and not c.h[0].done) or (c.h[1].fin >= 0 and not c.h[1].done):
+                return "a FIN not reached when its connection went idle (a gap)"
+        return None
+
+    cdef int expire_idle(self, double now) except -1:
+        """``FlowTable._expire_idle``: every connection, then every UDP pair, with no
+        packet for ``LIVE_IDLE`` s ends (a DISCONNECT ``how="idle"`` stamped when it
+        expired, its decoders flushed; its keys dropped at once); the next scan at
+        the earliest survivor's expiry, not sooner than a second from now."""
+        cdef double limit = now - LIVE_IDLE, first = INFINITY, last, ts
+        cdef int ci
+        cdef Conn* c
+        reason = "no packets for %g s" % LIVE_IDLE
+        for ci in list(self.open_order):
+            c = &self.conns[ci]
+            if not c.open_:
+                continue
+            last = self.lc[ci].last
+            if last > limit:
+                if last < first:
+                    first = last
+                continue
+            ts = last + LIVE_IDLE
+            if c.tref:  # the reference reassembly gives its holes up and ends it
+                conn = self.pyconns.pop(ci)
+                c.tref = False
+                out = []
+                conn.expire(ts, out, reason)
+                self.ref_out(ci, out)
+            elif not c.closed:
+                if c.connected or c.h[0].nxt >= 0 or c.h[1].nxt >= 0:  # it showed something
+                    info = {"how": "idle", "reason": reason}
+                    if c.fin_by:
+                        info["by"] = "client" if c.fin_by == 1 else "server"
+                        info["half_closed"] = True
+                    self.event(ts, c.sid, EventKind.DISCONNECT, info)
+                    self.close_stream(ci, ts)
+            # forgotten at once (no linger): the dissector's _forget
+            c = &self.conns[ci]
+            c.closed = True
+            if c.open_:
+                c.open_ = False
+                self.nopen -= 1
+            for i, item in enumerate(self.closed_fifo):
+                if item[0] == ci:
+                    del self.closed_fifo[i]
+                    break
+            self.holes.pop(ci, None)
+            self.forget(ci)
+        for ci in list(self.udp_order):
+            last = self.lc[ci].last
+            if last > limit:
+                if last < first:
+                    first = last
+                continue
+            ts = last + LIVE_IDLE
+            self.udp_order.remove(ci)
+            c = &self.conns[ci]
+            for k in [k for k, v in self.udp_pairs.items() if v >> 1 == ci]:
+                del self.udp_pairs[k]
+            self.event(ts, c.sid, EventKind.DISCONNECT, {"how": "idle", "reason": reason})
+            self.close_stream(ci, ts)
         if first == INFINITY:
             self.idle_due = INFINITY
         else:
             self.idle_due = first + LIVE_IDLE
             if self.idle_due < now + 1.0:
                 self.idle_due = now + 1.0
-        return False
+        return 0
 
     # ------------------------------------------------------------------ the entry
 
@@ -407,9 +477,6 @@ cdef class _Live(_Pass):
                 ts = item[0]
                 link = item[1]
                 data = item[2]
-                if self.idle_due_now(ts):
-                    self.reason = "a connection idle for %g s (expired)" % LIVE_IDLE
-                    return i
                 try:
                     self.packet(ts, link, data, 0, len(data))
                 except Declined as exc:
@@ -429,9 +496,6 @@ cdef class _Live(_Pass):
         the reference's pipeline does the rest (the hub ticks it next)."""
         cdef int ci, d
         try:
-            if self.idle_due_now(now):
-                self.reason = "a connection idle for %g s (expired)" % LIVE_IDLE
-                return 1
             if now >= self.due:
                 try:
                     self.dissector_tick(now)

@@ -54,7 +54,7 @@ def batches(packets: list[Packet], sizes: list[int]) -> list[Step]:
     return steps
 
 
-def _wire(as_json: bool, timeout: float) -> tuple[Hub, io.BytesIO, Any, Summary]:
+def _wire(as_json: bool, timeout: float) -> tuple[Hub, io.BytesIO, Any, Summary, View]:
     raw = io.BytesIO()
     out = io.TextIOWrapper(raw, encoding="utf-8", errors="backslashreplace", write_through=True)
     view = View(time_format=TimeFormat("a"))
@@ -62,7 +62,7 @@ def _wire(as_json: bool, timeout: float) -> tuple[Hub, io.BytesIO, Any, Summary]
     summary = Summary(None)
     hub.add_listener(ConsoleListener(out, view, as_json=as_json, live=True))
     hub.add_listener(summary)
-    return hub, raw, out, summary
+    return hub, raw, out, summary, view
 
 
 def _run(hub: Hub, steps: list[Step], feed: Any) -> None:
@@ -86,7 +86,7 @@ def reference(
     timeout: float = 1.0,
 ) -> tuple[bytes, str]:
     """``sniff``'s reference wiring: stdout's bytes and the summary's text."""
-    hub, raw, out, summary = _wire(as_json, timeout)
+    hub, raw, out, summary, _view = _wire(as_json, timeout)
     dissector = open_dissector(CaptureConfig(tcp_ports=ports), hub.new_stream)
     hub.add_ticker(dissector)
     _run(hub, steps, lambda batch: dissect_batch(dissector, batch))
@@ -106,12 +106,12 @@ def with_core(
     was handed to the reference (``None``: the core took all of it)."""
     from mbmon.core.live import LiveCore, add_counts
 
-    hub, raw, out, summary = _wire(as_json, timeout)
+    hub, raw, out, summary, view = _wire(as_json, timeout)
     dissector = open_dissector(CaptureConfig(tcp_ports=ports), hub.new_stream)
     live = LiveCore(
         ports=ports,
         timeout=timeout,
-        view=View(time_format=TimeFormat("a")),
+        view=view,  # the console's, as sniff gives both the same
         as_json=as_json,
         write=raw.write,
         new_stream=hub.new_stream,

@@ -204,15 +204,15 @@ def test_timeouts_across_batches_and_ticks(tmp_path: Path) -> None:
             assert_same(_file_steps(path, sizes, ticks), covered=True, timeout=0.1)
 
 
-def test_an_idle_connection_hands_over(tmp_path: Path) -> None:
-    """A connection without packets for the dissector's idle timeout expires in the
-    reference (a DISCONNECT the core does not make): a tick at that time hands over."""
+def test_an_idle_connection_expires_on_the_core(tmp_path: Path) -> None:
+    """A connection without packets for the dissector's idle timeout expires (a
+    DISCONNECT ``how="idle"``) at the tick at that time, on the core."""
     path = write_conversation(tmp_path / "idle.pcap", adus(every_function_pair()[:3]), close=None)
     steps = _file_steps(path, [100])
     last = steps[-1]
     assert isinstance(last, list)
     steps.append(last[-1][0] + 301.0)
-    assert_same(steps, covered=False)
+    assert_same(steps, covered=True)
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -124,9 +124,8 @@ def test_noise_in_two_directions_settling_at_one_tick(tmp_path: Path) -> None:
         steps = _steps(path, sizes)
         steps.append(T0 + 5.0)
         assert_same(steps)
-        # then idle: the hand-over carries the waiting list over in its order
-        why = assert_same([*steps, T0 + 400.0, T0 + 1200.0], covered=False)
-        assert why is not None and "idle" in why
+        # then idle: the connections expire on the core
+        assert_same([*steps, T0 + 400.0, T0 + 1200.0])
 
 
 # --------------------------------------------------------------------------- holes
@@ -180,10 +179,11 @@ def test_a_hole_given_up_by_the_hole_timeout(tmp_path: Path) -> None:
         assert_same(_steps(path, [2, 3], ticks))
 
 
-def test_an_idle_connection_with_a_hole_hands_over(tmp_path: Path) -> None:
-    """An idle connection still hands over (the reference expires it): the reference
-    reassembly the core used goes to the dissector, its held segment and hole
-    deadline with it, and the reference decoder of a noisy direction to the pipeline."""
+def test_idle_connections_with_a_hole_and_noise(tmp_path: Path) -> None:
+    """Connections idle for the dissector's 300 s expire on the core as in the
+    reference: the one the reference reassembly holds gives its hole up first, the
+    noisy one's decoder is flushed; then a packet on the same addresses opens a new
+    stream."""
     conv = TcpConversation("10.0.0.1:40000", "10.0.0.2:502")
     other = TcpConversation("10.0.0.3:40001", "10.0.0.2:502")
     frames = [(T0 + i * 0.01, f) for i, f in enumerate(conv.open() + other.open())]
@@ -195,8 +195,10 @@ def test_an_idle_connection_with_a_hole_hands_over(tmp_path: Path) -> None:
     steps = _steps(path, [100])
     steps.append(T0 + 0.35)
     steps.append(T0 + 301.0)
-    why = assert_same(steps, covered=False)
-    assert why is not None and "idle" in why
+    assert_same(steps)
+    again = conv.send(True, encode_adu(3, 1, encode_read_request(3, 4, 1)))
+    assert_same([*steps, [(T0 + 302.0, 1, again)]])
+    assert_same([*steps[:-1], [(T0 + 302.0, 1, again)]])  # expired at that packet
 
 
 def test_a_connection_replaced_while_open(tmp_path: Path) -> None:
@@ -230,12 +232,33 @@ def test_modbus_udp(tmp_path: Path) -> None:
     assert_same(batches(mixed, [1, 4]))
 
 
-def test_an_idle_udp_pair_hands_over(tmp_path: Path) -> None:
+def test_an_idle_udp_pair(tmp_path: Path) -> None:
+    """A UDP pair idle for 300 s ends (its DISCONNECT); its next datagram opens a new
+    stream."""
     path = udp_exchange(tmp_path / "u.pcap", adus(every_function_pair()[:2]))
     steps = _steps(path, [10])
     steps.append(T0 + 300.5)
+    assert_same(steps)
+    later = [(T0 + 301.0 + p[0] - T0, p[1], p[2]) for p in packets_of(path)]
+    assert_same([*steps, later])
+
+
+def test_held_bytes_idle_in_the_sweep_hand_over(tmp_path: Path) -> None:
+    """What still hands over: bytes a decoder holds for the pipeline's 600 s sweep;
+    the reference then goes on with the core's state (the reference decoder framing a
+    noisy direction, its waiting list, the pending request)."""
+    conv = TcpConversation("10.0.0.1:40000", "10.0.0.2:502")
+    frames = [(T0 + i * 0.01, f) for i, f in enumerate(conv.open())]
+    frames.append((T0 + 0.1, conv.send(True, encode_adu(1, 1, encode_read_request(3, 0, 2)))))
+    partial = encode_adu(2, 1, encode_read_request(3, 0, 2))[:5]
+    frames.append((T0 + 0.2, conv.send(True, b"\x01\x02\x03garbage!" + partial)))
+    for t in (250.0, 500.0):  # pure ACKs keep the connection alive, not its input
+        frames.append((T0 + t, conv.segment(True, ACK)))
+    path = write_frames(tmp_path / "w.pcap", frames)
+    steps = _steps(path, [100])
+    steps.append(T0 + 700.0)
     why = assert_same(steps, covered=False)
-    assert why is not None and "idle" in why
+    assert why is not None and "600 s" in why
 
 
 # --------------------------------------------------------------------------- real captures
