@@ -17,11 +17,12 @@
 DEF LIVE_IDLE = 300.0          # the live dissector's idle timeout (open_dissector)
 DEF LIVE_SWEEP_IDLE = 600.0    # PipelineConfig.idle_timeout
 DEF LIVE_SWEEP_EVERY = 60.0    # min(max(idle / 10, 0.01), 60.0) for the default
+DEF LIVE_HOLE = 2.0            # the live dissector's hole timeout (open_dissector)
+DEF MIN_ADU = 8                # the shortest ADU a byte count can hold (MBAP + unit + code)
 
 
 cdef struct LiveConn:
     double last             # TcpConnection.last: the last segment's time
-    double held_ts[2]       # when the held bytes of each direction began (_buf_ts)
     double chunk_ts[2]      # the last chunk of each direction (the decoder's _last_ts)
     double input_ts         # the last chunk of the stream (the pipeline's _last_input)
 
@@ -53,6 +54,10 @@ cdef class _Live(_Pass):
     cdef public int64_t modbus_packets
     cdef public int64_t retransmissions
     cdef public int64_t overlaps
+    cdef dict holes                 # conn -> when its oldest held segment's wait ends
+    cdef list udp_order             # UDP pairs' conn indexes, in creation order
+    cdef dict waiting               # conn * 2 + direction: the pipeline's _waiting, in order
+    cdef bint keep                  # noise and length 255 taken (the reference decoder inside)
 
     def __cinit__(self):
         self.lc = NULL
@@ -61,9 +66,14 @@ cdef class _Live(_Pass):
     def __dealloc__(self):
         free(self.lc)
 
-    def __init__(self, bint as_json, double timeout, ports, view, write, new_stream=None):
+    def __init__(self, bint as_json, double timeout, ports, view, write, new_stream=None,
+                 bint keep_noise=False):
         _Pass.__init__(self, True, as_json, timeout, ports, view, write, False)
-        self.live = True  # a replaced connection, holes: handed over (seg_check), not taken
+        self.live = True
+        self.keep = keep_noise
+        self.holes = {}
+        self.udp_order = []
+        self.waiting = {}
         self.new_stream = new_stream
         self.idle_due = INFINITY
         self.next_sweep = -INFINITY
@@ -77,12 +87,13 @@ cdef class _Live(_Pass):
 
     # ------------------------------------------------------------------ hooks on _Pass
 
-    cdef int new_conn(self, bytes key, const uint8_t* addrs, int sport, int dport, int flags,
-                      double ts) except -1:
-        cdef int v = _Pass.new_conn(self, key, addrs, sport, dport, flags, ts)
-        cdef int ci = v >> 1, cap
+    cdef int alloc_conn(self, const uint8_t* addrs, int alen, int sport, int dport,
+                        bint sender_client, bint udp=False) except -1:
+        """Every new flow (TCP over IPv4 or IPv6, a UDP pair): its live state, and its
+        stream made by the hub (``new_stream``) as the dissector makes it."""
+        cdef int ci = _Pass.alloc_conn(self, addrs, alen, sport, dport, sender_client, udp)
+        cdef int cap
         cdef LiveConn* p
-        cdef Conn* c = &self.conns[ci]
         if ci >= self.caplc:
             cap = self.caplc * 2 if self.caplc else 64
             while cap <= ci:
@@ -93,21 +104,55 @@ cdef class _Live(_Pass):
             self.lc = p
             self.caplc = cap
         memset(&self.lc[ci], 0, sizeof(LiveConn))
-        self.lc[ci].last = ts
-        if self.idle_due == INFINITY:
-            self.idle_due = ts + LIVE_IDLE
+        if udp:
+            self.udp_order.append(ci)
         if self.new_stream is not None:
-            client = "%d.%d.%d.%d:%d" % (c.caddr[0], c.caddr[1], c.caddr[2], c.caddr[3], c.cport)
-            server = "%d.%d.%d.%d:%d" % (c.saddr[0], c.saddr[1], c.saddr[2], c.saddr[3], c.sport)
-            s = self.new_stream(Transport.TCP, client, server)
-            if s.id != c.sid:
-                raise RuntimeError("the core's stream ids left the hub's (%d, %d)" % (c.sid, s.id))
-            while len(self.streams) <= c.sid:
+            sid = self.conns[ci].sid
+            made = self.make_stream(sid)
+            s = self.new_stream(made.transport, made.client, made.server)
+            if s.id != sid:
+                raise RuntimeError("the core's stream ids left the hub's (%d, %d)" % (sid, s.id))
+            while len(self.streams) <= sid:
                 self.streams.append(None)
                 self.labels.append(None)
                 self.heads.append(None)
-            self.streams[c.sid] = s
+            self.streams[sid] = s
+        return ci
+
+    cdef int open_conn(self, bytes key, const uint8_t* addrs, int alen, int sport, int dport,
+                       int flags, double ts) except -1:
+        cdef int v = _Pass.open_conn(self, key, addrs, alen, sport, dport, flags, ts)
+        self.lc[v >> 1].last = ts
+        self.idle_soon(ts + LIVE_IDLE)
         return v
+
+    cdef int udp_datagram(self, double ts, const uint8_t* addrs, int alen,
+                          const uint8_t[::1] buf, Py_ssize_t l4, Py_ssize_t ip_end) except -1:
+        self.udp_room(addrs, alen, buf, l4, ip_end)
+        self.modbus_packets += 1
+        return _Pass.udp_datagram(self, ts, addrs, alen, buf, l4, ip_end)
+
+    cdef int tcp_flow(self, bytes key, const uint8_t* addrs, int v, double ts, int64_t seq,
+                      int flags, bint has_payload, int sport, int dport,
+                      int alen=4) except -1:
+        """``_Pass.tcp_flow``; a connection the reference reassembles, replaced while
+        open, gives its holes up first: declined before anything changes when what
+        it holds could pend more requests than the core keeps."""
+        cdef int ci
+        if v >= 0:
+            ci = v >> 1
+            if self.conns[ci].tref and not self.conns[ci].closed and (
+                    flags & SYN or self.conns[ci].closed) and self.is_new(
+                    ci, v & 1, seq, flags, has_payload):
+                why = self.room_check(ci, 0)
+                if why is not None:
+                    raise Declined(why)
+        return _Pass.tcp_flow(self, key, addrs, v, ts, seq, flags, has_payload, sport, dport,
+                              alen)
+
+    cdef int forget(self, int ci) except -1:
+        self.holes.pop(ci, None)
+        return _Pass.forget(self, ci)
 
     cdef int segment(self, int ci, bint from_client, double ts, int64_t seq, int64_t ack,
                      int flags, const uint8_t* p, Py_ssize_t n) except -1:
@@ -123,18 +168,31 @@ cdef class _Live(_Pass):
 
     cdef int on_chunk(self, int ci, int d, double ts, const uint8_t* p,
                       Py_ssize_t n) except -1:
-        cdef int old = self.conns[ci].h[d].blen
-        cdef int now_held
         cdef LiveConn* l
         _Pass.on_chunk(self, ci, d, ts, p, n)
         l = &self.lc[ci]
         l.chunk_ts[d] = ts
         l.input_ts = ts
-        now_held = self.conns[ci].h[d].blen
-        if now_held and old + n - now_held >= old:
-            l.held_ts[d] = ts
+        if self.conns[ci].udp:  # a datagram of the pair (the dissector's _udp_last)
+            l.last = ts
+            self.idle_soon(ts + LIVE_IDLE)
         if ts > self.item_ts:
             self.item_ts = ts
+        if (self.conns[ci].h[d].blen or self.conns[ci].h[d].dstate == 2) and (
+                not self.conns[ci].udp and self.buffered(ci, d)):
+            self.waiting.setdefault(ci * 2 + d, None)  # the pipeline: a decoder holding bytes waits
+        return 0
+
+    cdef Py_ssize_t buffered(self, int ci, int d) except -1:
+        """What the direction's decoder holds (the reference decoder's ``buffered``)."""
+        if self.conns[ci].h[d].dstate == 2:
+            return self.mdecs[ci * 2 + d].buffered
+        return self.conns[ci].h[d].blen
+
+    cdef int close_stream(self, int ci, double ts) except -1:
+        _Pass.close_stream(self, ci, ts)
+        self.waiting.pop(ci * 2, None)  # the pipeline's _close_stream forgets them
+        self.waiting.pop(ci * 2 + 1, None)
         return 0
 
     cdef int event(self, double ts, int sid, object kind, object info) except -1:
@@ -154,6 +212,8 @@ cdef class _Live(_Pass):
         cdef int length, sid = self.conns[ci].sid
         cdef uint8_t hd[6]
         cdef int k
+        if h.dstate == 2:  # the reference decoder frames this direction
+            return self.room_check(ci, n)
         if na and total > 1 << 24:
             return "an ADU held over more than 16 MiB"
         while total - pos >= 6:
@@ -167,9 +227,12 @@ cdef class _Live(_Pass):
                     pos += 6 + length
                     frames += 1
                     continue
-                if length == 255:
+            if not self.keep:  # (the proxy's chunk entry: the reference takes them)
+                if hd[2] == 0 and hd[3] == 0 and ((hd[4] << 8) | hd[5]) == 255:
                     return "an MBAP length of 255 (decoded, marked malformed)"
-            return "bytes that are no MBAP header (noise resynchronisation)"
+                return "bytes that are no MBAP header (noise resynchronisation)"
+            # noise, or a length of 255: the reference decoder takes the direction
+            return self.room_check(ci, n)
         if total - pos > 1 << 24:
             return "an ADU held over more than 16 MiB"
         if d == 0 and frames:
@@ -179,95 +242,224 @@ cdef class _Live(_Pass):
         left[0] = total - pos
         return None
 
+    cdef object room_check(self, int ci, Py_ssize_t n):
+        """Why the requests ``n`` new bytes of connection ``ci`` and every byte it holds
+        (the core's, the reference decoder's, the reference reassembly's) could
+        complete might pend more than the core keeps, or None: a bound, one ADU per
+        eight bytes, so that what the reference's parts release never meets that
+        limit half way through a packet."""
+        cdef Conn* c = &self.conns[ci]
+        cdef Py_ssize_t most = n + c.h[0].blen + c.h[1].blen, frames
+        cdef int d, sid = c.sid
+        for d in range(2):
+            if c.h[d].dstate == 2:
+                dec = self.mdecs[ci * 2 + d]
+                most += len(dec._buf) + len(dec._noise)
+        if c.tref:
+            conn = self.pyconns[ci]
+            most += conn._c2s.held_bytes + conn._s2c.held_bytes
+        frames = most // MIN_ADU + 1
+        if (sid < self.capsp and self.sp[sid].count + frames >= MAX_PENDING_STREAM) or (
+                self.total + frames >= MAX_PENDING_TOTAL):
+            return "more requests pending than the core keeps"
+        return None
+
     cdef object seg_check(self, int ci, bint from_client, int64_t seq, int64_t ack, int flags,
                           const uint8_t* p, Py_ssize_t n):
-        """A dry run of ``_Pass.segment``: why it would decline this segment, or None.
-        Nothing changes; the halves' fields are followed in local copies."""
+        """Why ``_Pass.segment`` would decline this segment half way, or None; nothing
+        changes. The common case (in order, clean MBAP) is followed exactly; where
+        the reference's reassembly (holes, out of order, a FIN ahead) or its decoder
+        (noise, a length of 255, an incomplete ADU at the end) would take part, the
+        requests the segment could complete are bounded (``room_check``). What still
+        declines: a reset before a FIN was reached, the core's limits."""
         cdef Conn* c = &self.conns[ci]
         cdef int d = 0 if from_client else 1
-        cdef int64_t h_nxt = c.h[d].nxt, h_isn = c.h[d].isn, h_fin = c.h[d].fin
-        cdef bint h_done = c.h[d].done
-        cdef int64_t o_nxt = c.h[1 - d].nxt, o_fin = c.h[1 - d].fin
-        cdef bint o_done = c.h[1 - d].done
-        cdef Py_ssize_t h_held = c.h[d].blen, o_held = c.h[1 - d].blen, left = 0
-        cdef int64_t diff, old
-        if not flags & 0x07 and h_nxt == seq and h_fin < 0:
+        cdef int64_t h_fin = c.h[d].fin, o_fin = c.h[1 - d].fin
+        cdef Py_ssize_t left = 0
+        if c.tref:
+            return self.room_check(ci, n)
+        if not flags & 0x07 and c.h[d].nxt == seq and h_fin < 0:
             if c.closed:
-                return "payload after its connection ended" if n else None
-            if flags & ACK and ack_beyond(o_nxt, o_done, ack):
-                return "bytes the capture missed (an ACK beyond them: a gap)"
+                return None  # payload after the end: counted and dropped
+            if flags & ACK and ack_beyond(c.h[1 - d].nxt, c.h[1 - d].done, ack):
+                return self.room_check(ci, n)  # a gap: the other direction's decoder resets
             if n:
                 return self.chunk_check(ci, d, p, n, &left)
             return None
         if c.closed:
-            return "payload after its connection ended" if n else None
-        if flags & RST:
-            if (h_fin >= 0 and not h_done) or (o_fin >= 0 and not o_done):
-                return "a reset before a FIN was reached (a gap)"
-            if h_held or o_held:
-                return "an incomplete ADU when its connection ended (noise)"
             return None
-        if flags & SYN and flags & FIN:
-            flags &= ~FIN
-        if flags & SYN:
-            if h_isn < 0 and h_nxt < 0:
-                h_isn = seq & MASK
-                h_nxt = (seq + 1) & MASK
-            seq = (seq + 1) & MASK
-        elif h_nxt < 0 and (n or flags & FIN):
-            h_nxt = seq
-        if flags & ACK and ack_beyond(o_nxt, o_done, ack):
-            return "bytes the capture missed (an ACK beyond them: a gap)"
-        if n and h_nxt >= 0:
-            if h_done:
-                return "payload after its direction's FIN"
-            diff = (seq - h_nxt) & MASK
-            if diff == 0:
-                why = self.chunk_check(ci, d, p, n, &left)
+        if flags & RST and ((h_fin >= 0 and not c.h[d].done) or (
+                o_fin >= 0 and not c.h[1 - d].done)):
+            return "a reset before a FIN was reached (a gap)"
+        return self.room_check(ci, n)
+
+    cdef int udp_room(self, const uint8_t* addrs, int alen, const uint8_t[::1] buf,
+                      Py_ssize_t l4, Py_ssize_t ip_end) except -1:
+        """``room_check`` for a datagram (raised: nothing has changed yet)."""
+        cdef Py_ssize_t frames = (ip_end - l4) // MIN_ADU + 1
+        cdef int sid = -1
+        got = self.udp_pairs.get(bytes(addrs[:2 * alen]) + bytes(buf[l4:l4 + 4]))
+        if got is not None:
+            sid = self.conns[got >> 1].sid
+        if (0 <= sid < self.capsp and self.sp[sid].count + frames >= MAX_PENDING_STREAM) or (
+                self.total + frames >= MAX_PENDING_TOTAL):
+            raise Declined("more requests pending than the core keeps")
+        return 0
+
+    # ------------------------------------------------------------------ holes (the live dissector's)
+
+    cdef object hole_watcher(self):
+        return self
+
+    def held(self, conn, double ts):
+        """Watcher hook of a connection the reference reassembles: it holds bytes
+        behind a hole since ``ts`` (given up ``LIVE_HOLE`` s later, as the live
+        dissector gives them up)."""
+        cdef int ci = self._sid_conn[conn.stream.id]
+        cdef double due = ts + LIVE_HOLE
+        if ci not in self.holes:
+            self.holes[ci] = due
+            if due < self.due:
+                self.due = due
+
+    def closed(self, conn, double ts):
+        """Watcher hook: the connection ended (``ref_out`` closes it in the core)."""
+        self.holes.pop(self._sid_conn[conn.stream.id], None)
+
+    cdef int dissector_tick(self, double now) except -1:
+        """The live dissector's ``_tick``, in its order: holes waited for ``LIVE_HOLE``
+        s given up (the reference reassembly's own ``expire_holes``), flows idle for
+        ``LIVE_IDLE`` s expired (``expire_idle``), then the closed connections'
+        linger. Declined before anything changes when what the holes or the expired
+        connections release could pend more requests than the core keeps."""
+        cdef int ci
+        cdef double first = INFINITY
+        for ci, due in self.holes.items():
+            if due <= now and ci in self.pyconns:
+                why = self.room_check(ci, 0)
+                if why is not None:
+                    raise Declined(why)
+        if now >= self.idle_due:
+            why = self.idle_check(now)
+            if why is not None:
+                raise Declined(why)
+        for ci, due in list(self.holes.items()):
+            if due > now or ci not in self.holes:
+                continue
+            conn = self.pyconns.get(ci)
+            again = None
+            out = []
+            if conn is not None:
+                again = conn.expire_holes(now, LIVE_HOLE, out)
+            if again is None:
+                self.holes.pop(ci, None)
+            else:
+                self.holes[ci] = again
+            if out:
+                self.ref_out(ci, out)
+                self.ref_done(ci)
+        if now >= self.idle_due:
+            self.expire_idle(now)
+        _Pass.dissector_tick(self, now)
+        for due in self.holes.values():
+            if due < first:
+                first = due
+        if first < self.due:
+            self.due = first
+        if self.idle_due < self.due:
+            self.due = self.idle_due
+        return 0
+
+    cdef int idle_soon(self, double due) except -1:
+        """The idle scan is due at ``due`` (the first flow): the dissector's tick then."""
+        if self.idle_due == INFINITY:
+            self.idle_due = due
+            if due < self.due:
+                self.due = due
+        return 0
+
+    cdef object idle_check(self, double now):
+        """Why ``expire_idle`` at ``now`` would stop half way (nothing changes), or None."""
+        cdef double limit = now - LIVE_IDLE
+        cdef int ci
+        cdef Conn* c
+        for ci in self.open_order:
+            c = &self.conns[ci]
+            if not c.open_ or self.lc[ci].last > limit:
+                continue
+            if c.tref:
+                why = self.room_check(ci, 0)
                 if why is not None:
                     return why
-                h_held = left
-                h_nxt = (h_nxt + n) & MASK
-            elif diff & HALF:
-                old = TWO32 - diff
-                if old < n:
-                    why = self.chunk_check(ci, d, p + old, n - old, &left)
-                    if why is not None:
-                        return why
-                    h_held = left
-                    h_nxt = (h_nxt + n - old) & MASK
-            else:
-                return "out-of-order TCP segments (held behind a hole)"
-        if flags & FIN and h_fin < 0 and h_nxt >= 0:
-            h_fin = (seq + n) & MASK
-            if signed32(h_nxt - h_fin) < 0:
-                return "a FIN ahead of bytes not seen (a gap)"
-            if not h_done and o_done and (h_held or o_held):
-                return "an incomplete ADU when its connection ended (noise)"
+            elif (c.h[0].fin >= 0 and not c.h[0].done) or (c.h[1].fin >= 0 and not c.h[1].done):
+                return "a FIN not reached when its connection went idle (a gap)"
         return None
 
-    cdef bint idle_due_now(self, double now) except -1:
-        """The dissector's idle scan at ``now`` (``FlowTable._expire_idle``): True when a
-        connection would expire (the reference must take over first); else the next
-        scan is scheduled as the reference schedules it."""
-        cdef double limit = now - LIVE_IDLE, first = INFINITY
+    cdef int expire_idle(self, double now) except -1:
+        """``FlowTable._expire_idle``: every connection, then every UDP pair, with no
+        packet for ``LIVE_IDLE`` s ends (a DISCONNECT ``how="idle"`` stamped when it
+        expired, its decoders flushed; its keys dropped at once); the next scan at
+        the earliest survivor's expiry, not sooner than a second from now."""
+        cdef double limit = now - LIVE_IDLE, first = INFINITY, last, ts
         cdef int ci
-        if now < self.idle_due:
-            return False
-        for ci in self.open_order:
-            if not self.conns[ci].open_:
+        cdef Conn* c
+        reason = "no packets for %g s" % LIVE_IDLE
+        for ci in list(self.open_order):
+            c = &self.conns[ci]
+            if not c.open_:
                 continue
-            if self.lc[ci].last <= limit:
-                return True
-            if self.lc[ci].last < first:
-                first = self.lc[ci].last
+            last = self.lc[ci].last
+            if last > limit:
+                if last < first:
+                    first = last
+                continue
+            ts = last + LIVE_IDLE
+            if c.tref:  # the reference reassembly gives its holes up and ends it
+                conn = self.pyconns.pop(ci)
+                c.tref = False
+                out = []
+                conn.expire(ts, out, reason)
+                self.ref_out(ci, out)
+            elif not c.closed:
+                if c.connected or c.h[0].nxt >= 0 or c.h[1].nxt >= 0:  # it showed something
+                    info = {"how": "idle", "reason": reason}
+                    if c.fin_by:
+                        info["by"] = "client" if c.fin_by == 1 else "server"
+                        info["half_closed"] = True
+                    self.event(ts, c.sid, EventKind.DISCONNECT, info)
+                    self.close_stream(ci, ts)
+            # forgotten at once (no linger): the dissector's _forget
+            c = &self.conns[ci]
+            c.closed = True
+            if c.open_:
+                c.open_ = False
+                self.nopen -= 1
+            for i, item in enumerate(self.closed_fifo):
+                if item[0] == ci:
+                    del self.closed_fifo[i]
+                    break
+            self.holes.pop(ci, None)
+            self.forget(ci)
+        for ci in list(self.udp_order):
+            last = self.lc[ci].last
+            if last > limit:
+                if last < first:
+                    first = last
+                continue
+            ts = last + LIVE_IDLE
+            self.udp_order.remove(ci)
+            c = &self.conns[ci]
+            for k in [k for k, v in self.udp_pairs.items() if v >> 1 == ci]:
+                del self.udp_pairs[k]
+            self.event(ts, c.sid, EventKind.DISCONNECT, {"how": "idle", "reason": reason})
+            self.close_stream(ci, ts)
         if first == INFINITY:
             self.idle_due = INFINITY
         else:
             self.idle_due = first + LIVE_IDLE
             if self.idle_due < now + 1.0:
                 self.idle_due = now + 1.0
-        return False
+        return 0
 
     # ------------------------------------------------------------------ the entry
 
@@ -285,9 +477,6 @@ cdef class _Live(_Pass):
                 ts = item[0]
                 link = item[1]
                 data = item[2]
-                if self.idle_due_now(ts):
-                    self.reason = "a connection idle for %g s (expired)" % LIVE_IDLE
-                    return i
                 try:
                     self.packet(ts, link, data, 0, len(data))
                 except Declined as exc:
@@ -307,23 +496,64 @@ cdef class _Live(_Pass):
         the reference's pipeline does the rest (the hub ticks it next)."""
         cdef int ci, d
         try:
-            if self.idle_due_now(now):
-                self.reason = "a connection idle for %g s (expired)" % LIVE_IDLE
-                return 1
             if now >= self.due:
-                self.dissector_tick(now)
+                try:
+                    self.dissector_tick(now)
+                except Declined as exc:  # before anything changed
+                    self.reason = str(exc)
+                    return 1
             if now >= self.next_sweep:
                 for ci in range(self.nconns):
                     for d in range(2):
-                        if self.conns[ci].h[d].blen and (
+                        if (self.conns[ci].h[d].blen or self.conns[ci].h[d].dstate == 2) and (
                                 self.lc[ci].input_ts < now - LIVE_SWEEP_IDLE):
                             self.reason = "an incomplete ADU idle for %g s" % LIVE_SWEEP_IDLE
                             return 2
                 self.next_sweep = now + LIVE_SWEEP_EVERY
+                # the pipeline forgets streams idle that long (nothing held: no record)
+                for ci in range(self.nconns):
+                    if self.lc[ci].input_ts < now - LIVE_SWEEP_IDLE and not self.conns[ci].udp and (
+                            self.conns[ci].h[0].dstate or self.conns[ci].h[1].dstate):
+                        self.close_stream(ci, self.lc[ci].input_ts)
+            why = self.settle(now)
+            if why is not None:
+                self.reason = why
+                return 2
             self.pair_tick(now)
             return 0
         finally:
             self.flush_out()
+
+    cdef object settle(self, double now):
+        """The pipeline's decoders settle what they hold after a silence (``tick``), in
+        the order of its waiting list (``waiting``: a direction joins it when its
+        decoder holds bytes after a chunk, leaves it at a tick that finds nothing
+        held and nothing due, or when its stream ends): only the reference decoders
+        framing a direction after noise have anything to settle. Why the pipeline's
+        part goes to the reference instead (nothing changed), or None."""
+        cdef int key, ci, d
+        for key in self.waiting:
+            if self.conns[key >> 1].h[key & 1].dstate == 2:
+                deadline = self.mdecs[key].next_deadline()
+                if deadline is not None and deadline <= now:
+                    why = self.room_check(key >> 1, 0)
+                    if why is not None:
+                        return why
+        for key in list(self.waiting):
+            ci = key >> 1
+            d = key & 1
+            deadline = None
+            if self.conns[ci].h[d].dstate == 2:
+                dec = self.mdecs[key]
+                deadline = dec.next_deadline()
+                if deadline is not None and deadline <= now:
+                    items = dec.tick(now)
+                    self.ref_resync(ci, d, dec)
+                    self.ref_items(ci, d, items)
+                    deadline = dec.next_deadline() if self.conns[ci].h[d].dstate == 2 else None
+            if deadline is None and not self.buffered(ci, d):
+                del self.waiting[key]
+        return None
 
     def next_deadline(self):
         """When a tick next has something to do (the dissector's and the pairer's
@@ -332,6 +562,10 @@ cdef class _Live(_Pass):
         cdef int s = self.ahead
         if self.idle_due < best:
             best = self.idle_due
+        for dec in self.mdecs.values():
+            deadline = dec.next_deadline()
+            if deadline is not None and deadline < best:
+                best = deadline
         while s >= 0:
             if self.sp[s].count and self.pool[self.sp[s].head].ts + self.timeout < best:
                 best = self.pool[self.sp[s].head].ts + self.timeout
@@ -339,31 +573,43 @@ cdef class _Live(_Pass):
         return None if best == INFINITY else best
 
     def finish(self, double now):
-        """The end of input at the hub's time ``now``: half-closed connections end,
-        every pending request times out. False (nothing done) when the reference must
-        take over first (held bytes, a FIN not reached)."""
+        """The end of input at the hub's time ``now`` (the dissector's ``finish``, then
+        the pipeline's): holes given up and half-closed connections ended, the
+        decoders flushed in the order they were made (an incomplete ADU: noise),
+        every pending request timed out. False (nothing done) when the reference
+        must take over first (a FIN not reached, the core's limits)."""
         cdef int ci, s, e, nxt
         cdef Conn* c
         cdef double ts = now if now > self.item_ts else self.item_ts
         for ci in range(self.nconns):
             c = &self.conns[ci]
-            if c.h[0].blen or c.h[1].blen:
-                self.reason = "an incomplete ADU at the end (noise)"
-                return False
-            if c.open_ and not c.closed and (
+            if c.h[0].blen or c.h[1].blen or c.h[0].dstate == 2 or c.h[1].dstate == 2 or (
+                    c.tref):
+                why = self.room_check(ci, 0)
+                if why is not None:
+                    self.reason = why
+                    return False
+            if c.open_ and not c.closed and not c.tref and (
                     (c.h[0].fin >= 0 and not c.h[0].done) or (c.h[1].fin >= 0 and not c.h[1].done)):
                 self.reason = "a FIN not reached at the end (a gap)"
                 return False
         try:
-            for ci in self.open_order:
+            for ci in list(self.open_order):
                 c = &self.conns[ci]
                 if not c.open_ or c.closed:
+                    continue
+                if c.tref:  # holes given up ("end-of-capture"), a half-closed end
+                    self.ref_finish(ci, ts, "end-of-capture")
                     continue
                 if c.fin_by:
                     self.event(ts, c.sid, EventKind.DISCONNECT,
                                {"how": "fin", "by": "client" if c.fin_by == 1 else "server",
                                 "half_closed": True})
+                    self.close_stream(ci, ts)
                     self.closed_conn(ci, ts)
+            when = self.pl_last
+            for key in self.decoders_made():
+                self.flush_dir(key >> 1, key & 1, when)
             s = self.ahead
             while s >= 0:
                 nxt = self.sp[s].anext
@@ -406,31 +652,63 @@ cdef class _Live(_Pass):
     cdef object key_of(self, int ci):
         """The reference's flow key of connection ``ci`` (client to server)."""
         cdef Conn* c = &self.conns[ci]
-        return (bytes(c.caddr[:4]) + bytes(c.saddr[:4]), c.cport, c.sport)
+        return (bytes(c.caddr[:c.alen]) + bytes(c.saddr[:c.alen]), c.cport, c.sport)
+
+    cdef object conn_out(self, int ci, dict conns, dissector, cls, int limit):
+        """Connection ``ci`` as the dissector's: the reference reassembly the core
+        already uses for it (now watched by the dissector), or one made from the
+        core's state."""
+        conn = conns.get(ci)
+        if conn is not None:
+            return conn
+        conn = self.pyconns.get(ci)
+        if conn is not None:
+            conn.watcher = dissector
+            conn.stats = dissector.tcp_stats
+            conn.last = self.lc[ci].last
+        else:
+            conn = self.py_conn(ci, dissector, cls, limit)
+        conns[ci] = conn
+        return conn
 
     def export(self, dissector, pipeline):
         """Give the run to the reference: build ``dissector``'s (a fresh
         :class:`~mbmon.sources.dissect.Dissector` with the same ``new_stream``) and
         ``pipeline``'s (a fresh :class:`~mbmon.pipeline.Pipeline`) state from the
-        core's, as if they had read every packet the core took."""
+        core's, as if they had read every packet the core took: connections (the
+        reference reassemblies the core used, with their holes' deadlines), UDP
+        pairs, flow keys (IPv4 and IPv6), then the pipeline's part."""
         from mbmon.sources.flows import _TCP_HOLD_LIMIT
         from mbmon.sources.tcpflow import TcpConnection
 
-        cdef int ci
+        cdef int ci, alen, v
         conns = {}
         for ci in self.open_order:
             if self.conns[ci].open_:
-                conns[ci] = self.py_conn(ci, dissector, TcpConnection, _TCP_HOLD_LIMIT)
-                dissector.connections[conns[ci]] = self.key_of(ci)
+                conn = self.conn_out(ci, conns, dissector, TcpConnection, _TCP_HOLD_LIMIT)
+                dissector.connections[conn] = self.key_of(ci)
         for ci, until in self.closed_fifo:
-            conns[ci] = self.py_conn(ci, dissector, TcpConnection, _TCP_HOLD_LIMIT)
-            dissector._closed[conns[ci]] = (self.key_of(ci), until)
+            conn = self.conn_out(ci, conns, dissector, TcpConnection, _TCP_HOLD_LIMIT)
+            dissector._closed[conn] = (self.key_of(ci), until)
         for k, v in self.flows.items():
             ci = v >> 1
-            if ci not in conns:
-                conns[ci] = self.py_conn(ci, dissector, TcpConnection, _TCP_HOLD_LIMIT)
-            dissector.tcp[(k[:8], (k[8] << 8) | k[9], (k[10] << 8) | k[11])] = (
-                conns[ci], bool(v & 1))
+            alen = (len(k) - 4) // 2
+            conn = self.conn_out(ci, conns, dissector, TcpConnection, _TCP_HOLD_LIMIT)
+            dissector.tcp[(k[:2 * alen], (k[2 * alen] << 8) | k[2 * alen + 1],
+                           (k[2 * alen + 2] << 8) | k[2 * alen + 3])] = (conn, bool(v & 1))
+        for ci, due in self.holes.items():
+            if ci in conns:
+                dissector._holes[conns[ci]] = due
+        for k, v in self.udp_pairs.items():
+            ci = v >> 1
+            alen = (len(k) - 4) // 2
+            stream = self.stream_obj(self.conns[ci].sid)
+            key = (k[:2 * alen], (k[2 * alen] << 8) | k[2 * alen + 1],
+                   (k[2 * alen + 2] << 8) | k[2 * alen + 3])
+            dissector.udp[key] = (stream, Direction.C2S if v & 1 else Direction.S2C)
+            if stream.id not in dissector._udp_keys:
+                dissector._udp_keys[stream.id] = (key, stream)
+                dissector._udp_last[stream.id] = self.lc[ci].last
         dissector._idle_due = self.idle_due
         dissector._set_due()
         dissector.next_id = len(self._sid_conn)
@@ -438,29 +716,57 @@ cdef class _Live(_Pass):
         self.export_pipeline(pipeline)
         return None
 
+    cdef list decoders_made(self):
+        """``dec_order`` as the pipeline's decoders stand: each direction once, where its
+        latest decoder was made (a slot the chunk entry reused, a stream begun again)."""
+        cdef int key
+        seen = set()
+        order = []
+        for key in reversed(self.dec_order):
+            if key not in seen:
+                seen.add(key)
+                order.append(key)
+        order.reverse()
+        return order
+
     cdef int export_pipeline(self, pipeline) except -1:
         """The pipeline's part of :meth:`export`: record numbering, its clocks, the
-        bytes each decoder holds with their arrival times, the pending requests with
-        their record indexes (in the pairer's order)."""
-        cdef int ci, d, s, e
+        decoders in the order they were made (the bytes the core holds with their
+        arrival times; a reference decoder framing a direction after noise, as it
+        is), the pending requests with their record indexes (in the pairer's order)."""
+        cdef int ci, d, s, e, key
         cdef Conn* c
         cdef Pend* p
         pipeline._index = self.index
         pipeline._next_tick = self.next_tick
         pipeline._last_ts = self.pl_last
         pipeline._next_sweep = self.next_sweep
-        for ci in range(self.nconns):
+        for key in self.decoders_made():
+            ci = key >> 1
+            d = key & 1
             c = &self.conns[ci]
-            for d in range(2):
+            if c.h[d].dstate == 0 or self._sid_conn[c.sid] != ci:  # none, or a released slot
+                continue
+            stream = self.stream_obj(c.sid)
+            direction = Direction.S2C if d else Direction.C2S
+            if c.h[d].dstate == 2:
+                pipeline._streams[c.sid] = stream
+                pipeline._decoders[(c.sid, direction)] = self.mdecs[key]
+            else:
+                dec = pipeline._decoder(stream, direction)
                 if c.h[d].blen:
-                    stream = self.stream_obj(c.sid)
-                    direction = Direction.S2C if d else Direction.C2S
-                    dec = pipeline._decoder(stream, direction)
                     dec.feed(PyBytes_FromStringAndSize(<const char*>c.h[d].buf, c.h[d].blen),
-                             self.lc[ci].held_ts[d])
-                    dec._last_ts = self.lc[ci].chunk_ts[d]
-                    pipeline._waiting[(c.sid, direction)] = dec
-                    pipeline._last_input[c.sid] = self.lc[ci].input_ts
+                             c.h[d].bts)
+                dec._last_ts = self.lc[ci].chunk_ts[d]
+            pipeline._last_input[c.sid] = self.lc[ci].input_ts
+        for key in self.waiting:
+            c = &self.conns[key >> 1]
+            if self._sid_conn[c.sid] != key >> 1:
+                continue
+            direction = Direction.S2C if key & 1 else Direction.C2S
+            dec = pipeline._decoders.get((c.sid, direction))
+            if dec is not None:
+                pipeline._waiting[(c.sid, direction)] = dec
         pending = pipeline.pairer._pending
         s = self.ahead
         while s >= 0:

@@ -2457,11 +2457,17 @@ cdef class _Pass:
                        Py_ssize_t n) except -1:
         """A chunk's bytes (from the first the core did not frame) through the reference
         decoder (made with the bytes the core holds, which came before them)."""
-        cdef Half* h
         data = PyBytes_FromStringAndSize(<const char*>p, n)
         dec = self.ref_decoder(ci, d)
         items = dec.feed(data, ts)
-        if dec.synced and not dec._noise:  # in sync again: the core frames from here
+        self.ref_resync(ci, d, dec)
+        return self.ref_items(ci, d, items)
+
+    cdef int ref_resync(self, int ci, int d, object dec) except -1:
+        """Once the reference decoder of direction ``d`` is in sync again with no noise
+        run open, the core frames the direction again from the bytes it holds."""
+        cdef Half* h
+        if dec.synced and not dec._noise:
             h = &self.conns[ci].h[d]
             h.dstate = 1
             del self.mdecs[ci * 2 + d]
@@ -2469,7 +2475,7 @@ cdef class _Pass:
             if len(held):
                 self.hold(ci, d, held, len(held))
                 self.conns[ci].h[d].bts = dec._buf_ts
-        return self.ref_items(ci, d, items)
+        return 0
 
     cdef int ref_items(self, int ci, int d, list items) except -1:
         """The reference decoder's frames (paired here) and noise runs, in order."""
@@ -2541,9 +2547,9 @@ cdef class _Pass:
         return self.open_conn(key, addrs, 4, sport, dport, flags, ts)
 
     cdef int alloc_conn(self, const uint8_t* addrs, int alen, int sport, int dport,
-                        bint sender_client) except -1:
+                        bint sender_client, bint udp=False) except -1:
         """A new flow's entry and stream id (``addrs``: source then destination address,
-        ``alen`` bytes each); its index."""
+        ``alen`` bytes each; ``udp``: a UDP pair); its index."""
         cdef int ci, cap, d
         cdef Conn* c
         cdef Conn* nc
@@ -2573,7 +2579,7 @@ cdef class _Pass:
         c.closed = False
         c.open_ = False
         c.tref = False
-        c.udp = False
+        c.udp = udp
         c.fin_by = 0
         c.alen = alen
         if sender_client:
@@ -2755,11 +2761,17 @@ cdef class _Pass:
             return True
         return False
 
+    cdef object hole_watcher(self):
+        """The watcher of the connections the reference reassembles (``held`` and
+        ``closed``): none for a file (its holes never time out); the live entry's own."""
+        return None
+
     cdef object py_tcp(self, int ci):
         """Connection ``ci`` as the reference's ``TcpConnection`` (its state the core's)."""
         cdef Conn* c = &self.conns[ci]
         cdef int d
-        conn = TcpConnection(self.stream_obj(c.sid), limit=_TCP_HOLD_LIMIT, stats=self.tcp_stats)
+        conn = TcpConnection(self.stream_obj(c.sid), limit=_TCP_HOLD_LIMIT, stats=self.tcp_stats,
+                             watcher=self.hole_watcher())
         c = &self.conns[ci]
         for d in range(2):
             half = conn._s2c if d else conn._c2s
@@ -2789,6 +2801,16 @@ cdef class _Pass:
         conn.segment(ts, from_client, seq & MASK, ack & MASK, flags,
                      PyBytes_FromStringAndSize(<const char*>p, n) if n else b"", out)
         self.ref_out(ci, out)
+        return self.ref_done(ci)
+
+    cdef int ref_done(self, int ci) except -1:
+        """Once the reference's reassembly of connection ``ci`` holds nothing and has
+        reached every FIN it saw, the core reassembles the connection again."""
+        cdef Conn* c
+        cdef int d
+        conn = self.pyconns.get(ci)
+        if conn is None:
+            return 0
         for half in (conn._c2s, conn._s2c):
             if half.held or (half.fin is not None and not half.done):
                 return 0
@@ -3025,8 +3047,8 @@ cdef class _Pass:
                 sport = (buf[l4] << 8) | buf[l4 + 1]
                 dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
                 if self.port_map[sport] or self.port_map[dport]:
-                    if first_fragment:
-                        raise Declined("a fragmented IP packet on a Modbus port")
+                    # a first fragment is a cut packet (the reference does not
+                    # reassemble): a datagram longer than it is none
                     return self.udp_datagram(ts, &buf[off + 12], 4, buf, l4, ip_end)
             return 0
         if proto != 6:
@@ -3045,8 +3067,8 @@ cdef class _Pass:
                                         be32(b + 4), be32(b + 8), b[13],
                                         bytes(buf[l4 + doff:ip_end]))
             return 0
-        if first_fragment:
-            raise Declined("a fragmented IP packet on a Modbus port")
+        # a first fragment is a cut packet (the reference does not reassemble): its
+        # segment carries the bytes the fragment holds, as a snap-cut one does
         doff = (b[12] >> 2) & 0x3C
         if doff < 20 or l4 + doff > ip_end:
             return 0
@@ -3089,8 +3111,6 @@ cdef class _Pass:
         if (flags & SYN or self.conns[ci].closed) and self.is_new(ci, v & 1, seq, flags,
                                                                    has_payload):
             if not self.conns[ci].closed:
-                if self.live:
-                    raise Declined("a connection replaced on the same addresses")
                 # replaced while open: the reference gives its holes up ("replaced")
                 # and forgets it (no DISCONNECT; its stream's decoders live on)
                 self.ref_finish(ci, ts, "replaced")
@@ -3111,7 +3131,7 @@ cdef class _Pass:
     cdef int ipv6(self, double ts, const uint8_t[::1] buf, Py_ssize_t off,
                   Py_ssize_t end) except -1:
         """IPv6 (``ipv6_header``: extension headers as the reference walks them): TCP and
-        UDP on a Modbus port are read as over IPv4 (a fragment of them declined); TCP on
+        UDP on a Modbus port are read as over IPv4 (a first fragment as a cut packet); TCP on
         other ports goes to port detection as the reference's general path sends it."""
         cdef Py_ssize_t ip_end, l4, plen
         cdef int proto, k, sport, dport, doff, frag
@@ -3148,20 +3168,14 @@ cdef class _Pass:
         if proto == 17 and ip_end - l4 >= 8:
             sport = (buf[l4] << 8) | buf[l4 + 1]
             dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
-            if self.port_map[sport] or self.port_map[dport]:
-                if fragment:
-                    raise Declined("a fragmented IP packet on a Modbus port")
+            if self.port_map[sport] or self.port_map[dport]:  # a first fragment: cut
                 return self.udp_datagram(ts, &buf[off + 8], 16, buf, l4, ip_end)
             return 0
         if proto != 6 or ip_end - l4 < 20:
             return 0
         sport = (buf[l4] << 8) | buf[l4 + 1]
         dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
-        if self.port_map[sport] or self.port_map[dport]:
-            if fragment:
-                raise Declined("a fragmented IP packet on a Modbus port")
-            if self.live:
-                raise Declined("Modbus over IPv6")
+        if self.port_map[sport] or self.port_map[dport]:  # a first fragment: cut
             return self.tcp6(ts, buf, off, l4, ip_end)
         if self.detect and not short and not fragment:
             doff = (buf[l4 + 12] >> 2) & 0x3C
@@ -3206,8 +3220,6 @@ cdef class _Pass:
         cdef Py_ssize_t ulen = (buf[l4 + 4] << 8) | buf[l4 + 5]
         cdef bint sender_client
         cdef int ci, d
-        if self.live:
-            raise Declined("Modbus over UDP")
         if ulen < 8 or l4 + ulen > ip_end or ulen == 8:
             return 0  # malformed, cut (half a datagram is none), or empty
         key = bytes(addrs[:2 * alen]) + bytes(buf[l4:l4 + 4])
@@ -3221,8 +3233,7 @@ cdef class _Pass:
                 sender_client = dport <= sport
             else:
                 sender_client = self.port_map[dport]
-            ci = self.alloc_conn(addrs, alen, sport, dport, sender_client)
-            self.conns[ci].udp = True
+            ci = self.alloc_conn(addrs, alen, sport, dport, sender_client, True)
             got = ci * 2 + (1 if sender_client else 0)
             self.udp_pairs[key] = got
             self.udp_pairs[bytes(addrs[alen:2 * alen]) + bytes(addrs[:alen]) + bytes(

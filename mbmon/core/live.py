@@ -69,7 +69,9 @@ class LiveCore:
         if why is not None:
             raise RuntimeError(f"the compiled core is unavailable: {why}")
         reader: Any = _core._reader
-        self._core: Any = reader._Live(as_json, timeout, ports, view, write, new_stream)
+        self._core: Any = reader._Live(
+            as_json, timeout, ports, view, write, new_stream, keep_noise=True
+        )
         self.dissector = dissector
         self.pipeline = pipeline
         self._flush = flush
@@ -125,6 +127,9 @@ class LiveCore:
             if self._flush is not None:
                 self._flush()
             if finished:
+                # what the hub feeds after the end (the source's closing events) is
+                # the pipeline's to number: from the core's record numbers on
+                self.pipeline._index = self._core.index
                 return []
             self._hand_over()
         got: list[Any] = self.dissector.finish(ts)
@@ -170,3 +175,5 @@ def add_counts(summary: Any, counts: dict[str, Any]) -> None:
             setattr(summary, name, mine if theirs is None else pick(theirs, mine))
     for name, n in counts["events"].items():
         summary.events[name] = summary.events.get(name, 0) + n
+    summary.noise_records += counts.get("noise_records", 0)  # MBAP noise the core reported
+    summary.noise_bytes += counts.get("noise_bytes", 0)

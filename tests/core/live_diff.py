@@ -11,6 +11,7 @@ from typing import Any
 
 from mbmon.format import View
 from mbmon.hub import Hub
+from mbmon.model import Event, EventKind
 from mbmon.pipeline import Pipeline, PipelineConfig
 from mbmon.sinks.console import ConsoleListener
 from mbmon.sinks.summary import Summary
@@ -53,7 +54,7 @@ def batches(packets: list[Packet], sizes: list[int]) -> list[Step]:
     return steps
 
 
-def _wire(as_json: bool, timeout: float) -> tuple[Hub, io.BytesIO, Any, Summary]:
+def _wire(as_json: bool, timeout: float) -> tuple[Hub, io.BytesIO, Any, Summary, View]:
     raw = io.BytesIO()
     out = io.TextIOWrapper(raw, encoding="utf-8", errors="backslashreplace", write_through=True)
     view = View(time_format=TimeFormat("a"))
@@ -61,7 +62,7 @@ def _wire(as_json: bool, timeout: float) -> tuple[Hub, io.BytesIO, Any, Summary]
     summary = Summary(None)
     hub.add_listener(ConsoleListener(out, view, as_json=as_json, live=True))
     hub.add_listener(summary)
-    return hub, raw, out, summary
+    return hub, raw, out, summary, view
 
 
 def _run(hub: Hub, steps: list[Step], feed: Any) -> None:
@@ -71,6 +72,10 @@ def _run(hub: Hub, steps: list[Step], feed: Any) -> None:
         else:
             hub.feed_items(feed(step))
     hub.finish()
+    # the source's closing event, fed after the end as run_sources feeds it (at the
+    # clock's time: here the last step's)
+    end = max((s if isinstance(s, float) else s[-1][0] for s in steps if s), default=0.0)
+    hub.feed(Event(end, None, EventKind.STATS, {"interface": "lo", "complete": True}))
 
 
 def reference(
@@ -81,7 +86,7 @@ def reference(
     timeout: float = 1.0,
 ) -> tuple[bytes, str]:
     """``sniff``'s reference wiring: stdout's bytes and the summary's text."""
-    hub, raw, out, summary = _wire(as_json, timeout)
+    hub, raw, out, summary, _view = _wire(as_json, timeout)
     dissector = open_dissector(CaptureConfig(tcp_ports=ports), hub.new_stream)
     hub.add_ticker(dissector)
     _run(hub, steps, lambda batch: dissect_batch(dissector, batch))
@@ -101,12 +106,12 @@ def with_core(
     was handed to the reference (``None``: the core took all of it)."""
     from mbmon.core.live import LiveCore, add_counts
 
-    hub, raw, out, summary = _wire(as_json, timeout)
+    hub, raw, out, summary, view = _wire(as_json, timeout)
     dissector = open_dissector(CaptureConfig(tcp_ports=ports), hub.new_stream)
     live = LiveCore(
         ports=ports,
         timeout=timeout,
-        view=View(time_format=TimeFormat("a")),
+        view=view,  # the console's, as sniff gives both the same
         as_json=as_json,
         write=raw.write,
         new_stream=hub.new_stream,

@@ -18,7 +18,15 @@ import tempfile
 from pathlib import Path
 
 from core_diff import ROOT, require_core
-from gen import T0, adus, every_function_pair, write_conversation
+from gen import (
+    T0,
+    adus,
+    every_function_pair,
+    noisy_stream,
+    reordered_conversation,
+    udp_exchange,
+    write_conversation,
+)
 from live_diff import Packet, Step, packets_of, reference, with_core
 from test_core_fuzz import mutate
 
@@ -36,6 +44,14 @@ def _seeds(tmp: Path) -> list[list[Packet]]:
         tmp / "c.pcap", stream, times=[T0 + t for t in times], handshake=False, close=None
     )
     seeds.append(packets_of(slow))
+    # what the live entry keeps since it reads what the file entry reads: noise and
+    # length 255 (over IPv6 too), holes, out of order and a replaced connection, UDP
+    seeds.append(packets_of(write_conversation(tmp / "n.pcap", noisy_stream(4), step=0.2)))
+    seeds.append(packets_of(reordered_conversation(tmp / "r.pcap", 3, replace=True)))
+    seeds.append(packets_of(udp_exchange(tmp / "u.pcap", noisy_stream(8))))
+    from test_core_live_net import _ipv6_noisy
+
+    seeds.append(packets_of(_ipv6_noisy(tmp / "v6.pcap", 9)))
     return seeds
 
 

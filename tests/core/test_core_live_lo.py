@@ -2,9 +2,9 @@
 (``MBMON_NO_EXTENSIONS=1``), capturing the same traffic at the same time: stdout byte
 for byte, text and JSON. The traffic (raw sockets on 127.0.0.1, in this process):
 handshakes, ADUs split across segments and several in one, exceptions, a FIN close,
-a RST close, and last a connection that sends noise (the core hands the run over to
-the Python pipeline there, which goes on from the core's state). Needs root (an
-AF_PACKET socket); CI runs as root."""
+a RST close, a connection that sends noise, and last one over IPv6 (::1) with noise
+and an MBAP length of 255 in it: the core keeps the whole run (no hand-over to the
+Python pipeline). Needs root (an AF_PACKET socket); CI runs as root."""
 
 from __future__ import annotations
 
@@ -110,8 +110,8 @@ def _server(listener: socket.socket, stop: threading.Event) -> None:
         threading.Thread(target=serve, args=(conn,), daemon=True).start()
 
 
-def _client(port: int) -> socket.socket:
-    sock = socket.create_connection(("127.0.0.1", port))
+def _client(port: int, host: str = "127.0.0.1") -> socket.socket:
+    sock = socket.create_connection((host, port))
     sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
     return sock
 
@@ -126,7 +126,7 @@ def _drain(sock: socket.socket, expect: int) -> None:
         got += len(data)
 
 
-def _traffic(port: int) -> None:
+def _traffic(port: int, ipv6: bool) -> None:
     pause = 0.02
     # a FIN close: single ADUs, split ADUs, several in one segment, an exception
     a = _client(port)
@@ -158,7 +158,8 @@ def _traffic(port: int) -> None:
     b.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
     b.close()
     time.sleep(0.2)
-    # noise: the core hands the run over; then more requests on a new connection
+    # noise (the core's reference decoder settles it at the hub's tick); then more
+    # requests on a new connection
     c = _client(port)
     c.sendall(encode_adu(1, 3, encode_read_request(3, 0, 1)))
     _drain(c, 11)
@@ -172,6 +173,19 @@ def _traffic(port: int) -> None:
     d.close()
     c.close()
     time.sleep(0.5)
+    if ipv6:  # over IPv6: requests, noise, a length-255 ADU, requests again
+        e = _client(port, "::1")
+        e.sendall(encode_adu(1, 5, encode_read_request(3, 0, 2)))
+        _drain(e, 13)
+        e.sendall(b"\xff\xfe noise \x00")
+        time.sleep(2.0)
+        e.sendall(bytes((0, 9, 0, 0, 0, 255, 1, 0x5A)) + bytes(253))
+        time.sleep(2.0)
+        for tid in range(10, 14):
+            e.sendall(encode_adu(tid, 5, encode_read_request(3, tid, 1)))
+            time.sleep(pause)
+        e.close()
+        time.sleep(0.5)
 
 
 def test_sniff_lo_on_the_core_equals_pure() -> None:
@@ -186,6 +200,17 @@ def test_sniff_lo_on_the_core_equals_pure() -> None:
     stop = threading.Event()
     server = threading.Thread(target=_server, args=(listener, stop), daemon=True)
     server.start()
+    listener6 = None
+    if socket.has_ipv6:
+        try:
+            listener6 = socket.socket(socket.AF_INET6)
+            listener6.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
+            listener6.bind(("::1", port))
+            listener6.listen()
+        except OSError:  # no ::1 on this machine's loopback
+            listener6 = None
+        else:
+            threading.Thread(target=_server, args=(listener6, stop), daemon=True).start()
     procs = {
         (as_json, pure): _sniffer(port, as_json, pure)
         for as_json in (False, True)
@@ -195,7 +220,7 @@ def test_sniff_lo_on_the_core_equals_pure() -> None:
     try:
         for key, proc in procs.items():
             heads[key] = _wait_ready(proc)
-        _traffic(port)
+        _traffic(port, listener6 is not None)
         time.sleep(1.0)
         results = {}
         for proc in procs.values():
@@ -209,13 +234,15 @@ def test_sniff_lo_on_the_core_equals_pure() -> None:
                 proc.kill()
         stop.set()
         listener.close()
+        if listener6 is not None:
+            listener6.close()
     for as_json in (False, True):
         core_out, core_err = results[(as_json, False)]
         pure_out, pure_err = results[(as_json, True)]
         assert "core: the compiled core runs the capture" in core_err, core_err
         assert "MBMON_NO_EXTENSIONS" in pure_err, pure_err
-        # the noise handed the run over to the Python pipeline, which went on
-        assert "then the Python pipeline (bytes that are no MBAP header" in core_err, core_err
+        # noise, length 255 and IPv6 stayed on the core
+        assert "then the Python pipeline" not in core_err, core_err
         assert core_out.count(b"\n") > 60
         assert _untimed(core_out, as_json) == _untimed(pure_out, as_json), (core_err, pure_err)
 

@@ -1,8 +1,10 @@
 """The core against the reference pipeline on the IP layer: Modbus/TCP over IPv6 (on
 every link type, with extension headers, next to IPv4, with holes), Modbus/UDP over
 IPv4 and IPv6 (datagram framing: several ADUs, noise, cut ADUs, length 255), byte for
-byte, text and JSON (and the MCAP log); IP fragments on a Modbus port stay declined
-(the reference does not reassemble them); random datagram cuts (hypothesis)."""
+byte, text and JSON (and the MCAP log); IP fragments on a Modbus port read as the
+reference reads them (it does not reassemble them: a first fragment is a cut
+packet, later ones are skipped), by the file entry and the live one; random
+datagram cuts (hypothesis)."""
 
 from __future__ import annotations
 
@@ -188,46 +190,55 @@ def test_random_datagrams(seed: int, client_cuts: list[int], server_cuts: list[i
         assert_same(path, covered=True)
 
 
-def test_fragments_on_a_modbus_port_stay_declined(tmp_path: Path) -> None:
-    """The reference does not reassemble IP fragments (a first fragment is a cut
-    packet): the core declines them on a Modbus port, and skips later fragments."""
+def _fragments() -> list[tuple[str, bytes]]:
+    """Fragments on a Modbus port, IPv4 and IPv6, TCP and UDP: first fragments that
+    hold the whole segment or datagram (more-fragments set), first fragments that cut
+    an ADU or a datagram short, later fragments."""
     base = adus(every_function_pair()[:2])
-    seg = tcp_header("10.0.0.1", "10.0.0.2", 40000, 502, 1001, 5001, PSH | ACK, base[0][1])
-    first4 = ethernet_frame(
-        ipv4_packet("10.0.0.1", "10.0.0.2", 6, seg, flags_fragment=0x2000), 0x0800
-    )
-    later4 = ethernet_frame(
-        ipv4_packet("10.0.0.1", "10.0.0.2", 6, seg[8:], flags_fragment=0x0001), 0x0800
-    )
-    dgram = udp_header("10.0.0.1", "10.0.0.2", 40000, 502, base[0][1])
-    first_udp = ethernet_frame(
-        ipv4_packet("10.0.0.1", "10.0.0.2", 17, dgram, flags_fragment=0x2000), 0x0800
-    )
-    seg6 = tcp_header("2001:db8::1", "2001:db8::2", 40000, 502, 1001, 5001, PSH | ACK, b"")
-    first6 = ethernet_frame(
-        ipv6_packet(
-            "2001:db8::1", "2001:db8::2", 6, seg6, extensions=((44, b"\0\x01" + bytes(4)),)
-        ),
-        0x86DD,
-    )
-    later6 = ethernet_frame(
-        ipv6_packet(
-            "2001:db8::1", "2001:db8::2", 6, seg6, extensions=((44, b"\0\x09" + bytes(4)),)
-        ),
-        0x86DD,
-    )
-    plain = write_conversation(tmp_path / "plain.pcap", base).read_bytes()
-    for name, frame, declined in [
-        ("first4", first4, True),
-        ("udp", first_udp, True),
-        ("first6", first6, True),
-        ("later4", later4, False),
-        ("later6", later6, False),
-    ]:
+    adu = base[0][1]
+    seg = tcp_header("10.0.0.1", "10.0.0.2", 40000, 502, 1001, 5001, PSH | ACK, adu)
+    dgram = udp_header("10.0.0.1", "10.0.0.2", 40000, 502, adu)
+    seg6 = tcp_header("2001:db8::1", "2001:db8::2", 40000, 502, 1001, 5001, PSH | ACK, adu)
+    dgram6 = udp_header("2001:db8::1", "2001:db8::2", 40000, 502, adu)
+
+    def v4(proto: int, body: bytes, frag: int) -> bytes:
+        return ethernet_frame(
+            ipv4_packet("10.0.0.1", "10.0.0.2", proto, body, flags_fragment=frag), 0x0800
+        )
+
+    def v6(proto: int, body: bytes, frag: bytes) -> bytes:
+        return ethernet_frame(
+            ipv6_packet(
+                "2001:db8::1", "2001:db8::2", proto, body, extensions=((44, frag + bytes(4)),)
+            ),
+            0x86DD,
+        )
+
+    return [
+        ("first4", v4(6, seg, 0x2000)),
+        ("first4_cut", v4(6, seg[:28], 0x2000)),
+        ("later4", v4(6, seg[8:], 0x0001)),
+        ("udp", v4(17, dgram, 0x2000)),
+        ("udp_cut", v4(17, dgram[:16], 0x2000)),
+        ("udp_later", v4(17, dgram[8:], 0x0002)),
+        ("first6", v6(6, seg6, b"\0\x01")),
+        ("first6_cut", v6(6, seg6[:26], b"\0\x01")),
+        ("later6", v6(6, seg6, b"\0\x09")),
+        ("udp6", v6(17, dgram6, b"\0\x01")),
+        ("udp6_cut", v6(17, dgram6[:12], b"\0\x01")),
+    ]
+
+
+def test_fragments_on_a_modbus_port(tmp_path: Path) -> None:
+    """The reference does not reassemble IP fragments: a first fragment is a cut
+    packet (the bytes it holds go on as a snap-cut packet's; a datagram longer than
+    it is none), later fragments are skipped. The core reads them the same, in the
+    middle of a conversation and of a UDP exchange."""
+    base = adus(every_function_pair()[:2])
+    plain = write_conversation(tmp_path / "plain.pcap", base, close=None).read_bytes()
+    for name, frame in _fragments():
         extra = write_frames(tmp_path / f"{name}x.pcap", [(T0 + 9, frame)]).read_bytes()[24:]
+        more = write_conversation(tmp_path / "more.pcap", base, handshake=False, close=None)
         path = tmp_path / f"{name}.pcap"
-        path.write_bytes(plain + extra)
-        why = assert_same(path, covered=not declined)
-        assert declined is (why is not None)
-        if declined:
-            assert "fragment" in str(why)
+        path.write_bytes(plain + extra + more.read_bytes()[24:])
+        assert_same(path, covered=True)
