@@ -29,7 +29,7 @@ GATEWAY_TARGET_FAILED = 0x0B
 MAX_BACKLOG = 50_000
 
 #: Seconds observations wait to go to the hub together (:attr:`ProxyConfig.handover`).
-HANDOVER = 0.002
+HANDOVER = 0.01
 
 
 def endpoint(host: str, port: int) -> str:
@@ -53,9 +53,12 @@ class ProxyConfig:
     backoff_max: float = 1.0
     max_backlog: int = MAX_BACKLOG
     #: how long observations wait to be handed to the hub in one batch (0: once per
-    #: loop iteration). 2 ms: the hub's thread wakes (and takes the GIL from the
-    #: forwarding) a few hundred times a second instead of twice per request, which
-    #: at one client cuts the hub's CPU per request by half or more (docs/performance.md)
+    #: loop iteration). 10 ms: the hub's thread wakes (and takes the GIL from the
+    #: forwarding) a hundred times a second instead of twice per request, which at
+    #: one client cuts the hub's CPU per request by half or more; with the engine in
+    #: a child process every batch is a pipe write and wakes the observing process's
+    #: reader and hub threads, whose per-batch work at 8 clients cost over a
+    #: microsecond a request at 2 ms (docs/performance.md)
     handover: float = HANDOVER
     #: the upstream's name when it is not a TCP server (an RTU bus: its serial port)
     upstream_name: str | None = None

@@ -146,10 +146,17 @@ class ProxyEngine:
 
     def arm(self, entry: Pending) -> None:
         """Start ``entry``'s timeout: one loop timer serves every request, since all
-        share one timeout and so expire in the order they were sent."""
+        share one timeout and so expire in the order they were sent. The requests
+        answered already at the queue's head leave it now, not at the next expiry: a
+        request lives as long as its round trip, not ``timeout`` (at 20,000 requests
+        a second, 3 s of them kept alive made the collector's full passes walk them
+        again and again, and held megabytes)."""
         loop = self.loop
         entry.deadline = deadline = loop.time() + self.config.timeout
-        self._deadlines.append(entry)
+        dq = self._deadlines
+        while dq and dq[0].done:
+            dq.popleft()
+        dq.append(entry)
         if self._expiry is None:
             self._expiry = loop.call_at(deadline, self._expire_due)
 

@@ -170,6 +170,10 @@ class UpstreamSocket(Reader):
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = transport  # type: ignore[assignment]
 
+    def buffer_updated(self, nbytes: int) -> None:
+        # Reader's, one call less: every answer
+        self.link.data_received(self, bytes(self.engine.read_buffer[:nbytes]))
+
     def data_received(self, data: bytes) -> None:
         self.link.data_received(self, data)
 
@@ -256,7 +260,29 @@ class LinkBase:
         ts = time.time()
         self.received += len(data)
         if self.passthrough and self.state == "up":
-            self._pass(data, ts)
+            owner = self.owner
+            raws = self.decoder.split_clean(data, ts)
+            if raws is None or len(raws) != 1 or owner is None:
+                self._pass(data, ts, raws)
+                return
+            # one whole clean answer, the common case: _pass and _answered inline
+            raw = raws[0]
+            self.consumed += len(data)
+            self.engine.stats.responses += 1
+            pending = self.pending
+            utid = (raw[0] << 8) | raw[1]
+            lst = pending.get(utid)
+            entry: Pending | None
+            if lst:
+                entry = lst.pop(0)
+                if not lst:
+                    del pending[utid]
+            else:
+                entry = self._adopt(utid, raw)
+            if entry is not None:
+                entry.done = True
+                entry.client.outstanding.discard(entry)
+            owner.stream_part(data, ts, False)
             return
         raws = self.decoder.split_clean(data, ts)
         if raws is None:  # not whole clean ADUs: the decoder frames (or finds noise)
@@ -358,15 +384,15 @@ class LinkBase:
         if self.state == "retired":
             self.drained()
 
-    def _pass(self, data: bytes, ts: float) -> None:
+    def _pass(self, data: bytes, ts: float, raws: list[bytes] | None) -> None:
         """One client's own upstream connection: the bytes go to the client as they
         came (a split answer too, before its last byte is here), unchanged, whatever
         their transaction id; framing only tells which requests are answered. Bytes
-        that are not Modbus/TCP are not forwarded: the connection is reset."""
+        that are not Modbus/TCP are not forwarded: the connection is reset. ``raws``:
+        what the decoder's ``split_clean`` made of ``data``."""
         owner = self.owner
         assert owner is not None and self.decoder is not None
         decoder = self.decoder
-        raws = decoder.split_clean(data, ts)
         if raws is not None:
             self.consumed += len(data)
             self._answered(raws)

@@ -119,7 +119,18 @@ class TcpLink(LinkBase):
         for the connection, or answered 0x0A already)."""
         state = self.state
         if state == "up":
-            self._track(entry)
+            if entry.deadline is None:  # _track and _start_timer inline: every request
+                pending = self.pending
+                lst = pending.get(entry.utid)
+                if lst is None:
+                    pending[entry.utid] = [entry]
+                else:
+                    lst.append(entry)
+                entry.client.outstanding.add(entry)
+                entry.link = self
+                self.engine.arm(entry)
+            else:
+                self._track(entry)
             return entry.raw
         if state == "down" and self.engine.loop.time() >= self.next_attempt:
             self.connect()
