@@ -811,6 +811,41 @@ def _release_signals(before):
         _signal_mod.pthread_sigmask(_signal_mod.SIG_SETMASK, before)
 
 
+cdef extern from *:
+    """
+    #if defined(__GLIBC__)
+    #include <malloc.h>
+    static int mb_keep_heap(void) {
+        /* a log's ~1 MiB blocks, chunks and compressed chunks from the heap, kept */
+        return mallopt(M_MMAP_THRESHOLD, 8 << 20) && mallopt(M_TRIM_THRESHOLD, 32 << 20)
+            && mallopt(M_TOP_PAD, 8 << 20);
+    }
+    #else
+    static int mb_keep_heap(void) { return 0; }
+    #endif
+    """
+    int mb_keep_heap()
+
+
+cdef bint _heap_kept = False
+
+
+cdef void keep_heap():
+    """Make the C library keep freed memory for the next block (glibc: ``mallopt``).
+
+    A log written at full speed allocates and frees a block (~1 MiB), its chunk and its
+    compressed chunk per MiB of messages; by default glibc maps each of those fresh
+    (``mmap`` above 128 KiB, or its heap trimmed back after each free), and the kernel
+    then zeroes every page anew: about 150,000 page faults and 0.3 s of system time per
+    million ADUs logged. Kept, they are reused: at most 32 MiB more of freed memory
+    stays with the process. Once per process; nothing where the C library is not
+    glibc."""
+    global _heap_kept
+    if not _heap_kept:
+        _heap_kept = True
+        mb_keep_heap()
+
+
 cdef class _Pass:
     """One pass over a capture: every decision; with ``emit``, every line too."""
 
@@ -1622,6 +1657,7 @@ cdef class _Pass:
 
         self.mcap = sink
         self.mlayout = sink.layout
+        keep_heap()
         channels = self.mlayout.channels
         self.ch_raw = channels[TOPIC_RAW]
         self.ch_frames = channels[TOPIC_FRAMES]
