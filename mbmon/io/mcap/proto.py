@@ -41,10 +41,12 @@ __all__ = [
     "RAW_SCHEMA",
     "ProtoError",
     "decode_frame",
+    "decode_payload",
     "decode_raw",
     "descriptor_set",
     "encode_frame",
     "encode_raw",
+    "varint",
 ]
 
 #: the schema names (MCAP schema records, encoding "protobuf")
@@ -131,6 +133,13 @@ def _varint(n: int, out: bytearray) -> None:
         out.append((n & 0x7F) | 0x80)
         n >>= 7
     out.append(n)
+
+
+def varint(n: int) -> bytes:
+    """``n`` as a protobuf varint (a negative int64 as its ten-byte two's complement)."""
+    out = bytearray()
+    _varint(n, out)
+    return bytes(out)
 
 
 def _key(number: int, wire: int, out: bytearray) -> None:
@@ -314,6 +323,7 @@ def _decode(fields: tuple[_Field, ...], data: bytes) -> dict[str, Any]:
         if number == 0:
             raise ProtoError("field number 0")
         f = by_number.get(number)
+        value: int | bytes
         if wire == 0:
             value, p = _read_varint(data, p)
         elif wire == 1:
@@ -351,8 +361,8 @@ def _take(f: _Field, wire: int, value: Any, got: dict[str, Any]) -> None:
         items = got.setdefault(f.name, [])
         q = 0
         while q < len(value):
-            v, q = _read_varint(value, q)
-            items.append(_signed(v))
+            n, q = _read_varint(value, q)
+            items.append(_signed(n))
         return
     want = {"int64": 0, "bool": 0, "double": 1}.get(t, 2)
     if wire != want:
@@ -376,6 +386,10 @@ def _take(f: _Field, wire: int, value: Any, got: dict[str, Any]) -> None:
         got[f.name] = v  # the last one wins, as in protobuf
 
 
+def _not_a_number(constant: str) -> Any:
+    raise ValueError(f"{constant} is not a JSON number")
+
+
 def _with_extra(
     got: dict[str, Any], order_of: Callable[[dict[str, Any], dict[str, Any]], tuple[str, ...]]
 ) -> dict[str, Any]:
@@ -384,8 +398,10 @@ def _with_extra(
     text = got.pop("extra", None)
     if text is not None:
         try:
-            extra = json.loads(text)
-        except (ValueError, RecursionError) as exc:
+            extra = json.loads(text, parse_constant=_not_a_number)
+        except RecursionError:
+            raise ProtoError("extra: not valid JSON: nested too deeply") from None
+        except ValueError as exc:
             raise ProtoError(f"extra: not JSON ({exc})") from None
         if not isinstance(extra, dict):
             raise ProtoError("extra: not a JSON object")
@@ -421,8 +437,22 @@ def _raw_order(got: dict[str, Any], extra: dict[str, Any]) -> tuple[str, ...]:
     return _EVENT_ORDER if kind == "event" else _CHUNK_ORDER
 
 
+#: topic -> the message its format-3 messages are
+PROTO_NAMES = {"/modbus/frames": FRAME_SCHEMA, "/modbus/raw": RAW_SCHEMA}
+
 #: schema name -> the decoder that gives its messages' format-2 objects
 DECODERS: dict[str, Callable[[bytes], dict[str, Any]]] = {
     FRAME_SCHEMA: decode_frame,
     RAW_SCHEMA: decode_raw,
 }
+
+
+def decode_payload(schema_name: str, message_encoding: str, data: bytes) -> Any:
+    """A message's object as mbmon's readers see it, from its channel's message encoding
+    and schema name: a protobuf message of format 3 its format-2 object, JSON decoded."""
+    if message_encoding == "protobuf":
+        decoder = DECODERS.get(schema_name)
+        if decoder is None:
+            raise ProtoError(f"{schema_name} is not a protobuf schema mbmon reads")
+        return decoder(data)
+    return json.loads(data)
