@@ -10,8 +10,9 @@ then this process compresses each candidate's chunks with zstd at several levels
 and takes their CRC-32, by CPU time (``time.process_time``), the same chunks for
 every candidate. Candidates:
 
-- ``format 1``: a format-1 log's messages (a format-2 log's are made format 1 first:
-  give this script a log written by the code before format 2 for that row);
+- ``format 1``: a format-1 log's messages as stored (a format-2 log's stay format 2, a
+  format-3 log's are read as format 2's JSON: give this script a log written by the
+  code before format 2 for that row);
 - ``format 2``: ``/modbus/frames`` without ``line`` (the monitor message of the
   same record holds it) and without null members; ``/modbus/raw`` chunks without
   their null ``event``/``info``; ``/modbus/monitor`` with ``file`` empty;
@@ -205,6 +206,14 @@ CANDIDATES: dict[str, Candidate] = {
 }
 
 
+def _stored_json(msg: object) -> bytes:
+    """A message's payload as JSON: a format-3 log's protobuf messages as the format-2
+    objects they hold (so every candidate starts from format 2's JSON)."""
+    if getattr(msg, "decoder", None) is None:
+        return msg.raw  # type: ignore[attr-defined, no-any-return]
+    return _dumps(msg.json())  # type: ignore[attr-defined]
+
+
 def _chunks(log: Path, candidate: Candidate, per_topic: dict[str, int]) -> Iterator[bytes]:
     from mbmon.io.mcap.reader import McapLog
 
@@ -212,7 +221,7 @@ def _chunks(log: Path, candidate: Candidate, per_topic: dict[str, int]) -> Itera
     size = 0
     with McapLog(str(log)) as mlog:
         for msg in mlog.messages(None):
-            data = candidate(msg.topic, msg.raw)
+            data = candidate(msg.topic, _stored_json(msg))
             if data is None:
                 continue
             rec = HEAD.pack(5, 22 + len(data), 1, 0, msg.log_time, msg.publish_time) + data
@@ -236,7 +245,7 @@ def _per_topic(log: Path, candidate: Candidate, level: int) -> dict[str, tuple[i
     topics: dict[str, bytearray] = {}
     with McapLog(str(log)) as mlog:
         for msg in mlog.messages(None):
-            data = candidate(msg.topic, msg.raw)
+            data = candidate(msg.topic, _stored_json(msg))
             if data is not None:
                 topics.setdefault(msg.topic, bytearray()).extend(data)
     comp = zstandard.ZstdCompressor(level=level)
