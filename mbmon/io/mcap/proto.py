@@ -188,80 +188,126 @@ def _json_name(name: str) -> str:
     return head + "".join(p[:1].upper() + p[1:] for p in rest)
 
 
-def _is_int(v: Any) -> bool:
-    return type(v) is int and _INT64_MIN <= v <= _INT64_MAX
-
-
 def _hex_of(data: bytes) -> str:
     return data.hex(" ").upper()
 
 
-def _encode(fields: tuple[_Field, ...], obj: Mapping[str, Any]) -> bytes:
+#: small varints made once (most values a log holds: units, function codes, registers)
+_SMALL = [bytes([n]) if n < 0x80 else bytes([(n & 0x7F) | 0x80, n >> 7]) for n in range(1 << 14)]
+
+
+@cache
+def _plan(schema: str) -> dict[str, tuple[str, bytes, bool, int]]:
+    """A message's fields by name: (type, key bytes as written, repeated, number)."""
+    plan = {}
+    for f in messages()[schema]:
+        wire = (
+            1
+            if f.type == "double"
+            else (0 if f.type in ("int64", "bool") and not f.repeated else 2)
+        )
+        plan[f.name] = (f.type, varint(f.number << 3 | wire), f.repeated, f.number)
+    return plan
+
+
+def _encode(schema: str, obj: Mapping[str, Any]) -> bytes:
     """``obj``'s members in their fields, the rest in ``extra``."""
     out = bytearray()
     extra: dict[str, Any] = {}
-    by_name = {f.name: f for f in fields}
+    plan = _plan(schema)
+    small = _SMALL
     for key, value in obj.items():
-        f = by_name.get(key)
-        if f is None or key == "extra" or not _put(f, value, out):
+        p = plan.get(key)
+        if p is None or key == "extra":
+            extra[key] = value
+        elif p[0] == "int64" and type(value) is int and 0 <= value < 16384 and not p[2]:
+            out += p[1]  # the common member inline: a small count, unit, code, index
+            out += small[value]
+        elif not _put(p, key, value, out):
             extra[key] = value
     if extra:
         text = json.dumps(extra, separators=(",", ":"))  # ASCII: lone surrogates too
-        _len_field(by_name["extra"].number, text.encode("ascii"), out)
+        _len_field(plan["extra"][3], text.encode("ascii"), out)
     return bytes(out)
 
 
-def _put(f: _Field, value: Any, out: bytearray) -> bool:
-    """Write ``value`` as field ``f`` when the field holds it exactly; else False."""
-    t = f.type
-    if f.repeated:
-        if not isinstance(value, list) or not value:
-            return False
-        if t == "int64":
-            if not all(_is_int(v) for v in value):
-                return False
-            body = bytearray()
-            for v in value:
-                _varint(v, body)
-            _len_field(f.number, bytes(body), out)
-            return True
-        if t == "string" and all(type(v) is str and _utf8_ok(v) for v in value):
-            for v in value:
-                _len_field(f.number, v.encode("utf-8"), out)
-            return True
-        return False
+def _put(p: tuple[str, bytes, bool, int], name: str, value: Any, out: bytearray) -> bool:
+    """Write ``value`` as field ``p`` (of :func:`_plan`) when the field holds it exactly;
+    else False (and nothing written)."""
+    t, key, repeated, _ = p
+    if repeated:
+        return _put_list(t, key, value, out)
+    vt = type(value)
     if t == "int64":
-        if not _is_int(value):
+        if vt is not int:
             return False
-        _key(f.number, 0, out)
+        if 0 <= value < 16384:
+            out += key
+            out += _SMALL[value]
+            return True
+        if not _INT64_MIN <= value <= _INT64_MAX:
+            return False
+        out += key
         _varint(value, out)
     elif t == "double":
-        if type(value) is not float:
+        if vt is not float:
             return False
-        _key(f.number, 1, out)
+        out += key
         out += _DOUBLE.pack(value)
-    elif t == "bool":
-        if type(value) is not bool:
-            return False
-        _key(f.number, 0, out)
-        out.append(1 if value else 0)
     elif t == "string":
-        if type(value) is not str or not _utf8_ok(value):
+        if vt is not str:
             return False
-        _len_field(f.number, value.encode("utf-8"), out)
+        try:
+            data = value.encode("utf-8")
+        except UnicodeEncodeError:  # lone surrogates: only JSON can keep them
+            return False
+        out += key
+        _varint(len(data), out)
+        out += data
+    elif t == "bool":
+        if vt is not bool:
+            return False
+        out += key
+        out.append(1 if value else 0)
     else:  # bytes: pdu as canonical hex text, data as canonical base64 text
-        data = _text_bytes(f.name, value)
+        data = _text_bytes(name, value)
         if data is None:
             return False
-        _len_field(f.number, data, out)
+        out += key
+        _varint(len(data), out)
+        out += data
     return True
 
 
-def _utf8_ok(text: str) -> bool:
-    try:
-        text.encode("utf-8")
-    except UnicodeEncodeError:  # lone surrogates: only JSON can keep them
+def _put_list(t: str, key: bytes, value: Any, out: bytearray) -> bool:
+    """A repeated field's values (packed int64s, or strings), as :func:`_put`."""
+    if type(value) is not list or not value:
         return False
+    if t == "int64":
+        if set(map(type, value)) != {int}:
+            return False
+        if 0 <= min(value) and max(value) < 0x80:
+            body = bytearray(value)  # one byte a value (bits, small registers)
+        elif _INT64_MIN <= min(value) and max(value) <= _INT64_MAX:
+            body = bytearray()
+            for v in value:
+                _varint(v, body)
+        else:
+            return False
+        out += key
+        _varint(len(body), out)
+        out += body
+        return True
+    if t != "string" or any(type(v) is not str for v in value):
+        return False
+    try:
+        items = [v.encode("utf-8") for v in value]
+    except UnicodeEncodeError:
+        return False
+    for data in items:
+        out += key
+        _varint(len(data), out)
+        out += data
     return True
 
 
@@ -280,12 +326,12 @@ def _text_bytes(name: str, value: Any) -> bytes | None:
 
 def encode_frame(obj: Mapping[str, Any]) -> bytes:
     """A format-2 ``/modbus/frames`` object as a ``modbus.Frame`` message."""
-    return _encode(messages()[FRAME_SCHEMA], obj)
+    return _encode(FRAME_SCHEMA, obj)
 
 
 def encode_raw(obj: Mapping[str, Any]) -> bytes:
     """A format-2 ``/modbus/raw`` object as a ``modbus.Raw`` message."""
-    return _encode(messages()[RAW_SCHEMA], obj)
+    return _encode(RAW_SCHEMA, obj)
 
 
 # ---------------------------------------------------------------------------- decoding
