@@ -78,7 +78,9 @@ class ReplayFeed:
                 return
             self._held = None
             if of == index if of is not None else self.everything:
-                self.feed.publish(msg.topic, msg.log_time, msg.raw)
+                data = _as_served(msg)
+                if data is not None:
+                    self.feed.publish(msg.topic, msg.log_time, data)
 
     def close(self) -> None:
         try:
@@ -101,3 +103,18 @@ def _record_index(msg: Any) -> int | None:
         return None
     index = data.get("line") if msg.topic == TOPIC_MONITOR else data.get("index")
     return index if isinstance(index, int) and not isinstance(index, bool) else None
+
+
+def _as_served(msg: Any) -> bytes | None:
+    """A stored message as the feed's channel carries it: as stored, except a JSON
+    message of a log before format 3 on a topic the feed serves in protobuf, which is
+    made the message format 3 stores (``None``: a damaged payload, not served)."""
+    from mbmon.io.mcap.layout import PROTO_TOPICS, proto_payload
+    from mbmon.io.mcap.reader import LogError
+
+    if msg.decoder is not None or msg.topic not in PROTO_TOPICS:
+        return bytes(msg.raw)
+    try:
+        return proto_payload(msg.topic, msg.json())
+    except (LogError, TypeError, ValueError):
+        return None

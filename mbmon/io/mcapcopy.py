@@ -25,13 +25,15 @@ def copy_log(log: Any, target: Path, flt: Any) -> None:
             cid = channels.get(topic)
             if cid is None:
                 stored = log.schema_of(topic)
-                if stored is not None:
+                if stored is not None:  # the messages are copied as stored: so is the schema
                     name, encoding, data = stored
-                else:
+                    message_encoding = "protobuf" if encoding == "protobuf" else "json"
+                else:  # none stored: the messages are JSON (format 3 stores its schemas)
                     name = TOPIC_SCHEMAS.get(topic, "")
                     encoding, data = ("jsonschema", schema_text(name)) if name else ("", b"")
+                    message_encoding = "json"
                 sid = writer.register_schema(name, encoding, data) if name else 0
-                cid = writer.register_channel(topic, "json", sid)
+                cid = writer.register_channel(topic, message_encoding, sid)
                 channels[topic] = cid
             return cid
 

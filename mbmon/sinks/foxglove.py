@@ -33,10 +33,9 @@ from typing import Any
 
 from mbmon.io.mcap.layout import (
     TOPIC_RAW,
-    TOPIC_SCHEMAS,
     LogLayout,
     Message,
-    schema_text,
+    channel_schema,
     topics,
 )
 from mbmon.model import Chunk, Record
@@ -126,11 +125,11 @@ class FoxgloveFeed:
             channel_topics = topics(bool(ctx.profiles or ctx.profile_specs))
         self._channels: dict[str, Any] = {}
         for topic in channel_topics:
-            name = TOPIC_SCHEMAS[topic]
+            name, schema_encoding, data, encoding = channel_schema(topic)
             self._channels[topic] = foxglove.Channel(
                 topic,
-                schema=foxglove.Schema(name=name, encoding="jsonschema", data=schema_text(name)),
-                message_encoding="json",
+                schema=foxglove.Schema(name=name, encoding=schema_encoding, data=data),
+                message_encoding=encoding,
                 context=self._context,
             )
         # channel ids matter only inside the layout: the feed maps them back to topics

@@ -46,6 +46,7 @@ from mbmon.io.mcap.layout import (
     TOPIC_STATE,
     LogLayout,
     Totals,
+    channel_schema,
     log_level,
     metadata,
     profile_attachment_name,
@@ -129,9 +130,9 @@ class McapSink(SinkBase):
         w.start(library=f"mbmon {__version__}")
         with_profiles = bool(ctx.profiles or ctx.profile_specs)
         for topic in topics(with_profiles):
-            name = TOPIC_SCHEMAS[topic]
-            schema_id = w.register_schema(name, "jsonschema", schema_text(name))
-            self._channels[topic] = w.register_channel(topic, "json", schema_id)
+            name, schema_encoding, data, encoding = channel_schema(topic)
+            schema_id = w.register_schema(name, schema_encoding, data)
+            self._channels[topic] = w.register_channel(topic, encoding, schema_id)
         self._layout = LogLayout(ctx.view, ctx.source, self._channels)
         now_ns = time.time_ns()
         w.add_metadata(

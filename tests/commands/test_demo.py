@@ -8,7 +8,6 @@ here from the manual (§5.4.5.2 program, Table 46 PTP parameters, Examples 4, 7,
 
 from __future__ import annotations
 
-import json
 import os
 import re
 import signal
@@ -46,13 +45,19 @@ def mbmon(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[st
 
 
 def read_log(path: Path) -> dict[str, list[dict[str, Any]]]:
-    """Every message of an MCAP log by topic, decoded from JSON, with the mcap reader."""
+    """Every message of an MCAP log by topic, with the mcap reader, decoded by its
+    channel's encoding (log format 3's /modbus/frames and /modbus/raw are protobuf)."""
     from mcap.reader import make_reader
+
+    from mbmon.io.mcap.proto import decode_payload
 
     topics: dict[str, list[dict[str, Any]]] = defaultdict(list)
     with path.open("rb") as f:
-        for _schema, channel, message in make_reader(f).iter_messages(log_time_order=True):
-            topics[channel.topic].append(json.loads(message.data))
+        for schema, channel, message in make_reader(f).iter_messages(log_time_order=True):
+            name = schema.name if schema is not None else ""
+            topics[channel.topic].append(
+                decode_payload(name, channel.message_encoding, message.data)
+            )
     return topics
 
 

@@ -222,8 +222,77 @@ def mutate_obj(obj: Any, rng: random.Random) -> Any:
     return obj
 
 
-def mutate_payload(raw: bytes, rng: random.Random) -> bytes:
-    """A message payload mutated as JSON (mostly) or as bytes."""
+def register(writer: Any, topic: str, encoding: str | None = None) -> int:
+    """A channel for ``topic`` as a format-3 log declares it: /modbus/frames and
+    /modbus/raw protobuf with their schema (``encoding``: another message encoding on
+    it), every other topic JSON without a schema."""
+    from mbmon.io.mcap.layout import PROTO_TOPICS, channel_schema
+
+    if topic in PROTO_TOPICS:
+        name, schema_encoding, data, message_encoding = channel_schema(topic)
+        sid = writer.register_schema(name, schema_encoding, data)
+        return writer.register_channel(topic, encoding or message_encoding, sid)
+    return writer.register_channel(topic, encoding or "json", 0)
+
+
+def payload_obj(topic: str, raw: bytes) -> Any:
+    """A base log's payload as readers see it (format 3's protobuf topics decoded)."""
+    from mbmon.io.mcap.layout import PROTO_TOPICS
+    from mbmon.io.mcap.proto import decode_payload
+
+    if topic in PROTO_TOPICS:
+        return decode_payload(PROTO_TOPICS[topic], "protobuf", raw)
+    return json.loads(raw)
+
+
+def payload_bytes(topic: str, obj: Any) -> bytes:
+    """An object as a format-3 log stores it on ``topic`` (protobuf or JSON)."""
+    from mbmon.io.mcap.proto import encode_frame, encode_raw
+
+    if topic == "/modbus/frames" and isinstance(obj, dict):
+        return encode_frame(obj)
+    if topic == "/modbus/raw" and isinstance(obj, dict):
+        return encode_raw(obj)
+    return json.dumps(obj).encode("utf-8", "surrogatepass")
+
+
+def deep_payload(topic: str) -> bytes:
+    """A payload nested deeper than a parser recurses (protobuf: in its extra JSON)."""
+    from mbmon.io.mcap.layout import PROTO_TOPICS
+    from mbmon.io.mcap.proto import varint
+
+    if topic in PROTO_TOPICS:
+        text = b'{"fields":' + b"[" * 100_000
+        return b"\xf2\x01" + varint(len(text)) + text
+    return b"[" * 100_000
+
+
+def mutate_proto(topic: str, raw: bytes, rng: random.Random) -> bytes:
+    """A protobuf payload (format 3) mutated as bytes or as the object it holds."""
+    r = rng.random()
+    if r < 0.1:
+        return rng.choice((b"", b"\xff" * 11, raw[: len(raw) // 2], deep_payload(topic)))
+    if r < 0.3:
+        data = bytearray(raw)
+        for _ in range(rng.choice((1, 2, 5))):
+            if data:
+                at = rng.randrange(len(data))
+                data[at] = rng.choice((0, 0x7F, 0x80, 0xFF, rng.randrange(256)))
+        return bytes(data)
+    try:
+        obj = payload_obj(topic, raw)
+    except ValueError:
+        return raw
+    return payload_bytes(topic, mutate_obj(obj, rng))
+
+
+def mutate_payload(raw: bytes, rng: random.Random, topic: str = "") -> bytes:
+    """A message payload mutated as JSON (mostly) or as bytes; a protobuf one of
+    ``topic`` (format 3's /modbus/frames and /modbus/raw) by :func:`mutate_proto`."""
+    from mbmon.io.mcap.layout import PROTO_TOPICS
+
+    if topic in PROTO_TOPICS and not raw.startswith(b"{"):
+        return mutate_proto(topic, raw, rng)
     r = rng.random()
     if r < 0.06:  # not JSON, not UTF-8, or nested deeper than any parser recurses
         return rng.choice(
@@ -280,10 +349,10 @@ def structured(base: BaseLog, rng: random.Random) -> bytes:
     channels: dict[str, int] = {}
     for topic, log_time, raw in _reshuffled(base.messages, rng):
         if topic not in channels:
-            encoding = "json" if rng.random() < 0.99 else rng.choice(("", "cbor", "JSON"))
-            channels[topic] = writer.register_channel(topic, encoding, 0)
+            encoding = None if rng.random() < 0.99 else rng.choice(("", "cbor", "JSON", "json"))
+            channels[topic] = register(writer, topic, encoding)
         if rng.random() < rate:
-            raw = mutate_payload(raw, rng)
+            raw = mutate_payload(raw, rng, topic)
         if rng.random() < 0.01:
             log_time = rng.choice((0, 1, 2**63, 2**64 - 1))
         writer.add_message(channels[topic], log_time, raw)

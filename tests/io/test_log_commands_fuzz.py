@@ -98,7 +98,7 @@ def _rewritten(
     channels: dict[str, int] = {}
     for i, (topic, log_time, raw) in enumerate(base.messages):
         if topic not in channels:
-            channels[topic] = writer.register_channel(topic, "json", 0)
+            channels[topic] = logmutate.register(writer, topic)
         writer.add_message(channels[topic], log_time, change.get(i, raw))
     writer.finish()
     data = buf.getvalue()
@@ -146,10 +146,16 @@ def test_integer_beyond_64_bits_and_deep_nesting(
     deep: replay --json prints the first exactly, the second is reported as damage."""
     base = bases[0]
     frame = _index_of(base, "/modbus/frames", 3)
-    obj = json.loads(base.messages[frame][2])
+    obj = logmutate.payload_obj("/modbus/frames", base.messages[frame][2])
     obj["fields"] = {"huge": 2**70}
     deep = _index_of(base, "/modbus/frames", 5)
-    data = _rewritten(base, {frame: json.dumps(obj).encode(), deep: b"[" * 100_000})
+    data = _rewritten(
+        base,
+        {
+            frame: logmutate.payload_bytes("/modbus/frames", obj),
+            deep: logmutate.deep_payload("/modbus/frames"),
+        },
+    )
     path = _write(tmp_path, data)
     status, out, err, escape = logmutate.run_command(["replay", str(path), "--json"])
     assert escape is None, escape.text
@@ -165,9 +171,9 @@ def test_a_damaged_message_is_reported_where_it_is_and_the_rest_shown(
     assert good[0] == 0 and good[3] is None
     n = len(good[1].splitlines())
     at = _index_of(base, "/modbus/frames", 10)
-    obj = json.loads(base.messages[at][2])
+    obj = logmutate.payload_obj("/modbus/frames", base.messages[at][2])
     obj["fc"] = "three"  # a string where the schema has an integer
-    path = _write(tmp_path, _rewritten(base, {at: json.dumps(obj).encode()}))
+    path = _write(tmp_path, _rewritten(base, {at: logmutate.payload_bytes("/modbus/frames", obj)}))
     status, out, err, escape = logmutate.run_command(["replay", str(path), "--json"])
     assert escape is None, escape.text
     assert status == 1
@@ -200,12 +206,14 @@ def test_redecode_of_damaged_raw_messages(
     base = next(b for b in bases if b.name == "hrss_ptp")
     raw = [i for i, m in enumerate(base.messages) if m[0] == "/modbus/raw"]
     want = "chunk" if field == "direction" else "event"
-    at = next(i for i in raw if json.loads(base.messages[i][2])["type"] == want)
-    obj = json.loads(base.messages[at][2])
+    at = next(
+        i for i in raw if logmutate.payload_obj("/modbus/raw", base.messages[i][2])["type"] == want
+    )
+    obj = logmutate.payload_obj("/modbus/raw", base.messages[at][2])
     obj[field] = value
     if field == "info":
         obj["event"] = "disconnect" if "how" in value else "gap"  # type: ignore[operator]
-    path = _write(tmp_path, _rewritten(base, {at: json.dumps(obj).encode()}))
+    path = _write(tmp_path, _rewritten(base, {at: logmutate.payload_bytes("/modbus/raw", obj)}))
     for argv in (["replay", str(path), "--redecode"],
                  ["export", str(path), "-o", str(tmp_path / "x.pcap")]):  # fmt: skip
         status, out, err, escape = logmutate.run_command(argv)

@@ -1,10 +1,13 @@
-"""Both log formats read alike: a log of format 1 (written before format 2, kept in
-tests/io/data/format1/, see its README) and a log of format 2 written now from the same
-capture give the same output to every reader: ``replay`` (text, ``--json``, a
-``--where``), ``replay --redecode``, ``info --json``, ``export`` to every suffix; and
-both print what ``read`` prints. An unfinished log (cut as SIGKILL leaves it) of either
-format replays what it recovered; every message of the format-1 logs still validates
-against the schemas stored with it and passes the readers' checks."""
+"""Every log format reads alike: a log of format 1 or 2 (written before the next format,
+kept in tests/io/data/format1/ and format2/, see their READMEs) and a log of format 3
+written now from the same capture give the same output to every reader: ``replay``
+(text, ``--json``, a ``--where``), ``replay --redecode``, ``info --json``, ``export`` to
+every suffix; and all print what ``read`` prints. An unfinished log (cut as SIGKILL
+leaves it) of any format replays what it recovered; every message of the old logs
+still validates against the schemas stored with it and passes the readers' checks;
+every protobuf message of a format-3 log decodes (by mbmon's decoder, and by
+google.protobuf from the log's own FileDescriptorSet) to the object format 2 stored
+for the same record."""
 
 from __future__ import annotations
 
@@ -21,7 +24,9 @@ from mbmon.io.mcap.payloads import payload_problem
 from mbmon.io.mcap.reader import McapLog
 
 REPO = Path(__file__).resolve().parents[2]
-FORMAT1 = Path(__file__).resolve().parent / "data" / "format1"
+DATA = Path(__file__).resolve().parent / "data"
+FORMAT1 = DATA / "format1"
+FORMAT2 = DATA / "format2"
 
 #: fixture name -> the read options it was recorded with (data/format1/README.md)
 LOGS = {
@@ -40,14 +45,17 @@ def run(argv: list[str]) -> str:
     return out
 
 
-@pytest.fixture(params=list(LOGS))
+@pytest.fixture(
+    params=[(n, f) for f in (FORMAT1, FORMAT2) for n in LOGS], ids=lambda p: f"{p[1].name}-{p[0]}"
+)
 def pair(request: pytest.FixtureRequest, tmp_path: Path) -> tuple[str, Path, Path]:
-    """(name, its format-1 log, a format-2 log written now from the same capture)."""
-    name = request.param
+    """(name, its format-1 or format-2 log, a format-3 log written now from the same
+    capture)."""
+    name, folder = request.param
     capture = REPO / "captures" / f"{name}.pcap"
-    old = FORMAT1 / f"{name}.mcap"
+    old = folder / f"{name}.mcap"
     if not capture.exists() or not old.exists():
-        pytest.skip(f"{capture.name} or its format-1 log absent")
+        pytest.skip(f"{capture.name} or its {folder.name} log absent")
     copy = tmp_path / f"{name}.pcap"  # the recording's source name, as in the fixture
     shutil.copy(capture, copy)
     new = tmp_path / f"{name}.mcap"
@@ -58,21 +66,71 @@ def pair(request: pytest.FixtureRequest, tmp_path: Path) -> tuple[str, Path, Pat
 def test_the_format_is_in_the_metadata(pair: tuple[str, Path, Path]) -> None:
     _, old, new = pair
     with McapLog(old) as log:
-        assert "format" not in log.metadata[METADATA_NAME]
+        if old.parent == FORMAT1:
+            assert "format" not in log.metadata[METADATA_NAME]
+        else:
+            assert log.metadata[METADATA_NAME]["format"] == "2"
     with McapLog(new) as log:
-        assert log.metadata[METADATA_NAME]["format"] == str(LOG_FORMAT) == "2"
+        assert log.metadata[METADATA_NAME]["format"] == str(LOG_FORMAT) == "3"
 
 
-def test_format_2_is_smaller_in_what_it_stores(pair: tuple[str, Path, Path]) -> None:
+def test_format_2_is_smaller_in_what_it_stores() -> None:
     """Format 2's frames lack the line and null members; its raw chunks their null keys."""
+    for name in LOGS:
+        with McapLog(FORMAT1 / f"{name}.mcap") as a, McapLog(FORMAT2 / f"{name}.mcap") as b:
+            frames = [json.loads(m.raw) for m in b.messages(["/modbus/frames"])]
+            old_frames = [json.loads(m.raw) for m in a.messages(["/modbus/frames"])]
+            chunks = [json.loads(m.raw) for m in b.messages(["/modbus/raw"])]
+        assert frames and all("line" not in f and None not in f.values() for f in frames)
+        assert all("line" in f for f in old_frames)
+        assert all("event" not in c for c in chunks if c["type"] == "chunk")
+
+
+def _oracle_classes(log: McapLog) -> dict[str, object]:
+    """google.protobuf's message classes built from the log's own schema records."""
+    pytest.importorskip("google.protobuf", reason="protobuf (a test extra) not installed")
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+    classes: dict[str, object] = {}
+    for topic in ("/modbus/frames", "/modbus/raw"):
+        stored = log.schema_of(topic)
+        assert stored is not None and stored[1] == "protobuf"
+        pool = descriptor_pool.DescriptorPool()
+        for f in descriptor_pb2.FileDescriptorSet.FromString(stored[2]).file:
+            pool.Add(f)
+        classes[topic] = message_factory.GetMessageClass(pool.FindMessageTypeByName(stored[0]))
+    return classes
+
+
+def test_format_3_messages_are_format_2_objects(
+    pair: tuple[str, Path, Path], tmp_path: Path
+) -> None:
+    """Every /modbus/frames and /modbus/raw message of a format-3 log is protobuf and
+    decodes to the object format 2 stored for the same record (the format-2 fixture,
+    message for message); google.protobuf reads every one of them, with the same field
+    values as mbmon's decoder."""
+    from mbmon.io.mcap import proto
+
     _, old, new = pair
+    if old.parent != FORMAT2:
+        pytest.skip("compared with the format-2 logs")
+    topics = ["/modbus/frames", "/modbus/raw"]
     with McapLog(old) as a, McapLog(new) as b:
-        frames = [json.loads(m.raw) for m in b.messages(["/modbus/frames"])]
-        old_frames = [json.loads(m.raw) for m in a.messages(["/modbus/frames"])]
-        chunks = [json.loads(m.raw) for m in b.messages(["/modbus/raw"])]
-    assert frames and all("line" not in f and None not in f.values() for f in frames)
-    assert all("line" in f for f in old_frames)
-    assert all("event" not in c for c in chunks if c["type"] == "chunk")
+        stored = [(m.topic, json.loads(m.raw)) for m in a.messages(topics)]
+        decoded = [(m.topic, m.json()) for m in b.messages(topics)]
+        raws = [(m.topic, m.raw) for m in b.messages(topics)]
+        schemas = {t: b.schema_of(t) for t in topics}
+    assert decoded == stored
+    assert [list(o) for _, o in decoded] == [list(o) for _, o in stored]  # member order
+    assert all(s is not None and s[1] == "protobuf" for s in schemas.values())
+    with McapLog(new) as b:
+        oracle = _oracle_classes(b)  # skips here without google.protobuf (a test extra)
+    for topic, raw in raws:
+        theirs = oracle[topic].FromString(raw)  # type: ignore[attr-defined]
+        fields = proto.messages()[proto.PROTO_NAMES[topic]]
+        ours = proto._decode(fields, raw)
+        got = {f.name: (list(v) if f.is_repeated else v) for f, v in theirs.ListFields()}
+        assert got == ours
 
 
 @pytest.mark.parametrize(
@@ -161,9 +219,9 @@ def test_unfinished_logs_of_both_formats_replay_alike(
     assert outs[0] == outs[1] == run(["replay", str(old), "--json"])
 
 
-def test_format_1_messages_still_validate(pair: tuple[str, Path, Path]) -> None:
-    """Every message of a format-1 log against the schema stored with it (the v1 files,
-    still in mbmon/schemas) and the readers' checks (the current schemas)."""
+def test_old_messages_still_validate(pair: tuple[str, Path, Path]) -> None:
+    """Every message of a format-1 or format-2 log against the schema stored with it
+    (the v1 and v2 files, still in mbmon/schemas) and the readers' checks."""
     _, old, _ = pair
     from mcap.reader import make_reader
 
@@ -179,4 +237,5 @@ def test_format_1_messages_still_validate(pair: tuple[str, Path, Path]) -> None:
             data = json.loads(msg.data)
             validators[schema.name].validate(data)
             assert payload_problem(channel.topic, data) is None
-    assert {"modbus.Frame.v1", "modbus.Raw.v1", "foxglove.Log"} <= set(validators)
+    version = "v1" if old.parent == FORMAT1 else "v2"
+    assert {f"modbus.Frame.{version}", f"modbus.Raw.{version}", "foxglove.Log"} <= set(validators)

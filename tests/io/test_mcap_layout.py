@@ -25,6 +25,7 @@ from mbmon.io.mcap.layout import (
     slim_frame_json,
     slim_frame_object,
 )
+from mbmon.io.mcap.proto import decode_frame, decode_raw
 from mbmon.io.mcap.reader import McapLog
 from mbmon.io.mcap.writer import MAX_LOG_TIME
 from mbmon.model import Chunk, Record
@@ -76,11 +77,11 @@ def test_item_messages_signature(session_stream: list) -> None:
     msgs = item_messages(rec, View())
     assert [t for t, _, _ in msgs] == ["/modbus/frames", "/modbus/monitor"]
     assert all(lt == log_time_ns(rec.ts) for _, lt, _ in msgs)
-    assert json.loads(msgs[0][2])["index"] == rec.index
+    assert decode_frame(msgs[0][2])["index"] == rec.index  # format 3: protobuf
     chunk = next(x for x in session_stream if isinstance(x, Chunk))
     [(topic, lt, data)] = item_messages(chunk, View())
     assert lt == log_time_ns(chunk.ts)
-    assert topic == "/modbus/raw" and json.loads(data)["type"] == "chunk"
+    assert topic == "/modbus/raw" and decode_raw(data)["type"] == "chunk"
     assert set(ALL_CHANNELS) == set(TOPIC_SCHEMAS)
 
 

@@ -70,12 +70,19 @@ def talk(port: int, *requests: bytes) -> list[bytes]:
 
 
 def mcap_json(path: Path, topic: str) -> list[dict[str, Any]]:
-    """The JSON messages of ``topic``, read with the ``mcap`` package's reader."""
+    """The objects of ``topic``'s messages, read with the ``mcap`` package's reader
+    (log format 3's protobuf messages decoded by their channel's encoding)."""
     from mcap.reader import make_reader
+
+    from mbmon.io.mcap.proto import decode_payload
 
     with path.open("rb") as f:
         reader = make_reader(f, validate_crcs=True)
-        return [json.loads(m.data) for _s, ch, m in reader.iter_messages() if ch.topic == topic]
+        return [
+            decode_payload(s.name if s else "", ch.message_encoding, m.data)
+            for s, ch, m in reader.iter_messages()
+            if ch.topic == topic
+        ]
 
 
 def check_paired(records: list[dict[str, Any]], tid: int, code: int, proxy_at: str) -> None:

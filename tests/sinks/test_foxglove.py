@@ -12,6 +12,7 @@ records, byte for byte: the feed and the log are one mapping.
 
 from __future__ import annotations
 
+import base64
 import json
 import os
 import re
@@ -36,7 +37,8 @@ from sink_records import REPO, hrss_context
 from websockets.sync.client import connect
 
 from mbmon.commands.common import FOXGLOVE_DEFAULT, foxglove_address
-from mbmon.io.mcap.layout import TOPIC_SCHEMAS, schema_text, topics
+from mbmon.io.mcap.layout import PROTO_TOPICS, TOPIC_SCHEMAS, schema_text, topics
+from mbmon.io.mcap.proto import decode_payload, descriptor_set
 from mbmon.io.mcap.reader import McapLog
 from mbmon.model import Chunk, Record
 from mbmon.sinks.base import SinkContext, SinkError, open_sink
@@ -150,6 +152,13 @@ def _feed_like_the_hub(listener: Any, stream: list[Chunk | Record]) -> None:
         listener.on_records(batch)
 
 
+def _decoded(topic: str, payload: bytes) -> Any:
+    """A served message's object: format 3's protobuf topics decoded, the rest JSON."""
+    if topic in PROTO_TOPICS:
+        return decode_payload(PROTO_TOPICS[topic], "protobuf", payload)
+    return json.loads(payload)
+
+
 def _wait_subscribed(feed: FoxgloveFeed, timeout: float = 10.0) -> None:
     end = time.monotonic() + timeout
     while not feed.subscribed():
@@ -175,6 +184,11 @@ def test_feed_serves_the_logs_topics_schemas_and_messages(
         client.read_advertised(every)
         assert set(client.channels) == every  # the log's channels, no more
         for topic, ch in client.channels.items():
+            if topic in PROTO_TOPICS:  # log format 3: protobuf, its FileDescriptorSet base64
+                assert ch["encoding"] == ch["schemaEncoding"] == "protobuf"
+                assert ch["schemaName"] == PROTO_TOPICS[topic]
+                assert base64.b64decode(ch["schema"]) == descriptor_set()
+                continue
             assert ch["encoding"] == "json"
             assert ch["schemaEncoding"] == "jsonschema"
             assert ch["schemaName"] == TOPIC_SCHEMAS[topic]
@@ -192,7 +206,7 @@ def test_feed_serves_the_logs_topics_schemas_and_messages(
     assert got == expected  # same topics, log times and JSON bytes, in the same order
     validators = _validators()
     for topic, _log_time, payload in got:
-        validators[topic].validate(json.loads(payload))
+        validators[topic].validate(_decoded(topic, payload))
     seen = {topic for topic, _, _ in got}
     assert {"/modbus/monitor", "/hrss/state", "/hrss/commands", "/modbus/raw"} <= seen
     # a Plot panel on /hrss/state.a1 has numbers to draw
@@ -405,10 +419,10 @@ def test_replay_with_filters_serves_only_the_printed_records(hrss_log: Path) -> 
     assert proc.returncode == 0, err.decode()
     assert got
     assert {t for t, _, _ in got} <= {"/modbus/monitor", "/modbus/frames"}  # no raw: filtered
-    assert all(json.loads(p)["fc"] == 4 for t, _, p in got if t == "/modbus/frames")
+    assert all(_decoded(t, p)["fc"] == 4 for t, _, p in got if t == "/modbus/frames")
     printed = out.decode().splitlines()
-    for _t, _, p in got:
-        obj = json.loads(p)
+    for t, _, p in got:
+        obj = _decoded(t, p)
         if "message" in obj:
             assert obj["message"] in printed
 
@@ -615,3 +629,43 @@ def test_proxy_feeds_a_client_what_its_log_holds(tmp_path: Path) -> None:
     # the log may hold the proxy's start-up notice, sent before the client subscribed
     assert got == expected[len(expected) - len(got) :]
     assert any(t == "/hrss/state" for t, _, _ in got)
+
+
+def test_replay_of_a_format_2_log_serves_protobuf(tmp_path: Path) -> None:
+    """``replay --foxglove`` of a log written before format 3: its JSON frames and raw
+    messages are served on the feed's protobuf channels as the format-3 messages of the
+    same objects (what a format-3 log of the same capture would serve)."""
+    from mbmon.io.mcap.layout import proto_payload
+
+    old = REPO / "tests" / "io" / "data" / "format2" / "demo.mcap"
+    if not old.exists():
+        pytest.skip("the format-2 fixture is absent")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mbmon", "replay", str(old), "--foxglove", "127.0.0.1:0",
+         "--speed", "0.2"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env(), cwd=REPO,
+    )  # fmt: skip
+    wanted = ["/modbus/frames", "/modbus/raw"]
+    try:
+        url, _err = _url_from(proc)
+        client = Client(url)
+        client.read_advertised(set(wanted))
+        assert client.channels["/modbus/frames"]["encoding"] == "protobuf"
+        client.subscribe(wanted)
+        _out, err = proc.communicate(timeout=60)
+        client.closed.wait(10)
+        got = client.messages()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err.decode()
+    with McapLog(old) as log:
+        stored = [
+            (m.topic, m.log_time, proto_payload(m.topic, json.loads(m.raw)))
+            for m in log.messages(wanted)
+        ]
+    assert got, "nothing received"
+    assert got == stored[len(stored) - len(got) :]  # from the subscription on
+    for topic, _, payload in got:
+        assert isinstance(_decoded(topic, payload), dict)

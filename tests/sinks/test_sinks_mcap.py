@@ -19,7 +19,8 @@ from sink_records import REPO, feed, hrss_context
 
 from mbmon import __version__
 from mbmon.format import View, record_line, record_to_json
-from mbmon.io.mcap.layout import full_frame_object, slim_frame_object
+from mbmon.io.mcap.layout import PROTO_TOPICS, full_frame_object, slim_frame_object
+from mbmon.io.mcap.proto import decode_payload, descriptor_set, encode_frame
 from mbmon.io.mcap.reader import McapLog
 from mbmon.io.replay import logged_records
 from mbmon.model import Chunk, Record, RecordKind
@@ -39,16 +40,22 @@ def write_log(path: Path, stream: list[Chunk | Record], ctx: SinkContext = CTX) 
 
 
 def messages(path: Path) -> list[tuple[str, str, object, int, int]]:
-    """(topic, schema name, decoded JSON, log_time, publish_time) via the mcap package."""
+    """(topic, JSON schema name, decoded object, log_time, publish_time) via the mcap
+    package: a protobuf message (format 3) decoded to the object format 2 stored, with
+    the JSON schema that object follows."""
     out = []
     with open(path, "rb") as f:
         reader = make_reader(f, validate_crcs=True)
         for schema, channel, msg in reader.iter_messages(log_time_order=False):
-            assert channel.message_encoding == "json"
             assert schema is not None
-            out.append(
-                (channel.topic, schema.name, json.loads(msg.data), msg.log_time, msg.publish_time)
-            )
+            if channel.topic in PROTO_TOPICS:
+                assert channel.message_encoding == schema.encoding == "protobuf"
+                assert schema.name == PROTO_TOPICS[channel.topic]
+            else:
+                assert channel.message_encoding == "json"
+            obj = decode_payload(schema.name, channel.message_encoding, msg.data)
+            name = TOPIC_SCHEMAS[channel.topic]
+            out.append((channel.topic, name, obj, msg.log_time, msg.publish_time))
     return out
 
 
@@ -70,6 +77,11 @@ def test_topics_schemas_and_summary(tmp_path: Path, session_stream: list) -> Non
         # written without a profile: no (empty) /hrss channels
         assert set(topics) == set(TOPIC_SCHEMAS) - {"/hrss/state", "/hrss/commands"}
         for topic, schema in topics.items():
+            if topic in PROTO_TOPICS:  # format 3: protobuf, with its FileDescriptorSet
+                assert schema.name == PROTO_TOPICS[topic]
+                assert schema.encoding == "protobuf"
+                assert schema.data == descriptor_set()
+                continue
             assert schema.name == TOPIC_SCHEMAS[topic]
             assert schema.encoding == "jsonschema"
             assert schema.data == schema_text(schema.name)
@@ -412,8 +424,8 @@ def test_sigkill_loses_at_most_the_last_second(tmp_path: Path) -> None:
     assert set(got) >= old, f"lost {len(old - set(got))} records older than 1 s"
     assert got == list(range(len(got))), "recovered records must be a prefix, in order"
     assert status.messages > 0 and status.describe().startswith("log was not finished")
-    with McapLog(path) as log:  # format 2: each frame object gets its line back
-        assert log.metadata["mbmon"]["format"] == "2"
+    with McapLog(path) as log:  # format 3: each frame object gets its line back
+        assert log.metadata["mbmon"]["format"] == "3"
         frames = [r for r in logged_records(log) if r.obj is not None and r.obj.get("fc")]
     assert len(frames) > 100
     assert all(r.obj is not None and r.obj["line"] == r.text != "" for r in frames)
@@ -482,8 +494,9 @@ def test_frame_messages_match_the_slow_encoding(tmp_path: Path) -> None:
             elif channel.topic == "/modbus/monitor":
                 monitor.append(json.loads(msg.data))
     frame_recs = [r for r in recs if r.frame is not None]
-    assert raw_frames == [
-        json_line(slim_frame_object(record_to_json(r, view))).encode() for r in frame_recs
+    assert raw_frames == [  # format 3: format 2's object as protobuf
+        encode_frame(json.loads(json_line(slim_frame_object(record_to_json(r, view)))))
+        for r in frame_recs
     ]
     assert [m["message"] for m in monitor] == [record_line(r, view) for r in recs]
     assert [m["level"] for m in monitor] == [log_level(r, record_to_json(r, view)) for r in recs]

@@ -147,10 +147,17 @@ def test_read_of_two_captures_equals_reading_them_one_by_one(
 def _mcap_messages(path: Path) -> list[tuple[str, dict[str, Any]]]:
     from mcap.reader import make_reader
 
+    from mbmon.io.mcap.proto import decode_payload  # log format 3: protobuf topics too
+
     with open(path, "rb") as f:
         messages = [
-            (channel.topic, json.loads(message.data))
-            for _schema, channel, message in make_reader(f).iter_messages(log_time_order=False)
+            (
+                channel.topic,
+                decode_payload(
+                    schema.name if schema else "", channel.message_encoding, message.data
+                ),
+            )
+            for schema, channel, message in make_reader(f).iter_messages(log_time_order=False)
         ]
     # the run's closing figures (one per log) are the run's, not an input's
     return [(topic, m) for topic, m in messages if m.get("event") != "stats"]

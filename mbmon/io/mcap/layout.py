@@ -32,8 +32,8 @@ from __future__ import annotations
 import json
 import math
 import re
+import struct
 import time
-from binascii import b2a_base64
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from importlib import resources
@@ -42,6 +42,13 @@ from typing import Any
 
 from mbmon.format import _JSON_KEYS, View, record_to_json
 from mbmon.format import finite as _finite
+from mbmon.io.mcap.proto import (
+    PROTO_NAMES,
+    descriptor_set,
+    encode_frame,
+    encode_raw,
+    varint,
+)
 from mbmon.io.mcap.writer import MAX_LOG_TIME, MESSAGE_HEAD
 from mbmon.jsonfmt import record_json_bytes
 from mbmon.model import Chunk, Direction, Event, EventKind, Record, RecordKind, Stream
@@ -49,16 +56,35 @@ from mbmon.model import Chunk, Direction, Event, EventKind, Record, RecordKind, 
 _json_str = json.encoder.encode_basestring  # C-accelerated, keeps non-ASCII
 _DIRECTIONS = {d: d.value for d in Direction}
 #: a /modbus/raw chunk message: prefix (type, stream, direction, "ts":), ts, base64 data
-_RAW_BODY = b'%b%b,"data":"%b"}'
+_decode_json = json.loads  # a format-2 object as made, before it goes to protobuf
+_TS_KEY = bytes([8 << 3 | 1])  # modbus.Raw.ts, a double
+_DATA_KEY = bytes([9 << 3 | 2])  # modbus.Raw.data, length-delimited
+_DOUBLE = struct.Struct("<d")
+_TS_NULL = encode_raw({"ts": None})  # the extra member of a chunk at a non-finite time
+
+
+def _pack_ts(ts: float) -> bytes:
+    return _TS_KEY + _DOUBLE.pack(ts)
+
+
+def _data_field(data: bytes) -> bytes:
+    n = len(data)
+    if n < 0x80:
+        return _DATA_KEY + bytes((n,)) + data
+    return _DATA_KEY + varint(n) + data
+
 
 #: the log format this layout writes, stored as the metadata key ``format`` (a log
 #: without the key is format 1). Format 2 (docs/logs.md, "Format versions"): a
 #: /modbus/frames message is the ``read --json`` object without ``line`` (the record's
 #: /modbus/monitor message holds it) and without its members whose value is null; a
 #: /modbus/raw chunk message has no ``event``/``info`` (null in format 1); the monitor
-#: message's ``file`` is empty (the source is the metadata's). Readers take both formats:
-#: :func:`full_frame_object` gives a stored frames object its format 1 shape.
-LOG_FORMAT = 2
+#: message's ``file`` is empty (the source is the metadata's). Format 3: the same
+#: objects of /modbus/frames and /modbus/raw as protobuf messages (``modbus.Frame``,
+#: ``modbus.Raw``: :mod:`mbmon.io.mcap.proto`), which the reader gives back as format
+#: 2's objects. Readers take every format: :func:`full_frame_object` gives a stored
+#: frames object its format 1 shape.
+LOG_FORMAT = 3
 #: a member whose value is null, in an object's JSON: keys are lower-case words, and a
 #: string's own quotes are escaped, so ``,"`` opens a member name (or an array's next
 #: string, which a colon never follows)
@@ -89,6 +115,21 @@ TOPIC_SCHEMAS: dict[str, str] = {
     TOPIC_COMMANDS: "hrss.Command.v1",
     TOPIC_EVENTS: "mbmon.Event.v1",
 }
+
+#: topics whose messages are protobuf (log format 3) -> their schema's message name;
+#: TOPIC_SCHEMAS keeps their JSON schema: the object a reader gives back
+PROTO_TOPICS: dict[str, str] = PROTO_NAMES
+
+
+def channel_schema(topic: str) -> tuple[str, str, bytes, str]:
+    """How a writer (a log, the live Foxglove feed) declares ``topic``'s channel:
+    schema name, schema encoding, schema data and message encoding."""
+    proto_name = PROTO_TOPICS.get(topic)
+    if proto_name is not None:
+        return proto_name, "protobuf", descriptor_set(), "protobuf"
+    name = TOPIC_SCHEMAS[topic]
+    return name, "jsonschema", schema_text(name), "json"
+
 
 #: topics that carry the ``read --json`` object of a record (merged by index on replay)
 RECORD_TOPICS = (TOPIC_FRAMES, TOPIC_EVENTS, TOPIC_COMMANDS)
@@ -189,6 +230,18 @@ def full_frame_object(obj: dict[str, Any]) -> dict[str, Any]:
         if key not in out:
             out[key] = value
     return out
+
+
+def proto_payload(topic: str, obj: Any) -> bytes:
+    """A /modbus/frames or /modbus/raw object of any format as format 3 stores it (a
+    live feed serving a format-1 or format-2 log on its protobuf channels)."""
+    if not isinstance(obj, dict):
+        raise TypeError(f"a {topic} payload is not an object")
+    if topic == TOPIC_FRAMES:
+        return encode_frame(slim_frame_object(obj))
+    if obj.get("type") == "chunk":  # format 1's null event and info are not in format 2
+        obj = {k: v for k, v in obj.items() if k not in ("event", "info") or v is not None}
+    return encode_raw(obj)
 
 
 def stream_name(stream: Stream | None) -> str:
@@ -490,7 +543,10 @@ class LogLayout:
                 if prefix is None:
                     prefix = self.raw_prefix(stream, item.direction)
                 raw = item.data
-                body = _RAW_BODY % (prefix, _float_json(ts), b2a_base64(raw, newline=False))
+                if ts - ts == 0.0:  # finite
+                    body = prefix + _pack_ts(ts) + _data_field(raw)
+                else:  # format 2's null (JSON has no NaN, no infinity): in extra
+                    body = prefix + _data_field(raw) + _TS_NULL
                 n_chunks += 1
                 n_bytes += len(raw)
                 append(pack(5, 22 + len(body), ch_raw, 0, log_time, log_time) + body)
@@ -533,7 +589,7 @@ class LogLayout:
                     if tail is None:
                         tail = self.monitor_tail(frame.stream)
                     monitor %= (stamp, payload[start:end], tail, record.index)
-                    slim = slim_frame_json(payload, start, end)
+                    slim = encode_frame(_decode_json(slim_frame_json(payload, start, end)))
                     n = len(slim)
                     out += (
                         pack(5, 22 + n, ch_frames, 0, log_time, log_time),
@@ -566,13 +622,15 @@ class LogLayout:
         counts["bytes"] += size
 
     def raw_prefix(self, stream: Stream, direction: Direction) -> bytes:
-        """The JSON of a stream direction's chunk messages up to their ``ts`` value (type,
-        stream, its endpoints, direction), cached here by stream direction; the compiled
-        core keeps its own copy."""
-        prefix = encode({"type": "chunk", **_stream_fields(stream)}).decode()[:-1]
-        text = f'{prefix},"direction":"{_DIRECTIONS[direction]}","ts":'.encode()
-        self._raw_prefix[(stream.id, direction)] = text
-        return text
+        """A stream direction's chunk messages up to their ``ts`` field (``modbus.Raw``:
+        type, stream, its endpoints, direction), cached here by stream direction; the
+        compiled core keeps its own copy. A message is the prefix, the ``ts`` field (a
+        double) and the ``data`` field: the fields in the order of the format-2 object's
+        members, as :func:`encode_raw` writes them."""
+        obj = {"type": "chunk", **_stream_fields(stream), "direction": _DIRECTIONS[direction]}
+        prefix = encode_raw(_decode_json(encode(obj)))
+        self._raw_prefix[(stream.id, direction)] = prefix
+        return prefix
 
     def _obj_messages(self, record: Record, obj: Mapping[str, Any], log_time: int) -> bytes:
         """The message records of a record made from its ``read --json`` object (noise,
@@ -587,8 +645,8 @@ class LogLayout:
         head = self._head
         n = len(payload)
         topic = self._topic_of[kind]
-        if topic == self._ch_frames:  # format 2: no line, no null members
-            slim = encode(slim_frame_object(obj))
+        if topic == self._ch_frames:  # format 2's object (no line, no nulls) in protobuf
+            slim = encode_frame(_decode_json(encode(slim_frame_object(obj))))
             parts = [head(topic, log_time, len(slim)), slim]
         else:
             parts = [head(topic, log_time, n), payload]
@@ -687,7 +745,7 @@ class LogLayout:
             "event": event.kind.value,
             "info": dict(event.info),
         }
-        return encode(body)
+        return encode_raw(_decode_json(encode(body)))
 
     def _stats(self, totals: Totals, ts: float, final: bool = False) -> bytes:
         """The writer's own counters as an /mbmon/events message (index null)."""

@@ -26,6 +26,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
 
+from mbmon.io.mcap.proto import DECODERS
+
 MAGIC = b"\x89MCAP0\r\n"
 _OP_HEADER = 0x01
 _OP_FOOTER = 0x02
@@ -77,10 +79,14 @@ class LogMessage:
     raw: bytes
     chunk: int = 0
     at: int = 0
+    #: the payload's decoder when it is not JSON (log format 3's protobuf messages):
+    #: gives the object a format-2 log holds, or raises ``ValueError``
+    decoder: Callable[[bytes], Any] | None = None
 
     def json(self) -> Any:
-        """Decode the JSON payload (every mbmon topic is JSON encoded); a payload that
-        is not JSON (or nests deeper than a parser goes, or holds NaN) is a
+        """Decode the payload to its JSON object (a protobuf message of format 3 to the
+        object format 2 stores); a payload that is not JSON (or nests deeper than a
+        parser goes, or holds NaN), or not a valid message of its protobuf schema, is a
         :class:`LogError` that says where the message is."""
         value, why = self.decode()
         if why is not None:
@@ -88,7 +94,13 @@ class LogMessage:
         return value
 
     def decode(self) -> tuple[Any, str | None]:
-        """``(payload, None)``, or ``(None, why)`` when the payload is not valid JSON."""
+        """``(payload, None)``, or ``(None, why)`` when the payload is not valid JSON (or
+        not a valid message of its protobuf schema)."""
+        if self.decoder is not None:
+            try:
+                return self.decoder(self.raw), None
+            except ValueError as exc:
+                return None, f"not a valid protobuf message: {exc}"
         try:
             return _decode_json(self.raw.decode()), None
         except RecursionError:
@@ -548,6 +560,7 @@ class McapLog:
         """Parse the records inside a chunk (schemas, channels, messages)."""
         layout = layout or self._layout
         channels = layout.channels
+        decoders: dict[int, Callable[[bytes], Any] | None] = {}
         view = memoryview(data)
         n = len(data)
         p = 0
@@ -566,7 +579,11 @@ class McapLog:
                     if ch is None:
                         raise ValueError(f"message on unknown channel {cid}")
                     data = bytes(view[body + 22 : end])
-                    yield LogMessage(ch.topic, log_time, pub_time, seq, data, chunk_offset, p)
+                    if cid not in decoders:
+                        decoders[cid] = _decoder(ch, layout)
+                    yield LogMessage(
+                        ch.topic, log_time, pub_time, seq, data, chunk_offset, p, decoders[cid]
+                    )
                 elif op == _OP_CHANNEL:
                     cid, sid = _U16.unpack_from(view, body)[0], _U16.unpack_from(view, body + 2)[0]
                     q = body + 4
@@ -585,6 +602,23 @@ class McapLog:
                 p = end
         except (struct.error, UnicodeDecodeError, ValueError) as exc:
             raise self._damage(chunk_offset, f"chunk at byte {chunk_offset}: {exc}") from None
+
+
+def _decoder(ch: _Channel, layout: _Layout) -> Callable[[bytes], Any] | None:
+    """The decoder of a channel's messages: None for JSON; for protobuf, its schema's
+    (log format 3), or one that says the schema is not mbmon's."""
+    if ch.encoding != "protobuf":
+        return None
+    schema = layout.schemas.get(ch.schema_id)
+    name = schema[0] if schema is not None else f"schema {ch.schema_id} (missing)"
+    found = DECODERS.get(name)
+    if found is not None:
+        return found
+
+    def unknown(data: bytes) -> Any:
+        raise ValueError(f"{name} is not a protobuf schema mbmon reads")
+
+    return unknown
 
 
 def _string(view: memoryview, p: int) -> tuple[str, int]:
