@@ -30,7 +30,7 @@ def core_hand_off(
     if len(sources) == 1 and args.rtu_raw:
         done = read_rtu_with_core(sources[0], args, view, flt, annotator)
     elif bus:
-        done = read_bus_with_core(sources[0], args, view, flt, annotator)
+        done = read_rtu_with_core(sources[0], args, view, flt, annotator, bus=True)
     elif not sources or not all(isinstance(source, CaptureFileSource) for source in sources):
         if args.debug_core and len(sources) > 1:
             err("core: declined (several inputs of this kind); the Python pipeline reads the input")
@@ -124,29 +124,43 @@ def read_with_core(
 
 
 def read_rtu_with_core(
-    source: Any, args: argparse.Namespace, view: Any, flt: Any, annotator: Any = None
+    source: Any,
+    args: argparse.Namespace,
+    view: Any,
+    flt: Any,
+    annotator: Any = None,
+    *,
+    bus: bool = False,
 ) -> int | None:
-    """``read --rtu-raw FILE`` by the compiled core (the framer's frames paired and
-    written by the core) when it covers the options and the input: its exit status;
-    ``None`` when it declined, before writing anything (the Python pipeline then
-    reads the dump). ``--debug-core`` says which path ran and why."""
+    """``read --rtu-raw FILE`` (a raw dump), or with ``bus`` ``read BUS.pcap`` (a
+    capture of RTU buses, link type 147, USER0, at the capture's times), by the
+    compiled core (the framer's frames paired and written by the core) when it
+    covers the options and the input: its exit status; ``None`` when it declined,
+    before writing anything (the Python pipeline then reads the input).
+    ``--debug-core`` says which path ran and why."""
     from mbmon import core
 
-    why = core.decline_for_rtu(args, live=source.mode == "stream", flt=flt, annotator=annotator)
+    if bus:
+        why = core.decline_for_bus(args, live=False, flt=flt, annotator=annotator)
+    else:
+        live = source.mode == "stream"
+        why = core.decline_for_rtu(args, live=live, flt=flt, annotator=annotator)
     raw = None
     if why is None and not args.quiet:
         raw, why = _raw_stdout()
     if why is None:
-        run = core.read_rtu_file(
-            source.path,
-            timeout=args.timeout,
-            view=view,
-            as_json=args.json,
-            write=None if raw is None else raw.write,
-            read_size=source.chunk_size,
-            flt=flt,
-            count=args.count,
-        )
+        common: dict[str, Any] = {
+            "timeout": args.timeout,
+            "view": view,
+            "as_json": args.json,
+            "write": None if raw is None else raw.write,
+            "flt": flt,
+            "count": args.count,
+        }
+        if bus:
+            run = core.read_bus_file(source.path, **common)
+        else:
+            run = core.read_rtu_file(source.path, read_size=source.chunk_size, **common)
         why = run.declined
     if why is not None:
         if args.debug_core:
@@ -154,13 +168,14 @@ def read_rtu_with_core(
         return None
     _flush_stdout(raw)
     if args.debug_core:
-        err("core: the compiled core read the input (RTU framing, pairing and lines)")
+        what = "an RTU bus: framing, pairing and lines" if bus else "RTU framing, pairing and lines"
+        err(f"core: the compiled core read the input ({what})")
     if not args.quiet:
         from mbmon.sinks.summary import Summary
 
         summary = Summary(view if args.robot else None)
         core.fill_rtu_summary(summary, run.counts)
-        report(summary, {}, args, timed=False)
+        report(summary, {}, args, timed=bus)
     return EXIT_OK
 
 
@@ -169,46 +184,6 @@ def _bus(source: Any) -> bool:
     from mbmon import core
 
     return source.mode != "stream" and core.bus_capture(source.path)
-
-
-def read_bus_with_core(
-    source: Any, args: argparse.Namespace, view: Any, flt: Any, annotator: Any = None
-) -> int | None:
-    """``read`` of a capture of RTU buses (link type 147, USER0) by the compiled core
-    (framing, pairing and lines, at the capture's times) when it covers the options
-    and the capture: its exit status; ``None`` when it declined, before writing
-    anything (the Python pipeline then reads the capture)."""
-    from mbmon import core
-
-    why = core.decline_for_bus(args, live=False, flt=flt, annotator=annotator)
-    raw = None
-    if why is None and not args.quiet:
-        raw, why = _raw_stdout()
-    if why is None:
-        run = core.read_bus_file(
-            source.path,
-            timeout=args.timeout,
-            view=view,
-            as_json=args.json,
-            write=None if raw is None else raw.write,
-            flt=flt,
-            count=args.count,
-        )
-        why = run.declined
-    if why is not None:
-        if args.debug_core:
-            err(f"core: declined ({why}); the Python pipeline reads the input")
-        return None
-    _flush_stdout(raw)
-    if args.debug_core:
-        err("core: the compiled core read the input (an RTU bus: framing, pairing and lines)")
-    if not args.quiet:
-        from mbmon.sinks.summary import Summary
-
-        summary = Summary(view if args.robot else None)
-        core.fill_rtu_summary(summary, run.counts)
-        report(summary, {}, args, timed=True)
-    return EXIT_OK
 
 
 def _raw_stdout() -> tuple[Any, str | None]:
