@@ -196,16 +196,21 @@ cdef inline int put_c(Buf* b, char c) except -1:
     return 0
 
 
-cdef int put_varint(Buf* b, uint64_t v) except -1:
-    """``v`` as a protobuf varint."""
-    if b.n + 10 > b.cap:
-        buf_need(b, 10)
+cdef inline void varint_in_room(Buf* b, uint64_t v) noexcept:
+    """``v`` as a protobuf varint, in room the caller has made (at most 10 bytes)."""
     while v > 0x7F:
         b.p[b.n] = <char>((v & 0x7F) | 0x80)
         b.n += 1
         v >>= 7
     b.p[b.n] = <char>v
     b.n += 1
+
+
+cdef int put_varint(Buf* b, uint64_t v) except -1:
+    """``v`` as a protobuf varint."""
+    if b.n + 10 > b.cap:
+        buf_need(b, 10)
+    varint_in_room(b, v)
     return 0
 
 
@@ -228,13 +233,7 @@ cdef int put_packed_words(Buf* b, const uint8_t* words, int count) except -1:
     put_varint(b, <uint64_t>size)
     buf_need(b, size)
     for i in range(count):
-        v = be16(words + 2 * i)
-        while v > 0x7F:
-            b.p[b.n] = <char>((v & 0x7F) | 0x80)
-            b.n += 1
-            v >>= 7
-        b.p[b.n] = <char>v
-        b.n += 1
+        varint_in_room(b, be16(words + 2 * i))
     return 0
 
 
