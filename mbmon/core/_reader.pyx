@@ -390,7 +390,6 @@ cdef double py_round3(double v) except? -1.0:
 #: capture times (s) whose log time a message record holds (``layout._MAX_TS``, from
 #: ``writer.MAX_LOG_TIME``: 2**64 - 1 ns)
 cdef double MAX_TS = ((1 << 64) - 1) // 1000 / 1_000_000 - 1.0
-cdef const char* B64 = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/"
 
 
 cdef inline void put_le(char* p, uint64_t v, int n):
@@ -464,39 +463,6 @@ cdef Py_ssize_t slim_frame(char* p, Py_ssize_t n, Py_ssize_t cut_at, Py_ssize_t 
     if o != src:
         memmove(p + o, p + src, n - src)
     return o + n - src
-
-
-cdef int put_b64(Buf* b, const uint8_t* p, Py_ssize_t n) except -1:
-    """``binascii.b2a_base64(p[:n], newline=False)``: standard alphabet, ``=`` padded."""
-    cdef Py_ssize_t i = 0
-    cdef char* o
-    cdef uint32_t v
-    buf_need(b, (n + 2) // 3 * 4)
-    o = b.p + b.n
-    while n - i >= 3:
-        v = (<uint32_t>p[i] << 16) | (<uint32_t>p[i + 1] << 8) | p[i + 2]
-        o[0] = B64[v >> 18]
-        o[1] = B64[(v >> 12) & 63]
-        o[2] = B64[(v >> 6) & 63]
-        o[3] = B64[v & 63]
-        o += 4
-        i += 3
-    if n - i == 1:
-        v = <uint32_t>p[i] << 16
-        o[0] = B64[v >> 18]
-        o[1] = B64[(v >> 12) & 63]
-        o[2] = 61
-        o[3] = 61
-        o += 4
-    elif n - i == 2:
-        v = (<uint32_t>p[i] << 16) | (<uint32_t>p[i + 1] << 8)
-        o[0] = B64[v >> 18]
-        o[1] = B64[(v >> 12) & 63]
-        o[2] = B64[(v >> 6) & 63]
-        o[3] = 61
-        o += 4
-    b.n = o - b.p
-    return 0
 
 
 # --------------------------------------------------------------------------- state
