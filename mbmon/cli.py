@@ -116,12 +116,14 @@ def main(argv: list[str] | None = None) -> int:
     def note(signum: int, frame: object) -> None:
         noted.append(signum)
 
-    alarm = signal.getsignal(signal.SIGALRM)  # the deferred signals' retries use SIGALRM
     previous = {}
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        if signal.getsignal(sig) is not signal.SIG_IGN:  # nohup, a background job: kept
-            previous[sig] = signal.signal(sig, note)
     try:
+        alarm = signal.getsignal(signal.SIGALRM)  # the deferred signals' retries use it
+        # inside the try: a Ctrl-C landing while the noting handlers go in (Python's
+        # default handler still in place) ends the run as one landing later does
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            if signal.getsignal(sig) is not signal.SIG_IGN:  # nohup, a background job: kept
+                previous[sig] = signal.signal(sig, note)
         try:
             return _run(argv, noted)
         finally:
