@@ -22,6 +22,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -354,6 +355,33 @@ def _url_from(proc: subprocess.Popen[bytes], timeout: float = 20.0) -> tuple[str
             err += os.read(proc.stderr.fileno(), 4096)
 
 
+def _replay_served(
+    argv: list[str], wanted: list[str], check: Callable[[str, Client], None] | None = None
+) -> tuple[int, bytes, bytes, list[tuple[str, int, bytes]]]:
+    """``mbmon replay ARGV`` with its feed: a client reads the advertised ``wanted``
+    channels (``check(url, client)`` then), subscribes to them and takes what is served
+    until replay ends. Replay's exit status, stdout, stderr and the messages served."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mbmon", "replay", *argv],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env(), cwd=REPO,
+    )  # fmt: skip
+    try:
+        url, _err = _url_from(proc)
+        client = Client(url)
+        client.read_advertised(set(wanted))
+        if check is not None:
+            check(url, client)
+        client.subscribe(wanted)
+        out, err = proc.communicate(timeout=60)
+        client.closed.wait(10)  # the server stops when replay ends
+        got = client.messages()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    return proc.returncode, out, err, got
+
+
 @pytest.fixture
 def hrss_log(tmp_path: Path, hrss_stream: list) -> Path:
     path = tmp_path / "hrss.mcap"
@@ -366,27 +394,17 @@ def hrss_log(tmp_path: Path, hrss_stream: list) -> Path:
 def test_replay_serves_the_logs_messages_paced(hrss_log: Path, redecode: bool) -> None:
     """``replay --foxglove 127.0.0.1:0 --speed``: a client gets the log's own messages
     (stored; or re-decoded by today's decoder, which made the log: the same bytes)."""
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mbmon", "replay", str(hrss_log),
-         "--foxglove", "127.0.0.1:0", "--speed", "0.05", *(["--redecode"] if redecode else [])],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env(), cwd=REPO,
-    )  # fmt: skip
-    try:
-        url, _err = _url_from(proc)
+
+    def check(url: str, client: Client) -> None:
         assert url.startswith("ws://127.0.0.1:")  # loopback unless a host is named
-        wanted = ["/modbus/monitor", "/hrss/state"]
-        client = Client(url)
-        client.read_advertised(set(wanted))
         assert set(client.channels) == set(topics(True))
-        client.subscribe(wanted)
-        out, err = proc.communicate(timeout=60)
-        client.closed.wait(10)  # the server stops when replay ends
-        got = client.messages()
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    assert proc.returncode == 0, err.decode()
+
+    wanted = ["/modbus/monitor", "/hrss/state"]
+    argv = [str(hrss_log), "--foxglove", "127.0.0.1:0", "--speed", "0.05"]
+    status, out, err, got = _replay_served(
+        argv + (["--redecode"] if redecode else []), wanted, check
+    )
+    assert status == 0, err.decode()
     expected = _log_messages(hrss_log, set(wanted))
     # live: what was served after the client subscribed, up to the end of the log
     assert got, "nothing received"
@@ -399,24 +417,11 @@ def test_replay_serves_the_logs_messages_paced(hrss_log: Path, redecode: bool) -
 
 
 def test_replay_with_filters_serves_only_the_printed_records(hrss_log: Path) -> None:
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mbmon", "replay", str(hrss_log), "--fc", "4",
-         "--foxglove", "0", "--speed", "0.05"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env(), cwd=REPO,
-    )  # fmt: skip
-    try:
-        url, _err = _url_from(proc)
-        client = Client(url)
-        client.read_advertised({"/modbus/monitor", "/modbus/frames", "/modbus/raw"})
-        client.subscribe(["/modbus/monitor", "/modbus/frames", "/modbus/raw"])
-        out, err = proc.communicate(timeout=60)
-        client.closed.wait(10)
-        got = client.messages()
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    assert proc.returncode == 0, err.decode()
+    status, out, err, got = _replay_served(
+        [str(hrss_log), "--fc", "4", "--foxglove", "0", "--speed", "0.05"],
+        ["/modbus/monitor", "/modbus/frames", "/modbus/raw"],
+    )
+    assert status == 0, err.decode()
     assert got
     assert {t for t, _, _ in got} <= {"/modbus/monitor", "/modbus/frames"}  # no raw: filtered
     assert all(_decoded(t, p)["fc"] == 4 for t, _, p in got if t == "/modbus/frames")
@@ -640,26 +645,15 @@ def test_replay_of_a_format_2_log_serves_protobuf(tmp_path: Path) -> None:
     old = REPO / "tests" / "io" / "data" / "format2" / "demo.mcap"
     if not old.exists():
         pytest.skip("the format-2 fixture is absent")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mbmon", "replay", str(old), "--foxglove", "127.0.0.1:0",
-         "--speed", "0.2"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env(), cwd=REPO,
-    )  # fmt: skip
-    wanted = ["/modbus/frames", "/modbus/raw"]
-    try:
-        url, _err = _url_from(proc)
-        client = Client(url)
-        client.read_advertised(set(wanted))
+
+    def check(url: str, client: Client) -> None:
         assert client.channels["/modbus/frames"]["encoding"] == "protobuf"
-        client.subscribe(wanted)
-        _out, err = proc.communicate(timeout=60)
-        client.closed.wait(10)
-        got = client.messages()
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    assert proc.returncode == 0, err.decode()
+
+    wanted = ["/modbus/frames", "/modbus/raw"]
+    status, _out, err, got = _replay_served(
+        [str(old), "--foxglove", "127.0.0.1:0", "--speed", "0.2"], wanted, check
+    )
+    assert status == 0, err.decode()
     with McapLog(old) as log:
         stored = [
             (m.topic, m.log_time, proto_payload(m.topic, json.loads(m.raw)))
