@@ -88,11 +88,25 @@ def build_parser() -> argparse.ArgumentParser:
         "crosses the wire between a PLC and a robot, and what it means.",
         epilog="Run 'mbmon COMMAND --help' for the options and examples of each command.",
     )
-    parser.add_argument("--version", action="version", version=_version())
+    parser.add_argument("--version", action=_version_action())
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
         importlib.import_module(f"mbmon.commands.{name}").register(sub)
     return parser
+
+
+def _version_action() -> type[argparse.Action]:
+    """argparse's ``version`` action, its text made when ``--version`` is given: finding
+    which core is active imports the compiled core, which no other run of the parser
+    (``--help``, a command that does not read) needs."""
+    import argparse
+
+    class LazyVersion(argparse._VersionAction):
+        def __call__(self, parser: argparse.ArgumentParser, *args: Any, **kwargs: Any) -> None:
+            self.version = _version()
+            super().__call__(parser, *args, **kwargs)
+
+    return LazyVersion
 
 
 def _version() -> str:
@@ -151,7 +165,6 @@ def _run(argv: list[str] | None, noted: list[int]) -> int:
         interrupted_status,
         pending_signal,
     )
-    from mbmon.sinks.base import SinkError
 
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -167,6 +180,8 @@ def _run(argv: list[str] | None, noted: list[int]) -> int:
         # a terminal that cannot show "→" or "°" gets \u2192 escapes (valid inside JSON
         # strings too) instead of a traceback
         sys.stdout.reconfigure(errors="backslashreplace")
+    from mbmon.sinks.base import SinkError  # after parse_args: --help and usage never need it
+
     try:
         status: int = func(args)
     except UsageError as exc:
