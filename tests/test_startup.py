@@ -63,7 +63,7 @@ HEAVY = ["textual", "rich", "scapy", "serial", "pymodbus", "mbmon.monitor"]
 
 def imported(*argv: str, pure: bool = False) -> tuple[set[str], subprocess.CompletedProcess[str]]:
     """The modules ``mbmon ARGV`` imported, and the run (its status and output)."""
-    env = {k: v for k, v in os.environ.items() if k != "MBMON_NO_EXTENSIONS"}
+    env = dict(os.environ)
     if pure:
         env["MBMON_NO_EXTENSIONS"] = "1"
     done = subprocess.run(
@@ -92,7 +92,6 @@ def _core_available() -> bool:
     out = subprocess.run(
         [sys.executable, "-c", "from mbmon import core; print(core.available())"],
         cwd=REPO,
-        env={k: v for k, v in os.environ.items() if k != "MBMON_NO_EXTENSIONS"},
         capture_output=True,
         text=True,
         check=True,
@@ -102,7 +101,8 @@ def _core_available() -> bool:
 
 needs_core = pytest.mark.skipif(
     not _core_available(),
-    reason="the compiled core is not built in this tree (python3 setup.py build_ext --inplace)",
+    reason="the compiled core is off (MBMON_NO_EXTENSIONS) or not built in this tree "
+    "(python3 setup.py build_ext --inplace)",
 )
 needs_demo = pytest.mark.skipif(not DEMO.exists(), reason="captures/demo.pcap absent")
 
