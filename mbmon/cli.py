@@ -57,6 +57,7 @@ import signal  # noqa: E402  (a module read from disk: a Ctrl-C may come meanwhi
 TYPE_CHECKING = False  # typing.TYPE_CHECKING without importing typing
 if TYPE_CHECKING:
     import argparse
+    from collections.abc import Sequence
     from typing import Any
 
     from mbmon.commands.common import EXIT_BAD_INPUT, EXIT_OK, EXIT_USAGE, make_annotator
@@ -75,8 +76,9 @@ def __getattr__(name: str) -> Any:
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The ``mbmon`` parser with every command's sub-parser."""
+def build_parser(commands: Sequence[str] | None = None) -> argparse.ArgumentParser:
+    """The ``mbmon`` parser with every command's sub-parser, or only those of ``commands``
+    (:func:`_commands_needed`: a run parses one command's options and never the others')."""
     import argparse
     import importlib
 
@@ -88,11 +90,26 @@ def build_parser() -> argparse.ArgumentParser:
         "crosses the wire between a PLC and a robot, and what it means.",
         epilog="Run 'mbmon COMMAND --help' for the options and examples of each command.",
     )
-    parser.add_argument("--version", action="version", version=_version())
+    parser.add_argument("--version", action=_version_action())
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
-        importlib.import_module(f"mbmon.commands.{name}").register(sub)
+        if commands is None or name in commands:
+            importlib.import_module(f"mbmon.commands.{name}").register(sub)
     return parser
+
+
+def _version_action() -> type[argparse.Action]:
+    """argparse's ``version`` action, its text made when ``--version`` is given: finding
+    which core is active imports the compiled core, which no other run of the parser
+    (``--help``, a command that does not read) needs."""
+    import argparse
+
+    class LazyVersion(argparse._VersionAction):
+        def __call__(self, parser: argparse.ArgumentParser, *args: Any, **kwargs: Any) -> None:
+            self.version = _version()
+            super().__call__(parser, *args, **kwargs)
+
+    return LazyVersion
 
 
 def _version() -> str:
@@ -151,9 +168,8 @@ def _run(argv: list[str] | None, noted: list[int]) -> int:
         interrupted_status,
         pending_signal,
     )
-    from mbmon.sinks.base import SinkError
 
-    parser = build_parser()
+    parser = build_parser(_commands_needed(sys.argv[1:] if argv is None else argv))
     args = parser.parse_args(argv)
     install_signal_handlers()
     if noted:  # Ctrl-C or SIGTERM while starting: nothing has begun, nothing to finish
@@ -167,6 +183,8 @@ def _run(argv: list[str] | None, noted: list[int]) -> int:
         # a terminal that cannot show "→" or "°" gets \u2192 escapes (valid inside JSON
         # strings too) instead of a traceback
         sys.stdout.reconfigure(errors="backslashreplace")
+    from mbmon.sinks.base import SinkError  # after parse_args: --help and usage never need it
+
     try:
         status: int = func(args)
     except UsageError as exc:
@@ -192,6 +210,25 @@ def _run(argv: list[str] | None, noted: list[int]) -> int:
         # interrupted all the same (the retry timer is cancelled on the way out)
         return interrupted_status()
     return status
+
+
+def _commands_needed(argv: Sequence[str]) -> list[str] | None:
+    """The commands whose sub-parsers parsing ``argv`` can reach (``None``: all of them).
+
+    ``mbmon COMMAND ...`` reaches only COMMAND's: argparse hands everything after the
+    command's name to its sub-parser, and ``mbmon``'s own options (``-h``, ``--version``)
+    come before it. ``mbmon --version`` alone reaches none: it prints and exits as the
+    option is read. Anything else (``mbmon --help``, ``mbmon -h read``, no command, an
+    unknown one) gets every command's sub-parser, as the listing and the errors name them."""
+    from mbmon.commands import COMMANDS
+
+    if not argv:
+        return None
+    if argv[0] in COMMANDS:
+        return [argv[0]]
+    if list(argv) == ["--version"]:
+        return []
+    return None
 
 
 def _subparser(parser: argparse.ArgumentParser, name: str | None) -> argparse.ArgumentParser:

@@ -9,7 +9,6 @@ from typing import IO, Any
 
 from mbmon.commands.common import EXIT_BAD_INPUT, EXIT_OK
 from mbmon.commands.logfile import err, open_log, progress, report_skipped
-from mbmon.io.mcap.summary import summarize
 from mbmon.timefmt import add_time_option
 
 EPILOG = """\
@@ -119,6 +118,7 @@ def _print_info(s: dict[str, Any], out: IO[str], mode: str = "a") -> None:
 
 def run_info(args: argparse.Namespace) -> int:
     """``mbmon info``: the summary of a log (text or --json)."""
+    from mbmon.io.mcap.summary import summarize
 
     log, status = open_log(args.log, "info")
     if log is None:

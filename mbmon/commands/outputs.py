@@ -20,7 +20,10 @@ from mbmon.commands.values import split_host_port
 
 
 def make_annotator(specs: list[str]) -> Any:
-    """The annotator for ``--profile`` values (``None`` without); bad specs are usage errors."""
+    """The annotator for ``--profile`` values (``None`` without); bad specs are usage errors.
+    Without a profile nothing of :mod:`mbmon.semantics` is imported (a run's fixed cost)."""
+    if not specs:
+        return None
     from mbmon.semantics.annotate import annotator_for
     from mbmon.semantics.profile import ProfileError
 

@@ -32,8 +32,6 @@ from mbmon.commands.common import (
 from mbmon.commands.read_core import core_hand_off, log_context
 from mbmon.commands.read_summary import capture_stats, detected_lines, report
 from mbmon.filters import EXPRESSION_HELP, TIMES_HELP, add_filter_options
-from mbmon.sources.files import CaptureFileSource, RawRtuSource, is_stream_input
-from mbmon.sources.pcapfile import CaptureConfig
 from mbmon.timefmt import add_time_option
 
 EPILOG = """\
@@ -136,6 +134,7 @@ def run(args: argparse.Namespace) -> int:
     the listeners (logs, the console, the summary) → ``run_sources`` → one exit status.
     The compiled core may take the whole input first (its hand-off, below)."""
     from mbmon.commands.common import Progress
+    from mbmon.sources.files import is_stream_input
 
     paths = _input_paths(args)
     check_outputs(args.write, paths)
@@ -179,6 +178,9 @@ def _input_paths(args: argparse.Namespace) -> list[str]:
 def _sources(args: argparse.Namespace, paths: list[str], progress: list[Any]) -> list[Any]:
     """One source per input, read one after another: a raw RTU dump, or a capture
     (pcap, pcapng, gzip, 5View) through the dissector; neither is opened yet."""
+    from mbmon.sources.files import CaptureFileSource, RawRtuSource
+    from mbmon.sources.pcapfile import CaptureConfig
+
     if args.rtu_raw:
         return [RawRtuSource(paths[0])]
     config = CaptureConfig(

@@ -29,7 +29,6 @@ import importlib
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from importlib import metadata
 from typing import Any
 
 from mbmon.model import Annotation, CommandUpdate, Stream, Transaction, fast_constructor
@@ -257,7 +256,10 @@ def _import(name: str, path: str) -> SessionFactory:
 
 def _read_entry_points() -> None:
     """Add the sessions installed packages name (group :data:`ENTRY_POINT_GROUP`), once;
-    a name registered otherwise is kept."""
+    a name registered otherwise is kept. ``importlib.metadata`` is imported here, when a
+    profile names a session nobody registered (it costs a run several milliseconds)."""
+    from importlib import metadata
+
     global _entry_points_read
     if _entry_points_read:
         return

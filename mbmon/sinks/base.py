@@ -17,13 +17,22 @@ import importlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
-from typing import Self
+from typing import TYPE_CHECKING, Self
 
-from mbmon.format import View
+if TYPE_CHECKING:
+    from mbmon.format import View
 
 
 class SinkError(Exception):
     """A sink cannot be opened or written (bad suffix, unwritable path); the message says why."""
+
+
+def _default_view() -> View:
+    """A context's view when none is given (:mod:`mbmon.format` imported when first needed:
+    ``mbmon.cli`` imports this module for :class:`SinkError` in every run)."""
+    from mbmon.format import View
+
+    return View()
 
 
 @dataclass(frozen=True, slots=True)
@@ -37,7 +46,7 @@ class SinkContext:
     is provenance only.
     """
 
-    view: View = field(default_factory=View)
+    view: View = field(default_factory=_default_view)
     command_line: list[str] = field(default_factory=list)
     source: str = ""
     profiles: list[tuple[str, str]] = field(default_factory=list)  # (name, TOML text)

@@ -67,10 +67,11 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable, Iterable, Sequence
-from typing import Any, Literal, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Literal, Protocol, runtime_checkable
 
-from mbmon.hub import Hub, Item
-from mbmon.model import Event
+if TYPE_CHECKING:  # annotations only: a file the compiled core reads never needs the hub
+    from mbmon.hub import Hub, Item
+    from mbmon.model import Event
 
 __all__ = ["BaseSource", "Source", "SourceError", "SourceMode", "run_sources"]
 

@@ -36,6 +36,7 @@ import struct
 import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
+from functools import cache
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -60,7 +61,13 @@ _decode_json = json.loads  # a format-2 object as made, before it goes to protob
 _TS_KEY = bytes([8 << 3 | 1])  # modbus.Raw.ts, a double
 _DATA_KEY = bytes([9 << 3 | 2])  # modbus.Raw.data, length-delimited
 _DOUBLE = struct.Struct("<d")
-_TS_NULL = encode_raw({"ts": None})  # the extra member of a chunk at a non-finite time
+
+
+@cache
+def _ts_null() -> bytes:
+    """The extra member of a chunk at a non-finite time (made when first needed: encoding
+    reads the .proto file, which a log's every run need not)."""
+    return encode_raw({"ts": None})
 
 
 def _pack_ts(ts: float) -> bytes:
@@ -546,7 +553,7 @@ class LogLayout:
                 if ts - ts == 0.0:  # finite
                     body = prefix + _pack_ts(ts) + _data_field(raw)
                 else:  # format 2's null (JSON has no NaN, no infinity): in extra
-                    body = prefix + _data_field(raw) + _TS_NULL
+                    body = prefix + _data_field(raw) + _ts_null()
                 n_chunks += 1
                 n_bytes += len(raw)
                 append(pack(5, 22 + len(body), ch_raw, 0, log_time, log_time) + body)

@@ -192,13 +192,20 @@ def _hex_of(data: bytes) -> str:
     return data.hex(" ").upper()
 
 
-#: small varints made once (most values a log holds: units, function codes, registers)
-_SMALL = [bytes([n]) if n < 0x80 else bytes([(n & 0x7F) | 0x80, n >> 7]) for n in range(1 << 14)]
+#: small varints made once (most values a log holds: units, function codes, registers),
+#: by the first :func:`_plan`: a run that imports this module and writes no message
+#: this way (the compiled core writes its own) never pays for the 16,384 of them
+_SMALL: list[bytes] = []
 
 
 @cache
 def _plan(schema: str) -> dict[str, tuple[str, bytes, bool, int]]:
-    """A message's fields by name: (type, key bytes as written, repeated, number)."""
+    """A message's fields by name: (type, key bytes as written, repeated, number); the
+    first call makes :data:`_SMALL`, which :func:`_encode` reads after its plan."""
+    if not _SMALL:
+        _SMALL.extend(
+            bytes([n]) if n < 0x80 else bytes([(n & 0x7F) | 0x80, n >> 7]) for n in range(1 << 14)
+        )
     plan = {}
     for f in messages()[schema]:
         wire = (
