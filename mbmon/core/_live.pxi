@@ -47,7 +47,7 @@ cdef class _Live(_Pass):
     cdef int caplc
     cdef double idle_due
     cdef double next_sweep
-    cdef double item_ts             # the latest item (chunk or source event) time
+    cdef public double item_ts      # the latest item (chunk or source event) time
     cdef bint in_segment            # _Pass.segment is changing state
     cdef public str reason          # why the core handed over
     cdef public int64_t packets     # packets taken
@@ -58,6 +58,12 @@ cdef class _Live(_Pass):
     cdef list udp_order             # UDP pairs' conn indexes, in creation order
     cdef dict waiting               # conn * 2 + direction: the pipeline's _waiting, in order
     cdef bint keep                  # noise and length 255 taken (the reference decoder inside)
+    # ``read`` from a pipe (see "The core on a pipe" below): the file dissector's rules
+    # (no idle expiry, no hole timeout, nothing of the dissector's at a tick) and port
+    # detection; ``promotion``: what the detector found in the packet the core handed
+    # over at (the reference's ``Dissector._promote`` replays it)
+    cdef bint file_mode
+    cdef public object promotion
 
     def __cinit__(self):
         self.lc = NULL
@@ -67,10 +73,12 @@ cdef class _Live(_Pass):
         free(self.lc)
 
     def __init__(self, bint as_json, double timeout, ports, view, write, new_stream=None,
-                 bint keep_noise=False):
-        _Pass.__init__(self, True, as_json, timeout, ports, view, write, False)
+                 bint keep_noise=False, bint detect=False, bint file_mode=False):
+        _Pass.__init__(self, True, as_json, timeout, ports, view, write, detect)
         self.live = True
         self.keep = keep_noise
+        self.file_mode = file_mode
+        self.promotion = None
         self.holes = {}
         self.udp_order = []
         self.waiting = {}
@@ -200,6 +208,23 @@ cdef class _Live(_Pass):
             self.item_ts = ts
         return _Pass.event(self, ts, sid, kind, info)
 
+    cdef int detect_segment(self, double ts, bytes addrs, int sport, int dport, int64_t seq,
+                            int64_t ack, int flags, bytes payload) except -1:
+        """``_Pass.detect_segment``, but a connection found to be Modbus hands the run
+        over at this packet: the detector has taken it (``promotion``, which the
+        reference dissector replays), the core's state is as before the packet."""
+        if self.detector is None:
+            return 0
+        verdict = self.detector.segment(ts, (addrs, sport, dport), seq, ack, flags, payload)
+        if verdict is not True and verdict is not False:
+            self.promotion = verdict
+            raise Declined("Modbus found by port detection on port %d" % min(sport, dport))
+        return 0
+
+    def port_detector(self):
+        """The reference's ``PortDetector`` the core feeds (``None``: detection off)."""
+        return self.detector
+
     # ------------------------------------------------------------------ dry runs
 
     cdef object chunk_check(self, int ci, int d, const uint8_t* p, Py_ssize_t n,
@@ -309,7 +334,7 @@ cdef class _Live(_Pass):
     # ------------------------------------------------------------------ holes (the live dissector's)
 
     cdef object hole_watcher(self):
-        return self
+        return None if self.file_mode else self  # a file's holes never time out
 
     def held(self, conn, double ts):
         """Watcher hook of a connection the reference reassembles: it holds bytes
@@ -371,8 +396,9 @@ cdef class _Live(_Pass):
         return 0
 
     cdef int idle_soon(self, double due) except -1:
-        """The idle scan is due at ``due`` (the first flow): the dissector's tick then."""
-        if self.idle_due == INFINITY:
+        """The idle scan is due at ``due`` (the first flow): the dissector's tick then
+        (never for a file's dissector: its flows do not expire for idleness)."""
+        if self.idle_due == INFINITY and not self.file_mode:
             self.idle_due = due
             if due < self.due:
                 self.due = due
@@ -496,7 +522,7 @@ cdef class _Live(_Pass):
         the reference's pipeline does the rest (the hub ticks it next)."""
         cdef int ci, d
         try:
-            if now >= self.due:
+            if now >= self.due and not self.file_mode:  # a file's dissector is never ticked
                 try:
                     self.dissector_tick(now)
                 except Declined as exc:  # before anything changed
@@ -577,10 +603,11 @@ cdef class _Live(_Pass):
         the pipeline's): holes given up and half-closed connections ended, the
         decoders flushed in the order they were made (an incomplete ADU: noise),
         every pending request timed out. False (nothing done) when the reference
-        must take over first (a FIN not reached, the core's limits)."""
+        must take over first (a FIN not reached, the core's limits). A file's
+        dissector ends at ``now`` itself (its last record's time)."""
         cdef int ci, s, e, nxt
         cdef Conn* c
-        cdef double ts = now if now > self.item_ts else self.item_ts
+        cdef double ts = now if now > self.item_ts or self.file_mode else self.item_ts
         for ci in range(self.nconns):
             c = &self.conns[ci]
             if c.h[0].blen or c.h[1].blen or c.h[0].dstate == 2 or c.h[1].dstate == 2 or (

@@ -20,7 +20,14 @@ from typing import Any
 import mbmon.core as _core
 from mbmon.core import _load
 
-__all__ = ["LiveCore", "add_counts", "decline_for_sniff"]
+__all__ = [
+    "LiveCore",
+    "PipeCore",
+    "add_counts",
+    "decline_for_pipe",
+    "decline_for_sniff",
+    "run_pipe",
+]
 
 
 def decline_for_sniff(args: Any, *, interface: bool, console: bool, flt: Any) -> str | None:
@@ -177,3 +184,295 @@ def add_counts(summary: Any, counts: dict[str, Any]) -> None:
         summary.events[name] = summary.events.get(name, 0) + n
     summary.noise_records += counts.get("noise_records", 0)  # MBAP noise the core reported
     summary.noise_bytes += counts.get("noise_bytes", 0)
+
+
+# ------------------------------------------------------------------ read from a pipe
+
+#: records the pipe's reader hands the hub's thread at once (at most)
+PIPE_RECORDS = 4096
+
+
+def decline_for_pipe(args: Any, *, flt: Any, annotator: Any) -> str | None:
+    """Why ``read``'s options keep a capture on a pipe, FIFO or stdin off the core's
+    streaming entry (the reference reads it from the start), or ``None``: what
+    :func:`mbmon.core.decline_for_options` declines for a file, and what the
+    streaming entry does not cover yet (``-w``, ``--profile``, filters, ``-c``)."""
+    checks = (
+        (args.write, "-w (logs) from a pipe"),
+        (annotator is not None or args.profile, "--profile from a pipe"),
+        (flt is not None and getattr(flt, "active", False), "filters from a pipe"),
+        (args.count, "-c from a pipe"),
+    )
+    return _core.decline_for_options(args, live=False, flt=flt) or _core.first_decline(checks)
+
+
+class PipeCore(LiveCore):
+    """The core as ``read``'s stage between a capture on a pipe and the hub: the
+    streaming entry with the file dissector's rules (``_Live(file_mode=True)``: no
+    idle expiry, no hole timeout, the dissector never ticked) and port detection,
+    handing the whole run to ``dissector`` (a file's :class:`~mbmon.sources.dissect.Dissector`)
+    and the hub's pipeline at the first record, tick or end it does not cover, as
+    :class:`LiveCore` does for ``sniff``. Records are ``(ts, link type, bytes,
+    interface)``."""
+
+    def __init__(
+        self,
+        *,
+        ports: frozenset[int],
+        timeout: float,
+        view: Any,
+        as_json: bool,
+        write: Callable[[bytes], Any] | None,
+        flush: Callable[[], Any] | None = None,
+        new_stream: Callable[..., Any],
+        dissector: Any,
+        pipeline: Any,
+        detect: bool,
+    ) -> None:
+        why = _load()
+        if why is not None:
+            raise RuntimeError(f"the compiled core is unavailable: {why}")
+        reader: Any = _core._reader
+        self._core = reader._Live(
+            as_json,
+            timeout,
+            ports,
+            view,
+            write,
+            new_stream,
+            keep_noise=True,
+            detect=detect,
+            file_mode=True,
+        )
+        self.dissector = dissector
+        self.pipeline = pipeline
+        self._flush = flush
+        self.handed = None
+        # the reference dissector judges other ports with the very detector the core feeds
+        detector = self._core.port_detector()
+        if detector is not None:
+            dissector.detector = detector
+
+    def now(self, hub_now: float) -> float:
+        """The hub's time as the reference's would be: the newest item's."""
+        if self.handed is None:
+            latest: float = self._core.item_ts
+            return latest if latest > hub_now else hub_now
+        return hub_now
+
+    def packets(self, batch: list[Any]) -> list[Any]:
+        """One batch of records, in the hub's thread: what the hub must feed."""
+        out: list[Any] = []
+        if self.handed is None:
+            taken = self._core.feed(batch)
+            if self._flush is not None:
+                self._flush()
+            if taken == len(batch):
+                return out
+            promotion = self._core.promotion
+            self._hand_over()
+            if promotion is not None:  # the detector took that record: its replay
+                self.dissector._promote(promotion, out)
+                taken += 1
+            batch = batch[taken:]
+        packet = self.dissector.packet
+        for ts, linktype, data, iface in batch:
+            packet(ts, linktype, iface, data, 0, len(data), out)
+        return out
+
+    def tick(self, now: float) -> Iterable[Any]:
+        """The hub's tick at ``now``, the core's part (the pipeline's, as a file's
+        dissector is never ticked); the hub's own tick follows."""
+        if self.handed is None:
+            done = self._core.tick(now)
+            if self._flush is not None:
+                self._flush()
+            if done != 0:  # nothing of the tick done: the hub's pipeline does it
+                self._hand_over()
+        return []
+
+    def end(self, ts: float, error: str | None) -> list[Any]:
+        """The end of the records at ``ts`` (the last record's time), ``error`` the
+        ERROR event's words when they ended early: the dissector's end and that
+        event, as the hub must feed them (nothing when the core did it all: the
+        hub's ``finish`` then finds the pipeline empty)."""
+        from mbmon.model import Event, EventKind
+
+        if self.handed is None:
+            if error is None and self._core.finish(ts):
+                if self._flush is not None:
+                    self._flush()
+                self.pipeline._index = self._core.index
+                return []
+            if error is not None:
+                self._core.reason = "the capture ended early"
+            self._hand_over()
+        out: list[Any] = self.dissector.finish(ts)
+        if error is not None:
+            out.append(Event(ts, None, EventKind.ERROR, {"message": error}))
+        return out
+
+    def stats(self) -> dict[str, Any]:
+        """What ``read``'s summary asks of the capture: the ports found by their
+        structure and the busiest other ports (the reference dissector's)."""
+        return {
+            "detected": self.dissector.detected(),
+            "busiest_ports": self.dissector.busiest_ports(),
+        }
+
+
+class _End:
+    """The pipe reader's last word: ``failure`` ended the records early (damage or a
+    read error), ``error`` is an exception of the reader itself (raised again)."""
+
+    def __init__(self, failure: BaseException | None = None, error: BaseException | None = None):
+        self.failure = failure
+        self.error = error
+
+
+class _Flushing:
+    """The capture's file as its input reads it (``read1``), handing the records
+    parsed so far to the hub's thread before every read that may wait."""
+
+    def __init__(self, f: Any, flush: Callable[[], None]) -> None:
+        self._f = f
+        self._flush = flush
+
+    def read1(self, n: int) -> bytes:
+        self._flush()
+        read = getattr(self._f, "read1", self._f.read)
+        data: bytes = read(n)
+        return data
+
+    read = read1
+
+
+class _PipeReader:
+    """The reader thread of :func:`run_pipe`: the capture's records parsed as they
+    come, handed to the hub's thread in lists (``inbox``), the last an :class:`_End`."""
+
+    def __init__(self, opened: tuple[Any, Any, Any]) -> None:
+        import queue
+
+        self.inp, self.pump, self.raw = opened
+        self.inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self.pending: list[Any] = []
+        self.inp.f = _Flushing(self.inp.f, self.flush)
+
+    def flush(self) -> None:
+        """The records parsed so far to the hub's thread (before a read may wait)."""
+        if self.pending:
+            self.inbox.put(self.pending[:])
+            self.pending.clear()
+
+    def packet(
+        self, ts: float, link: int, iface: int, buf: bytes, start: int, stop: int, _: Any
+    ) -> None:
+        """The pump's ``packet``: one record kept (nothing appended to the pump's list)."""
+        self.pending.append((ts, link, buf[start:stop], iface))
+        if len(self.pending) >= PIPE_RECORDS:
+            self.flush()
+
+    def run(self) -> None:
+        """Every record, then the end (with what ended the records early, if anything)."""
+        from mbmon.sources.pcapfile import READ_FAILURES
+
+        end = _End()
+        try:
+            for _ in self.pump(self.packet, []):  # ``packet`` appends nothing: no yield
+                pass
+        except READ_FAILURES as exc:
+            end = _End(failure=exc)
+        except BaseException as exc:  # handed to the hub's thread, raised there
+            end = _End(error=exc)
+        finally:
+            self.raw.close()
+        self.flush()
+        self.inbox.put(end)
+
+
+def run_pipe(stage: PipeCore, hub: Any, opened: tuple[Any, Any, Any], name: str) -> None:
+    """Read a capture arriving through a pipe (``opened``: what
+    :func:`mbmon.sources.pcapfile.open_records` gave) through ``stage`` into ``hub``,
+    as the reference's :func:`mbmon.sources.pipe.feed_pipe` reads its items: records
+    parsed in a reader thread, taken in the hub's thread, the hub ticked every
+    quarter second of wall time at the capture's time (never the clock's) whether
+    records come or not; then the end (an ERROR event when the records ended early),
+    and the hub finished. An exception of the reader, or a ``KeyboardInterrupt``
+    while this waits, is raised here."""
+    import queue
+    import threading
+    import time
+
+    from mbmon.hub import BATCH, LISTENER_TICK
+
+    reader = _PipeReader(opened)
+    inbox = reader.inbox
+    threading.Thread(target=reader.run, name="mbmon-pipe-reader", daemon=True).start()
+    end: _End | None = None
+    recent: list[Any] = []  # the last batches taken (the last good time after damage)
+    next_tick = time.monotonic() + LISTENER_TICK
+    while end is None and not hub.done:
+        try:
+            first = inbox.get(timeout=max(0.0, next_tick - time.monotonic()))
+        except queue.Empty:
+            first = None
+        if first is None or time.monotonic() >= next_tick:
+            next_tick = time.monotonic() + LISTENER_TICK
+            now = stage.now(hub.now)
+            stage.tick(now)
+            hub.tick(now)  # the pipeline (after a hand-over) and the listeners
+        if first is None:
+            continue
+        item, taken = first, 0
+        while not isinstance(item, _End):
+            recent = [*recent[-1:], item]
+            items = stage.packets(item)
+            if items:
+                hub.feed_items(items)
+            taken += len(item)
+            if taken >= BATCH or hub.done:
+                break
+            try:
+                item = inbox.get_nowait()
+            except queue.Empty:
+                break
+        else:
+            end = item
+    if end is not None:
+        _end_pipe(stage, hub, end, reader.inp, name, recent)
+    hub.finish()
+
+
+def _end_pipe(stage: PipeCore, hub: Any, end: _End, inp: Any, name: str, recent: list[Any]) -> None:
+    """The end of the pipe's records: the reader's own exception raised again, or the
+    dissector's end (and the ERROR event of records that ended early) fed."""
+    from mbmon.sources.pcapfile import _Damage, failure_message
+
+    if end.error is not None:
+        raise end.error
+    error = None
+    end_ts = inp.last_ts
+    if end.failure is not None:
+        error = failure_message(name, inp, end.failure)
+        if isinstance(end.failure, _Damage):  # the last records may be the damage itself
+            end_ts = _last_good(recent, stage, inp.last_ts)
+    items = stage.end(end_ts, error)
+    if items:
+        hub.feed_items(items)
+
+
+def _last_good(recent: list[list[Any]], stage: PipeCore, fallback: float) -> float:
+    """The time of the last record that parsed as a packet (``Dissector.good_ts``:
+    the end of a damaged capture), found among the last batches taken; the reference
+    dissector's own after a hand-over, else the last record's."""
+    from mbmon.sources.dissect import CaptureConfig, Dissector
+
+    for batch in reversed(recent):
+        for ts, link, data, iface in reversed(batch):
+            probe = Dissector(CaptureConfig(), idle_timeout=None, hole_timeout=None)
+            probe.packet(ts, link, iface, data, 0, len(data), [])
+            if probe.good_ts is not None:
+                return float(ts)
+    good: float | None = stage.dissector.good_ts
+    return fallback if good is None else good
