@@ -64,6 +64,9 @@ cdef class _Live(_Pass):
     # over at (the reference's ``Dissector._promote`` replays it)
     cdef bint file_mode
     cdef public object promotion
+    # the reference dissector's counts of other ports (``Dissector._ports``, the same
+    # dict: the summary's hint when no Modbus was found), or None: not counted
+    cdef public dict port_counts
 
     def __cinit__(self):
         self.lc = NULL
@@ -79,6 +82,7 @@ cdef class _Live(_Pass):
         self.keep = keep_noise
         self.file_mode = file_mode
         self.promotion = None
+        self.port_counts = None
         self.holes = {}
         self.udp_order = []
         self.waiting = {}
@@ -216,9 +220,22 @@ cdef class _Live(_Pass):
         if self.detector is None:
             return 0
         verdict = self.detector.segment(ts, (addrs, sport, dport), seq, ack, flags, payload)
-        if verdict is not True and verdict is not False:
+        if verdict is False:
+            self.other_port(sport if sport < dport else dport)
+        elif verdict is not True:
             self.promotion = verdict
             raise Declined("Modbus found by port detection on port %d" % min(sport, dport))
+        return 0
+
+    cdef int other_port(self, int key) except -1:
+        """``Dissector._other_port`` into ``port_counts`` (at most ``MAX_PORTS`` ports)."""
+        counts = self.port_counts
+        if counts is not None:
+            n = counts.get(key)
+            if n is not None:
+                counts[key] = n + 1
+            elif len(counts) < MAX_PORTS:
+                counts[key] = 1
         return 0
 
     def port_detector(self):

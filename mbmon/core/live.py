@@ -252,6 +252,8 @@ class PipeCore(LiveCore):
         detector = self._core.port_detector()
         if detector is not None:
             dissector.detector = detector
+        # the other ports' counts (the summary's hint) go on in the dissector's own dict
+        self._core.port_counts = dissector._ports
 
     def now(self, hub_now: float) -> float:
         """The hub's time as the reference's would be: the newest item's."""

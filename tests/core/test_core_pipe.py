@@ -275,3 +275,24 @@ def test_stdin_through_a_real_pipe() -> None:
     assert fast.stderr.splitlines()[0] == b"mbmon: " + CORE_RAN.encode()
     assert fast.stdout == pure.stdout and fast.stdout.count(b"\n") > 10
     assert fast.stderr.splitlines()[1:] == pure.stderr.splitlines()
+
+
+def test_no_modbus_on_a_pipe_gives_the_busiest_ports(tmp_path: Path) -> None:
+    """Traffic on other ports only (TCP over IPv4 and IPv6, UDP): the core counts the
+    packets per port as the reference dissector does, for the summary's hint."""
+    require_core()
+    from gen import ipv6_segment
+
+    web = TcpConversation("10.0.0.1:40000", "10.0.0.2:80")
+    frames = web.open() + [web.send(c, b"GET / HTTP/1.0\r\n" * 3) for c in (True, False) * 4]
+    six = TcpConversation("[2001:db8::1]:40000", "[2001:db8::2]:8080")
+    frames += [ipv6_segment(six, c, 0x18, b"\x00\x01" * 9) for c in (True, False) * 3]
+    records = [(T0 + n * 0.01, f) for n, f in enumerate(frames)]
+    data = write_frames(tmp_path / "web.pcap", records).read_bytes()
+    dns = udp_exchange(tmp_path / "dns.pcap", [(True, b"\x12\x34" * 9)] * 5, server="10.0.0.9:53")
+    data += dns.read_bytes()[24:]  # its records after the others'
+    for opts in ((), ("--no-detect",)):
+        fast, pure = _both(tmp_path, [data], *opts)
+        _assert_same(fast, pure)
+        assert "tcp/8080 (6 packets)" in fast.err and "udp/53 (5 packets)" in fast.err
+        assert ("tcp/80 (" in fast.err) == bool(opts)  # with detection: held, not counted
