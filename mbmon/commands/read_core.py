@@ -152,10 +152,12 @@ def read_pipe_with_core(
     except CaptureError as exc:
         err(str(exc))
         return EXIT_BAD_INPUT
-    return _run_pipe(source, opened, args, view, raw)
+    return _run_pipe(source, opened, args, view, flt, raw)
 
 
-def _run_pipe(source: Any, opened: Any, args: argparse.Namespace, view: Any, raw: Any) -> int:
+def _run_pipe(
+    source: Any, opened: Any, args: argparse.Namespace, view: Any, flt: Any, raw: Any
+) -> int:
     """The run of :func:`read_pipe_with_core`: the hub, its listeners (the console and
     the summary, as the reference attaches them), the core's stage, the pipe's records
     through it, the summary and the exit status."""
@@ -173,7 +175,16 @@ def _run_pipe(source: Any, opened: Any, args: argparse.Namespace, view: Any, raw
         from mbmon.sinks.console import ConsoleListener
 
         screen = ConsoleListener(sys.stdout, view, as_json=args.json, live=True)
-    attach_outputs(hub, logs=[], screen=screen, summary=summary)
+        if flt is not None and flt.active:
+            from mbmon.sinks.select import Selection
+
+            screen = Selection([screen], view, flt)
+    budget = None
+    if args.count:
+        from mbmon.commands.common import FrameBudget
+
+        budget = FrameBudget(args.count, hub.enough, flt, view)
+    attach_outputs(hub, logs=[], screen=screen, summary=summary, budget=budget)
     config = source.config
     dissector = Dissector(
         config,
@@ -193,6 +204,9 @@ def _run_pipe(source: Any, opened: Any, args: argparse.Namespace, view: Any, raw
         dissector=dissector,
         pipeline=hub.pipeline,
         detect=config.detect,
+        flt=flt,
+        count=args.count,
+        budget=budget,
     )
     interrupted = False
     try:

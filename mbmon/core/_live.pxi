@@ -238,6 +238,11 @@ cdef class _Live(_Pass):
                 counts[key] = 1
         return 0
 
+    def frames_left(self):
+        """``-c``: the frames still to count (``-1``: no ``-c``), for the reference's
+        budget after a hand-over."""
+        return self.left
+
     def port_detector(self):
         """The reference's ``PortDetector`` the core feeds (``None``: detection off)."""
         return self.detector

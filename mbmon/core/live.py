@@ -196,12 +196,16 @@ def decline_for_pipe(args: Any, *, flt: Any, annotator: Any) -> str | None:
     """Why ``read``'s options keep a capture on a pipe, FIFO or stdin off the core's
     streaming entry (the reference reads it from the start), or ``None``: what
     :func:`mbmon.core.decline_for_options` declines for a file, and what the
-    streaming entry does not cover yet (``-w``, ``--profile``, filters, ``-c``)."""
+    streaming entry does not cover yet (``-w``, ``--profile``, ``--since``/``--until``
+    and ``--grep`` with ``-c``, whose start a file's deciding pass finds)."""
+    active = flt is not None and getattr(flt, "active", False)
     checks = (
         (args.write, "-w (logs) from a pipe"),
         (annotator is not None or args.profile, "--profile from a pipe"),
-        (flt is not None and getattr(flt, "active", False), "filters from a pipe"),
-        (args.count, "-c from a pipe"),
+        # resolved at the first record a filter is asked about: a file's deciding
+        # pass finds it, a pipe has none
+        (active and (args.since or args.until), "--since/--until from a pipe"),
+        (active and args.grep and args.count, "--grep with -c from a pipe"),
     )
     return _core.decline_for_options(args, live=False, flt=flt) or _core.first_decline(checks)
 
@@ -228,6 +232,9 @@ class PipeCore(LiveCore):
         dissector: Any,
         pipeline: Any,
         detect: bool,
+        flt: Any = None,
+        count: int | None = None,
+        budget: Any = None,
     ) -> None:
         why = _load()
         if why is not None:
@@ -254,6 +261,14 @@ class PipeCore(LiveCore):
             dissector.detector = detector
         # the other ports' counts (the summary's hint) go on in the dissector's own dict
         self._core.port_counts = dissector._ports
+        if flt is not None and not flt.active:
+            flt = None
+        if flt is not None or count is not None:  # the console behind the filters, -c
+            self._core.select(flt, count, write is not None)
+        #: ``-c``'s budget of the reference's wiring (its count is the core's at a hand-over)
+        self.budget = budget
+        #: ``-c``'s last frame was written: the run ends there
+        self.enough = False
 
     def now(self, hub_now: float) -> float:
         """The hub's time as the reference's would be: the newest item's."""
@@ -266,7 +281,11 @@ class PipeCore(LiveCore):
         """One batch of records, in the hub's thread: what the hub must feed."""
         out: list[Any] = []
         if self.handed is None:
-            taken = self._core.feed(batch)
+            try:
+                taken = self._core.feed(batch)
+            except _core._reader.Enough:
+                self.enough = True
+                return out
             if self._flush is not None:
                 self._flush()
             if taken == len(batch):
@@ -286,12 +305,21 @@ class PipeCore(LiveCore):
         """The hub's tick at ``now``, the core's part (the pipeline's, as a file's
         dissector is never ticked); the hub's own tick follows."""
         if self.handed is None:
-            done = self._core.tick(now)
+            try:
+                done = self._core.tick(now)
+            except _core._reader.Enough:  # a frame settled after a silence was the last
+                self.enough = True
+                return []
             if self._flush is not None:
                 self._flush()
             if done != 0:  # nothing of the tick done: the hub's pipeline does it
                 self._hand_over()
         return []
+
+    def _hand_over(self) -> None:
+        super()._hand_over()
+        if self.budget is not None:
+            self.budget.left = self._core.frames_left()
 
     def end(self, ts: float, error: str | None) -> list[Any]:
         """The end of the records at ``ts`` (the last record's time), ``error`` the
@@ -301,7 +329,13 @@ class PipeCore(LiveCore):
         from mbmon.model import Event, EventKind
 
         if self.handed is None:
-            if error is None and self._core.finish(ts):
+            finished = False
+            if error is None:
+                try:
+                    finished = self._core.finish(ts)
+                except _core._reader.Enough:  # -c's last frame came with the end
+                    self.enough = finished = True
+            if finished:
                 if self._flush is not None:
                     self._flush()
                 self.pipeline._index = self._core.index
@@ -414,7 +448,7 @@ def run_pipe(stage: PipeCore, hub: Any, opened: tuple[Any, Any, Any], name: str)
     end: _End | None = None
     recent: list[Any] = []  # the last batches taken (the last good time after damage)
     next_tick = time.monotonic() + LISTENER_TICK
-    while end is None and not hub.done:
+    while end is None and not hub.done and not stage.enough:
         try:
             first = inbox.get(timeout=max(0.0, next_tick - time.monotonic()))
         except queue.Empty:
@@ -433,7 +467,7 @@ def run_pipe(stage: PipeCore, hub: Any, opened: tuple[Any, Any, Any], name: str)
             if items:
                 hub.feed_items(items)
             taken += len(item)
-            if taken >= BATCH or hub.done:
+            if taken >= BATCH or hub.done or stage.enough:
                 break
             try:
                 item = inbox.get_nowait()
@@ -441,6 +475,8 @@ def run_pipe(stage: PipeCore, hub: Any, opened: tuple[Any, Any, Any], name: str)
                 break
         else:
             end = item
+    if stage.enough:  # -c: nothing after its last frame is written or counted
+        return
     if end is not None:
         _end_pipe(stage, hub, end, reader.inp, name, recent)
     hub.finish()
