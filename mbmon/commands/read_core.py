@@ -170,7 +170,7 @@ def _run_pipe(
 
     hub = Hub(Pipeline(None, PipelineConfig(timeout=args.timeout, baudrate=args.baud)))
     summary = None if args.quiet else Summary(view if args.robot else None)
-    screen = None
+    screen: Any = None
     if not args.quiet:
         from mbmon.sinks.console import ConsoleListener
 
