@@ -67,6 +67,14 @@ cdef class _Live(_Pass):
     # the reference dissector's counts of other ports (``Dissector._ports``, the same
     # dict: the summary's hint when no Modbus was found), or None: not counted
     cdef public dict port_counts
+    # the records of a classic pcap on a pipe, parsed here (``pcap_records``): how many,
+    # the last one's time, why the parsing stopped (0: it needs more bytes; 1: the run
+    # is handed over at the record at the returned offset; 2: that record's header is
+    # corrupt) and that record's length
+    cdef public int64_t rec_count
+    cdef public double rec_ts
+    cdef public int rec_stop
+    cdef public Py_ssize_t rec_len
 
     def __cinit__(self):
         self.lc = NULL
@@ -83,6 +91,10 @@ cdef class _Live(_Pass):
         self.file_mode = file_mode
         self.promotion = None
         self.port_counts = None
+        self.rec_count = 0
+        self.rec_ts = 0.0
+        self.rec_stop = 0
+        self.rec_len = 0
         self.holes = {}
         self.udp_order = []
         self.waiting = {}
@@ -537,6 +549,56 @@ cdef class _Live(_Pass):
             return count
         finally:
             self.flush_out()
+
+    def pcap_records(self, bytes data, Py_ssize_t pos, bint big, double divisor, int header,
+                     int link, Py_ssize_t limit, list into=None):
+        """The whole records of a classic pcap in ``data`` from ``pos`` (a record's start),
+        as the reference's pump reads them (``_pcap_pump``: the same checks, times and
+        counts): each taken by the core, or with ``into`` appended to it as
+        ``(ts, link type, bytes, 0)`` for the reference dissector. The offset where it
+        stopped; ``rec_stop`` says why (see the attributes). A record the core does not
+        cover is not taken (``reason``), unless port detection took it
+        (``promotion``): then the offset is past it."""
+        cdef const uint8_t[::1] buf = data
+        cdef Py_ssize_t size = len(data), start, end, caplen
+        cdef double ts
+        self.rec_stop = 0
+        try:
+            while size - pos >= header:
+                caplen = rd32(&buf[pos + 8], big)
+                if caplen > limit:
+                    self.rec_stop = 2
+                    self.rec_len = caplen
+                    return pos
+                end = pos + header + caplen
+                if end > size:
+                    return pos
+                ts = <double>rd32(&buf[pos], big) + <double>rd32(&buf[pos + 4], big) / divisor
+                start = pos + header
+                if into is not None:
+                    into.append((ts, link, data[start:end], 0))
+                else:
+                    try:
+                        self.packet(ts, link, buf, start, end)
+                    except Declined as exc:
+                        if self.in_segment:
+                            raise RuntimeError("the core declined a segment it had begun: %s"
+                                               % exc) from None
+                        self.reason = str(exc)
+                        self.rec_stop = 1
+                        if self.promotion is None:
+                            return pos
+                        self.rec_count += 1
+                        self.rec_ts = ts
+                        return end
+                    self.packets += 1
+                self.rec_count += 1
+                self.rec_ts = ts
+                pos = end
+            return pos
+        finally:
+            if into is None:
+                self.flush_out()
 
     def tick(self, double now):
         """The hub's tick at ``now``: 0 the core did it; 1 the reference must take over

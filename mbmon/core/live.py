@@ -190,6 +190,8 @@ def add_counts(summary: Any, counts: dict[str, Any]) -> None:
 
 #: records the pipe's reader hands the hub's thread at once (at most)
 PIPE_RECORDS = 4096
+#: blocks of a classic pcap's bytes read ahead of the core (at most)
+PIPE_BLOCKS = 32
 
 
 def decline_for_pipe(args: Any, *, flt: Any, annotator: Any) -> str | None:
@@ -269,6 +271,14 @@ class PipeCore(LiveCore):
         self.budget = budget
         #: ``-c``'s last frame was written: the run ends there
         self.enough = False
+        # a classic pcap parsed by the core (``pcap``): its parameters, the bytes of a
+        # record not whole yet and their offset, the last blocks (damage's last good
+        # time), and a corrupt record header (what, offset)
+        self._pcap: tuple[bool, float, int, int, int] | None = None
+        self.buf = b""
+        self.base = 0
+        self.blocks: list[tuple[bytes, int]] = []
+        self.damage: tuple[str, int] | None = None
 
     def now(self, hub_now: float) -> float:
         """The hub's time as the reference's would be: the newest item's."""
@@ -300,6 +310,69 @@ class PipeCore(LiveCore):
         for ts, linktype, data, iface in batch:
             packet(ts, linktype, iface, data, 0, len(data), out)
         return out
+
+    def pcap(self, endian: str, divisor: float, link: int, snaplen: int, header: int) -> None:
+        """The capture is a classic pcap (the pump's parameters): its records are parsed
+        by the core from the pipe's bytes (:meth:`block`), not by the pump."""
+        from mbmon.sources.pcapfile import _MAX_RECORD
+
+        self._pcap = (endian == ">", divisor, header, link, min(max(snaplen, 262144), _MAX_RECORD))
+
+    def block(self, data: bytes) -> list[Any]:
+        """Bytes of a classic pcap as the pipe gave them (after its file header, in
+        order), in the hub's thread: what the hub must feed. Records left whole wait
+        for the next bytes; a corrupt record header ends the records (``damage``)."""
+        buf = self.buf + data if self.buf else data
+        pos = 0
+        out: list[Any] = []
+        records = self._core.pcap_records
+        assert self._pcap is not None
+        big, divisor, header, link, limit = self._pcap
+        if self.handed is None:
+            self.blocks = [*self.blocks[-1:], (buf, pos)]
+            try:
+                pos = records(buf, pos, big, divisor, header, link, limit)
+            except _core._reader.Enough:
+                self.enough = True
+                return out
+            if self._core.rec_stop == 1:  # the run goes to the reference from here
+                promotion = self._core.promotion
+                self._hand_over()
+                if promotion is not None:  # the detector took that record: its replay
+                    self.dissector._promote(promotion, out)
+        if self.handed is not None and self._core.rec_stop != 2:
+            self.blocks = [*self.blocks[-1:], (buf, pos)]
+            taken: list[Any] = []
+            pos = records(buf, pos, big, divisor, header, link, limit, taken)
+            out.extend(self.packets(taken))
+        if self._core.rec_stop == 2:
+            self.damage = (f"corrupt record header (length {self._core.rec_len})", self.base + pos)
+        self.buf = buf[pos:]
+        self.base += pos
+        return out
+
+    def block_end(self, failure: BaseException | None) -> tuple[float, BaseException | None]:
+        """Where the records of a pcap read by :meth:`block` ended: the end's time and
+        what ended them early (``failure``, the reader's; or damage: a corrupt header,
+        or a record the pipe cut), as the pump's ``_Damage``."""
+        from mbmon.sources.pcapfile import _Damage
+
+        assert self._pcap is not None
+        if self.damage is not None:
+            failure = _Damage(*self.damage)
+        elif failure is None and self.buf:
+            header = self._pcap[2]
+            what = "truncated record header" if len(self.buf) < header else "truncated record"
+            failure = _Damage(what, self.base)
+        if not isinstance(failure, _Damage):
+            return self._core.rec_ts, failure
+        recent: list[Any] = []
+        count, ts = self._core.rec_count, self._core.rec_ts
+        big, divisor, header, link, limit = self._pcap
+        for buf, pos in self.blocks:  # the last records again, as the pump had them
+            self._core.pcap_records(buf, pos, big, divisor, header, link, limit, recent)
+        self._core.rec_count, self._core.rec_ts = count, ts
+        return _last_good([recent], self, ts), failure
 
     def tick(self, now: float) -> Iterable[Any]:
         """The hub's tick at ``now``, the core's part (the pipeline's, as a file's
@@ -427,6 +500,39 @@ class _PipeReader:
         self.inbox.put(end)
 
 
+class _BlockReader:
+    """The reader thread of :func:`run_pipe` for a classic pcap: the pipe's bytes as
+    they come (what the input read past the file header first), the records parsed by
+    the core in the hub's thread (:meth:`PipeCore.block`); the last an :class:`_End`."""
+
+    def __init__(self, opened: tuple[Any, Any, Any]) -> None:
+        import queue
+
+        self.inp, _, self.raw = opened
+        # bounded: a pipe faster than the core waits in the pipe, not in memory
+        self.inbox: queue.Queue[Any] = queue.Queue(maxsize=PIPE_BLOCKS)
+
+    def run(self) -> None:
+        """Every block the pipe gives (up to the input's block size), then the end."""
+        from mbmon.sources.pcapfile import _BLOCK, READ_FAILURES
+
+        end = _End()
+        inp = self.inp
+        try:
+            if inp.pos < len(inp.buf):
+                self.inbox.put(inp.buf[inp.pos :])
+            read = getattr(inp.f, "read1", inp.f.read)
+            while data := read(_BLOCK):
+                self.inbox.put(data)
+        except READ_FAILURES as exc:
+            end = _End(failure=exc)
+        except BaseException as exc:  # handed to the hub's thread, raised there
+            end = _End(error=exc)
+        finally:
+            self.raw.close()
+        self.inbox.put(end)
+
+
 def run_pipe(stage: PipeCore, hub: Any, opened: tuple[Any, Any, Any], name: str) -> None:
     """Read a capture arriving through a pipe (``opened``: what
     :func:`mbmon.sources.pcapfile.open_records` gave) through ``stage`` into ``hub``,
@@ -441,8 +547,17 @@ def run_pipe(stage: PipeCore, hub: Any, opened: tuple[Any, Any, Any], name: str)
     import time
 
     from mbmon.hub import BATCH, LISTENER_TICK
+    from mbmon.sources.pcapfile import _pcap_pump
 
-    reader = _PipeReader(opened)
+    pump = opened[1]
+    reader: _PipeReader | _BlockReader
+    if getattr(pump, "func", None) is _pcap_pump:  # a classic pcap: the core parses it
+        inp, endian, divisor, link, snaplen, header = pump.args
+        stage.pcap(endian, divisor, link, snaplen, header)
+        stage.base = inp.base + inp.pos
+        reader = _BlockReader(opened)
+    else:
+        reader = _PipeReader(opened)
     inbox = reader.inbox
     threading.Thread(target=reader.run, name="mbmon-pipe-reader", daemon=True).start()
     end: _End | None = None
@@ -462,11 +577,18 @@ def run_pipe(stage: PipeCore, hub: Any, opened: tuple[Any, Any, Any], name: str)
             continue
         item, taken = first, 0
         while not isinstance(item, _End):
-            recent = [*recent[-1:], item]
-            items = stage.packets(item)
+            if isinstance(item, bytes):
+                items = stage.block(item)
+                taken += BATCH  # a block of records: the clock is looked at after it
+            else:
+                recent = [*recent[-1:], item]
+                items = stage.packets(item)
+                taken += len(item)
             if items:
                 hub.feed_items(items)
-            taken += len(item)
+            if stage.damage is not None:  # a corrupt record header: the records end
+                end = _End()
+                break
             if taken >= BATCH or hub.done or stage.enough:
                 break
             try:
@@ -490,11 +612,14 @@ def _end_pipe(stage: PipeCore, hub: Any, end: _End, inp: Any, name: str, recent:
     if end.error is not None:
         raise end.error
     error = None
-    end_ts = inp.last_ts
-    if end.failure is not None:
-        error = failure_message(name, inp, end.failure)
-        if isinstance(end.failure, _Damage):  # the last records may be the damage itself
-            end_ts = _last_good(recent, stage, inp.last_ts)
+    end_ts, failure = inp.last_ts, end.failure
+    if stage._pcap is not None:  # the core parsed the records: its count and time
+        end_ts, failure = stage.block_end(failure)
+        inp.count, inp.last_ts = stage._core.rec_count, stage._core.rec_ts
+    elif isinstance(failure, _Damage):  # the last records may be the damage itself
+        end_ts = _last_good(recent, stage, inp.last_ts)
+    if failure is not None:
+        error = failure_message(name, inp, failure)
     items = stage.end(end_ts, error)
     if items:
         hub.feed_items(items)
