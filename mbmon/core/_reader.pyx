@@ -983,6 +983,9 @@ cdef class _Pass:
     cdef object tcp_stats       # their TcpStats (the dissector's, not shown by read)
     cdef public bint live       # the streaming entry: it hands such packets over instead
     cdef int rec_iface          # pcapng: the interface of the record being read (pcap: 0)
+    # the last packet that parsed up to TCP or UDP (``Dissector.good_ts``: where a
+    # damaged capture ends; NaN: none yet)
+    cdef public double good_ts
     # Modbus/UDP: pairs by both directions' keys (as flows), their stream ids
     cdef dict udp_pairs
 
@@ -1059,6 +1062,7 @@ cdef class _Pass:
         self.udp_pairs = {}
         self.tcp_stats = TcpStats()
         self.live = False
+        self.good_ts = float("nan")
         self.open_order = []
         self.nopen = 0
         self.closed_fifo = []
@@ -3184,6 +3188,7 @@ cdef class _Pass:
         l4 = off + ihl
         if proto == 17:
             if ip_end - l4 >= 8:
+                self.good_ts = ts
                 sport = (buf[l4] << 8) | buf[l4 + 1]
                 dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
                 if self.port_map[sport] or self.port_map[dport]:
@@ -3196,6 +3201,7 @@ cdef class _Pass:
             return 0
         if ip_end - l4 < 20:
             return 0
+        self.good_ts = ts
         b = &buf[l4]
         sport = (b[0] << 8) | b[1]
         dport = (b[2] << 8) | b[3]
@@ -3308,6 +3314,7 @@ cdef class _Pass:
             else:
                 break
         if proto == 17 and ip_end - l4 >= 8:
+            self.good_ts = ts
             sport = (buf[l4] << 8) | buf[l4 + 1]
             dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
             if self.port_map[sport] or self.port_map[dport]:  # a first fragment: cut
@@ -3316,6 +3323,7 @@ cdef class _Pass:
             return 0
         if proto != 6 or ip_end - l4 < 20:
             return 0
+        self.good_ts = ts
         sport = (buf[l4] << 8) | buf[l4 + 1]
         dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
         if self.port_map[sport] or self.port_map[dport]:  # a first fragment: cut

@@ -272,12 +272,10 @@ class PipeCore(LiveCore):
         #: ``-c``'s last frame was written: the run ends there
         self.enough = False
         # a classic pcap parsed by the core (``pcap``): its parameters, the bytes of a
-        # record not whole yet and their offset, the last blocks (damage's last good
-        # time), and a corrupt record header (what, offset)
+        # record not whole yet and their offset, and a corrupt record header (what, offset)
         self._pcap: tuple[bool, float, int, int, int] | None = None
         self.buf = b""
         self.base = 0
-        self.blocks: list[tuple[bytes, int]] = []
         self.damage: tuple[str, int] | None = None
 
     def now(self, hub_now: float) -> float:
@@ -329,7 +327,6 @@ class PipeCore(LiveCore):
         assert self._pcap is not None
         big, divisor, header, link, limit = self._pcap
         if self.handed is None:
-            self.blocks = [*self.blocks[-1:], (buf, pos)]
             try:
                 pos = records(buf, pos, big, divisor, header, link, limit)
             except _core._reader.Enough:
@@ -341,7 +338,6 @@ class PipeCore(LiveCore):
                 if promotion is not None:  # the detector took that record: its replay
                     self.dissector._promote(promotion, out)
         if self.handed is not None and self._core.rec_stop != 2:
-            self.blocks = [*self.blocks[-1:], (buf, pos)]
             taken: list[Any] = []
             pos = records(buf, pos, big, divisor, header, link, limit, taken)
             out.extend(self.packets(taken))
@@ -366,13 +362,17 @@ class PipeCore(LiveCore):
             failure = _Damage(what, self.base)
         if not isinstance(failure, _Damage):
             return self._core.rec_ts, failure
-        recent: list[Any] = []
-        count, ts = self._core.rec_count, self._core.rec_ts
-        big, divisor, header, link, limit = self._pcap
-        for buf, pos in self.blocks:  # the last records again, as the pump had them
-            self._core.pcap_records(buf, pos, big, divisor, header, link, limit, recent)
-        self._core.rec_count, self._core.rec_ts = count, ts
-        return _last_good([recent], self, ts), failure
+        return self.good_ts(self._core.rec_ts), failure
+
+    def good_ts(self, fallback: float) -> float:
+        """The time of the last record that parsed as a packet (``Dissector.good_ts``:
+        the end of a damaged capture): the reference dissector's after a hand-over (it
+        read the later records), else the core's; ``fallback`` when none did."""
+        good: float | None = self.dissector.good_ts
+        if good is not None:
+            return good
+        mine: float = self._core.good_ts
+        return fallback if mine != mine else mine  # NaN: none
 
     def tick(self, now: float) -> Iterable[Any]:
         """The hub's tick at ``now``, the core's part (the pipeline's, as a file's
@@ -561,7 +561,6 @@ def run_pipe(stage: PipeCore, hub: Any, opened: tuple[Any, Any, Any], name: str)
     inbox = reader.inbox
     threading.Thread(target=reader.run, name="mbmon-pipe-reader", daemon=True).start()
     end: _End | None = None
-    recent: list[Any] = []  # the last batches taken (the last good time after damage)
     next_tick = time.monotonic() + LISTENER_TICK
     while end is None and not hub.done and not stage.enough:
         try:
@@ -581,7 +580,6 @@ def run_pipe(stage: PipeCore, hub: Any, opened: tuple[Any, Any, Any], name: str)
                 items = stage.block(item)
                 taken += BATCH  # a block of records: the clock is looked at after it
             else:
-                recent = [*recent[-1:], item]
                 items = stage.packets(item)
                 taken += len(item)
             if items:
@@ -600,11 +598,11 @@ def run_pipe(stage: PipeCore, hub: Any, opened: tuple[Any, Any, Any], name: str)
     if stage.enough:  # -c: nothing after its last frame is written or counted
         return
     if end is not None:
-        _end_pipe(stage, hub, end, reader.inp, name, recent)
+        _end_pipe(stage, hub, end, reader.inp, name)
     hub.finish()
 
 
-def _end_pipe(stage: PipeCore, hub: Any, end: _End, inp: Any, name: str, recent: list[Any]) -> None:
+def _end_pipe(stage: PipeCore, hub: Any, end: _End, inp: Any, name: str) -> None:
     """The end of the pipe's records: the reader's own exception raised again, or the
     dissector's end (and the ERROR event of records that ended early) fed."""
     from mbmon.sources.pcapfile import _Damage, failure_message
@@ -617,25 +615,9 @@ def _end_pipe(stage: PipeCore, hub: Any, end: _End, inp: Any, name: str, recent:
         end_ts, failure = stage.block_end(failure)
         inp.count, inp.last_ts = stage._core.rec_count, stage._core.rec_ts
     elif isinstance(failure, _Damage):  # the last records may be the damage itself
-        end_ts = _last_good(recent, stage, inp.last_ts)
+        end_ts = stage.good_ts(inp.last_ts)
     if failure is not None:
         error = failure_message(name, inp, failure)
     items = stage.end(end_ts, error)
     if items:
         hub.feed_items(items)
-
-
-def _last_good(recent: list[list[Any]], stage: PipeCore, fallback: float) -> float:
-    """The time of the last record that parsed as a packet (``Dissector.good_ts``:
-    the end of a damaged capture), found among the last batches taken; the reference
-    dissector's own after a hand-over, else the last record's."""
-    from mbmon.sources.dissect import CaptureConfig, Dissector
-
-    for batch in reversed(recent):
-        for ts, link, data, iface in reversed(batch):
-            probe = Dissector(CaptureConfig(), idle_timeout=None, hole_timeout=None)
-            probe.packet(ts, link, iface, data, 0, len(data), [])
-            if probe.good_ts is not None:
-                return float(ts)
-    good: float | None = stage.dissector.good_ts
-    return fallback if good is None else good
