@@ -7,6 +7,7 @@ RSS).
     python bench/core_pipe.py --adus 200000
     python bench/core_pipe.py --json              # the JSON lines instead of text
     python bench/core_pipe.py --no-pure           # leave the pure pipe run out (it is slow)
+    python bench/core_pipe.py --callgrind 100000  # + instructions per ADU (marginal), core
 
 Every run writes to /dev/null. The pipe's writer (``cat``) is a process of its own
 whose CPU is not counted (the mbmon child's ``os.wait4`` rusage only); the machine
@@ -70,12 +71,48 @@ def _run(cmd: list[str], path: Path, *, pipe: bool, pure: bool) -> tuple[float, 
     return ru.ru_utime + ru.ru_stime, wall, ru.ru_maxrss / 1024, said
 
 
+def _instructions(cmd: list[str], path: Path, *, pipe: bool) -> int:
+    """Callgrind instructions of the mbmon child on ``path`` (read through a pipe from
+    a ``cat`` outside valgrind when ``pipe``), every thread."""
+    out = path.parent / "core-pipe-callgrind.out"
+    grind = ["valgrind", "--tool=callgrind", f"--callgrind-out-file={out}", *cmd]
+    env = dict(os.environ)
+    env.pop("MBMON_NO_EXTENSIONS", None)
+    if pipe:
+        with open(path, "rb") as f:
+            cat = subprocess.Popen(["cat"], stdin=f, stdout=subprocess.PIPE)
+            subprocess.run(
+                [*grind, "-"], stdin=cat.stdout, stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL, env=env, check=False,
+            )  # fmt: skip
+            cat.wait()
+    else:
+        subprocess.run(
+            [*grind, str(path)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            env=env, check=False,
+        )  # fmt: skip
+    text = out.read_text(errors="replace")
+    out.unlink()
+    return int(next(ln for ln in text.splitlines() if ln.startswith("summary:")).split()[1])
+
+
+def callgrind(n: int, cmd: list[str]) -> None:
+    """Marginal instructions per ADU, (I(N) - I(N/5)) / (4N/5), the file and the pipe."""
+    small = capture("polling", n // 5, 8, 2, "aligned")
+    big = capture("polling", n, 8, 2, "aligned")
+    for name, pipe in (("core, file", False), ("core, pipe", True)):
+        low = _instructions(cmd, small, pipe=pipe)
+        high = _instructions(cmd, big, pipe=pipe)
+        print(f"  {name:12} {(high - low) / (n - n // 5):8.0f} instructions per ADU (callgrind)")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--adus", type=int, default=1_000_000)
     parser.add_argument("--json", action="store_true", help="JSON lines instead of text")
     parser.add_argument("--no-pure", action="store_true", help="skip the pure pipe run")
     parser.add_argument("--repeat", type=int, default=3, help="runs of each (best CPU kept)")
+    parser.add_argument("--callgrind", type=int, metavar="N", help="+ instructions per ADU")
     args = parser.parse_args()
     path = capture("polling", args.adus, 8, 2, "aligned")
     cmd = [*mbmon_cmd(), "read", *(["--json"] if args.json else [])]
@@ -92,6 +129,8 @@ def main() -> int:
     anchor = best["core, file"]
     for name, cpu in best.items():
         print(f"  {name:12} {cpu / anchor:5.2f}x the core's file read")
+    if args.callgrind:
+        callgrind(args.callgrind, cmd)
     return 0
 
 
