@@ -339,3 +339,48 @@ def test_filters_and_count_on_a_pipe(tmp_path: Path, opts: tuple[str, ...]) -> N
 
 def _without_found(err: str) -> str:
     return "".join(ln for ln in err.splitlines(keepends=True) if "found Modbus/TCP" not in ln)
+
+
+_SLOW_WRITER = """
+import sys, time
+data = open(sys.argv[1], "rb").read()
+cut = int(sys.argv[2])
+sys.stdout.buffer.write(data[:cut]); sys.stdout.buffer.flush()
+time.sleep(0.7)
+sys.stdout.buffer.write(data[cut:]); sys.stdout.buffer.flush()
+"""
+
+
+def test_a_slow_writing_process_on_stdin(tmp_path: Path) -> None:
+    """``writer | mbmon read -`` with a writer process that pauses where a timeout
+    falls due: the same lines, the timeout where the pure run prints it."""
+    require_core()
+    _, cut = _late_timeout(tmp_path)
+    path = tmp_path / "late.pcap"  # what _late_timeout wrote
+    runs = []
+    for pure in (False, True):
+        env = dict(os.environ)
+        env.pop("MBMON_NO_EXTENSIONS", None)
+        if pure:
+            env["MBMON_NO_EXTENSIONS"] = "1"
+        writer = subprocess.Popen(
+            [sys.executable, "-c", _SLOW_WRITER, str(path), str(cut)], stdout=subprocess.PIPE
+        )
+        reader = subprocess.run(
+            [sys.executable, "-m", "mbmon", "read", "-", "--debug-core"],
+            stdin=writer.stdout,
+            capture_output=True,
+            env=env,
+            cwd=ROOT,
+            timeout=120,
+        )
+        assert writer.stdout is not None
+        writer.stdout.close()
+        writer.wait(timeout=30)
+        runs.append(reader)
+    fast, pure = runs
+    assert fast.stderr.splitlines()[0] == b"mbmon: " + CORE_RAN.encode()
+    assert fast.returncode == pure.returncode == 0
+    assert fast.stdout == pure.stdout
+    assert fast.stderr.splitlines()[1:] == pure.stderr.splitlines()[1:]
+    assert fast.stdout != read_run([path]).out  # the pause moved the timeout
