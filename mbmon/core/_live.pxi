@@ -75,6 +75,9 @@ cdef class _Live(_Pass):
     cdef public double rec_ts
     cdef public int rec_stop
     cdef public Py_ssize_t rec_len
+    # ``--since``/``--until`` given as text: resolved at the first record (the console's
+    # filter, asked about every record, resolves them there; a pipe has no deciding pass)
+    cdef bint f_resolve
 
     def __cinit__(self):
         self.lc = NULL
@@ -249,6 +252,24 @@ cdef class _Live(_Pass):
             elif len(counts) < MAX_PORTS:
                 counts[key] = 1
         return 0
+
+    def select(self, flt, count, bint show):
+        """``_Pass.select``; ``--since``/``--until`` still to be resolved are resolved at
+        the first record (``count_record``), where the reference's console resolves
+        them (``RecordFilter._time_ok``). Not with ``-c``: its budget, the first
+        listener, resolves them at the first frame of the first batch it sees."""
+        _Pass.select(self, flt, count, show)
+        self.f_resolve = self.f_on and (flt.since_text is not None or flt.until_text is not None)
+
+    cdef int count_record(self, double ts, int sid, bint frame) except -1:
+        if self.f_resolve:
+            self.f_resolve = False
+            self.flt.start_at(ts)
+            self.f_since = self.flt.since is not None
+            self.f_until = self.flt.until is not None
+            self.f_since_v = self.flt.since if self.f_since else 0.0
+            self.f_until_v = self.flt.until if self.f_until else 0.0
+        return _Pass.count_record(self, ts, sid, frame)
 
     def frames_left(self):
         """``-c``: the frames still to count (``-1``: no ``-c``), for the reference's

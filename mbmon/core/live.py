@@ -199,15 +199,16 @@ def decline_for_pipe(args: Any, *, flt: Any, annotator: Any) -> str | None:
     streaming entry (the reference reads it from the start), or ``None``: what
     :func:`mbmon.core.decline_for_options` declines for a file, and what the
     streaming entry does not cover yet (``-w``, ``--profile``, ``--since``/``--until``
-    and ``--grep`` with ``-c``, whose start a file's deciding pass finds)."""
+    or ``--grep`` with ``-c``, whose start a file's deciding pass finds)."""
     active = flt is not None and getattr(flt, "active", False)
     checks = (
         (args.write, "-w (logs) from a pipe"),
         (annotator is not None or args.profile, "--profile from a pipe"),
-        # resolved at the first record a filter is asked about: a file's deciding
-        # pass finds it, a pipe has none
-        (active and (args.since or args.until), "--since/--until from a pipe"),
-        (active and args.grep and args.count, "--grep with -c from a pipe"),
+        # with -c, resolved at the first frame of the first batch -c's budget is asked
+        # about (a file's deciding pass finds it; without -c the core resolves them at
+        # the first record, as the console's filter does)
+        (active and (args.since or args.until) and args.count, "--since/--until with -c"),
+        (active and args.grep and args.count, "--grep with -c"),
     )
     return _core.decline_for_options(args, live=False, flt=flt) or _core.first_decline(checks)
 

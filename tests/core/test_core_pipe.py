@@ -235,8 +235,8 @@ def test_what_the_pipe_entry_declines_says_why(tmp_path: Path) -> None:
     log = tmp_path / "x.mcap"
     for opts, why in (
         (("-w", str(log)), "-w (logs) from a pipe"),
-        (("--since", "1s"), "--since/--until from a pipe"),
-        (("--grep", "read", "-c", "3"), "--grep with -c from a pipe"),
+        (("--since", "1s", "-c", "3"), "--since/--until with -c"),
+        (("--grep", "read", "-c", "3"), "--grep with -c"),
     ):
         fast, pure = _both(tmp_path, [data], *opts)
         assert fast.core == [
@@ -313,12 +313,16 @@ def test_no_modbus_on_a_pipe_gives_the_busiest_ports(tmp_path: Path) -> None:
         ("--grep", "holding"),
         ("--where", "fc 3 or exception or timeout", "--json"),
         ("-q", "-c", "7"),
+        ("--since", "+1s", "--fc", "4"),
+        ("--since", "+250ms", "--until", "+1.5s", "-t", "r", "--json"),
+        ("--until", "2023-11-14 22:13:20.3", "-t", "ud"),
     ],
     ids=str,
 )
 def test_filters_and_count_on_a_pipe(tmp_path: Path, opts: tuple[str, ...]) -> None:
     """The console behind the filters and ``-c`` (the N-th frame they let through ends
-    the run), also when port detection hands the run over before or after the N-th."""
+    the run), also when port detection hands the run over before or after the N-th;
+    ``--since``/``--until`` from the first record, as the console's filter resolves them."""
     require_core()
     from test_core_cli import _two_ports
 
