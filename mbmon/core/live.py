@@ -519,12 +519,16 @@ class _BlockReader:
 
         end = _End()
         inp = self.inp
+        done = inp.base + len(inp.buf)  # bytes read so far (the progress bar's)
         try:
             if inp.pos < len(inp.buf):
                 self.inbox.put(inp.buf[inp.pos :])
             read = getattr(inp.f, "read1", inp.f.read)
             while data := read(_BLOCK):
                 self.inbox.put(data)
+                done += len(data)
+                if inp.progress is not None:
+                    inp.progress(done, 0)  # a pipe: no size
         except READ_FAILURES as exc:
             end = _End(failure=exc)
         except BaseException as exc:  # handed to the hub's thread, raised there
