@@ -207,8 +207,11 @@ def decline_for_pipe(args: Any, *, flt: Any, annotator: Any) -> str | None:
         # with -c, resolved at the first frame of the first batch -c's budget is asked
         # about (a file's deciding pass finds it; without -c the core resolves them at
         # the first record, as the console's filter does)
-        (active and (args.since or args.until) and args.count, "--since/--until with -c"),
-        (active and args.grep and args.count, "--grep with -c"),
+        (
+            active and (args.since or args.until) and args.count,
+            "--since/--until with -c from a pipe",
+        ),
+        (active and args.grep and args.count, "--grep with -c from a pipe"),
     )
     return _core.decline_for_options(args, live=False, flt=flt) or _core.first_decline(checks)
 

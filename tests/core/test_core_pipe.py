@@ -235,8 +235,8 @@ def test_what_the_pipe_entry_declines_says_why(tmp_path: Path) -> None:
     log = tmp_path / "x.mcap"
     for opts, why in (
         (("-w", str(log)), "-w (logs) from a pipe"),
-        (("--since", "1s", "-c", "3"), "--since/--until with -c"),
-        (("--grep", "read", "-c", "3"), "--grep with -c"),
+        (("--since", "1s", "-c", "3"), "--since/--until with -c from a pipe"),
+        (("--grep", "read", "-c", "3"), "--grep with -c from a pipe"),
     ):
         fast, pure = _both(tmp_path, [data], *opts)
         assert fast.core == [
