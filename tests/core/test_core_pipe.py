@@ -60,6 +60,7 @@ def _fifo(tmp_path: Path, pieces: list[bytes | float]) -> Iterator[Path]:
         with open(path, "wb", buffering=0) as f:
             for piece in pieces:
                 if isinstance(piece, float):
+                    _drained(f.fileno())  # the pause begins once the reader has it all
                     time.sleep(piece)
                 else:
                     try:
@@ -73,6 +74,21 @@ def _fifo(tmp_path: Path, pieces: list[bytes | float]) -> Iterator[Path]:
         yield path
     finally:
         writer.join(timeout=30)
+
+
+def _drained(fd: int) -> None:
+    """Wait until the reader took every byte written to the pipe ``fd`` (Linux answers
+    FIONREAD on either end of a pipe)."""
+    import fcntl
+    import struct
+    import termios
+
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        left = struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))[0]
+        if not left:
+            return
+        time.sleep(0.01)
 
 
 def _both(tmp_path: Path, pieces: list[bytes | float], *opts: str) -> tuple[Run, Run]:
@@ -346,10 +362,14 @@ def _without_found(err: str) -> str:
 
 
 _SLOW_WRITER = """
-import sys, time
+import fcntl, struct, sys, termios, time
 data = open(sys.argv[1], "rb").read()
 cut = int(sys.argv[2])
 sys.stdout.buffer.write(data[:cut]); sys.stdout.buffer.flush()
+end = time.monotonic() + 60  # the pause begins once the reader (started with us) took it all
+while time.monotonic() < end and struct.unpack(
+        "i", fcntl.ioctl(1, termios.FIONREAD, b"\\0\\0\\0\\0"))[0]:
+    time.sleep(0.01)
 time.sleep(0.7)
 sys.stdout.buffer.write(data[cut:]); sys.stdout.buffer.flush()
 """
