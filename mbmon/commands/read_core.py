@@ -34,6 +34,8 @@ def core_hand_off(
     elif not sources or not all(isinstance(source, CaptureFileSource) for source in sources):
         if args.debug_core and len(sources) > 1:
             err("core: declined (several inputs of this kind); the Python pipeline reads the input")
+    elif len(sources) == 1 and sources[0].mode == "stream":
+        done = read_pipe_with_core(sources[0], args, view, flt, annotator)
     else:
         live = any(source.mode == "stream" for source in sources)
         done = read_with_core(
@@ -121,6 +123,109 @@ def read_with_core(
         err(f"interrupted; {log_path} was finished and is complete up to here")
         return interrupted_status()
     return EXIT_OK
+
+
+def read_pipe_with_core(
+    source: Any, args: argparse.Namespace, view: Any, flt: Any, annotator: Any = None
+) -> int | None:
+    """``read`` of one capture on a pipe, FIFO or stdin (``-``) by the core's streaming
+    entry (:class:`mbmon.core.live.PipeCore`) with the reference's wiring around it:
+    its exit status; ``None`` when the options decline it (before anything is read:
+    the Python pipeline then reads the input). The core writes the lines while it
+    covers the records; the first record, tick or end it does not cover hands the
+    whole run to the reference dissector and the hub's pipeline. ``--debug-core``
+    says which path ran and why."""
+    from mbmon.core.live import decline_for_pipe
+
+    why = decline_for_pipe(args, flt=flt, annotator=annotator)
+    raw = None
+    if why is None and not args.quiet:
+        raw, why = _raw_stdout()
+    if why is not None:
+        if args.debug_core:
+            err(f"core: declined ({why}); the Python pipeline reads the input")
+        return None
+    from mbmon.sources.pcapfile import CaptureError, open_records
+
+    try:  # as the source opens it: one line before any output
+        opened = open_records(source.path, source.progress)
+    except CaptureError as exc:
+        err(str(exc))
+        return EXIT_BAD_INPUT
+    return _run_pipe(source, opened, args, view, flt, raw)
+
+
+def _run_pipe(
+    source: Any, opened: Any, args: argparse.Namespace, view: Any, flt: Any, raw: Any
+) -> int:
+    """The run of :func:`read_pipe_with_core`: the hub, its listeners (the console and
+    the summary, as the reference attaches them), the core's stage, the pipe's records
+    through it, the summary and the exit status."""
+    from mbmon.commands.common import attach_outputs, exit_status
+    from mbmon.core.live import PipeCore, add_counts, run_pipe
+    from mbmon.hub import Hub
+    from mbmon.pipeline import Pipeline, PipelineConfig
+    from mbmon.sinks.summary import Summary
+    from mbmon.sources.dissect import Dissector
+
+    hub = Hub(Pipeline(None, PipelineConfig(timeout=args.timeout, baudrate=args.baud)))
+    summary = None if args.quiet else Summary(view if args.robot else None)
+    screen: Any = None
+    if not args.quiet:
+        from mbmon.sinks.console import ConsoleListener
+
+        screen = ConsoleListener(sys.stdout, view, as_json=args.json, live=True)
+        if flt is not None and flt.active:
+            from mbmon.sinks.select import Selection
+
+            screen = Selection([screen], view, flt)
+    budget = None
+    if args.count:
+        from mbmon.commands.common import FrameBudget
+
+        budget = FrameBudget(args.count, hub.enough, flt, view)
+    attach_outputs(hub, logs=[], screen=screen, summary=summary, budget=budget)
+    config = source.config
+    dissector = Dissector(
+        config,
+        Path(source.path).name,
+        new_stream=hub.new_stream,
+        idle_timeout=None,
+        hole_timeout=None,
+    )
+    stage = PipeCore(
+        ports=config.tcp_ports,
+        timeout=args.timeout,
+        view=view,
+        as_json=args.json,
+        write=None if raw is None else raw.write,
+        flush=None,
+        new_stream=hub.new_stream,
+        dissector=dissector,
+        pipeline=hub.pipeline,
+        detect=config.detect,
+        flt=flt,
+        count=args.count,
+        budget=budget,
+    )
+    interrupted = False
+    try:
+        run_pipe(stage, hub, opened, source.path)
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        hub.close()
+    _flush_stdout(raw)
+    if args.debug_core:
+        then = "" if stage.handed is None else f", then the Python pipeline ({stage.handed})"
+        err(f"core: the compiled core read the input{then}")
+    if summary is not None:
+        add_counts(summary, stage.counts())
+        summary.robot_seen = summary.robot_seen or stage.counts()["robot_seen"]
+        report(summary, stage.stats(), args, timed=True)
+    if not interrupted and hub.errors:
+        err(hub.errors[-1])
+    return exit_status(hub, interrupted=interrupted)
 
 
 def read_rtu_with_core(

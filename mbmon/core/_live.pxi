@@ -47,7 +47,7 @@ cdef class _Live(_Pass):
     cdef int caplc
     cdef double idle_due
     cdef double next_sweep
-    cdef double item_ts             # the latest item (chunk or source event) time
+    cdef public double item_ts      # the latest item (chunk or source event) time
     cdef bint in_segment            # _Pass.segment is changing state
     cdef public str reason          # why the core handed over
     cdef public int64_t packets     # packets taken
@@ -58,6 +58,26 @@ cdef class _Live(_Pass):
     cdef list udp_order             # UDP pairs' conn indexes, in creation order
     cdef dict waiting               # conn * 2 + direction: the pipeline's _waiting, in order
     cdef bint keep                  # noise and length 255 taken (the reference decoder inside)
+    # ``read`` from a pipe (see "The core on a pipe" below): the file dissector's rules
+    # (no idle expiry, no hole timeout, nothing of the dissector's at a tick) and port
+    # detection; ``promotion``: what the detector found in the packet the core handed
+    # over at (the reference's ``Dissector._promote`` replays it)
+    cdef bint file_mode
+    cdef public object promotion
+    # the reference dissector's counts of other ports (``Dissector._ports``, the same
+    # dict: the summary's hint when no Modbus was found), or None: not counted
+    cdef public dict port_counts
+    # the records of a classic pcap on a pipe, parsed here (``pcap_records``): how many,
+    # the last one's time, why the parsing stopped (0: it needs more bytes; 1: the run
+    # is handed over at the record at the returned offset; 2: that record's header is
+    # corrupt) and that record's length
+    cdef public int64_t rec_count
+    cdef public double rec_ts
+    cdef public int rec_stop
+    cdef public Py_ssize_t rec_len
+    # ``--since``/``--until`` given as text: resolved at the first record (the console's
+    # filter, asked about every record, resolves them there; a pipe has no deciding pass)
+    cdef bint f_resolve
 
     def __cinit__(self):
         self.lc = NULL
@@ -67,10 +87,17 @@ cdef class _Live(_Pass):
         free(self.lc)
 
     def __init__(self, bint as_json, double timeout, ports, view, write, new_stream=None,
-                 bint keep_noise=False):
-        _Pass.__init__(self, True, as_json, timeout, ports, view, write, False)
+                 bint keep_noise=False, bint detect=False, bint file_mode=False):
+        _Pass.__init__(self, True, as_json, timeout, ports, view, write, detect)
         self.live = True
         self.keep = keep_noise
+        self.file_mode = file_mode
+        self.promotion = None
+        self.port_counts = None
+        self.rec_count = 0
+        self.rec_ts = 0.0
+        self.rec_stop = 0
+        self.rec_len = 0
         self.holes = {}
         self.udp_order = []
         self.waiting = {}
@@ -200,6 +227,59 @@ cdef class _Live(_Pass):
             self.item_ts = ts
         return _Pass.event(self, ts, sid, kind, info)
 
+    cdef int detect_segment(self, double ts, bytes addrs, int sport, int dport, int64_t seq,
+                            int64_t ack, int flags, bytes payload) except -1:
+        """``_Pass.detect_segment``, but a connection found to be Modbus hands the run
+        over at this packet: the detector has taken it (``promotion``, which the
+        reference dissector replays), the core's state is as before the packet."""
+        if self.detector is None:
+            return 0
+        verdict = self.detector.segment(ts, (addrs, sport, dport), seq, ack, flags, payload)
+        if verdict is False:
+            self.other_port(sport if sport < dport else dport)
+        elif verdict is not True:
+            self.promotion = verdict
+            raise Declined("Modbus found by port detection on port %d" % min(sport, dport))
+        return 0
+
+    cdef int other_port(self, int key) except -1:
+        """``Dissector._other_port`` into ``port_counts`` (at most ``MAX_PORTS`` ports)."""
+        counts = self.port_counts
+        if counts is not None:
+            n = counts.get(key)
+            if n is not None:
+                counts[key] = n + 1
+            elif len(counts) < MAX_PORTS:
+                counts[key] = 1
+        return 0
+
+    def select(self, flt, count, bint show):
+        """``_Pass.select``; ``--since``/``--until`` still to be resolved are resolved at
+        the first record (``count_record``), where the reference's console resolves
+        them (``RecordFilter._time_ok``). Not with ``-c``: its budget, the first
+        listener, resolves them at the first frame of the first batch it sees."""
+        _Pass.select(self, flt, count, show)
+        self.f_resolve = self.f_on and (flt.since_text is not None or flt.until_text is not None)
+
+    cdef int count_record(self, double ts, int sid, bint frame) except -1:
+        if self.f_resolve:
+            self.f_resolve = False
+            self.flt.start_at(ts)
+            self.f_since = self.flt.since is not None
+            self.f_until = self.flt.until is not None
+            self.f_since_v = self.flt.since if self.f_since else 0.0
+            self.f_until_v = self.flt.until if self.f_until else 0.0
+        return _Pass.count_record(self, ts, sid, frame)
+
+    def frames_left(self):
+        """``-c``: the frames still to count (``-1``: no ``-c``), for the reference's
+        budget after a hand-over."""
+        return self.left
+
+    def port_detector(self):
+        """The reference's ``PortDetector`` the core feeds (``None``: detection off)."""
+        return self.detector
+
     # ------------------------------------------------------------------ dry runs
 
     cdef object chunk_check(self, int ci, int d, const uint8_t* p, Py_ssize_t n,
@@ -309,7 +389,7 @@ cdef class _Live(_Pass):
     # ------------------------------------------------------------------ holes (the live dissector's)
 
     cdef object hole_watcher(self):
-        return self
+        return None if self.file_mode else self  # a file's holes never time out
 
     def held(self, conn, double ts):
         """Watcher hook of a connection the reference reassembles: it holds bytes
@@ -371,8 +451,9 @@ cdef class _Live(_Pass):
         return 0
 
     cdef int idle_soon(self, double due) except -1:
-        """The idle scan is due at ``due`` (the first flow): the dissector's tick then."""
-        if self.idle_due == INFINITY:
+        """The idle scan is due at ``due`` (the first flow): the dissector's tick then
+        (never for a file's dissector: its flows do not expire for idleness)."""
+        if self.idle_due == INFINITY and not self.file_mode:
             self.idle_due = due
             if due < self.due:
                 self.due = due
@@ -490,13 +571,63 @@ cdef class _Live(_Pass):
         finally:
             self.flush_out()
 
+    def pcap_records(self, bytes data, Py_ssize_t pos, bint big, double divisor, int header,
+                     int link, Py_ssize_t limit, list into=None):
+        """The whole records of a classic pcap in ``data`` from ``pos`` (a record's start),
+        as the reference's pump reads them (``_pcap_pump``: the same checks, times and
+        counts): each taken by the core, or with ``into`` appended to it as
+        ``(ts, link type, bytes, 0)`` for the reference dissector. The offset where it
+        stopped; ``rec_stop`` says why (see the attributes). A record the core does not
+        cover is not taken (``reason``), unless port detection took it
+        (``promotion``): then the offset is past it."""
+        cdef const uint8_t[::1] buf = data
+        cdef Py_ssize_t size = len(data), start, end, caplen
+        cdef double ts
+        self.rec_stop = 0
+        try:
+            while size - pos >= header:
+                caplen = rd32(&buf[pos + 8], big)
+                if caplen > limit:
+                    self.rec_stop = 2
+                    self.rec_len = caplen
+                    return pos
+                end = pos + header + caplen
+                if end > size:
+                    return pos
+                ts = <double>rd32(&buf[pos], big) + <double>rd32(&buf[pos + 4], big) / divisor
+                start = pos + header
+                if into is not None:
+                    into.append((ts, link, data[start:end], 0))
+                else:
+                    try:
+                        self.packet(ts, link, buf, start, end)
+                    except Declined as exc:
+                        if self.in_segment:
+                            raise RuntimeError("the core declined a segment it had begun: %s"
+                                               % exc) from None
+                        self.reason = str(exc)
+                        self.rec_stop = 1
+                        if self.promotion is None:
+                            return pos
+                        self.rec_count += 1
+                        self.rec_ts = ts
+                        return end
+                    self.packets += 1
+                self.rec_count += 1
+                self.rec_ts = ts
+                pos = end
+            return pos
+        finally:
+            if into is None:
+                self.flush_out()
+
     def tick(self, double now):
         """The hub's tick at ``now``: 0 the core did it; 1 the reference must take over
         before it (its dissector's tick first); 2 the core did the dissector's part and
         the reference's pipeline does the rest (the hub ticks it next)."""
         cdef int ci, d
         try:
-            if now >= self.due:
+            if now >= self.due and not self.file_mode:  # a file's dissector is never ticked
                 try:
                     self.dissector_tick(now)
                 except Declined as exc:  # before anything changed
@@ -577,10 +708,11 @@ cdef class _Live(_Pass):
         the pipeline's): holes given up and half-closed connections ended, the
         decoders flushed in the order they were made (an incomplete ADU: noise),
         every pending request timed out. False (nothing done) when the reference
-        must take over first (a FIN not reached, the core's limits)."""
+        must take over first (a FIN not reached, the core's limits). A file's
+        dissector ends at ``now`` itself (its last record's time)."""
         cdef int ci, s, e, nxt
         cdef Conn* c
-        cdef double ts = now if now > self.item_ts else self.item_ts
+        cdef double ts = now if now > self.item_ts or self.file_mode else self.item_ts
         for ci in range(self.nconns):
             c = &self.conns[ci]
             if c.h[0].blen or c.h[1].blen or c.h[0].dstate == 2 or c.h[1].dstate == 2 or (

@@ -85,6 +85,8 @@ DEF TICK_EVERY = 0.1
 DEF MAX_RECORD = 1 << 26
 DEF FLUSH_AT = 1 << 20
 DEF RELEASE_EVERY = 1 << 24  # a multiple of every page size
+DEF UDP_PORT_KEY = 0x10000    # dissect._UDP_PORT: a UDP port's key in the port counts
+DEF MAX_PORTS = 4096          # dissect.MAX_PORTS: distinct other ports counted
 DEF MBAP_CLEAN = 254          # the largest clean MBAP length (mbap.DEFAULT_MAX_LENGTH)
 
 if _MBAP_MAX != MBAP_CLEAN:
@@ -981,6 +983,9 @@ cdef class _Pass:
     cdef object tcp_stats       # their TcpStats (the dissector's, not shown by read)
     cdef public bint live       # the streaming entry: it hands such packets over instead
     cdef int rec_iface          # pcapng: the interface of the record being read (pcap: 0)
+    # the last packet that parsed up to TCP or UDP (``Dissector.good_ts``: where a
+    # damaged capture ends; NaN: none yet)
+    cdef public double good_ts
     # Modbus/UDP: pairs by both directions' keys (as flows), their stream ids
     cdef dict udp_pairs
 
@@ -1057,6 +1062,7 @@ cdef class _Pass:
         self.udp_pairs = {}
         self.tcp_stats = TcpStats()
         self.live = False
+        self.good_ts = float("nan")
         self.open_order = []
         self.nopen = 0
         self.closed_fifo = []
@@ -3182,28 +3188,32 @@ cdef class _Pass:
         l4 = off + ihl
         if proto == 17:
             if ip_end - l4 >= 8:
+                self.good_ts = ts
                 sport = (buf[l4] << 8) | buf[l4 + 1]
                 dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
                 if self.port_map[sport] or self.port_map[dport]:
                     # a first fragment is a cut packet (the reference does not
                     # reassemble): a datagram longer than it is none
                     return self.udp_datagram(ts, &buf[off + 12], 4, buf, l4, ip_end)
+                self.other_port(UDP_PORT_KEY | (sport if sport < dport else dport))
             return 0
         if proto != 6:
             return 0
         if ip_end - l4 < 20:
             return 0
+        self.good_ts = ts
         b = &buf[l4]
         sport = (b[0] << 8) | b[1]
         dport = (b[2] << 8) | b[3]
         if not self.port_map[sport] and not self.port_map[dport]:
-            if self.detect:
-                doff = (b[12] >> 2) & 0x3C
-                if not first_fragment and not (total and off + total > end) and (
-                        20 <= doff <= ip_end - l4):
-                    self.detect_segment(ts, bytes(buf[off + 12:off + 20]), sport, dport,
-                                        be32(b + 4), be32(b + 8), b[13],
-                                        bytes(buf[l4 + doff:ip_end]))
+            doff = (b[12] >> 2) & 0x3C
+            if self.detect and not first_fragment and not (total and off + total > end) and (
+                    20 <= doff <= ip_end - l4):
+                self.detect_segment(ts, bytes(buf[off + 12:off + 20]), sport, dport,
+                                    be32(b + 4), be32(b + 8), b[13],
+                                    bytes(buf[l4 + doff:ip_end]))
+            else:
+                self.other_port(sport if sport < dport else dport)
             return 0
         # a first fragment is a cut packet (the reference does not reassemble): its
         # segment carries the bytes the fragment holds, as a snap-cut one does
@@ -3304,23 +3314,27 @@ cdef class _Pass:
             else:
                 break
         if proto == 17 and ip_end - l4 >= 8:
+            self.good_ts = ts
             sport = (buf[l4] << 8) | buf[l4 + 1]
             dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
             if self.port_map[sport] or self.port_map[dport]:  # a first fragment: cut
                 return self.udp_datagram(ts, &buf[off + 8], 16, buf, l4, ip_end)
+            self.other_port(UDP_PORT_KEY | (sport if sport < dport else dport))
             return 0
         if proto != 6 or ip_end - l4 < 20:
             return 0
+        self.good_ts = ts
         sport = (buf[l4] << 8) | buf[l4 + 1]
         dport = (buf[l4 + 2] << 8) | buf[l4 + 3]
         if self.port_map[sport] or self.port_map[dport]:  # a first fragment: cut
             return self.tcp6(ts, buf, off, l4, ip_end)
-        if self.detect and not short and not fragment:
-            doff = (buf[l4 + 12] >> 2) & 0x3C
-            if 20 <= doff <= ip_end - l4:
-                self.detect_segment(ts, bytes(buf[off + 8:off + 40]), sport, dport,
-                                    be32(&buf[l4 + 4]), be32(&buf[l4 + 8]), buf[l4 + 13],
-                                    bytes(buf[l4 + doff:ip_end]))
+        doff = (buf[l4 + 12] >> 2) & 0x3C
+        if self.detect and not short and not fragment and 20 <= doff <= ip_end - l4:
+            self.detect_segment(ts, bytes(buf[off + 8:off + 40]), sport, dport,
+                                be32(&buf[l4 + 4]), be32(&buf[l4 + 8]), buf[l4 + 13],
+                                bytes(buf[l4 + doff:ip_end]))
+        else:
+            self.other_port(sport if sport < dport else dport)
         return 0
 
     cdef int tcp6(self, double ts, const uint8_t[::1] buf, Py_ssize_t off, Py_ssize_t l4,
@@ -3394,6 +3408,13 @@ cdef class _Pass:
                 self.ref_items(ci, d, dec.flush(ts))
         finally:
             _ref_lines = False
+        return 0
+
+    cdef int other_port(self, int key) except -1:
+        """A TCP or UDP packet on no Modbus port that the reference dissector counts for
+        the summary's hint (``Dissector._other_port``: ``key`` the lower port, with
+        ``UDP_PORT_KEY`` for UDP): nothing for a file (a capture without frames is
+        declined); the streaming entry counts them."""
         return 0
 
     cdef int detect_segment(self, double ts, bytes addrs, int sport, int dport, int64_t seq,

@@ -474,6 +474,27 @@ def read_capture(
     """
     path = Path(path)
     name = str(path)
+    inp, pump, raw = open_records(path, progress)
+    dissector = Dissector(
+        config,
+        path.name,
+        new_stream=new_stream,
+        idle_timeout=idle_timeout,
+        hole_timeout=hole_timeout,
+    )
+    return _iterate(pump, inp, raw, name, dissector, stats)
+
+
+def open_records(
+    path: str | Path, progress: Callable[[int, int], None] | None = None
+) -> tuple[_Input, _Pump, BinaryIO]:
+    """Open the capture at ``path`` (a file, a pipe or a FIFO; gzip-compressed or not)
+    and recognise its container from its first bytes: the input, the pump of its
+    records (``pump(packet, out)``: ``packet`` called per record, what it appends to
+    ``out`` yielded) and the file to close. :class:`CaptureError` when it cannot be
+    opened or is no capture. :func:`read_capture`'s opening, and the compiled core's
+    reading of a pipe (:mod:`mbmon.core.live`)."""
+    name = str(path)
     try:
         raw: BinaryIO = open(path, "rb")
     except OSError as exc:
@@ -496,14 +517,7 @@ def read_capture(
     except BaseException:
         raw.close()
         raise
-    dissector = Dissector(
-        config,
-        path.name,
-        new_stream=new_stream,
-        idle_timeout=idle_timeout,
-        hole_timeout=hole_timeout,
-    )
-    return _iterate(pump, inp, raw, name, dissector, stats)
+    return inp, pump, raw
 
 
 def _iterate(
@@ -523,16 +537,13 @@ def _iterate(
         try:
             yield from pump(packet, out)
         except _Damage as damage:
-            error = (
-                f"{name}: {damage.what} at byte {damage.offset} (packet {inp.count + 1}); "
-                f"{inp.count} packets read"
-            )
+            error = failure_message(name, inp, damage)
             # the records read last may be the damage itself (a length field garbled,
             # the next "records" read from the wrong offset, a zero-filled tail): their
             # times are no times; the last record that parsed as a packet has a good one
             end_ts = _last_good(inp, dissector)
         except (OSError, EOFError, zlib.error) as exc:
-            error = f"{name}: read error after {inp.count} packets ({exc})"
+            error = failure_message(name, inp, exc)
             end_ts = inp.last_ts
         else:
             end_ts = inp.last_ts
@@ -550,6 +561,21 @@ def _iterate(
             stats["bytes"] = inp.base + inp.pos
             stats["busiest_ports"] = dissector.busiest_ports()
             stats["detected"] = dissector.detected()
+
+
+#: what ends a capture's records early: damage in the container, or a failed read
+READ_FAILURES = (_Damage, OSError, EOFError, zlib.error)
+
+
+def failure_message(name: str, inp: _Input, exc: BaseException) -> str:
+    """The ERROR event's words when the records of ``name`` ended early (``exc``, one
+    of :data:`READ_FAILURES`, after ``inp.count`` records)."""
+    if isinstance(exc, _Damage):
+        return (
+            f"{name}: {exc.what} at byte {exc.offset} (packet {inp.count + 1}); "
+            f"{inp.count} packets read"
+        )
+    return f"{name}: read error after {inp.count} packets ({exc})"
 
 
 def _last_good(inp: _Input, dissector: Dissector) -> float:
