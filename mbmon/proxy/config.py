@@ -62,6 +62,11 @@ class ProxyConfig:
     handover: float = HANDOVER
     #: the upstream's name when it is not a TCP server (an RTU bus: its serial port)
     upstream_name: str | None = None
+    #: with the engine in a child process: the observing process (the one that starts
+    #: it) runs at the lowest CPU priority from then on (Linux ``SCHED_IDLE``; nice 19
+    #: elsewhere), so the forwarding never waits for it (``mbmon proxy`` sets it; off
+    #: by default, as it lowers the calling thread's priority for good)
+    observe_idle: bool = False
 
     @property
     def upstream(self) -> str:

@@ -75,6 +75,7 @@ class ProxyPlan:
             clients=clients,
         )
         plan = cls(config, args.upstream_serial, args.listen_serial)
+        config.observe_idle = plan.process  # the observing process yields to the forwarding
         if plan.serial:
             plan._plug_serial(args.baud, args.parity, args.stopbits)
         return plan

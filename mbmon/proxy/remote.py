@@ -69,6 +69,7 @@ __all__ = [
     "RemoteEngine",
     "child_main",
     "decode_records",
+    "observe_idle",
 ]
 
 #: The head of a chunk record in the observation pipe: tag, stream id, timestamp,
@@ -93,6 +94,35 @@ STATS_PERIOD = 0.1
 EVENT_LOOP_ENV = "MBMON_EVENT_LOOP"
 #: How long the parent waits for the child to listen (imports, binding).
 START_TIMEOUT = 30.0
+
+
+def observe_idle() -> str | None:
+    """Run the calling thread, and every thread it starts from now on, only on CPU time
+    the rest of the machine leaves (the observing process, once its forwarding child
+    runs): Linux ``SCHED_IDLE``, else nice 19. What was set (``"idle"``, ``"nice 19"``),
+    or ``None`` when the system refused both.
+
+    Forwarding and observation share the cores with the clients and the upstream;
+    observing at the same priority, the observer's wake-ups took a core from the
+    forwarding chain in bursts (a 10 ms batch of records, a 1 MiB chunk compressed),
+    and with ``-w x.mcap`` the chain lost a tenth of its throughput while the
+    machine idled more (docs/performance.md, "Proxy: the observer yields"). An idle
+    thread never delays a runnable forwarding task: the kernel preempts it at once
+    and counts its core as free when it places a woken one. The observation stays
+    lossless while the machine has idle time, and bounded when it has none: past
+    ``max_backlog`` items the child forwards without a copy, counted and reported.
+    An unprivileged thread cannot come back from either, so this is for a process
+    that only observes (``mbmon proxy``: :attr:`ProxyConfig.observe_idle`)."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))  # the calling thread
+        return "idle"
+    except (AttributeError, OSError):
+        pass
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, 19)
+        return "nice 19"
+    except (AttributeError, OSError):
+        return None
 
 
 class PipeOut:
@@ -451,6 +481,8 @@ class ProxyProcess:
         self._stopping = False
         self._reader = threading.Thread(target=self._read, name="mbmon-proxy-pipe", daemon=True)
         self.submitted = 0
+        #: what :func:`observe_idle` set for this (the observing) process, if asked
+        self.priority: str | None = None
 
     @property
     def skipped(self) -> int:
@@ -493,6 +525,8 @@ class ProxyProcess:
             os.close(data_w)
             os.close(ctrl_r)
         self._data, self._ctrl = data_r, ctrl_w
+        if self.config.observe_idle:  # the child runs at the priority it was started with
+            self.priority = observe_idle()
         blob = pickle.dumps(self.config, protocol=pickle.HIGHEST_PROTOCOL)
         os.write(ctrl_w, struct.pack("<I", len(blob)) + blob)
         self._reader.start()

@@ -9,6 +9,8 @@ from __future__ import annotations
 import asyncio
 import os
 import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -199,3 +201,63 @@ def test_an_unread_pipe_bounds_the_backlog_and_reports_what_was_skipped() -> Non
     assert last[0].kind is EventKind.NOTICE
     assert f"{skipped} chunks were forwarded but not observed" in last[0].info["message"]
     assert last[1].ts == 99999.0
+
+
+def _policies(pid: int) -> list[int]:
+    return [os.sched_getscheduler(int(tid)) for tid in os.listdir(f"/proc/{pid}/task")]
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="SCHED_IDLE is Linux's")
+def test_the_observing_process_runs_idle_and_the_forwarding_at_its_own_priority(
+    tmp_path: Path,
+) -> None:
+    """``mbmon proxy -w x.mcap``: every thread of the observing process (the hub and the
+    compiled core, the pipe's reader, the log's writer) runs SCHED_IDLE, so it never
+    takes a core from the forwarding chain; the forwarding process keeps the policy it
+    was started with."""
+    with fake() as up, proxy(up.port, "--quiet", "-w", "seen.mcap", tmp=tmp_path) as p:
+        sock = connect(p.port)
+        for tid in range(20):
+            assert rpc(sock, tid, read_hr(tid, 2)) == expected_hr(tid, 1, tid, 2)
+        observing = _policies(p.proc.pid)
+        (child,) = _children(p.proc.pid)
+        forwarding = _policies(child)
+        sock.close()
+        _out, err = p.stop()
+    assert p.returncode == 0, err
+    assert len(observing) >= 3  # the main thread, the pipe's reader, the log's writer
+    assert set(observing) == {os.SCHED_IDLE}
+    assert set(forwarding) == {os.SCHED_OTHER}
+    assert "requests 20, responses 20" in err
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="SCHED_IDLE is Linux's")
+def test_an_observer_starved_by_busy_cores_catches_up_and_loses_nothing(tmp_path: Path) -> None:
+    """With every core kept busy at normal priority, the idle observer gets next to no
+    CPU: the forwarding goes on, its observations wait (within the backlog), and once
+    the cores are free again the log holds every request and answer."""
+    from tests.proxy.test_proxy_own_answers import mcap_json
+
+    hogs: list[subprocess.Popen[bytes]] = []
+    with fake() as up, proxy(up.port, "--quiet", "-w", "seen.mcap", tmp=tmp_path) as p:
+        sock = connect(p.port)
+        assert rpc(sock, 0, read_hr(0, 2)) == expected_hr(0, 1, 0, 2)
+        busy = "import time\nend = time.monotonic() + 20\nwhile time.monotonic() < end: pass"
+        try:
+            hogs = [
+                subprocess.Popen([sys.executable, "-c", busy]) for _ in range(os.cpu_count() or 2)
+            ]
+            for tid in range(1, 1500):  # answered all the same, by the child
+                assert rpc(sock, tid, read_hr(tid, 2)) == expected_hr(tid, 1, tid, 2)
+        finally:
+            for hog in hogs:
+                hog.kill()
+                hog.wait()
+        sock.close()
+        _out, err = p.stop()
+    assert p.returncode == 0, err
+    assert "requests 1500, responses 1500" in err
+    assert "not observed" not in err
+    frames = mcap_json(tmp_path / "seen.mcap", "/modbus/frames")
+    assert sum(f.get("kind") == "request" for f in frames) == 1500
+    assert sum(f.get("kind") == "response" for f in frames) == 1500
