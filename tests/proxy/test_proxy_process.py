@@ -208,14 +208,19 @@ def _policies(pid: int) -> list[int]:
 
 
 @pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="SCHED_IDLE is Linux's")
+@pytest.mark.parametrize("asked", ["", "normal"])
 def test_the_observing_process_runs_idle_and_the_forwarding_at_its_own_priority(
-    tmp_path: Path,
+    tmp_path: Path, asked: str
 ) -> None:
     """``mbmon proxy -w x.mcap``: every thread of the observing process (the hub and the
     compiled core, the pipe's reader, the log's writer) runs SCHED_IDLE, so it never
     takes a core from the forwarding chain; the forwarding process keeps the policy it
-    was started with."""
-    with fake() as up, proxy(up.port, "--quiet", "-w", "seen.mcap", tmp=tmp_path) as p:
+    was started with. ``MBMON_OBSERVE_PRIORITY=normal`` keeps the observer there too."""
+    env = {**ENV, "MBMON_OBSERVE_PRIORITY": asked}
+    with (
+        fake() as up,
+        proxy(up.port, "--quiet", "-w", "seen.mcap", tmp=tmp_path, env=env) as p,
+    ):
         sock = connect(p.port)
         for tid in range(20):
             assert rpc(sock, tid, read_hr(tid, 2)) == expected_hr(tid, 1, tid, 2)
@@ -226,7 +231,7 @@ def test_the_observing_process_runs_idle_and_the_forwarding_at_its_own_priority(
         _out, err = p.stop()
     assert p.returncode == 0, err
     assert len(observing) >= 3  # the main thread, the pipe's reader, the log's writer
-    assert set(observing) == {os.SCHED_IDLE}
+    assert set(observing) == {os.SCHED_OTHER if asked else os.SCHED_IDLE}
     assert set(forwarding) == {os.SCHED_OTHER}
     assert "requests 20, responses 20" in err
 
