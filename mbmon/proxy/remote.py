@@ -63,6 +63,7 @@ from mbmon.proxy.observer import Observer
 
 __all__ = [
     "CHUNK_HEAD",
+    "Catchup",
     "PipeObserver",
     "PipeOut",
     "ProxyProcess",
@@ -123,6 +124,74 @@ def observe_idle() -> str | None:
         return "nice 19"
     except (AttributeError, OSError):
         return None
+
+
+#: A read of the observation pipe this large finds the observing process behind
+#: (about 6,000 chunk records, a quarter of a second at 8 clients) ...
+BEHIND_BYTES = PIPE_SIZE // 4
+#: ... and so does a hub this share of ``max_backlog`` items behind the reader.
+BEHIND_SHARE = 8
+#: Reads this small, with the hub at most a tenth of that behind, this many in a
+#: row (about one a handover, 10 ms), find it caught up.
+CAUGHT_UP_BYTES = PIPE_SIZE // 32
+CAUGHT_UP_READS = 100
+
+
+class Catchup:
+    """The idle observing process back at normal priority while it is far behind.
+
+    The pipe's reader calls :meth:`read` with the size of each read and the hub's
+    backlog (items handed over, not yet taken): a read of :data:`BEHIND_BYTES` or
+    more, or a hub more than ``max_backlog / BEHIND_SHARE`` items behind, puts every
+    thread of the process back to ``SCHED_OTHER``, so the observation catches up
+    instead of falling past its backlog on a machine with no idle time;
+    :data:`CAUGHT_UP_READS` small reads in a row with a small backlog put them back
+    to ``SCHED_IDLE``. Leaving ``SCHED_IDLE`` needs the privilege to (root,
+    ``CAP_SYS_NICE`` or an ``RLIMIT_NICE`` of 20): without it the first attempt
+    fails and the process stays idle (:attr:`able` is then False).
+    """
+
+    def __init__(self, max_backlog: int) -> None:
+        self.behind_items = max(1, max_backlog // BEHIND_SHARE)
+        self.idle = True
+        self.able = True
+        self.returns = 0  # times it went back to normal priority
+        self._calm = 0
+
+    def read(self, n: int, backlog: int) -> None:
+        """One read of ``n`` bytes, the hub ``backlog`` items behind after it."""
+        if not self.able:
+            return
+        if self.idle:
+            if n >= BEHIND_BYTES or backlog >= self.behind_items:
+                if _set_policy(os.SCHED_OTHER):
+                    self.idle = False
+                    self.returns += 1
+                    self._calm = 0
+                else:
+                    self.able = False
+            return
+        if n >= CAUGHT_UP_BYTES or backlog * 10 >= self.behind_items:
+            self._calm = 0
+            return
+        self._calm += 1
+        if self._calm >= CAUGHT_UP_READS:
+            self.idle = _set_policy(os.SCHED_IDLE) or self.idle
+
+
+def _set_policy(policy: int) -> bool:
+    """Every thread of this process to ``policy``; False when the system refuses."""
+    for thread in threading.enumerate():
+        tid = thread.native_id
+        if tid is None:
+            continue
+        try:
+            os.sched_setscheduler(tid, policy, os.sched_param(0))
+        except ProcessLookupError:  # ended meanwhile
+            continue
+        except OSError:
+            return False
+    return True
 
 
 class PipeOut:
@@ -483,6 +552,9 @@ class ProxyProcess:
         self.submitted = 0
         #: what :func:`observe_idle` set for this (the observing) process, if asked
         self.priority: str | None = None
+        #: back at normal priority while far behind (with an idle observer)
+        self.catchup: Catchup | None = None
+        self._last_read = 0
 
     @property
     def skipped(self) -> int:
@@ -527,6 +599,8 @@ class ProxyProcess:
         self._data, self._ctrl = data_r, ctrl_w
         if self.config.observe_idle:  # the child runs at the priority it was started with
             self.priority = observe_idle()
+            if self.priority == "idle":
+                self.catchup = Catchup(self.config.max_backlog)
         blob = pickle.dumps(self.config, protocol=pickle.HIGHEST_PROTOCOL)
         os.write(ctrl_w, struct.pack("<I", len(blob)) + blob)
         self._reader.start()
@@ -554,6 +628,7 @@ class ProxyProcess:
                 n = os.readv(fd, [space])
                 if not n:
                     break
+                self._last_read = n
                 buf += space[:n]
                 if self.stage is not None:
                     self._to_core(buf)
@@ -567,6 +642,7 @@ class ProxyProcess:
                     hub.submit(lambda items=items: items)
                     # the hub is behind: read no more, so the pipe and then the
                     # child's buffer fill and the child skips (bounded memory)
+                    self._pace(self.submitted - hub.seen)
                     while self.submitted - hub.seen > limit and not self._stopping:
                         time.sleep(0.005)
         except OSError:
@@ -624,8 +700,15 @@ class ProxyProcess:
         limit = self.config.max_backlog
         # the hub is behind: read no more, so the pipe and then the child's buffer
         # fill and the child skips (bounded memory)
+        self._pace(self.submitted - (hub.seen + stage.taken))
         while self.submitted - (hub.seen + stage.taken) > limit and not self._stopping:
             time.sleep(0.005)
+
+    def _pace(self, backlog: int) -> None:
+        """After a read handed over: an idle observer far behind goes back to normal
+        priority while it catches up (:class:`Catchup`)."""
+        if self.catchup is not None:
+            self.catchup.read(self._last_read, backlog)
 
     def _record(self, record: tuple[Any, ...]) -> None:
         what = record[0]

@@ -266,3 +266,69 @@ def test_an_observer_starved_by_busy_cores_catches_up_and_loses_nothing(tmp_path
     frames = mcap_json(tmp_path / "seen.mcap", "/modbus/frames")
     assert sum(f.get("kind") == "request" for f in frames) == 1500
     assert sum(f.get("kind") == "response" for f in frames) == 1500
+
+
+def _messages(path: Path, topic: str) -> int:
+    """How many messages ``topic`` has in the MCAP log at ``path`` (its summary's count,
+    read with the ``mcap`` package's reader)."""
+    from mcap.reader import make_reader
+
+    with path.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None and summary.statistics is not None
+    ids = [c.id for c in summary.channels.values() if c.topic == topic]
+    return sum(summary.statistics.channel_message_counts.get(i, 0) for i in ids)
+
+
+def _may_leave_idle() -> bool:
+    import resource
+
+    return os.geteuid() == 0 or resource.getrlimit(resource.RLIMIT_NICE)[0] >= 20
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="SCHED_IDLE is Linux's")
+@pytest.mark.skipif(not _may_leave_idle(), reason="leaving SCHED_IDLE needs root or RLIMIT_NICE")
+def test_a_starved_observer_catches_up_at_normal_priority_then_yields_again(
+    tmp_path: Path,
+) -> None:
+    """With every core kept busy, the idle observer falls behind; a large read of the
+    pipe puts its threads back to normal priority (it catches up instead of skipping);
+    once its reads are small again for a while, they go back to idle."""
+    hogs: list[subprocess.Popen[bytes]] = []
+    busy = "import time\nend = time.monotonic() + 30\nwhile time.monotonic() < end: pass"
+    seen: list[set[int]] = []
+    tid = 0
+    with fake() as up, proxy(up.port, "--quiet", "-w", "seen.mcap", tmp=tmp_path) as p:
+        sock = connect(p.port)
+        try:
+            hogs = [
+                subprocess.Popen([sys.executable, "-c", busy]) for _ in range(os.cpu_count() or 2)
+            ]
+            end = time.monotonic() + 25
+            while time.monotonic() < end and (not seen or seen[-1] != {os.SCHED_OTHER}):
+                # 100 requests at once, large answers (125 registers): the pipe fills fast
+                tids = [(tid + k) & 0xFFFF for k in range(1, 101)]
+                tid += 100
+                sock.sendall(b"".join(adu(t, 1, read_hr(1, 125)) for t in tids))
+                for t in tids:
+                    assert read_adu(sock) == expected_hr(t, 1, 1, 125)
+                seen.append(set(_policies(p.proc.pid)))
+        finally:
+            for hog in hogs:
+                hog.kill()
+                hog.wait()
+        assert seen[-1] == {os.SCHED_OTHER}, seen  # behind: back at normal priority
+        end = time.monotonic() + 20
+        while time.monotonic() < end and seen[-1] != {os.SCHED_IDLE}:
+            for _ in range(20):  # light traffic: one small read a handover
+                tid += 1
+                assert rpc(sock, tid & 0xFFFF, read_hr(1, 2)) == expected_hr(tid & 0xFFFF, 1, 1, 2)
+            time.sleep(0.02)
+            seen.append(set(_policies(p.proc.pid)))
+        assert seen[-1] == {os.SCHED_IDLE}, seen  # caught up: idle again
+        sock.close()
+        _out, err = p.stop()
+    assert p.returncode == 0, err
+    assert f"requests {tid}, responses {tid}" in err
+    assert "not observed" not in err
+    assert _messages(tmp_path / "seen.mcap", "/modbus/frames") == 2 * tid  # every ADU
