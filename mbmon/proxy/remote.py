@@ -158,6 +158,14 @@ class Catchup:
         self.returns = 0  # times it went back to normal priority
         self._calm = 0
 
+    def stop(self) -> None:
+        """The run is ending: normal priority from now on, where allowed, so that the
+        last observations, the log's last chunks and the summary do not wait for idle
+        time on a busy machine (a Ctrl-C took over 25 s at load 17 without this)."""
+        if self.able and self.idle:
+            self.idle = not _set_policy(os.SCHED_OTHER)
+        self.able = False
+
     def read(self, n: int, backlog: int) -> None:
         """One read of ``n`` bytes, the hub ``backlog`` items behind after it."""
         if not self.able:
@@ -725,6 +733,8 @@ class ProxyProcess:
     def stop(self) -> None:
         """Ask the child to stop (safe from any thread and from signal handlers)."""
         self._stopping = True
+        if self.catchup is not None:
+            self.catchup.stop()
         ctrl = self._ctrl
         if ctrl is not None:
             try:
