@@ -26,6 +26,11 @@ hub in one process) come to the parent's hub through a pipe:
   :class:`RemoteEngine` is what the command sees of the engine: its counters
   and live figures, sent by the child ten times a second and at the end.
 
+Once the child has started, the parent runs at idle CPU priority
+(:func:`observe_idle`, when :attr:`ProxyConfig.observe_idle` asks): the forwarding
+chain never waits for the observer's bursts; far behind, or stopping, it is back at
+normal priority where the system allows (:class:`Catchup`).
+
 Stopping: the parent writes to (or closes) a control pipe; the child stops the
 engine (its last events, the disconnects, still come), sends its final counters
 and closes the data pipe, whose end of file stops the hub. The child ignores
@@ -113,7 +118,9 @@ def observe_idle() -> str | None:
     lossless while the machine has idle time, and bounded when it has none: past
     ``max_backlog`` items the child forwards without a copy, counted and reported.
     An unprivileged thread cannot come back from either, so this is for a process
-    that only observes (``mbmon proxy``: :attr:`ProxyConfig.observe_idle`)."""
+    that only observes (``mbmon proxy``: :attr:`ProxyConfig.observe_idle`);
+    where the system allows it, :class:`Catchup` brings the process back to normal
+    priority while it is far behind and once it is stopping."""
     try:
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))  # the calling thread
         return "idle"
@@ -127,7 +134,7 @@ def observe_idle() -> str | None:
 
 
 #: A read of the observation pipe this large finds the observing process behind
-#: (about 6,000 chunk records, a quarter of a second at 8 clients) ...
+#: (about 6,000 chunk records, a tenth of a second at 8 clients flat out) ...
 BEHIND_BYTES = PIPE_SIZE // 4
 #: ... and so does a hub this share of ``max_backlog`` items behind the reader.
 BEHIND_SHARE = 8
