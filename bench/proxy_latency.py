@@ -19,6 +19,10 @@ process per client, blocking sockets, one request in flight each). Targets:
                       informational, the targets are against ``bare``;
 * ``mbmon``           ``mbmon proxy --quiet``;
 * ``mbmon -w mcap``   ``mbmon proxy --quiet -w x.mcap``;
+* ``..., observer at normal priority`` (``--normal-priority``) ``mbmon`` and ``mbmon -w
+                      mcap`` with ``MBMON_OBSERVE_PRIORITY=normal``: the observing process
+                      at the priority it started with instead of idle (what yielding to
+                      the forwarding is worth, in the same run);
 * ``mbmon, observer stopped`` (``--observer-stopped``) ``mbmon proxy --quiet`` with its
                       observing process stopped (``SIGSTOP``) and its backlog full, so
                       the forwarding process forwards without a copy: the forwarding
@@ -72,7 +76,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 sys.path.insert(0, str(ROOT))
-from mbmon.proxy.config import MAX_BACKLOG  # noqa: E402
+from mbmon.proxy.config import MAX_BACKLOG, OBSERVE_PRIORITY_ENV  # noqa: E402
 from mbmon.proxy.remote import CHUNK_HEAD, PIPE_SIZE  # noqa: E402
 
 UPSTREAM = r"""
@@ -258,6 +262,8 @@ def target(
         env = ENV
         if "@" in name:
             env = {**os.environ, "PYTHONPATH": (trees or {})[name.split("@", 1)[1]]}
+        if NORMAL_PRIORITY in name:  # the observing process at the priority it started with
+            env = {**env, OBSERVE_PRIORITY_ENV: "normal"}
         # cwd: not a source tree, whose mbmon ``-m`` would import before PYTHONPATH's
         proc = subprocess.Popen(args, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp)
         assert proc.stderr is not None
@@ -420,6 +426,9 @@ def catch_up(pid: int, limit: float = 30.0) -> float:
 #: catch-up time (s) that is only the observer's last hand-overs and log flush (every 0.5 s)
 LAG_OK = 0.8
 
+#: The rows of mbmon with its observing process at normal priority (``--normal-priority``).
+NORMAL_PRIORITY = ", observer at normal priority"
+
 #: The informational row of mbmon's forwarding alone (``--observer-stopped``).
 OBSERVER_STOPPED = "mbmon, observer stopped"
 
@@ -486,6 +495,9 @@ def bench(args: argparse.Namespace) -> None:
         names.insert(2, "bare buffered")
     if args.uvloop_anchors:
         names.insert(names.index("mbmon"), "bare buffered uvloop")
+    if args.normal_priority:
+        names.insert(names.index("mbmon") + 1, "mbmon" + NORMAL_PRIORITY)
+        names.insert(names.index("mbmon -w mcap") + 1, "mbmon -w mcap" + NORMAL_PRIORITY)
     if args.observer_stopped:
         names.insert(names.index("mbmon"), OBSERVER_STOPPED)
     if args.floor_observers:
@@ -681,6 +693,13 @@ def main() -> None:
         help="also run mbmon with its observing process stopped (SIGSTOP) once its "
         "backlog is full: the forwarding alone, without the observation's CPU "
         "(informational: what observing costs)",
+    )
+    parser.add_argument(
+        "--normal-priority",
+        action="store_true",
+        help="also run mbmon and mbmon -w mcap with the observing process at the priority "
+        "it started with (MBMON_OBSERVE_PRIORITY=normal) instead of idle: what yielding "
+        "to the forwarding is worth, in the same run",
     )
     parser.add_argument(
         "--floor-observers",

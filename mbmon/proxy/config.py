@@ -16,6 +16,7 @@ __all__ = [
     "GATEWAY_TARGET_FAILED",
     "HANDOVER",
     "MAX_BACKLOG",
+    "OBSERVE_PRIORITY_ENV",
     "ProxyConfig",
     "ProxyStats",
     "endpoint",
@@ -30,6 +31,11 @@ MAX_BACKLOG = 50_000
 
 #: Seconds observations wait to go to the hub together (:attr:`ProxyConfig.handover`).
 HANDOVER = 0.01
+
+#: The environment variable that keeps ``mbmon proxy``'s observing process at the
+#: priority it was started with (``normal``) instead of idle
+#: (:attr:`ProxyConfig.observe_idle`).
+OBSERVE_PRIORITY_ENV = "MBMON_OBSERVE_PRIORITY"
 
 
 def endpoint(host: str, port: int) -> str:
@@ -62,6 +68,12 @@ class ProxyConfig:
     handover: float = HANDOVER
     #: the upstream's name when it is not a TCP server (an RTU bus: its serial port)
     upstream_name: str | None = None
+    #: with the engine in a child process: the observing process (the one that starts
+    #: it) runs at the lowest CPU priority from then on (Linux ``SCHED_IDLE``; nice 19
+    #: elsewhere), so the forwarding never waits for it (``mbmon proxy`` sets it unless
+    #: ``MBMON_OBSERVE_PRIORITY=normal``; off by default, as it lowers the calling
+    #: thread's priority for good)
+    observe_idle: bool = False
 
     @property
     def upstream(self) -> str:

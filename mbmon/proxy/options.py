@@ -42,7 +42,9 @@ guard option a write whose byte count, quantity and length disagree (or whose ra
 runs past 0xFFFF) is refused as malformed. --read-only is an allow-list of known
 reads; --allow-fc CODE[/SUB] opens one more (e.g. --allow-fc 8/1 --allow-fc 65-72).
 forwarding: a TCP proxy forwards in a process of its own, on uvloop when installed
-(MBMON_EVENT_LOOP=asyncio: asyncio's own loop); TCP keepalive finds vanished peers.
+(MBMON_EVENT_LOOP=asyncio: asyncio's own loop) and observes at idle CPU priority
+(MBMON_OBSERVE_PRIORITY=normal: at the priority it started with); TCP keepalive
+finds vanished peers.
 exit status: 0 ok, 1 cannot listen or an output failed, 2 usage
 """
 

@@ -15,7 +15,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from mbmon.proxy.config import ProxyConfig, endpoint
+from mbmon.proxy.config import OBSERVE_PRIORITY_ENV, ProxyConfig, endpoint
 from mbmon.proxy.guard import ClientFilter, Guard, GuardSpecError
 
 __all__ = ["DEFAULT_LISTEN", "PlanError", "ProxyPlan"]
@@ -75,6 +75,9 @@ class ProxyPlan:
             clients=clients,
         )
         plan = cls(config, args.upstream_serial, args.listen_serial)
+        # the observing process yields to the forwarding, unless asked not to
+        keep = os.environ.get(OBSERVE_PRIORITY_ENV, "").strip().lower() == "normal"
+        config.observe_idle = plan.process and not keep
         if plan.serial:
             plan._plug_serial(args.baud, args.parity, args.stopbits)
         return plan

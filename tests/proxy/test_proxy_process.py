@@ -9,6 +9,8 @@ from __future__ import annotations
 import asyncio
 import os
 import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -199,3 +201,134 @@ def test_an_unread_pipe_bounds_the_backlog_and_reports_what_was_skipped() -> Non
     assert last[0].kind is EventKind.NOTICE
     assert f"{skipped} chunks were forwarded but not observed" in last[0].info["message"]
     assert last[1].ts == 99999.0
+
+
+def _policies(pid: int) -> list[int]:
+    return [os.sched_getscheduler(int(tid)) for tid in os.listdir(f"/proc/{pid}/task")]
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="SCHED_IDLE is Linux's")
+@pytest.mark.parametrize("asked", ["", "normal"])
+def test_the_observing_process_runs_idle_and_the_forwarding_at_its_own_priority(
+    tmp_path: Path, asked: str
+) -> None:
+    """``mbmon proxy -w x.mcap``: every thread of the observing process (the hub and the
+    compiled core, the pipe's reader, the log's writer) runs SCHED_IDLE, so it never
+    takes a core from the forwarding chain; the forwarding process keeps the policy it
+    was started with. ``MBMON_OBSERVE_PRIORITY=normal`` keeps the observer there too."""
+    env = {**ENV, "MBMON_OBSERVE_PRIORITY": asked}
+    with (
+        fake() as up,
+        proxy(up.port, "--quiet", "-w", "seen.mcap", tmp=tmp_path, env=env) as p,
+    ):
+        sock = connect(p.port)
+        for tid in range(20):
+            assert rpc(sock, tid, read_hr(tid, 2)) == expected_hr(tid, 1, tid, 2)
+        observing = _policies(p.proc.pid)
+        (child,) = _children(p.proc.pid)
+        forwarding = _policies(child)
+        sock.close()
+        _out, err = p.stop()
+    assert p.returncode == 0, err
+    assert len(observing) >= 3  # the main thread, the pipe's reader, the log's writer
+    assert set(observing) == {os.SCHED_OTHER if asked else os.SCHED_IDLE}
+    assert set(forwarding) == {os.SCHED_OTHER}
+    assert "requests 20, responses 20" in err
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="SCHED_IDLE is Linux's")
+def test_an_observer_starved_by_busy_cores_catches_up_and_loses_nothing(tmp_path: Path) -> None:
+    """With every core kept busy at normal priority, the idle observer gets next to no
+    CPU: the forwarding goes on, its observations wait (within the backlog), and once
+    the cores are free again the log holds every request and answer."""
+    from tests.proxy.test_proxy_own_answers import mcap_json
+
+    hogs: list[subprocess.Popen[bytes]] = []
+    with fake() as up, proxy(up.port, "--quiet", "-w", "seen.mcap", tmp=tmp_path) as p:
+        sock = connect(p.port)
+        assert rpc(sock, 0, read_hr(0, 2)) == expected_hr(0, 1, 0, 2)
+        busy = "import time\nend = time.monotonic() + 20\nwhile time.monotonic() < end: pass"
+        try:
+            hogs = [
+                subprocess.Popen([sys.executable, "-c", busy]) for _ in range(os.cpu_count() or 2)
+            ]
+            for tid in range(1, 1500):  # answered all the same, by the child
+                assert rpc(sock, tid, read_hr(tid, 2)) == expected_hr(tid, 1, tid, 2)
+        finally:
+            for hog in hogs:
+                hog.kill()
+                hog.wait()
+        sock.close()
+        _out, err = p.stop()
+    assert p.returncode == 0, err
+    assert "requests 1500, responses 1500" in err
+    assert "not observed" not in err
+    frames = mcap_json(tmp_path / "seen.mcap", "/modbus/frames")
+    assert sum(f.get("kind") == "request" for f in frames) == 1500
+    assert sum(f.get("kind") == "response" for f in frames) == 1500
+
+
+def _messages(path: Path, topic: str) -> int:
+    """How many messages ``topic`` has in the MCAP log at ``path`` (its summary's count,
+    read with the ``mcap`` package's reader)."""
+    from mcap.reader import make_reader
+
+    with path.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None and summary.statistics is not None
+    ids = [c.id for c in summary.channels.values() if c.topic == topic]
+    return sum(summary.statistics.channel_message_counts.get(i, 0) for i in ids)
+
+
+def _may_leave_idle() -> bool:
+    import resource
+
+    return os.geteuid() == 0 or resource.getrlimit(resource.RLIMIT_NICE)[0] >= 20
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="SCHED_IDLE is Linux's")
+@pytest.mark.skipif(not _may_leave_idle(), reason="leaving SCHED_IDLE needs root or RLIMIT_NICE")
+def test_a_starved_observer_catches_up_at_normal_priority_then_yields_again(
+    tmp_path: Path,
+) -> None:
+    """With every core kept busy, the idle observer falls behind; a large read of the
+    pipe puts its threads back to normal priority (it catches up instead of skipping);
+    once its reads are small again for a while, they go back to idle."""
+    hogs: list[subprocess.Popen[bytes]] = []
+    busy = "import time\nend = time.monotonic() + 30\nwhile time.monotonic() < end: pass"
+    seen: list[set[int]] = []
+    tid = 0
+    with fake() as up, proxy(up.port, "--quiet", "-w", "seen.mcap", tmp=tmp_path) as p:
+        sock = connect(p.port)
+        try:
+            hogs = [
+                subprocess.Popen([sys.executable, "-c", busy]) for _ in range(os.cpu_count() or 2)
+            ]
+            end = time.monotonic() + 25
+            while time.monotonic() < end and (not seen or seen[-1] != {os.SCHED_OTHER}):
+                # 100 requests at once, large answers (125 registers): the pipe fills fast
+                tids = [(tid + k) & 0xFFFF for k in range(1, 101)]
+                tid += 100
+                sock.sendall(b"".join(adu(t, 1, read_hr(1, 125)) for t in tids))
+                for t in tids:
+                    assert read_adu(sock) == expected_hr(t, 1, 1, 125)
+                seen.append(set(_policies(p.proc.pid)))
+        finally:
+            for hog in hogs:
+                hog.kill()
+                hog.wait()
+        assert seen[-1] == {os.SCHED_OTHER}, seen  # behind: back at normal priority
+        end = time.monotonic() + 20
+        while time.monotonic() < end and seen[-1] != {os.SCHED_IDLE}:
+            for _ in range(20):  # light traffic: one small read a handover
+                tid += 1
+                assert rpc(sock, tid & 0xFFFF, read_hr(1, 2)) == expected_hr(tid & 0xFFFF, 1, 1, 2)
+            time.sleep(0.02)
+            seen.append(set(_policies(p.proc.pid)))
+        assert seen[-1] == {os.SCHED_IDLE}, seen  # caught up: idle again
+        sock.close()
+        _out, err = p.stop()
+    assert p.returncode == 0, err
+    assert f"requests {tid}, responses {tid}" in err
+    assert "not observed" not in err
+    assert _messages(tmp_path / "seen.mcap", "/modbus/frames") == 2 * tid  # every ADU
