@@ -25,9 +25,10 @@ checked against the bytes present before it is read through a pointer.
 """
 
 from libc.stdlib cimport malloc, realloc, free
-from libc.string cimport memchr, memcmp, memcpy, memmove, memset
+from libc.string cimport memchr, memcmp, memcpy, memmove, memset, strlen
 from libc.math cimport floor, isfinite, fabs, nextafter, INFINITY
-from libc.math cimport rint
+from libc.math cimport frexp, ldexp, signbit, copysign
+from libc.math cimport rint, NAN
 from libc.stdlib cimport strtod
 from libc.stdint cimport uint8_t, uint32_t, uint64_t, int64_t
 
@@ -273,10 +274,94 @@ cdef int put_hex(Buf* b, const uint8_t* p, Py_ssize_t n) except -1:
     return 0
 
 
+cdef int64_t scaled_round(double v, uint64_t scale) noexcept nogil:
+    """``|v| * scale`` rounded to an integer as CPython's correctly rounded formatting
+    rounds it (``scale`` a power of ten up to 1000), or -1 when ``v`` is outside what
+    this proves (non-finite, |v| >= 2^40: the caller asks CPython).
+
+    ``|v| = f * 2^e`` with ``m = f * 2^53`` an integer below 2^53 (frexp and ldexp are
+    exact), so ``|v| * scale = m * scale / 2^(53 - e)`` exactly, ``m * scale`` below
+    2^63; the quotient rounded by its remainder, a half to even (dtoa's rule for an
+    exact tie), is the decimal CPython writes and reads back."""
+    cdef int e, s
+    cdef uint64_t big, q, rem, half
+    if not (fabs(v) < 1099511627776.0):
+        return -1
+    big = <uint64_t>ldexp(frexp(fabs(v), &e), 53) * scale
+    s = 53 - e  # >= 13 below 2^40
+    if s >= 64:
+        return 0  # big < 2^63: below a half
+    q = big >> s
+    rem = big & ((<uint64_t>1 << s) - 1)
+    half = <uint64_t>1 << (s - 1)
+    if rem > half or (rem == half and (q & 1)):
+        q += 1
+    return <int64_t>q
+
+
+cdef int fixed_text(char* out, double v, int precision) noexcept nogil:
+    """``'%.Nf' % v`` (N = ``precision``, 0..3) into ``out`` (at least 24 bytes), exactly
+    as CPython writes it (``scaled_round``'s digits), without the dtoa round trip; its
+    length, or -1 where ``scaled_round`` proves nothing. The sign is the double's own
+    (``-0.0`` and what rounds to zero from below write ``-0.0``, as CPython does)."""
+    cdef int n = 0, i
+    cdef uint64_t scale = 1, whole, frac
+    cdef int64_t q
+    cdef char tmp[24]
+    if precision < 0 or precision > 3:
+        return -1
+    for i in range(precision):
+        scale *= 10
+    q = scaled_round(v, scale)
+    if q < 0:
+        return -1
+    if signbit(v):
+        out[n] = 45
+        n += 1
+    whole = <uint64_t>q // scale
+    frac = <uint64_t>q % scale
+    i = 24
+    while True:
+        i -= 1
+        tmp[i] = <char>(48 + whole % 10)
+        whole //= 10
+        if whole == 0:
+            break
+    memcpy(out + n, tmp + i, 24 - i)
+    n += 24 - i
+    if precision:
+        out[n] = 46
+        for i in range(precision, 0, -1):
+            out[n + i] = <char>(48 + frac % 10)
+            frac //= 10
+        n += precision + 1
+    return n
+
+
+cdef double round3_exact(double v) noexcept nogil:
+    """``round(v, 3)`` where ``scaled_round`` proves it (else NaN): the double nearest
+    the correctly rounded three decimals, ``q / 1000`` (q below 2^53: one correctly
+    rounded division, as strtod reads the digits back), with ``v``'s sign."""
+    cdef int64_t q = scaled_round(v, 1000)
+    if q < 0:
+        return NAN
+    return copysign(<double>q / 1000.0, v)
+
+
 cdef int put_double(Buf* b, double v, char code, int precision, int flags) except -1:
-    """``v`` formatted by CPython's own float formatting (repr 'r', or 'f')."""
-    cdef char* s = PyOS_double_to_string(v, code, precision, flags, NULL)
+    """``v`` formatted by CPython's own float formatting (repr 'r', or 'f'); 'f' with up
+    to three decimals is written here (``fixed_text``: the same digits, proved)."""
+    cdef char* s
     cdef Py_ssize_t n = 0
+    if code == 102 and flags == 0:
+        if b.n + 24 > b.cap:
+            buf_need(b, 24)
+        n = fixed_text(b.p + b.n, v, precision)
+        if n >= 0:
+            b.n += n
+            return 0
+        n = 0
+    s = PyOS_double_to_string(v, code, precision, flags, NULL)
     while s[n]:
         n += 1
     try:
@@ -360,9 +445,15 @@ cdef int round_trips(double ts, double whole, double us):
 
 cdef int put_json_round3(Buf* b, double v) except -1:
     """``orjson.dumps(round(v, 3))``: CPython's correctly rounded three decimals, trimmed
-    (below 1e9 no shorter text reads back as that float)."""
-    cdef char* s = PyOS_double_to_string(v, b'f', 3, 0, NULL)
-    cdef Py_ssize_t n = 0
+    (below 1e9 no shorter text reads back as that float); ``fixed_text``'s digits where
+    it proves them."""
+    cdef char tmp[24]
+    cdef char* s
+    cdef Py_ssize_t n = fixed_text(tmp, v, 3)
+    if n >= 0:
+        return put_trimmed(b, tmp, n)
+    s = PyOS_double_to_string(v, b'f', 3, 0, NULL)
+    n = 0
     while s[n]:
         n += 1
     try:
@@ -373,15 +464,17 @@ cdef int put_json_round3(Buf* b, double v) except -1:
 
 
 cdef double py_round3(double v) except? -1.0:
-    """``round(v, 3)``: CPython's correctly rounded digits, read back."""
+    """``round(v, 3)``: ``round3_exact`` where it proves it, else CPython's correctly
+    rounded digits, read back."""
+    cdef double r = round3_exact(v)
+    if r == r:
+        return r
     cdef char* s = PyOS_double_to_string(v, b'f', 3, 0, NULL)
-    cdef double r
     try:
         r = PyOS_string_to_double(s, NULL, None)
     finally:
         PyMem_Free(s)
     return r
-
 
 
 # --------------------------------------------------------------------------- MCAP
@@ -3821,6 +3914,91 @@ def _native_note(bytes data, bint response, request=None):
         note,
     )
 
+
+def _fixed_text(double v, int precision):
+    """Test-only entry: ``fixed_text``'s ``'%.Nf' % v`` (bytes), or ``None`` where it
+    proves nothing (the core asks CPython there)."""
+    cdef char tmp[24]
+    cdef int n = fixed_text(tmp, v, precision)
+    return None if n < 0 else PyBytes_FromStringAndSize(tmp, n)
+
+
+def _round3(double v):
+    """Test-only entry: ``round3_exact(v)`` (NaN where it proves nothing)."""
+    return round3_exact(v)
+
+
+def _json_round3(double v):
+    """Test-only entry: the JSON number a line's ``latency_ms`` gets (``put_json_round3``)."""
+    cdef Buf b
+    b.p = NULL
+    b.n = 0
+    b.cap = 0
+    try:
+        put_json_round3(&b, v)
+        return PyBytes_FromStringAndSize(b.p, b.n)
+    finally:
+        free(b.p)
+
+
+cdef bint _same_as_cpython(double x, char* mine, int* unproven) except -1:
+    """Whether ``fixed_text`` and ``round3_exact`` give what CPython gives for ``x``
+    (``'%.1f'``, ``'%.3f'`` and ``round(x, 3)`` read back, bit for bit)."""
+    cdef int prec, n
+    cdef char* s
+    cdef double r = 0.0, mr
+    cdef bint same = True
+    for prec in (1, 3):
+        n = fixed_text(mine, x, prec)
+        if n < 0:
+            unproven[0] += 1
+            return True
+        s = PyOS_double_to_string(x, b'f', prec, 0, NULL)
+        try:
+            if <size_t>n != strlen(s) or memcmp(s, mine, n) != 0:
+                same = False
+            if prec == 3:
+                r = PyOS_string_to_double(s, NULL, None)
+        finally:
+            PyMem_Free(s)
+    mr = round3_exact(x)
+    if memcmp(&r, &mr, 8) != 0:
+        same = False
+    return same
+
+
+def _latency_sweep(int64_t sec, int64_t frac0, int64_t divisor, int64_t count,
+                   int64_t step=1, bint pcapng=False, bint negative=True):
+    """Test-only entry: every latency ``ts(k) - ts(0)`` in ms, for the capture times
+    ``sec + (frac0 + k * step) / divisor`` (k < ``count``) as the pcap reader makes
+    them (``sec + frac / divisor``; ``pcapng``: one stamp ``/ divisor``), and with
+    ``negative`` the other way round too (a response before its request), checked
+    against CPython's own formatting: ``(checked, mismatches, first mismatching
+    latency or None, unproven)``."""
+    cdef int64_t k, t, bad = 0, checked = 0
+    cdef int unproven = 0, j
+    cdef double t0, tk, x
+    cdef double dv = <double>divisor
+    cdef char mine[24]
+    first = None
+    if pcapng:
+        t0 = <double>(sec * divisor + frac0) / dv
+    else:
+        t0 = <double>sec + <double>frac0 / dv
+    for k in range(count):
+        t = frac0 + k * step
+        if pcapng:
+            tk = <double>(sec * divisor + t) / dv
+        else:
+            tk = <double>(sec + t // divisor) + <double>(t % divisor) / dv
+        for j in range(2 if negative else 1):
+            x = (tk - t0) * 1000 if j == 0 else (t0 - tk) * 1000
+            checked += 1
+            if not _same_as_cpython(x, mine, &unproven):
+                bad += 1
+                if first is None:
+                    first = x
+    return checked, bad, first, unproven
 
 include "_live.pxi"
 include "_rtu_pass.pxi"
