@@ -100,28 +100,28 @@ cdef int64_t TWO32 = 0x100000000
 # --------------------------------------------------------------------------- helpers
 
 
-cdef inline int64_t signed32(int64_t diff):
+cdef inline int64_t signed32(int64_t diff) noexcept:
     diff &= MASK
     return diff - TWO32 if diff & HALF else diff
 
 
-cdef inline uint32_t be16(const uint8_t* p):
+cdef inline uint32_t be16(const uint8_t* p) noexcept:
     return (<uint32_t>p[0] << 8) | p[1]
 
 
-cdef inline uint32_t be32(const uint8_t* p):
+cdef inline uint32_t be32(const uint8_t* p) noexcept:
     return (<uint32_t>p[0] << 24) | (<uint32_t>p[1] << 16) | (<uint32_t>p[2] << 8) | p[3]
 
 
-cdef inline uint32_t le32(const uint8_t* p):
+cdef inline uint32_t le32(const uint8_t* p) noexcept:
     return (<uint32_t>p[3] << 24) | (<uint32_t>p[2] << 16) | (<uint32_t>p[1] << 8) | p[0]
 
 
-cdef inline uint32_t rd32(const uint8_t* p, bint big):
+cdef inline uint32_t rd32(const uint8_t* p, bint big) noexcept:
     return be32(p) if big else le32(p)
 
 
-cdef inline uint32_t rd16(const uint8_t* p, bint big):
+cdef inline uint32_t rd16(const uint8_t* p, bint big) noexcept:
     return ((<uint32_t>p[0] << 8) | p[1]) if big else ((<uint32_t>p[1] << 8) | p[0])
 
 
@@ -485,14 +485,14 @@ cdef double py_round3(double v) except? -1.0:
 cdef double MAX_TS = ((1 << 64) - 1) // 1000 / 1_000_000 - 1.0
 
 
-cdef inline void put_le(char* p, uint64_t v, int n):
+cdef inline void put_le(char* p, uint64_t v, int n) noexcept:
     cdef int i
     for i in range(n):
         p[i] = <char>(v & 255)
         v >>= 8
 
 
-cdef inline void put_head(char* p, Py_ssize_t size, int channel, uint64_t log_time):
+cdef inline void put_head(char* p, Py_ssize_t size, int channel, uint64_t log_time) noexcept:
     """An MCAP message record's head (``writer.MESSAGE_HEAD``: opcode 5, its length,
     channel, sequence 0, log and publish time) for ``size`` bytes of data."""
     p[0] = 5
@@ -1797,12 +1797,12 @@ cdef class _Pass:
         self.mc = t
         self.swapped = not self.swapped
 
-    cdef inline bint mcap_fast(self, double ts):
+    cdef inline bint mcap_fast(self, double ts) noexcept:
         """Whether a frame record at ``ts`` is made here: no stats event due, a time
         whose log time MCAP holds (the layout's inline ``log_time_ns``)."""
         return 0.0 < ts < MAX_TS and ts < self.next_stats
 
-    cdef inline int mc_span(self, uint64_t lt):
+    cdef inline int mc_span(self, uint64_t lt) noexcept:
         if not self.mc_any:
             self.mc_first = lt
             self.mc_last = lt
@@ -2494,7 +2494,7 @@ cdef class _Pass:
         self.unlink(e)
         return self.event(ts, sid, EventKind.TIMEOUT, info)
 
-    cdef inline double due_by(self, int e, double now):
+    cdef inline double due_by(self, int e, double now) noexcept:
         """The time of request ``e``'s TIMEOUT decided at ``now``: when its answer was
         due (its time plus the timeout), or ``now`` if that came first -- the pairer's
         ``min(req.ts + timeout, now)``, NaN and ties included."""
