@@ -127,32 +127,61 @@ cdef inline uint32_t rd16(const uint8_t* p, bint big) noexcept:
 
 cdef const char* HEXD = b"0123456789ABCDEF"
 
-# the decimal text of every 16-bit value (register values are most of a line's digits)
-cdef char DEC[65536][6]   # [length, digits...]
+# "00" to "99": decimal digits two a division (register values are most of a line's
+# digits; a 200-byte table stays in L1, where a table of every 16-bit value's text,
+# 384 KiB, missed the cache on most values next to the log's compression)
+cdef char DIG2[200]
 
 
-cdef void _fill_dec():
-    cdef int v, n, x
-    cdef char tmp[5]
-    for v in range(65536):
-        n = 0
-        x = v
-        while True:
-            tmp[n] = <char>(48 + x % 10)
-            n += 1
-            x //= 10
-            if x == 0:
-                break
-        DEC[v][0] = <char>n
-        for x in range(n):
-            DEC[v][1 + x] = tmp[n - 1 - x]
+cdef void _fill_dig2() noexcept:
+    cdef int v
+    for v in range(100):
+        DIG2[2 * v] = <char>(48 + v // 10)
+        DIG2[2 * v + 1] = <char>(48 + v % 10)
 
 
-_fill_dec()
+_fill_dig2()
+
+
+cdef inline int u16_text(char* o, unsigned int v) noexcept:
+    """The decimal digits of ``v`` (below 65536) into ``o`` (room for five): how many."""
+    cdef unsigned int hi, r
+    if v < 10:
+        o[0] = <char>(48 + v)
+        return 1
+    if v < 100:
+        o[0] = DIG2[2 * v]
+        o[1] = DIG2[2 * v + 1]
+        return 2
+    if v < 10000:
+        hi = v // 100
+        r = (v % 100) * 2
+        if hi < 10:
+            o[0] = <char>(48 + hi)
+            o[1] = DIG2[r]
+            o[2] = DIG2[r + 1]
+            return 3
+        o[0] = DIG2[2 * hi]
+        o[1] = DIG2[2 * hi + 1]
+        o[2] = DIG2[r]
+        o[3] = DIG2[r + 1]
+        return 4
+    o[0] = <char>(48 + v // 10000)
+    v %= 10000
+    hi = (v // 100) * 2
+    r = (v % 100) * 2
+    o[1] = DIG2[hi]
+    o[2] = DIG2[hi + 1]
+    o[3] = DIG2[r]
+    o[4] = DIG2[r + 1]
+    return 5
 
 
 cdef inline int put_u16(Buf* b, unsigned int v) except -1:
-    return put(b, &DEC[v & 0xFFFF][1], DEC[v & 0xFFFF][0])
+    if b.n + 5 > b.cap:
+        buf_need(b, 5)
+    b.n += u16_text(b.p + b.n, v & 0xFFFF)
+    return 0
 
 
 cdef struct Buf:
@@ -207,6 +236,18 @@ cdef inline void varint_in_room(Buf* b, uint64_t v) noexcept:
     b.n += 1
 
 
+cdef inline void c_in_room(Buf* b, char c) noexcept:
+    """One byte, in room the caller has made."""
+    b.p[b.n] = c
+    b.n += 1
+
+
+cdef inline void put_in_room(Buf* b, const char* s, Py_ssize_t n) noexcept:
+    """``n`` bytes, in room the caller has made."""
+    memcpy(b.p + b.n, s, n)
+    b.n += n
+
+
 cdef int put_varint(Buf* b, uint64_t v) except -1:
     """``v`` as a protobuf varint."""
     if b.n + 10 > b.cap:
@@ -239,15 +280,27 @@ cdef int put_packed_words(Buf* b, const uint8_t* words, int count) except -1:
 
 
 cdef int put_u(Buf* b, uint64_t v) except -1:
-    cdef char tmp[24]
-    cdef int i = 24
-    if v == 0:
-        return put_c(b, 48)
-    while v:
+    """``v``'s decimal digits, two a division (``DIG2``)."""
+    cdef char tmp[20]
+    cdef int i = 20
+    cdef unsigned int r
+    if v < 65536:
+        return put_u16(b, <unsigned int>v)
+    while v >= 100:
+        r = <unsigned int>(v % 100) * 2
+        v //= 100
+        i -= 2
+        tmp[i] = DIG2[r]
+        tmp[i + 1] = DIG2[r + 1]
+    if v >= 10:
+        r = <unsigned int>v * 2
+        i -= 2
+        tmp[i] = DIG2[r]
+        tmp[i + 1] = DIG2[r + 1]
+    else:
         i -= 1
-        tmp[i] = <char>(48 + v % 10)
-        v //= 10
-    return put(b, tmp + i, 24 - i)
+        tmp[i] = <char>(48 + v)
+    return put(b, tmp + i, 20 - i)
 
 
 cdef int put_i(Buf* b, int64_t v) except -1:
@@ -1047,7 +1100,7 @@ cdef class _Pass:
     cdef Py_ssize_t mc_done     # mc's length at the end of the last whole item
     cdef uint64_t mc_first, mc_last
     cdef bint mc_any
-    cdef bint swapped           # out and mc exchanged (see swap_bufs)
+    cdef bint swapped           # out and lnb exchanged (see swap_bufs)
     cdef int ch_raw, ch_frames, ch_monitor
     cdef int64_t d_req, d_resp, d_exc, d_chunks, d_bytes  # counted here since the last sync
     cdef double rec_ts          # the last fast record's time (the counters' last_ts)
@@ -1055,7 +1108,10 @@ cdef class _Pass:
     cdef double next_stats      # capture time of the next stats event (the totals')
     cdef list mprefix           # stream * 2 + direction -> its /modbus/raw prefix
     cdef list mtails            # stream -> its /modbus/monitor tail
-    cdef Buf fpb                # the /modbus/frames message being made (protobuf)
+    cdef Buf lnb                # a log's frame line (or JSON line) being made (swap_bufs)
+    cdef uint64_t mon_sec       # the monitor timestamp's last ``sec`` + 1 (0: none yet)
+    cdef char mon_sec_text[48]  # '{"timestamp":{"sec":' that sec ',"nsec":'
+    cdef int mon_sec_n
     cdef list fheads            # stream * 2 + direction -> its modbus.Frame stream fields
     # --profile (the emitting pass only; annot None: no profile)
     cdef object annot           # the run's Annotator (mbmon.semantics.annotate)
@@ -1090,9 +1146,9 @@ cdef class _Pass:
         self.mc.p = NULL
         self.mc.n = 0
         self.mc.cap = 0
-        self.fpb.p = NULL
-        self.fpb.n = 0
-        self.fpb.cap = 0
+        self.lnb.p = NULL
+        self.lnb.n = 0
+        self.lnb.cap = 0
 
     def __dealloc__(self):
         cdef int i, d
@@ -1107,7 +1163,7 @@ cdef class _Pass:
         free(self.sp)
         free(self.out.p)
         free(self.mc.p)
-        free(self.fpb.p)
+        free(self.lnb.p)
         free(self.marks)
 
     def __init__(self, bint emit, bint as_json, double timeout, ports, view, write,
@@ -1437,15 +1493,12 @@ cdef class _Pass:
             self.stream_labels(sid)
         cdef bint mc = self.mcap is not None
         cdef bint js = self.as_json  # a log's messages need the line alone (frame_pb)
-        if mc:  # the line goes into the log's buffer (put_time, put_note write to out)
-            self.swap_bufs()
+        if mc:  # the line goes into lnb, read from there into the log's messages and the
+            self.swap_bufs()  # console (put_time, put_note write to out)
+            self.out.n = 0
         cdef Buf* o = &self.out
-        cdef Py_ssize_t note_at, note_end, line_at, line_end, head_at = 0
+        cdef Py_ssize_t note_at, note_end, line_at, line_end
         cdef Py_ssize_t rec_at = o.n
-        if mc:
-            head_at = o.n
-            buf_need(o, 31)
-            o.n += 31
         cdef bytes label = self.labels[sid][d]
         cdef int tid = (adu[0] << 8) | adu[1]
         cdef int unit = adu[6]
@@ -1509,7 +1562,7 @@ cdef class _Pass:
         if mc:
             self.frame_pb(index, sid, d, ts, tid, unit, &nat, adu, alen, req, latency,
                           note_at, note_end)
-            return self.mcap_frame(head_at, line_at, line_end, index, sid, ts, nat.kind,
+            return self.mcap_frame(line_at, line_end, index, sid, ts, nat.kind,
                                    d == 1 and req == NULL, &nat, adu[6])
         put_c(o, 10)
         if self.f_on or self.left >= 0:
@@ -1666,10 +1719,13 @@ cdef class _Pass:
                     put(o, b"\xe2\x80\xa6", 3)
             else:
                 shown = n.nvalues if n.nvalues < 16 else 16
+                buf_need(o, 7 * shown)  # ", " and up to five digits each
                 for i in range(shown):
                     if i:
-                        put(o, b", ", 2)
-                    put_u16(o, be16(n.vdata + 2 * i))
+                        o.p[o.n] = 44
+                        o.p[o.n + 1] = 32
+                        o.n += 2
+                    o.n += u16_text(o.p + o.n, be16(n.vdata + 2 * i))
                 if n.nvalues > 16:
                     put(o, b", \xe2\x80\xa6 (", 7)
                     put_u(o, n.nvalues)
@@ -1790,11 +1846,11 @@ cdef class _Pass:
             self.mc.n = self.mc_done
         self.flush_mcap()
 
-    cdef inline void swap_bufs(self):
-        """Exchange ``out`` and ``mc`` (``frame_record`` writes a log's line as ``out``)."""
+    cdef inline void swap_bufs(self) noexcept:
+        """Exchange ``out`` and ``lnb`` (``frame_record`` writes a log's line as ``out``)."""
         cdef Buf t = self.out
-        self.out = self.mc
-        self.mc = t
+        self.out = self.lnb
+        self.lnb = t
         self.swapped = not self.swapped
 
     cdef inline bint mcap_fast(self, double ts) noexcept:
@@ -1939,46 +1995,52 @@ cdef class _Pass:
     cdef int frame_pb(self, int64_t index, int sid, int d, double ts, int tid, int unit,
                       Native* nat, const uint8_t* adu, int alen, Pend* req, double latency,
                       Py_ssize_t note_at, Py_ssize_t note_end) except -1:
-        """A native frame's /modbus/frames message (log format 3) into ``fpb``: the
-        ``modbus.Frame`` that ``mbmon.io.mcap.proto.encode_frame`` makes of the format-2
-        object of its JSON line, field for field in the object's member order (its note
-        is read from the line, written into ``out``, the log's buffer while swapped: the
-        native notes need no JSON escapes)."""
-        cdef Buf* b = &self.fpb
+        """A native frame's /modbus/frames message record (log format 3), written where
+        it ends up, at the end of ``mc``: the ``modbus.Frame`` that
+        ``mbmon.io.mcap.proto.encode_frame`` makes of the format-2 object of its JSON
+        line, field for field in the object's member order (its note is read from the
+        line, written into ``out``, ``lnb`` while swapped: the native notes need no JSON
+        escapes)."""
+        cdef Buf* b = &self.mc
         cdef int i
         cdef double lat
-        b.n = 0
-        put_c(b, 0x08)
-        put_varint(b, <uint64_t>index)
-        put_c(b, 0x11)
-        put_f64(b, ts)
-        put_bytes(b, self.frame_head(sid, d))
-        put_c(b, 0x38)
-        put_varint(b, <uint64_t>tid)
-        put_c(b, 0x40)
-        put_varint(b, <uint64_t>unit)
-        put_c(b, 0x48)
-        put_varint(b, <uint64_t>nat.fc)
+        cdef Py_ssize_t at = b.n
+        cdef bytes head = self.frame_head(sid, d)
+        cdef Py_ssize_t hn = len(head), nn = note_end - note_at
+        # room for all of it at once (fixed fields and varints at most 200 bytes)
+        buf_need(b, 200 + hn + 3 * nat.nvalues + alen + nn)
+        b.n += 31
+        c_in_room(b, 0x08)
+        varint_in_room(b, <uint64_t>index)
+        c_in_room(b, 0x11)
+        memcpy(b.p + b.n, &ts, 8)  # a protobuf double (put_f64)
+        b.n += 8
+        put_in_room(b, <const char*>head, hn)
+        c_in_room(b, 0x38)
+        varint_in_room(b, <uint64_t>tid)
+        c_in_room(b, 0x40)
+        varint_in_room(b, <uint64_t>unit)
+        c_in_room(b, 0x48)
+        varint_in_room(b, <uint64_t>nat.fc)
         if nat.kind == 0:
-            put(b, b"\x52\x07request", 9)
+            put_in_room(b, b"\x52\x07request", 9)
         elif nat.kind == 1:
-            put(b, b"\x52\x08response", 10)
+            put_in_room(b, b"\x52\x08response", 10)
         else:
-            put(b, b"\x52\x09exception", 11)
+            put_in_room(b, b"\x52\x09exception", 11)
         if nat.exc >= 0:
-            put_c(b, 0x58)
-            put_varint(b, <uint64_t>nat.exc)
+            c_in_room(b, 0x58)
+            varint_in_room(b, <uint64_t>nat.exc)
         if nat.has_addr:
-            put_c(b, 0x60)
-            put_varint(b, <uint64_t>nat.address)
+            c_in_room(b, 0x60)
+            varint_in_room(b, <uint64_t>nat.address)
             if nat.count >= 0:
-                put_c(b, 0x68)
-                put_varint(b, <uint64_t>nat.count)
+                c_in_room(b, 0x68)
+                varint_in_room(b, <uint64_t>nat.count)
         if nat.nvalues > 0:
-            put_c(b, 0x72)
+            c_in_room(b, 0x72)
             if nat.onoff or nat.bits:  # one byte a value
-                put_varint(b, <uint64_t>nat.nvalues)
-                buf_need(b, nat.nvalues)
+                varint_in_room(b, <uint64_t>nat.nvalues)
                 for i in range(nat.nvalues):
                     if nat.onoff:
                         b.p[b.n] = 1 if nat.vdata[0] else 0
@@ -1987,80 +2049,86 @@ cdef class _Pass:
                     b.n += 1
             else:
                 put_packed_words(b, nat.vdata, nat.nvalues)
-        put_c(b, 0x7A)
-        put_varint(b, <uint64_t>(alen - 7))
-        put(b, <const char*>adu + 7, alen - 7)
-        put(b, b"\x82\x01", 2)
-        put_varint(b, <uint64_t>(note_end - note_at))
-        put(b, self.out.p + note_at, note_end - note_at)  # out is the log's buffer here
+        c_in_room(b, 0x7A)
+        varint_in_room(b, <uint64_t>(alen - 7))
+        put_in_room(b, <const char*>adu + 7, alen - 7)
+        put_in_room(b, b"\x82\x01", 2)
+        varint_in_room(b, <uint64_t>nn)
+        put_in_room(b, self.out.p + note_at, nn)  # out is lnb here
         if req != NULL:
             if fabs(latency) < 1e9:
                 lat = py_round3(latency * 1000)
             else:
                 lat = round(latency * 1000, 3)
-            put(b, b"\x91\x01", 2)
-            put_f64(b, lat)
-            put(b, b"\xa0\x01", 2)
-            put_varint(b, <uint64_t>req.index)
+            put_in_room(b, b"\x91\x01", 2)
+            memcpy(b.p + b.n, &lat, 8)
+            b.n += 8
+            put_in_room(b, b"\xa0\x01", 2)
+            varint_in_room(b, <uint64_t>req.index)
         if nat.nvalues == 0:  # [] is no packed field: the encoder's extra member
-            put(b, b'\xf2\x01\x0d{"values":[]}', 16)
+            put_in_room(b, b'\xf2\x01\x0d{"values":[]}', 16)
+        put_head(b.p + at, b.n - at - 31, self.ch_frames, <uint64_t>rint(ts * 1e6) * 1000)
         return 0
 
-    cdef int mcap_frame(self, Py_ssize_t head_at, Py_ssize_t line_at, Py_ssize_t line_end,
+    cdef int put_mon_time(self, Buf* m, uint64_t lt) except -1:
+        """A /modbus/monitor message's timestamp up to its nanoseconds' digits; the text
+        up to them made once a second."""
+        cdef uint64_t sec = lt // 1000000000
+        cdef Buf t
+        if sec + 1 != self.mon_sec:
+            t.p = self.mon_sec_text
+            t.n = 0
+            t.cap = 48  # 20 + at most 20 digits + 8: never grown
+            put(&t, b'{"timestamp":{"sec":', 20)
+            put_u(&t, sec)
+            put(&t, b',"nsec":', 8)
+            self.mon_sec_n = <int>t.n
+            self.mon_sec = sec + 1
+        put(m, self.mon_sec_text, self.mon_sec_n)
+        return put_u(m, lt % 1000000000)
+
+    cdef int mcap_frame(self, Py_ssize_t line_at, Py_ssize_t line_end,
                         int64_t index, int sid, double ts, int kind,
                         bint unsolicited, Native* nat, int unit) except -1:
         """A frame record whose line (the JSON line with ``--json``) was just written into
-        ``mc`` after a head's room (at ``head_at``) and whose modbus.Frame ``frame_pb``
-        made: its /modbus/frames message, its /modbus/monitor message, the
-        console's line or JSON (when the filters let it through: the log keeps every
-        record), its counts (the layout's fast path for frame records); ``-c``'s last
-        frame ends the run once its messages are whole."""
-        self.swap_bufs()  # back: the line was written into mc as out
+        ``lnb`` and whose /modbus/frames message ``frame_pb`` wrote into ``mc``: its
+        /modbus/monitor message after it, the console's line or JSON (when the filters
+        let it through: the log keeps every record), its counts (the layout's fast path
+        for frame records); ``-c``'s last frame ends the run once its messages are
+        whole."""
+        self.swap_bufs()  # back: the line was written into lnb as out
         cdef Buf* m = &self.mc
-        cdef Py_ssize_t n = m.n - head_at - 31, at, slim
+        cdef const char* ln = self.lnb.p
+        cdef Py_ssize_t at
         cdef uint64_t lt = <uint64_t>rint(ts * 1e6) * 1000
         cdef bint warning = kind == 2 or unsolicited
         cdef bint ok = True
         if self.f_on:
             ok = self.fast_pass(ts, unit, nat)
             if ok and self.f_grep:
-                line = PyUnicode_DecodeUTF8(m.p + line_at, line_end - line_at, NULL)
+                line = PyUnicode_DecodeUTF8(ln + line_at, line_end - line_at, NULL)
                 ok = self.f_needle in line.lower()
         if self.write is not None and ok:
             if self.as_json:
-                put(&self.out, m.p + head_at + 31, n)
+                put(&self.out, ln, self.lnb.n)
             else:
-                put(&self.out, m.p + line_at, line_end - line_at)
+                put(&self.out, ln + line_at, line_end - line_at)
             put_c(&self.out, 10)
             if self.out.n >= FLUSH_AT:
                 self.flush_out()
         at = m.n
         buf_need(m, 31)
         m.n += 31
-        put(m, b'{"timestamp":{"sec":', 20)
-        put_u(m, lt // 1000000000)
-        put(m, b',"nsec":', 8)
-        put_u(m, lt % 1000000000)
+        self.put_mon_time(m, lt)
         put(m, b'},"level":', 10)
         put_c(m, 51 if warning else 50)  # foxglove.LogLevel WARNING 3, INFO 2
         put(m, b',"message":"', 12)
-        buf_need(m, line_end - line_at)
-        memcpy(m.p + m.n, m.p + line_at, line_end - line_at)
-        m.n += line_end - line_at
+        put(m, ln + line_at, line_end - line_at)
         put_c(m, 34)
         put_bytes(m, self.monitor_tail(sid))
         put_i(m, index)
         put_c(m, 125)
         put_head(m.p + at, m.n - at - 31, self.ch_monitor, lt)
-        # the /modbus/frames message (format 3): the modbus.Frame made by frame_pb in
-        # place of the JSON line, the monitor message moved down after it
-        slim = self.fpb.n
-        if slim > n:
-            buf_need(m, slim - n)
-        memmove(m.p + head_at + 31 + slim, m.p + at, m.n - at)
-        memcpy(m.p + head_at + 31, self.fpb.p, slim)
-        m.n += slim - n
-        put_head(m.p + head_at, slim, self.ch_frames, lt)
         if kind == 0:
             self.d_req += 1
         elif kind == 1:
