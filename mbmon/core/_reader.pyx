@@ -1959,17 +1959,19 @@ cdef class _Pass:
             return self.mcap_items([Chunk(ts, self.stream_obj(sid),
                                           Direction.S2C if d else Direction.C2S,
                                           PyBytes_FromStringAndSize(<const char*>p, n))])
-        prefix = self.raw_prefix(sid, d)
+        cdef bytes prefix = self.raw_prefix(sid, d)
+        cdef Py_ssize_t pn = len(prefix)
         lt = <uint64_t>rint(ts * 1e6) * 1000
         at = m.n
-        buf_need(m, 31)
+        buf_need(m, 31 + pn + 20 + n)  # the head, the prefix, ts and the data's length
         m.n += 31
-        put_bytes(m, prefix)  # modbus.Raw (format 3): the prefix, ts, data
-        put_c(m, 0x41)
-        put_f64(m, ts)
-        put_c(m, 0x4A)
-        put_varint(m, <uint64_t>n)
-        put(m, <const char*>p, n)
+        put_in_room(m, <const char*>prefix, pn)  # modbus.Raw (format 3): the prefix, ts, data
+        c_in_room(m, 0x41)
+        memcpy(m.p + m.n, &ts, 8)  # a protobuf double (put_f64)
+        m.n += 8
+        c_in_room(m, 0x4A)
+        varint_in_room(m, <uint64_t>n)
+        put_in_room(m, <const char*>p, n)
         put_head(m.p + at, m.n - at - 31, self.ch_raw, lt)
         self.d_chunks += 1
         self.d_bytes += n
