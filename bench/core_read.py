@@ -5,6 +5,7 @@ pipeline, in the same run (CPU time, wall time, peak RSS; callgrind instructions
     python bench/core_read.py --adus 200000
     python bench/core_read.py --callgrind 100000   # + instructions per ADU (marginal)
     python bench/core_read.py --flat               # + 5x the ADUs: is peak RSS flat?
+    python bench/core_read.py --against /tmp/old   # + this tree's core against another's
 
 With a log (``-w x.mcap``, written to bench/out/ and removed): ``read -q -w x.mcap``
 and ``read -w x.mcap`` (console text and the log at once), core and pure, and the
@@ -123,6 +124,35 @@ def compression_cost(log: Path) -> dict[str, float]:
     return out
 
 
+def against(other: Path, aligned: Path, rounds: int) -> None:
+    """This tree's core against another tree's (a copy with its core built: the tree
+    before a change), ``rounds`` alternated rounds of text, ``--json``, ``-q -w`` and
+    ``-w`` on the aligned file: best and median CPU of each, and this tree's best over
+    the other's (the machine's load moves both alike)."""
+    import statistics
+
+    log = OUT / "core-against.mcap"
+    modes = {"text": [], "--json": ["--json"], "-q -w": ["-q", "-w", str(log)],
+             "-w": ["-w", str(log)]}  # fmt: skip
+    trees = {"this": REPO, "other": other.resolve()}
+    cpus: dict[tuple[str, str], list[float]] = {(t, m): [] for t in trees for m in modes}
+    for r in range(rounds):
+        for mode, extra in modes.items():
+            order = list(trees.items()) if r % 2 == 0 else list(trees.items())[::-1]
+            for tree, root in order:
+                # the tree's own mbmon first on the path: its directory and PYTHONPATH
+                cmd = ["env", "-C", str(root), f"PYTHONPATH={root}", sys.executable, "-m",
+                       "mbmon", "read", str(aligned), *extra]  # fmt: skip
+                cpus[(tree, mode)].append(cpu(measure(f"{tree}: {mode}", cmd, None)))
+    log.unlink(missing_ok=True)
+    print(f"this tree against {other} ({rounds} alternated rounds, CPU of the child):")
+    for mode in modes:
+        a, b = cpus[("this", mode)], cpus[("other", mode)]
+        print(f"  read {mode:<7} this: best {min(a):.3f} s, median {statistics.median(a):.3f}"
+              f"  other: best {min(b):.3f} s, median {statistics.median(b):.3f}"
+              f"  -> {min(a) / min(b):.3f}x")  # fmt: skip
+
+
 def callgrind_figures(n: int) -> None:
     """Marginal instructions per ADU: (I(n) - I(n/5)) / (4n/5), core and pure."""
     if not shutil.which("valgrind"):
@@ -153,6 +183,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--flat", action="store_true", help="also 5x the ADUs: peak RSS flat?")
     ap.add_argument("--skip-pure", action="store_true", help="no pure-Python runs")
     ap.add_argument("--callgrind-only", action="store_true", help="only the callgrind figures")
+    ap.add_argument(
+        "--against",
+        type=Path,
+        metavar="DIR",
+        help="also this tree's core against DIR's (another tree, its core built)",
+    )
+    ap.add_argument("--rounds", type=int, default=3, help="alternated rounds for --against")
     args = ap.parse_args(argv)
     load = os.getloadavg()
     print(f"machine: {os.cpu_count()} CPUs, load average {load[0]:.2f} {load[1]:.2f}"
@@ -227,6 +264,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  peak RSS of mbmon runs: {peak:.1f} MB (target < {MAX_RSS_MB:.0f} MB)")
     if "flat" in runs:
         print(f"  RSS at 5x / 1x: {runs['flat'].rss_mb / runs['json'].rss_mb:.2f}")
+    if args.against is not None:
+        against(args.against, aligned, args.rounds)
     if args.callgrind:
         callgrind_figures(args.callgrind)
     return 0

@@ -25,9 +25,10 @@ checked against the bytes present before it is read through a pointer.
 """
 
 from libc.stdlib cimport malloc, realloc, free
-from libc.string cimport memchr, memcmp, memcpy, memmove, memset
+from libc.string cimport memchr, memcmp, memcpy, memmove, memset, strlen
 from libc.math cimport floor, isfinite, fabs, nextafter, INFINITY
-from libc.math cimport rint
+from libc.math cimport frexp, ldexp, signbit, copysign
+from libc.math cimport rint, NAN
 from libc.stdlib cimport strtod
 from libc.stdint cimport uint8_t, uint32_t, uint64_t, int64_t
 
@@ -101,59 +102,88 @@ cdef int64_t TWO32 = 0x100000000
 # --------------------------------------------------------------------------- helpers
 
 
-cdef inline int64_t signed32(int64_t diff):
+cdef inline int64_t signed32(int64_t diff) noexcept:
     diff &= MASK
     return diff - TWO32 if diff & HALF else diff
 
 
-cdef inline uint32_t be16(const uint8_t* p):
+cdef inline uint32_t be16(const uint8_t* p) noexcept:
     return (<uint32_t>p[0] << 8) | p[1]
 
 
-cdef inline uint32_t be32(const uint8_t* p):
+cdef inline uint32_t be32(const uint8_t* p) noexcept:
     return (<uint32_t>p[0] << 24) | (<uint32_t>p[1] << 16) | (<uint32_t>p[2] << 8) | p[3]
 
 
-cdef inline uint32_t le32(const uint8_t* p):
+cdef inline uint32_t le32(const uint8_t* p) noexcept:
     return (<uint32_t>p[3] << 24) | (<uint32_t>p[2] << 16) | (<uint32_t>p[1] << 8) | p[0]
 
 
-cdef inline uint32_t rd32(const uint8_t* p, bint big):
+cdef inline uint32_t rd32(const uint8_t* p, bint big) noexcept:
     return be32(p) if big else le32(p)
 
 
-cdef inline uint32_t rd16(const uint8_t* p, bint big):
+cdef inline uint32_t rd16(const uint8_t* p, bint big) noexcept:
     return ((<uint32_t>p[0] << 8) | p[1]) if big else ((<uint32_t>p[1] << 8) | p[0])
 
 
 cdef const char* HEXD = b"0123456789ABCDEF"
 
-# the decimal text of every 16-bit value (register values are most of a line's digits)
-cdef char DEC[65536][6]   # [length, digits...]
+# "00" to "99": decimal digits two a division (register values are most of a line's
+# digits; a 200-byte table stays in L1, where a table of every 16-bit value's text,
+# 384 KiB, missed the cache on most values next to the log's compression)
+cdef char DIG2[200]
 
 
-cdef void _fill_dec():
-    cdef int v, n, x
-    cdef char tmp[5]
-    for v in range(65536):
-        n = 0
-        x = v
-        while True:
-            tmp[n] = <char>(48 + x % 10)
-            n += 1
-            x //= 10
-            if x == 0:
-                break
-        DEC[v][0] = <char>n
-        for x in range(n):
-            DEC[v][1 + x] = tmp[n - 1 - x]
+cdef void _fill_dig2() noexcept:
+    cdef int v
+    for v in range(100):
+        DIG2[2 * v] = <char>(48 + v // 10)
+        DIG2[2 * v + 1] = <char>(48 + v % 10)
 
 
-_fill_dec()
+_fill_dig2()
+
+
+cdef inline int u16_text(char* o, unsigned int v) noexcept:
+    """The decimal digits of ``v`` (below 65536) into ``o`` (room for five): how many."""
+    cdef unsigned int hi, r
+    if v < 10:
+        o[0] = <char>(48 + v)
+        return 1
+    if v < 100:
+        o[0] = DIG2[2 * v]
+        o[1] = DIG2[2 * v + 1]
+        return 2
+    if v < 10000:
+        hi = v // 100
+        r = (v % 100) * 2
+        if hi < 10:
+            o[0] = <char>(48 + hi)
+            o[1] = DIG2[r]
+            o[2] = DIG2[r + 1]
+            return 3
+        o[0] = DIG2[2 * hi]
+        o[1] = DIG2[2 * hi + 1]
+        o[2] = DIG2[r]
+        o[3] = DIG2[r + 1]
+        return 4
+    o[0] = <char>(48 + v // 10000)
+    v %= 10000
+    hi = (v // 100) * 2
+    r = (v % 100) * 2
+    o[1] = DIG2[hi]
+    o[2] = DIG2[hi + 1]
+    o[3] = DIG2[r]
+    o[4] = DIG2[r + 1]
+    return 5
 
 
 cdef inline int put_u16(Buf* b, unsigned int v) except -1:
-    return put(b, &DEC[v & 0xFFFF][1], DEC[v & 0xFFFF][0])
+    if b.n + 5 > b.cap:
+        buf_need(b, 5)
+    b.n += u16_text(b.p + b.n, v & 0xFFFF)
+    return 0
 
 
 cdef struct Buf:
@@ -208,6 +238,18 @@ cdef inline void varint_in_room(Buf* b, uint64_t v) noexcept:
     b.n += 1
 
 
+cdef inline void c_in_room(Buf* b, char c) noexcept:
+    """One byte, in room the caller has made."""
+    b.p[b.n] = c
+    b.n += 1
+
+
+cdef inline void put_in_room(Buf* b, const char* s, Py_ssize_t n) noexcept:
+    """``n`` bytes, in room the caller has made."""
+    memcpy(b.p + b.n, s, n)
+    b.n += n
+
+
 cdef int put_varint(Buf* b, uint64_t v) except -1:
     """``v`` as a protobuf varint."""
     if b.n + 10 > b.cap:
@@ -240,15 +282,27 @@ cdef int put_packed_words(Buf* b, const uint8_t* words, int count) except -1:
 
 
 cdef int put_u(Buf* b, uint64_t v) except -1:
-    cdef char tmp[24]
-    cdef int i = 24
-    if v == 0:
-        return put_c(b, 48)
-    while v:
+    """``v``'s decimal digits, two a division (``DIG2``)."""
+    cdef char tmp[20]
+    cdef int i = 20
+    cdef unsigned int r
+    if v < 65536:
+        return put_u16(b, <unsigned int>v)
+    while v >= 100:
+        r = <unsigned int>(v % 100) * 2
+        v //= 100
+        i -= 2
+        tmp[i] = DIG2[r]
+        tmp[i + 1] = DIG2[r + 1]
+    if v >= 10:
+        r = <unsigned int>v * 2
+        i -= 2
+        tmp[i] = DIG2[r]
+        tmp[i + 1] = DIG2[r + 1]
+    else:
         i -= 1
-        tmp[i] = <char>(48 + v % 10)
-        v //= 10
-    return put(b, tmp + i, 24 - i)
+        tmp[i] = <char>(48 + v)
+    return put(b, tmp + i, 20 - i)
 
 
 cdef int put_i(Buf* b, int64_t v) except -1:
@@ -275,10 +329,94 @@ cdef int put_hex(Buf* b, const uint8_t* p, Py_ssize_t n) except -1:
     return 0
 
 
+cdef int64_t scaled_round(double v, uint64_t scale) noexcept nogil:
+    """``|v| * scale`` rounded to an integer as CPython's correctly rounded formatting
+    rounds it (``scale`` a power of ten up to 1000), or -1 when ``v`` is outside what
+    this proves (non-finite, |v| >= 2^40: the caller asks CPython).
+
+    ``|v| = f * 2^e`` with ``m = f * 2^53`` an integer below 2^53 (frexp and ldexp are
+    exact), so ``|v| * scale = m * scale / 2^(53 - e)`` exactly, ``m * scale`` below
+    2^63; the quotient rounded by its remainder, a half to even (dtoa's rule for an
+    exact tie), is the decimal CPython writes and reads back."""
+    cdef int e, s
+    cdef uint64_t big, q, rem, half
+    if not (fabs(v) < 1099511627776.0):
+        return -1
+    big = <uint64_t>ldexp(frexp(fabs(v), &e), 53) * scale
+    s = 53 - e  # >= 13 below 2^40
+    if s >= 64:
+        return 0  # big < 2^63: below a half
+    q = big >> s
+    rem = big & ((<uint64_t>1 << s) - 1)
+    half = <uint64_t>1 << (s - 1)
+    if rem > half or (rem == half and (q & 1)):
+        q += 1
+    return <int64_t>q
+
+
+cdef int fixed_text(char* out, double v, int precision) noexcept nogil:
+    """``'%.Nf' % v`` (N = ``precision``, 0..3) into ``out`` (at least 24 bytes), exactly
+    as CPython writes it (``scaled_round``'s digits), without the dtoa round trip; its
+    length, or -1 where ``scaled_round`` proves nothing. The sign is the double's own
+    (``-0.0`` and what rounds to zero from below write ``-0.0``, as CPython does)."""
+    cdef int n = 0, i
+    cdef uint64_t scale = 1, whole, frac
+    cdef int64_t q
+    cdef char tmp[24]
+    if precision < 0 or precision > 3:
+        return -1
+    for i in range(precision):
+        scale *= 10
+    q = scaled_round(v, scale)
+    if q < 0:
+        return -1
+    if signbit(v):
+        out[n] = 45
+        n += 1
+    whole = <uint64_t>q // scale
+    frac = <uint64_t>q % scale
+    i = 24
+    while True:
+        i -= 1
+        tmp[i] = <char>(48 + whole % 10)
+        whole //= 10
+        if whole == 0:
+            break
+    memcpy(out + n, tmp + i, 24 - i)
+    n += 24 - i
+    if precision:
+        out[n] = 46
+        for i in range(precision, 0, -1):
+            out[n + i] = <char>(48 + frac % 10)
+            frac //= 10
+        n += precision + 1
+    return n
+
+
+cdef double round3_exact(double v) noexcept nogil:
+    """``round(v, 3)`` where ``scaled_round`` proves it (else NaN): the double nearest
+    the correctly rounded three decimals, ``q / 1000`` (q below 2^53: one correctly
+    rounded division, as strtod reads the digits back), with ``v``'s sign."""
+    cdef int64_t q = scaled_round(v, 1000)
+    if q < 0:
+        return NAN
+    return copysign(<double>q / 1000.0, v)
+
+
 cdef int put_double(Buf* b, double v, char code, int precision, int flags) except -1:
-    """``v`` formatted by CPython's own float formatting (repr 'r', or 'f')."""
-    cdef char* s = PyOS_double_to_string(v, code, precision, flags, NULL)
+    """``v`` formatted by CPython's own float formatting (repr 'r', or 'f'); 'f' with up
+    to three decimals is written here (``fixed_text``: the same digits, proved)."""
+    cdef char* s
     cdef Py_ssize_t n = 0
+    if code == 102 and flags == 0:
+        if b.n + 24 > b.cap:
+            buf_need(b, 24)
+        n = fixed_text(b.p + b.n, v, precision)
+        if n >= 0:
+            b.n += n
+            return 0
+        n = 0
+    s = PyOS_double_to_string(v, code, precision, flags, NULL)
     while s[n]:
         n += 1
     try:
@@ -362,9 +500,15 @@ cdef int round_trips(double ts, double whole, double us):
 
 cdef int put_json_round3(Buf* b, double v) except -1:
     """``orjson.dumps(round(v, 3))``: CPython's correctly rounded three decimals, trimmed
-    (below 1e9 no shorter text reads back as that float)."""
-    cdef char* s = PyOS_double_to_string(v, b'f', 3, 0, NULL)
-    cdef Py_ssize_t n = 0
+    (below 1e9 no shorter text reads back as that float); ``fixed_text``'s digits where
+    it proves them."""
+    cdef char tmp[24]
+    cdef char* s
+    cdef Py_ssize_t n = fixed_text(tmp, v, 3)
+    if n >= 0:
+        return put_trimmed(b, tmp, n)
+    s = PyOS_double_to_string(v, b'f', 3, 0, NULL)
+    n = 0
     while s[n]:
         n += 1
     try:
@@ -375,15 +519,17 @@ cdef int put_json_round3(Buf* b, double v) except -1:
 
 
 cdef double py_round3(double v) except? -1.0:
-    """``round(v, 3)``: CPython's correctly rounded digits, read back."""
+    """``round(v, 3)``: ``round3_exact`` where it proves it, else CPython's correctly
+    rounded digits, read back."""
+    cdef double r = round3_exact(v)
+    if r == r:
+        return r
     cdef char* s = PyOS_double_to_string(v, b'f', 3, 0, NULL)
-    cdef double r
     try:
         r = PyOS_string_to_double(s, NULL, None)
     finally:
         PyMem_Free(s)
     return r
-
 
 
 # --------------------------------------------------------------------------- MCAP
@@ -394,14 +540,14 @@ cdef double py_round3(double v) except? -1.0:
 cdef double MAX_TS = ((1 << 64) - 1) // 1000 / 1_000_000 - 1.0
 
 
-cdef inline void put_le(char* p, uint64_t v, int n):
+cdef inline void put_le(char* p, uint64_t v, int n) noexcept:
     cdef int i
     for i in range(n):
         p[i] = <char>(v & 255)
         v >>= 8
 
 
-cdef inline void put_head(char* p, Py_ssize_t size, int channel, uint64_t log_time):
+cdef inline void put_head(char* p, Py_ssize_t size, int channel, uint64_t log_time) noexcept:
     """An MCAP message record's head (``writer.MESSAGE_HEAD``: opcode 5, its length,
     channel, sequence 0, log and publish time) for ``size`` bytes of data."""
     p[0] = 5
@@ -956,7 +1102,7 @@ cdef class _Pass:
     cdef Py_ssize_t mc_done     # mc's length at the end of the last whole item
     cdef uint64_t mc_first, mc_last
     cdef bint mc_any
-    cdef bint swapped           # out and mc exchanged (see swap_bufs)
+    cdef bint swapped           # out and lnb exchanged (see swap_bufs)
     cdef int ch_raw, ch_frames, ch_monitor
     cdef int64_t d_req, d_resp, d_exc, d_chunks, d_bytes  # counted here since the last sync
     cdef double rec_ts          # the last fast record's time (the counters' last_ts)
@@ -964,7 +1110,10 @@ cdef class _Pass:
     cdef double next_stats      # capture time of the next stats event (the totals')
     cdef list mprefix           # stream * 2 + direction -> its /modbus/raw prefix
     cdef list mtails            # stream -> its /modbus/monitor tail
-    cdef Buf fpb                # the /modbus/frames message being made (protobuf)
+    cdef Buf lnb                # a log's frame line (or JSON line) being made (swap_bufs)
+    cdef uint64_t mon_sec       # the monitor timestamp's last ``sec`` + 1 (0: none yet)
+    cdef char mon_sec_text[48]  # '{"timestamp":{"sec":' that sec ',"nsec":'
+    cdef int mon_sec_n
     cdef list fheads            # stream * 2 + direction -> its modbus.Frame stream fields
     # --profile (the emitting pass only; annot None: no profile)
     cdef object annot           # the run's Annotator (mbmon.semantics.annotate)
@@ -1002,9 +1151,9 @@ cdef class _Pass:
         self.mc.p = NULL
         self.mc.n = 0
         self.mc.cap = 0
-        self.fpb.p = NULL
-        self.fpb.n = 0
-        self.fpb.cap = 0
+        self.lnb.p = NULL
+        self.lnb.n = 0
+        self.lnb.cap = 0
 
     def __dealloc__(self):
         cdef int i, d
@@ -1019,7 +1168,7 @@ cdef class _Pass:
         free(self.sp)
         free(self.out.p)
         free(self.mc.p)
-        free(self.fpb.p)
+        free(self.lnb.p)
         free(self.marks)
 
     def __init__(self, bint emit, bint as_json, double timeout, ports, view, write,
@@ -1350,15 +1499,12 @@ cdef class _Pass:
             self.stream_labels(sid)
         cdef bint mc = self.mcap is not None
         cdef bint js = self.as_json  # a log's messages need the line alone (frame_pb)
-        if mc:  # the line goes into the log's buffer (put_time, put_note write to out)
-            self.swap_bufs()
+        if mc:  # the line goes into lnb, read from there into the log's messages and the
+            self.swap_bufs()  # console (put_time, put_note write to out)
+            self.out.n = 0
         cdef Buf* o = &self.out
-        cdef Py_ssize_t note_at, note_end, line_at, line_end, head_at = 0
+        cdef Py_ssize_t note_at, note_end, line_at, line_end
         cdef Py_ssize_t rec_at = o.n
-        if mc:
-            head_at = o.n
-            buf_need(o, 31)
-            o.n += 31
         cdef bytes label = self.labels[sid][d]
         cdef int tid = (adu[0] << 8) | adu[1]
         cdef int unit = adu[6]
@@ -1422,7 +1568,7 @@ cdef class _Pass:
         if mc:
             self.frame_pb(index, sid, d, ts, tid, unit, &nat, adu, alen, req, latency,
                           note_at, note_end)
-            return self.mcap_frame(head_at, line_at, line_end, index, sid, ts, nat.kind,
+            return self.mcap_frame(line_at, line_end, index, sid, ts, nat.kind,
                                    d == 1 and req == NULL, &nat, adu[6])
         put_c(o, 10)
         if self.f_on or self.left >= 0:
@@ -1579,10 +1725,13 @@ cdef class _Pass:
                     put(o, b"\xe2\x80\xa6", 3)
             else:
                 shown = n.nvalues if n.nvalues < 16 else 16
+                buf_need(o, 7 * shown)  # ", " and up to five digits each
                 for i in range(shown):
                     if i:
-                        put(o, b", ", 2)
-                    put_u16(o, be16(n.vdata + 2 * i))
+                        o.p[o.n] = 44
+                        o.p[o.n + 1] = 32
+                        o.n += 2
+                    o.n += u16_text(o.p + o.n, be16(n.vdata + 2 * i))
                 if n.nvalues > 16:
                     put(o, b", \xe2\x80\xa6 (", 7)
                     put_u(o, n.nvalues)
@@ -1703,19 +1852,19 @@ cdef class _Pass:
             self.mc.n = self.mc_done
         self.flush_mcap()
 
-    cdef inline void swap_bufs(self):
-        """Exchange ``out`` and ``mc`` (``frame_record`` writes a log's line as ``out``)."""
+    cdef inline void swap_bufs(self) noexcept:
+        """Exchange ``out`` and ``lnb`` (``frame_record`` writes a log's line as ``out``)."""
         cdef Buf t = self.out
-        self.out = self.mc
-        self.mc = t
+        self.out = self.lnb
+        self.lnb = t
         self.swapped = not self.swapped
 
-    cdef inline bint mcap_fast(self, double ts):
+    cdef inline bint mcap_fast(self, double ts) noexcept:
         """Whether a frame record at ``ts`` is made here: no stats event due, a time
         whose log time MCAP holds (the layout's inline ``log_time_ns``)."""
         return 0.0 < ts < MAX_TS and ts < self.next_stats
 
-    cdef inline int mc_span(self, uint64_t lt):
+    cdef inline int mc_span(self, uint64_t lt) noexcept:
         if not self.mc_any:
             self.mc_first = lt
             self.mc_last = lt
@@ -1816,17 +1965,19 @@ cdef class _Pass:
             return self.mcap_items([Chunk(ts, self.stream_obj(sid),
                                           Direction.S2C if d else Direction.C2S,
                                           PyBytes_FromStringAndSize(<const char*>p, n))])
-        prefix = self.raw_prefix(sid, d)
+        cdef bytes prefix = self.raw_prefix(sid, d)
+        cdef Py_ssize_t pn = len(prefix)
         lt = <uint64_t>rint(ts * 1e6) * 1000
         at = m.n
-        buf_need(m, 31)
+        buf_need(m, 31 + pn + 20 + n)  # the head, the prefix, ts and the data's length
         m.n += 31
-        put_bytes(m, prefix)  # modbus.Raw (format 3): the prefix, ts, data
-        put_c(m, 0x41)
-        put_f64(m, ts)
-        put_c(m, 0x4A)
-        put_varint(m, <uint64_t>n)
-        put(m, <const char*>p, n)
+        put_in_room(m, <const char*>prefix, pn)  # modbus.Raw (format 3): the prefix, ts, data
+        c_in_room(m, 0x41)
+        memcpy(m.p + m.n, &ts, 8)  # a protobuf double (put_f64)
+        m.n += 8
+        c_in_room(m, 0x4A)
+        varint_in_room(m, <uint64_t>n)
+        put_in_room(m, <const char*>p, n)
         put_head(m.p + at, m.n - at - 31, self.ch_raw, lt)
         self.d_chunks += 1
         self.d_bytes += n
@@ -1852,46 +2003,52 @@ cdef class _Pass:
     cdef int frame_pb(self, int64_t index, int sid, int d, double ts, int tid, int unit,
                       Native* nat, const uint8_t* adu, int alen, Pend* req, double latency,
                       Py_ssize_t note_at, Py_ssize_t note_end) except -1:
-        """A native frame's /modbus/frames message (log format 3) into ``fpb``: the
-        ``modbus.Frame`` that ``mbmon.io.mcap.proto.encode_frame`` makes of the format-2
-        object of its JSON line, field for field in the object's member order (its note
-        is read from the line, written into ``out``, the log's buffer while swapped: the
-        native notes need no JSON escapes)."""
-        cdef Buf* b = &self.fpb
+        """A native frame's /modbus/frames message record (log format 3), written where
+        it ends up, at the end of ``mc``: the ``modbus.Frame`` that
+        ``mbmon.io.mcap.proto.encode_frame`` makes of the format-2 object of its JSON
+        line, field for field in the object's member order (its note is read from the
+        line, written into ``out``, ``lnb`` while swapped: the native notes need no JSON
+        escapes)."""
+        cdef Buf* b = &self.mc
         cdef int i
         cdef double lat
-        b.n = 0
-        put_c(b, 0x08)
-        put_varint(b, <uint64_t>index)
-        put_c(b, 0x11)
-        put_f64(b, ts)
-        put_bytes(b, self.frame_head(sid, d))
-        put_c(b, 0x38)
-        put_varint(b, <uint64_t>tid)
-        put_c(b, 0x40)
-        put_varint(b, <uint64_t>unit)
-        put_c(b, 0x48)
-        put_varint(b, <uint64_t>nat.fc)
+        cdef Py_ssize_t at = b.n
+        cdef bytes head = self.frame_head(sid, d)
+        cdef Py_ssize_t hn = len(head), nn = note_end - note_at
+        # room for all of it at once (fixed fields and varints at most 200 bytes)
+        buf_need(b, 200 + hn + 3 * nat.nvalues + alen + nn)
+        b.n += 31
+        c_in_room(b, 0x08)
+        varint_in_room(b, <uint64_t>index)
+        c_in_room(b, 0x11)
+        memcpy(b.p + b.n, &ts, 8)  # a protobuf double (put_f64)
+        b.n += 8
+        put_in_room(b, <const char*>head, hn)
+        c_in_room(b, 0x38)
+        varint_in_room(b, <uint64_t>tid)
+        c_in_room(b, 0x40)
+        varint_in_room(b, <uint64_t>unit)
+        c_in_room(b, 0x48)
+        varint_in_room(b, <uint64_t>nat.fc)
         if nat.kind == 0:
-            put(b, b"\x52\x07request", 9)
+            put_in_room(b, b"\x52\x07request", 9)
         elif nat.kind == 1:
-            put(b, b"\x52\x08response", 10)
+            put_in_room(b, b"\x52\x08response", 10)
         else:
-            put(b, b"\x52\x09exception", 11)
+            put_in_room(b, b"\x52\x09exception", 11)
         if nat.exc >= 0:
-            put_c(b, 0x58)
-            put_varint(b, <uint64_t>nat.exc)
+            c_in_room(b, 0x58)
+            varint_in_room(b, <uint64_t>nat.exc)
         if nat.has_addr:
-            put_c(b, 0x60)
-            put_varint(b, <uint64_t>nat.address)
+            c_in_room(b, 0x60)
+            varint_in_room(b, <uint64_t>nat.address)
             if nat.count >= 0:
-                put_c(b, 0x68)
-                put_varint(b, <uint64_t>nat.count)
+                c_in_room(b, 0x68)
+                varint_in_room(b, <uint64_t>nat.count)
         if nat.nvalues > 0:
-            put_c(b, 0x72)
+            c_in_room(b, 0x72)
             if nat.onoff or nat.bits:  # one byte a value
-                put_varint(b, <uint64_t>nat.nvalues)
-                buf_need(b, nat.nvalues)
+                varint_in_room(b, <uint64_t>nat.nvalues)
                 for i in range(nat.nvalues):
                     if nat.onoff:
                         b.p[b.n] = 1 if nat.vdata[0] else 0
@@ -1900,80 +2057,86 @@ cdef class _Pass:
                     b.n += 1
             else:
                 put_packed_words(b, nat.vdata, nat.nvalues)
-        put_c(b, 0x7A)
-        put_varint(b, <uint64_t>(alen - 7))
-        put(b, <const char*>adu + 7, alen - 7)
-        put(b, b"\x82\x01", 2)
-        put_varint(b, <uint64_t>(note_end - note_at))
-        put(b, self.out.p + note_at, note_end - note_at)  # out is the log's buffer here
+        c_in_room(b, 0x7A)
+        varint_in_room(b, <uint64_t>(alen - 7))
+        put_in_room(b, <const char*>adu + 7, alen - 7)
+        put_in_room(b, b"\x82\x01", 2)
+        varint_in_room(b, <uint64_t>nn)
+        put_in_room(b, self.out.p + note_at, nn)  # out is lnb here
         if req != NULL:
             if fabs(latency) < 1e9:
                 lat = py_round3(latency * 1000)
             else:
                 lat = round(latency * 1000, 3)
-            put(b, b"\x91\x01", 2)
-            put_f64(b, lat)
-            put(b, b"\xa0\x01", 2)
-            put_varint(b, <uint64_t>req.index)
+            put_in_room(b, b"\x91\x01", 2)
+            memcpy(b.p + b.n, &lat, 8)
+            b.n += 8
+            put_in_room(b, b"\xa0\x01", 2)
+            varint_in_room(b, <uint64_t>req.index)
         if nat.nvalues == 0:  # [] is no packed field: the encoder's extra member
-            put(b, b'\xf2\x01\x0d{"values":[]}', 16)
+            put_in_room(b, b'\xf2\x01\x0d{"values":[]}', 16)
+        put_head(b.p + at, b.n - at - 31, self.ch_frames, <uint64_t>rint(ts * 1e6) * 1000)
         return 0
 
-    cdef int mcap_frame(self, Py_ssize_t head_at, Py_ssize_t line_at, Py_ssize_t line_end,
+    cdef int put_mon_time(self, Buf* m, uint64_t lt) except -1:
+        """A /modbus/monitor message's timestamp up to its nanoseconds' digits; the text
+        up to them made once a second."""
+        cdef uint64_t sec = lt // 1000000000
+        cdef Buf t
+        if sec + 1 != self.mon_sec:
+            t.p = self.mon_sec_text
+            t.n = 0
+            t.cap = 48  # 20 + at most 20 digits + 8: never grown
+            put(&t, b'{"timestamp":{"sec":', 20)
+            put_u(&t, sec)
+            put(&t, b',"nsec":', 8)
+            self.mon_sec_n = <int>t.n
+            self.mon_sec = sec + 1
+        put(m, self.mon_sec_text, self.mon_sec_n)
+        return put_u(m, lt % 1000000000)
+
+    cdef int mcap_frame(self, Py_ssize_t line_at, Py_ssize_t line_end,
                         int64_t index, int sid, double ts, int kind,
                         bint unsolicited, Native* nat, int unit) except -1:
         """A frame record whose line (the JSON line with ``--json``) was just written into
-        ``mc`` after a head's room (at ``head_at``) and whose modbus.Frame ``frame_pb``
-        made: its /modbus/frames message, its /modbus/monitor message, the
-        console's line or JSON (when the filters let it through: the log keeps every
-        record), its counts (the layout's fast path for frame records); ``-c``'s last
-        frame ends the run once its messages are whole."""
-        self.swap_bufs()  # back: the line was written into mc as out
+        ``lnb`` and whose /modbus/frames message ``frame_pb`` wrote into ``mc``: its
+        /modbus/monitor message after it, the console's line or JSON (when the filters
+        let it through: the log keeps every record), its counts (the layout's fast path
+        for frame records); ``-c``'s last frame ends the run once its messages are
+        whole."""
+        self.swap_bufs()  # back: the line was written into lnb as out
         cdef Buf* m = &self.mc
-        cdef Py_ssize_t n = m.n - head_at - 31, at, slim
+        cdef const char* ln = self.lnb.p
+        cdef Py_ssize_t at
         cdef uint64_t lt = <uint64_t>rint(ts * 1e6) * 1000
         cdef bint warning = kind == 2 or unsolicited
         cdef bint ok = True
         if self.f_on:
             ok = self.fast_pass(ts, unit, nat)
             if ok and self.f_grep:
-                line = PyUnicode_DecodeUTF8(m.p + line_at, line_end - line_at, NULL)
+                line = PyUnicode_DecodeUTF8(ln + line_at, line_end - line_at, NULL)
                 ok = self.f_needle in line.lower()
         if self.write is not None and ok:
             if self.as_json:
-                put(&self.out, m.p + head_at + 31, n)
+                put(&self.out, ln, self.lnb.n)
             else:
-                put(&self.out, m.p + line_at, line_end - line_at)
+                put(&self.out, ln + line_at, line_end - line_at)
             put_c(&self.out, 10)
             if self.out.n >= FLUSH_AT:
                 self.flush_out()
         at = m.n
         buf_need(m, 31)
         m.n += 31
-        put(m, b'{"timestamp":{"sec":', 20)
-        put_u(m, lt // 1000000000)
-        put(m, b',"nsec":', 8)
-        put_u(m, lt % 1000000000)
+        self.put_mon_time(m, lt)
         put(m, b'},"level":', 10)
         put_c(m, 51 if warning else 50)  # foxglove.LogLevel WARNING 3, INFO 2
         put(m, b',"message":"', 12)
-        buf_need(m, line_end - line_at)
-        memcpy(m.p + m.n, m.p + line_at, line_end - line_at)
-        m.n += line_end - line_at
+        put(m, ln + line_at, line_end - line_at)
         put_c(m, 34)
         put_bytes(m, self.monitor_tail(sid))
         put_i(m, index)
         put_c(m, 125)
         put_head(m.p + at, m.n - at - 31, self.ch_monitor, lt)
-        # the /modbus/frames message (format 3): the modbus.Frame made by frame_pb in
-        # place of the JSON line, the monitor message moved down after it
-        slim = self.fpb.n
-        if slim > n:
-            buf_need(m, slim - n)
-        memmove(m.p + head_at + 31 + slim, m.p + at, m.n - at)
-        memcpy(m.p + head_at + 31, self.fpb.p, slim)
-        m.n += slim - n
-        put_head(m.p + head_at, slim, self.ch_frames, lt)
         if kind == 0:
             self.d_req += 1
         elif kind == 1:
@@ -2407,7 +2570,7 @@ cdef class _Pass:
         self.unlink(e)
         return self.event(ts, sid, EventKind.TIMEOUT, info)
 
-    cdef inline double due_by(self, int e, double now):
+    cdef inline double due_by(self, int e, double now) noexcept:
         """The time of request ``e``'s TIMEOUT decided at ``now``: when its answer was
         due (its time plus the timeout), or ``now`` if that came first -- the pairer's
         ``min(req.ts + timeout, now)``, NaN and ties included."""
@@ -3842,6 +4005,91 @@ def _native_note(bytes data, bint response, request=None):
         note,
     )
 
+
+def _fixed_text(double v, int precision):
+    """Test-only entry: ``fixed_text``'s ``'%.Nf' % v`` (bytes), or ``None`` where it
+    proves nothing (the core asks CPython there)."""
+    cdef char tmp[24]
+    cdef int n = fixed_text(tmp, v, precision)
+    return None if n < 0 else PyBytes_FromStringAndSize(tmp, n)
+
+
+def _round3(double v):
+    """Test-only entry: ``round3_exact(v)`` (NaN where it proves nothing)."""
+    return round3_exact(v)
+
+
+def _json_round3(double v):
+    """Test-only entry: the JSON number a line's ``latency_ms`` gets (``put_json_round3``)."""
+    cdef Buf b
+    b.p = NULL
+    b.n = 0
+    b.cap = 0
+    try:
+        put_json_round3(&b, v)
+        return PyBytes_FromStringAndSize(b.p, b.n)
+    finally:
+        free(b.p)
+
+
+cdef bint _same_as_cpython(double x, char* mine, int* unproven) except -1:
+    """Whether ``fixed_text`` and ``round3_exact`` give what CPython gives for ``x``
+    (``'%.1f'``, ``'%.3f'`` and ``round(x, 3)`` read back, bit for bit)."""
+    cdef int prec, n
+    cdef char* s
+    cdef double r = 0.0, mr
+    cdef bint same = True
+    for prec in (1, 3):
+        n = fixed_text(mine, x, prec)
+        if n < 0:
+            unproven[0] += 1
+            return True
+        s = PyOS_double_to_string(x, b'f', prec, 0, NULL)
+        try:
+            if <size_t>n != strlen(s) or memcmp(s, mine, n) != 0:
+                same = False
+            if prec == 3:
+                r = PyOS_string_to_double(s, NULL, None)
+        finally:
+            PyMem_Free(s)
+    mr = round3_exact(x)
+    if memcmp(&r, &mr, 8) != 0:
+        same = False
+    return same
+
+
+def _latency_sweep(int64_t sec, int64_t frac0, int64_t divisor, int64_t count,
+                   int64_t step=1, bint pcapng=False, bint negative=True):
+    """Test-only entry: every latency ``ts(k) - ts(0)`` in ms, for the capture times
+    ``sec + (frac0 + k * step) / divisor`` (k < ``count``) as the pcap reader makes
+    them (``sec + frac / divisor``; ``pcapng``: one stamp ``/ divisor``), and with
+    ``negative`` the other way round too (a response before its request), checked
+    against CPython's own formatting: ``(checked, mismatches, first mismatching
+    latency or None, unproven)``."""
+    cdef int64_t k, t, bad = 0, checked = 0
+    cdef int unproven = 0, j
+    cdef double t0, tk, x
+    cdef double dv = <double>divisor
+    cdef char mine[24]
+    first = None
+    if pcapng:
+        t0 = <double>(sec * divisor + frac0) / dv
+    else:
+        t0 = <double>sec + <double>frac0 / dv
+    for k in range(count):
+        t = frac0 + k * step
+        if pcapng:
+            tk = <double>(sec * divisor + t) / dv
+        else:
+            tk = <double>(sec + t // divisor) + <double>(t % divisor) / dv
+        for j in range(2 if negative else 1):
+            x = (tk - t0) * 1000 if j == 0 else (t0 - tk) * 1000
+            checked += 1
+            if not _same_as_cpython(x, mine, &unproven):
+                bad += 1
+                if first is None:
+                    first = x
+    return checked, bad, first, unproven
 
 include "_live.pxi"
 include "_rtu_pass.pxi"
