@@ -17,6 +17,8 @@ from pathlib import Path
 
 import pytest
 
+from mbmon.commands import COMMANDS  # a run of one command never imports another command's module
+
 REPO = Path(__file__).resolve().parents[1]
 DEMO = REPO / "captures" / "demo.pcap"
 
@@ -30,19 +32,6 @@ _WRAPPER = (
     "    sys.stderr.write('\\nMODULES ' + ' '.join(sorted(sys.modules)) + '\\n')\n"
 )
 
-#: a run of one command never imports another command's module
-COMMANDS = [
-    "read",
-    "decode",
-    "replay",
-    "info",
-    "export",
-    "sniff",
-    "proxy",
-    "sim",
-    "demo",
-    "report",
-]
 #: the profiles' world: ``--profile`` only
 ANNOTATOR = ["mbmon.semantics", "mbmon.semantics.annotate", "mbmon.semantics.profile", "tomllib"]
 #: the reference pipeline, which a run the compiled core reads never needs
