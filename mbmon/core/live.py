@@ -66,18 +66,28 @@ class LiveCore:
         timeout: float,
         view: Any,
         as_json: bool,
-        write: Callable[[bytes], Any],
+        write: Callable[[bytes], Any] | None,
         flush: Callable[[], Any] | None = None,
         new_stream: Callable[..., Any],
         dissector: Any,
         pipeline: Any,
+        detect: bool = False,
+        file_mode: bool = False,
     ) -> None:
         why = _load()
         if why is not None:
             raise RuntimeError(f"the compiled core is unavailable: {why}")
         reader: Any = _core._reader
         self._core: Any = reader._Live(
-            as_json, timeout, ports, view, write, new_stream, keep_noise=True
+            as_json,
+            timeout,
+            ports,
+            view,
+            write,
+            new_stream,
+            keep_noise=True,
+            detect=detect,
+            file_mode=file_mode,
         )
         self.dissector = dissector
         self.pipeline = pipeline
@@ -242,25 +252,19 @@ class PipeCore(LiveCore):
         count: int | None = None,
         budget: Any = None,
     ) -> None:
-        why = _load()
-        if why is not None:
-            raise RuntimeError(f"the compiled core is unavailable: {why}")
-        reader: Any = _core._reader
-        self._core = reader._Live(
-            as_json,
-            timeout,
-            ports,
-            view,
-            write,
-            new_stream,
-            keep_noise=True,
+        super().__init__(
+            ports=ports,
+            timeout=timeout,
+            view=view,
+            as_json=as_json,
+            write=write,
+            flush=flush,
+            new_stream=new_stream,
+            dissector=dissector,
+            pipeline=pipeline,
             detect=detect,
             file_mode=True,
         )
-        self.dissector = dissector
-        self.pipeline = pipeline
-        self._flush = flush
-        self.handed = None
         # the reference dissector judges other ports with the very detector the core feeds
         detector = self._core.port_detector()
         if detector is not None:
