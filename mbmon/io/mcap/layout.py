@@ -314,8 +314,10 @@ def frame_chunk(obj: Mapping[str, Any]) -> dict[str, Any] | None:
     try:
         pdu = bytes.fromhex(pdu_hex)
         head = _MBAP_HEAD.pack(tid, 0, len(pdu) + 1, unit)
-    except struct.error:
-        raise ValueError("a frame marked with its chunk has a tid or unit out of range") from None
+    except (ValueError, struct.error):
+        raise ValueError(
+            "a frame marked with its chunk has a pdu, tid or unit it cannot be"
+        ) from None
     c2s = direction == "c2s"
     return {
         "type": "chunk",
