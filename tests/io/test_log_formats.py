@@ -307,3 +307,46 @@ def test_format_4_gives_its_readers_the_chunks_of_format_3(name: str, tmp_path: 
         assert fewer > len(want) // 2
     else:
         assert fewer == 0
+
+
+#: the public captures: ../shared from the repository's root (a worktree one level deeper
+#: looks one further up), as tests/core/core_diff.py finds them
+REAL = next(
+    (
+        base / "shared" / "captures" / "real"
+        for base in (REPO.parent, REPO.parent.parent)
+        if (base / "shared" / "captures" / "real").is_dir()
+    ),
+    REPO.parent / "shared" / "captures" / "real",
+)
+
+
+def _capture_files() -> list[Path]:
+    own = sorted((REPO / "captures").glob("*.pcap*"))
+    return own + (sorted(REAL.glob("*.pcap*")) if REAL.is_dir() else [])
+
+
+@pytest.mark.parametrize("path", _capture_files(), ids=lambda p: p.name)
+def test_format_4_logs_give_back_every_captured_chunk(path: Path, tmp_path: Path) -> None:
+    """On every capture of captures/ and ../shared/captures/real/ (TCP, Modbus/UDP, RTU over
+    TCP, noise, holes): the chunks ``raw_items`` yields from the format-4 log ``read -w``
+    writes are the chunks the capture gave the pipeline, item for item, as a format-3
+    log stores them all."""
+    from mbmon.io.replay import raw_items
+    from mbmon.model import Chunk
+    from mbmon.sources.pcapfile import CaptureError, read_capture
+
+    log = tmp_path / "x.mcap"
+    status, _, err, escape = logmutate.run_command(
+        ["read", str(path), "-q", "-w", str(log)], budget=None
+    )
+    assert escape is None, escape.text
+    assert status == 0, err
+    try:
+        want = [c for c in read_capture(path) if isinstance(c, Chunk)]
+    except CaptureError:
+        pytest.skip(f"{path.name} is no capture mbmon reads ({err.strip()})")
+    with McapLog(log) as mlog:
+        got = [c for c in raw_items(mlog) if isinstance(c, Chunk)]
+        assert not mlog.status.skipped
+    assert got == want
