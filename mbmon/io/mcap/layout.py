@@ -54,6 +54,7 @@ from mbmon.io.mcap.proto import (
 from mbmon.io.mcap.writer import MAX_LOG_TIME, MESSAGE_HEAD
 from mbmon.jsonfmt import record_json_bytes
 from mbmon.model import Chunk, Direction, Event, EventKind, Record, RecordKind, Stream
+from mbmon.protocol.mbap import encode_adu
 
 _json_str = json.encoder.encode_basestring  # C-accelerated, keeps non-ASCII
 _DIRECTIONS = {d: d.value for d in Direction}
@@ -170,7 +171,6 @@ _FRAME_KINDS = (RecordKind.REQUEST, RecordKind.RESPONSE, RecordKind.EXCEPTION)
 #: its bytes at the end of the ``modbus.Frame`` message (field 21, a string of three)
 CHUNK_DIRECTIONS = {"c2s": Direction.C2S, "s2c": Direction.S2C}
 CHUNK_MARKS = {Direction.C2S: b"\xaa\x01\x03c2s", Direction.S2C: b"\xaa\x01\x03s2c"}
-_MBAP_HEAD = struct.Struct(">HHHB")  # tid, protocol id, length, unit
 #: enum members as module constants: ``RecordKind.RESPONSE`` costs a class attribute
 #: lookup through the enum machinery each time, several per record
 _RESPONSE, _EXCEPTION = RecordKind.RESPONSE, RecordKind.EXCEPTION
@@ -281,15 +281,11 @@ def chunk_marker(chunk: Chunk, record: Record, obj: Mapping[str, Any]) -> bytes 
     tid, unit, pdu_hex = obj.get("tid"), obj.get("unit"), obj.get("pdu")
     if type(tid) is not int or type(unit) is not int or type(pdu_hex) is not str:
         return None
-    data = chunk.data
     try:
-        pdu = bytes.fromhex(pdu_hex)
-        head = _MBAP_HEAD.pack(tid, 0, len(pdu) + 1, unit)
-    except (ValueError, struct.error):
+        adu = encode_adu(tid, unit, bytes.fromhex(pdu_hex))
+    except ValueError:  # a tid or unit out of range, a pdu that is no hex
         return None
-    if data[7:] != pdu or data[:7] != head:
-        return None
-    return CHUNK_MARKS[direction]
+    return CHUNK_MARKS[direction] if chunk.data == adu else None
 
 
 def frame_chunk(obj: Mapping[str, Any]) -> dict[str, Any] | None:
@@ -312,9 +308,8 @@ def frame_chunk(obj: Mapping[str, Any]) -> dict[str, Any] | None:
     if type(src) is not str or type(dst) is not str or obj.get("transport") is None:
         raise ValueError("a frame marked with its chunk has no endpoints")
     try:
-        pdu = bytes.fromhex(pdu_hex)
-        head = _MBAP_HEAD.pack(tid, 0, len(pdu) + 1, unit)
-    except (ValueError, struct.error):
+        adu = encode_adu(tid, unit, bytes.fromhex(pdu_hex))
+    except ValueError:
         raise ValueError(
             "a frame marked with its chunk has a pdu, tid or unit it cannot be"
         ) from None
@@ -327,7 +322,7 @@ def frame_chunk(obj: Mapping[str, Any]) -> dict[str, Any] | None:
         "server": dst if c2s else src,
         "direction": direction,
         "ts": ts,
-        "data": base64.b64encode(head + pdu).decode("ascii"),
+        "data": base64.b64encode(adu).decode("ascii"),
     }
 
 
