@@ -28,6 +28,9 @@ every candidate. Candidates:
 ``--per-topic`` also compresses each topic's messages on their own (not mixed in
 chunks): what each topic costs by itself.
 
+``--stored LOG...`` measures logs as they are instead (every message as stored, one
+row a log): a format-3 and a format-4 log of the same capture, say, in the same run.
+
 What this script owns: the measurement that chose format 2 (docs/performance.md,
 "The log's message volume"). It reads the log with mbmon's reader.
 """
@@ -214,6 +217,11 @@ def _stored_json(msg: object) -> bytes:
     return _dumps(msg.json())  # type: ignore[attr-defined]
 
 
+def _as_stored(topic: str, raw: bytes) -> bytes | None:
+    """The ``--stored`` candidate: a message as the log holds it (see :func:`_chunks`)."""
+    return raw
+
+
 def _chunks(log: Path, candidate: Candidate, per_topic: dict[str, int]) -> Iterator[bytes]:
     from mbmon.io.mcap.reader import McapLog
 
@@ -221,7 +229,8 @@ def _chunks(log: Path, candidate: Candidate, per_topic: dict[str, int]) -> Itera
     size = 0
     with McapLog(str(log)) as mlog:
         for msg in mlog.messages(None):
-            data = candidate(msg.topic, _stored_json(msg))
+            stored = msg.raw if candidate is _as_stored else _stored_json(msg)
+            data = candidate(msg.topic, stored)
             if data is None:
                 continue
             rec = HEAD.pack(5, 22 + len(data), 1, 0, msg.log_time, msg.publish_time) + data
@@ -260,8 +269,15 @@ def _per_topic(log: Path, candidate: Candidate, level: int) -> dict[str, tuple[i
 
 
 def measure(
-    log: Path, adus: int, levels: list[int], candidates: dict[str, Candidate], per_topic: bool
+    log: Path,
+    adus: int,
+    levels: list[int],
+    candidates: dict[str, Candidate],
+    per_topic: bool,
+    logs: dict[str, Path] | None = None,
 ) -> None:
+    """Print each candidate's bytes and CPU per 1M ADUs; ``logs``: a candidate's own log
+    (``--stored``), else ``log``'s messages rewritten."""
     import zstandard
 
     fns: list[tuple[str, Callable[[bytes], object]]] = [
@@ -271,7 +287,7 @@ def measure(
     print(f"{log.name}, {adus:,} ADUs; CPU seconds per 1M ADUs in this process")
     for name, cand in candidates.items():
         topic_bytes: dict[str, int] = {}
-        chunks = list(_chunks(log, cand, topic_bytes))
+        chunks = list(_chunks((logs or {}).get(name, log), cand, topic_bytes))
         total = sum(len(c) for c in chunks)
         cost: dict[str, float] = {}
         packed: dict[str, int] = {}
@@ -307,7 +323,18 @@ def main(argv: list[str] | None = None) -> int:
         "--format3", action="store_true", help="format 2 and the format 3 candidates only"
     )
     ap.add_argument("--per-topic", action="store_true", help="also each topic compressed alone")
+    ap.add_argument("--stored", nargs="+", metavar="LOG", help="these logs as stored, one row each")
     args = ap.parse_args(argv)
+    if args.stored:
+        from mbmon.io.mcap.reader import McapLog
+
+        logs = {f"{p} (format {McapLog(p).metadata['mbmon'].get('format')})": Path(p)
+                for p in args.stored}  # fmt: skip
+        with McapLog(args.stored[0]) as mlog:
+            adus = sum(1 for m in mlog.messages(["/modbus/frames"]))
+        levels = [int(x) for x in args.levels.split(",")]
+        measure(Path(args.stored[0]), adus, levels, dict.fromkeys(logs, _as_stored), False, logs)
+        return 0
     if args.log:
         log = Path(args.log)
         from mbmon.io.mcap.reader import McapLog

@@ -54,6 +54,7 @@ from mbmon.model import (
     Direction, Event, EventKind, Frame, Record, RecordKind, Stream, Transport,
 )
 from mbmon.model import Chunk
+_FRAME_KINDS = (RecordKind.REQUEST, RecordKind.RESPONSE, RecordKind.EXCEPTION)
 from mbmon.io.mcap.proto import encode_frame as _encode_frame
 from mbmon.model import Kind, Transaction, TxStatus
 from mbmon.protocol.pairing import _needs_request
@@ -1105,6 +1106,14 @@ cdef class _Pass:
     cdef bint swapped           # out and lnb exchanged (see swap_bufs)
     cdef int ch_raw, ch_frames, ch_monitor
     cdef int64_t d_req, d_resp, d_exc, d_chunks, d_bytes  # counted here since the last sync
+    cdef int64_t d_left         # chunks whose /modbus/raw message was left out (format 4)
+    # the /modbus/raw message mcap_chunk wrote last, while nothing came after it in mc
+    # (format 4: the frame after it may take it back, frame_pb and mcap_items)
+    cdef Py_ssize_t mr_at       # its head's offset in mc; -1: none
+    cdef Py_ssize_t mr_end      # mc's length right after it
+    cdef Py_ssize_t mr_n        # its chunk's length (the data that ends it)
+    cdef int mr_sid, mr_d
+    cdef double mr_ts
     cdef double rec_ts          # the last fast record's time (the counters' last_ts)
     cdef bint rec_any
     cdef double next_stats      # capture time of the next stats event (the totals')
@@ -1840,6 +1849,7 @@ cdef class _Pass:
         self.mtails = []
         self.fheads = []
         self.mc_any = False
+        self.mr_at = -1
 
     def finish_log(self, bint complete=True):
         """Hand the last message records over (after the run, or after it was cut short:
@@ -1889,6 +1899,9 @@ cdef class _Pass:
             counts["chunks"] += self.d_chunks
             counts["bytes"] += self.d_bytes
             self.d_chunks = self.d_bytes = 0
+        if self.d_left:
+            t.left_out += self.d_left
+            self.d_left = 0
         if self.rec_any:
             t.last_ts = self.rec_ts
             self.rec_any = False
@@ -1913,12 +1926,31 @@ cdef class _Pass:
             self.mc.n = 0
             self.mc_done = 0
             self.mc_any = False
+            self.mr_at = -1  # handed over: no frame takes its chunk's message back now
         finally:
             _release_signals(blocked)
         return 0
 
     cdef int mcap_items(self, list items) except -1:
-        """Chunks and waiting records the layout makes into messages (and counts)."""
+        """Chunks and waiting records the layout makes into messages (and counts).
+
+        Format 4: when the last thing in ``mc`` is a chunk's /modbus/raw message
+        (``mcap_chunk``) and the first item a frame record, the chunk is taken back out
+        of ``mc`` (and out of the counts) and goes to the layout in front of the items,
+        whose own rule (``chunk_marker``) decides whether its message is left out."""
+        cdef Py_ssize_t at = self.mr_at
+        if at >= 0:
+            self.mr_at = -1
+            if (self.mc.n == self.mr_end and type(items[0]) is tuple
+                    and items[0][0].kind in _FRAME_KINDS):
+                data = PyBytes_FromStringAndSize(self.mc.p + self.mr_end - self.mr_n,
+                                                 self.mr_n)
+                items.insert(0, Chunk(self.mr_ts, self.stream_obj(self.mr_sid),
+                                      Direction.S2C if self.mr_d else Direction.C2S, data))
+                self.mc.n = at
+                self.mc_done = at
+                self.d_chunks -= 1
+                self.d_bytes -= self.mr_n
         self.sync_totals()
         records, first, last, totals = self.mlayout.convert(items, self.totals)
         for r in records:
@@ -1957,10 +1989,17 @@ cdef class _Pass:
 
     cdef int mcap_chunk(self, int sid, int d, double ts, const uint8_t* p,
                         Py_ssize_t n) except -1:
-        """A captured chunk's /modbus/raw message (``LogLayout.convert``'s chunk branch)."""
+        """A captured chunk's /modbus/raw message (``LogLayout.convert``'s chunk branch).
+
+        The block is never handed over right after it (it is before, when full): the
+        frame record that comes next may take the message back (format 4: ``frame_pb``,
+        ``mcap_items``), so it is remembered while it is the last thing in ``mc``."""
         cdef Buf* m = &self.mc
         cdef Py_ssize_t at
         cdef uint64_t lt
+        self.mr_at = -1
+        if m.n >= FLUSH_AT:
+            self.flush_mcap()
         if not (0.0 < ts < MAX_TS):
             return self.mcap_items([Chunk(ts, self.stream_obj(sid),
                                           Direction.S2C if d else Direction.C2S,
@@ -1983,8 +2022,12 @@ cdef class _Pass:
         self.d_bytes += n
         self.mc_span(lt)
         self.mc_done = m.n
-        if m.n >= FLUSH_AT:
-            self.flush_mcap()
+        self.mr_at = at
+        self.mr_end = m.n
+        self.mr_n = n
+        self.mr_sid = sid
+        self.mr_d = d
+        self.mr_ts = ts
         return 0
 
     cdef bytes frame_head(self, int sid, int d):
@@ -2008,15 +2051,32 @@ cdef class _Pass:
         ``mbmon.io.mcap.proto.encode_frame`` makes of the format-2 object of its JSON
         line, field for field in the object's member order (its note is read from the
         line, written into ``out``, ``lnb`` while swapped: the native notes need no JSON
-        escapes)."""
+        escapes).
+
+        Format 4 (``LogLayout``'s ``chunk_marker``): when the last thing in ``mc`` is the
+        /modbus/raw message of a chunk of this stream direction at this time whose bytes
+        are exactly this ADU (protocol id 0, its length field right), the frame is
+        written over that message and ends with the marker of its direction."""
         cdef Buf* b = &self.mc
         cdef int i
         cdef double lat
         cdef Py_ssize_t at = b.n
         cdef bytes head = self.frame_head(sid, d)
         cdef Py_ssize_t hn = len(head), nn = note_end - note_at
-        # room for all of it at once (fixed fields and varints at most 200 bytes)
-        buf_need(b, 200 + hn + 3 * nat.nvalues + alen + nn)
+        cdef bint left_out = False
+        if (self.mr_at >= 0 and b.n == self.mr_end and self.mr_sid == sid and self.mr_d == d
+                and self.mr_ts == ts and self.mr_n == alen and alen >= 7
+                and adu[2] == 0 and adu[3] == 0 and (adu[4] << 8 | adu[5]) == alen - 6
+                and memcmp(b.p + b.n - alen, adu, alen) == 0):
+            left_out = True
+            at = self.mr_at
+            b.n = at
+            self.mc_done = at  # the chunk is whole again with this frame's messages
+            self.d_left += 1
+        self.mr_at = -1
+        # room for all of it at once (fixed fields and varints at most 200 bytes, the
+        # marker 6)
+        buf_need(b, 206 + hn + 3 * nat.nvalues + alen + nn)
         b.n += 31
         c_in_room(b, 0x08)
         varint_in_room(b, <uint64_t>index)
@@ -2075,6 +2135,8 @@ cdef class _Pass:
             varint_in_room(b, <uint64_t>req.index)
         if nat.nvalues == 0:  # [] is no packed field: the encoder's extra member
             put_in_room(b, b'\xf2\x01\x0d{"values":[]}', 16)
+        if left_out:  # chunk = "c2s" / "s2c", field 21 (CHUNK_MARKS)
+            put_in_room(b, b"\xaa\x01\x03s2c" if d else b"\xaa\x01\x03c2s", 6)
         put_head(b.p + at, b.n - at - 31, self.ch_frames, <uint64_t>rint(ts * 1e6) * 1000)
         return 0
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 import base64
 import json
 import math
+import re
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,6 +49,7 @@ from mbmon.io.mcap.layout import (
     TOPIC_FRAMES,
     TOPIC_MONITOR,
     TOPIC_RAW,
+    frame_chunk,
     full_frame_object,
 )
 from mbmon.io.mcap.payloads import payload_problem
@@ -96,14 +98,21 @@ def payload(log: McapLog, msg: LogMessage) -> dict[str, Any] | None:
     A /modbus/frames object comes in format 1's shape whatever the log's format
     (:func:`~mbmon.io.mcap.layout.full_frame_object`; its ``line`` is the monitor
     message's, which :func:`logged_records` fills in)."""
+    data = stored_payload(log, msg)
+    if data is not None and msg.topic == TOPIC_FRAMES:
+        return full_frame_object(data)
+    return data
+
+
+def stored_payload(log: McapLog, msg: LogMessage) -> dict[str, Any] | None:
+    """:func:`payload` as the log stores it: a /modbus/frames object as its format has
+    it (format 4's ``chunk`` member kept, for the readers of chunks)."""
     data, why = msg.decode()
     if why is None:
         why = payload_problem(msg.topic, data)
     if why is not None:
         log.skip(msg, why)
         return None
-    if msg.topic == TOPIC_FRAMES:
-        return full_frame_object(data)  # type: ignore[arg-type]  # an object, as below
     return data  # type: ignore[no-any-return]  # an object: payload_problem said so
 
 
@@ -163,12 +172,34 @@ def writer_stats(log: McapLog) -> dict[str, Any] | None:
     return last
 
 
+#: the key of a ``modbus.Frame``'s field 21 (``chunk``, log format 4) in any wire type: a
+#: message without it stands for no chunk, and is not decoded here
+_CHUNK_KEY = re.compile(b"[\xa8-\xaf]\x01")
+
+
 def raw_items(log: McapLog) -> Iterator[Chunk | Event]:
-    """The chunks and source events of ``/modbus/raw``, in capture order; a damaged
-    message is left out (:func:`payload`) and the rest goes on."""
+    """The chunks and source events of ``/modbus/raw``, in capture order, with the
+    chunks format 4 left out rebuilt where their frame's message is (its ``chunk``:
+    :func:`~mbmon.io.mcap.layout.frame_chunk`); a damaged message is left out
+    (:func:`payload`: a damaged frame message loses its chunk) and the rest goes on."""
     streams: dict[int, Stream] = {}
-    for msg in log.messages([TOPIC_RAW]):
-        data = payload(log, msg)
+    search = _CHUNK_KEY.search
+    for msg in log.messages([TOPIC_RAW, TOPIC_FRAMES]):
+        if msg.topic == TOPIC_FRAMES:
+            if msg.decoder is None or search(msg.raw) is None:
+                continue  # no chunk of format 4 (JSON frames are formats 1 and 2)
+            frame = stored_payload(log, msg)
+            if frame is None or "chunk" not in frame:
+                continue
+            try:
+                data = frame_chunk(frame)
+            except ValueError as exc:  # payload_problem asked the same: not met
+                log.skip(msg, f"damaged /modbus/frames message: {exc}")
+                continue
+            if data is None:
+                continue
+        else:
+            data = stored_payload(log, msg)
         if data is None:
             continue
         try:

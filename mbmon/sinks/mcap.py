@@ -97,6 +97,13 @@ def _packed(items: list[Any]) -> tuple[list[bytes], int, int, Totals]:
     return [item.data for item in items], first, last, items[-1].totals
 
 
+def _is_chunk(item: Any) -> bool:
+    """A captured chunk waits in the queue for the item after it (log format 4: its
+    message is left out when that item is the frame it holds, ``chunk_marker``), so
+    where a batch is cut never changes the log; :meth:`McapSink.close` writes it."""
+    return type(item) is Chunk
+
+
 class McapSink(SinkBase):
     """Write records and raw chunks to an MCAP file (see the module docstring)."""
 
@@ -116,7 +123,12 @@ class McapSink(SinkBase):
         self._batch = max(1, min(_BATCH, chunk_size >> 12))
         self._closed = False
         self._log = ChunkedLog(
-            self.path, self._convert, self._start, chunk_size=chunk_size, flush_every=flush_every
+            self.path,
+            self._convert,
+            self._start,
+            chunk_size=chunk_size,
+            flush_every=flush_every,
+            hold=_is_chunk,
         )
         self._pending = self._log.pending
         assert self._layout is not None
@@ -188,7 +200,9 @@ class McapSink(SinkBase):
     # ------------------------------------------------------------------ listener hooks
 
     def on_chunk(self, chunk: Chunk) -> None:
-        """One captured chunk on /modbus/raw (made into its message with the next batch)."""
+        """One captured chunk on /modbus/raw (made into its message with the next batch
+        after the item that follows it: format 4 leaves out the message of a chunk that
+        is the next frame's ADU)."""
         self._pending.append(chunk)
 
     def on_record(self, record: Record) -> None:

@@ -267,9 +267,49 @@ def deep_payload(topic: str) -> bytes:
     return b"[" * 100_000
 
 
-def mutate_proto(topic: str, raw: bytes, rng: random.Random) -> bytes:
-    """A protobuf payload (format 3) mutated as bytes or as the object it holds."""
+#: format 4's chunk marker (``modbus.Frame`` field 21) as the writers end a frame with it
+_MARKS = (b"\xaa\x01\x03c2s", b"\xaa\x01\x03s2c")
+
+
+def mutate_marker(raw: bytes, rng: random.Random) -> bytes:
+    """A /modbus/frames message (format 4) with its chunk marker damaged: a wrong value, a
+    wrong wire type, a marker on a frame that lacks what the chunk is rebuilt from (its
+    tid, unit, pdu, time, endpoints) or that stands for no chunk (noise), a marker twice."""
+    body = raw[:-6] if raw[-6:] in _MARKS else raw
+    mark = raw[-6:] if raw[-6:] in _MARKS else rng.choice(_MARKS)
     r = rng.random()
+    if r < 0.25:  # a value that is no direction (or no UTF-8, or cut)
+        from mbmon.io.mcap.proto import varint
+
+        value = rng.choice((b"bus", b"C2S", b"", b"c2s\x00", b"\xff\xfe", b"x" * 300))
+        return body + b"\xaa\x01" + varint(len(value)) + value
+    if r < 0.45:  # another wire type: a varint, a double, a 32-bit, a group, cut short
+        return body + rng.choice(
+            (b"\xa8\x01\x05", b"\xa9\x01" + bytes(8), b"\xad\x01" + bytes(4), b"\xab\x01",
+             b"\xaa\x01\x09c2s", b"\xaa\x01")
+        )  # fmt: skip
+    if r < 0.55:
+        return body + mark + mark
+    try:
+        obj = payload_obj("/modbus/frames", body)
+    except ValueError:
+        return body + mark
+    if not isinstance(obj, dict):
+        return body + mark
+    for key in rng.sample(("tid", "unit", "pdu", "time", "src", "dst", "stream", "transport"), 2):
+        if rng.random() < 0.5:
+            obj.pop(key, None)
+        else:
+            obj[key] = rng.choice((None, -1, 1 << 70, "x", 1.5, "ZZ"))
+    return payload_bytes("/modbus/frames", obj) + mark
+
+
+def mutate_proto(topic: str, raw: bytes, rng: random.Random) -> bytes:
+    """A protobuf payload (format 3 or 4) mutated as bytes or as the object it holds
+    (format 4's chunk marker as well: :func:`mutate_marker`)."""
+    r = rng.random()
+    if topic == "/modbus/frames" and (raw[-6:] in _MARKS or r < 0.05) and rng.random() < 0.4:
+        return mutate_marker(raw, rng)
     if r < 0.1:
         return rng.choice((b"", b"\xff" * 11, raw[: len(raw) // 2], deep_payload(topic)))
     if r < 0.3:

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import jsonschema
 import pytest
+from format4 import MARKS, as_format3, left_out
 from mcap.reader import NonSeekingReader, make_reader
 from sink_records import REPO, feed, hrss_context
 
@@ -93,7 +94,10 @@ def test_topics_schemas_and_summary(tmp_path: Path, session_stream: list) -> Non
     recs = records_of(session_stream)
     chunks = [x for x in session_stream if isinstance(x, Chunk)]
     assert by_topic["/modbus/monitor"] == len(recs)
-    assert by_topic["/modbus/raw"] == len(chunks) + 2  # plus connect and disconnect
+    with McapLog(path) as log:  # format 4: a one-ADU chunk's message is left out
+        marked = left_out([(m.topic, m.log_time, m.raw) for m in log.messages()])
+    assert 0 < marked < len(chunks)
+    assert by_topic["/modbus/raw"] == len(chunks) - marked + 2  # plus connect and disconnect
     frames = [r for r in recs if r.kind is not RecordKind.EVENT]
     assert by_topic["/modbus/frames"] == len(frames)
     # the non-seeking reader (a pipe) sees the same file
@@ -186,6 +190,8 @@ def test_messages_carry_the_records(tmp_path: Path, session_stream: list) -> Non
     view = View()
     frames = [d for t, _, d, _, _ in msgs if t == "/modbus/frames"]
     expect = [record_to_json(r, view) for r in recs if r.kind is not RecordKind.EVENT]
+    marked = [f.pop("chunk") for f in frames if "chunk" in f]  # format 4's, not the record's
+    assert marked and set(marked) <= {"c2s", "s2c"}
     assert frames == json.loads(json.dumps([slim_frame_object(o) for o in expect]))
     assert all("line" not in f and None not in f.values() for f in frames)
     lines = {d["line"]: d["message"] for t, _, d, _, _ in msgs if t == "/modbus/monitor"}
@@ -234,7 +240,9 @@ def test_times_are_capture_times_in_ns(tmp_path: Path, session_stream: list) -> 
 
 def test_raw_topic_is_lossless(tmp_path: Path, session_stream: list) -> None:
     path = write_log(tmp_path / "raw.mcap", session_stream)
-    raw = [d for t, _, d, _, _ in messages(path) if t == "/modbus/raw"]
+    with McapLog(path) as log:  # format 4: the chunks left out rebuilt from their frames
+        stored3 = as_format3([(m.topic, m.log_time, m.raw) for m in log.messages()])
+    raw = [decode_payload("modbus.Raw", "protobuf", d) for t, _, d in stored3 if t == "/modbus/raw"]
     chunks = [x for x in session_stream if isinstance(x, Chunk)]
     stored = [d for d in raw if d["type"] == "chunk"]
     assert len(stored) == len(chunks)
@@ -424,8 +432,8 @@ def test_sigkill_loses_at_most_the_last_second(tmp_path: Path) -> None:
     assert set(got) >= old, f"lost {len(old - set(got))} records older than 1 s"
     assert got == list(range(len(got))), "recovered records must be a prefix, in order"
     assert status.messages > 0 and status.describe().startswith("log was not finished")
-    with McapLog(path) as log:  # format 3: each frame object gets its line back
-        assert log.metadata["mbmon"]["format"] == "3"
+    with McapLog(path) as log:  # format 3 on: each frame object gets its line back
+        assert log.metadata["mbmon"]["format"] == "4"
         frames = [r for r in logged_records(log) if r.obj is not None and r.obj.get("fc")]
     assert len(frames) > 100
     assert all(r.obj is not None and r.obj["line"] == r.text != "" for r in frames)
@@ -494,6 +502,8 @@ def test_frame_messages_match_the_slow_encoding(tmp_path: Path) -> None:
             elif channel.topic == "/modbus/monitor":
                 monitor.append(json.loads(msg.data))
     frame_recs = [r for r in recs if r.frame is not None]
+    assert sum(f[-6:] in MARKS for f in raw_frames) > 0  # format 4: the rest as format 3
+    raw_frames = [f[:-6] if f[-6:] in MARKS else f for f in raw_frames]
     assert raw_frames == [  # format 3: format 2's object as protobuf
         encode_frame(json.loads(json_line(slim_frame_object(record_to_json(r, view)))))
         for r in frame_recs

@@ -29,6 +29,7 @@ true time stays in the message). Two ways to the same bytes:
 
 from __future__ import annotations
 
+import base64
 import json
 import math
 import re
@@ -53,6 +54,7 @@ from mbmon.io.mcap.proto import (
 from mbmon.io.mcap.writer import MAX_LOG_TIME, MESSAGE_HEAD
 from mbmon.jsonfmt import record_json_bytes
 from mbmon.model import Chunk, Direction, Event, EventKind, Record, RecordKind, Stream
+from mbmon.protocol.mbap import encode_adu
 
 _json_str = json.encoder.encode_basestring  # C-accelerated, keeps non-ASCII
 _DIRECTIONS = {d: d.value for d in Direction}
@@ -89,9 +91,12 @@ def _data_field(data: bytes) -> bytes:
 #: message's ``file`` is empty (the source is the metadata's). Format 3: the same
 #: objects of /modbus/frames and /modbus/raw as protobuf messages (``modbus.Frame``,
 #: ``modbus.Raw``: :mod:`mbmon.io.mcap.proto`), which the reader gives back as format
-#: 2's objects. Readers take every format: :func:`full_frame_object` gives a stored
-#: frames object its format 1 shape.
-LOG_FORMAT = 3
+#: 2's objects. Format 4: format 3 without the /modbus/raw message of a chunk that is
+#: exactly the ADU of the frame record written right after it (:func:`chunk_marker`);
+#: that frame's message ends with ``chunk`` (its direction) instead, and readers
+#: rebuild the chunk from the frame (:func:`frame_chunk`). Readers take every format:
+#: :func:`full_frame_object` gives a stored frames object its format 1 shape.
+LOG_FORMAT = 4
 #: a member whose value is null, in an object's JSON: keys are lower-case words, and a
 #: string's own quotes are escaped, so ``,"`` opens a member name (or an array's next
 #: string, which a colon never follows)
@@ -116,7 +121,7 @@ PROFILE_TOPICS = frozenset({TOPIC_STATE, TOPIC_COMMANDS})
 #: topic -> schema file stem in ``mbmon/schemas`` (also the MCAP schema name)
 TOPIC_SCHEMAS: dict[str, str] = {
     TOPIC_RAW: "modbus.Raw.v2",
-    TOPIC_FRAMES: "modbus.Frame.v2",
+    TOPIC_FRAMES: "modbus.Frame.v3",  # formats 3 and 4 (v2: format 2, v1: format 1)
     TOPIC_MONITOR: "foxglove.Log",
     TOPIC_STATE: "hrss.State.v1",
     TOPIC_COMMANDS: "hrss.Command.v1",
@@ -162,6 +167,10 @@ _MONITOR_INFO, _MONITOR_WARNING = (
 )
 assert _MONITOR_STAMP + b'%d,"message":%b%b%d}' == _MONITOR
 _FRAME_KINDS = (RecordKind.REQUEST, RecordKind.RESPONSE, RecordKind.EXCEPTION)
+#: format 4: the ``chunk`` member of a frame whose chunk is left out, by direction, and
+#: its bytes at the end of the ``modbus.Frame`` message (field 21, a string of three)
+CHUNK_DIRECTIONS = {"c2s": Direction.C2S, "s2c": Direction.S2C}
+CHUNK_MARKS = {Direction.C2S: b"\xaa\x01\x03c2s", Direction.S2C: b"\xaa\x01\x03s2c"}
 #: enum members as module constants: ``RecordKind.RESPONSE`` costs a class attribute
 #: lookup through the enum machinery each time, several per record
 _RESPONSE, _EXCEPTION = RecordKind.RESPONSE, RecordKind.EXCEPTION
@@ -227,16 +236,94 @@ def full_frame_object(obj: dict[str, Any]) -> dict[str, Any]:
     """A stored /modbus/frames object in format 1's shape, the ``read --json`` object:
     an object of format 2 (no ``line``) gets every member of the record object back in
     its order, null where format 2 left it out, ``line`` null for the reader to fill in
-    from the record's /modbus/monitor message (:func:`mbmon.io.replay.logged_records`);
-    an object of format 1 is returned as it is."""
+    from the record's /modbus/monitor message (:func:`mbmon.io.replay.logged_records`),
+    and never format 4's ``chunk`` (the log's, not the record's); an object of format 1
+    is returned as it is."""
     if "line" in obj:
         return obj
     get = obj.get
     out = {key: get(key) for key in _JSON_KEYS}
     for key, value in obj.items():
-        if key not in out:
+        if key not in out and key != "chunk":
             out[key] = value
     return out
+
+
+def chunk_marker(chunk: Chunk, record: Record, obj: Mapping[str, Any]) -> bytes | None:
+    """Format 4's rule, the one definition both writers follow: the bytes that end the
+    /modbus/frames message of ``record`` (whose format-2 object is ``obj``) when the
+    /modbus/raw message of ``chunk``, written right before it, is left out; ``None``
+    when the chunk keeps its message.
+
+    It is left out when the frame's ADU is the whole chunk: a frame record of the
+    chunk's stream and direction (not a bus), a timed stream, a plausible capture time
+    equal to the record's, integer ``tid`` and ``unit``, and the chunk's bytes exactly
+    the MBAP header (tid, protocol id 0, length) and unit before the frame's pdu, so a
+    reader rebuilds the chunk from the frame (:func:`frame_chunk`). Anything else (RTU
+    over TCP, noise, two ADUs or part of one, another protocol id) fails the byte
+    comparison."""
+    frame = record.frame
+    stream = chunk.stream
+    direction = chunk.direction
+    ts = chunk.ts
+    if (
+        frame is None
+        or record.kind not in _FRAME_KINDS
+        or frame.direction is not direction
+        or direction is Direction.BUS
+        or not stream.timed
+        or not 0.0 < ts < _MAX_TS
+        or ts != record.ts
+        or obj.get("time") != ts
+        or obj.get("stream") != stream.id
+    ):
+        return None
+    tid, unit, pdu_hex = obj.get("tid"), obj.get("unit"), obj.get("pdu")
+    if type(tid) is not int or type(unit) is not int or type(pdu_hex) is not str:
+        return None
+    try:
+        adu = encode_adu(tid, unit, bytes.fromhex(pdu_hex))
+    except ValueError:  # a tid or unit out of range, a pdu that is no hex
+        return None
+    return CHUNK_MARKS[direction] if chunk.data == adu else None
+
+
+def frame_chunk(obj: Mapping[str, Any]) -> dict[str, Any] | None:
+    """The /modbus/raw object (format 2's chunk object) a format-4 frames object with
+    ``chunk`` stands for (:func:`chunk_marker`), or ``None`` when it has no ``chunk``;
+    ``ValueError`` when it has one but not what the chunk is made of (a damaged
+    message: its chunk is lost)."""
+    direction = obj.get("chunk")
+    if direction is None:
+        return None
+    if type(direction) is not str or direction not in CHUNK_DIRECTIONS:
+        shown = repr(direction) if type(direction) is str and len(direction) < 20 else "it"
+        raise ValueError(f"{shown} is not a chunk's direction (c2s or s2c)")
+    tid, unit, pdu_hex, ts = obj.get("tid"), obj.get("unit"), obj.get("pdu"), obj.get("time")
+    if type(tid) is not int or type(unit) is not int or type(pdu_hex) is not str:
+        raise ValueError("a frame marked with its chunk has no tid, unit or pdu")
+    if type(ts) is not float or obj.get("stream") is None:
+        raise ValueError("a frame marked with its chunk has no time or stream")
+    src, dst = obj.get("src"), obj.get("dst")
+    if type(src) is not str or type(dst) is not str or obj.get("transport") is None:
+        raise ValueError("a frame marked with its chunk has no endpoints")
+    try:
+        adu = encode_adu(tid, unit, bytes.fromhex(pdu_hex))
+    except ValueError:
+        raise ValueError(
+            "a frame marked with its chunk has a pdu, tid or unit it cannot be"
+        ) from None
+    c2s = direction == "c2s"
+    return {
+        "type": "chunk",
+        "stream": obj["stream"],
+        "transport": obj["transport"],
+        "client": src if c2s else dst,
+        "server": dst if c2s else src,
+        "direction": direction,
+        "ts": ts,
+        "data": base64.b64encode(adu).decode("ascii"),
+    }
 
 
 def proto_payload(topic: str, obj: Any) -> bytes:
@@ -409,11 +496,13 @@ class Totals:
     slow_frames: int = 0  # frame records that took the general path (counted in messages)
     next_stats: float = 0.0  # capture time the next stats event is due (0: none yet)
     last_ts: float | None = None  # capture time of the last record
+    #: chunks whose /modbus/raw message was left out (format 4: counted in ``chunks``)
+    left_out: int = 0
 
     def copy(self) -> Totals:
         return Totals(
             dict(self.kinds), dict(self.counts), dict(self.messages),
-            self.slow_frames, self.next_stats, self.last_ts,
+            self.slow_frames, self.next_stats, self.last_ts, self.left_out,
         )  # fmt: skip
 
 
@@ -523,6 +612,11 @@ class LogLayout:
         per-record work, so it is one loop with the layout's state in locals, and what
         depends on the capture time alone (log time, the monitor's timestamp) is
         made once per distinct time: a chunk and the records it completes share it.
+
+        Format 4: a chunk followed by a frame record's item waits for it, and its
+        /modbus/raw message is left out when :func:`chunk_marker` says so (the frame's
+        message then ends with the marker); a chunk that is the last item is written
+        as it is (the log writer keeps such a chunk waiting for the next batch).
         """
         t = self._t = (totals if totals is not None else self.new_totals()).copy()
         out: list[bytes] = []
@@ -536,7 +630,10 @@ class LogLayout:
         time_of = log_time = 0  # the capture time whose log time and stamp are below
         next_stats = t.next_stats
         stamp = b""
-        for item in items:
+        held: Chunk | None = None  # a chunk whose message waits for the frame after it
+        held_message = b""
+        n_items = len(items)
+        for i, item in enumerate(items):
             if type(item) is not tuple:  # a Chunk, on /modbus/raw
                 ts = item.ts
                 if ts != time_of:  # log_time_ns(ts), inline
@@ -545,18 +642,14 @@ class LogLayout:
                     else:
                         log_time = log_time_ns(ts)
                     time_of, stamp = ts, b""
-                stream = item.stream
-                prefix = raw_prefix.get((stream.id, item.direction))
-                if prefix is None:
-                    prefix = self.raw_prefix(stream, item.direction)
-                raw = item.data
-                if ts - ts == 0.0:  # finite
-                    body = prefix + _pack_ts(ts) + _data_field(raw)
-                else:  # format 2's null (JSON has no NaN, no infinity): in extra
-                    body = prefix + _data_field(raw) + _ts_null()
+                body = self._raw_body(item, raw_prefix)
                 n_chunks += 1
-                n_bytes += len(raw)
-                append(pack(5, 22 + len(body), ch_raw, 0, log_time, log_time) + body)
+                n_bytes += len(item.data)
+                message = pack(5, 22 + len(body), ch_raw, 0, log_time, log_time) + body
+                if i + 1 < n_items and type(items[i + 1]) is tuple:
+                    held, held_message = item, message  # the record decides (format 4)
+                else:
+                    append(message)
             else:
                 record, payload = item
                 ts = last_ts = record.ts
@@ -576,7 +669,9 @@ class LogLayout:
                         payload = record_to_json(record, self.view)
                     self._add_chunk_counts(n_chunks, n_bytes)  # its stats may be due
                     n_chunks = n_bytes = 0
-                    append(self._obj_messages(record, payload, log_time))
+                    mark = self._held_mark(held, held_message, record, payload, append)
+                    held = None
+                    append(self._obj_messages(record, payload, log_time, mark))
                     next_stats = t.next_stats
                 else:
                     kind = record.kind
@@ -596,7 +691,11 @@ class LogLayout:
                     if tail is None:
                         tail = self.monitor_tail(frame.stream)
                     monitor %= (stamp, payload[start:end], tail, record.index)
-                    slim = encode_frame(_decode_json(slim_frame_json(payload, start, end)))
+                    obj = _decode_json(slim_frame_json(payload, start, end))
+                    slim = encode_frame(obj) + self._held_mark(
+                        held, held_message, record, obj, append
+                    )
+                    held = None
                     n = len(slim)
                     out += (
                         pack(5, 22 + n, ch_frames, 0, log_time, log_time),
@@ -623,6 +722,40 @@ class LogLayout:
             t.last_ts = last_ts
         return out, first, last, t
 
+    def _raw_body(self, chunk: Chunk, prefixes: dict[tuple[int, Direction], bytes]) -> bytes:
+        """A chunk's /modbus/raw message (its data, without the record head)."""
+        stream = chunk.stream
+        prefix = prefixes.get((stream.id, chunk.direction))
+        if prefix is None:
+            prefix = self.raw_prefix(stream, chunk.direction)
+        ts = chunk.ts
+        if ts - ts == 0.0:  # finite
+            return prefix + _pack_ts(ts) + _data_field(chunk.data)
+        # format 2's null (JSON has no NaN, no infinity): in extra
+        return prefix + _data_field(chunk.data) + _ts_null()
+
+    def _held_mark(
+        self,
+        held: Chunk | None,
+        message: bytes,
+        record: Record,
+        obj: Mapping[str, Any],
+        append: Callable[[bytes], None],
+    ) -> bytes:
+        """Format 4, for the record right after a held chunk (``None``: no chunk held):
+        the marker that ends its frame's message when the chunk's message is left out
+        (:func:`chunk_marker`, counted in :attr:`Totals.left_out`), else ``b""`` with the
+        chunk's ``message`` appended first. ``obj``: the record's ``read --json`` object
+        (or format 2's slim one: the members the rule reads are the same)."""
+        if held is None:
+            return b""
+        mark = chunk_marker(held, record, obj)
+        if mark is None:
+            append(message)
+            return b""
+        self._t.left_out += 1
+        return mark
+
     def _add_chunk_counts(self, chunks: int, size: int) -> None:
         counts = self._t.counts
         counts["chunks"] += chunks  # also the count of their messages (told on close)
@@ -639,9 +772,12 @@ class LogLayout:
         self._raw_prefix[(stream.id, direction)] = prefix
         return prefix
 
-    def _obj_messages(self, record: Record, obj: Mapping[str, Any], log_time: int) -> bytes:
+    def _obj_messages(
+        self, record: Record, obj: Mapping[str, Any], log_time: int, mark: bytes = b""
+    ) -> bytes:
         """The message records of a record made from its ``read --json`` object (noise,
-        events, commands: few records, so the plain encoder does)."""
+        events, commands: few records, so the plain encoder does); ``mark`` ends a frame's
+        /modbus/frames message (format 4: :func:`chunk_marker`)."""
         ts = record.ts
         kind = record.kind
         t = self._t
@@ -653,7 +789,7 @@ class LogLayout:
         n = len(payload)
         topic = self._topic_of[kind]
         if topic == self._ch_frames:  # format 2's object (no line, no nulls) in protobuf
-            slim = encode_frame(_decode_json(encode(slim_frame_object(obj))))
+            slim = encode_frame(_decode_json(encode(slim_frame_object(obj)))) + mark
             parts = [head(topic, log_time, len(slim)), slim]
         else:
             parts = [head(topic, log_time, n), payload]
@@ -732,9 +868,11 @@ class LogLayout:
 
     def channel_counts(self, totals: Totals) -> dict[int, int]:
         """Messages per channel that :meth:`convert` made, as counted by ``totals``:
-        those it counted one by one, raw chunks, and two per frame on the fast path."""
+        those it counted one by one, raw chunks (but those left out), and two per frame
+        on the fast path."""
         counts = dict(totals.messages)
-        counts[self._ch_raw] = counts.get(self._ch_raw, 0) + totals.counts["chunks"]
+        raw = totals.counts["chunks"] - totals.left_out  # format 4: a chunk left out has none
+        counts[self._ch_raw] = counts.get(self._ch_raw, 0) + raw
         kinds = totals.kinds
         fast = sum(kinds[k] for k in _FRAME_KINDS) - totals.slow_frames
         counts[self._ch_frames] = counts.get(self._ch_frames, 0) + fast

@@ -14,7 +14,7 @@ import re
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from mbmon.io.mcap.layout import TOPIC_SCHEMAS, schema_text
+from mbmon.io.mcap.layout import TOPIC_FRAMES, TOPIC_SCHEMAS, frame_chunk, schema_text
 
 _INT_MIN, _INT_END = -(1 << 63), 1 << 64  # what a JSON integer of a log may be (64 bits)
 _SURROGATE = re.compile("[\ud800-\udfff]")
@@ -40,10 +40,23 @@ def payload_problem(topic: str, obj: Any) -> str | None:
         checker = _checkers[topic] = (schema, _compile(schema))
     schema, fits = checker
     if fits(obj):  # the fast yes; the walk below says why not
+        if topic == TOPIC_FRAMES and "chunk" in obj:  # format 4's marker (not in the schema)
+            return _chunk_problem(obj)
         return None
     if not isinstance(obj, dict):
         return f"payload is {_kind_of(obj)}, not a JSON object"
     return _problem(schema, obj, "") or "payload does not match its schema"
+
+
+def _chunk_problem(obj: dict[str, Any]) -> str | None:
+    """Why a /modbus/frames object with ``chunk`` (log format 4: the frame stands for a
+    chunk left out of /modbus/raw) cannot be trusted, or ``None``: ``chunk`` must be a
+    direction and the object hold what the chunk is rebuilt from."""
+    try:
+        frame_chunk(obj)
+    except ValueError as exc:
+        return f"chunk: {exc}"
+    return None
 
 
 _checkers: dict[str, tuple[Any, Callable[[Any], bool]]] = {}

@@ -1,5 +1,7 @@
-"""Log format 3's protobuf messages: ``/modbus/frames`` and ``/modbus/raw`` as
-``modbus.Frame`` and ``modbus.Raw`` (``mbmon/schemas/modbus.log3.proto``).
+"""Log format 3's and 4's protobuf messages: ``/modbus/frames`` and ``/modbus/raw`` as
+``modbus.Frame`` and ``modbus.Raw`` (``mbmon/schemas/modbus.log4.proto``: format 3's
+``modbus.log3.proto``, kept for reference, with ``Frame.chunk`` added; a format-3
+message decodes the same, the field absent).
 
 What this module owns: the one reading of that ``.proto`` file (the fields of each
 message), the FileDescriptorSet a log's schema records carry (what Foxglove and any
@@ -52,7 +54,7 @@ __all__ = [
 #: the schema names (MCAP schema records, encoding "protobuf")
 FRAME_SCHEMA = "modbus.Frame"
 RAW_SCHEMA = "modbus.Raw"
-PROTO_FILE = "modbus.log3.proto"
+PROTO_FILE = "modbus.log4.proto"
 
 _INT64_MIN = -(1 << 63)
 _INT64_MAX = (1 << 63) - 1
@@ -223,6 +225,7 @@ def _encode(schema: str, obj: Mapping[str, Any]) -> bytes:
     extra: dict[str, Any] = {}
     plan = _plan(schema)
     small = _SMALL
+    last = bytearray()  # format 4's chunk marker: after every other field, extra too
     for key, value in obj.items():
         p = plan.get(key)
         if p is None or key == "extra":
@@ -230,12 +233,12 @@ def _encode(schema: str, obj: Mapping[str, Any]) -> bytes:
         elif p[0] == "int64" and type(value) is int and 0 <= value < 16384 and not p[2]:
             out += p[1]  # the common member inline: a small count, unit, code, index
             out += small[value]
-        elif not _put(p, key, value, out):
+        elif not _put(p, key, value, last if key == "chunk" else out):
             extra[key] = value
     if extra:
         text = json.dumps(extra, separators=(",", ":"))  # ASCII: lone surrogates too
         _len_field(plan["extra"][3], text.encode("ascii"), out)
-    return bytes(out)
+    return bytes(out + last)
 
 
 def _put(p: tuple[str, bytes, bool, int], name: str, value: Any, out: bytearray) -> bool:
@@ -474,7 +477,12 @@ def decode_frame(data: bytes) -> dict[str, Any]:
     got = _decode(messages()[FRAME_SCHEMA], data)
     if "pdu" in got:
         got["pdu"] = _hex_of(got["pdu"])
-    return _with_extra(got, lambda got, extra: _FRAME_ORDER)
+    chunk = got.pop("chunk", None)
+    out = _with_extra(got, lambda got, extra: _FRAME_ORDER)
+    if chunk is not None:  # format 4's marker of a left-out chunk: always the last member
+        out.pop("chunk", None)  # (one in extra too would be damage: the field's wins)
+        out["chunk"] = chunk
+    return out
 
 
 def decode_raw(data: bytes) -> dict[str, Any]:

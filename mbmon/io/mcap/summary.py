@@ -47,7 +47,8 @@ class _Tally:
 
     def read(self, log: McapLog) -> None:
         """Count every message of ``log`` (raises :class:`LogError` where damage stops it)."""
-        from mbmon.io.replay import payload
+        from mbmon.io.mcap.layout import frame_chunk
+        from mbmon.io.replay import stored_payload
 
         for msg in log.messages():
             self.topics[msg.topic] += 1
@@ -56,12 +57,16 @@ class _Tally:
             self.last = t if self.last is None or t > self.last else self.last
             if msg.topic not in _COUNTED:
                 continue
-            obj = payload(log, msg)  # the fields of a damaged message are not counted
+            obj = stored_payload(log, msg)  # the fields of a damaged message are not counted
             if obj is None:
                 continue
             if msg.topic == TOPIC_RAW:
                 self.raw(obj)
             elif msg.topic == TOPIC_FRAMES:
+                if "chunk" in obj:  # format 4: the chunk left out, counted as one stored
+                    chunk = frame_chunk(obj)  # (payload_problem checked it is whole)
+                    if chunk is not None:
+                        self.raw(chunk)
                 self.frame(obj)
             elif msg.topic == TOPIC_EVENTS:
                 self.event(obj)

@@ -235,11 +235,14 @@ class McapFileWriter:
         the caller packed itself (with ``MESSAGE_HEAD``) and handed to :meth:`take_from`."""
         self._counts[channel_id] += messages
 
-    def take_from(self, pending: list[Any], convert: Converter) -> int:
+    def take_from(
+        self, pending: list[Any], convert: Converter, hold: Callable[[Any], bool] | None = None
+    ) -> int:
         """Move what waits in ``pending`` to the end of the open chunk as message records
         (``convert(items, self.state)`` makes them) and remove it from the list; the
         converter's new state becomes :attr:`state` with them. Return the open chunk's
-        size (the caller closes it).
+        size (the caller closes it). A last item that ``hold`` holds stays waiting (a
+        chunk whose message depends on the item after it: log format 4).
 
         Another thread may append to ``pending`` meanwhile: only the items there at
         the start are moved. The chunk gains their records by one in-place list
@@ -249,6 +252,8 @@ class McapFileWriter:
         still waiting (and not), never both or neither.
         """
         n = len(pending)
+        if n and hold is not None and hold(pending[n - 1]):
+            n -= 1
         if not n:
             return self._size
         records, start, end, state = convert(pending[:n], self.state)
@@ -423,8 +428,12 @@ class ChunkedLog:
         *,
         chunk_size: int = CHUNK_SIZE,
         flush_every: float = FLUSH_EVERY,
+        hold: Callable[[Any], bool] | None = None,
     ) -> None:
         self.path = Path(path)
+        #: a last waiting item this holds stays waiting until another follows it, or the
+        #: close (:meth:`McapFileWriter.take_from`): the batch's cut never decides for it
+        self.hold = hold
         self.chunk_size = chunk_size
         self.flush_every = flush_every
         self._convert = convert
@@ -501,7 +510,7 @@ class ChunkedLog:
             self._raise_error()
         ready = self._ready
         with self._lock:
-            size = self.writer.take_from(self.pending, self._convert)
+            size = self.writer.take_from(self.pending, self._convert, self.hold)
             if size > self.chunk_size or time.monotonic() - self._last_flush >= self.flush_every:
                 self.writer.close_chunk_into(ready)
                 self._last_flush = time.monotonic()
@@ -587,7 +596,7 @@ class ChunkedLog:
                     return
                 elif time.monotonic() - self._last_flush >= self.flush_every:
                     try:
-                        self.writer.take_from(self.pending, self._convert)
+                        self.writer.take_from(self.pending, self._convert, self.hold)
                     except Exception as exc:  # reported by the next move() or close()
                         if self._error is None:
                             self._error = exc
