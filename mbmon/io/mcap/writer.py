@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import signal
 import struct
+import sys
 import threading
 import time
 import zlib
@@ -41,10 +42,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
-try:
-    import _signal as _signal_c
-except ImportError:  # not CPython: the signal module's own
-    _signal_c = signal
+#: the C module under ``signal`` (CPython's ``signal`` imports it), else ``signal`` itself
+_signal_c: Any = sys.modules.get("_signal", signal)
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 #: the head of a message record: opcode, length, channel, sequence, log time, publish time
