@@ -4112,6 +4112,26 @@ def _round3(double v):
     return round3_exact(v)
 
 
+def _boxed(list pieces, Py_ssize_t room):
+    """Test-only entry: ``pieces`` written one after the other into a boxed ``Buf`` of
+    ``room`` bytes (grown as a log block is: ``box_grow``), and the bytes object it was
+    written in, as :func:`box_take` hands it over (its address: the second member)."""
+    cdef Buf b
+    b.p = NULL
+    b.n = 0
+    b.cap = 0
+    b.box = NULL
+    cdef size_t at
+    try:
+        box_new(&b, room)
+        for piece in pieces:
+            put_bytes(&b, piece)
+        at = <size_t>b.p
+        return box_take(&b), at
+    finally:
+        buf_free(&b)
+
+
 def _json_round3(double v):
     """Test-only entry: the JSON number a line's ``latency_ms`` gets (``put_json_round3``)."""
     cdef Buf b

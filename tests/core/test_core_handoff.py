@@ -7,6 +7,8 @@ core wrote them. Checked by address: the memory the core last wrote a block into
 (``_reader._last_block_at``) must be the handed-over bytes object's own data, and
 the object zstd compresses must be that same object. A copy anywhere on the way (the
 core's ``PyBytes_FromStringAndSize`` of its buffer, a join, a ``bytes()``) fails it.
+The bytes object a block is written in (``Buf.box``) is held to what was written
+into it, grown or not, through a test-only entry.
 """
 
 from __future__ import annotations
@@ -16,6 +18,8 @@ from typing import Any
 
 from core_diff import require_core
 from gen import write_conversation
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from mcap.reader import make_reader
 from mcap_diff import _context
 
@@ -95,3 +99,31 @@ def test_blocks_reach_zstd_where_the_core_wrote_them(tmp_path: Path) -> None:
         messages = sum(1 for _ in reader.iter_messages(log_time_order=False))
     assert messages == summary.statistics.message_count > 3 * PAIRS
     assert len(summary.chunk_indexes) >= len(whole)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(st.binary(max_size=300), max_size=40),
+    st.integers(min_value=1, max_value=512),
+)
+def test_a_boxed_buffer_hands_over_what_was_written(pieces: list[bytes], room: int) -> None:
+    """A block's bytes object (``Buf.box``) grows like any buffer (a larger object, what
+    was written copied in) and is handed over cut to its length, in place."""
+    require_core()
+    from mbmon.core import _reader
+
+    data, _ = _reader._boxed(pieces, room)
+    assert type(data) is bytes and data == b"".join(pieces)
+    assert hash(data) == hash(b"".join(pieces))  # an ordinary bytes object
+
+
+def test_a_grown_block_is_cut_where_it_was_written() -> None:
+    """A block's size (the C library's memory, not Python's small-object arenas): grown
+    past its room once, then cut to its length in place, not copied."""
+    require_core()
+    from mbmon.core import _reader
+
+    pieces = [bytes([i]) * (64 << 10) for i in range(9)]  # 576 KiB into 512 KiB of room
+    data, at = _reader._boxed(pieces, 512 << 10)
+    assert data == b"".join(pieces)
+    assert at == id(data) + DATA_AT
