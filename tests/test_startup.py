@@ -123,6 +123,7 @@ def test_a_core_read_imports_neither_the_annotator_nor_the_pipeline(
     if "-w" in options:
         assert log.stat().st_size > 0
         assert {"mbmon.sinks.mcap", "mbmon.io.mcap.writer"} <= modules
+        assert_absent(modules, ["mcap"], "the log's writer packs its own records")
     else:
         assert_absent(modules, LOG_WRITER, "no -w")
     if "-q" in options:

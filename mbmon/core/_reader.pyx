@@ -40,13 +40,15 @@ cdef extern from "Python.h":
     void PyMem_Free(void *p)
     int Py_DTSF_ADD_DOT_0
 
-from cpython.bytes cimport PyBytes_FromStringAndSize
+from cpython.bytes cimport PyBytes_FromStringAndSize, PyBytes_AS_STRING, _PyBytes_Resize
+from cpython.ref cimport PyObject, Py_INCREF, Py_DECREF, Py_XDECREF
 from cpython.unicode cimport PyUnicode_DecodeUTF8
 from cpython.exc cimport PyErr_CheckSignals
 
 import orjson as _orjson
 import signal as _signal_mod
 import threading as _threading
+import sys as _sys
 
 from mbmon.format import function_name, exception_name, record_line
 from mbmon.jsonfmt import record_json_bytes
@@ -86,6 +88,8 @@ DEF MAX_PENDING_TOTAL = 90000  # ... and 100,000 in all
 DEF TICK_EVERY = 0.1
 DEF MAX_RECORD = 1 << 26
 DEF FLUSH_AT = 1 << 20
+DEF BLOCK_ROOM = FLUSH_AT + (1 << 17)  # a log block's bytes object: a block and its last item
+DEF HAND_WHOLE = FLUSH_AT >> 1  # a block this long is handed over as it is, not copied
 DEF RELEASE_EVERY = 1 << 24  # a multiple of every page size
 DEF UDP_PORT_KEY = 0x10000    # dissect._UDP_PORT: a UDP port's key in the port counts
 DEF MAX_PORTS = 4096          # dissect.MAX_PORTS: distinct other ports counted
@@ -191,6 +195,9 @@ cdef struct Buf:
     char* p
     Py_ssize_t n
     Py_ssize_t cap
+    # NULL: ``p`` is the C library's (malloc); else a bytes object of ``cap`` bytes
+    # whose storage ``p`` is, owned here until handed over whole (``box_take``)
+    PyObject* box
 
 
 cdef int buf_need(Buf* b, Py_ssize_t more) except -1:
@@ -201,12 +208,68 @@ cdef int buf_need(Buf* b, Py_ssize_t more) except -1:
     cap = b.cap * 2 if b.cap else 1 << 16
     while cap < b.n + more:
         cap *= 2
+    if b.box != NULL:
+        return box_grow(b, cap)
     p = <char*>realloc(b.p, cap)
     if p == NULL:
         raise MemoryError()
     b.p = p
     b.cap = cap
     return 0
+
+
+cdef int box_new(Buf* b, Py_ssize_t cap) except -1:
+    """Make ``b`` (empty, holding nothing) a fresh bytes object of ``cap`` bytes: what is
+    written into it is handed over later without a copy (:func:`box_take`)."""
+    o = PyBytes_FromStringAndSize(NULL, cap)  # its bytes are written before anyone sees them
+    b.box = <PyObject*>o
+    Py_INCREF(o)  # the reference ``box`` holds
+    b.p = PyBytes_AS_STRING(o)
+    b.n = 0
+    b.cap = cap
+    return 0
+
+
+cdef int box_grow(Buf* b, Py_ssize_t cap) except -1:
+    """A boxed ``b`` with room for ``cap`` bytes: a larger bytes object with what was
+    written copied in (rare: an item longer than the block's spare room). The old one
+    stays ``b``'s if the new one cannot be made."""
+    o = PyBytes_FromStringAndSize(NULL, cap)
+    memcpy(PyBytes_AS_STRING(o), b.p, b.n)
+    Py_DECREF(<object>b.box)
+    b.box = <PyObject*>o
+    Py_INCREF(o)
+    b.p = PyBytes_AS_STRING(o)
+    b.cap = cap
+    return 0
+
+
+cdef bytes box_take(Buf* b):
+    """What was written into a boxed ``b``, as the bytes object it was written in (cut to
+    its length in place: ``_PyBytes_Resize`` of a sole reference, no copy); ``b`` is left
+    empty and holding nothing (plain, until :func:`box_new`)."""
+    cdef PyObject* box = b.box
+    cdef Py_ssize_t n = b.n
+    b.box = NULL
+    b.p = NULL
+    b.n = 0
+    b.cap = 0
+    _PyBytes_Resize(&box, n)  # a failure frees it (never when shrinking on glibc)
+    data = <bytes>box  # a new reference; the box's own is given up below
+    Py_DECREF(data)
+    return data
+
+
+cdef void buf_free(Buf* b) noexcept:
+    """Free what ``b`` holds (its bytes object when boxed)."""
+    if b.box != NULL:
+        Py_XDECREF(b.box)
+        b.box = NULL
+    else:
+        free(b.p)
+    b.p = NULL
+    b.n = 0
+    b.cap = 0
 
 
 cdef inline int put(Buf* b, const char* s, Py_ssize_t n) except -1:
@@ -947,7 +1010,10 @@ cdef int put_op(Buf* o, _CRead cr, Op* op, const uint8_t* words) except -1:
 
 
 
-_HELD_SIGNALS = {_signal_mod.SIGINT, _signal_mod.SIGTERM}
+_HELD_SIGNALS = {int(_signal_mod.SIGINT), int(_signal_mod.SIGTERM)}
+# the C module under ``signal``: its pthread_sigmask takes and gives plain numbers, where
+# the ``signal`` module's makes enums of them (4.3 us against 1.5 a block handed over)
+_sigmask = getattr(_sys.modules.get("_signal", _signal_mod), "pthread_sigmask", None)
 
 
 def _hold_signals():
@@ -958,14 +1024,14 @@ def _hold_signals():
     if _threading.current_thread() is not _threading.main_thread():
         return None
     try:
-        return _signal_mod.pthread_sigmask(_signal_mod.SIG_BLOCK, _HELD_SIGNALS)
-    except (AttributeError, OSError, ValueError):
+        return _sigmask(_signal_mod.SIG_BLOCK, _HELD_SIGNALS)
+    except (TypeError, OSError, ValueError):  # TypeError: no pthread_sigmask here
         return None
 
 
 def _release_signals(before):
     if before is not None:
-        _signal_mod.pthread_sigmask(_signal_mod.SIG_SETMASK, before)
+        _sigmask(_signal_mod.SIG_SETMASK, before)
 
 
 cdef extern from *:
@@ -985,6 +1051,13 @@ cdef extern from *:
 
 
 cdef bint _heap_kept = False
+cdef size_t _block_at = 0  # where the last log block handed over was written (tests)
+
+
+def _last_block_at():
+    """Test-only: the address of the memory the core wrote its last handed-over log block
+    in (the start of its bytes object's data when it went without a copy)."""
+    return _block_at
 
 
 cdef void keep_heap():
@@ -1157,12 +1230,15 @@ cdef class _Pass:
         self.out.p = NULL
         self.out.n = 0
         self.out.cap = 0
+        self.out.box = NULL
         self.mc.p = NULL
         self.mc.n = 0
         self.mc.cap = 0
+        self.mc.box = NULL
         self.lnb.p = NULL
         self.lnb.n = 0
         self.lnb.cap = 0
+        self.lnb.box = NULL
 
     def __dealloc__(self):
         cdef int i, d
@@ -1176,7 +1252,7 @@ cdef class _Pass:
         free(self.table)
         free(self.sp)
         free(self.out.p)
-        free(self.mc.p)
+        buf_free(&self.mc)
         free(self.lnb.p)
         free(self.marks)
 
@@ -1839,6 +1915,9 @@ cdef class _Pass:
         self.mcap = sink
         self.mlayout = sink.layout
         keep_heap()
+        if self.mc.box == NULL and self.mc.n == 0:
+            buf_free(&self.mc)
+            box_new(&self.mc, BLOCK_ROOM)
         channels = self.mlayout.channels
         self.ch_raw = channels[TOPIC_RAW]
         self.ch_frames = channels[TOPIC_FRAMES]
@@ -1915,18 +1994,32 @@ cdef class _Pass:
         the block here, for :meth:`finish_log`), so a signal can never land inside the
         sink's Python code before it took the block (a block lost, lines printed that
         the log does not hold)."""
+        global _block_at
         if self.mc.n == 0:
             return 0
         blocked = _hold_signals()
         try:
             PyErr_CheckSignals()
             self.sync_totals()
-            data = PyBytes_FromStringAndSize(self.mc.p, self.mc.n)
-            self.mcap.put_packed(data, self.mc_first, self.mc_last, self.totals.copy())
-            self.mc.n = 0
-            self.mc_done = 0
-            self.mc_any = False
+            totals = self.totals.copy()
             self.mr_at = -1  # handed over: no frame takes its chunk's message back now
+            _block_at = <size_t>self.mc.p
+            if self.mc.box != NULL and self.mc.n >= HAND_WHOLE:
+                # the bytes object the block was written in goes to the sink as it is
+                # (handed over once: the core keeps nothing of it, whatever the sink
+                # does), and the next block gets a fresh one once the sink is done
+                data = box_take(&self.mc)
+                self.mc_done = 0
+                self.mc_any = False
+                self.mcap.put_packed(data, self.mc_first, self.mc_last, totals)
+                data = None  # written: the next block may reuse its memory
+                box_new(&self.mc, BLOCK_ROOM)
+            else:  # a short block (a live run's read, the last one): copied, room kept
+                data = PyBytes_FromStringAndSize(self.mc.p, self.mc.n)
+                self.mcap.put_packed(data, self.mc_first, self.mc_last, totals)
+                self.mc.n = 0
+                self.mc_done = 0
+                self.mc_any = False
         finally:
             _release_signals(blocked)
         return 0
@@ -2149,6 +2242,7 @@ cdef class _Pass:
             t.p = self.mon_sec_text
             t.n = 0
             t.cap = 48  # 20 + at most 20 digits + 8: never grown
+            t.box = NULL
             put(&t, b'{"timestamp":{"sec":', 20)
             put_u(&t, sec)
             put(&t, b',"nsec":', 8)
@@ -4081,12 +4175,33 @@ def _round3(double v):
     return round3_exact(v)
 
 
+def _boxed(list pieces, Py_ssize_t room):
+    """Test-only entry: ``pieces`` written one after the other into a boxed ``Buf`` of
+    ``room`` bytes (grown as a log block is: ``box_grow``), and the bytes object it was
+    written in, as :func:`box_take` hands it over (its address: the second member)."""
+    cdef Buf b
+    b.p = NULL
+    b.n = 0
+    b.cap = 0
+    b.box = NULL
+    cdef size_t at
+    try:
+        box_new(&b, room)
+        for piece in pieces:
+            put_bytes(&b, piece)
+        at = <size_t>b.p
+        return box_take(&b), at
+    finally:
+        buf_free(&b)
+
+
 def _json_round3(double v):
     """Test-only entry: the JSON number a line's ``latency_ms`` gets (``put_json_round3``)."""
     cdef Buf b
     b.p = NULL
     b.n = 0
     b.cap = 0
+    b.box = NULL
     try:
         put_json_round3(&b, v)
         return PyBytes_FromStringAndSize(b.p, b.n)

@@ -32,14 +32,17 @@ from __future__ import annotations
 
 import signal
 import struct
+import sys
 import threading
 import time
 import zlib
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
+
+#: the C module under ``signal`` (CPython's ``signal`` imports it), else ``signal`` itself
+_signal_c: Any = sys.modules.get("_signal", signal)
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 #: the head of a message record: opcode, length, channel, sequence, log time, publish time
@@ -47,6 +50,17 @@ MESSAGE_HEAD = struct.Struct("<BQHIQQ")
 OP_MESSAGE = 0x05
 _CHUNK_HEAD = struct.Struct("<BQQQQII")  # opcode, length, start, end, size, crc, name length
 _U64 = struct.Struct("<Q")
+_U32 = struct.Struct("<I")
+_RECORD_HEAD = struct.Struct("<BQ")  # opcode, length
+#: a chunk index record up to its compression's name: opcode, length, start, end, the
+#: chunk's offset and length, an empty message index map, its length (0), the name's length
+_CHUNK_INDEX_HEAD = struct.Struct("<BQQQQQIQI")
+_SIZES = struct.Struct("<QQ")  # a chunk index's compressed and uncompressed sizes
+# MCAP opcodes (the spec's; the same as ``mcap.opcode.Opcode``)
+OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL = 0x01, 0x02, 0x03, 0x04
+OP_CHUNK, OP_CHUNK_INDEX, OP_ATTACHMENT, OP_ATTACHMENT_INDEX = 0x06, 0x08, 0x09, 0x0A
+OP_STATISTICS, OP_METADATA, OP_METADATA_INDEX = 0x0B, 0x0C, 0x0D
+OP_SUMMARY_OFFSET, OP_DATA_END = 0x0E, 0x0F
 #: the largest log time a message record holds (ns since the epoch, about the year 2554)
 MAX_LOG_TIME = (1 << 64) - 1
 #: chunk compression level. Compression is most of a log's cost once records are made
@@ -58,20 +72,31 @@ FLUSH_EVERY = 0.5  # seconds of wall time between chunk flushes (at most 1 s is 
 CHUNK_SIZE = 1 << 20
 _READY_MAX = 4  # closed chunks waiting for the writer thread before the caller waits
 _SIGNALS = (signal.SIGINT, signal.SIGTERM)
+#: the C module's ``signal()``: ``signal.signal`` converts its arguments and result to
+#: and from enums (an exception raised and caught for a Python handler), about 4 us a
+#: call, four calls a chunk written
+_set_handler: Callable[[int, Any], Any] = getattr(_signal_c, "signal", signal.signal)
+_SIGNAL_NUMBERS = tuple(int(sig) for sig in _SIGNALS)
 
 #: makes waiting items into message records:
 #: ``convert(items, state) -> (records, first log time, last log time, new state)``
 Converter = Callable[[list[Any], Any], tuple[list[bytes], int, int, Any]]
 
 
-@dataclass(frozen=True, slots=True)
 class PendingChunk:
     """A closed chunk's uncompressed records (in pieces, joined when written) and time range,
-    waiting to be written."""
+    waiting to be written. (A plain class: a dataclass costs every ``-w`` run about
+    0.5 ms of start-up to make.)"""
 
-    data: list[bytes]
-    start: int
-    end: int
+    __slots__ = ("data", "end", "start")
+
+    def __init__(self, data: list[bytes], start: int, end: int) -> None:
+        self.data = data
+        self.start = start
+        self.end = end
+
+    def __repr__(self) -> str:
+        return f"PendingChunk({len(self.data)} pieces, {self.start}..{self.end})"
 
 
 def _pick_compression() -> tuple[str, Callable[[bytes], bytes] | None]:
@@ -94,27 +119,53 @@ def _pick_compression() -> tuple[str, Callable[[bytes], bytes] | None]:
         return "", None
 
 
+def _record(opcode: int, *body: bytes) -> bytes:
+    """One MCAP record: its opcode, its length and its body (the pieces joined)."""
+    data = b"".join(body)
+    return _RECORD_HEAD.pack(opcode, len(data)) + data
+
+
+def _text(value: str) -> bytes:
+    """An MCAP string: its UTF-8 length (u32), then its bytes."""
+    data = value.encode()
+    return _U32.pack(len(data)) + data
+
+
+def _texts(pairs: dict[str, str]) -> bytes:
+    """An MCAP map of strings to strings: its length in bytes (u32), then the pairs."""
+    data = b"".join(_text(k) + _text(v) for k, v in pairs.items())
+    return _U32.pack(len(data)) + data
+
+
+def _counts(counts: dict[int, int]) -> bytes:
+    """An MCAP map of channel ids (u16) to counts (u64)."""
+    data = b"".join(struct.pack("<HQ", k, v) for k, v in counts.items())
+    return _U32.pack(len(data)) + data
+
+
 class McapFileWriter:
-    """An MCAP writer for many small messages, built on the ``mcap`` package's records.
+    """An MCAP writer for many small messages, byte for byte the ``mcap`` package's layout.
 
     ``mcap.writer.Writer`` spends about 20 us of Python per message (a record
     object, a message index entry, eight small writes); here a message record is
     one ``struct.pack`` of its head and its data, handed over in batches
     (:meth:`take_from`) into the open chunk, a list of pieces joined once when
-    the chunk is written, and the ``mcap`` package writes every other record
-    (header, schemas, channels, chunks, metadata, attachments, statistics,
-    indexes, footer), laid out as
-    ``Writer.finish`` does. Schemas and channels are written once, before the
+    the chunk is written, and every other record (header, schemas, channels,
+    chunks, metadata, attachments, statistics, indexes, footer) is packed here as
+    the ``mcap`` package's records write themselves, laid out as
+    ``Writer.finish`` does (the package is not imported to write: its record
+    classes cost a run about 6 ms of start-up, and a chunk's index record through
+    them about 20 us). Schemas and channels are written once, before the
     first chunk and outside it, so that every chunk of a file cut short can be
     read on its own. No message index records are written (readers scan a
     chunk without them); chunk, metadata and attachment indexes are.
     """
 
     def __init__(self, stream: IO[bytes], *, chunk_size: int = 1 << 20) -> None:
-        from mcap.data_stream import RecordBuilder
-
         self._f = stream
-        self._rb = RecordBuilder()
+        #: where the next record starts (the stream's position, counted here: no
+        #: ``tell()``, a system call, per chunk)
+        self._pos = stream.tell()
         self.compression, self._compress = _pick_compression()
         self.chunk_size = chunk_size
         #: the open chunk: its message records in pieces, joined once when it is written
@@ -123,82 +174,73 @@ class McapFileWriter:
         self._size = 0  # bytes in _parts
         self._chunk_start = 0
         self._chunk_end = 0
-        self._schemas: list[Any] = []
-        self._channels: list[Any] = []
+        self._schemas: list[bytes] = []  # Schema records, serialized
+        self._channels: list[bytes] = []  # Channel records, serialized
         self._counts: dict[int, int] = {}
         self._start_time = 0
         self._end_time = 0
         self._chunk_indexes: list[bytes] = []  # ChunkIndex records, serialized
-        self._metadata_indexes: list[Any] = []
-        self._attachment_indexes: list[Any] = []
+        self._metadata_indexes: list[bytes] = []  # MetadataIndex records, serialized
+        self._attachment_indexes: list[bytes] = []  # AttachmentIndex records, serialized
         #: the converter's state as of the last messages that entered the chunks
         #: (see :meth:`take_from`); ``None`` until then
         self.state: Any = None
 
-    def _emit(self) -> None:
-        self._f.write(self._rb.end())
+    def _put(self, data: bytes) -> None:
+        """Write ``data`` at the end of the file (and count it in :attr:`_pos`)."""
+        self._f.write(data)
+        self._pos += len(data)
 
     def start(self, library: str) -> None:
-        from mcap.records import Header
-
-        self._f.write(MCAP_MAGIC)
-        Header(profile="", library=library).write(self._rb)
-        self._emit()
+        self._put(MCAP_MAGIC + _record(OP_HEADER, _text(""), _text(library)))
 
     def register_schema(self, name: str, encoding: str, data: bytes) -> int:
-        from mcap.records import Schema
-
-        schema = Schema(id=len(self._schemas) + 1, name=name, encoding=encoding, data=data)
-        self._schemas.append(schema)
-        schema.write(self._rb)
-        self._emit()
-        return int(schema.id)
+        schema_id = len(self._schemas) + 1
+        record = _record(
+            OP_SCHEMA, struct.pack("<H", schema_id), _text(name), _text(encoding),
+            _U32.pack(len(data)), data,
+        )  # fmt: skip
+        self._schemas.append(record)
+        self._put(record)
+        return schema_id
 
     def register_channel(self, topic: str, message_encoding: str, schema_id: int) -> int:
-        from mcap.records import Channel
-
-        channel = Channel(
-            id=len(self._channels) + 1,
-            topic=topic,
-            message_encoding=message_encoding,
-            schema_id=schema_id,
-            metadata={},
-        )
-        self._channels.append(channel)
-        self._counts[channel.id] = 0
-        channel.write(self._rb)
-        self._emit()
-        return int(channel.id)
+        channel_id = len(self._channels) + 1
+        record = _record(
+            OP_CHANNEL, struct.pack("<HH", channel_id, schema_id), _text(topic),
+            _text(message_encoding), _texts({}),
+        )  # fmt: skip
+        self._channels.append(record)
+        self._counts[channel_id] = 0
+        self._put(record)
+        return channel_id
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
-        from mcap.records import Metadata, MetadataIndex
-
-        offset = self._f.tell()
-        Metadata(name=name, metadata=data).write(self._rb)
-        length = self._rb.count
-        self._emit()
-        self._metadata_indexes.append(MetadataIndex(offset=offset, length=length, name=name))
+        offset = self._pos
+        record = _record(OP_METADATA, _text(name), _texts(data))
+        self._put(record)
+        self._metadata_indexes.append(
+            _record(OP_METADATA_INDEX, _SIZES.pack(offset, len(record)), _text(name))
+        )
 
     def add_attachment(
         self, create_time: int, log_time: int, name: str, media_type: str, data: bytes
     ) -> None:
-        from mcap.records import Attachment, AttachmentIndex
-
-        offset = self._f.tell()
-        Attachment(
-            create_time=create_time, log_time=log_time, name=name, media_type=media_type, data=data
-        ).write(self._rb)
-        length = self._rb.count
-        self._emit()
+        offset = self._pos
+        body = b"".join(
+            (_SIZES.pack(log_time, create_time), _text(name), _text(media_type),
+             _U64.pack(len(data)), data)
+        )  # fmt: skip
+        record = _record(OP_ATTACHMENT, body, _U32.pack(zlib.crc32(body)))
+        self._put(record)
         self._attachment_indexes.append(
-            AttachmentIndex(
-                offset=offset,
-                length=length,
-                create_time=create_time,
-                log_time=log_time,
-                data_size=len(data),
-                name=name,
-                media_type=media_type,
+            _record(
+                OP_ATTACHMENT_INDEX,
+                _SIZES.pack(offset, len(record)),
+                _SIZES.pack(log_time, create_time),
+                _U64.pack(len(data)),
+                _text(name),
+                _text(media_type),
             )
         )
 
@@ -298,10 +340,10 @@ class McapFileWriter:
         ready += (chunk,)
 
     def write_chunk(self, pending: PendingChunk) -> None:
-        """Compress and write a detached chunk, and index it (chunks in order)."""
-        from mcap.data_stream import RecordBuilder
-        from mcap.records import ChunkIndex
+        """Compress and write a detached chunk, and index it (chunks in order).
 
+        A chunk of one piece (a block of the compiled core) is compressed where it is:
+        ``b"".join`` of one bytes object returns that object."""
         data = b"".join(pending.data)  # copies without the GIL from 1 MiB on
         if self._chunk_indexes:
             self._start_time = min(self._start_time, pending.start)
@@ -319,24 +361,26 @@ class McapFileWriter:
             0 if self.compression == "zstd" else zlib.crc32(data),  # zstd: its checksum
             len(name),
         )
-        offset = self._f.tell()
-        self._f.write(head + name + _U64.pack(len(packed)))
-        self._f.write(packed)
+        offset = self._pos
+        self._put(head + name + _U64.pack(len(packed)))
+        self._put(packed)
         # kept as its record's bytes until the summary: one a chunk for the whole run,
         # about 100 bytes instead of a ChunkIndex object's 320 (a long proxy -w run)
-        index = RecordBuilder()
-        ChunkIndex(
-            message_start_time=pending.start,
-            message_end_time=pending.end,
-            chunk_start_offset=offset,
-            chunk_length=len(head) + len(name) + 8 + len(packed),
-            message_index_offsets={},
-            message_index_length=0,
-            compression=self.compression,
-            compressed_size=len(packed),
-            uncompressed_size=len(data),
-        ).write(index)
-        self._chunk_indexes.append(index.end())
+        self._chunk_indexes.append(
+            _CHUNK_INDEX_HEAD.pack(
+                OP_CHUNK_INDEX,
+                8 + 8 + 8 + 8 + 4 + 8 + 4 + len(name) + 8 + 8,
+                pending.start,
+                pending.end,
+                offset,
+                len(head) + len(name) + 8 + len(packed),
+                0,  # no message indexes
+                0,
+                len(name),
+            )
+            + name
+            + _SIZES.pack(len(packed), len(data))
+        )
 
     def close_chunk(self) -> None:
         """Compress and write the open chunk, if it holds any message."""
@@ -351,55 +395,46 @@ class McapFileWriter:
 
     def finish(self) -> None:
         """Write the summary section (as ``mcap.writer.Writer.finish`` lays it out) and footer."""
-        from mcap.data_stream import RecordBuilder
-        from mcap.opcode import Opcode
-        from mcap.records import DataEnd, Footer, Statistics, SummaryOffset
-
         self.close_chunk()
-        DataEnd(data_section_crc=0).write(self._rb)
-        self._emit()
-        summary_start = self._f.tell()
-        b = RecordBuilder()
-        offsets: list[SummaryOffset] = []
-        stats = Statistics(
-            message_count=sum(self._counts.values()),
-            schema_count=len(self._schemas),
-            channel_count=len(self._channels),
-            attachment_count=len(self._attachment_indexes),
-            metadata_count=len(self._metadata_indexes),
-            chunk_count=len(self._chunk_indexes),
-            message_start_time=self._start_time,
-            message_end_time=self._end_time,
-            channel_message_counts=dict(self._counts),
+        self._put(_record(OP_DATA_END, _U32.pack(0)))
+        summary_start = self._pos
+        stats = _record(
+            OP_STATISTICS,
+            struct.pack(
+                "<QHIIIIQQ",
+                sum(self._counts.values()),
+                len(self._schemas),
+                len(self._channels),
+                len(self._attachment_indexes),
+                len(self._metadata_indexes),
+                len(self._chunk_indexes),
+                self._start_time,
+                self._end_time,
+            ),
+            _counts(self._counts),
         )
-        groups: tuple[tuple[int, list[Any]], ...] = (
-            (Opcode.SCHEMA, self._schemas),
-            (Opcode.CHANNEL, self._channels),
-            (Opcode.STATISTICS, [stats]),
-            (Opcode.CHUNK_INDEX, self._chunk_indexes),
-            (Opcode.ATTACHMENT_INDEX, self._attachment_indexes),
-            (Opcode.METADATA_INDEX, self._metadata_indexes),
+        groups: tuple[tuple[int, list[bytes]], ...] = (
+            (OP_SCHEMA, self._schemas),
+            (OP_CHANNEL, self._channels),
+            (OP_STATISTICS, [stats]),
+            (OP_CHUNK_INDEX, self._chunk_indexes),
+            (OP_ATTACHMENT_INDEX, self._attachment_indexes),
+            (OP_METADATA_INDEX, self._metadata_indexes),
         )
+        parts: list[bytes] = []
+        offsets: list[bytes] = []
+        size = 0
         for opcode, records in groups:
-            start = b.count
-            for record in records:
-                if type(record) is bytes:  # a chunk index, written already
-                    b.write(record)
-                else:
-                    record.write(b)
-            offsets.append(SummaryOffset(opcode, summary_start + start, b.count - start))
-        offset_start = summary_start + b.count
-        for offset in offsets:
-            offset.write(b)
-        summary = b.end()
-        crc = zlib.crc32(summary)
-        crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, offset_start), crc)
-        self._f.write(summary)
-        Footer(
-            summary_start=summary_start, summary_offset_start=offset_start, summary_crc=crc
-        ).write(self._rb)
-        self._emit()
-        self._f.write(MCAP_MAGIC)
+            length = sum(map(len, records))
+            parts += records
+            group = struct.pack("<BQQ", opcode, summary_start + size, length)
+            offsets.append(_record(OP_SUMMARY_OFFSET, group))
+            size += length
+        offset_start = summary_start + size
+        summary = b"".join(parts + offsets)
+        footer = _RECORD_HEAD.pack(OP_FOOTER, 20) + _SIZES.pack(summary_start, offset_start)
+        crc = zlib.crc32(footer, zlib.crc32(summary))
+        self._put(summary + footer + _U32.pack(crc) + MCAP_MAGIC)
         self._f.flush()
 
 
@@ -637,16 +672,16 @@ def _signals_deferred() -> Iterator[None]:
         yield
         return
     caught: list[int] = []
-    old: dict[signal.Signals, Any] = {}
+    old: dict[int, Any] = {}
     try:
-        for sig in _SIGNALS:
-            old[sig] = signal.signal(sig, lambda signum, frame: caught.append(signum))
+        for sig in _SIGNAL_NUMBERS:
+            old[sig] = _set_handler(sig, lambda signum, frame: caught.append(signum))
     except (OSError, ValueError):  # not allowed here: go without
         pass
     try:
         yield
     finally:
         for sig, handler in old.items():
-            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
+            _set_handler(sig, handler if handler is not None else signal.SIG_DFL)
         if caught:
             signal.raise_signal(caught[0])
