@@ -71,6 +71,18 @@ def adus(pairs: list[tuple[bytes, bytes]], unit: int = 1) -> list[tuple[bool, by
     return out
 
 
+def polling_capture(path: Path, pairs: int) -> Path:
+    """A capture of ``pairs`` reads of ten holding registers and their answers, values
+    changing every poll (one ADU per segment): logs of several ~1 MiB blocks."""
+    segments: list[tuple[bool, bytes]] = []
+    for i in range(pairs):
+        tid = i % 65536
+        values = [(i * 7 + k * 13) & 0xFFFF for k in range(10)]
+        segments.append((True, encode_adu(tid, 1, encode_read_request(3, 100, 10))))
+        segments.append((False, encode_adu(tid, 1, encode_read_response(3, values))))
+    return write_conversation(path, segments)
+
+
 def write_conversation(
     path: Path,
     segments: list[tuple[bool, bytes]],

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from core_diff import require_core
-from gen import write_conversation
+from gen import polling_capture
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from mcap.reader import make_reader
@@ -25,8 +25,6 @@ from mcap_diff import _context
 
 from mbmon import core
 from mbmon.format import View
-from mbmon.protocol.mbap import encode_adu
-from mbmon.protocol.pdu import encode_read_request, encode_read_response
 from mbmon.sinks.mcap import McapSink
 from mbmon.timefmt import TimeFormat
 
@@ -35,13 +33,7 @@ DATA_AT = bytes.__basicsize__ - 1  # where a bytes object's data starts (CPython
 
 
 def _capture(tmp: Path) -> Path:
-    segments: list[tuple[bool, bytes]] = []
-    for i in range(PAIRS):
-        tid = i % 65536
-        values = [(i * 7 + k * 13) & 0xFFFF for k in range(10)]
-        segments.append((True, encode_adu(tid, 1, encode_read_request(3, 100, 10))))
-        segments.append((False, encode_adu(tid, 1, encode_read_response(3, values))))
-    return write_conversation(tmp / "many.pcap", segments)
+    return polling_capture(tmp / "many.pcap", PAIRS)
 
 
 def test_blocks_reach_zstd_where_the_core_wrote_them(tmp_path: Path) -> None:

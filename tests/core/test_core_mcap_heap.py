@@ -14,10 +14,7 @@ from pathlib import Path
 
 import pytest
 from core_diff import ROOT, require_core
-from gen import write_conversation
-
-from mbmon.protocol.mbap import encode_adu
-from mbmon.protocol.pdu import encode_read_request, encode_read_response
+from gen import polling_capture
 
 ENV = {**os.environ, "PYTHONPATH": str(ROOT), "TZ": "UTC"}
 PAIRS = 40_000
@@ -36,13 +33,7 @@ def _faults(args: list[str]) -> int:
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's heap tuning")
 def test_log_blocks_reuse_memory(tmp_path: Path) -> None:
     require_core()
-    segments: list[tuple[bool, bytes]] = []
-    for i in range(PAIRS):
-        tid = i % 65536
-        values = [(i * 7 + k * 13) & 0xFFFF for k in range(10)]
-        segments.append((True, encode_adu(tid, 1, encode_read_request(3, 100, 10))))
-        segments.append((False, encode_adu(tid, 1, encode_read_response(3, values))))
-    src = write_conversation(tmp_path / "many.pcap", segments)
+    src = polling_capture(tmp_path / "many.pcap", PAIRS)
     log = tmp_path / "x.mcap"
     bare = _faults([str(src), "-q"])
     logged = _faults([str(src), "-q", "-w", str(log)])
